@@ -1,0 +1,233 @@
+// ccmd_eval: evaluation tools over standard files.
+//   ate    absolute trajectory error (evo_ape tum -a)
+//   rpe    relative pose error
+//   recon  reconstruction error between two PLY clouds
+//   split  split-replay segments of a sequence
+
+#include <CLI/CLI.hpp>
+#include <cstdio>
+
+#include "apps/app_common.h"
+#include "libccmd/eval/reconstruction_error.h"
+#include "libccmd/eval/trajectory_error.h"
+#include "libccmd/io/ply.h"
+#include "libccmd/io/split.h"
+#include "libccmd/io/tum_dataset.h"
+#include "libccmd/sensors/source_factory.h"
+#include "libccmd/util/json.h"
+
+namespace {
+
+int Fail(const ccmd::Status& status) {
+  std::fprintf(stderr, "ccmd_eval: %s\n", status.ToString().c_str());
+  return 1;
+}
+
+ccmd::Json StatsJson(const ccmd::ErrorStatistics& s) {
+  ccmd::Json j;
+  j["rmse"] = s.rmse;
+  j["mean"] = s.mean;
+  j["median"] = s.median;
+  j["std"] = s.std;
+  j["min"] = s.min;
+  j["max"] = s.max;
+  return j;
+}
+
+int RunAte(const std::string& gt_path, const std::string& est_path, const std::string& json_path,
+           double max_diff, bool scale, const std::string& aligned_out) {
+  auto gt = ccmd::ReadTumTrajectory(gt_path);
+  if (!gt.ok()) return Fail(gt.status());
+  auto est = ccmd::ReadTumTrajectory(est_path);
+  if (!est.ok()) return Fail(est.status());
+  ccmd::AteOptions options;
+  options.max_time_difference = max_diff;
+  options.correct_scale = scale;
+  auto ate = ccmd::ComputeAte(*gt, *est, options);
+  if (!ate.ok()) return Fail(ate.status());
+  std::printf("ATE  matched %zu of %zu poses\n", ate->matched, est->size());
+  std::printf("     rmse %.4f m  mean %.4f m  median %.4f m  std %.4f m  max %.4f m\n",
+              ate->error.rmse, ate->error.mean, ate->error.median, ate->error.std, ate->error.max);
+  if (scale) std::printf("     scale %.5f\n", ate->alignment.scale);
+  if (!json_path.empty()) {
+    ccmd::Json j;
+    j["ate_rmse_m"] = ate->error.rmse;
+    j["ate_mean_m"] = ate->error.mean;
+    j["ate_median_m"] = ate->error.median;
+    j["ate_std_m"] = ate->error.std;
+    j["ate_min_m"] = ate->error.min;
+    j["ate_max_m"] = ate->error.max;
+    j["matched"] = ate->matched;
+    j["estimated_poses"] = est->size();
+    j["scale"] = ate->alignment.scale;
+    const ccmd::Status s = ccmd::WriteJsonFile(j, json_path);
+    if (!s.ok()) return Fail(s);
+  }
+  if (!aligned_out.empty()) {
+    const ccmd::Status s = ccmd::WriteTumTrajectory(
+        ccmd::TransformTrajectory(*est, ate->alignment), aligned_out, "aligned to " + gt_path);
+    if (!s.ok()) return Fail(s);
+  }
+  return 0;
+}
+
+int RunRpe(const std::string& gt_path, const std::string& est_path, const std::string& json_path,
+           double max_diff, int delta) {
+  auto gt = ccmd::ReadTumTrajectory(gt_path);
+  if (!gt.ok()) return Fail(gt.status());
+  auto est = ccmd::ReadTumTrajectory(est_path);
+  if (!est.ok()) return Fail(est.status());
+  ccmd::RpeOptions options;
+  options.max_time_difference = max_diff;
+  options.delta_frames = delta;
+  auto rpe = ccmd::ComputeRpe(*gt, *est, options);
+  if (!rpe.ok()) return Fail(rpe.status());
+  std::printf("RPE  %zu pairs, delta %d frames\n", rpe->pairs, delta);
+  std::printf("     translation rmse %.4f m  mean %.4f m  max %.4f m\n", rpe->translation.rmse,
+              rpe->translation.mean, rpe->translation.max);
+  std::printf("     rotation    rmse %.3f deg mean %.3f deg max %.3f deg\n", rpe->rotation.rmse,
+              rpe->rotation.mean, rpe->rotation.max);
+  if (!json_path.empty()) {
+    ccmd::Json j;
+    j["pairs"] = rpe->pairs;
+    j["delta_frames"] = delta;
+    j["translation_m"] = StatsJson(rpe->translation);
+    j["rotation_deg"] = StatsJson(rpe->rotation);
+    const ccmd::Status s = ccmd::WriteJsonFile(j, json_path);
+    if (!s.ok()) return Fail(s);
+  }
+  return 0;
+}
+
+int RunRecon(const std::string& ref_path, const std::string& rec_path, const std::string& json_path,
+             const std::string& gt_traj, const std::string& est_traj, bool point_to_point,
+             double completeness_threshold) {
+  auto ref = ccmd::ReadPly(ref_path);
+  if (!ref.ok()) return Fail(ref.status());
+  auto rec = ccmd::ReadPly(rec_path);
+  if (!rec.ok()) return Fail(rec.status());
+  if (!gt_traj.empty() || !est_traj.empty()) {
+    // The map is in the estimate's world frame: move it into the ground truth's with the
+    // trajectory alignment, as the ATE does.
+    if (gt_traj.empty() || est_traj.empty()) {
+      return Fail(ccmd::InvalidArgument("--gt-traj and --est-traj go together"));
+    }
+    auto gt = ccmd::ReadTumTrajectory(gt_traj);
+    if (!gt.ok()) return Fail(gt.status());
+    auto est = ccmd::ReadTumTrajectory(est_traj);
+    if (!est.ok()) return Fail(est.status());
+    auto ate = ccmd::ComputeAte(*gt, *est);
+    if (!ate.ok()) return Fail(ate.status());
+    for (auto& p : rec->points) p = (ate->alignment * p.cast<double>()).cast<float>();
+    std::printf("aligned the reconstruction with the trajectory (ATE rmse %.4f m)\n", ate->error.rmse);
+  }
+  ccmd::ReconstructionOptions options;
+  options.point_to_plane = !point_to_point;
+  options.completeness_threshold = completeness_threshold;
+  auto error = ccmd::ComputeReconstructionError(*ref, *rec, options);
+  if (!error.ok()) return Fail(error.status());
+  std::printf("reconstruction %zu points vs reference %zu points (%s)\n", error->reconstructed_points,
+              error->reference_points, error->point_to_plane ? "point-to-plane" : "point-to-point");
+  std::printf("  rec->ref mean %.4f m  median %.4f m  p95 %.4f m  max %.4f m\n", error->mean,
+              error->median, error->p95, error->max);
+  std::printf("  ref->rec mean %.4f m  max %.4f m  completeness %.1f%% within %.3f m\n",
+              error->mean_reverse, error->max_reverse, 100 * error->completeness,
+              completeness_threshold);
+  std::printf("  hausdorff %.4f m\n", error->hausdorff);
+  if (!json_path.empty()) {
+    ccmd::Json j;
+    j["mean_m"] = error->mean;
+    j["median_m"] = error->median;
+    j["rmse_m"] = error->rmse;
+    j["p95_m"] = error->p95;
+    j["max_m"] = error->max;
+    j["mean_reverse_m"] = error->mean_reverse;
+    j["max_reverse_m"] = error->max_reverse;
+    j["completeness"] = error->completeness;
+    j["completeness_threshold_m"] = completeness_threshold;
+    j["hausdorff_m"] = error->hausdorff;
+    j["reconstructed_points"] = error->reconstructed_points;
+    j["reference_points"] = error->reference_points;
+    j["point_to_plane"] = error->point_to_plane;
+    const ccmd::Status s = ccmd::WriteJsonFile(j, json_path);
+    if (!s.ok()) return Fail(s);
+  }
+  return 0;
+}
+
+int RunSplit(int frames, const std::string& dataset, const std::string& config, int agents,
+             double overlap) {
+  if (!dataset.empty()) {
+    ccmd::SourceOptions options;
+    options.camera_config = config;
+    options.configs_dir = ccmd::app::ConfigDir();
+    auto source = ccmd::OpenSource("tum:" + dataset, options);
+    if (!source.ok()) return Fail(source.status());
+    frames = (*source)->FrameCount();
+  }
+  if (frames <= 0) return Fail(ccmd::InvalidArgument("give --frames N or --dataset DIR"));
+  auto segments = ccmd::SplitWithOverlap(frames, agents, overlap);
+  if (!segments.ok()) return Fail(segments.status());
+  for (const auto& s : *segments) std::printf("%d %d\n", s.first, s.last);
+  return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"CCMD evaluation tools: trajectory error, reconstruction error, split ranges."};
+  app.require_subcommand(1);
+
+  std::string gt, est, json, aligned_out;
+  double max_diff = 0.01;
+  bool scale = false;
+  auto* ate = app.add_subcommand("ate", "Absolute trajectory error after rigid alignment (evo_ape tum -a)");
+  ate->add_option("--gt", gt, "Ground-truth trajectory (TUM format)")->required();
+  ate->add_option("--est", est, "Estimated trajectory (TUM format)")->required();
+  ate->add_option("--json", json, "Write the figures as JSON");
+  ate->add_option("--max-diff", max_diff, "Timestamp matching tolerance (s)")->capture_default_str();
+  ate->add_flag("--correct-scale", scale, "Similarity alignment (monocular)");
+  ate->add_option("--aligned-out", aligned_out, "Write the aligned estimate (TUM format)");
+
+  int delta = 1;
+  auto* rpe = app.add_subcommand("rpe", "Relative pose error");
+  rpe->add_option("--gt", gt, "Ground-truth trajectory")->required();
+  rpe->add_option("--est", est, "Estimated trajectory")->required();
+  rpe->add_option("--json", json, "Write the figures as JSON");
+  rpe->add_option("--max-diff", max_diff, "Timestamp matching tolerance (s)")->capture_default_str();
+  rpe->add_option("--delta", delta, "Frames between compared poses")->capture_default_str();
+
+  std::string ref, rec, gt_traj, est_traj;
+  bool point_to_point = false;
+  double completeness_threshold = 0.02;
+  auto* recon = app.add_subcommand("recon", "Reconstruction error between two PLY clouds");
+  recon->add_option("--ref", ref, "Reference cloud (e.g. surface.ply)")->required();
+  recon->add_option("--rec", rec, "Reconstructed cloud (e.g. map.ply)")->required();
+  recon->add_option("--json", json, "Write the figures as JSON");
+  recon->add_option("--gt-traj", gt_traj, "Ground-truth trajectory, to align the map first");
+  recon->add_option("--est-traj", est_traj, "Estimated trajectory the map was built with");
+  recon->add_flag("--point-to-point", point_to_point, "Ignore reference normals");
+  recon->add_option("--completeness-threshold", completeness_threshold,
+                    "Distance (m) within which a reference point counts as covered")
+      ->capture_default_str();
+
+  int frames = 0, agents = 2;
+  double overlap = 0.1;
+  std::string dataset, config;
+  auto* split = app.add_subcommand("split", "Print split-replay segments: one 'first last' line each (0-based, inclusive)");
+  split->add_option("--frames", frames, "Number of frames");
+  split->add_option("--dataset", dataset, "Count the frames of this TUM-layout folder");
+  split->add_option("--config", config, "Camera config for --dataset");
+  split->add_option("--agents", agents, "Number of segments")->required()->check(CLI::Range(1, 64));
+  split->add_option("--overlap", overlap, "Overlap as a fraction of the segment length")
+      ->capture_default_str();
+
+  CLI11_PARSE(app, argc, argv);
+  if (*ate) return RunAte(gt, est, json, max_diff, scale, aligned_out);
+  if (*rpe) return RunRpe(gt, est, json, max_diff, delta);
+  if (*recon) {
+    return RunRecon(ref, rec, json, gt_traj, est_traj, point_to_point, completeness_threshold);
+  }
+  if (*split) return RunSplit(frames, dataset, config, agents, overlap);
+  return 1;
+}

@@ -1,0 +1,53 @@
+// ccmd_synth: renders a synthetic RGB-D sequence of a textured room with exact ground truth,
+// in the TUM RGB-D layout, plus the ground-truth surface for reconstruction error.
+
+#include <CLI/CLI.hpp>
+#include <cstdio>
+
+#include "apps/app_common.h"
+#include "libccmd/synth/sequence.h"
+#include "libccmd/util/logging.h"
+
+int main(int argc, char** argv) {
+  CLI::App app{
+      "Render a synthetic RGB-D sequence (TUM layout) of a textured room with exact ground truth.\n"
+      "Writes rgb/, depth/, rgb.txt, depth.txt, groundtruth.txt, camera.yaml and surface.ply."};
+  ccmd::SyntheticSequenceOptions options;
+  std::string out;
+  bool no_noise = false;
+  app.add_option("--out", out, "Output folder (created if missing)")->required();
+  app.add_option("--frames", options.frames, "Number of frames")->check(CLI::Range(1, 1000000))
+      ->capture_default_str();
+  app.add_option("--seed", options.seed, "Scene and noise seed")->capture_default_str();
+  app.add_option("--width", options.width, "Image width")->check(CLI::Range(32, 4096))
+      ->capture_default_str();
+  app.add_option("--height", options.height, "Image height")->check(CLI::Range(24, 4096))
+      ->capture_default_str();
+  app.add_option("--fps", options.fps, "Frame rate")->check(CLI::PositiveNumber)->capture_default_str();
+  app.add_option("--noise", options.noise_scale, "Noise scale (1 = default sensor model)")
+      ->check(CLI::NonNegativeNumber)->capture_default_str();
+  app.add_flag("--no-noise", no_noise, "Exact depth and colour");
+  app.add_option("--surface-spacing", options.surface_spacing,
+                 "Ground-truth surface sampling in metres")->check(CLI::Range(0.002, 1.0))
+      ->capture_default_str();
+  app.add_option("--loop-period", options.path.loop_period_s,
+                 "Seconds per loop of the camera path")->check(CLI::PositiveNumber)->capture_default_str();
+  app.add_option("--threads", options.threads, "Render threads (0 = all cores)")->capture_default_str();
+  CLI11_PARSE(app, argc, argv);
+  if (no_noise || options.noise_scale == 0.0) options.noise = false;
+
+  std::fprintf(stderr, "rendering %d frames %dx%d (seed %llu) into %s\n", options.frames,
+               options.width, options.height, static_cast<unsigned long long>(options.seed),
+               out.c_str());
+  ccmd::app::Progress progress("frames");
+  auto summary = ccmd::WriteSyntheticSequence(
+      out, options, [&](int done, int total) { progress.Update(done, total); });
+  if (!summary.ok()) {
+    std::fprintf(stderr, "ccmd_synth: %s\n", summary.status().ToString().c_str());
+    return 1;
+  }
+  std::printf("wrote %d frames to %s in %.1f s (render %.1f ms/frame), surface.ply with %zu points\n",
+              summary->frames, out.c_str(), summary->seconds, summary->render_ms_per_frame,
+              summary->surface_points);
+  return 0;
+}

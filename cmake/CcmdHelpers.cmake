@@ -1,0 +1,50 @@
+# Project-wide compile flags live on an interface target so every module gets the same ones.
+add_library(ccmd_build_flags INTERFACE)
+target_compile_options(ccmd_build_flags INTERFACE -Wall -Wextra)
+if(CCMD_WERROR)
+  target_compile_options(ccmd_build_flags INTERFACE -Werror)
+endif()
+if(CCMD_SANITIZE)
+  target_compile_options(ccmd_build_flags INTERFACE
+    -fsanitize=address,undefined -fno-omit-frame-pointer -fno-sanitize-recover=undefined)
+  target_link_options(ccmd_build_flags INTERFACE -fsanitize=address,undefined)
+endif()
+
+# ccmd_add_library(NAME SOURCES ... DEPS ... [PRIVATE_DEPS ...])
+# One static library per libccmd module; includes are rooted at the repository
+# ("libccmd/util/status.h") so a file's include says which module it uses.
+function(ccmd_add_library name)
+  cmake_parse_arguments(ARG "" "" "SOURCES;DEPS;PRIVATE_DEPS" ${ARGN})
+  add_library(${name} STATIC ${ARG_SOURCES})
+  target_include_directories(${name} PUBLIC ${PROJECT_SOURCE_DIR})
+  target_link_libraries(${name} PUBLIC ${ARG_DEPS} ccmd_build_flags PRIVATE ${ARG_PRIVATE_DEPS})
+endfunction()
+
+# ccmd_add_executable(NAME SOURCES ... DEPS ...)
+# The target is NAME_app (library targets own the module names); the program is bin/NAME.
+function(ccmd_add_executable name)
+  cmake_parse_arguments(ARG "" "" "SOURCES;DEPS" ${ARGN})
+  add_executable(${name}_app ${ARG_SOURCES})
+  target_include_directories(${name}_app PRIVATE ${PROJECT_SOURCE_DIR})
+  target_link_libraries(${name}_app PRIVATE ${ARG_DEPS} ccmd_build_flags)
+  set_target_properties(${name}_app PROPERTIES OUTPUT_NAME ${name}
+                        RUNTIME_OUTPUT_DIRECTORY ${PROJECT_BINARY_DIR}/bin)
+endfunction()
+
+# ccmd_add_test(NAME SOURCES ... DEPS ... [LABELS ...] [TIMEOUT seconds])
+# A GoogleTest binary registered test by test with ctest.
+function(ccmd_add_test name)
+  cmake_parse_arguments(ARG "" "TIMEOUT" "SOURCES;DEPS;LABELS" ${ARGN})
+  if(NOT ARG_TIMEOUT)
+    set(ARG_TIMEOUT 300)
+  endif()
+  add_executable(${name} ${ARG_SOURCES})
+  target_link_libraries(${name} PRIVATE ${ARG_DEPS} ccmd_test_support GTest::gtest GTest::gtest_main
+                        ccmd_build_flags)
+  set_target_properties(${name} PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${PROJECT_BINARY_DIR}/tests)
+  gtest_discover_tests(${name}
+    DISCOVERY_MODE PRE_TEST
+    DISCOVERY_TIMEOUT 60
+    PROPERTIES TIMEOUT ${ARG_TIMEOUT} LABELS "${ARG_LABELS}"
+               ENVIRONMENT "CCMD_BIN_DIR=${PROJECT_BINARY_DIR}/bin")
+endfunction()

@@ -1,0 +1,106 @@
+#include "libccmd/eval/reconstruction_error.h"
+
+#include <algorithm>
+#include <cmath>
+#include <thread>
+
+#include "libccmd/eval/trajectory_error.h"
+#include "libccmd/geometry/kdtree.h"
+#include "libccmd/util/random.h"
+
+namespace ccmd {
+namespace {
+
+int ThreadCount(int requested) {
+  return requested > 0 ? requested : std::max(1u, std::thread::hardware_concurrency());
+}
+
+template <typename Fn>
+void ParallelFor(std::size_t n, int threads, Fn&& fn) {
+  threads = std::max(1, std::min<int>(threads, static_cast<int>(n / 4096) + 1));
+  std::vector<std::thread> pool;
+  for (int t = 0; t < threads; ++t) {
+    pool.emplace_back([&, t] {
+      for (std::size_t i = t; i < n; i += threads) fn(i);
+    });
+  }
+  for (auto& th : pool) th.join();
+}
+
+// Typical spacing of a point set: median distance to the nearest other point over a sample.
+double EstimateSpacing(const PointCloud& cloud, const PointKdTree& tree) {
+  Rng rng(7);
+  std::vector<double> d;
+  for (int i = 0; i < 512 && cloud.size() > 1; ++i) {
+    const auto& p = cloud.points[static_cast<std::size_t>(rng.Uniform() * cloud.size())];
+    std::uint32_t idx[2];
+    float dist[2];
+    if (tree.Nearest(p, 2, idx, dist) == 2) d.push_back(std::sqrt(dist[1]));
+  }
+  if (d.empty()) return 0.0;
+  std::nth_element(d.begin(), d.begin() + d.size() / 2, d.end());
+  return d[d.size() / 2];
+}
+
+}  // namespace
+
+std::vector<double> NearestDistances(const PointCloud& from, const PointCloud& to, int threads) {
+  std::vector<double> distances(from.size(), 0.0);
+  if (to.size() == 0) return distances;
+  const PointKdTree tree(to.points);
+  ParallelFor(from.size(), ThreadCount(threads), [&](std::size_t i) {
+    float d2 = 0;
+    tree.Nearest(from.points[i], &d2);
+    distances[i] = std::sqrt(d2);
+  });
+  return distances;
+}
+
+StatusOr<ReconstructionError> ComputeReconstructionError(const PointCloud& reference,
+                                                         const PointCloud& reconstruction,
+                                                         const ReconstructionOptions& options) {
+  if (reference.size() == 0) return InvalidArgument("the reference cloud is empty");
+  if (reconstruction.size() == 0) return InvalidArgument("the reconstructed cloud is empty");
+  const int threads = ThreadCount(options.threads);
+  ReconstructionError result;
+  result.reconstructed_points = reconstruction.size();
+  result.reference_points = reference.size();
+  result.point_to_plane = options.point_to_plane && reference.HasNormals();
+
+  const PointKdTree reference_tree(reference.points);
+  const double tangential_limit = 1.5 * EstimateSpacing(reference, reference_tree);
+  std::vector<double> accuracy(reconstruction.size());
+  ParallelFor(reconstruction.size(), threads, [&](std::size_t i) {
+    float d2 = 0;
+    const std::uint32_t j = reference_tree.Nearest(reconstruction.points[i], &d2);
+    double d = std::sqrt(d2);
+    if (result.point_to_plane) {
+      const Eigen::Vector3f offset = reconstruction.points[i] - reference.points[j];
+      const double normal_part = std::abs(offset.dot(reference.normals[j].normalized()));
+      const double tangential = std::sqrt(std::max(0.0, static_cast<double>(d2) - normal_part * normal_part));
+      if (tangential <= tangential_limit) d = normal_part;
+    }
+    accuracy[i] = d;
+  });
+  const std::vector<double> completeness = NearestDistances(reference, reconstruction, threads);
+
+  const ErrorStatistics a = ComputeStatistics(accuracy);
+  result.mean = a.mean;
+  result.median = a.median;
+  result.rmse = a.rmse;
+  result.max = a.max;
+  std::vector<double> sorted = accuracy;
+  const std::size_t k95 = std::min(sorted.size() - 1, static_cast<std::size_t>(0.95 * sorted.size()));
+  std::nth_element(sorted.begin(), sorted.begin() + k95, sorted.end());
+  result.p95 = sorted[k95];
+  const ErrorStatistics c = ComputeStatistics(completeness);
+  result.mean_reverse = c.mean;
+  result.max_reverse = c.max;
+  std::size_t covered = 0;
+  for (double d : completeness) covered += d <= options.completeness_threshold;
+  result.completeness = static_cast<double>(covered) / completeness.size();
+  result.hausdorff = std::max(result.max, result.max_reverse);
+  return result;
+}
+
+}  // namespace ccmd

@@ -1,0 +1,44 @@
+#pragma once
+
+// Distance between a reconstructed point cloud and a reference (ground-truth) cloud, as
+// CloudCompare's cloud-to-cloud distance: for every point, the distance to the nearest point
+// of the other cloud (KD-tree). When the reference has normals (a sampled surface, as
+// ccmd_synth writes), the reconstruction-to-reference distance is measured to the local
+// plane of the nearest reference sample, so the reference's own sampling spacing does not
+// inflate the error; points beyond the sampled surface's edge fall back to point distance.
+
+#include <vector>
+
+#include "libccmd/io/ply.h"
+#include "libccmd/util/status.h"
+
+namespace ccmd {
+
+struct ReconstructionOptions {
+  bool point_to_plane = true;        // use reference normals when present
+  double completeness_threshold = 0.02;  // metres: reference points "covered" within this
+  int threads = 0;                   // 0: all cores
+};
+
+struct ReconstructionError {
+  std::size_t reconstructed_points = 0;
+  std::size_t reference_points = 0;
+  bool point_to_plane = false;
+  // Reconstruction -> reference (accuracy): the paper's "average distance".
+  double mean = 0, median = 0, rmse = 0, p95 = 0, max = 0;
+  // Reference -> reconstruction (completeness).
+  double mean_reverse = 0, max_reverse = 0;
+  double completeness = 0;  // fraction of reference points within completeness_threshold
+  // max of both directed maxima (the paper's eq. 10).
+  double hausdorff = 0;
+};
+
+StatusOr<ReconstructionError> ComputeReconstructionError(const PointCloud& reference,
+                                                         const PointCloud& reconstruction,
+                                                         const ReconstructionOptions& options = {});
+
+// Directed nearest-neighbour distances from every point of `from` to the cloud `to`
+// (point-to-point). Exposed for tests and other metrics.
+std::vector<double> NearestDistances(const PointCloud& from, const PointCloud& to, int threads = 0);
+
+}  // namespace ccmd

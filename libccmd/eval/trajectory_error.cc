@@ -1,0 +1,105 @@
+#include "libccmd/eval/trajectory_error.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include "libccmd/io/tum_dataset.h"
+
+namespace ccmd {
+
+ErrorStatistics ComputeStatistics(std::vector<double> errors) {
+  ErrorStatistics s;
+  if (errors.empty()) return s;
+  const double n = static_cast<double>(errors.size());
+  double sum = 0, sum_sq = 0;
+  for (double e : errors) {
+    sum += e;
+    sum_sq += e * e;
+  }
+  s.mean = sum / n;
+  s.rmse = std::sqrt(sum_sq / n);
+  s.std = std::sqrt(std::max(0.0, sum_sq / n - s.mean * s.mean));
+  std::sort(errors.begin(), errors.end());
+  s.min = errors.front();
+  s.max = errors.back();
+  const std::size_t mid = errors.size() / 2;
+  s.median = errors.size() % 2 ? errors[mid] : 0.5 * (errors[mid - 1] + errors[mid]);
+  return s;
+}
+
+namespace {
+
+std::vector<std::pair<std::size_t, std::size_t>> MatchByTime(const Trajectory& groundtruth,
+                                                             const Trajectory& estimate,
+                                                             double max_difference) {
+  std::vector<double> te, tg;
+  for (const auto& p : estimate) te.push_back(p.timestamp);
+  for (const auto& p : groundtruth) tg.push_back(p.timestamp);
+  return AssociateTimestamps(te, tg, max_difference);  // (estimate index, gt index)
+}
+
+}  // namespace
+
+StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& estimate,
+                               const AteOptions& options) {
+  const auto matches = MatchByTime(groundtruth, estimate, options.max_time_difference);
+  if (matches.size() < 3) {
+    return InvalidArgument("only " + std::to_string(matches.size()) +
+                           " poses match the ground truth in time (need 3)");
+  }
+  std::vector<Eigen::Vector3d> est, gt;
+  AteResult result;
+  for (const auto& [ie, ig] : matches) {
+    est.push_back(estimate[ie].T_world_cam.translation());
+    gt.push_back(groundtruth[ig].T_world_cam.translation());
+    result.timestamps.push_back(estimate[ie].timestamp);
+  }
+  if (options.align) {
+    auto alignment = AlignPoints(est, gt, options.correct_scale);
+    if (!alignment.ok()) return alignment.status().WithContext("aligning the trajectories");
+    result.alignment = *alignment;
+  }
+  result.matched = matches.size();
+  for (std::size_t i = 0; i < est.size(); ++i) {
+    result.errors.push_back((result.alignment * est[i] - gt[i]).norm());
+  }
+  result.error = ComputeStatistics(result.errors);
+  return result;
+}
+
+StatusOr<RpeResult> ComputeRpe(const Trajectory& groundtruth, const Trajectory& estimate,
+                               const RpeOptions& options) {
+  if (options.delta_frames < 1) return InvalidArgument("RPE delta must be at least 1 frame");
+  const auto matches = MatchByTime(groundtruth, estimate, options.max_time_difference);
+  if (matches.size() <= static_cast<std::size_t>(options.delta_frames)) {
+    return InvalidArgument("too few matched poses for RPE");
+  }
+  std::vector<double> translation, rotation;
+  for (std::size_t i = 0; i + options.delta_frames < matches.size(); ++i) {
+    const auto& [e0, g0] = matches[i];
+    const auto& [e1, g1] = matches[i + options.delta_frames];
+    const Pose gt_delta = groundtruth[g0].T_world_cam.inverse() * groundtruth[g1].T_world_cam;
+    const Pose est_delta = estimate[e0].T_world_cam.inverse() * estimate[e1].T_world_cam;
+    const Pose error = gt_delta.inverse() * est_delta;
+    translation.push_back(error.translation().norm());
+    rotation.push_back(RotationAngle(error) * 180.0 / M_PI);
+  }
+  RpeResult result;
+  result.pairs = translation.size();
+  result.translation = ComputeStatistics(translation);
+  result.rotation = ComputeStatistics(rotation);
+  return result;
+}
+
+Trajectory TransformTrajectory(const Trajectory& trajectory, const Similarity3& transform) {
+  Trajectory out = trajectory;
+  for (StampedPose& p : out) {
+    Pose pose = Pose::Identity();
+    pose.linear() = transform.R * p.T_world_cam.linear();
+    pose.translation() = transform * p.T_world_cam.translation();
+    p.T_world_cam = pose;
+  }
+  return out;
+}
+
+}  // namespace ccmd

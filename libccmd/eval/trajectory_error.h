@@ -1,0 +1,55 @@
+#pragma once
+
+// Trajectory error as evo computes it (evo_ape tum -a / evo_rpe): poses matched by
+// timestamp (nearest within max_time_difference, each used once), the estimate aligned to
+// the ground truth with the least-squares rigid transform of the positions (Umeyama
+// without scale), then statistics of the position errors.
+
+#include <vector>
+
+#include "libccmd/geometry/alignment.h"
+#include "libccmd/io/trajectory.h"
+#include "libccmd/util/status.h"
+
+namespace ccmd {
+
+struct ErrorStatistics {
+  double rmse = 0, mean = 0, median = 0, std = 0, min = 0, max = 0;
+};
+ErrorStatistics ComputeStatistics(std::vector<double> errors);
+
+struct AteOptions {
+  double max_time_difference = 0.01;  // evo's default
+  bool align = true;                  // rigid alignment (-a)
+  bool correct_scale = false;         // similarity alignment (-as), for monocular systems
+};
+
+struct AteResult {
+  std::size_t matched = 0;
+  ErrorStatistics error;               // metres
+  Similarity3 alignment;               // maps the estimate into the ground-truth frame
+  std::vector<double> timestamps;      // matched estimate timestamps
+  std::vector<double> errors;          // per matched pose, metres
+};
+
+StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& estimate,
+                               const AteOptions& options = {});
+
+struct RpeOptions {
+  double max_time_difference = 0.01;
+  int delta_frames = 1;  // compare poses this many matched frames apart
+};
+
+struct RpeResult {
+  std::size_t pairs = 0;
+  ErrorStatistics translation;  // metres
+  ErrorStatistics rotation;     // degrees
+};
+
+StatusOr<RpeResult> ComputeRpe(const Trajectory& groundtruth, const Trajectory& estimate,
+                               const RpeOptions& options = {});
+
+// Applies a similarity to every pose of a trajectory (positions scaled, rotations kept).
+Trajectory TransformTrajectory(const Trajectory& trajectory, const Similarity3& transform);
+
+}  // namespace ccmd

@@ -1,0 +1,18 @@
+#pragma once
+
+#include <opencv2/core/mat.hpp>
+
+namespace ccmd {
+
+// One colour + depth frame as every part of the system sees it after loading:
+// colour 8-bit BGR (OpenCV order), depth uint16 millimetres with 0 meaning "no depth".
+// Colour may be larger than depth (e.g. 1920x1080 with 640x480 depth); consumers that
+// need them aligned resize colour to the depth size.
+struct RgbdFrame {
+  int index = -1;         // position in its sequence (or capture counter for live sources)
+  double timestamp = 0;   // seconds (dataset time, or device time for live sources)
+  cv::Mat bgr;            // CV_8UC3
+  cv::Mat depth_mm;       // CV_16UC1
+};
+
+}  // namespace ccmd

@@ -1,0 +1,89 @@
+#include "libccmd/io/trajectory.h"
+
+#include <algorithm>
+#include <cstdio>
+#include <sstream>
+
+#include "libccmd/util/file_util.h"
+#include "libccmd/util/string_util.h"
+
+namespace ccmd {
+
+StatusOr<Trajectory> ParseTumTrajectory(const std::string& text, const std::string& name) {
+  Trajectory trajectory;
+  std::istringstream in(text);
+  std::string line;
+  int line_number = 0;
+  while (std::getline(in, line)) {
+    ++line_number;
+    const std::string_view content = Trim(line);
+    if (content.empty() || content.front() == '#') continue;
+    const auto fields = SplitWhitespace(content);
+    if (fields.size() != 8) {
+      return Corrupt(name + ":" + std::to_string(line_number) + ": expected 8 numbers, found " +
+                     std::to_string(fields.size()));
+    }
+    double v[8];
+    for (int i = 0; i < 8; ++i) {
+      auto value = ParseDouble(fields[i]);
+      if (!value.ok()) {
+        return value.status().WithContext(name + ":" + std::to_string(line_number));
+      }
+      v[i] = *value;
+    }
+    const Eigen::Quaterniond q(v[7], v[4], v[5], v[6]);
+    if (q.norm() < 1e-6) {
+      return Corrupt(name + ":" + std::to_string(line_number) + ": zero quaternion");
+    }
+    trajectory.push_back({v[0], PoseFromTranslationQuaternion({v[1], v[2], v[3]}, q)});
+  }
+  std::stable_sort(trajectory.begin(), trajectory.end(),
+                   [](const StampedPose& a, const StampedPose& b) { return a.timestamp < b.timestamp; });
+  return trajectory;
+}
+
+StatusOr<Trajectory> ReadTumTrajectory(const std::string& path) {
+  CCMD_ASSIGN_OR_RETURN(const std::string text, ReadFileToString(path));
+  return ParseTumTrajectory(text, path);
+}
+
+std::string FormatTumTrajectory(const Trajectory& trajectory, const std::string& comment) {
+  std::string out;
+  out.reserve(trajectory.size() * 96 + comment.size() + 64);
+  if (!comment.empty()) out += "# " + comment + "\n";
+  out += "# timestamp tx ty tz qx qy qz qw\n";
+  char line[256];
+  for (const StampedPose& sample : trajectory) {
+    const Eigen::Vector3d t = sample.T_world_cam.translation();
+    const Eigen::Quaterniond q = QuaternionOf(sample.T_world_cam);
+    std::snprintf(line, sizeof(line), "%.6f %.9f %.9f %.9f %.9f %.9f %.9f %.9f\n",
+                  sample.timestamp, t.x(), t.y(), t.z(), q.x(), q.y(), q.z(), q.w());
+    out += line;
+  }
+  return out;
+}
+
+Status WriteTumTrajectory(const Trajectory& trajectory, const std::string& path,
+                          const std::string& comment) {
+  return WriteFileAtomic(path, FormatTumTrajectory(trajectory, comment));
+}
+
+std::optional<Pose> InterpolateTrajectory(const Trajectory& trajectory, double t, double max_gap) {
+  if (trajectory.empty()) return std::nullopt;
+  const auto after = std::lower_bound(
+      trajectory.begin(), trajectory.end(), t,
+      [](const StampedPose& sample, double time) { return sample.timestamp < time; });
+  if (after != trajectory.end() && after->timestamp == t) return after->T_world_cam;
+  if (after == trajectory.begin() || after == trajectory.end()) {
+    // Outside the sampled interval: accept the nearest end only if it is (almost) at t.
+    const StampedPose& end = after == trajectory.end() ? trajectory.back() : trajectory.front();
+    if (std::abs(end.timestamp - t) <= 1e-6) return end.T_world_cam;
+    return std::nullopt;
+  }
+  const StampedPose& before = *(after - 1);
+  if (t - before.timestamp > max_gap || after->timestamp - t > max_gap) return std::nullopt;
+  const double alpha = (t - before.timestamp) / (after->timestamp - before.timestamp);
+  return InterpolatePose(before.T_world_cam, after->T_world_cam, alpha);
+}
+
+}  // namespace ccmd

@@ -1,0 +1,229 @@
+#include "libccmd/io/tum_dataset.h"
+
+#include <algorithm>
+#include <cmath>
+#include <opencv2/imgcodecs.hpp>
+#include <sstream>
+
+#include "libccmd/io/config.h"
+#include "libccmd/util/file_util.h"
+#include "libccmd/util/string_util.h"
+
+namespace ccmd {
+
+StatusOr<std::vector<TimedFile>> ReadTimedFileList(const std::string& path) {
+  CCMD_ASSIGN_OR_RETURN(const std::string text, ReadFileToString(path, 1ull << 30));
+  std::vector<TimedFile> files;
+  std::istringstream in(text);
+  std::string line;
+  int line_number = 0;
+  while (std::getline(in, line)) {
+    ++line_number;
+    const std::string_view content = Trim(line);
+    if (content.empty() || content.front() == '#') continue;
+    const auto fields = SplitWhitespace(content);
+    if (fields.size() < 2) {
+      return Corrupt(path + ":" + std::to_string(line_number) + ": expected 'timestamp path'");
+    }
+    auto t = ParseDouble(fields[0]);
+    if (!t.ok()) return t.status().WithContext(path + ":" + std::to_string(line_number));
+    files.push_back({*t, std::string(fields[1])});
+  }
+  std::stable_sort(files.begin(), files.end(),
+                   [](const TimedFile& a, const TimedFile& b) { return a.timestamp < b.timestamp; });
+  return files;
+}
+
+std::vector<std::pair<std::size_t, std::size_t>> AssociateTimestamps(
+    const std::vector<double>& a, const std::vector<double>& b, double max_difference,
+    double offset) {
+  // Candidate pairs within the tolerance. Walking both lists in time order with a sliding
+  // window over b keeps this O(n log n + candidates) instead of the script's O(n*m).
+  std::vector<std::size_t> b_order(b.size());
+  for (std::size_t j = 0; j < b.size(); ++j) b_order[j] = j;
+  std::sort(b_order.begin(), b_order.end(),
+            [&](std::size_t x, std::size_t y) { return b[x] < b[y]; });
+  struct Candidate {
+    double difference;
+    std::size_t i, j;
+  };
+  std::vector<Candidate> candidates;
+  std::vector<std::size_t> a_order(a.size());
+  for (std::size_t i = 0; i < a.size(); ++i) a_order[i] = i;
+  std::sort(a_order.begin(), a_order.end(),
+            [&](std::size_t x, std::size_t y) { return a[x] < a[y]; });
+  std::size_t start = 0;
+  for (const std::size_t i : a_order) {
+    while (start < b_order.size() && b[b_order[start]] + offset <= a[i] - max_difference) ++start;
+    for (std::size_t k = start; k < b_order.size(); ++k) {
+      const double difference = std::abs(a[i] - (b[b_order[k]] + offset));
+      if (b[b_order[k]] + offset >= a[i] + max_difference) break;
+      if (difference < max_difference) candidates.push_back({difference, i, b_order[k]});
+    }
+  }
+  std::stable_sort(candidates.begin(), candidates.end(),
+                   [](const Candidate& x, const Candidate& y) { return x.difference < y.difference; });
+  std::vector<bool> a_used(a.size(), false), b_used(b.size(), false);
+  std::vector<std::pair<std::size_t, std::size_t>> matches;
+  for (const Candidate& c : candidates) {
+    if (a_used[c.i] || b_used[c.j]) continue;
+    a_used[c.i] = b_used[c.j] = true;
+    matches.emplace_back(c.i, c.j);
+  }
+  std::sort(matches.begin(), matches.end());
+  return matches;
+}
+
+namespace {
+
+bool LooksLikeDepthPath(const std::string& path) { return path.find("depth") != std::string::npos; }
+
+// associations.txt: "t1 path1 t2 path2" with the depth column told by its path.
+Status ReadAssociations(const std::string& path, std::vector<TimedFile>* rgb,
+                        std::vector<TimedFile>* depth) {
+  CCMD_ASSIGN_OR_RETURN(const std::string text, ReadFileToString(path, 1ull << 30));
+  std::istringstream in(text);
+  std::string line;
+  int line_number = 0;
+  while (std::getline(in, line)) {
+    ++line_number;
+    const std::string_view content = Trim(line);
+    if (content.empty() || content.front() == '#') continue;
+    const auto fields = SplitWhitespace(content);
+    const std::string where = path + ":" + std::to_string(line_number);
+    if (fields.size() < 4) return Corrupt(where + ": expected 't path t path'");
+    auto t1 = ParseDouble(fields[0]);
+    auto t2 = ParseDouble(fields[2]);
+    if (!t1.ok()) return t1.status().WithContext(where);
+    if (!t2.ok()) return t2.status().WithContext(where);
+    TimedFile first{*t1, std::string(fields[1])};
+    TimedFile second{*t2, std::string(fields[3])};
+    if (LooksLikeDepthPath(first.path) && !LooksLikeDepthPath(second.path)) std::swap(first, second);
+    rgb->push_back(first);
+    depth->push_back(second);
+  }
+  return Status::Ok();
+}
+
+}  // namespace
+
+StatusOr<TumSequence> TumSequence::Open(const std::string& folder,
+                                        const std::optional<PinholeCamera>& camera,
+                                        const TumOptions& options) {
+  if (!IsDirectory(folder)) return NotFound("dataset folder " + folder + " does not exist");
+  TumSequence sequence;
+  sequence.folder_ = folder;
+
+  if (camera) {
+    sequence.camera_ = *camera;
+  } else if (FileExists(JoinPath(folder, "camera.yaml"))) {
+    auto loaded = LoadCameraConfig(JoinPath(folder, "camera.yaml"));
+    if (!loaded.ok()) return loaded.status();
+    sequence.camera_ = *loaded;
+  } else {
+    return InvalidArgument("no camera for " + folder +
+                           ": pass a camera config (--config), e.g. configs/" +
+                           (GuessCameraConfigName(folder).empty() ? std::string("tum_fr1.yaml")
+                                                                  : GuessCameraConfigName(folder)));
+  }
+  sequence.depth_map_factor_ =
+      options.depth_map_factor > 0 ? options.depth_map_factor : sequence.camera_.depth_map_factor;
+
+  std::vector<TimedFile> rgb, depth;
+  const std::string rgb_list = JoinPath(folder, "rgb.txt");
+  const std::string depth_list = JoinPath(folder, "depth.txt");
+  std::vector<std::pair<std::size_t, std::size_t>> pairs;
+  if (FileExists(rgb_list) && FileExists(depth_list)) {
+    CCMD_ASSIGN_OR_RETURN(rgb, ReadTimedFileList(rgb_list));
+    CCMD_ASSIGN_OR_RETURN(depth, ReadTimedFileList(depth_list));
+    std::vector<double> ta, tb;
+    for (const auto& f : rgb) ta.push_back(f.timestamp);
+    for (const auto& f : depth) tb.push_back(f.timestamp);
+    pairs = AssociateTimestamps(ta, tb, options.max_time_difference);
+  } else if (FileExists(JoinPath(folder, "associations.txt"))) {
+    CCMD_RETURN_IF_ERROR(ReadAssociations(JoinPath(folder, "associations.txt"), &rgb, &depth));
+    for (std::size_t i = 0; i < rgb.size(); ++i) pairs.emplace_back(i, i);
+  } else {
+    return NotFound(folder + " has neither rgb.txt + depth.txt nor associations.txt");
+  }
+  if (pairs.empty()) {
+    return Corrupt("no colour/depth pairs in " + folder + " within " +
+                   std::to_string(options.max_time_difference) + " s");
+  }
+
+  const std::string gt_path = JoinPath(folder, "groundtruth.txt");
+  if (FileExists(gt_path)) {
+    CCMD_ASSIGN_OR_RETURN(sequence.groundtruth_, ReadTumTrajectory(gt_path));
+  }
+  for (const auto& [i, j] : pairs) {
+    TumFrameInfo info;
+    info.timestamp = rgb[i].timestamp;
+    info.depth_timestamp = depth[j].timestamp;
+    info.rgb_path = JoinPath(folder, rgb[i].path);
+    info.depth_path = JoinPath(folder, depth[j].path);
+    info.T_world_cam_gt =
+        InterpolateTrajectory(sequence.groundtruth_, info.timestamp, options.groundtruth_max_gap);
+    sequence.frames_.push_back(std::move(info));
+  }
+  return sequence;
+}
+
+Trajectory TumSequence::GroundTruthAtFrames() const {
+  Trajectory trajectory;
+  for (const TumFrameInfo& f : frames_) {
+    if (f.T_world_cam_gt) trajectory.push_back({f.timestamp, *f.T_world_cam_gt});
+  }
+  return trajectory;
+}
+
+cv::Mat DepthToMillimetres(const cv::Mat& raw, double depth_map_factor) {
+  cv::Mat mm;
+  if (depth_map_factor == 1000.0) return raw.clone();
+  raw.convertTo(mm, CV_16U, 1000.0 / depth_map_factor);  // rounds and saturates
+  return mm;
+}
+
+StatusOr<RgbdFrame> TumSequence::LoadFrame(std::size_t i) const {
+  if (i >= frames_.size()) return OutOfRange("frame " + std::to_string(i) + " beyond the sequence");
+  const TumFrameInfo& info = frames_[i];
+  RgbdFrame frame;
+  frame.index = static_cast<int>(i);
+  frame.timestamp = info.timestamp;
+  try {
+    frame.bgr = cv::imread(info.rgb_path, cv::IMREAD_COLOR);
+    const cv::Mat raw_depth = cv::imread(info.depth_path, cv::IMREAD_UNCHANGED);
+    if (frame.bgr.empty()) return NotFound("cannot read colour image " + info.rgb_path);
+    if (raw_depth.empty()) return NotFound("cannot read depth image " + info.depth_path);
+    if (raw_depth.type() != CV_16UC1) {
+      return Unsupported(info.depth_path + " is not a 16-bit single-channel image");
+    }
+    frame.depth_mm = DepthToMillimetres(raw_depth, depth_map_factor_);
+  } catch (const cv::Exception& e) {
+    return Corrupt("cannot decode frame " + std::to_string(i) + ": " + e.msg);
+  }
+  if (frame.bgr.cols < frame.depth_mm.cols || frame.bgr.rows < frame.depth_mm.rows) {
+    return Unsupported("colour image smaller than depth in frame " + std::to_string(i));
+  }
+  return frame;
+}
+
+std::string GuessCameraConfigName(const std::string& folder) {
+  std::string name = folder;
+  while (!name.empty() && name.back() == '/') name.pop_back();
+  name = name.substr(name.find_last_of('/') == std::string::npos ? 0 : name.find_last_of('/') + 1);
+  std::transform(name.begin(), name.end(), name.begin(), ::tolower);
+  if (name.find("freiburg1") != std::string::npos || name.find("fr1") != std::string::npos)
+    return "tum_fr1.yaml";
+  if (name.find("freiburg2") != std::string::npos || name.find("fr2") != std::string::npos)
+    return "tum_fr2.yaml";
+  if (name.find("freiburg3") != std::string::npos || name.find("fr3") != std::string::npos)
+    return "tum_fr3.yaml";
+  if (name.find("living_room") != std::string::npos || name.find("office_room") != std::string::npos ||
+      name.find("icl") != std::string::npos)
+    return "icl_nuim.yaml";
+  if (name.find("7scenes") != std::string::npos || name.find("redkitchen") != std::string::npos)
+    return "7scenes.yaml";
+  return "";
+}
+
+}  // namespace ccmd

@@ -1,0 +1,178 @@
+#include "libccmd/synth/sequence.h"
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstdio>
+#include <mutex>
+#include <opencv2/imgcodecs.hpp>
+#include <sstream>
+#include <thread>
+
+#include "libccmd/io/config.h"
+#include "libccmd/util/file_util.h"
+#include "libccmd/util/random.h"
+#include "libccmd/util/timer.h"
+
+namespace ccmd {
+
+Trajectory MakeLoopPath(int num_frames, double fps, const LoopPathOptions& o) {
+  Trajectory trajectory;
+  const double deg = M_PI / 180.0;
+  for (int i = 0; i < num_frames; ++i) {
+    const double t = i / fps;
+    const double phase = 2 * M_PI * t / o.loop_period_s;
+    const Eigen::Vector3d eye(o.radius_x * std::cos(phase), o.radius_y * std::sin(phase),
+                              o.height + o.height_amplitude * std::sin(3.0 * phase + 0.4));
+    const double yaw = phase + o.yaw_ahead_deg * deg;
+    const double pitch = (o.pitch_deg + o.pitch_amplitude_deg * std::sin(2.0 * phase + 1.0)) * deg;
+    const double roll = o.roll_amplitude_deg * deg * std::sin(5.0 * phase);
+    // Camera axes: z forward (yaw/pitch), x right, y down; then roll about z.
+    const Eigen::Vector3d forward(std::cos(pitch) * std::cos(yaw), std::cos(pitch) * std::sin(yaw),
+                                  std::sin(pitch));
+    Pose pose = LookAt(eye, eye + forward, Eigen::Vector3d::UnitZ());
+    pose.linear() = pose.linear() * Eigen::AngleAxisd(roll, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+    trajectory.push_back({o.start_time + t, pose});
+  }
+  return trajectory;
+}
+
+PinholeCamera SyntheticCamera(int width, int height) {
+  PinholeCamera base;
+  base.width = 640;
+  base.height = 480;
+  base.fx = base.fy = 525.0;
+  base.cx = 319.5;
+  base.cy = 239.5;
+  base.fps = 30.0;
+  base.depth_map_factor = 5000.0;
+  base.far_depth_m = 4.0;
+  if (width == 640 && height == 480) return base;
+  return base.Resized(width, height);
+}
+
+RenderOptions FrameRenderOptions(const SyntheticSequenceOptions& options, int index) {
+  RenderOptions render;
+  render.noise = options.noise;
+  render.depth.sigma_0 *= options.noise_scale;
+  render.depth.sigma_2 *= options.noise_scale;
+  render.color_sigma *= options.noise_scale;
+  render.seed = MixSeed(options.seed, static_cast<std::uint64_t>(index) + 1);
+  return render;
+}
+
+namespace {
+
+std::string FormatTimestamp(double t) {
+  char text[32];
+  std::snprintf(text, sizeof(text), "%.6f", t);
+  return text;
+}
+
+std::string DescribeOptions(const SyntheticSequenceOptions& o) {
+  std::ostringstream s;
+  s << "# ccmd_synth sequence\n"
+    << "frames " << o.frames << "\nwidth " << o.width << "\nheight " << o.height << "\nfps "
+    << o.fps << "\nseed " << o.seed << "\nnoise " << (o.noise ? 1 : 0) << "\nnoise_scale "
+    << o.noise_scale << "\nsurface_spacing " << o.surface_spacing << "\nroom " << o.room.size_x
+    << " x " << o.room.size_y << " x " << o.room.height << "\nloop_period_s "
+    << o.path.loop_period_s << "\n";
+  return s.str();
+}
+
+}  // namespace
+
+StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
+    const std::string& folder, const SyntheticSequenceOptions& options,
+    const std::function<void(int, int)>& progress) {
+  if (options.frames < 1) return InvalidArgument("frames must be at least 1");
+  if (options.width < 32 || options.height < 24 || options.width > 4096 || options.height > 4096) {
+    return InvalidArgument("image size must be between 32x24 and 4096x4096");
+  }
+  if (!(options.fps > 0)) return InvalidArgument("fps must be positive");
+  if (!(options.surface_spacing >= 0.002)) return InvalidArgument("surface spacing below 2 mm");
+  const Stopwatch total;
+  CCMD_RETURN_IF_ERROR(MakeDirectories(JoinPath(folder, "rgb")));
+  CCMD_RETURN_IF_ERROR(MakeDirectories(JoinPath(folder, "depth")));
+
+  RoomSceneOptions room = options.room;
+  room.seed = options.seed;
+  const SyntheticScene scene = SyntheticScene::MakeRoom(room);
+  const PinholeCamera camera = SyntheticCamera(options.width, options.height);
+  const Trajectory path = MakeLoopPath(options.frames, options.fps, options.path);
+
+  const int threads = options.threads > 0
+                          ? options.threads
+                          : std::max(1u, std::thread::hardware_concurrency());
+  std::atomic<int> next{0}, done{0};
+  std::atomic<double> render_seconds{0.0};
+  std::mutex mutex;
+  Status first_error;
+  std::vector<VisibilityMarks> marks(threads);
+  auto worker = [&](int id) {
+    marks[id].Init(scene, options.surface_spacing);
+    while (true) {
+      const int i = next++;
+      if (i >= options.frames) break;
+      const Stopwatch watch;
+      const RenderedFrame frame =
+          RenderFrame(scene, camera, path[i].T_world_cam, FrameRenderOptions(options, i), &marks[id]);
+      double expected = render_seconds.load();
+      while (!render_seconds.compare_exchange_weak(expected, expected + watch.ElapsedSeconds())) {
+      }
+      const std::string name = FormatTimestamp(path[i].timestamp) + ".png";
+      cv::Mat depth_file;
+      frame.depth_mm.convertTo(depth_file, CV_16U, camera.depth_map_factor / 1000.0);
+      bool ok = false;
+      try {
+        ok = cv::imwrite(JoinPath(folder, "rgb/" + name), frame.bgr) &&
+             cv::imwrite(JoinPath(folder, "depth/" + name), depth_file);
+      } catch (const cv::Exception&) {
+        ok = false;
+      }
+      if (!ok) {
+        std::lock_guard<std::mutex> lock(mutex);
+        if (first_error.ok()) first_error = IoError("cannot write frame images in " + folder);
+        next = options.frames;  // stop the other workers too
+        break;
+      }
+      const int finished = ++done;
+      if (progress) {
+        std::lock_guard<std::mutex> lock(mutex);
+        progress(finished, options.frames);
+      }
+    }
+  };
+  std::vector<std::thread> pool;
+  for (int t = 0; t < threads; ++t) pool.emplace_back(worker, t);
+  for (auto& t : pool) t.join();
+  if (!first_error.ok()) return first_error;
+
+  std::string rgb_list = "# color images\n# timestamp filename\n";
+  std::string depth_list = "# depth maps\n# timestamp filename\n";
+  for (const StampedPose& p : path) {
+    const std::string stamp = FormatTimestamp(p.timestamp);
+    rgb_list += stamp + " rgb/" + stamp + ".png\n";
+    depth_list += stamp + " depth/" + stamp + ".png\n";
+  }
+  CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "rgb.txt"), rgb_list));
+  CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "depth.txt"), depth_list));
+  CCMD_RETURN_IF_ERROR(WriteTumTrajectory(path, JoinPath(folder, "groundtruth.txt"),
+                                          "ground truth of the colour camera, T_world_cam"));
+  CCMD_RETURN_IF_ERROR(WriteCameraConfig(camera, JoinPath(folder, "camera.yaml")));
+  CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "sequence.txt"), DescribeOptions(options)));
+
+  VisibilityMarks seen = marks[0];
+  for (int t = 1; t < threads; ++t) seen.Merge(marks[t]);
+  const PointCloud surface = scene.SampleSurface(options.surface_spacing, &seen.cells);
+  CCMD_RETURN_IF_ERROR(WritePly(surface, JoinPath(folder, "surface.ply")));
+
+  SyntheticSequenceSummary summary;
+  summary.frames = options.frames;
+  summary.surface_points = surface.size();
+  summary.seconds = total.ElapsedSeconds();
+  summary.render_ms_per_frame = render_seconds.load() * 1e3 / options.frames;
+  return summary;
+}
+
+}  // namespace ccmd

@@ -1,0 +1,72 @@
+#pragma once
+
+// Synthetic RGB-D sequences: a camera path through a SyntheticScene room, rendered frame by
+// frame and written in the TUM RGB-D layout with exact ground truth.
+
+#include <cstdint>
+#include <functional>
+#include <string>
+
+#include "libccmd/geometry/camera.h"
+#include "libccmd/io/trajectory.h"
+#include "libccmd/synth/renderer.h"
+#include "libccmd/synth/scene.h"
+#include "libccmd/util/status.h"
+
+namespace ccmd {
+
+// A hand-held-like path: an ellipse around the room centre, looking outwards and ahead,
+// with slow pitch, roll and height oscillations. One loop takes `loop_period_s`, so a
+// sequence longer than that revisits its start (loop closures exist), and any two segments
+// that share frames share views.
+struct LoopPathOptions {
+  double radius_x = 1.2;
+  double radius_y = 1.0;
+  double height = 1.35;
+  double height_amplitude = 0.12;
+  double loop_period_s = 16.0;
+  double yaw_ahead_deg = 35.0;     // looking this far ahead of the outward direction
+  double pitch_deg = -14.0;        // negative looks down
+  double pitch_amplitude_deg = 8.0;
+  double roll_amplitude_deg = 4.0;
+  double start_time = 1.0;         // timestamp of frame 0
+};
+
+Trajectory MakeLoopPath(int num_frames, double fps, const LoopPathOptions& options = {});
+
+// The camera of synthetic sequences at a resolution (fx = fy = 525 at 640x480, scaled).
+PinholeCamera SyntheticCamera(int width = 640, int height = 480);
+
+struct SyntheticSequenceOptions {
+  int frames = 600;
+  int width = 640;
+  int height = 480;
+  double fps = 30.0;
+  std::uint64_t seed = 1;
+  bool noise = true;
+  double noise_scale = 1.0;       // multiplies depth sigma and colour noise
+  double surface_spacing = 0.01;  // ground-truth surface sampling (metres)
+  int threads = 0;                // 0: all cores
+  RoomSceneOptions room;          // room.seed is overridden by seed
+  LoopPathOptions path;
+};
+
+struct SyntheticSequenceSummary {
+  int frames = 0;
+  std::size_t surface_points = 0;
+  double seconds = 0;
+  double render_ms_per_frame = 0;
+};
+
+// Writes rgb/ and depth/ (16-bit PNG, 5000 per metre), rgb.txt, depth.txt, groundtruth.txt,
+// camera.yaml, surface.ply (the ground-truth surface seen by the sequence, with normals) and
+// sequence.txt (the options used). `progress(done, total)` is called from the writer thread.
+StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
+    const std::string& folder, const SyntheticSequenceOptions& options,
+    const std::function<void(int, int)>& progress = nullptr);
+
+// Render options for frame `index` of a sequence with these options (seeded per frame, so
+// frames can be rendered in any order or in parallel and still be identical).
+RenderOptions FrameRenderOptions(const SyntheticSequenceOptions& options, int index);
+
+}  // namespace ccmd

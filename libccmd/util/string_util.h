@@ -1,0 +1,27 @@
+#pragma once
+
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "libccmd/util/status.h"
+
+namespace ccmd {
+
+std::string_view Trim(std::string_view text);
+
+// Splits on runs of spaces and tabs (the TUM list and trajectory format).
+std::vector<std::string_view> SplitWhitespace(std::string_view text);
+
+std::vector<std::string> Split(std::string_view text, char separator);
+
+bool StartsWith(std::string_view text, std::string_view prefix);
+
+// Whole-token numeric parsing: "1.5x" and "" are errors, not 1.5 and 0.
+StatusOr<double> ParseDouble(std::string_view text);
+StatusOr<long long> ParseInt(std::string_view text);
+
+// Human-readable byte count: "1.5 MB".
+std::string FormatBytes(double bytes);
+
+}  // namespace ccmd

@@ -1,0 +1,80 @@
+// ccmd_eval as users run it: exit codes, printed ranges and JSON fields.
+
+#include <gtest/gtest.h>
+
+#include "libccmd/io/ply.h"
+#include "libccmd/io/trajectory.h"
+#include "libccmd/util/json.h"
+#include "tests/support/test_support.h"
+
+namespace ccmd {
+namespace {
+
+using testing::ProgramPath;
+using testing::RunCommand;
+
+TEST(EvalCliTest, SplitPrintsFirstLastPerSegment) {
+  std::string out;
+  ASSERT_EQ(RunCommand(ProgramPath("ccmd_eval") + " split --frames 600 --agents 3", &out), 0) << out;
+  EXPECT_EQ(out, "0 214\n193 407\n386 599\n");
+  EXPECT_NE(RunCommand(ProgramPath("ccmd_eval") + " split --frames 3 --agents 3", &out), 0);
+  EXPECT_NE(out.find("too few"), std::string::npos) << out;
+}
+
+TEST(EvalCliTest, AteWritesTheDocumentedJsonFields) {
+  testing::TempDir dir;
+  Trajectory gt, est;
+  for (int i = 0; i < 60; ++i) {
+    Pose p = Pose::Identity();
+    p.translation() = Eigen::Vector3d(std::cos(i * 0.1), std::sin(i * 0.1), 0);
+    gt.push_back({1.0 + i / 30.0, p});
+    p.translation().z() += (i % 2 ? 0.01 : -0.01);
+    est.push_back({1.0 + i / 30.0, p});
+  }
+  ASSERT_TRUE(WriteTumTrajectory(gt, dir.File("gt.txt")).ok());
+  ASSERT_TRUE(WriteTumTrajectory(est, dir.File("est.txt")).ok());
+  std::string out;
+  ASSERT_EQ(RunCommand(ProgramPath("ccmd_eval") + " ate --gt " + dir.File("gt.txt") + " --est " +
+                           dir.File("est.txt") + " --json " + dir.File("ate.json"),
+                       &out),
+            0)
+      << out;
+  auto json = ReadJsonFile(dir.File("ate.json"));
+  ASSERT_TRUE(json.ok());
+  for (const char* key : {"ate_rmse_m", "ate_mean_m", "ate_max_m", "matched"}) {
+    EXPECT_TRUE(json->Has(key)) << key;
+  }
+  EXPECT_EQ(json->Get("matched")->number(), 60);
+  EXPECT_NEAR(json->Get("ate_rmse_m")->number(), 0.01, 5e-4);
+  EXPECT_NE(RunCommand(ProgramPath("ccmd_eval") + " ate --gt " + dir.File("missing.txt") +
+                           " --est " + dir.File("est.txt"),
+                       &out),
+            0);
+  EXPECT_NE(out.find("missing.txt"), std::string::npos) << out;
+}
+
+TEST(EvalCliTest, ReconWritesMeanAndHausdorff) {
+  testing::TempDir dir;
+  PointCloud ref, rec;
+  for (int i = 0; i < 50; ++i) {
+    for (int j = 0; j < 50; ++j) {
+      ref.points.emplace_back(i * 0.01f, j * 0.01f, 0.0f);
+      rec.points.emplace_back(i * 0.01f, j * 0.01f, 0.003f);
+    }
+  }
+  ASSERT_TRUE(WritePly(ref, dir.File("ref.ply")).ok());
+  ASSERT_TRUE(WritePly(rec, dir.File("rec.ply")).ok());
+  std::string out;
+  ASSERT_EQ(RunCommand(ProgramPath("ccmd_eval") + " recon --ref " + dir.File("ref.ply") + " --rec " +
+                           dir.File("rec.ply") + " --json " + dir.File("r.json"),
+                       &out),
+            0)
+      << out;
+  auto json = ReadJsonFile(dir.File("r.json"));
+  ASSERT_TRUE(json.ok());
+  EXPECT_NEAR(json->Get("mean_m")->number(), 0.003, 1e-6);
+  EXPECT_NEAR(json->Get("hausdorff_m")->number(), 0.003, 1e-6);
+}
+
+}  // namespace
+}  // namespace ccmd

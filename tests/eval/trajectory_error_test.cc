@@ -1,0 +1,93 @@
+#include "libccmd/eval/trajectory_error.h"
+
+#include <gtest/gtest.h>
+
+namespace ccmd {
+namespace {
+
+Trajectory Circle(int n) {
+  Trajectory t;
+  for (int i = 0; i < n; ++i) {
+    const double a = 2 * M_PI * i / n;
+    Pose p = Pose::Identity();
+    p.linear() = Eigen::AngleAxisd(a, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+    p.translation() = Eigen::Vector3d(std::cos(a), std::sin(a), 0.3 * std::sin(3 * a));
+    t.push_back({100.0 + i / 30.0, p});
+  }
+  return t;
+}
+
+TEST(AteTest, RigidlyMovedCopyHasZeroError) {
+  const Trajectory gt = Circle(200);
+  Pose T = Pose::Identity();
+  T.linear() = Eigen::AngleAxisd(1.1, Eigen::Vector3d(1, 2, 3).normalized()).toRotationMatrix();
+  T.translation() = Eigen::Vector3d(4, -2, 1);
+  Trajectory est = gt;
+  for (auto& p : est) p.T_world_cam = T * p.T_world_cam;
+  auto ate = ComputeAte(gt, est);
+  ASSERT_TRUE(ate.ok());
+  EXPECT_EQ(ate->matched, 200u);
+  EXPECT_LT(ate->error.rmse, 1e-9);
+  EXPECT_LT((ate->alignment.R - T.linear().transpose()).norm(), 1e-9);
+}
+
+TEST(AteTest, KnownPerturbationGivesItsMagnitude) {
+  // Alternating +-d along z: zero mean, uncorrelated with the circle, so alignment cannot
+  // remove it; every error is d, so RMSE = mean = max = d.
+  const Trajectory gt = Circle(400);
+  const double d = 0.02;
+  Trajectory est = gt;
+  for (std::size_t i = 0; i < est.size(); ++i) {
+    est[i].T_world_cam.translation().z() += (i % 2 ? d : -d);
+  }
+  auto ate = ComputeAte(gt, est);
+  ASSERT_TRUE(ate.ok());
+  EXPECT_NEAR(ate->error.rmse, d, 1e-4);
+  EXPECT_NEAR(ate->error.mean, d, 1e-4);
+  EXPECT_NEAR(ate->error.max, d, 2e-4);
+}
+
+TEST(AteTest, WithoutAlignmentAnOffsetCountsFully) {
+  const Trajectory gt = Circle(50);
+  Trajectory est = gt;
+  for (auto& p : est) p.T_world_cam.translation() += Eigen::Vector3d(0.3, 0.4, 0);
+  AteOptions no_align;
+  no_align.align = false;
+  EXPECT_NEAR(ComputeAte(gt, est, no_align)->error.rmse, 0.5, 1e-12);
+  EXPECT_LT(ComputeAte(gt, est)->error.rmse, 1e-9);
+}
+
+TEST(AteTest, MatchesByTimestampWithinTolerance) {
+  const Trajectory gt = Circle(100);
+  Trajectory est(gt.begin() + 10, gt.begin() + 60);  // a part of it
+  for (auto& p : est) p.timestamp += 0.004;          // 4 ms late: still matched
+  auto ate = ComputeAte(gt, est);
+  ASSERT_TRUE(ate.ok());
+  EXPECT_EQ(ate->matched, 50u);
+  // Now 16.7 ms late: half way between two 30 Hz samples, more than 10 ms from both.
+  for (auto& p : est) p.timestamp += 0.0127;
+  EXPECT_FALSE(ComputeAte(gt, est).ok());
+}
+
+TEST(RpeTest, ConstantExtraStepShowsPerPair) {
+  const Trajectory gt = Circle(100);
+  Trajectory est = gt;
+  // The estimate drifts 1 mm per frame along x: every one-frame pair is off by 1 mm.
+  for (std::size_t i = 0; i < est.size(); ++i) est[i].T_world_cam.translation().x() += 0.001 * i;
+  auto rpe = ComputeRpe(gt, est);
+  ASSERT_TRUE(rpe.ok());
+  EXPECT_EQ(rpe->pairs, 99u);
+  EXPECT_NEAR(rpe->translation.rmse, 0.001, 1e-9);
+  EXPECT_LT(rpe->rotation.max, 1e-6);
+}
+
+TEST(StatisticsTest, MedianAndStd) {
+  const ErrorStatistics s = ComputeStatistics({1, 2, 3, 4});
+  EXPECT_DOUBLE_EQ(s.median, 2.5);
+  EXPECT_DOUBLE_EQ(s.mean, 2.5);
+  EXPECT_DOUBLE_EQ(s.rmse, std::sqrt(7.5));
+  EXPECT_DOUBLE_EQ(s.std, std::sqrt(1.25));
+}
+
+}  // namespace
+}  // namespace ccmd

@@ -1,0 +1,74 @@
+#include "libccmd/io/config.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <filesystem>
+
+#include "libccmd/util/file_util.h"
+#include "tests/support/test_support.h"
+
+namespace ccmd {
+namespace {
+
+TEST(ConfigTest, ReadsOrbSlamCameraKeys) {
+  testing::TempDir dir;
+  ASSERT_TRUE(WriteFileAtomic(dir.File("c.yaml"),
+                              "%YAML:1.0\nCamera.fx: 517.306408\nCamera.fy: 516.469215\n"
+                              "Camera.cx: 318.643040\nCamera.cy: 255.313989\nCamera.k1: 0.262383\n"
+                              "Camera.width: 640\nCamera.height: 480\nCamera.fps: 30.0\n"
+                              "Camera.bf: 40.0\nThDepth: 40.0\nDepthMapFactor: 5000.0\n")
+                  .ok());
+  auto c = LoadCameraConfig(dir.File("c.yaml"));
+  ASSERT_TRUE(c.ok()) << c.status().ToString();
+  EXPECT_DOUBLE_EQ(c->fx, 517.306408);
+  EXPECT_DOUBLE_EQ(c->cy, 255.313989);
+  EXPECT_DOUBLE_EQ(c->distortion[0], 0.262383);
+  EXPECT_DOUBLE_EQ(c->depth_map_factor, 5000.0);
+  EXPECT_NEAR(c->far_depth_m, 40.0 * 40.0 / 517.306408, 1e-12);  // ORB-SLAM's ThDepth rule
+}
+
+TEST(ConfigTest, MissingAndWrongKeysAreClearErrors) {
+  testing::TempDir dir;
+  ASSERT_TRUE(WriteFileAtomic(dir.File("a.yaml"), "%YAML:1.0\nCamera.fx: 500\nCamera.fy: 500\nCamera.cx: 320\n").ok());
+  auto a = LoadCameraConfig(dir.File("a.yaml"));
+  ASSERT_FALSE(a.ok());
+  EXPECT_NE(a.status().message().find("Camera.cy"), std::string::npos);
+  ASSERT_TRUE(WriteFileAtomic(dir.File("b.yaml"),
+                              "%YAML:1.0\nCamera.fx: \"big\"\nCamera.fy: 500\nCamera.cx: 320\nCamera.cy: 240\n")
+                  .ok());
+  EXPECT_FALSE(LoadCameraConfig(dir.File("b.yaml")).ok());
+  EXPECT_EQ(LoadCameraConfig(dir.File("none.yaml")).status().code(), StatusCode::kNotFound);
+  ASSERT_TRUE(WriteFileAtomic(dir.File("c.yaml"), "%YAML:1.0\n{{{{").ok());
+  EXPECT_FALSE(LoadCameraConfig(dir.File("c.yaml")).ok());
+}
+
+TEST(ConfigTest, WrittenConfigReadsBackTheSameCamera) {
+  testing::TempDir dir;
+  PinholeCamera c;
+  c.fx = 481.2;
+  c.fy = -480.0;
+  c.far_depth_m = 3.5;
+  c.depth_map_factor = 1000;
+  ASSERT_TRUE(WriteCameraConfig(c, dir.File("w.yaml")).ok());
+  auto r = LoadCameraConfig(dir.File("w.yaml"));
+  ASSERT_TRUE(r.ok());
+  EXPECT_NEAR(r->fx, 481.2, 1e-6);
+  EXPECT_NEAR(r->fy, -480.0, 1e-6);
+  EXPECT_NEAR(r->far_depth_m, 3.5, 1e-6);
+  EXPECT_EQ(r->depth_map_factor, 1000);
+}
+
+TEST(ConfigTest, EveryShippedConfigLoads) {
+  int count = 0;
+  for (const auto& entry : std::filesystem::directory_iterator(CCMD_CONFIG_DIR)) {
+    if (entry.path().extension() != ".yaml") continue;
+    auto c = LoadCameraConfig(entry.path().string());
+    EXPECT_TRUE(c.ok()) << entry.path() << ": " << c.status().ToString();
+    ++count;
+  }
+  EXPECT_GE(count, 7);  // TUM fr1-3, ICL-NUIM, 7-Scenes, D435, synthetic
+}
+
+}  // namespace
+}  // namespace ccmd

@@ -1,0 +1,83 @@
+#include "libccmd/io/ply.h"
+
+#include <gtest/gtest.h>
+
+#include "libccmd/util/file_util.h"
+#include "tests/support/test_support.h"
+
+namespace ccmd {
+namespace {
+
+PointCloud MakeCloud() {
+  PointCloud c;
+  for (int i = 0; i < 1000; ++i) {
+    c.points.emplace_back(i * 0.001f, -i * 0.5f, 3.25f + i);
+    c.normals.emplace_back(0, 0, 1);
+    c.colors.push_back({static_cast<std::uint8_t>(i), 7, static_cast<std::uint8_t>(255 - i % 256)});
+    c.labels.push_back(0x01000000u + i);
+  }
+  return c;
+}
+
+TEST(PlyTest, BinaryRoundTripIsExact) {
+  testing::TempDir dir;
+  const PointCloud c = MakeCloud();
+  ASSERT_TRUE(WritePly(c, dir.File("c.ply")).ok());
+  auto r = ReadPly(dir.File("c.ply"));
+  ASSERT_TRUE(r.ok()) << r.status().ToString();
+  ASSERT_EQ(r->size(), c.size());
+  for (std::size_t i = 0; i < c.size(); ++i) {
+    ASSERT_EQ(r->points[i], c.points[i]);
+    ASSERT_EQ(r->normals[i], c.normals[i]);
+    ASSERT_EQ(r->colors[i], c.colors[i]);
+    ASSERT_EQ(r->labels[i], c.labels[i]);
+  }
+}
+
+TEST(PlyTest, HeaderIsTheStandardOneOtherToolsRead) {
+  testing::TempDir dir;
+  ASSERT_TRUE(WritePly(MakeCloud(), dir.File("c.ply")).ok());
+  const std::string data = *ReadFileToString(dir.File("c.ply"));
+  const std::string header = data.substr(0, data.find("end_header"));
+  EXPECT_NE(header.find("format binary_little_endian 1.0"), std::string::npos);
+  EXPECT_NE(header.find("element vertex 1000"), std::string::npos);
+  EXPECT_NE(header.find("property uchar red"), std::string::npos);
+  EXPECT_NE(header.find("property uint label"), std::string::npos);
+  // 3 floats + 3 floats + 3 bytes + 4 bytes per vertex after the header line.
+  EXPECT_EQ(data.size() - (data.find("end_header") + 11), 1000u * (12 + 12 + 3 + 4));
+}
+
+TEST(PlyTest, ReadsAsciiWithFacesAndOtherPropertyOrder) {
+  testing::TempDir dir;
+  ASSERT_TRUE(WriteFileAtomic(dir.File("m.ply"),
+                              "ply\nformat ascii 1.0\nelement vertex 4\nproperty double z\n"
+                              "property double x\nproperty double y\nelement face 1\n"
+                              "property list uchar int vertex_indices\nend_header\n"
+                              "0 0 0\n0 1 0\n0 1 1\n0 0 1\n4 0 1 2 3\n")
+                  .ok());
+  auto r = ReadPly(dir.File("m.ply"));
+  ASSERT_TRUE(r.ok()) << r.status().ToString();
+  ASSERT_EQ(r->size(), 4u);
+  EXPECT_EQ(r->points[1], Eigen::Vector3f(1, 0, 0));
+  ASSERT_EQ(r->triangles.size(), 2u);  // the quad as a fan
+  EXPECT_EQ(r->triangles[1], (std::array<std::uint32_t, 3>{0, 2, 3}));
+}
+
+TEST(PlyTest, MalformedFilesAreErrors) {
+  testing::TempDir dir;
+  const char* header = "ply\nformat binary_little_endian 1.0\nelement vertex 1000000000\n"
+                       "property float x\nproperty float y\nproperty float z\nend_header\n";
+  ASSERT_TRUE(WriteFileAtomic(dir.File("huge.ply"), std::string(header) + "abc").ok());
+  EXPECT_FALSE(ReadPly(dir.File("huge.ply")).ok());  // refused before allocating
+  ASSERT_TRUE(WriteFileAtomic(dir.File("junk.ply"), "not a ply").ok());
+  EXPECT_EQ(ReadPly(dir.File("junk.ply")).status().code(), StatusCode::kCorrupt);
+  // Truncated body.
+  ASSERT_TRUE(WritePly(MakeCloud(), dir.File("c.ply")).ok());
+  std::string data = *ReadFileToString(dir.File("c.ply"));
+  data.resize(data.size() - 10);
+  ASSERT_TRUE(WriteFileAtomic(dir.File("cut.ply"), data).ok());
+  EXPECT_EQ(ReadPly(dir.File("cut.ply")).status().code(), StatusCode::kCorrupt);
+}
+
+}  // namespace
+}  // namespace ccmd

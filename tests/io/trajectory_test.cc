@@ -1,0 +1,51 @@
+#include "libccmd/io/trajectory.h"
+
+#include <gtest/gtest.h>
+
+#include "libccmd/util/file_util.h"
+#include "tests/support/test_support.h"
+
+namespace ccmd {
+namespace {
+
+TEST(TrajectoryTest, WriteThenReadKeepsPosesAndMicroseconds) {
+  Trajectory t;
+  for (int i = 0; i < 5; ++i) {
+    t.push_back({1305031453.359684 + i * 0.033,
+                 PoseFromTranslationQuaternion(
+                     {0.1 * i, -0.2, 1.5},
+                     Eigen::Quaterniond(Eigen::AngleAxisd(0.1 * i, Eigen::Vector3d(0, 1, 1).normalized())))});
+  }
+  testing::TempDir dir;
+  ASSERT_TRUE(WriteTumTrajectory(t, dir.File("t.txt"), "test").ok());
+  auto r = ReadTumTrajectory(dir.File("t.txt"));
+  ASSERT_TRUE(r.ok());
+  ASSERT_EQ(r->size(), t.size());
+  for (std::size_t i = 0; i < t.size(); ++i) {
+    EXPECT_NEAR((*r)[i].timestamp, t[i].timestamp, 1e-6);
+    EXPECT_LT(TranslationDistance((*r)[i].T_world_cam, t[i].T_world_cam), 1e-8);
+    EXPECT_LT(RotationDistance((*r)[i].T_world_cam, t[i].T_world_cam), 1e-8);
+  }
+}
+
+TEST(TrajectoryTest, BadLinesReportFileAndLine) {
+  auto r = ParseTumTrajectory("# c\n1 0 0 0 0 0 0 1\n2 0 0 0 0 0 1\n", "gt.txt");
+  ASSERT_FALSE(r.ok());
+  EXPECT_NE(r.status().message().find("gt.txt:3"), std::string::npos);
+  EXPECT_FALSE(ParseTumTrajectory("1 0 0 0 0 0 0 0\n", "zero-q").ok());
+}
+
+TEST(TrajectoryTest, InterpolatesWithinGapOnly) {
+  const Trajectory t = {{1.0, PoseFromTranslationQuaternion({0, 0, 0}, Eigen::Quaterniond::Identity())},
+                        {1.1, PoseFromTranslationQuaternion({1, 0, 0}, Eigen::Quaterniond::Identity())},
+                        {2.0, PoseFromTranslationQuaternion({2, 0, 0}, Eigen::Quaterniond::Identity())}};
+  const auto mid = InterpolateTrajectory(t, 1.025, 0.2);
+  ASSERT_TRUE(mid.has_value());
+  EXPECT_NEAR(mid->translation().x(), 0.25, 1e-12);
+  EXPECT_FALSE(InterpolateTrajectory(t, 1.5, 0.2).has_value());  // samples 0.9 s apart
+  EXPECT_FALSE(InterpolateTrajectory(t, 0.5, 0.2).has_value());  // before the first sample
+  EXPECT_TRUE(InterpolateTrajectory(t, 2.0, 0.2).has_value());   // exactly the last sample
+}
+
+}  // namespace
+}  // namespace ccmd

@@ -1,0 +1,111 @@
+#include "libccmd/io/tum_dataset.h"
+
+#include <gtest/gtest.h>
+
+#include <opencv2/imgcodecs.hpp>
+
+#include "libccmd/util/file_util.h"
+#include "tests/support/test_support.h"
+
+namespace ccmd {
+namespace {
+
+PinholeCamera Camera() {
+  PinholeCamera c;
+  c.width = 8;
+  c.height = 6;
+  return c;
+}
+
+// A 3-frame folder: colour as .jpg and .png (names taken from the list), depth at 5000/m,
+// depth 12 ms after colour, ground truth at 100 Hz.
+void WriteFolder(const std::string& dir) {
+  MakeDirectories(dir + "/rgb").IgnoreError();
+  MakeDirectories(dir + "/depth").IgnoreError();
+  std::string rgb = "# color\n", depth = "# depth\n", gt = "# gt\n";
+  for (int i = 0; i < 3; ++i) {
+    const double t = 10.0 + i / 30.0;
+    const std::string rgb_name = "rgb/" + std::to_string(i) + (i == 1 ? ".jpg" : ".png");
+    const std::string depth_name = "depth/" + std::to_string(i) + ".png";
+    cv::imwrite(dir + "/" + rgb_name, cv::Mat(6, 8, CV_8UC3, cv::Scalar(10, 20, 30)));
+    cv::Mat d(6, 8, CV_16UC1, cv::Scalar(5000 + 1000 * i));  // 1.0, 1.2, 1.4 m
+    d.at<std::uint16_t>(0, 0) = 0;
+    cv::imwrite(dir + "/" + depth_name, d);
+    rgb += std::to_string(t) + " " + rgb_name + "\n";
+    depth += std::to_string(t + 0.012) + " " + depth_name + "\n";
+  }
+  for (int k = 0; k < 12; ++k) {
+    gt += std::to_string(9.99 + k * 0.01) + " " + std::to_string(k * 0.01) + " 0 0 0 0 0 1\n";
+  }
+  WriteFileAtomic(dir + "/rgb.txt", rgb).IgnoreError();
+  WriteFileAtomic(dir + "/depth.txt", depth).IgnoreError();
+  WriteFileAtomic(dir + "/groundtruth.txt", gt).IgnoreError();
+}
+
+TEST(TumDatasetTest, ReadsAssociatesAndConvertsDepth) {
+  testing::TempDir dir;
+  WriteFolder(dir.path());
+  auto seq = TumSequence::Open(dir.path(), Camera());
+  ASSERT_TRUE(seq.ok()) << seq.status().ToString();
+  ASSERT_EQ(seq->size(), 3u);
+  EXPECT_NEAR(seq->frame(1).depth_timestamp - seq->frame(1).timestamp, 0.012, 1e-9);
+  auto f = seq->LoadFrame(2);
+  ASSERT_TRUE(f.ok()) << f.status().ToString();
+  EXPECT_EQ(f->bgr.type(), CV_8UC3);
+  EXPECT_EQ(f->depth_mm.type(), CV_16UC1);
+  EXPECT_EQ(f->depth_mm.at<std::uint16_t>(1, 1), 1400);  // 7000 / 5000 m
+  EXPECT_EQ(f->depth_mm.at<std::uint16_t>(0, 0), 0);     // invalid stays invalid
+  EXPECT_TRUE(seq->LoadFrame(1).ok());                   // the .jpg frame
+}
+
+TEST(TumDatasetTest, GroundTruthInterpolatedAtColourTimestamps) {
+  testing::TempDir dir;
+  WriteFolder(dir.path());
+  auto seq = TumSequence::Open(dir.path(), Camera());
+  ASSERT_TRUE(seq.ok());
+  // gt x = (t - 9.99), linear: at t = 10 + 1/30 it is 0.01 + 1/30.
+  ASSERT_TRUE(seq->frame(1).T_world_cam_gt.has_value());
+  EXPECT_NEAR(seq->frame(1).T_world_cam_gt->translation().x(), 0.01 + 1.0 / 30, 1e-6);  // us stamps
+  EXPECT_EQ(seq->GroundTruthAtFrames().size(), 3u);
+}
+
+TEST(TumDatasetTest, MissingPiecesGiveClearErrors) {
+  testing::TempDir dir;
+  EXPECT_EQ(TumSequence::Open(dir.path() + "/nope", Camera()).status().code(), StatusCode::kNotFound);
+  EXPECT_EQ(TumSequence::Open(dir.path(), Camera()).status().code(), StatusCode::kNotFound);
+  WriteFolder(dir.path());
+  EXPECT_FALSE(TumSequence::Open(dir.path(), std::nullopt).ok());  // no camera, no camera.yaml
+  std::remove((dir.path() + "/depth/1.png").c_str());
+  auto seq = TumSequence::Open(dir.path(), Camera());
+  ASSERT_TRUE(seq.ok());
+  auto f = seq->LoadFrame(1);
+  ASSERT_FALSE(f.ok());
+  EXPECT_NE(f.status().message().find("depth/1.png"), std::string::npos);
+}
+
+TEST(TumDatasetTest, AssociationsOnlyFolderWithDepthFirst) {
+  // ICL-NUIM's TUM-compatible release lists "t depth/i.png t rgb/i.png".
+  testing::TempDir dir;
+  WriteFolder(dir.path());
+  std::remove((dir.path() + "/rgb.txt").c_str());
+  std::remove((dir.path() + "/depth.txt").c_str());
+  ASSERT_TRUE(WriteFileAtomic(dir.File("associations.txt"),
+                              "0 depth/0.png 0 rgb/0.png\n1 depth/2.png 1 rgb/2.png\n")
+                  .ok());
+  auto seq = TumSequence::Open(dir.path(), Camera());
+  ASSERT_TRUE(seq.ok()) << seq.status().ToString();
+  ASSERT_EQ(seq->size(), 2u);
+  EXPECT_NE(seq->frame(1).rgb_path.find("rgb/2.png"), std::string::npos);
+  EXPECT_EQ(seq->LoadFrame(1)->depth_mm.at<std::uint16_t>(3, 3), 1400);
+}
+
+TEST(TumDatasetTest, GuessesConfigFromFolderName) {
+  EXPECT_EQ(GuessCameraConfigName("/d/rgbd_dataset_freiburg1_desk/"), "tum_fr1.yaml");
+  EXPECT_EQ(GuessCameraConfigName("rgbd_dataset_freiburg3_long_office_household"), "tum_fr3.yaml");
+  EXPECT_EQ(GuessCameraConfigName("/x/living_room_traj2_frei_png"), "icl_nuim.yaml");
+  EXPECT_EQ(GuessCameraConfigName("/x/7scenes_redkitchen_0000_0599"), "7scenes.yaml");
+  EXPECT_EQ(GuessCameraConfigName("/x/my_recording"), "");
+}
+
+}  // namespace
+}  // namespace ccmd
