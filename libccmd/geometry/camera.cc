@@ -43,6 +43,7 @@ PinholeCamera PinholeCamera::Resized(int new_width, int new_height) const {
   c.height = new_height;
   c.fx = fx * sx;
   c.fy = fy * sy;
+  c.bf = bf * sx;  // the baseline is physical; bf scales with fx
   c.cx = (cx + 0.5) * sx - 0.5;
   c.cy = (cy + 0.5) * sy - 0.5;
   return c;

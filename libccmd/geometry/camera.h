@@ -24,7 +24,10 @@ struct PinholeCamera {
   // Units per metre in depth image files (TUM: 5000). In memory depth is always
   // uint16 millimetres; this factor is only used when reading and writing files.
   double depth_map_factor = 5000.0;
-  // Depth beyond this (metres) is treated as far: ORB-SLAM's ThDepth * baseline.
+  // fx times the depth sensor's baseline (ORB-SLAM's Camera.bf): weights depth in bundle
+  // adjustment through the virtual right-image coordinate u - bf / z.
+  double bf = 40.0;
+  // Depth beyond this (metres) is treated as far: ORB-SLAM's ThDepth * bf / fx.
   double far_depth_m = 4.0;
   // k1 k2 p1 p2 k3, recorded but not applied (see above).
   std::array<double, 5> distortion{0, 0, 0, 0, 0};

@@ -91,8 +91,9 @@ StatusOr<PinholeCamera> ReadCamera(const ConfigFile& config) {
   }
   // ORB-SLAM: close points are those with depth < ThDepth * bf / fx (bf = baseline * fx).
   CCMD_ASSIGN_OR_RETURN(const double th_depth, config.GetDouble("ThDepth", 40.0));
-  CCMD_ASSIGN_OR_RETURN(const double bf, config.GetDouble("Camera.bf", 40.0));
-  camera.far_depth_m = th_depth * bf / std::fabs(camera.fx);
+  CCMD_ASSIGN_OR_RETURN(camera.bf, config.GetDouble("Camera.bf", 40.0));
+  if (!(camera.bf > 0)) return InvalidArgument(config.path() + ": Camera.bf must be positive");
+  camera.far_depth_m = th_depth * camera.bf / std::fabs(camera.fx);
   std::string why;
   if (!camera.IsValid(&why)) return InvalidArgument(config.path() + ": " + why);
   return camera;
@@ -105,7 +106,7 @@ StatusOr<PinholeCamera> LoadCameraConfig(const std::string& path) {
 
 Status WriteCameraConfig(const PinholeCamera& camera, const std::string& path) {
   char text[1024];
-  // bf chosen so that ThDepth * bf / fx reproduces far_depth_m with ThDepth = 40.
+  // ThDepth chosen so that ThDepth * bf / fx reproduces far_depth_m.
   std::snprintf(text, sizeof(text),
                 "%%YAML:1.0\n"
                 "Camera.type: \"PinHole\"\n"
@@ -113,11 +114,12 @@ Status WriteCameraConfig(const PinholeCamera& camera, const std::string& path) {
                 "Camera.k1: %.6f\nCamera.k2: %.6f\nCamera.p1: %.6f\nCamera.p2: %.6f\n"
                 "Camera.k3: %.6f\n"
                 "Camera.width: %d\nCamera.height: %d\nCamera.fps: %.3f\n"
-                "Camera.bf: %.6f\nThDepth: 40.0\nDepthMapFactor: %.3f\nCamera.RGB: 1\n",
+                "Camera.bf: %.6f\nThDepth: %.6f\nDepthMapFactor: %.3f\nCamera.RGB: 1\n",
                 camera.fx, camera.fy, camera.cx, camera.cy, camera.distortion[0],
                 camera.distortion[1], camera.distortion[2], camera.distortion[3],
                 camera.distortion[4], camera.width, camera.height, camera.fps,
-                camera.far_depth_m * std::fabs(camera.fx) / 40.0, camera.depth_map_factor);
+                camera.bf, camera.far_depth_m * std::fabs(camera.fx) / camera.bf,
+                camera.depth_map_factor);
   return WriteFileAtomic(path, text);
 }
 

@@ -46,6 +46,7 @@ PinholeCamera SyntheticCamera(int width, int height) {
   base.cy = 239.5;
   base.fps = 30.0;
   base.depth_map_factor = 5000.0;
+  base.bf = 52.5;  // a 10 cm virtual baseline
   base.far_depth_m = 4.0;
   if (width == 640 && height == 480) return base;
   return base.Resized(width, height);
