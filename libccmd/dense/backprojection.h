@@ -1,0 +1,47 @@
+#pragma once
+
+// Back-projection of an RGB-D keyframe into a coloured point cloud in the keyframe's own
+// camera frame (the paper's eq. 8: X = Z (u - cx) / fx, Y = Z (v - cy) / fy, Z = d).
+
+#include <array>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include <Eigen/Core>
+#include <opencv2/core/mat.hpp>
+
+#include "libccmd/geometry/camera.h"
+#include "libccmd/util/status.h"
+
+namespace ccmd {
+
+struct BackProjectionOptions {
+  // Depth outside [min, max] metres is dropped. Noise grows with the square of depth on
+  // structured-light and stereo sensors, so far points cost accuracy; 3 m keeps the synthetic
+  // room's reconstruction under 5 mm mean error (docs/benchmarks/dense.md).
+  double min_depth_m = 0.3;
+  double max_depth_m = 3.0;
+
+  Status Validate() const;
+};
+
+// A keyframe's points in its camera frame (x right, y down, z forward; metres) with colours
+// (R, G, B), in raster order of the valid pixels.
+struct CameraCloud {
+  std::vector<Eigen::Vector3f> points;
+  std::vector<std::array<std::uint8_t, 3>> colors;
+  std::size_t size() const { return points.size(); }
+};
+
+// Checks that `depth_mm` is CV_16UC1 and `bgr` CV_8UC3, both of the camera's size, and that
+// the camera is valid. `camera` is the camera of the transmitted resolution
+// (PinholeCamera::Scaled(rate) of the full-resolution camera).
+Status CheckRgbdImages(const cv::Mat& depth_mm, const cv::Mat& bgr, const PinholeCamera& camera);
+
+// Depth 0 is invalid. Uses the pinhole model without distortion (as camera.h explains).
+StatusOr<CameraCloud> BackProjectKeyframe(const cv::Mat& depth_mm, const cv::Mat& bgr,
+                                          const PinholeCamera& camera,
+                                          const BackProjectionOptions& options = {});
+
+}  // namespace ccmd

@@ -1,0 +1,237 @@
+#pragma once
+
+// The server's global dense map: a tree-structured point store that follows every pose update
+// (the paper's section V).
+//
+// Tree: global -> map -> agent -> segment -> keyframe cloud.
+//  * map: a server-side map (MapId); an agent starts in MapId(agent) and moves on map fusion.
+//  * agent: every keyframe cloud of one agent, in its map's frame.
+//  * segment: a block of kSegmentKeyframes consecutive keyframe ids of one agent; finding a
+//    keyframe (or its label's) is two small steps, and empty blocks cost nothing.
+//  * keyframe cloud: the back-projected points in the keyframe's own camera frame (kept for
+//    the whole run), their colours, the keyframe's current pose T_world_cam, the points in the
+//    map frame derived from that pose, and which points the voxel filter keeps.
+// Every point carries the label N of its keyframe (label.h). A pose update re-transforms that
+// keyframe's points and nothing else.
+//
+// Voxel filter over a sliding window of keyframe indices. Within an agent, a point of
+// keyframe k is kept iff it is the first point of k in its voxel and none of the next W stored
+// keyframes of the agent (W = window_keyframes, by id order) has a point in that voxel: the
+// largest label wins, and only neighbours in the window compete. The rule is local, so:
+//  * adding the agent's newest keyframe touches its W predecessors only;
+//  * a pose change of keyframe k changes the filter of k and its W predecessors only, computed
+//    from those and k's W successors (a "window re-filter");
+// and the result never depends on the order of operations: after any updates the store holds
+// exactly what a from-scratch build with the final poses holds. Duplicates between keyframes
+// further apart than W (revisits, other agents) are removed by the export's global filter.
+//
+// Update paths:
+//  * local BA, UpdateKeyframePose: re-transform one keyframe now (cost: its points); the window
+//    re-filter is deferred to Maintain(), which the owner calls when idle and every export
+//    calls first, so frequent small updates do not pay for filtering each time;
+//  * pose graph after a loop, UpdateLoopPoses: the keyframes of the loop interval, then the
+//    windows around them are re-filtered at once;
+//  * global BA, UpdateGlobalPoses: only keyframes whose pose changed are touched, agent by agent,
+//    then re-filtered;
+//  * map fusion, TransformAgent / MergeMaps: one rigid transform for a whole agent's collection.
+//
+// Thread safety: one mutex guards the whole store; every public method takes it, so any
+// thread may call anything. The writer (the server's dense-map stage) holds it for one
+// operation; exports hold it only while copying the selected points and filter and write
+// after releasing it. Nothing is called back under the lock and no other lock is taken
+// inside it.
+
+#include <array>
+#include <cstdint>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <set>
+#include <string>
+#include <vector>
+
+#include <opencv2/core/mat.hpp>
+
+#include "libccmd/dense/backprojection.h"
+#include "libccmd/dense/voxel_grid.h"
+#include "libccmd/geometry/camera.h"
+#include "libccmd/geometry/pose.h"
+#include "libccmd/io/ply.h"
+#include "libccmd/util/ids.h"
+#include "libccmd/util/status.h"
+
+namespace ccmd {
+
+struct DenseMapOptions {
+  // Voxel edge (metres). 1 cm is about the pixel footprint at 2.5 m of a 320x240 image
+  // (fx = 262.5), so at the transmitted rate 0.5 the filter removes overlap between keyframes
+  // but little of the detail a single keyframe holds; the paper's ablation used 5 cm.
+  double voxel_size_m = 0.01;
+  // W: how many following keyframes of the same agent a keyframe's points compete with.
+  int window_keyframes = 8;
+  BackProjectionOptions projection;
+
+  Status Validate() const;
+  std::string ToString() const;
+};
+
+struct KeyframePose {
+  GlobalKeyframeId id;
+  Pose T_world_cam;
+};
+
+// One RGB-D keyframe as the server receives it: decoded depth (CV_16UC1 millimetres, 0 =
+// invalid) and colour (CV_8UC3 BGR) at the transmitted sampling rate, the camera of that
+// resolution, and the keyframe's pose in its agent's current map.
+struct DenseKeyframe {
+  GlobalKeyframeId id;
+  Pose T_world_cam = Pose::Identity();
+  cv::Mat depth_mm;
+  cv::Mat bgr;
+  PinholeCamera camera;
+};
+
+// Which part of the tree to read.
+struct DenseSelection {
+  enum class Kind { kGlobal, kMap, kAgent };
+  Kind kind = Kind::kGlobal;
+  MapId map;
+  AgentId agent;
+
+  static DenseSelection Global() { return {}; }
+  static DenseSelection Map(MapId m) { return {Kind::kMap, m, AgentId()}; }
+  static DenseSelection Agent(AgentId a) { return {Kind::kAgent, MapId(), a}; }
+};
+
+enum class DenseFilter {
+  kNone,    // every stored point
+  kWindow,  // the points the sliding-window filter keeps (the store's map)
+  kGlobal,  // those, then one point per voxel over the whole selection (largest label wins)
+};
+
+struct DenseMapStats {
+  std::size_t maps = 0;
+  std::size_t agents = 0;
+  std::size_t segments = 0;
+  std::size_t keyframes = 0;
+  std::size_t points = 0;       // stored (back-projected) points
+  std::size_t kept_points = 0;  // kept by the sliding-window filter
+  std::size_t pending_keyframes = 0;  // pose updates awaiting their window re-filter
+  std::size_t memory_bytes = 0;       // everything the store allocates, scratch included
+};
+
+inline constexpr int kSegmentKeyframes = 64;
+
+class DenseMap {
+ public:
+  static StatusOr<std::unique_ptr<DenseMap>> Create(const DenseMapOptions& options = {});
+
+  DenseMap(const DenseMap&) = delete;
+  DenseMap& operator=(const DenseMap&) = delete;
+  ~DenseMap();
+
+  const DenseMapOptions& options() const { return options_; }
+
+  // Back-projects the keyframe (outside the lock) and adds it with the window filter.
+  // Errors: bad images or camera (InvalidArgument), ids beyond the label (OutOfRange), a
+  // non-rigid pose, or a keyframe already present (InvalidArgument).
+  Status AddKeyframe(const DenseKeyframe& keyframe);
+  // The same for a keyframe already back-projected (points in its camera frame).
+  Status AddKeyframeCloud(const GlobalKeyframeId& id, const Pose& T_world_cam, CameraCloud cloud);
+  // Removes a keyframe (culled by the back-end); its predecessors are re-filtered.
+  Status RemoveKeyframe(const GlobalKeyframeId& id);
+
+  // Places an agent in a map without moving its points (the back-end's map of that agent).
+  Status SetAgentMap(AgentId agent, MapId map);
+
+  // Local BA: one keyframe moved. See the header comment for the deferred window re-filter.
+  Status UpdateKeyframePose(const GlobalKeyframeId& id, const Pose& T_world_cam);
+  // Pose graph after a loop: every keyframe listed moved; their windows are re-filtered now.
+  // All ids are checked first: on error nothing changes.
+  Status UpdateLoopPoses(const std::vector<KeyframePose>& poses);
+  // Global BA: new poses for any number of keyframes; those equal to the stored pose (within
+  // 1e-9) are skipped, the rest updated and re-filtered. Returns how many moved.
+  StatusOr<std::size_t> UpdateGlobalPoses(const std::vector<KeyframePose>& poses);
+  // Map fusion of one agent's collection: every pose becomes T_new_old * pose.
+  Status TransformAgent(AgentId agent, const Pose& T_new_old);
+  // Map fusion: every agent of `source` moves into `target` (created if absent), its poses
+  // premultiplied by T_target_source; `source` disappears.
+  Status MergeMaps(MapId source, MapId target, const Pose& T_target_source);
+
+  // Runs the window re-filters that pose updates left pending. Returns keyframes re-filtered.
+  std::size_t Maintain();
+
+  // Points of a part of the tree in its map's frame, with colours and labels. Runs Maintain()
+  // first. NotFound for an unknown map or agent.
+  StatusOr<PointCloud> Extract(const DenseSelection& selection,
+                               DenseFilter filter = DenseFilter::kGlobal);
+  // Extract, written as binary PLY (x y z red green blue label) atomically.
+  Status ExportPly(const std::string& path, const DenseSelection& selection,
+                   DenseFilter filter = DenseFilter::kGlobal);
+  // Every point of one keyframe in the map frame (unfiltered), with colours and labels.
+  StatusOr<PointCloud> ExtractKeyframe(const GlobalKeyframeId& id) const;
+  // The keyframe a label names, if present.
+  StatusOr<GlobalKeyframeId> FindLabel(std::uint32_t label) const;
+
+  StatusOr<Pose> KeyframePoseOf(const GlobalKeyframeId& id) const;
+  std::vector<MapId> Maps() const;
+  std::vector<AgentId> Agents() const;
+  StatusOr<MapId> MapOf(AgentId agent) const;
+  // The agent's keyframes in id order.
+  std::vector<KeyframeId> Keyframes(AgentId agent) const;
+  DenseMapStats Stats() const;
+
+ private:
+  struct Entry {
+    GlobalKeyframeId id;
+    std::uint32_t label = 0;
+    Pose T_world_cam = Pose::Identity();
+    CameraCloud cloud;                       // camera frame, never changes
+    std::vector<Eigen::Vector3f> world;      // cloud.points under T_world_cam
+    std::vector<std::uint8_t> kept;          // 1 where the window filter keeps the point
+    std::size_t kept_count = 0;
+  };
+  struct Segment {
+    std::array<std::unique_ptr<Entry>, kSegmentKeyframes> slots;
+    int count = 0;
+  };
+  struct AgentNode {
+    std::map<std::uint32_t, Segment> segments;  // keyed by keyframe id / kSegmentKeyframes
+    std::size_t keyframes = 0;
+  };
+  using MapNode = std::map<AgentId, AgentNode>;
+
+  explicit DenseMap(const DenseMapOptions& options);
+
+  AgentNode* FindAgent(AgentId agent);
+  const AgentNode* FindAgent(AgentId agent) const;
+  AgentNode& AgentOrCreate(AgentId agent);
+  static Entry* Find(const AgentNode& agent, std::uint32_t id);
+  static Entry* Next(const AgentNode& agent, std::uint32_t id);
+  static Entry* Prev(const AgentNode& agent, std::uint32_t id);
+  // The id W keyframes before `id` (or the first one), `id` itself if it has no predecessor.
+  std::uint32_t WindowStart(const AgentNode& agent, std::uint32_t id) const;
+
+  void Transform(Entry* entry) const;
+  // Recomputes the filter of every keyframe with id in [first, last] from its own points and
+  // its W successors'. Returns how many keyframes it recomputed.
+  std::size_t RefilterRange(const AgentNode& agent, std::uint32_t first, std::uint32_t last);
+  // Adds the newest keyframe of an agent: its own filter, then its points removed from the
+  // kept points of its W predecessors.
+  void FilterAppended(const AgentNode& agent, Entry* entry);
+  std::size_t MaintainLocked();
+  void MarkPending(const Entry& entry);
+  Status InsertLocked(std::unique_ptr<Entry> entry);
+  void AppendPoints(const Entry& entry, DenseFilter filter, PointCloud* cloud) const;
+
+  const DenseMapOptions options_;
+  const VoxelGrid grid_;
+
+  mutable std::mutex mutex_;
+  std::map<MapId, MapNode> maps_;             // guarded by mutex_
+  std::map<AgentId, MapId> agent_map_;        // guarded by mutex_
+  std::set<GlobalKeyframeId> pending_;        // guarded by mutex_
+  VoxelTable scratch_;                        // guarded by mutex_
+};
+
+}  // namespace ccmd

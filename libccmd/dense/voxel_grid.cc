@@ -1,0 +1,103 @@
+#include "libccmd/dense/voxel_grid.h"
+
+#include <algorithm>
+#include <bit>
+
+namespace ccmd {
+
+void VoxelTable::Allocate(std::size_t capacity) {
+  slots_.assign(capacity, Slot{0, 0, 0});
+  mask_ = capacity - 1;
+  shift_ = 64 - std::countr_zero(capacity);
+  stamp_ = 1;
+  size_ = 0;
+}
+
+void VoxelTable::Clear(std::size_t expected) {
+  // Load factor at most 1/2 keeps probe sequences short.
+  const std::size_t wanted = std::bit_ceil(std::max<std::size_t>(1024, 2 * expected));
+  // A table much larger than needed spreads a small job over many cache lines: shrink it.
+  if (slots_.size() < wanted || slots_.size() > 8 * wanted) {
+    Allocate(wanted);
+    return;
+  }
+  size_ = 0;
+  if (++stamp_ == 0) {  // wrapped after 2^32 clears: stale stamps could match again
+    Allocate(slots_.size());
+  }
+}
+
+void VoxelTable::Grow() {
+  std::vector<Slot> old;
+  old.swap(slots_);
+  const std::uint32_t old_stamp = stamp_;
+  Allocate(old.size() * 2);
+  for (const Slot& s : old) {
+    if (s.stamp != old_stamp) continue;
+    bool inserted = false;
+    FindOrInsert(s.key, &inserted) = s.value;
+  }
+}
+
+std::int32_t& VoxelTable::FindOrInsert(std::uint64_t key, bool* inserted) {
+  if (slots_.empty()) Allocate(1024);
+  if (2 * (size_ + 1) > slots_.size()) Grow();
+  for (std::size_t i = SlotOf(key);; i = (i + 1) & mask_) {
+    Slot& s = slots_[i];
+    if (s.stamp != stamp_) {
+      s.key = key;
+      s.value = 0;
+      s.stamp = stamp_;
+      ++size_;
+      *inserted = true;
+      return s.value;
+    }
+    if (s.key == key) {
+      *inserted = false;
+      return s.value;
+    }
+  }
+}
+
+const std::int32_t* VoxelTable::Find(std::uint64_t key) const {
+  if (slots_.empty()) return nullptr;
+  for (std::size_t i = SlotOf(key);; i = (i + 1) & mask_) {
+    const Slot& s = slots_[i];
+    if (s.stamp != stamp_) return nullptr;
+    if (s.key == key) return &s.value;
+  }
+}
+
+void VoxelFilterLargestLabel(PointCloud* cloud, double voxel_size) {
+  const std::size_t n = cloud->size();
+  if (n == 0) return;
+  const VoxelGrid grid(voxel_size);
+  VoxelTable table;
+  table.Clear(n);
+  // The table holds a voxel's ordinal; winner[ordinal] is the index of its best point.
+  std::vector<std::uint32_t> winner;
+  const bool labelled = cloud->HasLabels();
+  for (std::size_t i = 0; i < n; ++i) {
+    bool inserted = false;
+    std::int32_t& ordinal = table.FindOrInsert(grid.Key(cloud->points[i]), &inserted);
+    if (inserted) {
+      ordinal = static_cast<std::int32_t>(winner.size());
+      winner.push_back(static_cast<std::uint32_t>(i));
+    } else if (labelled && cloud->labels[i] > cloud->labels[winner[ordinal]]) {
+      winner[ordinal] = static_cast<std::uint32_t>(i);
+    }
+  }
+  if (winner.size() == n) return;
+  std::sort(winner.begin(), winner.end());
+  const auto compact = [&](auto& values) {
+    if (values.empty()) return;
+    for (std::size_t k = 0; k < winner.size(); ++k) values[k] = values[winner[k]];
+    values.resize(winner.size());
+  };
+  compact(cloud->points);
+  compact(cloud->colors);
+  compact(cloud->normals);
+  compact(cloud->labels);
+}
+
+}  // namespace ccmd
