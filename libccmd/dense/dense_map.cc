@@ -177,7 +177,7 @@ void DenseMap::FilterAppended(const AgentNode& agent, Entry* entry) {
 }
 
 std::size_t DenseMap::RefilterRange(const AgentNode& agent, std::uint32_t first,
-                                   std::uint32_t last) {
+                                    std::uint32_t last) {
   std::vector<Entry*> list;
   Entry* e = Find(agent, first);
   if (e == nullptr) e = Next(agent, first);
@@ -196,7 +196,8 @@ std::size_t DenseMap::RefilterRange(const AgentNode& agent, std::uint32_t first,
     const std::size_t end = std::min(recompute, begin + kRefilterChunk);
     const std::size_t context_end = std::min(list.size(), end + window);
     std::size_t largest = 0;
-    for (std::size_t r = begin; r < context_end; ++r) largest = std::max(largest, list[r]->world.size());
+    for (std::size_t r = begin; r < context_end; ++r)
+      largest = std::max(largest, list[r]->world.size());
     scratch_.Clear(2 * largest);
     // From the last keyframe backwards: when keyframe r is visited, the table holds for each
     // voxel the nearest following keyframe (rank) with a point there.
@@ -273,9 +274,9 @@ std::size_t DenseMap::Maintain() {
 // ---- insertion and removal -----------------------------------------------------------------
 
 Status DenseMap::AddKeyframe(const DenseKeyframe& keyframe) {
-  CCMD_ASSIGN_OR_RETURN(CameraCloud cloud,
-                        BackProjectKeyframe(keyframe.depth_mm, keyframe.bgr, keyframe.camera,
-                                            options_.projection));
+  CCMD_ASSIGN_OR_RETURN(
+      CameraCloud cloud,
+      BackProjectKeyframe(keyframe.depth_mm, keyframe.bgr, keyframe.camera, options_.projection));
   return AddKeyframeCloud(keyframe.id, keyframe.T_world_cam, std::move(cloud));
 }
 
@@ -325,7 +326,8 @@ Status DenseMap::RemoveKeyframe(const GlobalKeyframeId& id) {
   std::lock_guard<std::mutex> lock(mutex_);
   AgentNode* node = FindAgent(id.agent);
   const std::uint32_t k = id.keyframe.value();
-  if (node == nullptr || Find(*node, k) == nullptr) return NotFound(IdText(id) + " is not in the dense map");
+  if (node == nullptr || Find(*node, k) == nullptr)
+    return NotFound(IdText(id) + " is not in the dense map");
   const std::uint32_t start = WindowStart(*node, k);
   const Entry* prev = Prev(*node, k);
   const std::uint32_t prev_id = prev ? prev->id.keyframe.value() : 0;
@@ -423,7 +425,8 @@ Status DenseMap::TransformAgent(AgentId agent, const Pose& T_new_old) {
   CCMD_RETURN_IF_ERROR(CheckPose(T_new_old).WithContext("agent transform"));
   std::lock_guard<std::mutex> lock(mutex_);
   AgentNode* node = FindAgent(agent);
-  if (node == nullptr) return NotFound("agent " + std::to_string(agent.value()) + " has no dense map");
+  if (node == nullptr)
+    return NotFound("agent " + std::to_string(agent.value()) + " has no dense map");
   for (auto& [index, segment] : node->segments) {
     for (auto& entry : segment.slots) {
       if (!entry) continue;
@@ -440,7 +443,8 @@ Status DenseMap::MergeMaps(MapId source, MapId target, const Pose& T_target_sour
   CCMD_RETURN_IF_ERROR(CheckPose(T_target_source).WithContext("map fusion transform"));
   std::lock_guard<std::mutex> lock(mutex_);
   auto from = maps_.find(source);
-  if (from == maps_.end()) return NotFound("map " + std::to_string(source.value()) + " has no dense map");
+  if (from == maps_.end())
+    return NotFound("map " + std::to_string(source.value()) + " has no dense map");
   MapNode moved = std::move(from->second);
   maps_.erase(from);
   MapNode& into = maps_[target];
@@ -504,7 +508,8 @@ StatusOr<PointCloud> DenseMap::Extract(const DenseSelection& selection, DenseFil
     for (const AgentNode* node : agents) {
       for (const auto& [index, segment] : node->segments) {
         for (const auto& entry : segment.slots) {
-          if (entry) count += filter == DenseFilter::kNone ? entry->world.size() : entry->kept_count;
+          if (entry)
+            count += filter == DenseFilter::kNone ? entry->world.size() : entry->kept_count;
         }
       }
     }
@@ -577,7 +582,8 @@ std::vector<AgentId> DenseMap::Agents() const {
 StatusOr<MapId> DenseMap::MapOf(AgentId agent) const {
   std::lock_guard<std::mutex> lock(mutex_);
   const auto it = agent_map_.find(agent);
-  if (it == agent_map_.end()) return NotFound("agent " + std::to_string(agent.value()) + " has no dense map");
+  if (it == agent_map_.end())
+    return NotFound("agent " + std::to_string(agent.value()) + " has no dense map");
   return it->second;
 }
 

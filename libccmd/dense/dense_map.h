@@ -114,8 +114,8 @@ struct DenseMapStats {
   std::size_t agents = 0;
   std::size_t segments = 0;
   std::size_t keyframes = 0;
-  std::size_t points = 0;       // stored (back-projected) points
-  std::size_t kept_points = 0;  // kept by the sliding-window filter
+  std::size_t points = 0;             // stored (back-projected) points
+  std::size_t kept_points = 0;        // kept by the sliding-window filter
   std::size_t pending_keyframes = 0;  // pose updates awaiting their window re-filter
   std::size_t memory_bytes = 0;       // everything the store allocates, scratch included
 };
@@ -186,9 +186,9 @@ class DenseMap {
     GlobalKeyframeId id;
     std::uint32_t label = 0;
     Pose T_world_cam = Pose::Identity();
-    CameraCloud cloud;                       // camera frame, never changes
-    std::vector<Eigen::Vector3f> world;      // cloud.points under T_world_cam
-    std::vector<std::uint8_t> kept;          // 1 where the window filter keeps the point
+    CameraCloud cloud;                   // camera frame, never changes
+    std::vector<Eigen::Vector3f> world;  // cloud.points under T_world_cam
+    std::vector<std::uint8_t> kept;      // 1 where the window filter keeps the point
     std::size_t kept_count = 0;
   };
   struct Segment {
@@ -228,10 +228,10 @@ class DenseMap {
   const VoxelGrid grid_;
 
   mutable std::mutex mutex_;
-  std::map<MapId, MapNode> maps_;             // guarded by mutex_
-  std::map<AgentId, MapId> agent_map_;        // guarded by mutex_
-  std::set<GlobalKeyframeId> pending_;        // guarded by mutex_
-  VoxelTable scratch_;                        // guarded by mutex_
+  std::map<MapId, MapNode> maps_;       // guarded by mutex_
+  std::map<AgentId, MapId> agent_map_;  // guarded by mutex_
+  std::set<GlobalKeyframeId> pending_;  // guarded by mutex_
+  VoxelTable scratch_;                  // guarded by mutex_
 };
 
 }  // namespace ccmd

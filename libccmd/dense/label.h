@@ -27,8 +27,8 @@ inline bool FitsLabel(const GlobalKeyframeId& id, std::string* why = nullptr) {
   }
   if (id.keyframe.value() > kMaxLabelKeyframe) {
     if (why) {
-      *why = "keyframe id " + std::to_string(id.keyframe.value()) +
-             " above the label limit 16777215";
+      *why =
+          "keyframe id " + std::to_string(id.keyframe.value()) + " above the label limit 16777215";
     }
     return false;
   }
@@ -38,8 +38,7 @@ inline bool FitsLabel(const GlobalKeyframeId& id, std::string* why = nullptr) {
 inline StatusOr<std::uint32_t> EncodeLabel(const GlobalKeyframeId& id) {
   std::string why;
   if (!FitsLabel(id, &why)) return OutOfRange(why);
-  return (static_cast<std::uint32_t>(id.agent.value()) << kLabelKeyframeBits) |
-         id.keyframe.value();
+  return (static_cast<std::uint32_t>(id.agent.value()) << kLabelKeyframeBits) | id.keyframe.value();
 }
 
 inline GlobalKeyframeId DecodeLabel(std::uint32_t label) {

@@ -39,8 +39,7 @@ Status DenseSnapshotWriter::WriteNow() {
     const std::string folder = JoinPath(options_.folder, "agents");
     CCMD_RETURN_IF_ERROR(MakeDirectories(folder));
     for (const AgentId agent : map_->Agents()) {
-      const std::string path =
-          JoinPath(folder, "agent_" + std::to_string(agent.value()) + ".ply");
+      const std::string path = JoinPath(folder, "agent_" + std::to_string(agent.value()) + ".ply");
       CCMD_RETURN_IF_ERROR(map_->ExportPly(path, DenseSelection::Agent(agent), options_.filter));
     }
   }

@@ -25,7 +25,8 @@ class VoxelGrid {
 
   std::uint64_t Key(const Eigen::Vector3f& p) const {
     return (static_cast<std::uint64_t>(Index(p.x())) << 42) |
-           (static_cast<std::uint64_t>(Index(p.y())) << 21) | static_cast<std::uint64_t>(Index(p.z()));
+           (static_cast<std::uint64_t>(Index(p.y())) << 21) |
+           static_cast<std::uint64_t>(Index(p.z()));
   }
 
   // The voxel's integer coordinates, for tests and tools.
