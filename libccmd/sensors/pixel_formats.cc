@@ -107,6 +107,18 @@ MjpegDecoder::~MjpegDecoder() {
 
 Status MjpegDecoder::Decode(const std::uint8_t* data, std::size_t size, int expected_width,
                             int expected_height, cv::Mat* bgr) {
+  const Status status = DecodeOnce(data, size, expected_width, expected_height, bgr);
+  if (!status.ok() && handle_ != nullptr) {
+    // After some failures (a header cut before its scan) TurboJPEG 2.1 leaves the handle in
+    // a state where the next, valid frame reads as 0x0; a fresh handle is cheap.
+    tjDestroy(static_cast<tjhandle>(handle_));
+    handle_ = tjInitDecompress();
+  }
+  return status;
+}
+
+Status MjpegDecoder::DecodeOnce(const std::uint8_t* data, std::size_t size, int expected_width,
+                                int expected_height, cv::Mat* bgr) {
   if (handle_ == nullptr) return Internal("TurboJPEG decompressor could not be created");
   if (data == nullptr || size < 4) return Corrupt("MJPEG frame is empty");
   if (size > (1ull << 28)) return OutOfRange("MJPEG frame of " + std::to_string(size) + " bytes");

@@ -65,6 +65,8 @@ class MjpegDecoder {
                 int expected_height, cv::Mat* bgr);
 
  private:
+  Status DecodeOnce(const std::uint8_t* data, std::size_t size, int expected_width,
+                    int expected_height, cv::Mat* bgr);
   void* handle_ = nullptr;  // tjhandle
 };
 

@@ -143,8 +143,12 @@ TEST(PixelFormatsTest, MjpegRejectsWrongSizeTruncatedAndGarbageFrames) {
   EXPECT_EQ(decoder.Decode(garbage.data(), garbage.size(), 32, 32, &bgr).code(),
             StatusCode::kCorrupt);
   EXPECT_EQ(decoder.Decode(nullptr, 0, 32, 32, &bgr).code(), StatusCode::kCorrupt);
-  // The decoder is still usable after errors.
   EXPECT_TRUE(decoder.Decode(jpeg.data(), jpeg.size(), 32, 32, &bgr).ok());
+  // A frame cut inside its headers (before the scan), then a good frame: the decoder must
+  // not carry the failure over.
+  EXPECT_EQ(decoder.Decode(jpeg.data(), 200, 32, 32, &bgr).code(), StatusCode::kCorrupt);
+  const Status after = decoder.Decode(jpeg.data(), jpeg.size(), 32, 32, &bgr);
+  EXPECT_TRUE(after.ok()) << after.ToString();
 }
 
 TEST(PixelFormatsTest, ColourLargerThanDepthIsResizedToTheDepthSize) {
