@@ -3,6 +3,12 @@
 #include "libccmd/io/config.h"
 #include "libccmd/sensors/dataset_source.h"
 #include "libccmd/sensors/synthetic_source.h"
+#ifdef CCMD_HAVE_OPENNI2
+#include "libccmd/sensors/openni2_source.h"
+#endif
+#ifdef CCMD_HAVE_V4L2
+#include "libccmd/sensors/v4l2_source.h"
+#endif
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/string_util.h"
@@ -17,7 +23,60 @@ StatusOr<std::optional<FrameRange>> SegmentRange(int frames, const SourceOptions
   return std::optional<FrameRange>(segments[options.segment->first - 1]);
 }
 
+#ifdef CCMD_HAVE_OPENNI2
+StatusOr<std::unique_ptr<RgbdSource>> OpenOpenNI2(const std::string& uri,
+                                                  const SourceOptions& options) {
+  OpenNI2Options openni2;
+  openni2.uri = uri;
+  if (!options.camera_config.empty()) {
+    // The config sets the mode as well as the intrinsics.
+    CCMD_ASSIGN_OR_RETURN(const PinholeCamera camera, LoadCameraConfig(options.camera_config));
+    openni2.camera = camera;
+    openni2.width = camera.width;
+    openni2.height = camera.height;
+    openni2.fps = camera.fps;
+  }
+  CCMD_ASSIGN_OR_RETURN(auto source, OpenNI2Source::Open(openni2));
+  return std::unique_ptr<RgbdSource>(std::move(source));
+}
+#endif
+
+#ifdef CCMD_HAVE_V4L2
+StatusOr<std::unique_ptr<RgbdSource>> OpenV4l2(const std::string& argument,
+                                               const SourceOptions& options) {
+  CCMD_ASSIGN_OR_RETURN(V4l2SourceOptions v4l2, ParseV4l2Spec(argument));
+  std::string config = !v4l2.config.empty() ? v4l2.config : options.camera_config;
+  if (config.empty() && !options.configs_dir.empty()) {
+    config = JoinPath(options.configs_dir, "realsense_d435.yaml");
+    CCMD_LOG(WARNING) << "v4l2: no camera config given; using " << config
+                      << " (typical D435 values: calibrate your unit for good results)";
+  }
+  if (config.empty()) {
+    return InvalidArgument("v4l2 needs the camera's intrinsics: add config=FILE to the spec");
+  }
+  CCMD_ASSIGN_OR_RETURN(const PinholeCamera camera, LoadCameraConfig(config));
+  v4l2.config = config;
+  CCMD_ASSIGN_OR_RETURN(auto source, V4l2Source::Open(v4l2, camera));
+  return std::unique_ptr<RgbdSource>(std::move(source));
+}
+#endif
+
 }  // namespace
+
+StatusOr<std::unique_ptr<RgbdSource>> OpenSourceWithRetry(const std::string& spec,
+                                                          const SourceOptions& options,
+                                                          const RetryOptions& retry) {
+  CCMD_ASSIGN_OR_RETURN(std::unique_ptr<RgbdSource> first, OpenSource(spec, options));
+  if (!first->IsLive()) return first;
+  // The retry wrapper's first open hands over the source opened above.
+  auto opened = std::make_shared<std::unique_ptr<RgbdSource>>(std::move(first));
+  auto opener = [spec, options, opened]() -> StatusOr<std::unique_ptr<RgbdSource>> {
+    if (*opened) return std::move(*opened);
+    return OpenSource(spec, options);
+  };
+  CCMD_ASSIGN_OR_RETURN(auto source, RetryingSource::Open(opener, retry));
+  return std::unique_ptr<RgbdSource>(std::move(source));
+}
 
 StatusOr<std::unique_ptr<RgbdSource>> OpenSource(const std::string& spec,
                                                  const SourceOptions& options) {
@@ -51,7 +110,23 @@ StatusOr<std::unique_ptr<RgbdSource>> OpenSource(const std::string& spec,
     CCMD_ASSIGN_OR_RETURN(const auto range, SegmentRange(synth.frames, options));
     return std::unique_ptr<RgbdSource>(new SyntheticSource(synth, range));
   }
-  return InvalidArgument("unknown source '" + spec + "' (expected tum:DIR or synth[:options])");
+  if (kind == "openni2") {
+#ifdef CCMD_HAVE_OPENNI2
+    return OpenOpenNI2(argument, options);
+#else
+    return Unsupported("this build has no OpenNI2 support (libopenni2-dev was not found)");
+#endif
+  }
+  if (kind == "v4l2") {
+#ifdef CCMD_HAVE_V4L2
+    return OpenV4l2(argument, options);
+#else
+    return Unsupported("this build has no V4L2 support (Linux only)");
+#endif
+  }
+  return InvalidArgument("unknown source '" + spec +
+                         "' (expected tum:DIR, synth[:options], openni2[:URI] or "
+                         "v4l2:color=DEV,depth=DEV[,...])");
 }
 
 }  // namespace ccmd

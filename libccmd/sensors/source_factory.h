@@ -3,13 +3,23 @@
 // Opens a source from its command-line spec:
 //   tum:DIR         a TUM-layout folder (TUM RGB-D, ICL-NUIM, 7-Scenes converted, ccmd_synth)
 //   synth[:k=v,..]  the synthetic room rendered on the fly (frames, seed, width, height, noise)
-// Live cameras (openni2, v4l2) are added by their modules.
+//   openni2         the first OpenNI2 device (Xtion, Astra, ...)
+//   openni2:URI     a named OpenNI2 device (URI from ccmd_camera --list), or a .oni recording
+//   v4l2:color=/dev/videoN,depth=/dev/videoM[,config=FILE][,width=640,height=480,fps=30]
+//        [,color_width=W,color_height=H][,color_format=auto|yuyv|mjpeg][,depth_unit=0.001]
+//        [,timeout=2][,pair_tolerance=S][,buffers=4]
+//                   two V4L2 nodes of one camera (a RealSense D435: its RGB node and its
+//                   Z16 depth node); see docs/cameras.md.
+// Live cameras take their mode and intrinsics from the camera config (--config, or config=
+// in the v4l2 spec); v4l2 falls back to configs/realsense_d435.yaml, openni2 to the device's
+// field of view at 640x480, 30 fps.
 
 #include <memory>
 #include <optional>
 #include <string>
 
 #include "libccmd/io/split.h"
+#include "libccmd/sensors/retrying_source.h"
 #include "libccmd/sensors/rgbd_source.h"
 
 namespace ccmd {
@@ -23,5 +33,12 @@ struct SourceOptions {
 
 StatusOr<std::unique_ptr<RgbdSource>> OpenSource(const std::string& spec,
                                                  const SourceOptions& options);
+
+// Like OpenSource, but a live camera comes wrapped in a RetryingSource (retrying_source.h):
+// when it fails with Unavailable it is reopened with backoff instead of ending the run.
+// Datasets and synthetic sources are returned as they are.
+StatusOr<std::unique_ptr<RgbdSource>> OpenSourceWithRetry(const std::string& spec,
+                                                          const SourceOptions& options,
+                                                          const RetryOptions& retry = {});
 
 }  // namespace ccmd

@@ -66,7 +66,10 @@ class LinuxV4l2Device : public V4l2Device {
   StatusOr<V4l2DeviceInfo> Query() override {
     if (fd_ < 0) return IoError(path_ + ": closed");
     v4l2_capability cap{};
-    if (Xioctl(fd_, VIDIOC_QUERYCAP, &cap) != 0) return ErrnoStatus(path_, "VIDIOC_QUERYCAP", errno);
+    if (Xioctl(fd_, VIDIOC_QUERYCAP, &cap) != 0) {
+      if (errno == ENOTTY || errno == EINVAL) return Unsupported(path_ + " is not a V4L2 device");
+      return ErrnoStatus(path_, "VIDIOC_QUERYCAP", errno);
+    }
     V4l2DeviceInfo info;
     info.path = path_;
     info.driver = CString(cap.driver, sizeof(cap.driver));
