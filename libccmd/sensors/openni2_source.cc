@@ -30,12 +30,15 @@ Status InitializeOpenNI() {
   return Status::Ok();
 }
 
+// OpenNI2's last error on one line, without its tabs and newlines.
 std::string LastError() {
-  std::string text = openni::OpenNI::getExtendedError();
-  while (!text.empty() && (text.back() == '\n' || text.back() == '\r')) text.pop_back();
-  for (char& c : text) {
-    if (c == '\t' || c == '\n') c = ' ';
+  std::string text;
+  for (const char c : std::string(openni::OpenNI::getExtendedError())) {
+    const bool space = c == '\t' || c == '\n' || c == '\r' || c == ' ';
+    if (space && (text.empty() || text.back() == ' ')) continue;
+    text += space ? ' ' : c;
   }
+  while (!text.empty() && text.back() == ' ') text.pop_back();
   return text;
 }
 
@@ -160,8 +163,10 @@ OpenNI2Source::OpenNI2Source() : impl_(new Impl()) {}
 OpenNI2Source::~OpenNI2Source() = default;
 
 StatusOr<std::unique_ptr<OpenNI2Source>> OpenNI2Source::Open(const OpenNI2Options& options) {
-  if (options.width < 1 || options.height < 1 || options.width > kMaxImageSide ||
-      options.height > kMaxImageSide || !(options.fps > 0) || !(options.timeout_s > 0)) {
+  const bool device_mode = options.width == 0 && options.height == 0;
+  if ((!device_mode && (options.width < 1 || options.height < 1 ||
+                        options.width > kMaxImageSide || options.height > kMaxImageSide)) ||
+      !(options.fps > 0) || !(options.timeout_s > 0)) {
     return InvalidArgument("openni2: bad mode " + std::to_string(options.width) + "x" +
                            std::to_string(options.height) + "@" + std::to_string(options.fps));
   }
@@ -214,22 +219,32 @@ StatusOr<std::unique_ptr<OpenNI2Source>> OpenNI2Source::Open(const OpenNI2Option
   }
 
   if (!is_file) {
-    const int fps = static_cast<int>(std::lround(options.fps));
-    const auto depth_mode =
-        FindMode(depth_info, options.width, options.height, fps,
-                 {openni::PIXEL_FORMAT_DEPTH_1_MM, openni::PIXEL_FORMAT_DEPTH_100_UM});
+    int width = options.width, height = options.height;
+    int fps = static_cast<int>(std::lround(options.fps));
+    const std::vector<openni::PixelFormat> depth_formats = {openni::PIXEL_FORMAT_DEPTH_1_MM,
+                                                            openni::PIXEL_FORMAT_DEPTH_100_UM};
+    if (device_mode) {
+      width = 640, height = 480, fps = 30;
+      if (!FindMode(depth_info, width, height, fps, depth_formats)) {
+        const openni::VideoMode current = impl.depth.getVideoMode();
+        width = current.getResolutionX();
+        height = current.getResolutionY();
+        fps = current.getFps();
+      }
+    }
+    const auto depth_mode = FindMode(depth_info, width, height, fps, depth_formats);
     if (!depth_mode) {
-      return Unsupported("openni2: no depth mode " + std::to_string(options.width) + "x" +
-                         std::to_string(options.height) + "@" + std::to_string(fps) +
+      return Unsupported("openni2: no depth mode " + std::to_string(width) + "x" +
+                         std::to_string(height) + "@" + std::to_string(fps) +
                          " in millimetres; the device offers " + ModesText(depth_info));
     }
     const auto color_mode =
-        FindMode(color_info, options.width, options.height, fps,
+        FindMode(color_info, width, height, fps,
                  {openni::PIXEL_FORMAT_RGB888, openni::PIXEL_FORMAT_YUYV,
                   openni::PIXEL_FORMAT_YUV422, openni::PIXEL_FORMAT_JPEG});
     if (!color_mode) {
-      return Unsupported("openni2: no colour mode " + std::to_string(options.width) + "x" +
-                         std::to_string(options.height) + "@" + std::to_string(fps) +
+      return Unsupported("openni2: no colour mode " + std::to_string(width) + "x" +
+                         std::to_string(height) + "@" + std::to_string(fps) +
                          "; the device offers " + ModesText(color_info));
     }
     // Set a mode only when the stream is not already in it (some drivers cannot change

@@ -6,7 +6,7 @@
 // Spec (through OpenSource): "openni2" opens the first device, "openni2:URI" a named one
 // (the URI ccmd_camera --list prints), "openni2:/path/file.oni" plays a recording through
 // OpenNI2's file driver. The mode (width, height, fps) comes from the camera config when one
-// is given, else 640x480 at 30 fps.
+// is given, else 640x480 at 30 fps (or the device's default mode if it has no such mode).
 //
 // The device is set up for RGB-D SLAM: colour and depth streams at the same mode, depth
 // registered to colour (when the device can), hardware frame sync, mirroring off. Depth is
@@ -28,8 +28,10 @@ namespace ccmd {
 
 struct OpenNI2Options {
   std::string uri;  // empty: the first device; ends in ".oni": a recording
-  int width = 640;
-  int height = 480;
+  // The mode. width = 0: 640x480 at 30 fps if the device has it, else the depth stream's
+  // default mode.
+  int width = 0;
+  int height = 0;
   double fps = 30.0;
   bool register_depth = true;  // depth to colour, if the device supports it
   bool sync = true;            // hardware colour/depth frame sync

@@ -1,0 +1,309 @@
+// ccmd_camera: checks a depth camera before a mapping run, and records what it delivers.
+//
+//   ccmd_camera --list                                   V4L2 nodes and OpenNI2 devices, modes
+//   ccmd_camera --source SPEC [--config FILE] [--frames N]        per-frame statistics
+//   ccmd_camera --source SPEC --record DIR [--frames N|0]         TUM-layout recording
+//
+// SPEC is any source spec (openni2[:URI], v4l2:color=...,depth=..., tum:DIR, synth:...).
+// Ctrl-C ends a recording cleanly: the current frame is finished and the lists closed.
+
+#include <pthread.h>
+#include <signal.h>
+
+#include <CLI/CLI.hpp>
+#include <algorithm>
+#include <atomic>
+#include <cstdio>
+#include <thread>
+#include <vector>
+
+#include "apps/app_common.h"
+#include "libccmd/io/tum_recorder.h"
+#include "libccmd/sensors/pixel_formats.h"
+#include "libccmd/sensors/source_factory.h"
+#ifdef CCMD_HAVE_OPENNI2
+#include "libccmd/sensors/openni2_source.h"
+#endif
+#ifdef CCMD_HAVE_V4L2
+#include "libccmd/sensors/v4l2_device.h"
+#endif
+#include "libccmd/util/timer.h"
+
+namespace {
+
+struct DepthStats {
+  double valid_fraction = 0;
+  int min_mm = 0;
+  int median_mm = 0;
+  int max_mm = 0;
+};
+
+DepthStats ComputeDepthStats(const cv::Mat& depth_mm) {
+  std::vector<std::uint16_t> valid;
+  valid.reserve(depth_mm.total());
+  for (int y = 0; y < depth_mm.rows; ++y) {
+    const std::uint16_t* row = depth_mm.ptr<std::uint16_t>(y);
+    for (int x = 0; x < depth_mm.cols; ++x) {
+      if (row[x] != 0) valid.push_back(row[x]);
+    }
+  }
+  DepthStats stats;
+  if (valid.empty()) return stats;
+  stats.valid_fraction = static_cast<double>(valid.size()) / depth_mm.total();
+  const auto [min, max] = std::minmax_element(valid.begin(), valid.end());
+  stats.min_mm = *min;
+  stats.max_mm = *max;
+  std::nth_element(valid.begin(), valid.begin() + valid.size() / 2, valid.end());
+  stats.median_mm = valid[valid.size() / 2];
+  return stats;
+}
+
+int ListDevices() {
+#ifdef CCMD_HAVE_V4L2
+  std::printf("V4L2 video nodes:\n");
+  const std::vector<std::string> nodes = ccmd::ListV4l2DeviceNodes();
+  if (nodes.empty()) std::printf("  none (no /dev/video* nodes)\n");
+  for (const std::string& path : nodes) {
+    auto device = ccmd::OpenLinuxV4l2Device(path);
+    if (!device.ok()) {
+      std::printf("  %s  %s\n", path.c_str(), device.status().ToString().c_str());
+      continue;
+    }
+    auto info = (*device)->Query();
+    if (!info.ok()) {
+      std::printf("  %s  %s\n", path.c_str(), info.status().ToString().c_str());
+      continue;
+    }
+    std::printf("  %s  %s  \"%s\"  %s%s\n", path.c_str(), info->driver.c_str(),
+                info->card.c_str(), info->bus.c_str(),
+                info->streaming_capture ? "" : "  (not a capture node: metadata or output)");
+    bool depth_node = false;
+    for (const ccmd::V4l2Mode& mode : info->modes) {
+      std::string rates;
+      for (const double fps : mode.fps) {
+        rates += ' ';
+        rates += std::to_string(static_cast<int>(fps + 0.5));
+      }
+      std::printf("      %s %4dx%-4d fps:%s  (%s)\n", ccmd::FourccToString(mode.fourcc).c_str(),
+                  mode.width, mode.height, rates.empty() ? " ?" : rates.c_str(),
+                  mode.description.c_str());
+      depth_node |= mode.fourcc == ccmd::kFourccZ16;
+    }
+    if (depth_node) std::printf("      -> depth node (Z16): use it as depth=%s\n", path.c_str());
+  }
+#else
+  std::printf("V4L2: not in this build\n");
+#endif
+
+#ifdef CCMD_HAVE_OPENNI2
+  std::printf("OpenNI2 devices:\n");
+  auto devices = ccmd::ListOpenNI2Devices();
+  if (!devices.ok()) {
+    std::printf("  %s\n", devices.status().ToString().c_str());
+  } else if (devices->empty()) {
+    std::printf("  none\n");
+  } else {
+    for (const ccmd::OpenNI2DeviceInfo& d : *devices) {
+      std::printf("  %s  %s %s  usb %04x:%04x  registration %s\n", d.uri.c_str(),
+                  d.vendor.c_str(), d.name.c_str(), d.usb_vendor_id, d.usb_product_id,
+                  d.registration_supported ? "yes" : "no");
+      if (!d.open_status.ok()) std::printf("      %s\n", d.open_status.ToString().c_str());
+      for (const ccmd::OpenNI2ModeInfo& m : d.modes) {
+        std::printf("      %-6s %4dx%-4d @%d %s\n", m.sensor.c_str(), m.width, m.height, m.fps,
+                    m.pixel_format.c_str());
+      }
+    }
+  }
+#else
+  std::printf("OpenNI2: not in this build\n");
+#endif
+  return 0;
+}
+
+// SIGINT/SIGTERM are blocked in every thread and taken by one watcher thread with sigwait,
+// so stopping needs no async-signal-safe tricks: the watcher sets the flag and cancels a
+// reconnect wait in progress. The watcher also wakes on SIGUSR1, sent at normal exit.
+class StopWatcher {
+ public:
+  explicit StopWatcher(std::function<void()> on_stop) : on_stop_(std::move(on_stop)) {
+    sigemptyset(&signals_);
+    sigaddset(&signals_, SIGINT);
+    sigaddset(&signals_, SIGTERM);
+    sigaddset(&signals_, SIGUSR1);
+    pthread_sigmask(SIG_BLOCK, &signals_, nullptr);
+    thread_ = std::thread([this] {
+      int signal = 0;
+      sigwait(&signals_, &signal);
+      if (signal != SIGUSR1) {
+        stopped_ = true;
+        on_stop_();
+      }
+    });
+  }
+  ~StopWatcher() {
+    pthread_kill(thread_.native_handle(), SIGUSR1);
+    thread_.join();
+  }
+  bool stopped() const { return stopped_.load(); }
+
+ private:
+  sigset_t signals_;
+  std::function<void()> on_stop_;
+  std::atomic<bool> stopped_{false};
+  std::thread thread_;
+};
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{
+      "Check a depth camera and record what it delivers.\n"
+      "  ccmd_camera --list\n"
+      "  ccmd_camera --source openni2 [--frames 30]\n"
+      "  ccmd_camera --source v4l2:color=/dev/video4,depth=/dev/video2 --record DIR\n"
+      "Statistics per frame: size, timestamp, interval, depth valid fraction, min/median/max."};
+  bool list = false;
+  std::string spec, config, record;
+  int frames = -1;
+  int every = 0;
+  bool retry = false;
+  int png_compression = 1;
+  app.add_flag("--list", list, "List V4L2 nodes and OpenNI2 devices with their modes");
+  app.add_option("--source", spec,
+                 "Source: openni2[:URI], v4l2:color=DEV,depth=DEV[,...], tum:DIR, synth:...");
+  app.add_option("--config", config, "Camera config (mode and intrinsics), e.g. configs/realsense_d435.yaml");
+  app.add_option("--frames", frames,
+                 "Frames to read (default 10; with --record 0 = until Ctrl-C)")
+      ->check(CLI::NonNegativeNumber);
+  app.add_option("--record", record, "Record to this folder in the TUM layout");
+  app.add_option("--every", every, "Print every K-th frame (default: every frame, 1 per second when recording)")
+      ->check(CLI::NonNegativeNumber);
+  app.add_flag("--retry", retry, "Reopen a live camera that goes away (backoff 0.5 s .. 8 s)");
+  app.add_option("--png-compression", png_compression, "PNG level 0..9 for --record")
+      ->check(CLI::Range(0, 9))->capture_default_str();
+  CLI11_PARSE(app, argc, argv);
+
+  if (list) return ListDevices();
+  if (spec.empty()) {
+    std::fprintf(stderr, "ccmd_camera: give --source SPEC or --list (see --help)\n");
+    return 2;
+  }
+  if (frames < 0) frames = record.empty() ? 10 : 0;
+  if (frames == 0 && record.empty()) {
+    std::fprintf(stderr, "ccmd_camera: --frames 0 (until Ctrl-C) needs --record\n");
+    return 2;
+  }
+
+  // Before any thread exists (OpenNI2 starts some when opened), so that every thread
+  // inherits the blocked signals and only the watcher receives them.
+  std::atomic<ccmd::RetryingSource*> retrying{nullptr};
+  StopWatcher watcher([&retrying] {
+    if (ccmd::RetryingSource* source = retrying.load()) source->Cancel();
+  });
+
+  ccmd::SourceOptions options;
+  options.camera_config = config;
+  options.configs_dir = ccmd::app::ConfigDir();
+  auto opened = retry ? ccmd::OpenSourceWithRetry(spec, options) : ccmd::OpenSource(spec, options);
+  if (!opened.ok()) {
+    std::fprintf(stderr, "ccmd_camera: %s\n", opened.status().ToString().c_str());
+    return 1;
+  }
+  std::unique_ptr<ccmd::RgbdSource> source = std::move(opened).value();
+  const ccmd::PinholeCamera& camera = source->camera();
+  std::printf("source: %s\n", source->Describe().c_str());
+  std::printf("camera: %s\n", camera.ToString().c_str());
+
+  std::unique_ptr<ccmd::TumRecorder> recorder;
+  if (!record.empty()) {
+    ccmd::TumRecorderOptions recorder_options;
+    recorder_options.png_compression = png_compression;
+    recorder_options.queue_frames = 8;  // PNG encoding off the capture loop
+    auto created = ccmd::TumRecorder::Create(record, camera, recorder_options);
+    if (!created.ok()) {
+      std::fprintf(stderr, "ccmd_camera: %s\n", created.status().ToString().c_str());
+      return 1;
+    }
+    recorder = std::move(created).value();
+    std::printf("recording to %s (%s)\n", record.c_str(),
+                frames > 0 ? (std::to_string(frames) + " frames").c_str() : "until Ctrl-C");
+  }
+  if (every == 0) every = recorder ? std::max(1, static_cast<int>(camera.fps + 0.5)) : 1;
+  std::fflush(stdout);
+
+  retrying = dynamic_cast<ccmd::RetryingSource*>(source.get());
+
+  int count = 0;
+  double first_time = 0, last_time = 0;
+  double min_interval = 1e9, max_interval = 0, valid_sum = 0;
+  int exit_code = 0;
+  const double started = ccmd::MonotonicSeconds();
+  while ((frames == 0 || count < frames) && !watcher.stopped()) {
+    ccmd::RgbdFrame frame;
+    const ccmd::Status status = source->Read(&frame);
+    if (status.code() == ccmd::StatusCode::kEndOfStream) break;
+    if (status.code() == ccmd::StatusCode::kCancelled) break;
+    if (status.code() == ccmd::StatusCode::kUnavailable && retrying.load() != nullptr) continue;
+    if (!status.ok()) {
+      std::fprintf(stderr, "ccmd_camera: %s\n", status.ToString().c_str());
+      exit_code = 1;
+      break;
+    }
+    const DepthStats stats = ComputeDepthStats(frame.depth_mm);
+    const double interval = count > 0 ? frame.timestamp - last_time : 0;
+    if (count == 0) first_time = frame.timestamp;
+    if (count > 0) {
+      min_interval = std::min(min_interval, interval);
+      max_interval = std::max(max_interval, interval);
+    }
+    last_time = frame.timestamp;
+    valid_sum += stats.valid_fraction;
+    if (recorder) {
+      const ccmd::Status written = recorder->Write(frame);
+      if (!written.ok()) {
+        std::fprintf(stderr, "ccmd_camera: %s\n", written.ToString().c_str());
+        exit_code = 1;
+        break;
+      }
+    }
+    if (count % every == 0) {
+      std::printf(
+          "frame %d  t=%.6f s  dt=%5.1f ms  colour %dx%d  depth %dx%d  valid %5.1f%%  "
+          "min %d  median %d  max %d mm\n",
+          count, frame.timestamp, interval * 1e3, frame.bgr.cols, frame.bgr.rows,
+          frame.depth_mm.cols, frame.depth_mm.rows, 100 * stats.valid_fraction, stats.min_mm,
+          stats.median_mm, stats.max_mm);
+      std::fflush(stdout);
+    }
+    ++count;
+  }
+
+  const double span = last_time - first_time;
+  std::printf("%d frames over %.3f s of device time (%.3f s wall)", count, span,
+              ccmd::MonotonicSeconds() - started);
+  if (count > 1 && span > 0) {
+    std::printf(": %.2f fps, intervals %.1f..%.1f ms", (count - 1) / span, min_interval * 1e3,
+                max_interval * 1e3);
+  }
+  if (count > 0) std::printf(", depth valid %.1f%% on average", 100 * valid_sum / count);
+  std::printf("%s\n", watcher.stopped() ? " (stopped by signal)" : "");
+  if (recorder) {
+    if (!source->GroundTruth().empty()) {
+      const ccmd::Status gt = recorder->WriteGroundTruth(source->GroundTruth());
+      if (!gt.ok()) std::fprintf(stderr, "ccmd_camera: %s\n", gt.ToString().c_str());
+    }
+    const ccmd::Status closed = recorder->Close();
+    if (!closed.ok()) {
+      std::fprintf(stderr, "ccmd_camera: %s\n", closed.ToString().c_str());
+      exit_code = 1;
+    }
+    std::printf("recorded %ld frames to %s", recorder->frames_written(), record.c_str());
+    if (recorder->clipped_depth_pixels() > 0) {
+      std::printf(" (%ld depth pixels beyond the file range stored as 0)",
+                  recorder->clipped_depth_pixels());
+    }
+    std::printf("; replay with --source tum:%s\n", record.c_str());
+  }
+  retrying = nullptr;  // the source goes before the watcher
+  return exit_code;
+}

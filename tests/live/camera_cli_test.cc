@@ -1,0 +1,172 @@
+// ccmd_camera as a user runs it: listing without a camera, statistics, recording that the
+// TUM reader replays frame for frame, and Ctrl-C during a recording.
+
+#include <fcntl.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <gtest/gtest.h>
+
+#include <cstdio>
+#include <fstream>
+#include <opencv2/core.hpp>
+
+#include "libccmd/io/tum_dataset.h"
+#include "libccmd/sensors/synthetic_source.h"
+#include "libccmd/util/file_util.h"
+#include "tests/support/test_support.h"
+
+namespace ccmd {
+namespace {
+
+int RunCamera(const std::string& arguments, std::string* output) {
+  return testing::RunCommand(testing::ProgramPath("ccmd_camera") + " " + arguments + " 2>&1", output);
+}
+
+int CountListed(const std::string& path) {
+  std::ifstream in(path);
+  std::string line;
+  int count = 0;
+  while (std::getline(in, line)) count += !line.empty() && line[0] != '#';
+  return count;
+}
+
+TEST(CameraCliTest, ListsWithoutACamera) {
+  std::string output;
+  ASSERT_EQ(RunCamera("--list", &output), 0) << output;
+  EXPECT_NE(output.find("V4L2 video nodes:"), std::string::npos) << output;
+  EXPECT_NE(output.find("OpenNI2 devices:"), std::string::npos) << output;
+}
+
+TEST(CameraCliTest, PrintsFrameStatistics) {
+  std::string output;
+  ASSERT_EQ(RunCamera("--source synth:frames=5,width=64,height=48 --frames 3", &output), 0) << output;
+  EXPECT_NE(output.find("frame 2  t=1.066667 s  dt= 33.3 ms  colour 64x48  depth 64x48"),
+            std::string::npos)
+      << output;
+  EXPECT_NE(output.find("3 frames over 0.067 s of device time"), std::string::npos) << output;
+  EXPECT_NE(output.find("30.00 fps"), std::string::npos) << output;
+}
+
+TEST(CameraCliTest, ClearErrors) {
+  std::string output;
+  EXPECT_EQ(RunCamera("--frames 3", &output), 2) << output;
+  EXPECT_EQ(RunCamera("--source v4l2:color=/dev/ccmd_no_video98,depth=/dev/ccmd_no_video99", &output), 1);
+  EXPECT_NE(output.find("not found"), std::string::npos) << output;
+  EXPECT_NE(output.find("plugged in"), std::string::npos) << output;
+}
+
+TEST(CameraCliTest, RecordingReplaysFrameForFrame) {
+  testing::TempDir dir;
+  const std::string folder = dir.File("rec");
+  std::string output;
+  ASSERT_EQ(RunCamera("--source synth:frames=4,width=64,height=48 --frames 4 --record " + folder, &output), 0)
+      << output;
+  EXPECT_NE(output.find("recorded 4 frames"), std::string::npos) << output;
+
+  // The same frames rendered directly are the independent reference.
+  auto options = ParseSyntheticSpec("frames=4,width=64,height=48");
+  ASSERT_TRUE(options.ok());
+  SyntheticSource reference(*options);
+  auto sequence = TumSequence::Open(folder, std::nullopt);
+  ASSERT_TRUE(sequence.ok()) << sequence.status().ToString();
+  ASSERT_EQ(sequence->size(), 4u);
+  for (std::size_t i = 0; i < 4; ++i) {
+    RgbdFrame expected;
+    ASSERT_TRUE(reference.Read(&expected).ok());
+    auto loaded = sequence->LoadFrame(i);
+    ASSERT_TRUE(loaded.ok()) << loaded.status().ToString();
+    EXPECT_NEAR(loaded->timestamp, expected.timestamp, 0.5e-6);
+    EXPECT_EQ(cv::norm(loaded->bgr, expected.bgr, cv::NORM_INF), 0) << i;
+    EXPECT_EQ(cv::norm(loaded->depth_mm, expected.depth_mm, cv::NORM_INF), 0) << i;
+  }
+  EXPECT_EQ(sequence->GroundTruthAtFrames().size(), 4u);
+}
+
+TEST(CameraCliTest, RecordsTheOpenNI2TestDriver) {
+  testing::TempDir dir;
+  const std::string folder = dir.File("rec");
+  std::string output;
+  const int code = RunCamera("--source openni2:Dummy --frames 3 --record " + folder, &output);
+  if (code != 0 && output.find("not found") != std::string::npos) {
+    GTEST_SKIP() << "OpenNI2 test driver not installed";
+  }
+  ASSERT_EQ(code, 0) << output;
+  auto sequence = TumSequence::Open(folder, std::nullopt);
+  ASSERT_TRUE(sequence.ok()) << sequence.status().ToString();
+  ASSERT_EQ(sequence->size(), 3u);
+  auto frame = sequence->LoadFrame(2);
+  ASSERT_TRUE(frame.ok());
+  EXPECT_EQ(frame->depth_mm.at<std::uint16_t>(0, 50), 2000);  // the driver's first row
+  EXPECT_EQ(sequence->camera().depth_map_factor, 1000);
+}
+
+// Starts the program with its output on a pipe; returns the pid and the read end.
+pid_t Spawn(const std::vector<std::string>& arguments, int* read_fd) {
+  int fds[2];
+  if (pipe(fds) != 0) return -1;
+  const pid_t pid = fork();
+  if (pid == 0) {
+    dup2(fds[1], 1);
+    dup2(fds[1], 2);
+    close(fds[0]);
+    close(fds[1]);
+    std::vector<char*> argv;
+    for (const std::string& a : arguments) argv.push_back(const_cast<char*>(a.c_str()));
+    argv.push_back(nullptr);
+    execv(argv[0], argv.data());
+    _exit(127);
+  }
+  close(fds[1]);
+  *read_fd = fds[0];
+  return pid;
+}
+
+TEST(CameraCliTest, CtrlCFinishesTheFrameAndClosesTheRecording) {
+  testing::TempDir dir;
+  const std::string folder = dir.File("rec");
+  int fd = -1;
+  const pid_t pid = Spawn({testing::ProgramPath("ccmd_camera"), "--source",
+                           "synth:frames=100000,width=64,height=48", "--record", folder,
+                           "--every", "1"},
+                          &fd);
+  ASSERT_GT(pid, 0);
+  FILE* out = fdopen(fd, "r");
+  ASSERT_NE(out, nullptr);
+  // Synchronise on the program's own output: once it has reported a recorded frame,
+  // interrupt it.
+  std::string output;
+  char line[512];
+  bool recording = false;
+  while (std::fgets(line, sizeof(line), out) != nullptr) {
+    output += line;
+    if (std::string(line).rfind("frame 0 ", 0) == 0) {
+      recording = true;
+      break;
+    }
+  }
+  ASSERT_TRUE(recording) << output;
+  ASSERT_EQ(kill(pid, SIGINT), 0);
+  while (std::fgets(line, sizeof(line), out) != nullptr) output += line;
+  fclose(out);
+  int status = 0;
+  ASSERT_EQ(waitpid(pid, &status, 0), pid);
+  ASSERT_TRUE(WIFEXITED(status)) << "killed by signal " << WTERMSIG(status) << "\n" << output;
+  EXPECT_EQ(WEXITSTATUS(status), 0) << output;
+  EXPECT_NE(output.find("(stopped by signal)"), std::string::npos) << output;
+
+  // Every listed frame is complete and readable; both lists agree.
+  const int listed = CountListed(JoinPath(folder, "rgb.txt"));
+  EXPECT_GE(listed, 1);
+  EXPECT_EQ(CountListed(JoinPath(folder, "depth.txt")), listed);
+  EXPECT_NE(output.find("recorded " + std::to_string(listed) + " frames"), std::string::npos)
+      << output;
+  auto sequence = TumSequence::Open(folder, std::nullopt);
+  ASSERT_TRUE(sequence.ok()) << sequence.status().ToString();
+  ASSERT_EQ(static_cast<int>(sequence->size()), listed);
+  EXPECT_TRUE(sequence->LoadFrame(sequence->size() - 1).ok());
+}
+
+}  // namespace
+}  // namespace ccmd
