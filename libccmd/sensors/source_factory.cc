@@ -47,7 +47,7 @@ StatusOr<std::unique_ptr<RgbdSource>> OpenV4l2(const std::string& argument,
   CCMD_ASSIGN_OR_RETURN(V4l2SourceOptions v4l2, ParseV4l2Spec(argument));
   std::string config = !v4l2.config.empty() ? v4l2.config : options.camera_config;
   if (config.empty() && !options.configs_dir.empty()) {
-    config = JoinPath(options.configs_dir, "realsense_d435.yaml");
+    config = JoinPath(options.configs_dir, "realsense_d435_v4l2.yaml");
     CCMD_LOG(WARNING) << "v4l2: no camera config given; using " << config
                       << " (typical D435 values: calibrate your unit for good results)";
   }
@@ -55,8 +55,10 @@ StatusOr<std::unique_ptr<RgbdSource>> OpenV4l2(const std::string& argument,
     return InvalidArgument("v4l2 needs the camera's intrinsics: add config=FILE to the spec");
   }
   CCMD_ASSIGN_OR_RETURN(const PinholeCamera camera, LoadCameraConfig(config));
+  CCMD_ASSIGN_OR_RETURN(const auto registration, LoadDepthToColorCalibration(config));
   v4l2.config = config;
-  CCMD_ASSIGN_OR_RETURN(auto source, V4l2Source::Open(v4l2, camera));
+  CCMD_ASSIGN_OR_RETURN(auto source,
+                        V4l2Source::Open(v4l2, camera, OpenLinuxV4l2Device, registration));
   return std::unique_ptr<RgbdSource>(std::move(source));
 }
 #endif

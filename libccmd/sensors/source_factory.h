@@ -11,8 +11,9 @@
 //                   two V4L2 nodes of one camera (a RealSense D435: its RGB node and its
 //                   Z16 depth node); see docs/cameras.md.
 // Live cameras take their mode and intrinsics from the camera config (--config, or config=
-// in the v4l2 spec); v4l2 falls back to configs/realsense_d435.yaml, openni2 to the device's
-// field of view at 640x480, 30 fps.
+// in the v4l2 spec); v4l2 falls back to configs/realsense_d435_v4l2.yaml (typical values,
+// with the depth-to-colour registration block), openni2 to the device's field of view at
+// 640x480, 30 fps.
 
 #include <memory>
 #include <optional>

@@ -149,9 +149,21 @@ Status V4l2Source::StartStream(const std::string& path, std::uint32_t fourcc, in
   return stream->device->Start(options.buffers);
 }
 
-StatusOr<std::unique_ptr<V4l2Source>> V4l2Source::Open(const V4l2SourceOptions& options,
-                                                       const PinholeCamera& camera,
-                                                       const V4l2DeviceOpener& opener) {
+namespace {
+
+PinholeCamera AtSize(const PinholeCamera& camera, int width, int height, const char* what) {
+  if (camera.width == width && camera.height == height) return camera;
+  CCMD_LOG(WARNING) << what << " intrinsics are for " << camera.width << "x" << camera.height
+                    << ", the stream is " << width << "x" << height << ": scaling them";
+  return camera.Resized(width, height);
+}
+
+}  // namespace
+
+StatusOr<std::unique_ptr<V4l2Source>> V4l2Source::Open(
+    const V4l2SourceOptions& options, const PinholeCamera& camera,
+    const V4l2DeviceOpener& opener,
+    const std::optional<DepthToColorCalibration>& registration) {
   std::unique_ptr<V4l2Source> source(new V4l2Source());
   source->options_ = options;
   if (source->options_.color_width <= 0) {
@@ -159,12 +171,16 @@ StatusOr<std::unique_ptr<V4l2Source>> V4l2Source::Open(const V4l2SourceOptions& 
     source->options_.color_height = options.height;
   }
   const V4l2SourceOptions& o = source->options_;
-  source->camera_ = camera;
-  if (camera.width != o.width || camera.height != o.height) {
-    CCMD_LOG(WARNING) << "camera config is for " << camera.width << "x" << camera.height
-                      << ", the depth stream is " << o.width << "x" << o.height
-                      << ": scaling the intrinsics";
-    source->camera_ = camera.Resized(o.width, o.height);
+  if (registration) {
+    // Frames get the colour camera's geometry at the depth stream's size.
+    source->camera_ = AtSize(camera, o.color_width, o.color_height, "colour")
+                          .Resized(o.width, o.height);
+    source->registration_ = registration;
+    source->registration_->depth = AtSize(registration->depth, o.width, o.height, "depth");
+  } else {
+    source->camera_ = AtSize(camera, o.width, o.height, "camera");
+    CCMD_LOG(WARNING) << "v4l2: no Depth block in the camera config, so depth is not "
+                         "registered to colour (two imagers: see docs/cameras.md)";
   }
   source->camera_.fps = o.fps;
   source->tolerance_ = o.pair_tolerance_s > 0 ? o.pair_tolerance_s : DefaultPairTolerance(o.fps);
@@ -313,7 +329,9 @@ Status V4l2Source::Read(RgbdFrame* frame) {
     frame->index = next_index_++;
     frame->timestamp = timestamp;
     frame->bgr = ResizeColorToDepth(bgr, depth_mm.size());
-    frame->depth_mm = depth_mm;
+    frame->depth_mm = registration_ ? RegisterDepthToColor(depth_mm, registration_->depth, camera_,
+                                                           registration_->T_color_depth)
+                                    : depth_mm;
     ++stats_.frames;
     return Status::Ok();
   }
@@ -323,7 +341,8 @@ std::string V4l2Source::Describe() const {
   std::ostringstream out;
   out << "v4l2 colour " << color_.path << " (" << FourccToString(color_.format.fourcc) << " "
       << color_.format.width << "x" << color_.format.height << ") depth " << depth_.path << " (Z16 "
-      << depth_.format.width << "x" << depth_.format.height << ") " << options_.fps << " fps";
+      << depth_.format.width << "x" << depth_.format.height << ") " << options_.fps << " fps"
+      << (registration_ ? ", depth registered to colour" : ", depth not registered");
   return out.str();
 }
 

@@ -15,8 +15,10 @@
 
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <string>
 
+#include "libccmd/sensors/depth_registration.h"
 #include "libccmd/sensors/pixel_formats.h"
 #include "libccmd/sensors/rgbd_source.h"
 #include "libccmd/sensors/v4l2_device.h"
@@ -47,11 +49,14 @@ StatusOr<V4l2SourceOptions> ParseV4l2Spec(const std::string& spec);
 
 class V4l2Source : public RgbdSource {
  public:
-  // `camera` holds the intrinsics of the depth image; it is rescaled (with a warning) if it
-  // was calibrated at another size. `opener` opens a node (the real device by default).
+  // Without `registration`, `camera` holds the intrinsics of the depth image; with it,
+  // those of the colour image (and the registration those of depth). Intrinsics calibrated
+  // at another size are rescaled, with a warning. `opener` opens a node (the real device
+  // by default).
   static StatusOr<std::unique_ptr<V4l2Source>> Open(
       const V4l2SourceOptions& options, const PinholeCamera& camera,
-      const V4l2DeviceOpener& opener = OpenLinuxV4l2Device);
+      const V4l2DeviceOpener& opener = OpenLinuxV4l2Device,
+      const std::optional<DepthToColorCalibration>& registration = std::nullopt);
   ~V4l2Source() override;
 
   Status Read(RgbdFrame* frame) override;
@@ -90,7 +95,8 @@ class V4l2Source : public RgbdSource {
   Status Fail(Status status);
 
   V4l2SourceOptions options_;
-  PinholeCamera camera_;
+  PinholeCamera camera_;  // of the frames handed out
+  std::optional<DepthToColorCalibration> registration_;  // depth intrinsics at stream size
   Stream color_;
   Stream depth_;
   MjpegDecoder mjpeg_;

@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include "libccmd/io/config.h"
+#include "libccmd/sensors/depth_registration.h"
 #include "libccmd/sensors/source_factory.h"
 #include "tests/support/test_support.h"
 
@@ -45,6 +46,19 @@ TEST(LiveSourceSpecTest, V4l2SpecErrors) {
   const Status unknown = OpenSource("kinect", {}).status();
   EXPECT_EQ(unknown.code(), StatusCode::kInvalidArgument);
   EXPECT_NE(unknown.message().find("openni2"), std::string::npos);
+}
+
+TEST(LiveSourceSpecTest, ShippedD435V4l2ConfigDescribesBothImagers) {
+  const std::string path = std::string(CCMD_CONFIG_DIR) + "/realsense_d435_v4l2.yaml";
+  auto colour = LoadCameraConfig(path);
+  ASSERT_TRUE(colour.ok()) << colour.status().ToString();
+  EXPECT_EQ(colour->depth_map_factor, 1000);  // Z16 in millimetres
+  auto registration = LoadDepthToColorCalibration(path);
+  ASSERT_TRUE(registration.ok()) << registration.status().ToString();
+  ASSERT_TRUE(registration->has_value());
+  // The depth imager has the wider lens: a shorter focal length at the same size.
+  EXPECT_LT((*registration)->depth.fx, colour->fx);
+  EXPECT_NEAR((*registration)->T_color_depth.translation().norm(), 0.015, 1e-9);
 }
 
 TEST(LiveSourceSpecTest, OpenNI2RecordingThatDoesNotExist) {

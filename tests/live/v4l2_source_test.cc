@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 
 #include "libccmd/sensors/retrying_source.h"
@@ -153,6 +154,27 @@ TEST(V4l2SourceTest, LargerColourIsResizedToTheDepthSize) {
   EXPECT_EQ(frame.bgr.size(), cv::Size(kW, kH));
   EXPECT_NEAR(frame.bgr.at<cv::Vec3b>(3, 3)[0], GreyFromLuma(120), 1);
   EXPECT_EQ((*source)->camera().width, kW);
+}
+
+TEST(V4l2SourceTest, DepthIsRegisteredToColourWhenTheConfigHasADepthBlock) {
+  Camera camera;
+  camera.AddColor(3.0, YuyvImage(kW, kH, 120));
+  camera.AddDepth(3.0, 1500);
+  // Depth imager: wider lens (f = 6 px); colour (f = 8 px), 1 cm to the side. A plane at
+  // 1.5 m covers the whole colour view, at 1.5 m.
+  PinholeCamera colour = SmallCamera();
+  colour.fx = colour.fy = 8;
+  DepthToColorCalibration registration;
+  registration.depth = SmallCamera();
+  registration.depth.fx = registration.depth.fy = 6;
+  registration.T_color_depth.translation() = Eigen::Vector3d(0.01, 0, 0);
+  auto source = V4l2Source::Open(Options(), colour, camera.Opener(), registration);
+  ASSERT_TRUE(source.ok()) << source.status().ToString();
+  EXPECT_DOUBLE_EQ((*source)->camera().fx, 8);  // frames have the colour geometry
+  EXPECT_NE((*source)->Describe().find("registered to colour"), std::string::npos);
+  RgbdFrame frame;
+  ASSERT_TRUE((*source)->Read(&frame).ok());
+  EXPECT_EQ(cv::countNonZero(frame.depth_mm == 1500), kW * kH);
 }
 
 TEST(V4l2SourceTest, MjpegColourAndDamagedFramesAreDropped) {

@@ -1,0 +1,142 @@
+#include "libccmd/sensors/depth_registration.h"
+
+#include <algorithm>
+#include <cmath>
+#include <opencv2/core.hpp>
+
+#include "libccmd/util/file_util.h"
+
+namespace ccmd {
+namespace {
+
+StatusOr<std::vector<double>> ReadNumbers(const cv::FileNode& node, std::size_t count,
+                                          const std::string& what) {
+  if (!node.isSeq() || node.size() != count) {
+    return InvalidArgument(what + " must be a list of " + std::to_string(count) + " numbers");
+  }
+  std::vector<double> values;
+  for (const cv::FileNode& item : node) {
+    if (!item.isReal() && !item.isInt()) return InvalidArgument(what + " must hold numbers");
+    values.push_back(item.real());
+  }
+  return values;
+}
+
+StatusOr<double> ReadNumber(const cv::FileStorage& file, const std::string& key,
+                            const std::optional<double>& fallback, const std::string& path) {
+  const cv::FileNode node = file[key];
+  if (node.empty() || node.isNone()) {
+    if (fallback) return *fallback;
+    return InvalidArgument(path + ": " + key + " is missing");
+  }
+  if (!node.isReal() && !node.isInt()) return InvalidArgument(path + ": " + key + " must be a number");
+  return node.real();
+}
+
+}  // namespace
+
+StatusOr<std::optional<DepthToColorCalibration>> LoadDepthToColorCalibration(
+    const std::string& path) {
+  if (!FileExists(path)) return NotFound("config file " + path + " does not exist");
+  cv::FileStorage file;
+  try {
+    if (!file.open(path, cv::FileStorage::READ | cv::FileStorage::FORMAT_YAML)) {
+      return Corrupt("cannot parse config file " + path);
+    }
+  } catch (const cv::Exception& e) {
+    return Corrupt("cannot parse config file " + path + ": " + e.msg);
+  }
+  if (file["Depth.fx"].empty()) return std::optional<DepthToColorCalibration>();
+
+  DepthToColorCalibration calibration;
+  PinholeCamera& depth = calibration.depth;
+  CCMD_ASSIGN_OR_RETURN(depth.fx, ReadNumber(file, "Depth.fx", std::nullopt, path));
+  CCMD_ASSIGN_OR_RETURN(depth.fy, ReadNumber(file, "Depth.fy", std::nullopt, path));
+  CCMD_ASSIGN_OR_RETURN(depth.cx, ReadNumber(file, "Depth.cx", std::nullopt, path));
+  CCMD_ASSIGN_OR_RETURN(depth.cy, ReadNumber(file, "Depth.cy", std::nullopt, path));
+  CCMD_ASSIGN_OR_RETURN(const double width, ReadNumber(file, "Depth.width", std::nullopt, path));
+  CCMD_ASSIGN_OR_RETURN(const double height, ReadNumber(file, "Depth.height", std::nullopt, path));
+  depth.width = static_cast<int>(width);
+  depth.height = static_cast<int>(height);
+  depth.depth_map_factor = 1000.0;
+  std::string why;
+  if (!depth.IsValid(&why)) return InvalidArgument(path + ": Depth block: " + why);
+
+  Eigen::Matrix3d R = Eigen::Matrix3d::Identity();
+  Eigen::Vector3d t = Eigen::Vector3d::Zero();
+  if (!file["Depth.R_color_depth"].empty()) {
+    CCMD_ASSIGN_OR_RETURN(const auto r, ReadNumbers(file["Depth.R_color_depth"], 9,
+                                                    path + ": Depth.R_color_depth"));
+    for (int i = 0; i < 9; ++i) R(i / 3, i % 3) = r[i];
+    // A calibration printed with a few decimals is only nearly orthonormal; a matrix far
+    // from a rotation is a typo (or a transposed/garbled copy).
+    if ((R * R.transpose() - Eigen::Matrix3d::Identity()).norm() > 1e-2 || R.determinant() < 0) {
+      return InvalidArgument(path + ": Depth.R_color_depth is not a rotation");
+    }
+  }
+  if (!file["Depth.t_color_depth"].empty()) {
+    CCMD_ASSIGN_OR_RETURN(const auto v, ReadNumbers(file["Depth.t_color_depth"], 3,
+                                                    path + ": Depth.t_color_depth"));
+    t = Eigen::Vector3d(v[0], v[1], v[2]);
+    if (t.norm() > 1.0) {
+      return InvalidArgument(path + ": Depth.t_color_depth is " + std::to_string(t.norm()) +
+                             " m long; it is in metres");
+    }
+  }
+  calibration.T_color_depth.linear() = R;
+  calibration.T_color_depth.translation() = t;
+  calibration.T_color_depth = Orthonormalized(calibration.T_color_depth);
+  return std::optional<DepthToColorCalibration>(calibration);
+}
+
+cv::Mat RegisterDepthToColor(const cv::Mat& depth_mm, const PinholeCamera& depth_camera,
+                             const PinholeCamera& color_camera, const Pose& T_color_depth,
+                             int max_footprint) {
+  cv::Mat out(color_camera.height, color_camera.width, CV_16UC1, cv::Scalar(0));
+  const Eigen::Matrix3d R = T_color_depth.linear();
+  const Eigen::Vector3d t = T_color_depth.translation();
+  const int out_w = out.cols, out_h = out.rows;
+  for (int v = 0; v < depth_mm.rows; ++v) {
+    const std::uint16_t* row = depth_mm.ptr<std::uint16_t>(v);
+    for (int u = 0; u < depth_mm.cols; ++u) {
+      if (row[u] == 0) continue;
+      const double z = row[u] * 1e-3;
+      // The pixel centre and two opposite corners of its footprint, in the colour frame.
+      const Eigen::Vector3d centre = R * depth_camera.BackProject(u, v, z) + t;
+      if (centre.z() <= 1e-6) continue;
+      const Eigen::Vector3d a = R * depth_camera.BackProject(u - 0.5, v - 0.5, z) + t;
+      const Eigen::Vector3d b = R * depth_camera.BackProject(u + 0.5, v + 0.5, z) + t;
+      if (a.z() <= 1e-6 || b.z() <= 1e-6) continue;
+      const Eigen::Vector2d pa = color_camera.Project(a);
+      const Eigen::Vector2d pb = color_camera.Project(b);
+      // Colour pixels whose centres lie inside the footprint; at least the one under the
+      // projected centre (a footprint smaller than a pixel may hold no centre).
+      int x0 = static_cast<int>(std::ceil(std::min(pa.x(), pb.x())));
+      int x1 = static_cast<int>(std::floor(std::max(pa.x(), pb.x())));
+      int y0 = static_cast<int>(std::ceil(std::min(pa.y(), pb.y())));
+      int y1 = static_cast<int>(std::floor(std::max(pa.y(), pb.y())));
+      if (x1 < x0 || y1 < y0) {
+        const Eigen::Vector2d pc = color_camera.Project(centre);
+        if (x1 < x0) x0 = x1 = static_cast<int>(std::lround(pc.x()));
+        if (y1 < y0) y0 = y1 = static_cast<int>(std::lround(pc.y()));
+      }
+      if (x1 - x0 >= max_footprint || y1 - y0 >= max_footprint) continue;
+      x0 = std::max(x0, 0);
+      y0 = std::max(y0, 0);
+      x1 = std::min(x1, out_w - 1);
+      y1 = std::min(y1, out_h - 1);
+      const double z_mm = std::round(centre.z() * 1e3);
+      if (z_mm < 1 || z_mm > 65535) continue;
+      const auto value = static_cast<std::uint16_t>(z_mm);
+      for (int y = y0; y <= y1; ++y) {
+        std::uint16_t* target = out.ptr<std::uint16_t>(y);
+        for (int x = x0; x <= x1; ++x) {
+          if (target[x] == 0 || value < target[x]) target[x] = value;  // nearest wins
+        }
+      }
+    }
+  }
+  return out;
+}
+
+}  // namespace ccmd

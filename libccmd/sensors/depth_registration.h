@@ -1,0 +1,44 @@
+#pragma once
+
+// Depth registered to colour in software, for cameras whose depth and colour come from
+// different sensors without hardware registration (a RealSense D435 over plain UVC/V4L2:
+// depth from the left IR imager, 87 x 58 degrees; colour from the RGB imager, 69 x 42
+// degrees, about 15 mm to the side). Without it a colour pixel and the depth pixel at the
+// same coordinates see different points.
+//
+// Each depth pixel is back-projected with the depth intrinsics, moved into the colour
+// frame and projected with the colour intrinsics. The pixel's whole footprint (its
+// corners) is filled, so magnification does not leave cracks, and where several depth
+// pixels land on one colour pixel the nearest wins (occlusion).
+
+#include <optional>
+#include <string>
+
+#include <opencv2/core/mat.hpp>
+
+#include "libccmd/geometry/camera.h"
+#include "libccmd/geometry/pose.h"
+#include "libccmd/util/status.h"
+
+namespace ccmd {
+
+struct DepthToColorCalibration {
+  PinholeCamera depth;  // intrinsics of the depth image, at its calibrated size
+  Pose T_color_depth = Pose::Identity();  // maps depth-camera points into the colour frame
+};
+
+// Reads the optional depth block of a camera config (the colour camera being Camera.*):
+//   Depth.fx, Depth.fy, Depth.cx, Depth.cy, Depth.width, Depth.height
+//   Depth.R_color_depth: [9 numbers, row-major]   (default identity)
+//   Depth.t_color_depth: [tx, ty, tz] in metres    (default zero)
+// Returns nullopt if the file has no Depth.fx (no registration wanted).
+StatusOr<std::optional<DepthToColorCalibration>> LoadDepthToColorCalibration(
+    const std::string& path);
+
+// Depth (uint16 mm) seen from `color` (intrinsics at the output size). Depth pixels whose
+// footprint would cover more than `max_footprint` pixels (grazing surfaces) are skipped.
+cv::Mat RegisterDepthToColor(const cv::Mat& depth_mm, const PinholeCamera& depth_camera,
+                             const PinholeCamera& color_camera, const Pose& T_color_depth,
+                             int max_footprint = 8);
+
+}  // namespace ccmd

@@ -1,0 +1,121 @@
+#include "libccmd/sensors/depth_registration.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <opencv2/core.hpp>
+
+#include "libccmd/util/file_util.h"
+#include "tests/support/test_support.h"
+
+namespace ccmd {
+namespace {
+
+PinholeCamera Camera(double f, int width = 64, int height = 48) {
+  PinholeCamera c;
+  c.width = width;
+  c.height = height;
+  c.fx = c.fy = f;
+  c.cx = width / 2.0 - 0.5;
+  c.cy = height / 2.0 - 0.5;
+  return c;
+}
+
+Pose Shift(double tx) {
+  Pose T = Pose::Identity();
+  T.translation() = Eigen::Vector3d(tx, 0, 0);
+  return T;
+}
+
+TEST(DepthRegistrationTest, SameCameraIsTheIdentity) {
+  cv::Mat depth(48, 64, CV_16UC1);
+  cv::randu(depth, 0, 5000);
+  const cv::Mat out = RegisterDepthToColor(depth, Camera(50), Camera(50), Pose::Identity());
+  EXPECT_EQ(cv::norm(out, depth, cv::NORM_INF), 0);
+}
+
+TEST(DepthRegistrationTest, NarrowerColourViewOfAPlaneHasNoCracks) {
+  // Depth: wide lens (f = 40 px), colour: narrower (f = 52 px, magnification 1.3), 15 mm to
+  // the side. A fronto-parallel plane at 2 m stays at 2 m in the colour frame (the shift is
+  // sideways), and the colour view lies inside the depth view, so every colour pixel must
+  // get 2000 mm; mapping only pixel centres would leave every third or fourth column empty.
+  const cv::Mat plane(48, 64, CV_16UC1, cv::Scalar(2000));
+  const cv::Mat out = RegisterDepthToColor(plane, Camera(40), Camera(52), Shift(0.015));
+  EXPECT_EQ(cv::countNonZero(out == 2000), 64 * 48);
+}
+
+TEST(DepthRegistrationTest, PointsLandWhereTheGeometrySaysAndTheNearestWins) {
+  // Background at 3 m; a 4x4 block at 1 m around depth pixel (32, 24); colour 5 cm to the
+  // side (+x in the depth frame), same lens.
+  cv::Mat depth(48, 64, CV_16UC1, cv::Scalar(3000));
+  depth(cv::Rect(30, 22, 4, 4)).setTo(cv::Scalar(1000));
+  const PinholeCamera cam = Camera(40);
+  const cv::Mat out = RegisterDepthToColor(depth, cam, cam, Shift(0.05));
+  // Depth pixel u maps to u + f * tx / z: +2 px at 1 m, +2/3 px at 3 m.
+  // Block columns 30..33 -> centres 32..35; the background next to it shifts by less, so
+  // the block covers background there and must win.
+  for (int u = 32; u <= 35; ++u) EXPECT_EQ(out.at<std::uint16_t>(24, u), 1000) << u;
+  EXPECT_EQ(out.at<std::uint16_t>(24, 36), 3000);
+  EXPECT_EQ(out.at<std::uint16_t>(24, 10), 3000);
+  EXPECT_EQ(out.at<std::uint16_t>(5, 31), 3000);
+  // The left edge: colour column 0 sees x = (0 - 31.5) / 40 * z - ... beyond the depth view
+  // for the 3 m background shifted right by 2/3 px, so it stays empty.
+  EXPECT_EQ(out.at<std::uint16_t>(24, 0), 0);
+}
+
+TEST(DepthRegistrationTest, HolesStayHoles) {
+  cv::Mat depth(48, 64, CV_16UC1, cv::Scalar(2000));
+  depth(cv::Rect(10, 10, 6, 6)).setTo(cv::Scalar(0));
+  const cv::Mat out = RegisterDepthToColor(depth, Camera(40), Camera(40), Pose::Identity());
+  EXPECT_EQ(out.at<std::uint16_t>(12, 12), 0);
+  EXPECT_EQ(cv::countNonZero(out == 0), 36);
+}
+
+TEST(DepthRegistrationTest, CalibrationFromTheCameraConfig) {
+  testing::TempDir dir;
+  const std::string path = dir.File("d435.yaml");
+  ASSERT_TRUE(WriteFileAtomic(path,
+                              "%YAML:1.0\n"
+                              "Camera.fx: 615.0\nCamera.fy: 615.0\nCamera.cx: 320.0\nCamera.cy: 240.0\n"
+                              "Depth.fx: 383.5\nDepth.fy: 383.0\nDepth.cx: 319.0\nDepth.cy: 241.0\n"
+                              "Depth.width: 640\nDepth.height: 480\n"
+                              "Depth.R_color_depth: [0.99999, 0.0044, 0.0, -0.0044, 0.99999, 0.0, "
+                              "0.0, 0.0, 1.0]\n"
+                              "Depth.t_color_depth: [0.0147, 0.0002, 0.0003]\n")
+                  .ok());
+  auto calibration = LoadDepthToColorCalibration(path);
+  ASSERT_TRUE(calibration.ok()) << calibration.status().ToString();
+  ASSERT_TRUE(calibration->has_value());
+  const DepthToColorCalibration& c = **calibration;
+  EXPECT_EQ(c.depth.fx, 383.5);
+  EXPECT_EQ(c.depth.cy, 241.0);
+  EXPECT_EQ(c.depth.width, 640);
+  EXPECT_NEAR(c.T_color_depth.translation().x(), 0.0147, 1e-12);
+  EXPECT_NEAR(c.T_color_depth.linear()(0, 1), 0.0044, 1e-4);  // row-major as written
+  EXPECT_NEAR(c.T_color_depth.linear()(1, 0), -0.0044, 1e-4);
+
+  const std::string plain = dir.File("plain.yaml");
+  ASSERT_TRUE(WriteFileAtomic(plain, "%YAML:1.0\nCamera.fx: 615.0\n").ok());
+  auto none = LoadDepthToColorCalibration(plain);
+  ASSERT_TRUE(none.ok());
+  EXPECT_FALSE(none->has_value());
+
+  const std::string bad = dir.File("bad.yaml");
+  ASSERT_TRUE(WriteFileAtomic(bad,
+                              "%YAML:1.0\nDepth.fx: 383.5\nDepth.fy: 383.0\nDepth.cx: 319.0\n"
+                              "Depth.cy: 241.0\nDepth.width: 640\nDepth.height: 480\n"
+                              "Depth.R_color_depth: [1, 2, 3, 4, 5, 6, 7, 8, 9]\n")
+                  .ok());
+  EXPECT_EQ(LoadDepthToColorCalibration(bad).status().code(), StatusCode::kInvalidArgument);
+  const std::string millimetres = dir.File("mm.yaml");
+  ASSERT_TRUE(WriteFileAtomic(millimetres,
+                              "%YAML:1.0\nDepth.fx: 383.5\nDepth.fy: 383.0\nDepth.cx: 319.0\n"
+                              "Depth.cy: 241.0\nDepth.width: 640\nDepth.height: 480\n"
+                              "Depth.t_color_depth: [14.7, 0.2, 0.3]\n")
+                  .ok());
+  EXPECT_EQ(LoadDepthToColorCalibration(millimetres).status().code(),
+            StatusCode::kInvalidArgument);
+}
+
+}  // namespace
+}  // namespace ccmd
