@@ -218,7 +218,8 @@ int main(int argc, char** argv) {
   if (!record.empty()) {
     ccmd::TumRecorderOptions recorder_options;
     recorder_options.png_compression = png_compression;
-    recorder_options.queue_frames = 8;  // PNG encoding off the capture loop
+    recorder_options.queue_frames = 16;  // PNG encoding off the capture loop
+    recorder_options.writer_threads = 2;
     auto created = ccmd::TumRecorder::Create(record, camera, recorder_options);
     if (!created.ok()) {
       std::fprintf(stderr, "ccmd_camera: %s\n", created.status().ToString().c_str());

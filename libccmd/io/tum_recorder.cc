@@ -41,7 +41,8 @@ StatusOr<std::unique_ptr<TumRecorder>> TumRecorder::Create(const std::string& fo
     return InvalidArgument("recording camera: DepthMapFactor " +
                            std::to_string(camera.depth_map_factor) + " out of range");
   }
-  if (options.png_compression < 0 || options.png_compression > 9 || options.queue_frames < 0) {
+  if (options.png_compression < 0 || options.png_compression > 9 || options.queue_frames < 0 ||
+      options.writer_threads < 1 || options.writer_threads > 16) {
     return InvalidArgument("recorder options out of range");
   }
   if (!options.overwrite && FileExists(JoinPath(folder, "rgb.txt"))) {
@@ -62,7 +63,9 @@ StatusOr<std::unique_ptr<TumRecorder>> TumRecorder::Create(const std::string& fo
   if (!status.ok()) return status;
   if (options.queue_frames > 0) {
     recorder->queue_ = std::make_unique<BoundedQueue<RgbdFrame>>(options.queue_frames);
-    recorder->writer_ = std::thread([r = recorder.get()] { r->WriterLoop(); });
+    for (int i = 0; i < options.writer_threads; ++i) {
+      recorder->writers_.emplace_back([r = recorder.get()] { r->WriterLoop(); });
+    }
   }
   return recorder;
 }
@@ -137,6 +140,7 @@ Status TumRecorder::WriteNow(const RgbdFrame& frame) {
     return IoError("writing frame " + name + ": " + e.msg);
   }
   // Listed only once both images are complete.
+  std::lock_guard<std::mutex> lock(list_mutex_);
   if (std::fprintf(rgb_list_, "%s %s\n", name.c_str(), rgb_path.c_str()) < 0 ||
       std::fprintf(depth_list_, "%s %s\n", name.c_str(), depth_path.c_str()) < 0 ||
       std::fflush(rgb_list_) != 0 || std::fflush(depth_list_) != 0) {
@@ -191,8 +195,8 @@ Status TumRecorder::Close() {
   if (closed_) return TakeError();
   closed_ = true;
   if (queue_) {
-    queue_->Close();  // the writer drains what is queued, then stops
-    writer_.join();
+    queue_->Close();  // the writers drain what is queued, then stop
+    for (std::thread& writer : writers_) writer.join();
   }
   Status status = TakeError();
   for (std::FILE** list : {&rgb_list_, &depth_list_}) {

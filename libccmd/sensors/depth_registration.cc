@@ -96,19 +96,31 @@ cv::Mat RegisterDepthToColor(const cv::Mat& depth_mm, const PinholeCamera& depth
   const Eigen::Matrix3d R = T_color_depth.linear();
   const Eigen::Vector3d t = T_color_depth.translation();
   const int out_w = out.cols, out_h = out.rows;
+  // A depth pixel (u, v) at depth z is z * ray(u, v) in the depth frame, and its footprint's
+  // corners are z * (ray -/+ half), half = (0.5 / fx, 0.5 / fy, 0). Rotated once here, the
+  // per-pixel work is a few multiply-adds: R z (ray +- half) + t.
+  const Eigen::Vector3d half = R * Eigen::Vector3d(0.5 / depth_camera.fx, 0.5 / depth_camera.fy, 0);
+  const Eigen::Vector3d column_step = R * Eigen::Vector3d(1.0 / depth_camera.fx, 0, 0);
+  auto project = [&](const Eigen::Vector3d& p) {
+    return Eigen::Vector2d(color_camera.fx * p.x() / p.z() + color_camera.cx,
+                           color_camera.fy * p.y() / p.z() + color_camera.cy);
+  };
   for (int v = 0; v < depth_mm.rows; ++v) {
     const std::uint16_t* row = depth_mm.ptr<std::uint16_t>(v);
+    // Rotated ray of pixel (0, v); each column adds column_step.
+    const Eigen::Vector3d row_start =
+        R * Eigen::Vector3d(-depth_camera.cx / depth_camera.fx,
+                            (v - depth_camera.cy) / depth_camera.fy, 1.0);
     for (int u = 0; u < depth_mm.cols; ++u) {
       if (row[u] == 0) continue;
       const double z = row[u] * 1e-3;
-      // The pixel centre and two opposite corners of its footprint, in the colour frame.
-      const Eigen::Vector3d centre = R * depth_camera.BackProject(u, v, z) + t;
-      if (centre.z() <= 1e-6) continue;
-      const Eigen::Vector3d a = R * depth_camera.BackProject(u - 0.5, v - 0.5, z) + t;
-      const Eigen::Vector3d b = R * depth_camera.BackProject(u + 0.5, v + 0.5, z) + t;
-      if (a.z() <= 1e-6 || b.z() <= 1e-6) continue;
-      const Eigen::Vector2d pa = color_camera.Project(a);
-      const Eigen::Vector2d pb = color_camera.Project(b);
+      const Eigen::Vector3d ray = row_start + u * column_step;
+      const Eigen::Vector3d centre = z * ray + t;
+      const Eigen::Vector3d a = z * (ray - half) + t;
+      const Eigen::Vector3d b = z * (ray + half) + t;
+      if (centre.z() <= 1e-6 || a.z() <= 1e-6 || b.z() <= 1e-6) continue;
+      const Eigen::Vector2d pa = project(a);
+      const Eigen::Vector2d pb = project(b);
       // Colour pixels whose centres lie inside the footprint; at least the one under the
       // projected centre (a footprint smaller than a pixel may hold no centre).
       int x0 = static_cast<int>(std::ceil(std::min(pa.x(), pb.x())));
@@ -116,7 +128,7 @@ cv::Mat RegisterDepthToColor(const cv::Mat& depth_mm, const PinholeCamera& depth
       int y0 = static_cast<int>(std::ceil(std::min(pa.y(), pb.y())));
       int y1 = static_cast<int>(std::floor(std::max(pa.y(), pb.y())));
       if (x1 < x0 || y1 < y0) {
-        const Eigen::Vector2d pc = color_camera.Project(centre);
+        const Eigen::Vector2d pc = project(centre);
         if (x1 < x0) x0 = x1 = static_cast<int>(std::lround(pc.x()));
         if (y1 < y0) y0 = y1 = static_cast<int>(std::lround(pc.y()));
       }

@@ -120,10 +120,11 @@ TEST(TumRecorderTest, AnInterruptedRecordingIsReadableUpToTheLastFrame) {
   ExpectReadsBack(dir.path(), frames);
 }
 
-TEST(TumRecorderTest, WriterThreadRecordsCopiesOfTheFrames) {
+TEST(TumRecorderTest, WriterThreadsRecordCopiesOfTheFrames) {
   testing::TempDir dir;
   TumRecorderOptions options;
   options.queue_frames = 2;
+  options.writer_threads = 3;
   auto recorder = TumRecorder::Create(dir.path(), SmallCamera(5000), options);
   ASSERT_TRUE(recorder.ok());
   cv::RNG rng(10);
