@@ -13,6 +13,9 @@ Status BackProjectionOptions::Validate() const {
     return InvalidArgument("depth range must satisfy 0 <= min_depth_m < max_depth_m (got " +
                            std::to_string(min_depth_m) + ", " + std::to_string(max_depth_m) + ")");
   }
+  if (!(max_incidence_deg > 0 && max_incidence_deg <= 90)) {
+    return InvalidArgument("max_incidence_deg must be within (0, 90]");
+  }
   return Status::Ok();
 }
 
@@ -61,27 +64,73 @@ StatusOr<CameraCloud> BackProjectKeyframe(const cv::Mat& depth_mm, const cv::Mat
   const auto hi = static_cast<std::uint16_t>(hi_mm);
   const int width = camera.width, height = camera.height;
 
-  // Counting first sizes the vectors exactly: the store keeps them for the whole run.
+  std::vector<float> x_of_u(width), y_of_v(height);
+  for (int u = 0; u < width; ++u) x_of_u[u] = static_cast<float>((u - camera.cx) / camera.fx);
+  for (int v = 0; v < height; ++v) y_of_v[v] = static_cast<float>((v - camera.cy) / camera.fy);
+  const auto camera_point = [&](int u, int v, std::uint16_t d) {
+    const float z = d * 0.001f;
+    return Eigen::Vector3f(x_of_u[u] * z, y_of_v[v] * z, z);
+  };
+  const auto usable = [&](std::uint16_t d) {
+    return static_cast<std::uint16_t>(d - lo) <= static_cast<std::uint16_t>(hi - lo);
+  };
+  const bool check_incidence = options.max_incidence_deg < 90.0;
+  const float cos_min = static_cast<float>(std::cos(options.max_incidence_deg * M_PI / 180.0));
+  const float cos_min2 = cos_min * cos_min;
+
+  // Depth step (mm) to a neighbour, or kNone when it is outside the image or unusable.
+  constexpr int kNone = 1 << 20;
+  const auto delta = [&](int d, bool inside, int other) {
+    return inside && usable(static_cast<std::uint16_t>(other)) ? other - d : kNone;
+  };
+  // Of the two neighbours on an image axis, the step (per pixel, towards increasing index)
+  // to the one closer in depth: the same surface when the pixel is on an edge.
+  const auto closer_step = [](int before, int after) {
+    return std::abs(before) <= std::abs(after) ? -before : after;
+  };
+  const auto fx = static_cast<float>(camera.fx), fy = static_cast<float>(camera.fy);
+
+  // Pass 1: which pixels become points (counting first sizes the vectors exactly, and the
+  // store keeps them for the whole run).
+  std::vector<std::uint8_t> use(static_cast<std::size_t>(width) * height, 0);
   std::size_t count = 0;
   for (int v = 0; v < height; ++v) {
     const auto* d = depth_mm.ptr<std::uint16_t>(v);
-    for (int u = 0; u < width; ++u) count += (d[u] >= lo && d[u] <= hi);
+    const auto* up = v > 0 ? depth_mm.ptr<std::uint16_t>(v - 1) : d;
+    const auto* down = v + 1 < height ? depth_mm.ptr<std::uint16_t>(v + 1) : d;
+    for (int u = 0; u < width; ++u) {
+      if (!usable(d[u])) continue;
+      if (check_incidence) {
+        const int c = d[u];
+        const int du = closer_step(delta(c, u > 0, u > 0 ? d[u - 1] : 0),
+                                   delta(c, u + 1 < width, u + 1 < width ? d[u + 1] : 0));
+        const int dv = closer_step(delta(c, v > 0, up[u]), delta(c, v + 1 < height, down[u]));
+        if (std::abs(du) < kNone && std::abs(dv) < kNone) {
+          // For X = z (x, y, 1) with x = (u - cx) / fx, y = (v - cy) / fy, the normal
+          // dX/du x dX/dv is parallel to n = (-gu, -gv, gu x + gv y + z) with gu = fx dz/du and
+          // gv = fy dz/dv, and n . (x, y, 1) = z: cos(incidence) = z / (|n| |(x, y, 1)|).
+          const float x = x_of_u[u], y = y_of_v[v], z = static_cast<float>(c);
+          const float gu = fx * static_cast<float>(du), gv = fy * static_cast<float>(dv);
+          const float nz = gu * x + gv * y + z;
+          const float n2 = gu * gu + gv * gv + nz * nz;
+          if (z * z < cos_min2 * n2 * (x * x + y * y + 1.0f)) continue;
+        }
+      }
+      use[static_cast<std::size_t>(v) * width + u] = 1;
+      ++count;
+    }
   }
   CameraCloud cloud;
   cloud.points.resize(count);
   cloud.colors.resize(count);
-
-  std::vector<float> x_of_u(width);
-  for (int u = 0; u < width; ++u) x_of_u[u] = static_cast<float>((u - camera.cx) / camera.fx);
   std::size_t i = 0;
   for (int v = 0; v < height; ++v) {
     const auto* d = depth_mm.ptr<std::uint16_t>(v);
     const auto* c = bgr.ptr<std::uint8_t>(v);
-    const float y_of_v = static_cast<float>((v - camera.cy) / camera.fy);
+    const std::uint8_t* row_use = use.data() + static_cast<std::size_t>(v) * width;
     for (int u = 0; u < width; ++u) {
-      if (d[u] < lo || d[u] > hi) continue;
-      const float z = d[u] * 0.001f;
-      cloud.points[i] = Eigen::Vector3f(x_of_u[u] * z, y_of_v * z, z);
+      if (!row_use[u]) continue;
+      cloud.points[i] = camera_point(u, v, d[u]);
       cloud.colors[i] = {c[3 * u + 2], c[3 * u + 1], c[3 * u]};
       ++i;
     }

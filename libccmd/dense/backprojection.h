@@ -22,6 +22,13 @@ struct BackProjectionOptions {
   // room's reconstruction under 5 mm mean error (docs/benchmarks/dense.md).
   double min_depth_m = 0.3;
   double max_depth_m = 3.0;
+  // Pixels whose surface is seen more obliquely than this (angle between the viewing ray and
+  // the normal estimated from neighbouring pixels) are dropped; 90 keeps them. Depth error
+  // grows steeply beyond about 70 degrees on RGB-D sensors (Nguyen, Izadi and Lovell 2012),
+  // and a pixel between a foreground and a background surface (a "flying" pixel) looks like
+  // such a surface, so this removes both. The neighbour on each axis is the one closer in
+  // depth, so the last pixel of a foreground object keeps the object's normal.
+  double max_incidence_deg = 75.0;
 
   Status Validate() const;
 };

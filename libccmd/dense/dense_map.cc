@@ -16,7 +16,8 @@ static_assert((1 << kSegmentShift) == kSegmentKeyframes);
 constexpr std::uint32_t kSlotMask = kSegmentKeyframes - 1;
 
 // Long re-filters (a loop over a whole agent, a fusion) run in chunks of this many keyframes,
-// each with its own W successors as context, so the scratch table stays small.
+// each with its own W successors as context, so the scratch bricks stay small. Ranks within
+// a chunk, plus one, must fit the bricks' uint16 values: 32 + W (<= 1000) + 1 does.
 constexpr std::size_t kRefilterChunk = 32;
 
 // Bytes a std::map / std::set node costs beyond its value: three pointers and a colour, plus
@@ -137,17 +138,18 @@ void DenseMap::Transform(Entry* entry) const {
 void DenseMap::FilterAppended(const AgentNode& agent, Entry* entry) {
   // The entry's own filter: the first point in each voxel (nothing follows it yet).
   const std::size_t n = entry->world.size();
-  scratch_.Clear(n);
+  occupied_.Clear();
   entry->kept.assign(n, 0);
   entry->kept_count = 0;
   std::uint64_t previous = ~0ull;
   for (std::size_t i = 0; i < n; ++i) {
-    const std::uint64_t key = grid_.Key(entry->world[i]);
-    if (key == previous) continue;  // raster neighbours often share a voxel: skip the lookup
+    const VoxelIndex v = grid_.Index(entry->world[i]);
+    const std::uint64_t key = VoxelGrid::KeyOf(v);
+    if (key == previous) continue;  // raster neighbours often share a voxel
     previous = key;
-    bool inserted = false;
-    scratch_.FindOrInsert(key, &inserted);
-    if (inserted) {
+    std::uint8_t& seen = occupied_.At(v);
+    if (seen == 0) {
+      seen = 1;
       entry->kept[i] = 1;
       ++entry->kept_count;
     }
@@ -159,16 +161,8 @@ void DenseMap::FilterAppended(const AgentNode& agent, Entry* entry) {
     if (p == nullptr) break;
     id = p->id.keyframe.value();
     if (p->kept_count == 0) continue;
-    previous = ~0ull;
-    bool previous_found = false;
     for (std::size_t i = 0; i < p->world.size(); ++i) {
-      if (!p->kept[i]) continue;
-      const std::uint64_t key = grid_.Key(p->world[i]);
-      if (key != previous) {
-        previous = key;
-        previous_found = scratch_.Find(key) != nullptr;
-      }
-      if (previous_found) {
+      if (p->kept[i] && occupied_.Get(grid_.Index(p->world[i])) != 0) {
         p->kept[i] = 0;
         --p->kept_count;
       }
@@ -195,12 +189,9 @@ std::size_t DenseMap::RefilterRange(const AgentNode& agent, std::uint32_t first,
   for (std::size_t begin = 0; begin < recompute; begin += kRefilterChunk) {
     const std::size_t end = std::min(recompute, begin + kRefilterChunk);
     const std::size_t context_end = std::min(list.size(), end + window);
-    std::size_t largest = 0;
-    for (std::size_t r = begin; r < context_end; ++r)
-      largest = std::max(largest, list[r]->world.size());
-    scratch_.Clear(2 * largest);
-    // From the last keyframe backwards: when keyframe r is visited, the table holds for each
-    // voxel the nearest following keyframe (rank) with a point there.
+    // From the last keyframe backwards: when keyframe r is visited, each voxel holds
+    // 1 + the rank (within the chunk) of the nearest following keyframe with a point there.
+    nearest_.Clear();
     for (std::size_t r = context_end; r-- > begin;) {
       Entry* x = list[r];
       const bool redo = r < end;
@@ -208,20 +199,20 @@ std::size_t DenseMap::RefilterRange(const AgentNode& agent, std::uint32_t first,
         x->kept.assign(x->world.size(), 0);
         x->kept_count = 0;
       }
-      const auto rank = static_cast<std::int32_t>(r - begin);
-      const auto limit = static_cast<std::int64_t>(rank) + static_cast<std::int64_t>(window);
+      const auto mark = static_cast<std::uint16_t>(r - begin + 1);
+      const std::size_t limit = r - begin + 1 + window;  // marks beyond: outside the window
       std::uint64_t previous = ~0ull;
       for (std::size_t i = 0; i < x->world.size(); ++i) {
-        const std::uint64_t key = grid_.Key(x->world[i]);
+        const VoxelIndex v = grid_.Index(x->world[i]);
+        const std::uint64_t key = VoxelGrid::KeyOf(v);
         if (key == previous) continue;  // same voxel as the point before: not the first
         previous = key;
-        bool inserted = false;
-        std::int32_t& nearest = scratch_.FindOrInsert(key, &inserted);
-        if (redo && (inserted || nearest > limit)) {
+        std::uint16_t& nearest = nearest_.At(v);
+        if (redo && (nearest == 0 || nearest > limit)) {
           x->kept[i] = 1;
           ++x->kept_count;
         }
-        nearest = rank;
+        nearest = mark;
       }
     }
   }
@@ -606,7 +597,7 @@ DenseMapStats DenseMap::Stats() const {
   stats.maps = maps_.size();
   stats.agents = agent_map_.size();
   stats.pending_keyframes = pending_.size();
-  std::size_t bytes = sizeof(*this) + scratch_.MemoryBytes();
+  std::size_t bytes = sizeof(*this) + occupied_.MemoryBytes() + nearest_.MemoryBytes();
   bytes += (agent_map_.size() + pending_.size() + maps_.size()) * kTreeNodeOverhead;
   for (const auto& [map, node] : maps_) {
     for (const auto& [agent, agent_node] : node) {

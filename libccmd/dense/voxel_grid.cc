@@ -72,19 +72,17 @@ void VoxelFilterLargestLabel(PointCloud* cloud, double voxel_size) {
   const std::size_t n = cloud->size();
   if (n == 0) return;
   const VoxelGrid grid(voxel_size);
-  VoxelTable table;
-  table.Clear(n);
-  // The table holds a voxel's ordinal; winner[ordinal] is the index of its best point.
+  // Each voxel holds 1 + its ordinal; winner[ordinal] is the index of its best point.
+  VoxelBricks<std::uint32_t> ordinals;
   std::vector<std::uint32_t> winner;
   const bool labelled = cloud->HasLabels();
   for (std::size_t i = 0; i < n; ++i) {
-    bool inserted = false;
-    std::int32_t& ordinal = table.FindOrInsert(grid.Key(cloud->points[i]), &inserted);
-    if (inserted) {
-      ordinal = static_cast<std::int32_t>(winner.size());
+    std::uint32_t& ordinal = ordinals.At(grid.Index(cloud->points[i]));
+    if (ordinal == 0) {
       winner.push_back(static_cast<std::uint32_t>(i));
-    } else if (labelled && cloud->labels[i] > cloud->labels[winner[ordinal]]) {
-      winner[ordinal] = static_cast<std::uint32_t>(i);
+      ordinal = static_cast<std::uint32_t>(winner.size());
+    } else if (labelled && cloud->labels[i] > cloud->labels[winner[ordinal - 1]]) {
+      winner[ordinal - 1] = static_cast<std::uint32_t>(i);
     }
   }
   if (winner.size() == n) return;

@@ -1,15 +1,22 @@
 #pragma once
 
-// Voxel keys and the open-addressing table the dense map filters with.
+// Voxels and the lookup structures the dense map filters with.
 //
-// A voxel is floor(p / size) per axis; the three indices are packed into one 64-bit key,
-// 21 bits each (offset by 2^20), so the grid spans +-2^20 voxels per axis (+-10 km at 1 cm).
-// Points beyond that are clamped to the outermost voxel: they still get a key, but share it.
+// A voxel is floor(p / size) per axis, offset by 2^20 so that indices are unsigned 21-bit
+// values: the grid spans +-2^20 voxels per axis (+-10 km at 1 cm). Points beyond that are
+// clamped to the outermost voxel: they still get a voxel, but share it. A voxel's key packs
+// the three indices into 63 bits.
 //
-// VoxelTable maps keys to 32-bit values. It is cleared in O(1) (a generation stamp per slot),
-// because the store clears it for every keyframe it adds and a clear must not cost a pass
-// over memory sized for the largest use.
+// VoxelTable maps 64-bit keys to 32-bit values (open addressing, cleared in O(1) by a
+// generation stamp, because the store clears it for every keyframe it adds).
+//
+// VoxelBricks<T> gives every voxel a value of type T (0 = empty) stored in bricks of 4x4x4
+// voxels found through a VoxelTable. Points of a depth image come in raster order, so
+// consecutive points mostly fall in the brick looked up last: most accesses skip the hash
+// table, and the bricks of one keyframe fit in the processor's cache where a table of one
+// slot per voxel would not.
 
+#include <array>
 #include <cstdint>
 #include <vector>
 
@@ -19,15 +26,25 @@
 
 namespace ccmd {
 
+struct VoxelIndex {
+  std::uint32_t x, y, z;  // each in [0, 2^21)
+};
+
+inline std::uint64_t PackVoxel(std::uint32_t x, std::uint32_t y, std::uint32_t z) {
+  return (static_cast<std::uint64_t>(x) << 42) | (static_cast<std::uint64_t>(y) << 21) | z;
+}
+
 class VoxelGrid {
  public:
   explicit VoxelGrid(double voxel_size) : inverse_size_(static_cast<float>(1.0 / voxel_size)) {}
 
-  std::uint64_t Key(const Eigen::Vector3f& p) const {
-    return (static_cast<std::uint64_t>(Index(p.x())) << 42) |
-           (static_cast<std::uint64_t>(Index(p.y())) << 21) |
-           static_cast<std::uint64_t>(Index(p.z()));
+  VoxelIndex Index(const Eigen::Vector3f& p) const {
+    return {Index(p.x()), Index(p.y()), Index(p.z())};
   }
+  std::uint64_t Key(const Eigen::Vector3f& p) const {
+    return PackVoxel(Index(p.x()), Index(p.y()), Index(p.z()));
+  }
+  static std::uint64_t KeyOf(const VoxelIndex& v) { return PackVoxel(v.x, v.y, v.z); }
 
   // The voxel's integer coordinates, for tests and tools.
   Eigen::Vector3i Coordinates(std::uint64_t key) const {
@@ -40,15 +57,14 @@ class VoxelGrid {
   static constexpr std::uint64_t kMask = (1u << 21) - 1;
   static constexpr float kLimit = static_cast<float>(kOffset - 1);
 
-  // floor(v / size) + offset, clamped to [0, 2^21 - 1]. Written without std::floor: the
-  // cast truncates towards zero, so negative non-integers step down by one.
+  // floor(v / size) + offset, clamped to [0, 2^21 - 1]. Branch-free: the clamps compile to
+  // max/min (a NaN becomes the lower bound), and after adding the offset in double precision
+  // the value is positive, so truncation is the floor.
   std::uint32_t Index(float v) const {
     float scaled = v * inverse_size_;
-    if (!(scaled > -kLimit)) scaled = -kLimit;  // also catches NaN
-    if (scaled > kLimit) scaled = kLimit;
-    int i = static_cast<int>(scaled);
-    if (scaled < static_cast<float>(i)) --i;
-    return static_cast<std::uint32_t>(i + kOffset);
+    scaled = scaled > -kLimit ? scaled : -kLimit;
+    scaled = scaled < kLimit ? scaled : kLimit;
+    return static_cast<std::uint32_t>(static_cast<double>(scaled) + kOffset);
   }
 
   float inverse_size_;
@@ -87,6 +103,60 @@ class VoxelTable {
   std::size_t mask_ = 0;
   int shift_ = 64;
   std::uint32_t stamp_ = 1;
+};
+
+template <typename T>
+class VoxelBricks {
+ public:
+  // Empties the map, keeping its memory.
+  void Clear() {
+    table_.Clear(bricks_.size());
+    bricks_.clear();
+    last_key_ = ~0ull;
+  }
+
+  // The voxel's value, its brick created (all values 0) if absent. Valid until the next At.
+  T& At(const VoxelIndex& v) {
+    const std::uint64_t key = PackVoxel(v.x >> 2, v.y >> 2, v.z >> 2);
+    if (key != last_key_ || last_ < 0) {
+      bool inserted = false;
+      std::int32_t& index = table_.FindOrInsert(key, &inserted);
+      if (inserted) {
+        index = static_cast<std::int32_t>(bricks_.size());
+        bricks_.emplace_back();
+        bricks_.back().fill(T{0});
+      }
+      last_key_ = key;
+      last_ = index;
+    }
+    return bricks_[last_][Local(v)];
+  }
+
+  // The voxel's value, 0 if its brick is absent.
+  T Get(const VoxelIndex& v) {
+    const std::uint64_t key = PackVoxel(v.x >> 2, v.y >> 2, v.z >> 2);
+    if (key != last_key_) {
+      const std::int32_t* index = table_.Find(key);
+      last_key_ = key;
+      last_ = index ? *index : -1;  // remember absent bricks too
+    }
+    return last_ < 0 ? T{0} : bricks_[last_][Local(v)];
+  }
+
+  std::size_t bricks() const { return bricks_.size(); }
+  std::size_t MemoryBytes() const {
+    return table_.MemoryBytes() + bricks_.capacity() * sizeof(bricks_[0]);
+  }
+
+ private:
+  static std::size_t Local(const VoxelIndex& v) {
+    return (v.x & 3u) | ((v.y & 3u) << 2) | ((v.z & 3u) << 4);
+  }
+
+  VoxelTable table_;
+  std::vector<std::array<T, 64>> bricks_;
+  std::uint64_t last_key_ = ~0ull;
+  std::int32_t last_ = 0;
 };
 
 // Keeps one point per voxel of `voxel_size` metres: the one with the largest label (the first

@@ -2,6 +2,9 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
+#include <set>
+
 #include <opencv2/core.hpp>
 
 #include "libccmd/dense/label.h"
@@ -59,6 +62,83 @@ TEST(BackProjectionTest, DepthRangeLimitsAreInclusiveAndZeroIsInvalid) {
   EXPECT_FLOAT_EQ(cloud->points[2].z(), 3.0f);
 }
 
+PinholeCamera WideCamera() {
+  PinholeCamera c;
+  c.width = 32;
+  c.height = 24;
+  c.fx = c.fy = 30.0;
+  c.cx = 15.5;
+  c.cy = 11.5;
+  return c;
+}
+
+TEST(BackProjectionTest, DropsPixelsSeenMoreObliquelyThanTheIncidenceLimit) {
+  // A plane through (0, 0, 1) m with normal (sin 65deg, 0, cos 65deg): across the image the
+  // viewing ray meets it between about 38 and 90 degrees from its normal.
+  PinholeCamera camera;
+  camera.width = 128;
+  camera.height = 96;
+  camera.fx = camera.fy = 120.0;
+  camera.cx = 63.5;
+  camera.cy = 47.5;
+  const int w = camera.width, h = camera.height;
+  const double theta = 65.0 * M_PI / 180.0;
+  const Eigen::Vector3d normal(std::sin(theta), 0, std::cos(theta));
+  cv::Mat depth(h, w, CV_16UC1, cv::Scalar(0));
+  std::vector<double> incidence(w * h, -1);
+  for (int v = 0; v < h; ++v) {
+    for (int u = 0; u < w; ++u) {
+      const Eigen::Vector3d ray = camera.BackProject(u, v, 1.0);  // (x, y, 1)
+      const double z = normal.z() / normal.dot(ray);              // n . (z ray) = n . (0, 0, 1)
+      if (!(z > 0.3 && z < 9.0)) continue;
+      depth.at<std::uint16_t>(v, u) = static_cast<std::uint16_t>(std::lround(z * 1000));
+      incidence[v * w + u] = std::acos(std::abs(normal.dot(ray)) / ray.norm()) * 180.0 / M_PI;
+    }
+  }
+  const cv::Mat bgr(h, w, CV_8UC3, cv::Scalar(0, 0, 0));
+  BackProjectionOptions options;
+  options.max_depth_m = 10.0;
+  options.max_incidence_deg = 75.0;
+  auto cloud = BackProjectKeyframe(depth, bgr, camera, options);
+  ASSERT_TRUE(cloud.ok());
+  std::set<int> kept;
+  for (const auto& p : cloud->points) {
+    const int u = static_cast<int>(std::lround(p.x() / p.z() * camera.fx + camera.cx));
+    const int v = static_cast<int>(std::lround(p.y() / p.z() * camera.fy + camera.cy));
+    kept.insert(v * w + u);
+  }
+  int below = 0, above = 0;
+  for (int i = 0; i < w * h; ++i) {
+    // Within a degree of the limit the finite-difference normal may decide either way.
+    if (incidence[i] < 0 || std::abs(incidence[i] - 75.0) < 1.0) continue;
+    const bool expect_kept = incidence[i] < 75.0;
+    EXPECT_EQ(kept.count(i) == 1, expect_kept)
+        << "pixel " << i % w << "," << i / w << " at " << incidence[i] << " degrees";
+    (expect_kept ? below : above) += 1;
+  }
+  EXPECT_GT(below, 2000);
+  EXPECT_GT(above, 1000);
+  options.max_incidence_deg = 90.0;  // off: every valid pixel
+  EXPECT_EQ(BackProjectKeyframe(depth, bgr, camera, options)->size(),
+            static_cast<std::size_t>(cv::countNonZero(depth)));
+}
+
+TEST(BackProjectionTest, DropsFlyingPixelsButKeepsBothEdgesOfADepthStep) {
+  // Frontal planes at 1 m (columns 0-14) and 3 m (16-31) with a column at 2 m between them,
+  // as sensors produce at depth edges.
+  const PinholeCamera camera = WideCamera();
+  cv::Mat depth(24, 32, CV_16UC1, cv::Scalar(3000));
+  depth.colRange(0, 15).setTo(1000);
+  depth.col(15).setTo(2000);
+  const cv::Mat bgr(24, 32, CV_8UC3, cv::Scalar(0, 0, 0));
+  BackProjectionOptions options;
+  options.max_depth_m = 5.0;
+  auto cloud = BackProjectKeyframe(depth, bgr, camera, options);
+  ASSERT_TRUE(cloud.ok());
+  ASSERT_EQ(cloud->size(), 32u * 24 - 24);
+  for (const auto& p : cloud->points) EXPECT_NE(p.z(), 2.0f);
+}
+
 TEST(BackProjectionTest, ReadsImagesThatAreViewsOfLargerOnes) {
   const PinholeCamera camera = SmallCamera();
   cv::Mat big_depth(10, 10, CV_16UC1, cv::Scalar(1000));
@@ -90,6 +170,10 @@ TEST(BackProjectionTest, BadImagesAndCamerasAreErrors) {
   PinholeCamera broken = camera;
   broken.fx = 0;
   EXPECT_EQ(code(depth, bgr, broken), StatusCode::kInvalidArgument);
+  BackProjectionOptions no_angle;
+  no_angle.max_incidence_deg = 0;
+  EXPECT_EQ(BackProjectKeyframe(depth, bgr, camera, no_angle).status().code(),
+            StatusCode::kInvalidArgument);
   BackProjectionOptions inverted;
   inverted.min_depth_m = 2.0;
   inverted.max_depth_m = 1.0;
