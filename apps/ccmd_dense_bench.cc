@@ -1,0 +1,465 @@
+// ccmd_dense_bench: what the dense map store costs, against a naive rebuild measured in the
+// same run, and how accurate a dense map built with ground-truth poses is.
+//
+//   ccmd_dense_bench [--json OUT] [--quick]
+//       Stores of 50 k, 500 k and 5 M points filled with rendered keyframes of the synthetic
+//       room (160x120, i.e. rate 0.25 of 640x480; and 320x240, rate 0.5). Per size: one
+//       keyframe pose update (local BA), the window re-filter it leaves for Maintain(), a
+//       naive rebuild (every keyframe cloud transformed, everything voxel-filtered), adding a
+//       keyframe (back-projection + window filter), an export, and memory per point.
+//   ccmd_dense_bench recon [--sequence DIR] [--every 10] [--rate 0.5] [--voxels 0.01,...]
+//                          [--max-depths 3,...] [--max-incidences 75,...]
+//                          [--downsample median|nearest|topleft]
+//                          [--out MAP.ply] [--json OUT]
+//       Dense map of a synthetic sequence (generated, 600 frames, unless --sequence) from every
+//       Nth frame at its ground-truth pose, downsampled by the rate, against surface.ply.
+
+#include <unistd.h>
+
+#include <CLI/CLI.hpp>
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <map>
+#include <numeric>
+#include <opencv2/imgproc.hpp>
+
+#include "libccmd/dense/dense_map.h"
+#include "libccmd/dense/label.h"
+#include "libccmd/eval/reconstruction_error.h"
+#include "libccmd/io/tum_dataset.h"
+#include "libccmd/synth/renderer.h"
+#include "libccmd/synth/scene.h"
+#include "libccmd/synth/sequence.h"
+#include "libccmd/util/file_util.h"
+#include "libccmd/util/json.h"
+#include "libccmd/util/random.h"
+#include "libccmd/util/string_util.h"
+#include "libccmd/util/timer.h"
+
+namespace {
+
+using ccmd::AgentId;
+using ccmd::GlobalKeyframeId;
+using ccmd::KeyframeId;
+using ccmd::Pose;
+
+int Fail(const ccmd::Status& status) {
+  std::fprintf(stderr, "ccmd_dense_bench: %s\n", status.ToString().c_str());
+  return 1;
+}
+
+double Median(std::vector<double> v) {
+  if (v.empty()) return 0;
+  std::sort(v.begin(), v.end());
+  return v[v.size() / 2];
+}
+
+double Max(const std::vector<double>& v) {
+  return v.empty() ? 0 : *std::max_element(v.begin(), v.end());
+}
+
+// ---- store costs -----------------------------------------------------------------------------
+
+// Keyframes along the synthetic camera path, one every 10 frames (48 per 16 s loop); each
+// further loop shrinks and raises the ellipse a little so that a long run keeps seeing new
+// views rather than repeating the first loop.
+class KeyframeSource {
+ public:
+  KeyframeSource(int width, int height)
+      : scene_(ccmd::SyntheticScene::MakeRoom({})), camera_(ccmd::SyntheticCamera(width, height)) {}
+
+  const ccmd::PinholeCamera& camera() const { return camera_; }
+
+  Pose PoseOf(int i) {
+    const int loop = i / 48;
+    auto it = loops_.find(loop);
+    if (it == loops_.end()) {
+      ccmd::LoopPathOptions o;
+      o.radius_x -= 0.12 * (loop % 5);
+      o.radius_y -= 0.1 * (loop % 5);
+      o.height += 0.07 * (loop % 3 - 1);
+      it = loops_.emplace(loop, ccmd::MakeLoopPath(480, 30.0, o)).first;
+    }
+    return it->second[(i % 48) * 10].T_world_cam;
+  }
+
+  ccmd::RenderedFrame Render(int i) {
+    ccmd::RenderOptions options;
+    options.seed = ccmd::MixSeed(7, i);
+    options.threads = 2;
+    return ccmd::RenderFrame(scene_, camera_, PoseOf(i), options);
+  }
+
+ private:
+  ccmd::SyntheticScene scene_;
+  ccmd::PinholeCamera camera_;
+  std::map<int, ccmd::Trajectory> loops_;
+};
+
+struct StoredKeyframe {
+  GlobalKeyframeId id;
+  Pose pose;
+  ccmd::CameraCloud cloud;
+};
+
+// The reference: transform every keyframe cloud and voxel-filter everything.
+double NaiveRebuildMs(const std::vector<StoredKeyframe>& keyframes, double voxel,
+                      std::size_t* points) {
+  ccmd::Stopwatch watch;
+  std::size_t total = 0;
+  for (const auto& k : keyframes) total += k.cloud.size();
+  ccmd::PointCloud all;
+  all.points.reserve(total);
+  all.colors.reserve(total);
+  all.labels.reserve(total);
+  for (const auto& k : keyframes) {
+    const Eigen::Matrix3f r = k.pose.linear().cast<float>();
+    const Eigen::Vector3f t = k.pose.translation().cast<float>();
+    const std::uint32_t label = *ccmd::EncodeLabel(k.id);
+    for (std::size_t i = 0; i < k.cloud.size(); ++i) {
+      all.points.push_back(r * k.cloud.points[i] + t);
+      all.colors.push_back(k.cloud.colors[i]);
+      all.labels.push_back(label);
+    }
+  }
+  ccmd::VoxelFilterLargestLabel(&all, voxel);
+  *points = all.size();
+  return watch.ElapsedMillis();
+}
+
+Pose Nudged(const Pose& pose, std::uint64_t seed) {
+  ccmd::Rng rng(seed);
+  Pose delta = Pose::Identity();
+  delta.translation() =
+      Eigen::Vector3d(rng.Uniform(-0.01, 0.01), rng.Uniform(-0.01, 0.01), rng.Uniform(-0.01, 0.01));
+  delta.linear() = ccmd::RotationFromAngleAxis(Eigen::Vector3d(
+      rng.Uniform(-0.01, 0.01), rng.Uniform(-0.01, 0.01), rng.Uniform(-0.01, 0.01)));
+  return pose * delta;
+}
+
+struct StoreRow {
+  int width = 0, height = 0;
+  ccmd::DenseMapStats stats;
+  std::vector<double> update_ms, refilter_ms, add_ms;
+  double rebuild_ms = 0;
+  std::size_t rebuild_points = 0;
+  double extract_ms = 0, export_ms = 0;
+};
+
+ccmd::Status MeasureStore(ccmd::DenseMap* store, KeyframeSource* source,
+                          std::vector<StoredKeyframe>* keyframes, int next, StoreRow* row) {
+  const int trials = 40, probes = 15;
+  // Local BA: one keyframe's pose, then the window re-filter Maintain() runs when idle.
+  for (int t = 0; t < trials; ++t) {
+    StoredKeyframe& k = (*keyframes)[(static_cast<std::size_t>(t) * 7919u) % keyframes->size()];
+    k.pose = Nudged(k.pose, 1000 + t);
+    ccmd::Stopwatch watch;
+    CCMD_RETURN_IF_ERROR(store->UpdateKeyframePose(k.id, k.pose));
+    row->update_ms.push_back(watch.ElapsedMillis());
+    watch.Restart();
+    store->Maintain();
+    row->refilter_ms.push_back(watch.ElapsedMillis());
+  }
+  // Adding the agent's next keyframe from its images; removed again (untimed) so that the
+  // store keeps its size.
+  for (int p = 0; p < probes; ++p) {
+    const ccmd::RenderedFrame frame = source->Render(next + p);
+    ccmd::DenseKeyframe k;
+    k.id = {AgentId(1), KeyframeId(static_cast<std::uint32_t>(next + p))};
+    k.T_world_cam = source->PoseOf(next + p);
+    k.depth_mm = frame.depth_mm;
+    k.bgr = frame.bgr;
+    k.camera = source->camera();
+    ccmd::Stopwatch watch;
+    CCMD_RETURN_IF_ERROR(store->AddKeyframe(k));
+    row->add_ms.push_back(watch.ElapsedMillis());
+    CCMD_RETURN_IF_ERROR(store->RemoveKeyframe(k.id));
+  }
+  std::vector<double> rebuilds;
+  for (int r = 0; r < 3; ++r) {
+    rebuilds.push_back(
+        NaiveRebuildMs(*keyframes, store->options().voxel_size_m, &row->rebuild_points));
+  }
+  row->rebuild_ms = Median(rebuilds);
+  ccmd::Stopwatch watch;
+  CCMD_ASSIGN_OR_RETURN(const ccmd::PointCloud kept,
+                        store->Extract(ccmd::DenseSelection::Global(), ccmd::DenseFilter::kWindow));
+  row->extract_ms = watch.ElapsedMillis();
+  const std::string path =
+      (std::filesystem::temp_directory_path() / "ccmd_dense_bench.ply").string();
+  watch.Restart();
+  CCMD_RETURN_IF_ERROR(store->ExportPly(path, ccmd::DenseSelection::Global()));
+  row->export_ms = watch.ElapsedMillis();
+  std::filesystem::remove(path);
+  row->stats = store->Stats();
+  return ccmd::Status::Ok();
+}
+
+ccmd::Status RunStoreSizes(int width, int height, const std::vector<std::size_t>& targets,
+                           std::vector<StoreRow>* rows) {
+  std::fprintf(stderr, "keyframes %dx%d: rendering and filling...\n", width, height);
+  KeyframeSource source(width, height);
+  CCMD_ASSIGN_OR_RETURN(auto store, ccmd::DenseMap::Create({}));
+  std::vector<StoredKeyframe> keyframes;
+  int next = 0;
+  std::size_t points = 0;
+  for (const std::size_t target : targets) {
+    while (points < target) {
+      const ccmd::RenderedFrame frame = source.Render(next);
+      StoredKeyframe k;
+      k.id = {AgentId(1), KeyframeId(static_cast<std::uint32_t>(next))};
+      k.pose = source.PoseOf(next);
+      CCMD_ASSIGN_OR_RETURN(k.cloud,
+                            ccmd::BackProjectKeyframe(frame.depth_mm, frame.bgr, source.camera(),
+                                                      store->options().projection));
+      CCMD_RETURN_IF_ERROR(store->AddKeyframeCloud(k.id, k.pose, k.cloud));
+      points += k.cloud.size();
+      keyframes.push_back(std::move(k));
+      ++next;
+    }
+    StoreRow row;
+    row.width = width;
+    row.height = height;
+    CCMD_RETURN_IF_ERROR(MeasureStore(store.get(), &source, &keyframes, next, &row));
+    std::fprintf(stderr, "  %zu points: update %.3f ms, rebuild %.1f ms\n", row.stats.points,
+                 Median(row.update_ms), row.rebuild_ms);
+    rows->push_back(std::move(row));
+  }
+  return ccmd::Status::Ok();
+}
+
+int RunStoreBench(const std::string& json_path, bool quick) {
+  std::vector<StoreRow> rows;
+  const std::vector<std::size_t> sizes = quick
+                                             ? std::vector<std::size_t>{50'000, 500'000}
+                                             : std::vector<std::size_t>{50'000, 500'000, 5'000'000};
+  ccmd::Status s = RunStoreSizes(160, 120, sizes, &rows);
+  if (!s.ok()) return Fail(s);
+  s = RunStoreSizes(
+      320, 240,
+      quick ? std::vector<std::size_t>{500'000} : std::vector<std::size_t>{500'000, 5'000'000},
+      &rows);
+  if (!s.ok()) return Fail(s);
+
+  std::printf(
+      "| keyframe | points | kept | keyframes | update ms (max) | refilter ms | rebuild ms | "
+      "rebuild / update | add keyframe ms (max) | extract ms | export ms | bytes/point |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+  ccmd::Json json = ccmd::Json::MakeArray();
+  for (const StoreRow& r : rows) {
+    const double update = Median(r.update_ms);
+    const double bytes_per_point = static_cast<double>(r.stats.memory_bytes) / r.stats.points;
+    std::printf(
+        "| %dx%d | %zu | %zu | %zu | %.3f (%.3f) | %.2f | %.1f | %.0f | %.2f (%.2f) | %.1f | %.1f "
+        "| "
+        "%.1f |\n",
+        r.width, r.height, r.stats.points, r.stats.kept_points, r.stats.keyframes, update,
+        Max(r.update_ms), Median(r.refilter_ms), r.rebuild_ms, r.rebuild_ms / update,
+        Median(r.add_ms), Max(r.add_ms), r.extract_ms, r.export_ms, bytes_per_point);
+    ccmd::Json j;
+    j["keyframe_width"] = r.width;
+    j["keyframe_height"] = r.height;
+    j["points"] = r.stats.points;
+    j["kept_points"] = r.stats.kept_points;
+    j["keyframes"] = r.stats.keyframes;
+    j["points_per_keyframe"] = static_cast<double>(r.stats.points) / r.stats.keyframes;
+    j["update_ms"] = update;
+    j["update_ms_max"] = Max(r.update_ms);
+    j["refilter_ms"] = Median(r.refilter_ms);
+    j["rebuild_ms"] = r.rebuild_ms;
+    j["rebuild_points"] = r.rebuild_points;
+    j["rebuild_over_update"] = r.rebuild_ms / update;
+    j["add_keyframe_ms"] = Median(r.add_ms);
+    j["add_keyframe_ms_max"] = Max(r.add_ms);
+    j["extract_ms"] = r.extract_ms;
+    j["export_ms"] = r.export_ms;
+    j["bytes_per_point"] = bytes_per_point;
+    j["memory_mb"] = r.stats.memory_bytes / 1e6;
+    json.Push(std::move(j));
+  }
+  if (!json_path.empty()) {
+    const ccmd::Status w = ccmd::WriteJsonFile(json, json_path);
+    if (!w.ok()) return Fail(w);
+  }
+  return 0;
+}
+
+// ---- reconstruction error ----------------------------------------------------------------------
+
+// Stand-in for the keyframe codec's downsampler (same rule per block: a real depth of the
+// block, never an average across an edge): one depth per factor x factor block.
+cv::Mat DownsampleDepth(const cv::Mat& depth, int factor, const std::string& method) {
+  cv::Mat out(depth.rows / factor, depth.cols / factor, CV_16UC1, cv::Scalar(0));
+  std::vector<std::uint16_t> valid;
+  for (int y = 0; y < out.rows; ++y) {
+    for (int x = 0; x < out.cols; ++x) {
+      if (method == "topleft") {
+        out.at<std::uint16_t>(y, x) = depth.at<std::uint16_t>(y * factor, x * factor);
+        continue;
+      }
+      valid.clear();
+      for (int dy = 0; dy < factor; ++dy) {
+        for (int dx = 0; dx < factor; ++dx) {
+          const std::uint16_t d = depth.at<std::uint16_t>(y * factor + dy, x * factor + dx);
+          if (d != 0) valid.push_back(d);
+        }
+      }
+      if (valid.empty()) continue;
+      std::sort(valid.begin(), valid.end());
+      out.at<std::uint16_t>(y, x) =
+          method == "nearest" ? valid.front() : valid[(valid.size() - 1) / 2];
+    }
+  }
+  return out;
+}
+
+struct RemoveOnExit {
+  std::filesystem::path path;
+  ~RemoveOnExit() {
+    std::error_code ignored;
+    if (!path.empty()) std::filesystem::remove_all(path, ignored);
+  }
+};
+
+struct ReconConfig {
+  std::string sequence;
+  int every = 10;
+  double rate = 0.5;
+  std::vector<double> voxels{0.01};
+  std::vector<double> max_depths{3.0};
+  std::vector<double> incidences{75.0};
+  std::string downsample = "median";
+  std::string out_ply;
+  std::string json_path;
+};
+
+int RunRecon(const ReconConfig& config) {
+  std::string folder = config.sequence;
+  RemoveOnExit generated;
+  if (folder.empty()) {
+    generated.path =
+        std::filesystem::temp_directory_path() / ("ccmd_dense_recon_" + std::to_string(::getpid()));
+    std::fprintf(stderr, "generating the 600-frame synthetic sequence in %s...\n",
+                 generated.path.c_str());
+    ccmd::SyntheticSequenceOptions options;  // the defaults of ccmd_synth: 640x480, noise on
+    auto summary = ccmd::WriteSyntheticSequence(generated.path.string(), options);
+    if (!summary.ok()) return Fail(summary.status());
+    folder = generated.path.string();
+  }
+  auto sequence = ccmd::TumSequence::Open(folder, std::nullopt);
+  if (!sequence.ok()) return Fail(sequence.status());
+  auto surface = ccmd::ReadPly(ccmd::JoinPath(folder, "surface.ply"));
+  if (!surface.ok()) return Fail(surface.status());
+  const int factor = static_cast<int>(std::lround(1.0 / config.rate));
+  if (factor < 1 || std::fabs(factor * config.rate - 1.0) > 1e-9) {
+    return Fail(ccmd::InvalidArgument("--rate must be 1, 0.5, 0.25, ..."));
+  }
+  const ccmd::PinholeCamera camera = sequence->camera().Scaled(config.rate);
+
+  std::vector<ccmd::DenseKeyframe> keyframes;
+  for (std::size_t i = 0; i < sequence->size(); i += config.every) {
+    auto frame = sequence->LoadFrame(i);
+    if (!frame.ok()) return Fail(frame.status());
+    if (!sequence->frame(i).T_world_cam_gt) continue;
+    ccmd::DenseKeyframe k;
+    k.id = {AgentId(1), KeyframeId(static_cast<std::uint32_t>(keyframes.size()))};
+    k.T_world_cam = *sequence->frame(i).T_world_cam_gt;
+    k.depth_mm = DownsampleDepth(frame->depth_mm, factor, config.downsample);
+    cv::resize(frame->bgr, k.bgr, k.depth_mm.size(), 0, 0, cv::INTER_AREA);
+    k.camera = camera;
+    keyframes.push_back(std::move(k));
+  }
+
+  ccmd::Json json = ccmd::Json::MakeArray();
+  std::printf(
+      "| voxel m | max depth m | max incidence deg | keyframes | points | mean mm | median mm | "
+      "p95 mm | "
+      "completeness 2 cm | add keyframe ms |\n|---|---|---|---|---|---|---|---|---|---|\n");
+  for (const double voxel : config.voxels) {
+    for (const double max_depth : config.max_depths) {
+      for (const double incidence : config.incidences) {
+        ccmd::DenseMapOptions options;
+        options.voxel_size_m = voxel;
+        options.projection.max_depth_m = max_depth;
+        options.projection.max_incidence_deg = incidence;
+        auto store = ccmd::DenseMap::Create(options);
+        if (!store.ok()) return Fail(store.status());
+        std::vector<double> add_ms;
+        for (const auto& k : keyframes) {
+          ccmd::Stopwatch watch;
+          const ccmd::Status s = (*store)->AddKeyframe(k);
+          add_ms.push_back(watch.ElapsedMillis());
+          if (!s.ok()) return Fail(s);
+        }
+        auto cloud = (*store)->Extract(ccmd::DenseSelection::Global());
+        if (!cloud.ok()) return Fail(cloud.status());
+        auto error = ccmd::ComputeReconstructionError(*surface, *cloud);
+        if (!error.ok()) return Fail(error.status());
+        const double mean_add = std::accumulate(add_ms.begin(), add_ms.end(), 0.0) / add_ms.size();
+        std::printf("| %.3f | %.1f | %.0f | %zu | %zu | %.2f | %.2f | %.2f | %.3f | %.2f |\n",
+                    voxel, max_depth, incidence, keyframes.size(), cloud->size(), error->mean * 1e3,
+                    error->median * 1e3, error->p95 * 1e3, error->completeness, mean_add);
+        std::fflush(stdout);
+        ccmd::Json j;
+        j["voxel_size_m"] = voxel;
+        j["max_depth_m"] = max_depth;
+        j["max_incidence_deg"] = incidence;
+        j["rate"] = config.rate;
+        j["every"] = config.every;
+        j["downsample"] = config.downsample;
+        j["keyframes"] = keyframes.size();
+        j["points"] = cloud->size();
+        j["mean_m"] = error->mean;
+        j["median_m"] = error->median;
+        j["p95_m"] = error->p95;
+        j["rmse_m"] = error->rmse;
+        j["completeness"] = error->completeness;
+        j["add_keyframe_ms_mean"] = mean_add;
+        json.Push(std::move(j));
+        if (!config.out_ply.empty()) {
+          const ccmd::Status s = ccmd::WritePly(*cloud, config.out_ply);
+          if (!s.ok()) return Fail(s);
+        }
+      }
+    }
+  }
+  if (!config.json_path.empty()) {
+    const ccmd::Status s = ccmd::WriteJsonFile(json, config.json_path);
+    if (!s.ok()) return Fail(s);
+  }
+  return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"Dense map store costs against a naive rebuild, and dense map accuracy"};
+  std::string json_path;
+  bool quick = false;
+  app.add_option("--json", json_path, "Write the rows as a JSON list");
+  app.add_flag("--quick", quick, "Skip the 5 M-point stores");
+  CLI::App* recon = app.add_subcommand("recon", "Reconstruction error with ground-truth poses");
+  ReconConfig config;
+  recon->add_option("--sequence", config.sequence,
+                    "TUM-layout folder with surface.ply (default: generate)");
+  recon->add_option("--every", config.every, "Keyframe every N frames")
+      ->check(CLI::Range(1, 10000))
+      ->capture_default_str();
+  recon->add_option("--rate", config.rate, "Sampling rate (1, 0.5, 0.25)")->capture_default_str();
+  recon->add_option("--voxels", config.voxels, "Voxel sizes in metres")->delimiter(',');
+  recon->add_option("--max-depths", config.max_depths, "Maximum depths in metres")->delimiter(',');
+  recon
+      ->add_option("--max-incidences", config.incidences,
+                   "Maximum incidence angles in degrees (90: off)")
+      ->delimiter(',');
+  recon->add_option("--downsample", config.downsample, "median | nearest | topleft")
+      ->check(CLI::IsMember({"median", "nearest", "topleft"}))
+      ->capture_default_str();
+  recon->add_option("--out", config.out_ply, "Write the (last) dense map as PLY");
+  recon->add_option("--json", config.json_path, "Write the rows as a JSON list");
+  CLI11_PARSE(app, argc, argv);
+  if (recon->parsed()) return RunRecon(config);
+  return RunStoreBench(json_path, quick);
+}
