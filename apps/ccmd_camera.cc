@@ -171,7 +171,9 @@ int main(int argc, char** argv) {
   app.add_flag("--list", list, "List V4L2 nodes and OpenNI2 devices with their modes");
   app.add_option("--source", spec,
                  "Source: openni2[:URI], v4l2:color=DEV,depth=DEV[,...], tum:DIR, synth:...");
-  app.add_option("--config", config, "Camera config (mode and intrinsics), e.g. configs/realsense_d435.yaml");
+  app.add_option("--config", config,
+                 "Camera config: mode and intrinsics (v4l2: also the depth imager, e.g. "
+                 "configs/realsense_d435_v4l2.yaml)");
   app.add_option("--frames", frames,
                  "Frames to read (default 10; with --record 0 = until Ctrl-C)")
       ->check(CLI::NonNegativeNumber);
