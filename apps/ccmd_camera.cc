@@ -74,8 +74,8 @@ int ListDevices() {
       std::printf("  %s  %s\n", path.c_str(), info.status().ToString().c_str());
       continue;
     }
-    std::printf("  %s  %s  \"%s\"  %s%s\n", path.c_str(), info->driver.c_str(),
-                info->card.c_str(), info->bus.c_str(),
+    std::printf("  %s  %s  \"%s\"  %s%s\n", path.c_str(), info->driver.c_str(), info->card.c_str(),
+                info->bus.c_str(),
                 info->streaming_capture ? "" : "  (not a capture node: metadata or output)");
     bool depth_node = false;
     for (const ccmd::V4l2Mode& mode : info->modes) {
@@ -104,8 +104,8 @@ int ListDevices() {
     std::printf("  none\n");
   } else {
     for (const ccmd::OpenNI2DeviceInfo& d : *devices) {
-      std::printf("  %s  %s %s  usb %04x:%04x  registration %s\n", d.uri.c_str(),
-                  d.vendor.c_str(), d.name.c_str(), d.usb_vendor_id, d.usb_product_id,
+      std::printf("  %s  %s %s  usb %04x:%04x  registration %s\n", d.uri.c_str(), d.vendor.c_str(),
+                  d.name.c_str(), d.usb_vendor_id, d.usb_product_id,
                   d.registration_supported ? "yes" : "no");
       if (!d.open_status.ok()) std::printf("      %s\n", d.open_status.ToString().c_str());
       for (const ccmd::OpenNI2ModeInfo& m : d.modes) {
@@ -174,15 +174,16 @@ int main(int argc, char** argv) {
   app.add_option("--config", config,
                  "Camera config: mode and intrinsics (v4l2: also the depth imager, e.g. "
                  "configs/realsense_d435_v4l2.yaml)");
-  app.add_option("--frames", frames,
-                 "Frames to read (default 10; with --record 0 = until Ctrl-C)")
+  app.add_option("--frames", frames, "Frames to read (default 10; with --record 0 = until Ctrl-C)")
       ->check(CLI::NonNegativeNumber);
   app.add_option("--record", record, "Record to this folder in the TUM layout");
-  app.add_option("--every", every, "Print every K-th frame (default: every frame, 1 per second when recording)")
+  app.add_option("--every", every,
+                 "Print every K-th frame (default: every frame, 1 per second when recording)")
       ->check(CLI::NonNegativeNumber);
   app.add_flag("--retry", retry, "Reopen a live camera that goes away (backoff 0.5 s .. 8 s)");
   app.add_option("--png-compression", png_compression, "PNG level 0..9 for --record")
-      ->check(CLI::Range(0, 9))->capture_default_str();
+      ->check(CLI::Range(0, 9))
+      ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
 
   if (list) return ListDevices();

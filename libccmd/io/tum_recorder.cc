@@ -90,8 +90,8 @@ Status TumRecorder::Check(const RgbdFrame& frame) {
   if (!std::isfinite(frame.timestamp)) return InvalidArgument("recorder: timestamp not finite");
   const std::string name = TumTimestampName(frame.timestamp);
   if (have_last_ && (frame.timestamp <= last_timestamp_ || name == last_name_)) {
-    return InvalidArgument("recorder: timestamps must increase (" + name + " after " +
-                           last_name_ + ")");
+    return InvalidArgument("recorder: timestamps must increase (" + name + " after " + last_name_ +
+                           ")");
   }
   have_last_ = true;
   last_timestamp_ = frame.timestamp;

@@ -34,10 +34,10 @@
 namespace ccmd {
 
 struct TumRecorderOptions {
-  int png_compression = 1;  // 0..9: live recording favours speed over size
-  bool overwrite = false;   // allow a folder that already holds a recording (lists restart)
-  int queue_frames = 0;     // 0: write in Write(); N > 0: writer threads behind N frames
-  int writer_threads = 1;   // with a queue
+  int png_compression = 1;      // 0..9: live recording favours speed over size
+  bool overwrite = false;       // allow a folder that already holds a recording (lists restart)
+  int queue_frames = 0;         // 0: write in Write(); N > 0: writer threads behind N frames
+  int writer_threads = 1;       // with a queue
   bool drop_when_full = false;  // with a queue: drop (and count) rather than wait when full
 };
 

@@ -29,7 +29,8 @@ StatusOr<double> ReadNumber(const cv::FileStorage& file, const std::string& key,
     if (fallback) return *fallback;
     return InvalidArgument(path + ": " + key + " is missing");
   }
-  if (!node.isReal() && !node.isInt()) return InvalidArgument(path + ": " + key + " must be a number");
+  if (!node.isReal() && !node.isInt())
+    return InvalidArgument(path + ": " + key + " must be a number");
   return node.real();
 }
 
@@ -65,8 +66,8 @@ StatusOr<std::optional<DepthToColorCalibration>> LoadDepthToColorCalibration(
   Eigen::Matrix3d R = Eigen::Matrix3d::Identity();
   Eigen::Vector3d t = Eigen::Vector3d::Zero();
   if (!file["Depth.R_color_depth"].empty()) {
-    CCMD_ASSIGN_OR_RETURN(const auto r, ReadNumbers(file["Depth.R_color_depth"], 9,
-                                                    path + ": Depth.R_color_depth"));
+    CCMD_ASSIGN_OR_RETURN(
+        const auto r, ReadNumbers(file["Depth.R_color_depth"], 9, path + ": Depth.R_color_depth"));
     for (int i = 0; i < 9; ++i) R(i / 3, i % 3) = r[i];
     // A calibration printed with a few decimals is only nearly orthonormal; a matrix far
     // from a rotation is a typo (or a transposed/garbled copy).
@@ -75,8 +76,8 @@ StatusOr<std::optional<DepthToColorCalibration>> LoadDepthToColorCalibration(
     }
   }
   if (!file["Depth.t_color_depth"].empty()) {
-    CCMD_ASSIGN_OR_RETURN(const auto v, ReadNumbers(file["Depth.t_color_depth"], 3,
-                                                    path + ": Depth.t_color_depth"));
+    CCMD_ASSIGN_OR_RETURN(
+        const auto v, ReadNumbers(file["Depth.t_color_depth"], 3, path + ": Depth.t_color_depth"));
     t = Eigen::Vector3d(v[0], v[1], v[2]);
     if (t.norm() > 1.0) {
       return InvalidArgument(path + ": Depth.t_color_depth is " + std::to_string(t.norm()) +

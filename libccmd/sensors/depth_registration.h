@@ -23,7 +23,7 @@
 namespace ccmd {
 
 struct DepthToColorCalibration {
-  PinholeCamera depth;  // intrinsics of the depth image, at its calibrated size
+  PinholeCamera depth;                    // intrinsics of the depth image, at its calibrated size
   Pose T_color_depth = Pose::Identity();  // maps depth-camera points into the colour frame
 };
 

@@ -11,9 +11,9 @@
 namespace ccmd {
 
 enum class PairStep {
-  kPair,         // the two latest frames belong together
-  kAdvanceColor, // colour is older: drop it and read the next colour frame
-  kAdvanceDepth, // depth is older: drop it and read the next depth frame
+  kPair,          // the two latest frames belong together
+  kAdvanceColor,  // colour is older: drop it and read the next colour frame
+  kAdvanceDepth,  // depth is older: drop it and read the next depth frame
 };
 
 PairStep NextPairStep(double color_time, double depth_time, double tolerance);

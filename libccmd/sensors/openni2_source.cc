@@ -59,16 +59,26 @@ std::string LastError() {
 
 const char* PixelFormatName(openni::PixelFormat format) {
   switch (format) {
-    case openni::PIXEL_FORMAT_DEPTH_1_MM: return "DEPTH_1_MM";
-    case openni::PIXEL_FORMAT_DEPTH_100_UM: return "DEPTH_100_UM";
-    case openni::PIXEL_FORMAT_SHIFT_9_2: return "SHIFT_9_2";
-    case openni::PIXEL_FORMAT_SHIFT_9_3: return "SHIFT_9_3";
-    case openni::PIXEL_FORMAT_RGB888: return "RGB888";
-    case openni::PIXEL_FORMAT_YUV422: return "YUV422";
-    case openni::PIXEL_FORMAT_GRAY8: return "GRAY8";
-    case openni::PIXEL_FORMAT_GRAY16: return "GRAY16";
-    case openni::PIXEL_FORMAT_JPEG: return "JPEG";
-    case openni::PIXEL_FORMAT_YUYV: return "YUYV";
+    case openni::PIXEL_FORMAT_DEPTH_1_MM:
+      return "DEPTH_1_MM";
+    case openni::PIXEL_FORMAT_DEPTH_100_UM:
+      return "DEPTH_100_UM";
+    case openni::PIXEL_FORMAT_SHIFT_9_2:
+      return "SHIFT_9_2";
+    case openni::PIXEL_FORMAT_SHIFT_9_3:
+      return "SHIFT_9_3";
+    case openni::PIXEL_FORMAT_RGB888:
+      return "RGB888";
+    case openni::PIXEL_FORMAT_YUV422:
+      return "YUV422";
+    case openni::PIXEL_FORMAT_GRAY8:
+      return "GRAY8";
+    case openni::PIXEL_FORMAT_GRAY16:
+      return "GRAY16";
+    case openni::PIXEL_FORMAT_JPEG:
+      return "JPEG";
+    case openni::PIXEL_FORMAT_YUYV:
+      return "YUYV";
   }
   return "unknown";
 }
@@ -95,8 +105,9 @@ std::string ModesText(const openni::SensorInfo* info) {
   const auto& modes = info->getSupportedVideoModes();
   for (int i = 0; i < modes.getSize() && i < 16; ++i) {
     if (!text.empty()) text += ", ";
-    text += std::to_string(modes[i].getResolutionX()) + "x" + std::to_string(modes[i].getResolutionY()) +
-            "@" + std::to_string(modes[i].getFps()) + " " + PixelFormatName(modes[i].getPixelFormat());
+    text += std::to_string(modes[i].getResolutionX()) + "x" +
+            std::to_string(modes[i].getResolutionY()) + "@" + std::to_string(modes[i].getFps()) +
+            " " + PixelFormatName(modes[i].getPixelFormat());
   }
   return text.empty() ? "none" : text;
 }
@@ -104,7 +115,8 @@ std::string ModesText(const openni::SensorInfo* info) {
 // Finds a mode of `info` at the size and rate asked for whose pixel format `accept` takes,
 // preferring formats earlier in `preference`.
 std::optional<openni::VideoMode> FindMode(const openni::SensorInfo* info, int width, int height,
-                                          int fps, const std::vector<openni::PixelFormat>& preference) {
+                                          int fps,
+                                          const std::vector<openni::PixelFormat>& preference) {
   if (info == nullptr) return std::nullopt;
   const auto& modes = info->getSupportedVideoModes();
   for (const openni::PixelFormat wanted : preference) {
@@ -179,14 +191,14 @@ OpenNI2Source::~OpenNI2Source() = default;
 
 StatusOr<std::unique_ptr<OpenNI2Source>> OpenNI2Source::Open(const OpenNI2Options& options) {
   const bool device_mode = options.width == 0 && options.height == 0;
-  if ((!device_mode && (options.width < 1 || options.height < 1 ||
-                        options.width > kMaxImageSide || options.height > kMaxImageSide)) ||
+  if ((!device_mode && (options.width < 1 || options.height < 1 || options.width > kMaxImageSide ||
+                        options.height > kMaxImageSide)) ||
       !(options.fps > 0) || !(options.timeout_s > 0)) {
     return InvalidArgument("openni2: bad mode " + std::to_string(options.width) + "x" +
                            std::to_string(options.height) + "@" + std::to_string(options.fps));
   }
-  const bool is_file = options.uri.size() > 4 &&
-                       options.uri.compare(options.uri.size() - 4, 4, ".oni") == 0;
+  const bool is_file =
+      options.uri.size() > 4 && options.uri.compare(options.uri.size() - 4, 4, ".oni") == 0;
   if (is_file && !FileExists(options.uri)) {
     return NotFound("openni2: recording " + options.uri + " does not exist");
   }
@@ -211,7 +223,8 @@ StatusOr<std::unique_ptr<OpenNI2Source>> OpenNI2Source::Open(const OpenNI2Option
       listed |= options.uri == devices[i].getUri();
     }
     if (devices.getSize() == 0) {
-      return NotFound("openni2: no device " + (options.uri.empty() ? std::string("found") : options.uri) +
+      return NotFound("openni2: no device " +
+                      (options.uri.empty() ? std::string("found") : options.uri) +
                       " (is the camera plugged in and powered? " + error + ")");
     }
     if (!options.uri.empty() && !listed) {
@@ -253,10 +266,9 @@ StatusOr<std::unique_ptr<OpenNI2Source>> OpenNI2Source::Open(const OpenNI2Option
                          std::to_string(height) + "@" + std::to_string(fps) +
                          " in millimetres; the device offers " + ModesText(depth_info));
     }
-    const auto color_mode =
-        FindMode(color_info, width, height, fps,
-                 {openni::PIXEL_FORMAT_RGB888, openni::PIXEL_FORMAT_YUYV,
-                  openni::PIXEL_FORMAT_YUV422, openni::PIXEL_FORMAT_JPEG});
+    const auto color_mode = FindMode(color_info, width, height, fps,
+                                     {openni::PIXEL_FORMAT_RGB888, openni::PIXEL_FORMAT_YUYV,
+                                      openni::PIXEL_FORMAT_YUV422, openni::PIXEL_FORMAT_JPEG});
     if (!color_mode) {
       return Unsupported("openni2: no colour mode " + std::to_string(width) + "x" +
                          std::to_string(height) + "@" + std::to_string(fps) +
@@ -367,8 +379,7 @@ StatusOr<std::unique_ptr<OpenNI2Source>> OpenNI2Source::Open(const OpenNI2Option
               << " depth " << width << "x" << height << "@" << fps << " "
               << PixelFormatName(depth_mode.getPixelFormat()) << ", colour "
               << color_mode.getResolutionX() << "x" << color_mode.getResolutionY() << " "
-              << PixelFormatName(color_mode.getPixelFormat())
-              << (registered ? ", registered" : "");
+              << PixelFormatName(color_mode.getPixelFormat()) << (registered ? ", registered" : "");
   source->description_ = description.str();
   CCMD_LOG(INFO) << source->description_;
   return source;
@@ -390,12 +401,12 @@ Status OpenNI2Source::Read(RgbdFrame* frame) {
                               std::to_string(tolerance_ * 1e3) + " ms of each other"));
     }
     if (!impl.color_frame.isValid()) {
-      CCMD_RETURN_IF_ERROR(Fail(impl.ReadNext(&impl.color, &impl.color_frame, options_.timeout_s,
-                                              is_file_, "colour")));
+      CCMD_RETURN_IF_ERROR(Fail(
+          impl.ReadNext(&impl.color, &impl.color_frame, options_.timeout_s, is_file_, "colour")));
     }
     if (!impl.depth_frame.isValid()) {
-      CCMD_RETURN_IF_ERROR(Fail(impl.ReadNext(&impl.depth, &impl.depth_frame, options_.timeout_s,
-                                              is_file_, "depth")));
+      CCMD_RETURN_IF_ERROR(Fail(
+          impl.ReadNext(&impl.depth, &impl.depth_frame, options_.timeout_s, is_file_, "depth")));
     }
     const double color_time = impl.color_frame.getTimestamp() * 1e-6;
     const double depth_time = impl.depth_frame.getTimestamp() * 1e-6;
@@ -424,13 +435,21 @@ Status OpenNI2Source::Read(RgbdFrame* frame) {
       const auto size = static_cast<std::size_t>(c.getDataSize());
       const PlaneGeometry plane{c.getWidth(), c.getHeight(), c.getStrideInBytes()};
       switch (c.getVideoMode().getPixelFormat()) {
-        case openni::PIXEL_FORMAT_RGB888: status = ConvertRgb24ToBgr(data, size, plane, &bgr); break;
-        case openni::PIXEL_FORMAT_YUYV: status = ConvertYuyvToBgr(data, size, plane, &bgr); break;
-        case openni::PIXEL_FORMAT_YUV422: status = ConvertUyvyToBgr(data, size, plane, &bgr); break;
+        case openni::PIXEL_FORMAT_RGB888:
+          status = ConvertRgb24ToBgr(data, size, plane, &bgr);
+          break;
+        case openni::PIXEL_FORMAT_YUYV:
+          status = ConvertYuyvToBgr(data, size, plane, &bgr);
+          break;
+        case openni::PIXEL_FORMAT_YUV422:
+          status = ConvertUyvyToBgr(data, size, plane, &bgr);
+          break;
         case openni::PIXEL_FORMAT_JPEG:
           status = impl.mjpeg.Decode(data, size, c.getWidth(), c.getHeight(), &bgr);
           break;
-        default: status = Unsupported("openni2: colour pixel format changed"); break;
+        default:
+          status = Unsupported("openni2: colour pixel format changed");
+          break;
       }
     }
     const int depth_index = d.getFrameIndex();
@@ -472,8 +491,9 @@ StatusOr<std::vector<OpenNI2DeviceInfo>> ListOpenNI2Devices() {
     }
     info.registration_supported =
         device.isImageRegistrationModeSupported(openni::IMAGE_REGISTRATION_DEPTH_TO_COLOR);
-    const std::pair<openni::SensorType, const char*> sensors[] = {
-        {openni::SENSOR_DEPTH, "depth"}, {openni::SENSOR_COLOR, "colour"}, {openni::SENSOR_IR, "ir"}};
+    const std::pair<openni::SensorType, const char*> sensors[] = {{openni::SENSOR_DEPTH, "depth"},
+                                                                  {openni::SENSOR_COLOR, "colour"},
+                                                                  {openni::SENSOR_IR, "ir"}};
     for (const auto& [type, name] : sensors) {
       const openni::SensorInfo* sensor = device.getSensorInfo(type);
       if (sensor == nullptr) continue;

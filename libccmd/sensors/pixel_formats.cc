@@ -22,7 +22,8 @@ Status CheckPlane(const PlaneGeometry& plane, int bytes_per_pixel, std::size_t s
                    std::to_string(row_bytes) + " bytes)");
   }
   // The last row need not be padded to the stride.
-  const std::size_t needed = static_cast<std::size_t>(plane.stride) * (plane.height - 1) + row_bytes;
+  const std::size_t needed =
+      static_cast<std::size_t>(plane.stride) * (plane.height - 1) + row_bytes;
   if (size < needed) {
     return Corrupt("frame of " + std::to_string(size) + " bytes is too short for " +
                    std::to_string(plane.width) + "x" + std::to_string(plane.height) + " (needs " +
@@ -124,8 +125,8 @@ Status MjpegDecoder::DecodeOnce(const std::uint8_t* data, std::size_t size, int 
   if (size > (1ull << 28)) return OutOfRange("MJPEG frame of " + std::to_string(size) + " bytes");
   tjhandle tj = static_cast<tjhandle>(handle_);
   int width = 0, height = 0, subsampling = 0, colorspace = 0;
-  if (tjDecompressHeader3(tj, data, static_cast<unsigned long>(size), &width, &height,
-                          &subsampling, &colorspace) != 0) {
+  if (tjDecompressHeader3(tj, data, static_cast<unsigned long>(size), &width, &height, &subsampling,
+                          &colorspace) != 0) {
     return Corrupt(std::string("MJPEG header: ") + tjGetErrorStr2(tj));
   }
   if (width != expected_width || height != expected_height) {
@@ -137,8 +138,7 @@ Status MjpegDecoder::DecodeOnce(const std::uint8_t* data, std::size_t size, int 
   // STOPONWARNING: a truncated USB transfer decodes with a grey tail and only a warning;
   // such a frame must be dropped, not tracked.
   if (tjDecompress2(tj, data, static_cast<unsigned long>(size), out.data, width,
-                    static_cast<int>(out.step[0]), height, TJPF_BGR,
-                    TJFLAG_STOPONWARNING) != 0) {
+                    static_cast<int>(out.step[0]), height, TJPF_BGR, TJFLAG_STOPONWARNING) != 0) {
     return Corrupt(std::string("MJPEG frame: ") + tjGetErrorStr2(tj));
   }
   *bgr = out;

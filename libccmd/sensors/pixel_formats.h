@@ -61,8 +61,8 @@ class MjpegDecoder {
   MjpegDecoder(const MjpegDecoder&) = delete;
   MjpegDecoder& operator=(const MjpegDecoder&) = delete;
 
-  Status Decode(const std::uint8_t* data, std::size_t size, int expected_width,
-                int expected_height, cv::Mat* bgr);
+  Status Decode(const std::uint8_t* data, std::size_t size, int expected_width, int expected_height,
+                cv::Mat* bgr);
 
  private:
   Status DecodeOnce(const std::uint8_t* data, std::size_t size, int expected_width,

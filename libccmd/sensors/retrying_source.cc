@@ -71,7 +71,8 @@ StatusOr<std::unique_ptr<RetryingSource>> RetryingSource::Open(Opener opener,
   std::string why;
   if (!options.IsValid(&why)) return InvalidArgument("retry options: " + why);
   if (!opener) return InvalidArgument("retry: no opener");
-  std::unique_ptr<RetryingSource> source(new RetryingSource(std::move(opener), options, std::move(hooks)));
+  std::unique_ptr<RetryingSource> source(
+      new RetryingSource(std::move(opener), options, std::move(hooks)));
   StatusOr<std::unique_ptr<RgbdSource>> first = source->opener_();
   if (!first.ok()) {
     if (!options.wait_for_first_open) return first.status();
@@ -125,12 +126,13 @@ Status RetryingSource::Reopen() {
   ++attempt_;
   StatusOr<std::unique_ptr<RgbdSource>> opened = opener_();
   if (opened.ok() && have_camera_ &&
-      ((*opened)->camera().width != camera_.width || (*opened)->camera().height != camera_.height)) {
+      ((*opened)->camera().width != camera_.width ||
+       (*opened)->camera().height != camera_.height)) {
     // The map was built at the first size; a different one after reconnecting cannot be used.
-    return gave_up_ = Unsupported("camera came back at " + std::to_string((*opened)->camera().width) +
-                                  "x" + std::to_string((*opened)->camera().height) + ", was " +
-                                  std::to_string(camera_.width) + "x" +
-                                  std::to_string(camera_.height));
+    return gave_up_ =
+               Unsupported("camera came back at " + std::to_string((*opened)->camera().width) +
+                           "x" + std::to_string((*opened)->camera().height) + ", was " +
+                           std::to_string(camera_.width) + "x" + std::to_string(camera_.height));
   }
   if (opened.ok()) {
     inner_ = std::move(opened).value();

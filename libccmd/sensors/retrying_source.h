@@ -44,10 +44,10 @@ struct RetryEvent {
     kGaveUp,       // max_attempts reached
   };
   Kind kind = Kind::kLost;
-  int attempt = 0;           // reopen attempts so far in this outage (1 = the first)
-  double next_delay_s = 0;   // wait before the next attempt (kLost, kRetryFailed)
-  double away_s = 0;         // time since the camera was lost (kReconnected, kGaveUp)
-  Status status;             // what failed
+  int attempt = 0;          // reopen attempts so far in this outage (1 = the first)
+  double next_delay_s = 0;  // wait before the next attempt (kLost, kRetryFailed)
+  double away_s = 0;        // time since the camera was lost (kReconnected, kGaveUp)
+  Status status;            // what failed
 
   // "camera lost: unavailable: ...; reopening in 0.5 s"
   std::string ToString() const;

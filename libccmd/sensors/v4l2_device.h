@@ -40,8 +40,8 @@ struct V4l2Format {
   std::uint32_t fourcc = 0;
   int width = 0;
   int height = 0;
-  int stride = 0;             // bytesperline (0 for compressed formats)
-  std::size_t image_size = 0; // sizeimage: largest frame the driver will deliver
+  int stride = 0;              // bytesperline (0 for compressed formats)
+  std::size_t image_size = 0;  // sizeimage: largest frame the driver will deliver
 };
 
 // One size of one pixel format, with its frame rates (empty if the driver does not say).
@@ -55,9 +55,9 @@ struct V4l2Mode {
 
 struct V4l2DeviceInfo {
   std::string path;
-  std::string driver;  // "uvcvideo"
-  std::string card;    // "Intel(R) RealSense(TM) Depth Camera 435: Depth"
-  std::string bus;     // "usb-0000:00:14.0-2"
+  std::string driver;              // "uvcvideo"
+  std::string card;                // "Intel(R) RealSense(TM) Depth Camera 435: Depth"
+  std::string bus;                 // "usb-0000:00:14.0-2"
   bool streaming_capture = false;  // a video capture node with streaming I/O
   std::vector<V4l2Mode> modes;
 };
@@ -67,9 +67,9 @@ struct V4l2Buffer {
   int index = -1;
   const std::uint8_t* data = nullptr;
   std::size_t bytes_used = 0;
-  double timestamp = 0;       // seconds, the driver's timestamp (CLOCK_MONOTONIC for UVC)
-  std::uint32_t sequence = 0; // driver frame counter (gaps = frames the driver dropped)
-  bool error = false;         // V4L2_BUF_FLAG_ERROR: the data may be damaged
+  double timestamp = 0;        // seconds, the driver's timestamp (CLOCK_MONOTONIC for UVC)
+  std::uint32_t sequence = 0;  // driver frame counter (gaps = frames the driver dropped)
+  bool error = false;          // V4L2_BUF_FLAG_ERROR: the data may be damaged
 };
 
 class V4l2Device {

@@ -55,7 +55,8 @@ Status ErrnoStatus(const std::string& path, const std::string& what, int error) 
 }
 
 std::string CString(const unsigned char* text, std::size_t size) {
-  return std::string(reinterpret_cast<const char*>(text), strnlen(reinterpret_cast<const char*>(text), size));
+  return std::string(reinterpret_cast<const char*>(text),
+                     strnlen(reinterpret_cast<const char*>(text), size));
 }
 
 class LinuxV4l2Device : public V4l2Device {
@@ -166,7 +167,8 @@ class LinuxV4l2Device : public V4l2Device {
     if (Xioctl(fd_, VIDIOC_G_PARM, &parm) != 0) return 0.0;
     if (!(parm.parm.capture.capability & V4L2_CAP_TIMEPERFRAME)) return 0.0;
     parm.parm.capture.timeperframe.numerator = 1000;
-    parm.parm.capture.timeperframe.denominator = static_cast<std::uint32_t>(std::lround(fps * 1000));
+    parm.parm.capture.timeperframe.denominator =
+        static_cast<std::uint32_t>(std::lround(fps * 1000));
     if (Xioctl(fd_, VIDIOC_S_PARM, &parm) != 0) return ErrnoStatus(path_, "VIDIOC_S_PARM", errno);
     const auto& tpf = parm.parm.capture.timeperframe;
     return tpf.numerator > 0 ? static_cast<double>(tpf.denominator) / tpf.numerator : 0.0;
@@ -190,15 +192,17 @@ class LinuxV4l2Device : public V4l2Device {
       buffer.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
       buffer.memory = V4L2_MEMORY_MMAP;
       buffer.index = i;
-      if (Xioctl(fd_, VIDIOC_QUERYBUF, &buffer) != 0) return ErrnoStatus(path_, "VIDIOC_QUERYBUF", errno);
-      void* start = mmap(nullptr, buffer.length, PROT_READ | PROT_WRITE, MAP_SHARED, fd_,
-                         buffer.m.offset);
+      if (Xioctl(fd_, VIDIOC_QUERYBUF, &buffer) != 0)
+        return ErrnoStatus(path_, "VIDIOC_QUERYBUF", errno);
+      void* start =
+          mmap(nullptr, buffer.length, PROT_READ | PROT_WRITE, MAP_SHARED, fd_, buffer.m.offset);
       if (start == MAP_FAILED) return ErrnoStatus(path_, "mmap", errno);
       buffers_.push_back({start, buffer.length});
       if (Xioctl(fd_, VIDIOC_QBUF, &buffer) != 0) return ErrnoStatus(path_, "VIDIOC_QBUF", errno);
     }
     v4l2_buf_type type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
-    if (Xioctl(fd_, VIDIOC_STREAMON, &type) != 0) return ErrnoStatus(path_, "VIDIOC_STREAMON", errno);
+    if (Xioctl(fd_, VIDIOC_STREAMON, &type) != 0)
+      return ErrnoStatus(path_, "VIDIOC_STREAMON", errno);
     streaming_ = true;
     return Status::Ok();
   }
@@ -219,7 +223,8 @@ class LinuxV4l2Device : public V4l2Device {
         result.data = static_cast<const std::uint8_t*>(buffers_[buffer.index].start);
         // Never trust bytesused beyond the mapping; 0 from old drivers means "whole buffer".
         const std::size_t length = buffers_[buffer.index].length;
-        result.bytes_used = buffer.bytesused == 0 ? length : std::min<std::size_t>(buffer.bytesused, length);
+        result.bytes_used =
+            buffer.bytesused == 0 ? length : std::min<std::size_t>(buffer.bytesused, length);
         result.timestamp = buffer.timestamp.tv_sec + buffer.timestamp.tv_usec * 1e-6;
         result.sequence = buffer.sequence;
         result.error = (buffer.flags & V4L2_BUF_FLAG_ERROR) != 0;

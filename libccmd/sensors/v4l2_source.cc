@@ -20,8 +20,8 @@ std::string ModeList(const V4l2DeviceInfo& info) {
   std::set<std::string> listed;
   std::string text;
   for (const V4l2Mode& mode : info.modes) {
-    const std::string item =
-        FourccToString(mode.fourcc) + " " + std::to_string(mode.width) + "x" + std::to_string(mode.height);
+    const std::string item = FourccToString(mode.fourcc) + " " + std::to_string(mode.width) + "x" +
+                             std::to_string(mode.height);
     if (!listed.insert(item).second) continue;
     if (!text.empty()) text += ", ";
     text += item;
@@ -56,7 +56,8 @@ StatusOr<V4l2SourceOptions> ParseV4l2Spec(const std::string& spec) {
   for (const std::string& item : Split(spec, ',')) {
     if (Trim(item).empty()) continue;
     const auto eq = item.find('=');
-    if (eq == std::string::npos) return InvalidArgument("v4l2 option '" + item + "' is not key=value");
+    if (eq == std::string::npos)
+      return InvalidArgument("v4l2 option '" + item + "' is not key=value");
     const std::string key(Trim(item.substr(0, eq)));
     const std::string value(Trim(item.substr(eq + 1)));
     auto number = [&](double low, double high) -> StatusOr<double> {
@@ -75,7 +76,8 @@ StatusOr<V4l2SourceOptions> ParseV4l2Spec(const std::string& spec) {
       options.config = value;
     } else if (key == "color_format") {
       if (value != "auto" && value != "yuyv" && value != "mjpeg") {
-        return InvalidArgument("v4l2 color_format must be auto, yuyv or mjpeg, not '" + value + "'");
+        return InvalidArgument("v4l2 color_format must be auto, yuyv or mjpeg, not '" + value +
+                               "'");
       }
       options.color_format = value;
     } else {
@@ -124,9 +126,12 @@ StatusOr<V4l2SourceOptions> ParseV4l2Spec(const std::string& spec) {
 StatusOr<std::uint32_t> ChooseColorFormat(const V4l2DeviceInfo& info, const std::string& wanted,
                                           int width, int height) {
   std::vector<std::uint32_t> candidates;
-  if (wanted == "yuyv") candidates = {kFourccYuyv};
-  else if (wanted == "mjpeg") candidates = {kFourccMjpeg};
-  else candidates = {kFourccYuyv, kFourccMjpeg};
+  if (wanted == "yuyv")
+    candidates = {kFourccYuyv};
+  else if (wanted == "mjpeg")
+    candidates = {kFourccMjpeg};
+  else
+    candidates = {kFourccYuyv, kFourccMjpeg};
   for (const std::uint32_t fourcc : candidates) {
     if (Offers(info, fourcc, width, height)) return fourcc;
   }
@@ -136,8 +141,8 @@ StatusOr<std::uint32_t> ChooseColorFormat(const V4l2DeviceInfo& info, const std:
                      ModeList(info));
 }
 
-Status V4l2Source::StartStream(const std::string& path, std::uint32_t fourcc, int width,
-                               int height, const V4l2SourceOptions& options, Stream* stream) {
+Status V4l2Source::StartStream(const std::string& path, std::uint32_t fourcc, int width, int height,
+                               const V4l2SourceOptions& options, Stream* stream) {
   CCMD_ASSIGN_OR_RETURN(stream->format, stream->device->SetFormat(fourcc, width, height));
   CCMD_ASSIGN_OR_RETURN(const double fps, stream->device->SetFrameRate(options.fps));
   if (fps > 0 && std::fabs(fps - options.fps) > 0.5) {
@@ -161,8 +166,7 @@ PinholeCamera AtSize(const PinholeCamera& camera, int width, int height, const c
 }  // namespace
 
 StatusOr<std::unique_ptr<V4l2Source>> V4l2Source::Open(
-    const V4l2SourceOptions& options, const PinholeCamera& camera,
-    const V4l2DeviceOpener& opener,
+    const V4l2SourceOptions& options, const PinholeCamera& camera, const V4l2DeviceOpener& opener,
     const std::optional<DepthToColorCalibration>& registration) {
   std::unique_ptr<V4l2Source> source(new V4l2Source());
   source->options_ = options;
@@ -173,8 +177,8 @@ StatusOr<std::unique_ptr<V4l2Source>> V4l2Source::Open(
   const V4l2SourceOptions& o = source->options_;
   if (registration) {
     // Frames get the colour camera's geometry at the depth stream's size.
-    source->camera_ = AtSize(camera, o.color_width, o.color_height, "colour")
-                          .Resized(o.width, o.height);
+    source->camera_ =
+        AtSize(camera, o.color_width, o.color_height, "colour").Resized(o.width, o.height);
     source->registration_ = registration;
     source->registration_->depth = AtSize(registration->depth, o.width, o.height, "depth");
   } else {
@@ -210,8 +214,9 @@ StatusOr<std::unique_ptr<V4l2Source>> V4l2Source::Open(
     return Unsupported(o.color_device + " (" + color_info.card +
                        ") is not a streaming video capture node");
   }
-  CCMD_ASSIGN_OR_RETURN(const std::uint32_t color_fourcc,
-                        ChooseColorFormat(color_info, o.color_format, o.color_width, o.color_height));
+  CCMD_ASSIGN_OR_RETURN(
+      const std::uint32_t color_fourcc,
+      ChooseColorFormat(color_info, o.color_format, o.color_width, o.color_height));
 
   CCMD_RETURN_IF_ERROR(StartStream(o.depth_device, kFourccZ16, o.width, o.height, o, &depth));
   CCMD_RETURN_IF_ERROR(
@@ -295,13 +300,14 @@ Status V4l2Source::Read(RgbdFrame* frame) {
       message.precision(6);
       message << std::fixed << "v4l2: colour and depth timestamps never came within "
               << tolerance_ * 1e3 << " ms of each other (last colour " << color_.buffer.timestamp
-              << " s, depth " << depth_.buffer.timestamp
-              << " s): are " << color_.path << " and " << depth_.path << " one camera?";
+              << " s, depth " << depth_.buffer.timestamp << " s): are " << color_.path << " and "
+              << depth_.path << " one camera?";
       return Fail(Unsupported(message.str()));
     }
     if (!color_.held) CCMD_RETURN_IF_ERROR(Fetch(&color_));
     if (!depth_.held) CCMD_RETURN_IF_ERROR(Fetch(&depth_));
-    const PairStep step = NextPairStep(color_.buffer.timestamp, depth_.buffer.timestamp, tolerance_);
+    const PairStep step =
+        NextPairStep(color_.buffer.timestamp, depth_.buffer.timestamp, tolerance_);
     if (step == PairStep::kAdvanceColor) {
       ++stats_.unpaired_dropped;
       CCMD_RETURN_IF_ERROR(Release(&color_));

@@ -95,7 +95,7 @@ class V4l2Source : public RgbdSource {
   Status Fail(Status status);
 
   V4l2SourceOptions options_;
-  PinholeCamera camera_;  // of the frames handed out
+  PinholeCamera camera_;                                 // of the frames handed out
   std::optional<DepthToColorCalibration> registration_;  // depth intrinsics at stream size
   Stream color_;
   Stream depth_;

@@ -21,7 +21,8 @@ namespace ccmd {
 namespace {
 
 int RunCamera(const std::string& arguments, std::string* output) {
-  return testing::RunCommand(testing::ProgramPath("ccmd_camera") + " " + arguments + " 2>&1", output);
+  return testing::RunCommand(testing::ProgramPath("ccmd_camera") + " " + arguments + " 2>&1",
+                             output);
 }
 
 int CountListed(const std::string& path) {
@@ -41,7 +42,8 @@ TEST(CameraCliTest, ListsWithoutACamera) {
 
 TEST(CameraCliTest, PrintsFrameStatistics) {
   std::string output;
-  ASSERT_EQ(RunCamera("--source synth:frames=5,width=64,height=48 --frames 3", &output), 0) << output;
+  ASSERT_EQ(RunCamera("--source synth:frames=5,width=64,height=48 --frames 3", &output), 0)
+      << output;
   EXPECT_NE(output.find("frame 2  t=1.066667 s  dt= 33.3 ms  colour 64x48  depth 64x48"),
             std::string::npos)
       << output;
@@ -52,7 +54,8 @@ TEST(CameraCliTest, PrintsFrameStatistics) {
 TEST(CameraCliTest, ClearErrors) {
   std::string output;
   EXPECT_EQ(RunCamera("--frames 3", &output), 2) << output;
-  EXPECT_EQ(RunCamera("--source v4l2:color=/dev/ccmd_no_video98,depth=/dev/ccmd_no_video99", &output), 1);
+  EXPECT_EQ(
+      RunCamera("--source v4l2:color=/dev/ccmd_no_video98,depth=/dev/ccmd_no_video99", &output), 1);
   EXPECT_NE(output.find("not found"), std::string::npos) << output;
   EXPECT_NE(output.find("plugged in"), std::string::npos) << output;
 }
@@ -61,7 +64,9 @@ TEST(CameraCliTest, RecordingReplaysFrameForFrame) {
   testing::TempDir dir;
   const std::string folder = dir.File("rec");
   std::string output;
-  ASSERT_EQ(RunCamera("--source synth:frames=4,width=64,height=48 --frames 4 --record " + folder, &output), 0)
+  ASSERT_EQ(RunCamera("--source synth:frames=4,width=64,height=48 --frames 4 --record " + folder,
+                      &output),
+            0)
       << output;
   EXPECT_NE(output.find("recorded 4 frames"), std::string::npos) << output;
 
@@ -127,10 +132,10 @@ TEST(CameraCliTest, CtrlCFinishesTheFrameAndClosesTheRecording) {
   testing::TempDir dir;
   const std::string folder = dir.File("rec");
   int fd = -1;
-  const pid_t pid = Spawn({testing::ProgramPath("ccmd_camera"), "--source",
-                           "synth:frames=100000,width=64,height=48", "--record", folder,
-                           "--every", "1"},
-                          &fd);
+  const pid_t pid =
+      Spawn({testing::ProgramPath("ccmd_camera"), "--source",
+             "synth:frames=100000,width=64,height=48", "--record", folder, "--every", "1"},
+            &fd);
   ASSERT_GT(pid, 0);
   FILE* out = fdopen(fd, "r");
   ASSERT_NE(out, nullptr);

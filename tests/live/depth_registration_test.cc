@@ -74,15 +74,16 @@ TEST(DepthRegistrationTest, HolesStayHoles) {
 TEST(DepthRegistrationTest, CalibrationFromTheCameraConfig) {
   testing::TempDir dir;
   const std::string path = dir.File("d435.yaml");
-  ASSERT_TRUE(WriteFileAtomic(path,
-                              "%YAML:1.0\n"
-                              "Camera.fx: 615.0\nCamera.fy: 615.0\nCamera.cx: 320.0\nCamera.cy: 240.0\n"
-                              "Depth.fx: 383.5\nDepth.fy: 383.0\nDepth.cx: 319.0\nDepth.cy: 241.0\n"
-                              "Depth.width: 640\nDepth.height: 480\n"
-                              "Depth.R_color_depth: [0.99999, 0.0044, 0.0, -0.0044, 0.99999, 0.0, "
-                              "0.0, 0.0, 1.0]\n"
-                              "Depth.t_color_depth: [0.0147, 0.0002, 0.0003]\n")
-                  .ok());
+  ASSERT_TRUE(
+      WriteFileAtomic(path,
+                      "%YAML:1.0\n"
+                      "Camera.fx: 615.0\nCamera.fy: 615.0\nCamera.cx: 320.0\nCamera.cy: 240.0\n"
+                      "Depth.fx: 383.5\nDepth.fy: 383.0\nDepth.cx: 319.0\nDepth.cy: 241.0\n"
+                      "Depth.width: 640\nDepth.height: 480\n"
+                      "Depth.R_color_depth: [0.99999, 0.0044, 0.0, -0.0044, 0.99999, 0.0, "
+                      "0.0, 0.0, 1.0]\n"
+                      "Depth.t_color_depth: [0.0147, 0.0002, 0.0003]\n")
+          .ok());
   auto calibration = LoadDepthToColorCalibration(path);
   ASSERT_TRUE(calibration.ok()) << calibration.status().ToString();
   ASSERT_TRUE(calibration->has_value());
@@ -113,8 +114,7 @@ TEST(DepthRegistrationTest, CalibrationFromTheCameraConfig) {
                               "Depth.cy: 241.0\nDepth.width: 640\nDepth.height: 480\n"
                               "Depth.t_color_depth: [14.7, 0.2, 0.3]\n")
                   .ok());
-  EXPECT_EQ(LoadDepthToColorCalibration(millimetres).status().code(),
-            StatusCode::kInvalidArgument);
+  EXPECT_EQ(LoadDepthToColorCalibration(millimetres).status().code(), StatusCode::kInvalidArgument);
 }
 
 }  // namespace

@@ -23,10 +23,10 @@ struct FakeFrame {
 
 struct FakeNode {
   V4l2DeviceInfo info;
-  Status open_error;                // returned by the opener when not ok
-  std::deque<FakeFrame> frames;     // delivered in order
-  int unplug_after = -1;            // Dequeue fails with ENODEV after this many frames (-1: never)
-  int stride_padding = 0;           // extra bytes per row reported in bytesperline
+  Status open_error;             // returned by the opener when not ok
+  std::deque<FakeFrame> frames;  // delivered in order
+  int unplug_after = -1;         // Dequeue fails with ENODEV after this many frames (-1: never)
+  int stride_padding = 0;        // extra bytes per row reported in bytesperline
 
   // Observations.
   int opens = 0;

@@ -8,8 +8,8 @@
 #include <cstdio>
 #include <cstring>
 #include <functional>
-#include <opencv2/imgproc.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 #include <vector>
 
 #include "libccmd/io/tum_recorder.h"
@@ -39,7 +39,8 @@ int main(int argc, char** argv) {
   CLI::App app{"Per-frame cost of camera format conversion, registration and recording"};
   int repeat = 30;
   std::string out = "/tmp/ccmd_live_bench";
-  app.add_option("--repeat", repeat, "Timings per item (median reported)")->check(CLI::Range(3, 10000));
+  app.add_option("--repeat", repeat, "Timings per item (median reported)")
+      ->check(CLI::Range(3, 10000));
   app.add_option("--out", out, "Scratch folder for the recorder (overwritten)");
   CLI11_PARSE(app, argc, argv);
 
@@ -105,8 +106,8 @@ int main(int argc, char** argv) {
                      sink_bgr = ccmd::ResizeColorToDepth(hd, cv::Size(640, 480));
                    })});
   items.push_back({"depth registered to colour", TimeMs(repeat, [&] {
-                     sink_depth = ccmd::RegisterDepthToColor(frame.depth_mm, depth_camera,
-                                                             color_camera, T);
+                     sink_depth =
+                         ccmd::RegisterDepthToColor(frame.depth_mm, depth_camera, color_camera, T);
                    })});
   for (const int level : {0, 1}) {
     ccmd::TumRecorderOptions options;
@@ -122,10 +123,12 @@ int main(int argc, char** argv) {
       frame.timestamp = (t += 1);
       (*recorder)->Write(frame).IgnoreError();
     });
-    items.push_back({level == 0 ? "record a frame, PNG level 0" : "record a frame, PNG level 1", ms});
+    items.push_back(
+        {level == 0 ? "record a frame, PNG level 0" : "record a frame, PNG level 1", ms});
   }
 
-  std::printf("reference: clone colour + depth 640x480 = %.3f ms; frame period 33.3 ms\n", reference);
+  std::printf("reference: clone colour + depth 640x480 = %.3f ms; frame period 33.3 ms\n",
+              reference);
   std::printf("| step | ms | x frame period | x clone |\n|---|---|---|---|\n");
   for (const Item& item : items) {
     std::printf("| %s | %.2f | %.3f | %.1f |\n", item.name, item.ms, item.ms / (1000.0 / 30),

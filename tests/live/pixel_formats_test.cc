@@ -73,7 +73,7 @@ TEST(PixelFormatsTest, YuyvRejectsShortBuffersOddWidthAndBadStride) {
 }
 
 TEST(PixelFormatsTest, Rgb24SwapsToBgrAndSkipsPadding) {
-  const std::uint8_t rgb[2 * 8] = {1, 2, 3, 4, 5, 6, 99, 99,  // row 0 + 2 junk bytes
+  const std::uint8_t rgb[2 * 8] = {1, 2, 3, 4,  5,  6,  99, 99,  // row 0 + 2 junk bytes
                                    7, 8, 9, 10, 11, 12, 99, 99};
   cv::Mat bgr;
   ASSERT_TRUE(ConvertRgb24ToBgr(rgb, sizeof(rgb), {2, 2, 8}, &bgr).ok());

@@ -97,7 +97,8 @@ TEST(RetryingSourceTest, BackoffDoublesUpToTheCap) {
 TEST(RetryingSourceTest, ReportsEveryRetryAndReopensOnTheSchedule) {
   ScriptedOpener opener;
   opener.entries.push_back({Status::Ok(), {Frame(1.0), Lost()}});
-  for (int i = 0; i < 3; ++i) opener.entries.push_back({NotFound("/dev/video2: no such device"), {}});
+  for (int i = 0; i < 3; ++i)
+    opener.entries.push_back({NotFound("/dev/video2: no such device"), {}});
   opener.entries.push_back({Status::Ok(), {Frame(30.0), Lost()}});
   opener.entries.push_back({Status::Ok(), {Frame(60.0)}});
   Recorder recorder;

@@ -19,8 +19,8 @@ SourceOptions WithConfigsDir() {
 }
 
 TEST(LiveSourceSpecTest, V4l2NodesThatDoNotExistAreNotFound) {
-  const auto source = OpenSource(
-      "v4l2:color=/dev/ccmd_no_video98,depth=/dev/ccmd_no_video99", WithConfigsDir());
+  const auto source =
+      OpenSource("v4l2:color=/dev/ccmd_no_video98,depth=/dev/ccmd_no_video99", WithConfigsDir());
   EXPECT_EQ(source.status().code(), StatusCode::kNotFound);
   EXPECT_NE(source.status().message().find("plugged in"), std::string::npos)
       << source.status().message();

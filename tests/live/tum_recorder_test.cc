@@ -25,14 +25,16 @@ PinholeCamera SmallCamera(double depth_map_factor) {
 }
 
 // Random colour and depth (with holes), from a fixed seed.
-RgbdFrame RandomFrame(cv::RNG* rng, double timestamp, int max_depth_mm, cv::Size colour_size = {64, 48}) {
+RgbdFrame RandomFrame(cv::RNG* rng, double timestamp, int max_depth_mm,
+                      cv::Size colour_size = {64, 48}) {
   RgbdFrame frame;
   frame.timestamp = timestamp;
   frame.bgr.create(colour_size, CV_8UC3);
   rng->fill(frame.bgr, cv::RNG::UNIFORM, 0, 256);
   frame.depth_mm.create(48, 64, CV_16UC1);
   rng->fill(frame.depth_mm, cv::RNG::UNIFORM, 0, max_depth_mm + 1);
-  for (int i = 0; i < 100; ++i) frame.depth_mm.at<std::uint16_t>(rng->uniform(0, 48), rng->uniform(0, 64)) = 0;
+  for (int i = 0; i < 100; ++i)
+    frame.depth_mm.at<std::uint16_t>(rng->uniform(0, 48), rng->uniform(0, 64)) = 0;
   return frame;
 }
 
@@ -62,7 +64,8 @@ TEST(TumRecorderTest, TumReaderReadsBackEveryFrameExactlyAt5000PerMetre) {
   cv::RNG rng(7);
   std::vector<RgbdFrame> frames;
   // 5000 units per metre: 13107 mm is the farthest depth 16 bits can hold.
-  for (int i = 0; i < 5; ++i) frames.push_back(RandomFrame(&rng, 1305031102.175304 + i / 30.0, 13107));
+  for (int i = 0; i < 5; ++i)
+    frames.push_back(RandomFrame(&rng, 1305031102.175304 + i / 30.0, 13107));
   for (const RgbdFrame& f : frames) ASSERT_TRUE((*recorder)->Write(f).ok());
   ASSERT_TRUE((*recorder)->Close().ok());
   EXPECT_EQ((*recorder)->frames_written(), 5);

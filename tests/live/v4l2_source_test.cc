@@ -68,7 +68,9 @@ struct Camera {
     depth.info.streaming_capture = true;
     depth.info.modes = {Mode(kFourccZ16, kW, kH)};
   }
-  V4l2DeviceOpener Opener() { return FakeOpener({{"/dev/video4", &color}, {"/dev/video2", &depth}}); }
+  V4l2DeviceOpener Opener() {
+    return FakeOpener({{"/dev/video4", &color}, {"/dev/video2", &depth}});
+  }
   void AddColor(double t, std::vector<std::uint8_t> data, bool error = false) {
     color.frames.push_back({t, std::move(data), error, next_color_sequence++});
   }
@@ -182,8 +184,8 @@ TEST(V4l2SourceTest, MjpegColourAndDamagedFramesAreDropped) {
   std::vector<std::uint8_t> truncated = JpegImage(kW, kH, 90);
   truncated.resize(truncated.size() / 2);
   camera.AddColor(1.000, JpegImage(kW, kH, 60));
-  camera.AddColor(1.033, truncated);                      // fails to decode
-  camera.AddColor(1.066, JpegImage(kW, kH, 90), true);    // flagged by the driver
+  camera.AddColor(1.033, truncated);                    // fails to decode
+  camera.AddColor(1.066, JpegImage(kW, kH, 90), true);  // flagged by the driver
   camera.AddColor(1.100, JpegImage(kW, kH, 200));
   camera.AddDepth(1.000, 1000);
   camera.AddDepth(1.033, 1001);
@@ -195,7 +197,10 @@ TEST(V4l2SourceTest, MjpegColourAndDamagedFramesAreDropped) {
   ASSERT_TRUE((*source)->Read(&frame).ok());
   EXPECT_EQ(frame.depth_mm.at<std::uint16_t>(0, 0), 1000);
   EXPECT_NEAR(frame.bgr.at<cv::Vec3b>(2, 2)[2], 60, 2);
-  { const Status s = (*source)->Read(&frame); ASSERT_TRUE(s.ok()) << s.ToString(); }
+  {
+    const Status s = (*source)->Read(&frame);
+    ASSERT_TRUE(s.ok()) << s.ToString();
+  }
   EXPECT_EQ(frame.index, 1);
   EXPECT_EQ(frame.depth_mm.at<std::uint16_t>(0, 0), 1003);
   EXPECT_NEAR(frame.bgr.at<cv::Vec3b>(2, 2)[2], 200, 2);
@@ -321,9 +326,9 @@ TEST(V4l2SourceTest, UnpluggedMidRunIsUnavailableAndTheRetryWrapperReopens) {
   EXPECT_DOUBLE_EQ(frame.timestamp, 20.0);
   EXPECT_EQ(frame.depth_mm.at<std::uint16_t>(0, 0), 900);
   EXPECT_EQ(waits, (std::vector<double>{0.5, 1.0}));
-  EXPECT_EQ(events, (std::vector<RetryEvent::Kind>{RetryEvent::Kind::kLost,
-                                                   RetryEvent::Kind::kRetryFailed,
-                                                   RetryEvent::Kind::kReconnected}));
+  EXPECT_EQ(events,
+            (std::vector<RetryEvent::Kind>{RetryEvent::Kind::kLost, RetryEvent::Kind::kRetryFailed,
+                                           RetryEvent::Kind::kReconnected}));
   EXPECT_EQ((*source)->reconnects(), 1);
 }
 
