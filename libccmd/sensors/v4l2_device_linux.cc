@@ -230,6 +230,12 @@ class LinuxV4l2Device : public V4l2Device {
         result.error = (buffer.flags & V4L2_BUF_FLAG_ERROR) != 0;
         return result;
       }
+      if (errno == EIO) {
+        // The V4L2 spec: an internal error or signal loss; the driver may have stopped
+        // capturing and the buffer may be unusable. Transient: the source is reopened.
+        return Unavailable(path_ + ": VIDIOC_DQBUF: " + std::strerror(EIO) +
+                           " (device error; reopening)");
+      }
       if (errno != EAGAIN) return ErrnoStatus(path_, "VIDIOC_DQBUF", errno);
       const double left = deadline - MonotonicSeconds();
       if (left <= 0) {
