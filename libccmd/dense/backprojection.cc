@@ -78,46 +78,46 @@ StatusOr<CameraCloud> BackProjectKeyframe(const cv::Mat& depth_mm, const cv::Mat
   const float cos_min = static_cast<float>(std::cos(options.max_incidence_deg * M_PI / 180.0));
   const float cos_min2 = cos_min * cos_min;
 
-  // Depth step (mm) to a neighbour, or kNone when it is outside the image or unusable.
-  constexpr int kNone = 1 << 20;
-  const auto delta = [&](int d, bool inside, int other) {
-    return inside && usable(static_cast<std::uint16_t>(other)) ? other - d : kNone;
-  };
-  // Of the two neighbours on an image axis, the step (per pixel, towards increasing index)
-  // to the one closer in depth: the same surface when the pixel is on an edge.
-  const auto closer_step = [](int before, int after) {
-    return std::abs(before) <= std::abs(after) ? -before : after;
-  };
   const auto fx = static_cast<float>(camera.fx), fy = static_cast<float>(camera.fy);
+  constexpr int kNone = 1 << 20;  // depth step to a neighbour that is unusable or outside
 
   // Pass 1: which pixels become points (counting first sizes the vectors exactly, and the
-  // store keeps them for the whole run).
+  // store keeps them for the whole run). The loop body has no branches, so that the compiler
+  // can vectorise it: image borders read a zero row or the zero padding of `centre`.
   std::vector<std::uint8_t> use(static_cast<std::size_t>(width) * height, 0);
+  std::vector<std::uint16_t> centre(width + 2, 0), zeros(width, 0);
   std::size_t count = 0;
   for (int v = 0; v < height; ++v) {
     const auto* d = depth_mm.ptr<std::uint16_t>(v);
-    const auto* up = v > 0 ? depth_mm.ptr<std::uint16_t>(v - 1) : d;
-    const auto* down = v + 1 < height ? depth_mm.ptr<std::uint16_t>(v + 1) : d;
+    std::copy(d, d + width, centre.begin() + 1);
+    const std::uint16_t* up = v > 0 ? depth_mm.ptr<std::uint16_t>(v - 1) : zeros.data();
+    const std::uint16_t* down = v + 1 < height ? depth_mm.ptr<std::uint16_t>(v + 1) : zeros.data();
+    const std::uint16_t* row = centre.data();
+    std::uint8_t* row_use = use.data() + static_cast<std::size_t>(v) * width;
+    const float y = y_of_v[v];
     for (int u = 0; u < width; ++u) {
-      if (!usable(d[u])) continue;
-      if (check_incidence) {
-        const int c = d[u];
-        const int du = closer_step(delta(c, u > 0, u > 0 ? d[u - 1] : 0),
-                                   delta(c, u + 1 < width, u + 1 < width ? d[u + 1] : 0));
-        const int dv = closer_step(delta(c, v > 0, up[u]), delta(c, v + 1 < height, down[u]));
-        if (std::abs(du) < kNone && std::abs(dv) < kNone) {
-          // For X = z (x, y, 1) with x = (u - cx) / fx, y = (v - cy) / fy, the normal
-          // dX/du x dX/dv is parallel to n = (-gu, -gv, gu x + gv y + z) with gu = fx dz/du and
-          // gv = fy dz/dv, and n . (x, y, 1) = z: cos(incidence) = z / (|n| |(x, y, 1)|).
-          const float x = x_of_u[u], y = y_of_v[v], z = static_cast<float>(c);
-          const float gu = fx * static_cast<float>(du), gv = fy * static_cast<float>(dv);
-          const float nz = gu * x + gv * y + z;
-          const float n2 = gu * gu + gv * gv + nz * nz;
-          if (z * z < cos_min2 * n2 * (x * x + y * y + 1.0f)) continue;
-        }
-      }
-      use[static_cast<std::size_t>(v) * width + u] = 1;
-      ++count;
+      const int c = row[u + 1];
+      const auto step = [&](int other) {
+        return usable(static_cast<std::uint16_t>(other)) ? other - c : kNone;
+      };
+      const int left = step(row[u]), right = step(row[u + 2]);
+      const int above = step(up[u]), below = step(down[u]);
+      // Per axis, the step (per pixel, towards increasing index) to the neighbour closer in
+      // depth: the same surface when the pixel is on an edge.
+      const int du = std::abs(left) <= std::abs(right) ? -left : right;
+      const int dv = std::abs(above) <= std::abs(below) ? -above : below;
+      // For X = z (x, y, 1) with x = (u - cx) / fx, y = (v - cy) / fy, the normal
+      // dX/du x dX/dv is parallel to n = (-gu, -gv, gu x + gv y + z) with gu = fx dz/du and
+      // gv = fy dz/dv, and n . (x, y, 1) = z: cos(incidence) = z / (|n| |(x, y, 1)|).
+      const float x = x_of_u[u], z = static_cast<float>(c);
+      const float gu = fx * static_cast<float>(du), gv = fy * static_cast<float>(dv);
+      const float nz = gu * x + gv * y + z;
+      const float n2 = gu * gu + gv * gv + nz * nz;
+      const bool measurable = (std::abs(du) < kNone) & (std::abs(dv) < kNone);
+      const bool oblique =
+          check_incidence & measurable & (z * z < cos_min2 * n2 * (x * x + y * y + 1.0f));
+      row_use[u] = static_cast<std::uint8_t>(usable(static_cast<std::uint16_t>(c)) & !oblique);
+      count += row_use[u];
     }
   }
   CameraCloud cloud;

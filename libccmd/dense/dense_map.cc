@@ -135,38 +135,37 @@ void DenseMap::Transform(Entry* entry) const {
   for (std::size_t i = 0; i < cam.size(); ++i) entry->world[i] = r * cam[i] + t;
 }
 
+// The loops below are written without data-dependent branches: whether a point is the first
+// in its voxel is as good as random to the branch predictor, and mispredictions, not memory,
+// were their main cost.
 void DenseMap::FilterAppended(const AgentNode& agent, Entry* entry) {
   // The entry's own filter: the first point in each voxel (nothing follows it yet).
   const std::size_t n = entry->world.size();
+  grid_.Indices(entry->world, &voxels_);
   occupied_.Clear();
-  entry->kept.assign(n, 0);
-  entry->kept_count = 0;
-  std::uint64_t previous = ~0ull;
+  indices_.resize(n);
+  std::size_t kept = 0;
   for (std::size_t i = 0; i < n; ++i) {
-    const VoxelIndex v = grid_.Index(entry->world[i]);
-    const std::uint64_t key = VoxelGrid::KeyOf(v);
-    if (key == previous) continue;  // raster neighbours often share a voxel
-    previous = key;
-    std::uint8_t& seen = occupied_.At(v);
-    if (seen == 0) {
-      seen = 1;
-      entry->kept[i] = 1;
-      ++entry->kept_count;
-    }
+    indices_[kept] = static_cast<std::uint32_t>(i);
+    kept += occupied_.Insert(voxels_[i]);
   }
+  entry->kept.assign(indices_.begin(), indices_.begin() + kept);
   // The entry now occupies these voxels: its W predecessors lose their points there.
   std::uint32_t id = entry->id.keyframe.value();
   for (int w = 0; w < options_.window_keyframes; ++w) {
     Entry* p = Prev(agent, id);
     if (p == nullptr) break;
     id = p->id.keyframe.value();
-    if (p->kept_count == 0) continue;
-    for (std::size_t i = 0; i < p->world.size(); ++i) {
-      if (p->kept[i] && occupied_.Get(grid_.Index(p->world[i])) != 0) {
-        p->kept[i] = 0;
-        --p->kept_count;
-      }
+    if (p->kept.empty()) continue;
+    grid_.Indices(p->world, &voxels_);
+    std::size_t still = 0;
+    for (const std::uint32_t i : p->kept) {
+      p->kept[still] = i;
+      still += !occupied_.Contains(voxels_[i]);
     }
+    p->kept.resize(still);
+    // Leaving the window of appends: no further pass will shrink it.
+    if (w + 1 == options_.window_keyframes) p->kept.shrink_to_fit();
   }
 }
 
@@ -195,24 +194,25 @@ std::size_t DenseMap::RefilterRange(const AgentNode& agent, std::uint32_t first,
     for (std::size_t r = context_end; r-- > begin;) {
       Entry* x = list[r];
       const bool redo = r < end;
-      if (redo) {
-        x->kept.assign(x->world.size(), 0);
-        x->kept_count = 0;
-      }
       const auto mark = static_cast<std::uint16_t>(r - begin + 1);
-      const std::size_t limit = r - begin + 1 + window;  // marks beyond: outside the window
-      std::uint64_t previous = ~0ull;
-      for (std::size_t i = 0; i < x->world.size(); ++i) {
-        const VoxelIndex v = grid_.Index(x->world[i]);
-        const std::uint64_t key = VoxelGrid::KeyOf(v);
-        if (key == previous) continue;  // same voxel as the point before: not the first
-        previous = key;
-        std::uint16_t& nearest = nearest_.At(v);
-        if (redo && (nearest == 0 || nearest > limit)) {
-          x->kept[i] = 1;
-          ++x->kept_count;
+      // A voxel marked by a keyframe beyond `limit` is outside the window; one marked `mark`
+      // already has a point of x, so this one is not the first.
+      const std::size_t limit = r - begin + 1 + window;
+      grid_.Indices(x->world, &voxels_);
+      const std::size_t n = x->world.size();
+      if (redo) {
+        indices_.resize(n);
+        std::size_t kept = 0;
+        for (std::size_t i = 0; i < n; ++i) {
+          std::uint16_t& nearest = nearest_.At(voxels_[i]);
+          indices_[kept] = static_cast<std::uint32_t>(i);
+          kept += (nearest == 0) | (nearest > limit);
+          nearest = mark;
         }
-        nearest = mark;
+        x->kept.assign(indices_.begin(), indices_.begin() + kept);
+        x->kept.shrink_to_fit();
+      } else {
+        for (std::size_t i = 0; i < n; ++i) nearest_.At(voxels_[i]) = mark;
       }
     }
   }
@@ -457,13 +457,17 @@ Status DenseMap::MergeMaps(MapId source, MapId target, const Pose& T_target_sour
 // ---- reading -------------------------------------------------------------------------------
 
 void DenseMap::AppendPoints(const Entry& entry, DenseFilter filter, PointCloud* cloud) const {
-  const bool all = filter == DenseFilter::kNone;
-  for (std::size_t i = 0; i < entry.world.size(); ++i) {
-    if (!all && !entry.kept[i]) continue;
+  if (filter == DenseFilter::kNone) {
+    cloud->points.insert(cloud->points.end(), entry.world.begin(), entry.world.end());
+    cloud->colors.insert(cloud->colors.end(), entry.cloud.colors.begin(), entry.cloud.colors.end());
+    cloud->labels.resize(cloud->labels.size() + entry.world.size(), entry.label);
+    return;
+  }
+  for (const std::uint32_t i : entry.kept) {
     cloud->points.push_back(entry.world[i]);
     cloud->colors.push_back(entry.cloud.colors[i]);
-    cloud->labels.push_back(entry.label);
   }
+  cloud->labels.resize(cloud->labels.size() + entry.kept.size(), entry.label);
 }
 
 StatusOr<PointCloud> DenseMap::Extract(const DenseSelection& selection, DenseFilter filter) {
@@ -500,7 +504,7 @@ StatusOr<PointCloud> DenseMap::Extract(const DenseSelection& selection, DenseFil
       for (const auto& [index, segment] : node->segments) {
         for (const auto& entry : segment.slots) {
           if (entry)
-            count += filter == DenseFilter::kNone ? entry->world.size() : entry->kept_count;
+            count += filter == DenseFilter::kNone ? entry->world.size() : entry->kept.size();
         }
       }
     }
@@ -597,7 +601,9 @@ DenseMapStats DenseMap::Stats() const {
   stats.maps = maps_.size();
   stats.agents = agent_map_.size();
   stats.pending_keyframes = pending_.size();
-  std::size_t bytes = sizeof(*this) + occupied_.MemoryBytes() + nearest_.MemoryBytes();
+  std::size_t bytes = sizeof(*this) + occupied_.MemoryBytes() + nearest_.MemoryBytes() +
+                      voxels_.capacity() * sizeof(VoxelIndex) +
+                      indices_.capacity() * sizeof(std::uint32_t);
   bytes += (agent_map_.size() + pending_.size() + maps_.size()) * kTreeNodeOverhead;
   for (const auto& [map, node] : maps_) {
     for (const auto& [agent, agent_node] : node) {
@@ -609,10 +615,11 @@ DenseMapStats DenseMap::Stats() const {
           if (!entry) continue;
           ++stats.keyframes;
           stats.points += entry->world.size();
-          stats.kept_points += entry->kept_count;
+          stats.kept_points += entry->kept.size();
           bytes += sizeof(Entry) + entry->cloud.points.capacity() * sizeof(Eigen::Vector3f) +
                    entry->cloud.colors.capacity() * sizeof(entry->cloud.colors[0]) +
-                   entry->world.capacity() * sizeof(Eigen::Vector3f) + entry->kept.capacity();
+                   entry->world.capacity() * sizeof(Eigen::Vector3f) +
+                   entry->kept.capacity() * sizeof(std::uint32_t);
         }
       }
     }

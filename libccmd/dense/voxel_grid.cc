@@ -3,7 +3,39 @@
 #include <algorithm>
 #include <bit>
 
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
+
 namespace ccmd {
+
+void VoxelGrid::Indices(const std::vector<Eigen::Vector3f>& points,
+                        std::vector<VoxelIndex>* out) const {
+  static_assert(sizeof(Eigen::Vector3f) == 3 * sizeof(float));
+  static_assert(sizeof(VoxelIndex) == 3 * sizeof(std::uint32_t));
+  out->resize(points.size());
+  // Every coordinate gets the same operation, so the points are one flat array of floats.
+  const std::size_t n = 3 * points.size();
+  const float* in = points.empty() ? nullptr : points[0].data();
+  auto* o = reinterpret_cast<std::uint32_t*>(out->data());
+  std::size_t i = 0;
+#if defined(__SSE2__)
+  const __m128 scale = _mm_set1_ps(inverse_size_);
+  const __m128 low = _mm_set1_ps(-kLimit), high = _mm_set1_ps(kLimit);
+  const __m128i offset = _mm_set1_epi32(kOffset);
+  for (; i + 4 <= n; i += 4) {
+    // max(x, low) returns low for NaN (the second operand), as Index does.
+    const __m128 scaled =
+        _mm_min_ps(_mm_max_ps(_mm_mul_ps(_mm_loadu_ps(in + i), scale), low), high);
+    const __m128i truncated = _mm_cvttps_epi32(scaled);
+    // Where truncation rounded up (negative non-integers), subtract one: the mask is -1 there.
+    const __m128i above = _mm_castps_si128(_mm_cmpgt_ps(_mm_cvtepi32_ps(truncated), scaled));
+    _mm_storeu_si128(reinterpret_cast<__m128i*>(o + i),
+                     _mm_add_epi32(_mm_add_epi32(truncated, above), offset));
+  }
+#endif
+  for (; i < n; ++i) o[i] = Index(in[i]);
+}
 
 void VoxelTable::Allocate(std::size_t capacity) {
   slots_.assign(capacity, Slot{0, 0, 0});
