@@ -146,7 +146,7 @@ class VoxelSet {
     std::uint64_t key;
     std::int32_t index;  // -1: absent
   };
-  static constexpr int kCacheBits = 8;
+  static constexpr int kCacheBits = 10;
 
   static std::uint32_t Local(const VoxelIndex& v) {
     return (v.x & 3u) | ((v.y & 3u) << 2) | ((v.z & 3u) << 4);
@@ -248,7 +248,7 @@ class VoxelBricks {
     std::uint64_t key;
     std::int32_t index;  // -1: the brick is absent
   };
-  static constexpr int kCacheBits = 8;
+  static constexpr int kCacheBits = 10;
 
   static std::uint64_t BrickKey(const VoxelIndex& v) {
     return PackVoxel(v.x >> 2, v.y >> 2, v.z >> 2);
