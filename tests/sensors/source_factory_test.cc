@@ -22,7 +22,9 @@ TEST(SourceFactoryTest, SyntheticSegmentDeliversItsFramesThenEnds) {
   int count = 0;
   Status status;
   while ((status = (*source)->Read(&frame)).ok()) {
-    if (count == 0) EXPECT_EQ(frame.index, 10);
+    if (count == 0) {
+      EXPECT_EQ(frame.index, 10);
+    }
     EXPECT_NEAR(frame.timestamp, gt[count].timestamp, 1e-12);
     EXPECT_EQ(frame.depth_mm.cols, 160);
     ++count;

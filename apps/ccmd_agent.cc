@@ -1,0 +1,212 @@
+// ccmd_agent: the robot side. Runs the ORB RGB-D front-end on a source (dataset, synthetic,
+// camera) and sends compact keyframes to a ccmd_server, or runs offline and writes its
+// trajectory.
+
+#include <CLI/CLI.hpp>
+#include <atomic>
+#include <chrono>
+#include <csignal>
+#include <cstdio>
+#include <thread>
+
+#include "apps/app_common.h"
+#include "libccmd/io/config.h"
+#include "libccmd/io/tum_recorder.h"
+#include "libccmd/io/split.h"
+#include "libccmd/sensors/source_factory.h"
+#include "libccmd/tracking/config.h"
+#include "libccmd/tracking/frontend.h"
+#include "libccmd/util/json.h"
+#include "libccmd/util/logging.h"
+#include "libccmd/util/timer.h"
+
+namespace {
+
+std::atomic<bool> g_stop{false};
+void OnSignal(int) { g_stop = true; }
+
+int Fail(const std::string& what) {
+  std::fprintf(stderr, "ccmd_agent: %s\n", what.c_str());
+  return 1;
+}
+
+ccmd::Json StatsJson(const ccmd::FrontendStats& s, double wall_seconds,
+                     const std::vector<ccmd::RgbdDecision>& decisions) {
+  ccmd::Json j;
+  j["frames"] = s.frames;
+  j["tracked_frames"] = s.tracked_frames;
+  j["lost_frames"] = s.lost_frames;
+  j["keyframes"] = s.keyframes;
+  j["map_keyframes"] = s.map_keyframes;
+  j["map_points"] = s.map_points;
+  j["wall_seconds"] = wall_seconds;
+  j["fps"] = wall_seconds > 0 ? s.frames / wall_seconds : 0.0;
+  const double n = std::max(1, s.frames);
+  j["extract_ms_mean"] = s.extract_ms_total / n;
+  j["track_ms_mean"] = s.track_ms_total / n;
+  const ccmd::MappingStats& m = s.mapping;
+  j["local_ba_runs"] = m.local_ba_runs;
+  j["local_ba_aborted"] = m.local_ba_aborted;
+  j["local_ba_ms_mean"] = m.local_ba_runs ? m.local_ba_ms_total / m.local_ba_runs : 0.0;
+  j["mapping_ms_mean"] = m.keyframes ? m.mapping_ms_total / m.keyframes : 0.0;
+  j["culled_keyframes"] = m.culled_keyframes;
+  j["evicted_keyframes"] = m.evicted_keyframes;
+  j["pose_updates"] = m.pose_updates;
+  j["rgbd_transmitted"] = m.rgbd_transmitted;
+  ccmd::Json list = ccmd::Json::MakeArray();
+  for (const auto& d : decisions) {
+    ccmd::Json e;
+    e["keyframe"] = d.keyframe.value();
+    e["transmit"] = d.transmit;
+    e["tracked_points"] = d.tracked_points;
+    e["threshold"] = d.threshold;
+    e["covering"] = d.covering;
+    ccmd::Json considered = ccmd::Json::MakeArray();
+    for (const auto& [id, w] : d.considered) considered.Push(ccmd::Json(ccmd::Json::Array{id.value(), w}));
+    e["considered"] = considered;
+    list.Push(e);
+  }
+  j["rgbd_decisions"] = list;
+  return j;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{
+      "CCMD agent: ORB RGB-D visual odometry on a robot. Sends compact keyframes to a ccmd_server,\n"
+      "or runs --offline and writes its trajectory (TUM format)."};
+  std::string source_spec, config_path, segment_spec, trajectory_path, keyframe_trajectory_path,
+      stats_path, rate = "max", server, record_dir;
+  bool offline = false, synchronous = false;
+  int max_frames = 0, record_compression = 1;
+  app.add_option("--source", source_spec,
+                 "Frame source: tum:DIR (TUM layout), synth[:frames=N,seed=S,...]")
+      ->required();
+  app.add_option("--config", config_path,
+                 "YAML config: camera (Camera.fx, ..., DepthMapFactor) and tracking options; "
+                 "default: the dataset's camera.yaml or one guessed from its name");
+  app.add_option("--segment", segment_spec, "Replay only segment i of k (split replay), e.g. 2/3");
+  app.add_flag("--offline", offline, "Run without a server");
+  app.add_option("--server", server, "Server address HOST:PORT");
+  app.add_option("--trajectory", trajectory_path, "Write every tracked frame's pose (TUM format)");
+  app.add_option("--keyframe-trajectory", keyframe_trajectory_path, "Write keyframe poses (TUM format)");
+  app.add_option("--stats", stats_path, "Write run statistics as JSON");
+  app.add_option("--rate", rate, "Replay pace: realtime (the dataset's timestamps) or max")
+      ->check(CLI::IsMember({"realtime", "max"}))
+      ->capture_default_str();
+  app.add_option("--max-frames", max_frames, "Stop after this many frames (0: all)");
+  app.add_option("--record", record_dir,
+                 "Also write the frames to DIR in the TUM layout (rgb/, depth/, rgb.txt, depth.txt, "
+                 "camera.yaml), to replay and evaluate the run later");
+  app.add_option("--record-png-compression", record_compression, "PNG level for --record (0-9)")
+      ->check(CLI::Range(0, 9))
+      ->capture_default_str();
+  app.add_flag("--synchronous", synchronous,
+               "Run local mapping in the tracking thread (deterministic; slower)");
+  CLI11_PARSE(app, argc, argv);
+
+  if (!offline && server.empty()) {
+    return Fail("give --server HOST:PORT, or --offline to run without a server");
+  }
+  if (!offline) {
+    return Fail("the network link is not available in this build yet; use --offline");
+  }
+  std::signal(SIGINT, OnSignal);
+  std::signal(SIGTERM, OnSignal);
+
+  ccmd::SourceOptions source_options;
+  source_options.configs_dir = ccmd::app::ConfigDir();
+  source_options.camera_config = config_path;
+  if (!segment_spec.empty()) {
+    auto segment = ccmd::ParseSegmentSpec(segment_spec);
+    if (!segment.ok()) return Fail(segment.status().message());
+    source_options.segment = *segment;
+  }
+  // Live cameras come wrapped so that an unplugged camera is reopened with backoff while the
+  // agent keeps its map and keeps sending.
+  auto source = ccmd::OpenSourceWithRetry(source_spec, source_options);
+  if (!source.ok()) return Fail(source.status().ToString());
+  const ccmd::PinholeCamera camera = (*source)->camera();
+
+  ccmd::TrackingOptions tracking;
+  tracking.synchronous_mapping = synchronous;
+  if (!config_path.empty()) {
+    auto config = ccmd::ConfigFile::Open(config_path);
+    if (!config.ok()) return Fail(config.status().ToString());
+    auto options = ccmd::ReadTrackingOptions(*config, tracking);
+    if (!options.ok()) return Fail(options.status().ToString());
+    tracking = *options;
+  }
+  auto frontend = ccmd::Frontend::Create(camera, tracking, /*sink=*/nullptr);
+  if (!frontend.ok()) return Fail(frontend.status().ToString());
+
+  std::unique_ptr<ccmd::TumRecorder> recorder;
+  if (!record_dir.empty()) {
+    ccmd::TumRecorderOptions record_options;
+    record_options.png_compression = record_compression;
+    // Live cameras must not stall tracking: encode on a writer thread behind a queue.
+    record_options.queue_frames = 16;
+    record_options.drop_when_full = (*source)->IsLive();
+    auto created = ccmd::TumRecorder::Create(record_dir, camera, record_options);
+    if (!created.ok()) return Fail(created.status().ToString());
+    recorder = std::move(created).value();
+  }
+  CCMD_LOG(INFO) << "source: " << (*source)->Describe();
+  CCMD_LOG(INFO) << "camera: " << camera.ToString();
+  const int total = (*source)->FrameCount();
+  ccmd::app::Progress progress("frames");
+  const ccmd::Stopwatch wall;
+  double first_timestamp = -1;
+  int frames = 0;
+  ccmd::RgbdFrame frame;
+  while (!g_stop) {
+    const ccmd::Status status = (*source)->Read(&frame);
+    if (status.code() == ccmd::StatusCode::kEndOfStream) break;
+    if (status.code() == ccmd::StatusCode::kUnavailable) continue;  // camera away: retrying
+    if (!status.ok()) return Fail(status.ToString());
+    if (recorder) {
+      const ccmd::Status recorded = recorder->Write(frame);
+      if (!recorded.ok()) return Fail("recording: " + recorded.ToString());
+    }
+    if (rate == "realtime") {
+      if (first_timestamp < 0) first_timestamp = frame.timestamp;
+      const double due = frame.timestamp - first_timestamp;
+      const double ahead = due - wall.ElapsedSeconds();
+      if (ahead > 0) std::this_thread::sleep_for(std::chrono::duration<double>(ahead));  // pacing
+    }
+    (*frontend)->ProcessFrame(frame);
+    ++frames;
+    if (total > 0) progress.Update(frames, total);
+    if (max_frames > 0 && frames >= max_frames) break;
+  }
+  (*frontend)->Finish();
+  if (recorder) {
+    const ccmd::Trajectory gt = (*source)->GroundTruth();
+    if (!gt.empty()) recorder->WriteGroundTruth(gt).IgnoreError();
+    const ccmd::Status closed = recorder->Close();
+    if (!closed.ok()) return Fail("recording: " + closed.ToString());
+    std::printf("recorded %ld frames to %s (%ld dropped)\n", recorder->frames_written(),
+                record_dir.c_str(), recorder->frames_dropped());
+  }
+  const double seconds = wall.ElapsedSeconds();
+  const ccmd::FrontendStats stats = (*frontend)->stats();
+  std::printf("%d frames in %.1f s (%.1f fps), %d tracked, %d lost, %d keyframes (%d in map), %zu map points\n",
+              stats.frames, seconds, stats.frames / std::max(seconds, 1e-9), stats.tracked_frames,
+              stats.lost_frames, stats.keyframes, stats.map_keyframes, stats.map_points);
+  if (!trajectory_path.empty()) {
+    const ccmd::Status s = ccmd::WriteTumTrajectory((*frontend)->FrameTrajectory(), trajectory_path,
+                                                    "ccmd_agent frame trajectory (T_world_cam)");
+    if (!s.ok()) return Fail(s.ToString());
+  }
+  if (!keyframe_trajectory_path.empty()) {
+    const ccmd::Status s = ccmd::WriteTumTrajectory((*frontend)->KeyframeTrajectory(),
+                                                    keyframe_trajectory_path, "ccmd_agent keyframes");
+    if (!s.ok()) return Fail(s.ToString());
+  }
+  if (!stats_path.empty()) {
+    const ccmd::Status s = ccmd::WriteJsonFile(StatsJson(stats, seconds, (*frontend)->decisions()), stats_path);
+    if (!s.ok()) return Fail(s.ToString());
+  }
+  return 0;
+}

@@ -1,0 +1,1 @@
+ccmd_add_executable(ccmd_agent SOURCES ccmd_agent.cc DEPS ccmd_tracking ccmd_sources ccmd_app_common)

@@ -1,0 +1,42 @@
+#pragma once
+
+// 256-bit binary descriptors (ORB) and their Hamming distance.
+
+#include <array>
+#include <bit>
+#include <cstdint>
+#include <cstring>
+#include <vector>
+
+#include <opencv2/core.hpp>
+
+namespace ccmd {
+
+using Descriptor = std::array<std::uint8_t, 32>;
+
+inline int HammingDistance(const std::uint8_t* a, const std::uint8_t* b) {
+  int distance = 0;
+  for (int i = 0; i < 32; i += 8) {
+    std::uint64_t x, y;
+    std::memcpy(&x, a + i, 8);
+    std::memcpy(&y, b + i, 8);
+    distance += std::popcount(x ^ y);
+  }
+  return distance;
+}
+
+inline int HammingDistance(const Descriptor& a, const Descriptor& b) {
+  return HammingDistance(a.data(), b.data());
+}
+
+inline Descriptor DescriptorRow(const cv::Mat& descriptors, int row) {
+  Descriptor d;
+  std::memcpy(d.data(), descriptors.ptr<std::uint8_t>(row), 32);
+  return d;
+}
+
+// The descriptor with the smallest total distance to the others (ORB-SLAM's choice of a map
+// point's representative descriptor). Precondition: !descriptors.empty().
+Descriptor MedoidDescriptor(const std::vector<Descriptor>& descriptors);
+
+}  // namespace ccmd

@@ -1,0 +1,66 @@
+#pragma once
+
+// Bundle adjustment with Ceres: camera poses and map points refined together from their image
+// observations (reprojection + measured depth residuals), robust Huber kernel, outlier
+// observations removed between two optimisation passes. Used for the agent's local BA (a
+// bounded window of keyframes, the rest fixed) and the server's global BA (sparse Schur with
+// SuiteSparse). A flag can interrupt it between iterations when newer work arrives.
+
+#include <atomic>
+#include <string>
+#include <vector>
+
+#include "libccmd/geometry/pose.h"
+#include "libccmd/optim/reprojection.h"
+
+namespace ccmd {
+
+struct BaCamera {
+  Pose T_cam_world = Pose::Identity();
+  bool fixed = false;
+};
+
+struct BaPoint {
+  Eigen::Vector3d position = Eigen::Vector3d::Zero();  // world
+};
+
+struct BaObservation {
+  int camera = 0;
+  int point = 0;
+  Eigen::Vector2d uv = Eigen::Vector2d::Zero();
+  double depth = 0;                // measured depth (m), <= 0: none
+  double information = 1.0;        // 1 / pixel sigma^2 of the keypoint's octave
+  double depth_information = 0.0;  // 1 / depth sigma^2 at that depth
+};
+
+struct BaProblem {
+  std::vector<BaCamera> cameras;
+  std::vector<BaPoint> points;
+  std::vector<BaObservation> observations;
+};
+
+enum class BaLinearSolver { kDenseSchur, kSparseSchur };
+
+struct BaOptions {
+  int first_iterations = 5;    // robust pass
+  int second_iterations = 10;  // after removing outliers
+  BaLinearSolver solver = BaLinearSolver::kDenseSchur;
+  int threads = 1;
+  // When set and it becomes true, the solver stops after the current iteration.
+  const std::atomic<bool>* abort = nullptr;
+};
+
+struct BaSummary {
+  bool aborted = false;
+  int iterations = 0;
+  double initial_cost = 0, final_cost = 0;
+  double seconds = 0;
+  std::vector<bool> outlier;  // per observation, after the final classification
+  int outliers = 0;
+  std::string message;
+};
+
+// Optimises problem->cameras (non-fixed) and problem->points in place.
+BaSummary BundleAdjust(BaProblem* problem, const Intrinsics& intrinsics, const BaOptions& options);
+
+}  // namespace ccmd

@@ -1,0 +1,36 @@
+#include "libccmd/tracking/config.h"
+
+namespace ccmd {
+
+StatusOr<TrackingOptions> ReadTrackingOptions(const ConfigFile& c, TrackingOptions o) {
+  CCMD_ASSIGN_OR_RETURN(o.orb.features, c.GetInt("ORBextractor.nFeatures", o.orb.features));
+  CCMD_ASSIGN_OR_RETURN(const double scale, c.GetDouble("ORBextractor.scaleFactor", o.orb.scale_factor));
+  o.orb.scale_factor = static_cast<float>(scale);
+  CCMD_ASSIGN_OR_RETURN(o.orb.levels, c.GetInt("ORBextractor.nLevels", o.orb.levels));
+  CCMD_ASSIGN_OR_RETURN(o.orb.fast_threshold, c.GetInt("ORBextractor.iniThFAST", o.orb.fast_threshold));
+  CCMD_ASSIGN_OR_RETURN(o.orb.min_fast_threshold, c.GetInt("ORBextractor.minThFAST", o.orb.min_fast_threshold));
+  CCMD_ASSIGN_OR_RETURN(o.min_depth, c.GetDouble("Tracking.minDepth", o.min_depth));
+  CCMD_ASSIGN_OR_RETURN(o.max_depth, c.GetDouble("Tracking.maxDepth", o.max_depth));
+  CCMD_ASSIGN_OR_RETURN(o.depth_noise.sigma_0, c.GetDouble("DepthNoise.sigma0", o.depth_noise.sigma_0));
+  CCMD_ASSIGN_OR_RETURN(o.depth_noise.sigma_2, c.GetDouble("DepthNoise.sigma2", o.depth_noise.sigma_2));
+  CCMD_ASSIGN_OR_RETURN(o.max_frames_between_keyframes,
+                        c.GetInt("Tracking.maxFramesBetweenKeyframes", o.max_frames_between_keyframes));
+  CCMD_ASSIGN_OR_RETURN(o.keyframe_tracked_ratio, c.GetDouble("Tracking.keyframeTrackedRatio", o.keyframe_tracked_ratio));
+  CCMD_ASSIGN_OR_RETURN(o.local_ba_window, c.GetInt("Tracking.localBAWindow", o.local_ba_window));
+  CCMD_ASSIGN_OR_RETURN(o.max_keyframes, c.GetInt("Tracking.maxKeyframes", o.max_keyframes));
+  CCMD_ASSIGN_OR_RETURN(const int cull, c.GetInt("Tracking.cullRedundantKeyframes", o.cull_redundant_keyframes));
+  o.cull_redundant_keyframes = cull != 0;
+  RgbdSelectionOptions& r = o.rgbd_selection;
+  CCMD_ASSIGN_OR_RETURN(const int enabled, c.GetInt("RgbdSelection.enabled", r.enabled));
+  r.enabled = enabled != 0;
+  CCMD_ASSIGN_OR_RETURN(r.threshold_ratio, c.GetDouble("RgbdSelection.thresholdRatio", r.threshold_ratio));
+  CCMD_ASSIGN_OR_RETURN(r.threshold_min_points, c.GetInt("RgbdSelection.thresholdMinPoints", r.threshold_min_points));
+  CCMD_ASSIGN_OR_RETURN(r.decrement_ratio, c.GetDouble("RgbdSelection.decrementRatio", r.decrement_ratio));
+  CCMD_ASSIGN_OR_RETURN(r.min_threshold, c.GetInt("RgbdSelection.minThreshold", r.min_threshold));
+  CCMD_ASSIGN_OR_RETURN(r.required_covering, c.GetInt("RgbdSelection.requiredCovering", r.required_covering));
+  std::string why;
+  if (!o.Check(&why)) return InvalidArgument(c.path() + ": " + why);
+  return o;
+}
+
+}  // namespace ccmd

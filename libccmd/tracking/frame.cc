@@ -1,0 +1,72 @@
+#include "libccmd/tracking/frame.h"
+
+#include <algorithm>
+#include <opencv2/imgproc.hpp>
+
+namespace ccmd {
+
+int Frame::TrackedPoints() const {
+  int n = 0;
+  for (std::size_t i = 0; i < points.size(); ++i) {
+    if (points[i] && !outlier[i] && !points[i]->bad()) ++n;
+  }
+  return n;
+}
+
+FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, const OrbExtractor& orb,
+                              const PinholeCamera& camera, double min_depth, double max_depth) {
+  OrbFeatures orb_features = orb.Extract(gray);
+  FrameFeatures f;
+  f.keypoints = std::move(orb_features.keypoints);
+  f.descriptors = orb_features.descriptors;
+  f.depth.assign(f.keypoints.size(), 0.0f);
+  f.u_right.assign(f.keypoints.size(), -1.0f);
+  constexpr int kRadius = 2;
+  for (std::size_t i = 0; i < f.keypoints.size(); ++i) {
+    const int x = cvRound(f.keypoints[i].pt.x), y = cvRound(f.keypoints[i].pt.y);
+    if (x < kRadius || y < kRadius || x >= depth_mm.cols - kRadius || y >= depth_mm.rows - kRadius) continue;
+    const double d = depth_mm.at<std::uint16_t>(y, x) * 1e-3;
+    if (d < min_depth || d > max_depth) continue;
+    // Corners often sit on depth edges, where a pixel of misregistration between colour and
+    // depth (or the sensor's edge noise) gives the depth of the other surface. Depth counts
+    // only where the 5x5 neighbourhood is valid and continuous.
+    int lo = 65535, hi = 0;
+    for (int dy = -kRadius; dy <= kRadius; ++dy) {
+      const std::uint16_t* row = depth_mm.ptr<std::uint16_t>(y + dy);
+      for (int dx = -kRadius; dx <= kRadius; ++dx) {
+        const int v = row[x + dx];
+        lo = std::min(lo, v);
+        hi = std::max(hi, v);
+      }
+    }
+    if (lo == 0 || (hi - lo) * 1e-3 > 0.01 + 0.03 * d) continue;
+    f.depth[i] = static_cast<float>(d);
+    f.u_right[i] = static_cast<float>(f.keypoints[i].pt.x - camera.bf / d);
+  }
+  return f;
+}
+
+std::unique_ptr<Frame> MakeFrame(const RgbdFrame& input, const OrbExtractor& orb,
+                                 const PinholeCamera& camera, double min_depth, double max_depth) {
+  auto frame = std::make_unique<Frame>();
+  frame->index = input.index;
+  frame->timestamp = input.timestamp;
+  frame->bgr = input.bgr;
+  frame->depth_mm = input.depth_mm;
+  cv::Mat gray;
+  if (input.bgr.size() != input.depth_mm.size()) {
+    cv::Mat resized;
+    cv::resize(input.bgr, resized, input.depth_mm.size(), 0, 0, cv::INTER_AREA);
+    cv::cvtColor(resized, gray, cv::COLOR_BGR2GRAY);
+    frame->bgr = resized;
+  } else {
+    cv::cvtColor(input.bgr, gray, cv::COLOR_BGR2GRAY);
+  }
+  frame->features = ComputeFeatures(gray, input.depth_mm, orb, camera, min_depth, max_depth);
+  frame->grid = FeatureGrid(frame->features.keypoints, camera.width, camera.height);
+  frame->points.assign(frame->features.keypoints.size(), nullptr);
+  frame->outlier.assign(frame->features.keypoints.size(), false);
+  return frame;
+}
+
+}  // namespace ccmd

@@ -1,0 +1,79 @@
+#include "libccmd/tracking/frontend.h"
+
+namespace ccmd {
+
+bool TrackingOptions::Check(std::string* why) const {
+  auto fail = [&](const char* reason) {
+    if (why) *why = reason;
+    return false;
+  };
+  if (!orb.Check(why)) return false;
+  if (!(min_depth > 0 && max_depth > min_depth)) return fail("depth range must satisfy 0 < min < max");
+  if (!(depth_noise.sigma_0 > 0 && depth_noise.sigma_2 >= 0)) return fail("depth noise sigmas must be positive");
+  if (local_ba_window < 1 || local_ba_window > 100) return fail("local BA window must be in [1, 100]");
+  if (max_keyframes < local_ba_window + 5) return fail("max keyframes must exceed the local BA window by 5");
+  if (max_frames_between_keyframes < 0) return fail("max frames between keyframes must be >= 0");
+  return rgbd_selection.Check(why);
+}
+
+StatusOr<std::unique_ptr<Frontend>> Frontend::Create(const PinholeCamera& camera,
+                                                     const TrackingOptions& options, KeyframeSink* sink) {
+  std::string why;
+  if (!camera.IsValid(&why)) return InvalidArgument("camera: " + why);
+  if (!options.Check(&why)) return InvalidArgument("tracking options: " + why);
+  return std::unique_ptr<Frontend>(new Frontend(camera, options, sink));
+}
+
+Frontend::Frontend(const PinholeCamera& camera, const TrackingOptions& options, KeyframeSink* sink)
+    : camera_(camera), options_(options), orb_(options.orb) {
+  mapper_ = std::make_unique<LocalMapper>(camera_, options_, &map_, &orb_, sink);
+  tracker_ = std::make_unique<Tracker>(camera_, options_, &map_, &orb_, mapper_.get());
+}
+
+Frontend::~Frontend() { Finish(); }
+
+TrackResult Frontend::ProcessFrame(const RgbdFrame& frame) {
+  const TrackResult result = tracker_->Track(frame);
+  if (options_.synchronous_mapping) mapper_->ProcessPending();
+  ++stats_.frames;
+  stats_.extract_ms_total += result.extract_ms;
+  stats_.track_ms_total += result.track_ms;
+  if (result.state == TrackingState::kOk) {
+    initialised_ = true;
+    ++stats_.tracked_frames;
+  } else if (initialised_) {
+    ++stats_.lost_frames;
+  }
+  return result;
+}
+
+void Frontend::Finish() { mapper_->Finish(); }
+
+Trajectory Frontend::FrameTrajectory() {
+  std::lock_guard<std::mutex> lock(map_.mutex());
+  Trajectory trajectory;
+  for (const Tracker::FrameRecord& r : tracker_->records()) {
+    const auto T_world_ref = map_.KeyframePose(r.reference);
+    if (T_world_ref) trajectory.push_back({r.timestamp, *T_world_ref * r.T_ref_cam});
+  }
+  return trajectory;
+}
+
+Trajectory Frontend::KeyframeTrajectory() {
+  std::lock_guard<std::mutex> lock(map_.mutex());
+  Trajectory trajectory;
+  for (const auto& [t, pose] : map_.AllKeyframePoses()) trajectory.push_back({t, pose});
+  return trajectory;
+}
+
+FrontendStats Frontend::stats() {
+  FrontendStats s = stats_;
+  s.mapping = mapper_->stats();
+  std::lock_guard<std::mutex> lock(map_.mutex());
+  s.keyframes = static_cast<int>(map_.keyframes_created());
+  s.map_keyframes = static_cast<int>(map_.keyframes().size());
+  s.map_points = map_.num_points();
+  return s;
+}
+
+}  // namespace ccmd

@@ -1,0 +1,47 @@
+#include "libccmd/tracking/keyframe_selector.h"
+
+#include <algorithm>
+#include <cmath>
+
+namespace ccmd {
+
+bool RgbdSelectionOptions::Check(std::string* why) const {
+  auto fail = [&](const char* reason) {
+    if (why) *why = reason;
+    return false;
+  };
+  if (!(threshold_ratio >= 0 && threshold_ratio <= 1)) return fail("RGB-D threshold ratio must be in [0, 1]");
+  if (threshold_min_points < 0 || min_threshold < 0) return fail("RGB-D thresholds must be >= 0");
+  if (!(decrement_ratio >= 0 && decrement_ratio <= 1)) return fail("RGB-D decrement ratio must be in [0, 1]");
+  if (required_covering < 1) return fail("RGB-D required covering keyframes must be >= 1");
+  return true;
+}
+
+RgbdDecision RgbdSelector::Decide(KeyframeId keyframe, int tracked_points,
+                                  std::vector<std::pair<KeyframeId, int>> neighbours) const {
+  RgbdDecision d;
+  d.keyframe = keyframe;
+  d.tracked_points = tracked_points;
+  // Strongest links first (ties: older keyframe first, for a stable order).
+  std::sort(neighbours.begin(), neighbours.end(), [](const auto& a, const auto& b) {
+    return a.second != b.second ? a.second > b.second : a.first < b.first;
+  });
+  d.considered = neighbours;
+  double threshold = std::max<double>(options_.threshold_min_points, options_.threshold_ratio * tracked_points);
+  d.threshold = static_cast<int>(std::lround(threshold));
+  if (!options_.enabled) {
+    d.transmit = true;
+    return d;
+  }
+  const double decrement = options_.decrement_ratio * tracked_points;
+  for (const auto& [id, weight] : neighbours) {
+    if (weight > threshold) {
+      ++d.covering;
+      threshold = std::max<double>(options_.min_threshold, threshold - decrement);
+    }
+  }
+  d.transmit = d.covering < options_.required_covering;
+  return d;
+}
+
+}  // namespace ccmd

@@ -1,0 +1,69 @@
+#pragma once
+
+// What the front-end hands to the link: each new keyframe once local mapping has refined it,
+// and after each local bundle adjustment the new poses of earlier keyframes that moved.
+
+#include <optional>
+#include <vector>
+
+#include <opencv2/core.hpp>
+
+#include "libccmd/features/descriptor.h"
+#include "libccmd/geometry/pose.h"
+#include "libccmd/util/ids.h"
+
+namespace ccmd {
+
+// One decision of the RGB-D keyframe selection, recorded for statistics.
+struct RgbdDecision {
+  KeyframeId keyframe;
+  bool transmit = true;
+  int tracked_points = 0;       // map points of the keyframe
+  int threshold = 0;            // S_min at the start
+  int covering = 0;             // transmitted neighbours above the (decreasing) threshold
+  std::vector<std::pair<KeyframeId, int>> considered;  // transmitted neighbours and weights
+};
+
+struct KeyframeSnapshot {
+  KeyframeId id;
+  double timestamp = 0;
+  int frame_index = -1;
+  Pose T_world_cam = Pose::Identity();  // in the agent's map
+  std::optional<KeyframeId> parent;     // spanning tree
+
+  std::vector<cv::KeyPoint> keypoints;
+  cv::Mat descriptors;                  // N x 32
+  std::vector<float> depth;             // metres, 0 = none
+  std::vector<std::optional<MapPointId>> point_ids;  // per keypoint
+
+  // Map points this keyframe is the first to send: position in the keyframe's camera frame,
+  // representative descriptor and the keypoint that observes it here.
+  struct NewPoint {
+    MapPointId id;
+    Eigen::Vector3d position_cam;
+    Descriptor descriptor;
+    int keypoint = -1;
+  };
+  std::vector<NewPoint> new_points;
+  std::vector<std::pair<KeyframeId, int>> covisibility;  // emitted neighbours and weights
+
+  bool has_rgbd = false;
+  cv::Mat bgr, depth_mm;  // full resolution; the codec downsamples
+  RgbdDecision decision;
+};
+
+struct PoseUpdate {
+  KeyframeId id;
+  Pose T_world_cam = Pose::Identity();
+};
+
+// Receives the front-end's output. Called from the local-mapping thread (or the tracking
+// thread in synchronous mode), in order; implementations must not block for long.
+class KeyframeSink {
+ public:
+  virtual ~KeyframeSink() = default;
+  virtual void OnKeyframe(KeyframeSnapshot keyframe) = 0;
+  virtual void OnPoseUpdates(std::vector<PoseUpdate> updates) = 0;
+};
+
+}  // namespace ccmd

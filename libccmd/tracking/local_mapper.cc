@@ -1,0 +1,390 @@
+#include "libccmd/tracking/local_mapper.h"
+
+#include <algorithm>
+#include <unordered_map>
+#include <unordered_set>
+
+#include "libccmd/optim/bundle_adjuster.h"
+#include "libccmd/tracking/matching.h"
+#include "libccmd/util/logging.h"
+#include "libccmd/util/timer.h"
+
+namespace ccmd {
+
+LocalMapper::LocalMapper(const PinholeCamera& camera, const TrackingOptions& options, LocalMap* map,
+                         const OrbExtractor* orb, KeyframeSink* sink)
+    : camera_(camera), options_(options), map_(map), orb_(orb), sink_(sink),
+      selector_(options.rgbd_selection) {
+  if (!options_.synchronous_mapping) thread_ = std::thread([this] { Run(); });
+}
+
+LocalMapper::~LocalMapper() { Finish(); }
+
+bool LocalMapper::Idle() const {
+  std::lock_guard<std::mutex> lock(queue_mutex_);
+  return queue_.empty() && !busy_;
+}
+
+bool LocalMapper::CanAccept() const {
+  std::lock_guard<std::mutex> lock(queue_mutex_);
+  return !stopping_ && queue_.size() < kQueueCapacity;
+}
+
+void LocalMapper::Insert(const KeyframePtr& keyframe) {
+  {
+    std::lock_guard<std::mutex> lock(queue_mutex_);
+    queue_.push_back(keyframe);
+  }
+  abort_ba_ = true;  // newer work: a running local BA stops early
+  queue_cv_.notify_one();
+}
+
+void LocalMapper::ProcessPending() {
+  while (true) {
+    KeyframePtr next;
+    {
+      std::lock_guard<std::mutex> lock(queue_mutex_);
+      if (queue_.empty()) return;
+      next = queue_.front();
+      queue_.pop_front();
+      busy_ = true;
+    }
+    Process(next);
+    std::lock_guard<std::mutex> lock(queue_mutex_);
+    busy_ = false;
+  }
+}
+
+void LocalMapper::Run() {
+  while (true) {
+    KeyframePtr next;
+    {
+      std::unique_lock<std::mutex> lock(queue_mutex_);
+      queue_cv_.wait(lock, [&] { return stopping_ || !queue_.empty(); });
+      if (queue_.empty()) return;  // stopping and drained
+      next = queue_.front();
+      queue_.pop_front();
+      busy_ = true;
+    }
+    Process(next);
+    std::lock_guard<std::mutex> lock(queue_mutex_);
+    busy_ = false;
+  }
+}
+
+void LocalMapper::Finish() {
+  {
+    std::lock_guard<std::mutex> lock(queue_mutex_);
+    stopping_ = true;
+  }
+  queue_cv_.notify_all();
+  if (thread_.joinable()) thread_.join();
+  ProcessPending();  // synchronous mode, or anything queued after the thread left
+}
+
+MappingStats LocalMapper::stats() const {
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  return stats_;
+}
+
+std::vector<RgbdDecision> LocalMapper::decisions() const {
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  return decisions_;
+}
+
+void LocalMapper::Process(const KeyframePtr& keyframe_ptr) {
+  const Stopwatch watch;
+  Keyframe* keyframe = keyframe_ptr.get();
+  {
+    std::lock_guard<std::mutex> lock(map_->mutex());
+    if (keyframe->bad()) return;
+    for (const MapPointPtr& p : keyframe->points()) {
+      if (!p || p->bad()) continue;
+      p->UpdateNormalAndDepth(*orb_);
+      p->UpdateDescriptor();
+      if (p->first_keyframe() == keyframe->id()) recent_points_.push_back(p);
+    }
+    map_->UpdateConnections(keyframe);
+    CullRecentPoints(*keyframe);
+    FuseWithNeighbours(keyframe);
+  }
+  abort_ba_ = false;
+  bool more_waiting;
+  {
+    std::lock_guard<std::mutex> lock(queue_mutex_);
+    more_waiting = !queue_.empty();
+  }
+  // ORB-SLAM skips the local BA when the tracker is already waiting with a newer keyframe.
+  if (!more_waiting) LocalBundleAdjustment(keyframe);
+
+  KeyframeSnapshot snapshot;
+  std::vector<PoseUpdate> updates;
+  bool emitted = false;
+  {
+    std::lock_guard<std::mutex> lock(map_->mutex());
+    if (options_.cull_redundant_keyframes) CullRedundantKeyframes(keyframe);
+    EvictOldKeyframes(keyframe);
+    emitted = Emit(keyframe, &snapshot, &updates);
+  }
+  {
+    std::lock_guard<std::mutex> lock(stats_mutex_);
+    stats_.keyframes++;
+    stats_.mapping_ms_total += watch.ElapsedMillis();
+    stats_.pose_updates += static_cast<int>(updates.size());
+    stats_.rgbd_transmitted += snapshot.has_rgbd;
+    if (emitted) decisions_.push_back(snapshot.decision);
+  }
+  if (sink_) {
+    if (emitted) sink_->OnKeyframe(std::move(snapshot));
+    if (!updates.empty()) sink_->OnPoseUpdates(std::move(updates));
+  }
+}
+
+void LocalMapper::CullRecentPoints(const Keyframe& keyframe) {
+  // A new point survives if trackers find it where it should be seen (found/visible >= 25%)
+  // and other keyframes observe it soon (ORB-SLAM's test, with depth observations counting
+  // twice).
+  int culled = 0;
+  std::vector<MapPointPtr> kept;
+  for (const MapPointPtr& p : recent_points_) {
+    if (p->bad()) continue;
+    const std::uint32_t age = keyframe.id().value() - p->first_keyframe().value();
+    if (p->FoundRatio() < 0.25f || (age >= 2 && p->WeightedObservations() <= 3)) {
+      map_->ErasePoint(p.get());
+      ++culled;
+    } else if (age < 3) {
+      kept.push_back(p);
+    }
+  }
+  recent_points_ = std::move(kept);
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  stats_.culled_points += culled;
+}
+
+void LocalMapper::FuseWithNeighbours(Keyframe* keyframe) {
+  std::vector<Keyframe*> targets;
+  std::unordered_set<Keyframe*> seen = {keyframe};
+  for (Keyframe* n : keyframe->BestCovisible(10)) {
+    if (seen.insert(n).second) targets.push_back(n);
+    for (Keyframe* n2 : n->BestCovisible(5)) {
+      if (seen.insert(n2).second) targets.push_back(n2);
+    }
+  }
+  int fused = 0;
+  std::vector<MapPointPtr> own;
+  for (const MapPointPtr& p : keyframe->points()) {
+    if (p && !p->bad()) own.push_back(p);
+  }
+  for (Keyframe* target : targets) fused += FusePoints(map_, target, own, *orb_, camera_);
+  std::vector<MapPointPtr> theirs;
+  std::unordered_set<const MapPoint*> unique;
+  for (Keyframe* target : targets) {
+    for (const MapPointPtr& p : target->points()) {
+      if (p && !p->bad() && unique.insert(p.get()).second) theirs.push_back(p);
+    }
+  }
+  fused += FusePoints(map_, keyframe, theirs, *orb_, camera_);
+  for (const MapPointPtr& p : keyframe->points()) {
+    if (!p || p->bad()) continue;
+    p->UpdateDescriptor();
+    p->UpdateNormalAndDepth(*orb_);
+  }
+  map_->UpdateConnections(keyframe);
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  stats_.fused_points += fused;
+}
+
+void LocalMapper::LocalBundleAdjustment(Keyframe* keyframe) {
+  const Stopwatch watch;
+  BaProblem problem;
+  std::vector<KeyframePtr> cameras;
+  std::vector<MapPointPtr> points;
+  {
+    std::lock_guard<std::mutex> lock(map_->mutex());
+    if (keyframe->bad()) return;
+    std::vector<Keyframe*> window = {keyframe};
+    for (Keyframe* n : keyframe->BestCovisible(options_.local_ba_window)) window.push_back(n);
+    std::unordered_map<const Keyframe*, int> camera_index;
+    for (Keyframe* kf : window) {
+      camera_index[kf] = static_cast<int>(cameras.size());
+      cameras.push_back(map_->keyframe(kf->id()));
+      problem.cameras.push_back({kf->T_cam_world(), false});
+    }
+    std::unordered_map<const MapPoint*, int> point_index;
+    for (Keyframe* kf : window) {
+      for (const MapPointPtr& p : kf->points()) {
+        if (!p || p->bad() || point_index.count(p.get())) continue;
+        point_index[p.get()] = static_cast<int>(points.size());
+        points.push_back(p);
+        problem.points.push_back({p->position()});
+      }
+    }
+    // Every keyframe that sees a local point constrains it; those outside the window are fixed.
+    for (std::size_t j = 0; j < points.size(); ++j) {
+      for (const auto& o : points[j]->observations()) {
+        Keyframe* kf = o.keyframe;
+        if (kf->bad()) continue;
+        auto it = camera_index.find(kf);
+        if (it == camera_index.end()) {
+          it = camera_index.emplace(kf, static_cast<int>(cameras.size())).first;
+          cameras.push_back(map_->keyframe(kf->id()));
+          problem.cameras.push_back({kf->T_cam_world(), true});
+        }
+        const cv::KeyPoint& kp = kf->features().keypoints[o.keypoint];
+        const double z = kf->features().depth[o.keypoint];
+        problem.observations.push_back({it->second, static_cast<int>(j), Eigen::Vector2d(kp.pt.x, kp.pt.y),
+                                        z, orb_->inv_sigma2()[kp.octave],
+                                        z > 0 ? options_.depth_noise.Information(z) : 0.0});
+      }
+    }
+    // Gauge: the map's first keyframe never moves; without any fixed keyframe, the oldest
+    // one in the window is held.
+    bool any_fixed = false;
+    int oldest = 0;
+    for (std::size_t c = 0; c < cameras.size(); ++c) {
+      if (cameras[c]->id().value() == 0) problem.cameras[c].fixed = true;
+      any_fixed |= problem.cameras[c].fixed;
+      if (cameras[c]->id() < cameras[oldest]->id()) oldest = static_cast<int>(c);
+    }
+    if (!any_fixed) problem.cameras[oldest].fixed = true;
+  }
+  if (problem.observations.empty()) return;
+
+  BaOptions ba_options;
+  ba_options.abort = &abort_ba_;
+  const Intrinsics k{camera_.fx, camera_.fy, camera_.cx, camera_.cy};
+  const BaSummary summary = BundleAdjust(&problem, k, ba_options);
+
+  {
+    std::lock_guard<std::mutex> lock(map_->mutex());
+    // Outlier observations are removed from the map (ORB-SLAM).
+    for (std::size_t i = 0; i < problem.observations.size(); ++i) {
+      if (!summary.outlier[i]) continue;
+      const BaObservation& o = problem.observations[i];
+      Keyframe* kf = cameras[o.camera].get();
+      MapPoint* p = points[o.point].get();
+      if (!kf->bad() && !p->bad() && p->KeypointIn(kf) >= 0) map_->EraseObservation(p, kf);
+    }
+    for (std::size_t c = 0; c < cameras.size(); ++c) {
+      if (!problem.cameras[c].fixed && !cameras[c]->bad()) {
+        cameras[c]->set_T_world_cam(problem.cameras[c].T_cam_world.inverse());
+      }
+    }
+    for (std::size_t j = 0; j < points.size(); ++j) {
+      if (points[j]->bad()) continue;
+      points[j]->set_position(problem.points[j].position);
+      points[j]->UpdateNormalAndDepth(*orb_);
+    }
+  }
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  stats_.local_ba_runs++;
+  stats_.local_ba_aborted += summary.aborted;
+  stats_.local_ba_ms_total += watch.ElapsedMillis();
+}
+
+void LocalMapper::CullRedundantKeyframes(Keyframe* keyframe) {
+  // A neighbour is redundant when 90% of its close points are seen by at least three other
+  // keyframes at the same or a finer scale (ORB-SLAM). The first keyframe stays.
+  int culled = 0;
+  const std::vector<std::pair<Keyframe*, int>> neighbours = keyframe->connections();
+  for (const auto& [kf, weight] : neighbours) {
+    if (kf->bad() || kf->id().value() == 0 || kf == keyframe) continue;
+    int total = 0, redundant = 0;
+    for (int i = 0; i < kf->features().size(); ++i) {
+      const MapPointPtr& p = kf->points()[i];
+      if (!p || p->bad()) continue;
+      const float z = kf->features().depth[i];
+      if (z <= 0 || z > camera_.far_depth_m) continue;
+      ++total;
+      if (p->WeightedObservations() <= 3) continue;
+      const int octave = kf->features().keypoints[i].octave;
+      int others = 0;
+      for (const auto& o : p->observations()) {
+        if (o.keyframe == kf) continue;
+        if (o.keyframe->features().keypoints[o.keypoint].octave <= octave + 1 && ++others >= 3) break;
+      }
+      if (others >= 3) ++redundant;
+    }
+    if (total > 0 && redundant > 0.9 * total) {
+      map_->EraseKeyframe(kf, /*relative=*/true);
+      ++culled;
+    }
+  }
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  stats_.culled_keyframes += culled;
+}
+
+void LocalMapper::EvictOldKeyframes(Keyframe* keyframe) {
+  const auto& keyframes = map_->keyframes();
+  if (static_cast<int>(keyframes.size()) <= options_.max_keyframes) return;
+  std::unordered_set<const Keyframe*> protect = {keyframe};
+  for (Keyframe* n : keyframe->BestCovisible(options_.local_ba_window)) protect.insert(n);
+  std::vector<Keyframe*> order;
+  for (const auto& [id, kf] : keyframes) order.push_back(kf.get());  // oldest first
+  int evicted = 0;
+  for (Keyframe* kf : order) {
+    if (static_cast<int>(keyframes.size()) <= options_.max_keyframes) break;
+    if (protect.count(kf) || !kf->emitted) continue;
+    map_->EraseKeyframe(kf, /*relative=*/false);
+    ++evicted;
+  }
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  stats_.evicted_keyframes += evicted;
+}
+
+bool LocalMapper::Emit(Keyframe* keyframe, KeyframeSnapshot* s, std::vector<PoseUpdate>* updates) {
+  if (keyframe->bad()) return false;  // culled before it was ever sent: the server never hears of it
+  std::vector<std::pair<KeyframeId, int>> transmitted;
+  for (const auto& [kf, weight] : keyframe->connections()) {
+    if (kf->emitted && kf->rgbd_sent) transmitted.emplace_back(kf->id(), weight);
+  }
+  s->decision = selector_.Decide(keyframe->id(), keyframe->TrackedPoints(1), transmitted);
+  s->id = keyframe->id();
+  s->timestamp = keyframe->timestamp();
+  s->frame_index = keyframe->frame_index();
+  s->T_world_cam = keyframe->T_world_cam();
+  if (Keyframe* parent = keyframe->parent(); parent && parent->emitted) s->parent = parent->id();
+  const FrameFeatures& f = keyframe->features();
+  s->keypoints = f.keypoints;
+  s->descriptors = f.descriptors;
+  s->depth = f.depth;
+  s->point_ids.assign(f.keypoints.size(), std::nullopt);
+  const Pose& T_cam_world = keyframe->T_cam_world();
+  for (int i = 0; i < f.size(); ++i) {
+    const MapPointPtr& p = keyframe->points()[i];
+    if (!p || p->bad()) continue;
+    s->point_ids[i] = p->id();
+    if (!p->sent()) {
+      s->new_points.push_back({p->id(), T_cam_world * p->position(), p->descriptor(), i});
+      p->set_sent();
+    }
+  }
+  for (const auto& [kf, weight] : keyframe->connections()) {
+    if (kf->emitted) s->covisibility.emplace_back(kf->id(), weight);
+  }
+  s->has_rgbd = s->decision.transmit;
+  if (s->has_rgbd) {
+    s->bgr = keyframe->bgr;
+    s->depth_mm = keyframe->depth_mm;
+  }
+  // The dense map lives on the server: the agent keeps no images once they are handed over.
+  keyframe->bgr.release();
+  keyframe->depth_mm.release();
+  keyframe->emitted = true;
+  keyframe->rgbd_sent = s->has_rgbd;
+  keyframe->emitted_T_world_cam = keyframe->T_world_cam();
+
+  for (const auto& [id, kf] : map_->keyframes()) {
+    if (!kf->emitted || kf.get() == keyframe) continue;
+    const Pose& before = kf->emitted_T_world_cam;
+    const Pose& now = kf->T_world_cam();
+    if (TranslationDistance(before, now) > options_.pose_update_min_translation ||
+        RotationDistance(before, now) > options_.pose_update_min_rotation) {
+      updates->push_back({kf->id(), now});
+      kf->emitted_T_world_cam = now;
+    }
+  }
+  return true;
+}
+
+}  // namespace ccmd

@@ -1,0 +1,94 @@
+#pragma once
+
+// The mapping half of the agent's front-end, in its own thread: for each new keyframe it
+// links the keyframe's points and covisibility, culls weak new points, fuses duplicates with
+// neighbouring keyframes, runs a local bundle adjustment over a bounded window, culls redundant
+// keyframes, drops the oldest keyframes beyond the map bound, decides whether the keyframe's
+// RGB-D data is transmitted (Algorithm 1) and hands the keyframe and the pose updates to the
+// sink.
+
+#include <atomic>
+#include <condition_variable>
+#include <deque>
+#include <mutex>
+#include <thread>
+#include <vector>
+
+#include "libccmd/geometry/camera.h"
+#include "libccmd/tracking/keyframe_selector.h"
+#include "libccmd/tracking/keyframe_sink.h"
+#include "libccmd/tracking/map.h"
+#include "libccmd/tracking/options.h"
+#include "libccmd/tracking/tracker.h"
+
+namespace ccmd {
+
+struct MappingStats {
+  int keyframes = 0;
+  int local_ba_runs = 0;
+  int local_ba_aborted = 0;
+  double local_ba_ms_total = 0;
+  double mapping_ms_total = 0;
+  int culled_keyframes = 0;
+  int evicted_keyframes = 0;
+  int culled_points = 0;
+  int fused_points = 0;
+  int pose_updates = 0;
+  int rgbd_transmitted = 0;
+};
+
+class LocalMapper : public MappingQueue {
+ public:
+  LocalMapper(const PinholeCamera& camera, const TrackingOptions& options, LocalMap* map,
+              const OrbExtractor* orb, KeyframeSink* sink);
+  ~LocalMapper() override;
+  LocalMapper(const LocalMapper&) = delete;
+  LocalMapper& operator=(const LocalMapper&) = delete;
+
+  // MappingQueue (called by the tracker with the map locked).
+  bool Idle() const override;
+  bool CanAccept() const override;
+  void Insert(const KeyframePtr& keyframe) override;
+
+  // Synchronous mode: processes every queued keyframe now (call without the map locked).
+  void ProcessPending();
+  // Processes what is queued and stops the thread. Idempotent.
+  void Finish();
+
+  MappingStats stats() const;
+  std::vector<RgbdDecision> decisions() const;
+
+ private:
+  void Run();
+  void Process(const KeyframePtr& keyframe);
+  void CullRecentPoints(const Keyframe& keyframe);
+  void FuseWithNeighbours(Keyframe* keyframe);
+  void LocalBundleAdjustment(Keyframe* keyframe);
+  void CullRedundantKeyframes(Keyframe* keyframe);
+  void EvictOldKeyframes(Keyframe* keyframe);
+  // Fills the keyframe's snapshot and the pose updates; false if the keyframe is gone.
+  bool Emit(Keyframe* keyframe, KeyframeSnapshot* snapshot, std::vector<PoseUpdate>* updates);
+
+  PinholeCamera camera_;
+  TrackingOptions options_;
+  LocalMap* map_;
+  const OrbExtractor* orb_;
+  KeyframeSink* sink_;
+  RgbdSelector selector_;
+
+  static constexpr std::size_t kQueueCapacity = 3;
+  mutable std::mutex queue_mutex_;
+  std::condition_variable queue_cv_;
+  std::deque<KeyframePtr> queue_;
+  bool stopping_ = false;
+  bool busy_ = false;
+  std::atomic<bool> abort_ba_{false};
+  std::thread thread_;
+
+  std::vector<MapPointPtr> recent_points_;
+  mutable std::mutex stats_mutex_;
+  MappingStats stats_;
+  std::vector<RgbdDecision> decisions_;
+};
+
+}  // namespace ccmd

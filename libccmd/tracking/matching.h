@@ -1,0 +1,44 @@
+#pragma once
+
+// Descriptor matching for tracking and mapping, in the ORB-SLAM manner: candidates come from
+// projecting map points into the image (or from brute force), the best Hamming distance must
+// pass a threshold and a ratio test, and matches whose orientation change disagrees with the
+// dominant rotation are dropped.
+
+#include <vector>
+
+#include "libccmd/geometry/camera.h"
+#include "libccmd/optim/reprojection.h"
+#include "libccmd/tracking/frame.h"
+
+namespace ccmd {
+
+constexpr int kMatchHigh = 100;  // Hamming distance accepted for projection matches
+constexpr int kMatchLow = 50;    // strict threshold (fusion, brute force)
+
+// Matches the map points of `last` (already tracked there) into `current`, whose pose is the
+// prediction. Search radius = radius * scale of the last keypoint's octave. Returns matches.
+int SearchFromLastFrame(Frame* current, const Frame& last, float radius, const OrbExtractor& orb,
+                        const PinholeCamera& camera);
+
+// Projects candidate map points (not yet matched in `current`) and matches them.
+// `radius` multiplies ORB-SLAM's viewing-angle dependent window. Increases the points'
+// visible counters for those predicted in view. Returns the number of new matches.
+int SearchLocalPoints(Frame* current, const std::vector<MapPointPtr>& candidates, float radius,
+                      const OrbExtractor& orb, const PinholeCamera& camera);
+
+// Brute-force matching of the keyframe's map points against the frame's descriptors (ratio
+// test and rotation consistency). Fills current->points; returns the number of matches.
+int SearchByDescriptor(Frame* current, const Keyframe& keyframe, float ratio = 0.75f);
+
+// Projects map points into a keyframe and fuses duplicates: a keypoint without a map point gets
+// the observation, one with a different map point is merged into the better observed one.
+// Returns the number of fused or added observations.
+int FusePoints(LocalMap* map, Keyframe* keyframe, const std::vector<MapPointPtr>& points,
+               const OrbExtractor& orb, const PinholeCamera& camera, float radius = 3.0f);
+
+// Keeps the matches whose rotation (angle difference) falls in the three most populated
+// histogram bins. `rotations[i]` in degrees; returns the indices to drop.
+std::vector<int> RotationOutliers(const std::vector<float>& rotations);
+
+}  // namespace ccmd

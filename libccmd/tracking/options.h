@@ -1,0 +1,59 @@
+#pragma once
+
+#include <string>
+
+#include "libccmd/features/orb_extractor.h"
+#include "libccmd/optim/reprojection.h"
+
+namespace ccmd {
+
+// RGB-D keyframe selection (the CCMD-SLAM paper's Algorithm 1). A keyframe's RGB-D data is
+// skipped when enough already-transmitted keyframes share many map points with it.
+// The connected keyframes that were transmitted are visited from the strongest link down;
+// one whose shared-point weight exceeds the threshold S counts as "covering", and each
+// covering keyframe lowers S by `decrement` (never below `min_threshold`). The RGB-D data is
+// skipped when at least `required_covering` keyframes cover it. With required_covering = 1
+// this is exactly Algorithm 1; more makes the test stricter, and the decrement then lets the
+// second and later covering keyframes share fewer points than the first.
+struct RgbdSelectionOptions {
+  bool enabled = true;
+  // S_min as a fraction of the keyframe's own tracked map points (adapts to how textured the
+  // view is) and as an absolute floor.
+  double threshold_ratio = 0.5;
+  int threshold_min_points = 60;
+  double decrement_ratio = 0.1;  // of the keyframe's tracked points, per covering keyframe
+  int min_threshold = 30;
+  int required_covering = 1;
+  bool Check(std::string* why) const;
+};
+
+struct TrackingOptions {
+  OrbOptions orb;
+  double min_depth = 0.1;   // metres; keypoint depth outside [min, max] counts as missing
+  double max_depth = 10.0;
+  // Depth sensor noise used to weigh depth in pose optimisation and bundle adjustment.
+  DepthNoise depth_noise;
+  // Keyframe decision (ORB-SLAM): at most this many frames without a keyframe (0: the fps).
+  int max_frames_between_keyframes = 0;
+  // A new keyframe is due when the frame tracks fewer than this fraction of the reference
+  // keyframe's map points (ORB-SLAM: 0.75 of the points seen in 3+ observations; here of all
+  // of them, which keeps keyframes coming when new points have few observations yet).
+  double keyframe_tracked_ratio = 0.5;
+  // Local bundle adjustment window: the new keyframe and this many best covisible keyframes
+  // are optimised; keyframes that see their points are held fixed.
+  int local_ba_window = 10;
+  // Bounded local map: keyframes beyond this many (oldest first, outside the current local
+  // window) are dropped from the agent's memory, so memory and CPU stay flat.
+  int max_keyframes = 60;
+  bool cull_redundant_keyframes = true;
+  // Run local mapping in the tracking thread (deterministic; for tests and measurements).
+  bool synchronous_mapping = false;
+  // Pose updates are sent for emitted keyframes that moved more than this after a local BA.
+  double pose_update_min_translation = 0.0005;  // metres
+  double pose_update_min_rotation = 0.0002;     // radians
+  RgbdSelectionOptions rgbd_selection;
+
+  bool Check(std::string* why) const;
+};
+
+}  // namespace ccmd

@@ -1,0 +1,402 @@
+#include "libccmd/tracking/tracker.h"
+
+#include <algorithm>
+#include <opencv2/calib3d.hpp>
+#include <opencv2/core/eigen.hpp>
+#include <unordered_map>
+#include <unordered_set>
+
+#include "libccmd/optim/pose_optimizer.h"
+#include "libccmd/tracking/matching.h"
+#include "libccmd/util/logging.h"
+#include "libccmd/util/timer.h"
+
+namespace ccmd {
+
+const char* TrackingStateName(TrackingState state) {
+  switch (state) {
+    case TrackingState::kNotInitialized: return "not initialized";
+    case TrackingState::kOk: return "ok";
+    case TrackingState::kLost: return "lost";
+  }
+  return "?";
+}
+
+Tracker::Tracker(const PinholeCamera& camera, const TrackingOptions& options, LocalMap* map,
+                 const OrbExtractor* orb, MappingQueue* mapping)
+    : camera_(camera), options_(options), map_(map), orb_(orb), mapping_(mapping) {
+  if (options_.max_frames_between_keyframes <= 0) {
+    options_.max_frames_between_keyframes = static_cast<int>(std::lround(camera_.fps));
+  }
+}
+
+TrackResult Tracker::Track(const RgbdFrame& input) {
+  TrackResult result;
+  Stopwatch watch;
+  current_ = MakeFrame(input, *orb_, camera_, options_.min_depth, options_.max_depth);
+  result.extract_ms = watch.ElapsedMillis();
+  watch.Restart();
+
+  std::lock_guard<std::mutex> lock(map_->mutex());
+  bool ok = false;
+  if (state_ == TrackingState::kNotInitialized) {
+    ok = Initialize(current_.get());
+    if (ok) state_ = TrackingState::kOk;
+  } else {
+    if (state_ == TrackingState::kOk) {
+      if (velocity_ && last_ && last_->has_pose && current_->index > last_relocalisation_frame_ + 2) {
+        ok = TrackWithMotionModel();
+      }
+      if (!ok) ok = TrackReferenceKeyframe();
+    } else {
+      ok = Relocalize();
+    }
+    current_->reference = reference_;
+    if (ok) ok = TrackLocalMap();
+    if (ok) {
+      state_ = TrackingState::kOk;
+      if (last_ && last_->has_pose) velocity_ = current_->T_cam_world * last_->T_cam_world.inverse();
+      if (NeedNewKeyframe()) {
+        CreateKeyframe();
+        result.new_keyframe = true;
+      }
+      // Outliers do not carry over to the next frame's motion-model search.
+      for (int i = 0; i < current_->size(); ++i) {
+        if (current_->outlier[i]) current_->points[i] = nullptr;
+      }
+    } else {
+      if (state_ == TrackingState::kOk) {
+        CCMD_LOG(WARNING) << "tracking lost at frame " << current_->index << " (t=" << current_->timestamp
+                          << "); relocalising";
+      }
+      state_ = TrackingState::kLost;
+      velocity_.reset();
+      current_->has_pose = false;
+    }
+  }
+  ++frames_since_relocalisation_;
+  result.state = state_;
+  if (state_ == TrackingState::kOk && current_->has_pose && reference_) {
+    const Pose T_world_cam = current_->T_cam_world.inverse();
+    result.T_world_cam = T_world_cam;
+    records_.push_back({current_->timestamp, reference_->id(), reference_->T_cam_world() * T_world_cam});
+  }
+  result.tracked_points = current_->TrackedPoints();
+  result.track_ms = watch.ElapsedMillis();
+  last_ = std::move(current_);
+  return result;
+}
+
+bool Tracker::Initialize(Frame* frame) {
+  int with_depth = 0;
+  for (float d : frame->features.depth) with_depth += d > 0;
+  if (frame->size() < 300 || with_depth < 100) return false;
+  frame->SetPose(Pose::Identity());
+  auto keyframe = std::make_shared<Keyframe>(map_->NextKeyframeId(), frame->timestamp, frame->index,
+                                             frame->features, Pose::Identity(), camera_.width,
+                                             camera_.height);
+  keyframe->bgr = frame->bgr;
+  keyframe->depth_mm = frame->depth_mm;
+  map_->AddKeyframe(keyframe);
+  for (int i = 0; i < frame->size(); ++i) {
+    const float z = frame->features.depth[i];
+    if (z <= 0) continue;
+    const cv::Point2f& pt = frame->features.keypoints[i].pt;
+    auto point = std::make_shared<MapPoint>(map_->NextMapPointId(), camera_.BackProject(pt.x, pt.y, z));
+    map_->AddMapPoint(point);
+    map_->AddObservation(point, keyframe.get(), i);
+    point->UpdateDescriptor();
+    point->UpdateNormalAndDepth(*orb_);
+    frame->points[i] = point;
+  }
+  CCMD_LOG(INFO) << "map initialised with " << map_->num_points() << " points at frame " << frame->index;
+  reference_ = keyframe;
+  last_keyframe_ = keyframe;
+  last_keyframe_frame_ = frame->index;
+  frame->reference = keyframe;
+  mapping_->Insert(keyframe);
+  return true;
+}
+
+int Tracker::OptimizeCurrentPose() {
+  std::vector<PoseObservation> observations;
+  std::vector<int> keypoint_of;
+  for (int i = 0; i < current_->size(); ++i) {
+    const MapPointPtr& p = current_->points[i];
+    if (!p || p->bad()) continue;
+    const cv::KeyPoint& kp = current_->features.keypoints[i];
+    const double z = current_->features.depth[i];
+    observations.push_back({p->position(), Eigen::Vector2d(kp.pt.x, kp.pt.y), z,
+                            orb_->inv_sigma2()[kp.octave],
+                            z > 0 ? options_.depth_noise.Information(z) : 0.0});
+    keypoint_of.push_back(i);
+  }
+  const Intrinsics k{camera_.fx, camera_.fy, camera_.cx, camera_.cy};
+  const PoseOptimizationResult r = OptimizePose(current_->T_cam_world, observations, k);
+  current_->SetPose(r.T_cam_world);
+  for (std::size_t j = 0; j < keypoint_of.size(); ++j) current_->outlier[keypoint_of[j]] = !r.inlier[j];
+  return r.inliers;
+}
+
+namespace {
+
+// Drops outlier matches; returns matches with points that are in the map (observed).
+int DiscardOutliers(Frame* frame) {
+  int in_map = 0;
+  for (int i = 0; i < frame->size(); ++i) {
+    if (!frame->points[i]) continue;
+    if (frame->outlier[i]) {
+      frame->points[i] = nullptr;
+      frame->outlier[i] = false;
+    } else if (frame->points[i]->num_observations() > 0) {
+      ++in_map;
+    }
+  }
+  return in_map;
+}
+
+}  // namespace
+
+bool Tracker::TrackWithMotionModel() {
+  current_->SetPose(*velocity_ * last_->T_cam_world);
+  std::fill(current_->points.begin(), current_->points.end(), nullptr);
+  constexpr float kRadius = 15.0f;
+  int matches = SearchFromLastFrame(current_.get(), *last_, kRadius, *orb_, camera_);
+  if (matches < 20) {
+    std::fill(current_->points.begin(), current_->points.end(), nullptr);
+    matches = SearchFromLastFrame(current_.get(), *last_, 2 * kRadius, *orb_, camera_);
+  }
+  if (matches < 20) return false;
+  const int inliers = OptimizeCurrentPose();
+  const int in_map = DiscardOutliers(current_.get());
+  CCMD_LOG(DEBUG) << "frame " << current_->index << " motion model: " << matches << " matches, "
+                  << inliers << " inliers, " << in_map << " in map";
+  return in_map >= 10;
+}
+
+bool Tracker::TrackReferenceKeyframe() {
+  if (!reference_ || reference_->bad()) return false;
+  std::fill(current_->points.begin(), current_->points.end(), nullptr);
+  const int matches = SearchByDescriptor(current_.get(), *reference_);
+  if (matches < 15) return false;
+  current_->SetPose(last_ && last_->has_pose ? last_->T_cam_world : reference_->T_cam_world());
+  OptimizeCurrentPose();
+  return DiscardOutliers(current_.get()) >= 10;
+}
+
+bool Tracker::Relocalize() {
+  // Candidates: every keyframe of the (bounded) map, newest first.
+  std::vector<KeyframePtr> candidates;
+  for (auto it = map_->keyframes().rbegin(); it != map_->keyframes().rend(); ++it) candidates.push_back(it->second);
+  const cv::Mat K = (cv::Mat_<double>(3, 3) << camera_.fx, 0, camera_.cx, 0, camera_.fy, camera_.cy, 0, 0, 1);
+  for (const KeyframePtr& kf : candidates) {
+    std::fill(current_->points.begin(), current_->points.end(), nullptr);
+    std::fill(current_->outlier.begin(), current_->outlier.end(), false);
+    if (SearchByDescriptor(current_.get(), *kf) < 15) continue;
+    std::vector<cv::Point3f> object;
+    std::vector<cv::Point2f> image;
+    std::vector<int> index;
+    for (int i = 0; i < current_->size(); ++i) {
+      if (!current_->points[i]) continue;
+      const Eigen::Vector3d& p = current_->points[i]->position();
+      object.emplace_back(static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z()));
+      image.push_back(current_->features.keypoints[i].pt);
+      index.push_back(i);
+    }
+    cv::Mat rvec, tvec;
+    std::vector<int> inliers;
+    const bool solved = cv::solvePnPRansac(object, image, K, cv::noArray(), rvec, tvec, false, 200, 4.0f,
+                                           0.99, inliers, cv::SOLVEPNP_EPNP);
+    if (!solved || inliers.size() < 15) continue;
+    cv::Mat R;
+    cv::Rodrigues(rvec, R);
+    Eigen::Matrix3d Re;
+    cv::cv2eigen(R, Re);
+    Pose T = Pose::Identity();
+    T.linear() = Re;
+    T.translation() = Eigen::Vector3d(tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2));
+    std::vector<bool> keep(current_->size(), false);
+    for (int k : inliers) keep[index[k]] = true;
+    for (int i = 0; i < current_->size(); ++i) {
+      if (!keep[i]) current_->points[i] = nullptr;
+    }
+    current_->SetPose(T);
+    int good = OptimizeCurrentPose();
+    if (good < 10) continue;
+    DiscardOutliers(current_.get());
+    // Add points of the candidate's neighbourhood by projection, then refine again.
+    std::vector<MapPointPtr> nearby;
+    std::unordered_set<const MapPoint*> seen;
+    std::vector<Keyframe*> neighbourhood = kf->BestCovisible(10);
+    neighbourhood.push_back(kf.get());
+    for (Keyframe* n : neighbourhood) {
+      for (const MapPointPtr& p : n->points()) {
+        if (p && !p->bad() && seen.insert(p.get()).second) nearby.push_back(p);
+      }
+    }
+    SearchLocalPoints(current_.get(), nearby, 3.0f, *orb_, camera_);
+    good = OptimizeCurrentPose();
+    if (good < 40) continue;
+    DiscardOutliers(current_.get());
+    CCMD_LOG(INFO) << "relocalised at frame " << current_->index << " against keyframe " << kf->id()
+                   << " with " << good << " inliers";
+    last_relocalisation_frame_ = current_->index;
+    frames_since_relocalisation_ = 0;
+    reference_ = kf;
+    return true;
+  }
+  std::fill(current_->points.begin(), current_->points.end(), nullptr);
+  return false;
+}
+
+void Tracker::UpdateLocalMap() {
+  // Keyframes that see the current matches, weighted by how many they see.
+  std::unordered_map<Keyframe*, int> counter;
+  for (int i = 0; i < current_->size(); ++i) {
+    const MapPointPtr& p = current_->points[i];
+    if (!p || p->bad()) {
+      current_->points[i] = nullptr;
+      continue;
+    }
+    for (const auto& o : p->observations()) counter[o.keyframe]++;
+  }
+  if (counter.empty()) return;
+  std::vector<std::pair<Keyframe*, int>> ranked(counter.begin(), counter.end());
+  std::sort(ranked.begin(), ranked.end(), [](const auto& a, const auto& b) {
+    return a.second != b.second ? a.second > b.second : a.first->id() < b.first->id();
+  });
+  std::vector<Keyframe*> local;
+  std::unordered_set<Keyframe*> in_local;
+  for (const auto& [kf, n] : ranked) {
+    if (!kf->bad() && in_local.insert(kf).second) local.push_back(kf);
+  }
+  // Their strongest neighbours too, up to 80 keyframes (ORB-SLAM's local map).
+  const std::size_t direct = local.size();
+  for (std::size_t i = 0; i < direct && local.size() < 80; ++i) {
+    for (Keyframe* n : local[i]->BestCovisible(10)) {
+      if (in_local.insert(n).second) {
+        local.push_back(n);
+        break;
+      }
+    }
+    if (Keyframe* parent = local[i]->parent(); parent && in_local.insert(parent).second) local.push_back(parent);
+  }
+  local_keyframes_.clear();
+  for (Keyframe* kf : local) local_keyframes_.push_back(map_->keyframe(kf->id()));
+  if (KeyframePtr best = map_->keyframe(ranked.front().first->id())) {
+    reference_ = best;
+    current_->reference = best;
+  }
+  local_points_.clear();
+  std::unordered_set<const MapPoint*> seen;
+  for (const KeyframePtr& kf : local_keyframes_) {
+    if (!kf) continue;
+    for (const MapPointPtr& p : kf->points()) {
+      if (p && !p->bad() && seen.insert(p.get()).second) local_points_.push_back(p);
+    }
+  }
+}
+
+bool Tracker::TrackLocalMap() {
+  UpdateLocalMap();
+  // Points already matched are not searched again; they count as seen.
+  std::unordered_set<const MapPoint*> matched;
+  for (int i = 0; i < current_->size(); ++i) {
+    if (const MapPointPtr& p = current_->points[i]) {
+      p->IncreaseVisible();
+      matched.insert(p.get());
+    }
+  }
+  std::vector<MapPointPtr> candidates;
+  candidates.reserve(local_points_.size());
+  for (const MapPointPtr& p : local_points_) {
+    if (!matched.count(p.get())) candidates.push_back(p);
+  }
+  const float radius = frames_since_relocalisation_ < 2 ? 5.0f : 3.0f;
+  const int found = SearchLocalPoints(current_.get(), candidates, radius, *orb_, camera_);
+  const int inliers = OptimizeCurrentPose();
+  CCMD_LOG(DEBUG) << "frame " << current_->index << " local map: " << local_keyframes_.size()
+                  << " keyframes, " << local_points_.size() << " points, " << candidates.size()
+                  << " candidates, " << found << " found, " << inliers << " inliers";
+  matches_inliers_ = 0;
+  for (int i = 0; i < current_->size(); ++i) {
+    const MapPointPtr& p = current_->points[i];
+    if (!p) continue;
+    if (!current_->outlier[i]) {
+      p->IncreaseFound();
+      if (p->num_observations() > 0) ++matches_inliers_;
+    }
+  }
+  const bool recently_relocalised = frames_since_relocalisation_ < options_.max_frames_between_keyframes;
+  if (recently_relocalised && matches_inliers_ < 50) return false;
+  return matches_inliers_ >= 30;
+}
+
+bool Tracker::NeedNewKeyframe() const {
+  const int keyframes = static_cast<int>(map_->keyframes().size());
+  const int max_frames = options_.max_frames_between_keyframes;
+  if (frames_since_relocalisation_ < max_frames && keyframes > max_frames) return false;
+  if (!mapping_->CanAccept()) return false;
+  const int reference_matches = reference_ ? reference_->TrackedPoints(1) : 0;
+  int tracked_close = 0, untracked_close = 0;
+  for (int i = 0; i < current_->size(); ++i) {
+    const float z = current_->features.depth[i];
+    if (z <= 0 || z > camera_.far_depth_m) continue;
+    if (current_->points[i] && !current_->outlier[i]) {
+      ++tracked_close;
+    } else {
+      ++untracked_close;
+    }
+  }
+  const bool need_close = tracked_close < 100 && untracked_close > 70;
+  const double ratio = keyframes < 2 ? 0.8 * options_.keyframe_tracked_ratio : options_.keyframe_tracked_ratio;
+  const int since = current_->index - last_keyframe_frame_;
+  const bool c1a = since >= max_frames;
+  const bool c1b = mapping_->Idle();
+  const bool c1c = matches_inliers_ < 0.25 * reference_matches || need_close;
+  const bool c2 = (matches_inliers_ < ratio * reference_matches || need_close) && matches_inliers_ > 15;
+  return (c1a || c1b || c1c) && c2;
+}
+
+void Tracker::CreateKeyframe() {
+  auto keyframe = std::make_shared<Keyframe>(map_->NextKeyframeId(), current_->timestamp, current_->index,
+                                             current_->features, current_->T_cam_world.inverse(),
+                                             camera_.width, camera_.height);
+  keyframe->bgr = current_->bgr;
+  keyframe->depth_mm = current_->depth_mm;
+  map_->AddKeyframe(keyframe);
+  for (int i = 0; i < current_->size(); ++i) {
+    const MapPointPtr& p = current_->points[i];
+    if (p && !current_->outlier[i] && !p->bad()) map_->AddObservation(p, keyframe.get(), i);
+  }
+  // New points from measured depth: all close ones, or at least the 100 nearest (ORB-SLAM).
+  std::vector<std::pair<float, int>> by_depth;
+  for (int i = 0; i < current_->size(); ++i) {
+    if (current_->features.depth[i] > 0) by_depth.emplace_back(current_->features.depth[i], i);
+  }
+  std::sort(by_depth.begin(), by_depth.end());
+  const Pose T_world_cam = keyframe->T_world_cam();
+  int considered = 0;
+  for (const auto& [z, i] : by_depth) {
+    if (!keyframe->point(i)) {
+      const cv::Point2f& pt = current_->features.keypoints[i].pt;
+      auto point = std::make_shared<MapPoint>(map_->NextMapPointId(),
+                                              T_world_cam * camera_.BackProject(pt.x, pt.y, z));
+      map_->AddMapPoint(point);
+      map_->AddObservation(point, keyframe.get(), i);
+      point->UpdateDescriptor();
+      point->UpdateNormalAndDepth(*orb_);
+      current_->points[i] = point;
+      current_->outlier[i] = false;
+    }
+    // Far points only while fewer than 100 points have been considered in all.
+    if (++considered > 100 && z > camera_.far_depth_m) break;
+  }
+  reference_ = keyframe;
+  current_->reference = keyframe;
+  last_keyframe_ = keyframe;
+  last_keyframe_frame_ = current_->index;
+  mapping_->Insert(keyframe);
+}
+
+}  // namespace ccmd

@@ -1,0 +1,91 @@
+#pragma once
+
+// The tracking half of the agent's front-end (runs in the caller's thread): per frame it
+// extracts ORB features, predicts the pose with a constant-velocity model and matches the
+// previous frame's points by projection (falling back to the reference keyframe, then to
+// relocalisation with PnP RANSAC), refines the pose against the local map, and decides
+// whether the frame becomes a keyframe, which it hands to the local mapper.
+
+#include <memory>
+#include <optional>
+#include <vector>
+
+#include "libccmd/geometry/camera.h"
+#include "libccmd/io/rgbd_frame.h"
+#include "libccmd/tracking/frame.h"
+#include "libccmd/tracking/map.h"
+#include "libccmd/tracking/options.h"
+
+namespace ccmd {
+
+enum class TrackingState { kNotInitialized, kOk, kLost };
+const char* TrackingStateName(TrackingState state);
+
+struct TrackResult {
+  TrackingState state = TrackingState::kNotInitialized;
+  std::optional<Pose> T_world_cam;  // when tracked
+  bool new_keyframe = false;
+  int tracked_points = 0;
+  double extract_ms = 0, track_ms = 0;
+};
+
+// What the tracker needs from local mapping.
+class MappingQueue {
+ public:
+  virtual ~MappingQueue() = default;
+  virtual bool Idle() const = 0;       // waiting for work
+  virtual bool CanAccept() const = 0;  // room for another keyframe
+  virtual void Insert(const KeyframePtr& keyframe) = 0;  // only called after CanAccept()
+};
+
+class Tracker {
+ public:
+  Tracker(const PinholeCamera& camera, const TrackingOptions& options, LocalMap* map,
+          const OrbExtractor* orb, MappingQueue* mapping);
+
+  TrackResult Track(const RgbdFrame& input);
+
+  TrackingState state() const { return state_; }
+  int frames_since_relocalisation() const { return frames_since_relocalisation_; }
+
+  // Per-frame record for the trajectory: pose relative to the reference keyframe, so the
+  // final trajectory follows the keyframes' optimised poses.
+  struct FrameRecord {
+    double timestamp;
+    KeyframeId reference;
+    Pose T_ref_cam;
+  };
+  const std::vector<FrameRecord>& records() const { return records_; }
+
+ private:
+  bool Initialize(Frame* frame);
+  bool TrackWithMotionModel();
+  bool TrackReferenceKeyframe();
+  bool Relocalize();
+  bool TrackLocalMap();
+  void UpdateLocalMap();
+  int OptimizeCurrentPose();
+  bool NeedNewKeyframe() const;
+  void CreateKeyframe();
+
+  PinholeCamera camera_;
+  TrackingOptions options_;
+  LocalMap* map_;
+  const OrbExtractor* orb_;
+  MappingQueue* mapping_;
+
+  TrackingState state_ = TrackingState::kNotInitialized;
+  std::unique_ptr<Frame> current_, last_;
+  std::optional<Pose> velocity_;  // T_current_last
+  KeyframePtr reference_;
+  KeyframePtr last_keyframe_;
+  int last_keyframe_frame_ = -1;
+  int last_relocalisation_frame_ = -1000;
+  int frames_since_relocalisation_ = 1000;
+  int matches_inliers_ = 0;
+  std::vector<KeyframePtr> local_keyframes_;
+  std::vector<MapPointPtr> local_points_;
+  std::vector<FrameRecord> records_;
+};
+
+}  // namespace ccmd

@@ -1,0 +1,72 @@
+// ccmd_agent as users run it offline: trajectory, stats JSON fields, recording, errors.
+
+#include <gtest/gtest.h>
+
+#include <opencv2/core.hpp>
+
+#include "libccmd/eval/trajectory_error.h"
+#include "libccmd/io/trajectory.h"
+#include "libccmd/io/tum_dataset.h"
+#include "libccmd/sensors/synthetic_source.h"
+#include "libccmd/util/json.h"
+#include "tests/support/test_support.h"
+
+namespace ccmd {
+namespace {
+
+using testing::ProgramPath;
+using testing::RunCommand;
+
+TEST(AgentCliTest, OfflineRunWritesTrajectoryStatsAndRecording) {
+  testing::TempDir dir;
+  std::string out;
+  const std::string spec = "synth:frames=45,seed=3";
+  ASSERT_EQ(RunCommand(ProgramPath("ccmd_agent") + " --source " + spec + " --offline --synchronous" +
+                           " --trajectory " + dir.File("traj.txt") + " --stats " + dir.File("stats.json") +
+                           " --record " + dir.File("rec"),
+                       &out),
+            0)
+      << out;
+  auto stats = ReadJsonFile(dir.File("stats.json"));
+  ASSERT_TRUE(stats.ok());
+  for (const char* key : {"frames", "keyframes", "lost_frames", "fps", "extract_ms_mean", "track_ms_mean",
+                          "local_ba_ms_mean", "rgbd_decisions"}) {
+    EXPECT_TRUE(stats->Has(key)) << key;
+  }
+  EXPECT_EQ(stats->Get("frames")->number(), 45);
+  EXPECT_EQ(stats->Get("lost_frames")->number(), 0);
+  // The trajectory matches the renderer's ground truth.
+  auto trajectory = ReadTumTrajectory(dir.File("traj.txt"));
+  ASSERT_TRUE(trajectory.ok());
+  EXPECT_EQ(trajectory->size(), 45u);
+  auto ground_truth = ReadTumTrajectory(dir.File("rec/groundtruth.txt"));
+  ASSERT_TRUE(ground_truth.ok());
+  auto ate = ComputeAte(*ground_truth, *trajectory);
+  ASSERT_TRUE(ate.ok());
+  EXPECT_LT(ate->error.rmse, 0.01);
+  // The recording reads back as the frames the agent saw.
+  auto recorded = TumSequence::Open(dir.File("rec"), std::nullopt);
+  ASSERT_TRUE(recorded.ok()) << recorded.status().ToString();
+  ASSERT_EQ(recorded->size(), 45u);
+  auto options = ParseSyntheticSpec("frames=45,seed=3");
+  ASSERT_TRUE(options.ok());
+  SyntheticSource source(*options);
+  RgbdFrame live;
+  ASSERT_TRUE(source.Read(&live).ok());
+  auto first = recorded->LoadFrame(0);
+  ASSERT_TRUE(first.ok());
+  EXPECT_EQ(cv::norm(live.depth_mm, first->depth_mm, cv::NORM_INF), 0);
+  EXPECT_EQ(cv::norm(live.bgr, first->bgr, cv::NORM_INF), 0);
+}
+
+TEST(AgentCliTest, MissingServerOrSourceIsExplained) {
+  std::string out;
+  EXPECT_NE(RunCommand(ProgramPath("ccmd_agent") + " --source synth:frames=5", &out), 0);
+  EXPECT_NE(out.find("--offline"), std::string::npos) << out;
+  EXPECT_NE(RunCommand(ProgramPath("ccmd_agent") + " --source tum:/no/such --offline", &out), 0);
+  EXPECT_NE(out.find("/no/such"), std::string::npos) << out;
+  EXPECT_NE(RunCommand(ProgramPath("ccmd_agent") + " --source synth:frames=5 --offline --segment 4/3", &out), 0);
+}
+
+}  // namespace
+}  // namespace ccmd

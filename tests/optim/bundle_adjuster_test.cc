@@ -1,0 +1,124 @@
+#include "libccmd/optim/bundle_adjuster.h"
+
+#include <gtest/gtest.h>
+
+#include "libccmd/util/random.h"
+
+namespace ccmd {
+namespace {
+
+const Intrinsics kCamera{525, 525, 319.5, 239.5};
+// Depth sigma 5 mm (information 1 / 0.005^2).
+constexpr double kDepthInfo = 1.0 / (0.005 * 0.005);
+
+struct Scene {
+  std::vector<Pose> T_cam_world;
+  std::vector<Eigen::Vector3d> points;
+  BaProblem problem;
+};
+
+// Five cameras looking at a cloud of points, observations with pixel noise.
+Scene MakeScene(double pixel_noise, Rng* rng) {
+  Scene s;
+  for (int c = 0; c < 5; ++c) {
+    Pose T_world_cam = LookAt(Eigen::Vector3d(0.3 * c, 0.1 * c, 0), Eigen::Vector3d(0.5, 0, 3),
+                              -Eigen::Vector3d::UnitY());
+    s.T_cam_world.push_back(T_world_cam.inverse());
+  }
+  for (int j = 0; j < 150; ++j) {
+    s.points.emplace_back(rng->Uniform(-1, 2), rng->Uniform(-1, 1), rng->Uniform(2.5, 4));
+  }
+  for (const Pose& T : s.T_cam_world) s.problem.cameras.push_back({T, false});
+  for (const auto& p : s.points) s.problem.points.push_back({p});
+  for (int c = 0; c < 5; ++c) {
+    for (int j = 0; j < 150; ++j) {
+      const Eigen::Vector3d pc = s.T_cam_world[c] * s.points[j];
+      const double u = kCamera.fx * pc.x() / pc.z() + kCamera.cx;
+      const double v = kCamera.fy * pc.y() / pc.z() + kCamera.cy;
+      if (u < 0 || v < 0 || u > 640 || v > 480) continue;
+      BaObservation o;
+      o.camera = c;
+      o.point = j;
+      o.uv = Eigen::Vector2d(u + pixel_noise * rng->Normal(), v + pixel_noise * rng->Normal());
+      o.depth = pc.z() + 0.005 * rng->Normal();
+      o.depth_information = kDepthInfo;
+      s.problem.observations.push_back(o);
+    }
+  }
+  return s;
+}
+
+double MeanReprojection(const BaProblem& p) {
+  double sum = 0;
+  for (const auto& o : p.observations) {
+    sum += std::sqrt(ReprojectionChi2(kCamera, p.cameras[o.camera].T_cam_world, p.points[o.point].position,
+                                      o.uv, 0, 1.0, 0));
+  }
+  return sum / p.observations.size();
+}
+
+TEST(BundleAdjusterTest, FixesAPerturbedKeyframeAndLowersReprojectionError) {
+  Rng rng(31);
+  Scene s = MakeScene(0.5, &rng);
+  s.problem.cameras[0].fixed = true;
+  // Perturb camera 3 by ~2 degrees and 5 cm, and every point by up to 2 cm.
+  Pose delta = Pose::Identity();
+  delta.linear() = RotationFromAngleAxis({0.02, -0.03, 0.01});
+  delta.translation() = Eigen::Vector3d(0.05, -0.02, 0.03);
+  s.problem.cameras[3].T_cam_world = delta * s.problem.cameras[3].T_cam_world;
+  for (auto& p : s.problem.points) p.position += Eigen::Vector3d(rng.Uniform(-0.02, 0.02), rng.Uniform(-0.02, 0.02), rng.Uniform(-0.02, 0.02));
+  const double before = MeanReprojection(s.problem);
+  const BaSummary summary = BundleAdjust(&s.problem, kCamera, BaOptions());
+  const double after = MeanReprojection(s.problem);
+  EXPECT_LT(after, before / 5);
+  EXPECT_LT(after, 1.0);  // pixel noise is 0.5 px
+  EXPECT_LT(TranslationDistance(s.problem.cameras[3].T_cam_world, s.T_cam_world[3]), 0.01);
+  EXPECT_LT(RotationDistance(s.problem.cameras[3].T_cam_world, s.T_cam_world[3]), 0.3 * M_PI / 180);
+  // The fixed camera did not move.
+  EXPECT_LT(TranslationDistance(s.problem.cameras[0].T_cam_world, s.T_cam_world[0]), 1e-12);
+  EXPECT_FALSE(summary.aborted);
+}
+
+TEST(BundleAdjusterTest, MarksWrongObservationsAsOutliers) {
+  Rng rng(32);
+  Scene s = MakeScene(0.3, &rng);
+  s.problem.cameras[0].fixed = true;
+  s.problem.cameras[1].fixed = true;
+  std::vector<int> corrupted;
+  for (std::size_t i = 7; i < s.problem.observations.size(); i += 37) {
+    s.problem.observations[i].uv += Eigen::Vector2d(25, -30);
+    corrupted.push_back(static_cast<int>(i));
+  }
+  const BaSummary summary = BundleAdjust(&s.problem, kCamera, BaOptions());
+  for (int i : corrupted) EXPECT_TRUE(summary.outlier[i]) << i;
+  EXPECT_LE(summary.outliers, static_cast<int>(corrupted.size()) + 3);
+}
+
+TEST(BundleAdjusterTest, AbortFlagStopsTheSolver) {
+  Rng rng(33);
+  Scene s = MakeScene(0.5, &rng);
+  s.problem.cameras[0].fixed = true;
+  for (auto& p : s.problem.points) p.position.z() += 0.3;
+  std::atomic<bool> abort{true};
+  BaOptions options;
+  options.abort = &abort;
+  const BaSummary summary = BundleAdjust(&s.problem, kCamera, options);
+  EXPECT_TRUE(summary.aborted);
+  EXPECT_LE(summary.iterations, 2);
+}
+
+TEST(BundleAdjusterTest, SparseSchurGivesTheSameSolution) {
+  Rng rng(34);
+  Scene a = MakeScene(0.5, &rng);
+  a.problem.cameras[0].fixed = true;
+  a.problem.cameras[2].T_cam_world.translation() += Eigen::Vector3d(0.03, 0, 0);
+  Scene b = a;
+  BundleAdjust(&a.problem, kCamera, BaOptions());
+  BaOptions sparse;
+  sparse.solver = BaLinearSolver::kSparseSchur;
+  BundleAdjust(&b.problem, kCamera, sparse);
+  EXPECT_LT(TranslationDistance(a.problem.cameras[2].T_cam_world, b.problem.cameras[2].T_cam_world), 1e-6);
+}
+
+}  // namespace
+}  // namespace ccmd

@@ -1,0 +1,76 @@
+#include "libccmd/optim/pose_optimizer.h"
+
+#include <gtest/gtest.h>
+
+#include "libccmd/util/random.h"
+
+namespace ccmd {
+namespace {
+
+const Intrinsics kCamera{525, 525, 319.5, 239.5};
+// Depth sigma 5 mm (information 1 / 0.005^2).
+constexpr double kDepthInfo = 1.0 / (0.005 * 0.005);
+
+Pose MakePose(const Eigen::Vector3d& axis_angle, const Eigen::Vector3d& t) {
+  Pose T = Pose::Identity();
+  T.linear() = RotationFromAngleAxis(axis_angle);
+  T.translation() = t;
+  return T;
+}
+
+// Points in front of the camera with observations from the true pose, plus noise.
+std::vector<PoseObservation> Observe(const Pose& T_cam_world, int n, double pixel_noise, Rng* rng) {
+  std::vector<PoseObservation> obs;
+  const Pose T_world_cam = T_cam_world.inverse();
+  while (static_cast<int>(obs.size()) < n) {
+    const Eigen::Vector3d pc(rng->Uniform(-1.5, 1.5), rng->Uniform(-1, 1), rng->Uniform(1, 4));
+    PoseObservation o;
+    o.point_world = T_world_cam * pc;
+    const double u = kCamera.fx * pc.x() / pc.z() + kCamera.cx;
+    const double v = kCamera.fy * pc.y() / pc.z() + kCamera.cy;
+    o.uv = Eigen::Vector2d(u + pixel_noise * rng->Normal(), v + pixel_noise * rng->Normal());
+    if (obs.size() % 2) {
+      o.depth = pc.z() + 0.005 * rng->Normal();
+      o.depth_information = kDepthInfo;
+    }
+    obs.push_back(o);
+  }
+  return obs;
+}
+
+TEST(PoseOptimizerTest, RecoversKnownPoseFromNoisyCorrespondences) {
+  Rng rng(21);
+  const Pose truth = MakePose({0.1, -0.2, 0.05}, {0.3, -0.1, 0.5});
+  const auto obs = Observe(truth, 300, 0.5, &rng);
+  const Pose start = MakePose({0.13, -0.16, 0.02}, {0.35, -0.05, 0.42});  // ~3 deg, 10 cm off
+  const PoseOptimizationResult r = OptimizePose(start, obs, kCamera);
+  EXPECT_LT(TranslationDistance(r.T_cam_world, truth), 0.005);
+  EXPECT_LT(RotationDistance(r.T_cam_world, truth), 0.1 * M_PI / 180);
+  EXPECT_GT(r.inliers, 280);
+}
+
+TEST(PoseOptimizerTest, RejectsGrossOutliers) {
+  Rng rng(22);
+  const Pose truth = MakePose({-0.05, 0.3, 0.0}, {-0.2, 0.1, 0.0});
+  auto obs = Observe(truth, 200, 0.3, &rng);
+  // A quarter of the matches are wrong: their pixels are anywhere in the image.
+  for (std::size_t i = 0; i < obs.size(); i += 4) obs[i].uv = Eigen::Vector2d(rng.Uniform(0, 640), rng.Uniform(0, 480));
+  const PoseOptimizationResult r = OptimizePose(truth * MakePose({0.02, 0, 0}, {0.05, 0, 0}), obs, kCamera);
+  EXPECT_LT(TranslationDistance(r.T_cam_world, truth), 0.005);
+  int wrong_kept = 0, right_dropped = 0;
+  for (std::size_t i = 0; i < obs.size(); ++i) {
+    if (i % 4 == 0) wrong_kept += r.inlier[i];
+    else right_dropped += !r.inlier[i];
+  }
+  EXPECT_LE(wrong_kept, 2);
+  EXPECT_LE(right_dropped, 5);
+}
+
+TEST(PoseOptimizerTest, TooFewObservationsAreAllOutliers) {
+  std::vector<PoseObservation> two(2);
+  const PoseOptimizationResult r = OptimizePose(Pose::Identity(), two, kCamera);
+  EXPECT_EQ(r.inliers, 0);
+}
+
+}  // namespace
+}  // namespace ccmd

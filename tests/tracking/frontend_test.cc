@@ -1,0 +1,121 @@
+// The front-end on short synthetic sequences with exact ground truth.
+
+#include "libccmd/tracking/frontend.h"
+
+#include <gtest/gtest.h>
+
+#include <set>
+
+#include "libccmd/eval/trajectory_error.h"
+#include "libccmd/sensors/synthetic_source.h"
+
+namespace ccmd {
+namespace {
+
+struct Collector : KeyframeSink {
+  std::vector<KeyframeSnapshot> keyframes;
+  std::vector<PoseUpdate> updates;
+  void OnKeyframe(KeyframeSnapshot k) override { keyframes.push_back(std::move(k)); }
+  void OnPoseUpdates(std::vector<PoseUpdate> u) override {
+    updates.insert(updates.end(), u.begin(), u.end());
+  }
+};
+
+struct RunResult {
+  Trajectory trajectory, ground_truth;
+  FrontendStats stats;
+  Collector sink;
+};
+
+void RunSequence(int frames, const TrackingOptions& options, RunResult* out) {
+  SyntheticSequenceOptions synth;
+  synth.frames = frames;
+  synth.seed = 1;
+  SyntheticSource source(synth);
+  auto frontend = Frontend::Create(source.camera(), options, &out->sink);
+  ASSERT_TRUE(frontend.ok()) << frontend.status().ToString();
+  RgbdFrame frame;
+  while (source.Read(&frame).ok()) (*frontend)->ProcessFrame(frame);
+  (*frontend)->Finish();
+  out->trajectory = (*frontend)->FrameTrajectory();
+  out->ground_truth = source.GroundTruth();
+  out->stats = (*frontend)->stats();
+}
+
+TrackingOptions Synchronous() {
+  TrackingOptions o;
+  o.synchronous_mapping = true;
+  return o;
+}
+
+TEST(FrontendTest, TracksAShortSequenceWithinAFewMillimetres) {
+  RunResult r;
+  RunSequence(120, Synchronous(), &r);
+  EXPECT_EQ(r.stats.lost_frames, 0);
+  EXPECT_EQ(r.stats.tracked_frames, 120);
+  ASSERT_EQ(r.trajectory.size(), 120u);
+  auto ate = ComputeAte(r.ground_truth, r.trajectory);
+  ASSERT_TRUE(ate.ok());
+  EXPECT_LT(ate->error.rmse, 0.01);
+  // The map frame is the first camera: the first pose is (close to) the identity.
+  EXPECT_LT(r.trajectory.front().T_world_cam.translation().norm(), 0.005);
+  EXPECT_GE(r.stats.keyframes, 4);
+}
+
+TEST(FrontendTest, SinkGetsEveryKeyframeOnceWithConsistentLinks) {
+  RunResult r;
+  RunSequence(90, Synchronous(), &r);
+  ASSERT_FALSE(r.sink.keyframes.empty());
+  std::set<std::uint32_t> ids;
+  std::set<std::uint32_t> sent_points;
+  for (const KeyframeSnapshot& k : r.sink.keyframes) {
+    EXPECT_TRUE(ids.insert(k.id.value()).second) << "keyframe sent twice";
+    ASSERT_EQ(k.point_ids.size(), k.keypoints.size());
+    ASSERT_EQ(k.descriptors.rows, static_cast<int>(k.keypoints.size()));
+    for (const auto& p : k.new_points) {
+      EXPECT_TRUE(sent_points.insert(p.id.value()).second) << "map point sent twice";
+      ASSERT_GE(p.keypoint, 0);
+      EXPECT_EQ(k.point_ids[p.keypoint], p.id);
+      // A new point's position in the keyframe frame projects close to its keypoint.
+      const Eigen::Vector3d& pc = p.position_cam;
+      const double u = 525.0 * pc.x() / pc.z() + 319.5;
+      EXPECT_NEAR(u, k.keypoints[p.keypoint].pt.x, 4.0);
+    }
+    // Every linked point was sent, with this keyframe or before.
+    for (const auto& id : k.point_ids) {
+      if (id) {
+        EXPECT_TRUE(sent_points.count(id->value())) << "link to an unknown point";
+      }
+    }
+    for (const auto& [neighbour, weight] : k.covisibility) EXPECT_TRUE(ids.count(neighbour.value()));
+    EXPECT_EQ(k.has_rgbd, !k.bgr.empty());
+  }
+  EXPECT_TRUE(r.sink.keyframes.front().has_rgbd);  // nothing was sent before the first
+  for (const PoseUpdate& u : r.sink.updates) EXPECT_TRUE(ids.count(u.id.value()));
+}
+
+TEST(FrontendTest, BoundedMapStaysBounded) {
+  TrackingOptions o = Synchronous();
+  o.local_ba_window = 5;
+  o.max_keyframes = 12;
+  RunResult r;
+  RunSequence(240, o, &r);
+  EXPECT_EQ(r.stats.lost_frames, 0);
+  EXPECT_LE(r.stats.map_keyframes, 12);
+  EXPECT_GT(r.stats.keyframes, 12);  // more were created than kept
+  auto ate = ComputeAte(r.ground_truth, r.trajectory);
+  ASSERT_TRUE(ate.ok());
+  EXPECT_LT(ate->error.rmse, 0.02);
+}
+
+TEST(FrontendTest, BadOptionsAreRefused) {
+  TrackingOptions o;
+  o.local_ba_window = 0;
+  EXPECT_FALSE(Frontend::Create(SyntheticCamera(), o, nullptr).ok());
+  PinholeCamera bad = SyntheticCamera();
+  bad.fx = 0;
+  EXPECT_FALSE(Frontend::Create(bad, TrackingOptions(), nullptr).ok());
+}
+
+}  // namespace
+}  // namespace ccmd
