@@ -161,96 +161,136 @@ Pose Nudged(const Pose& pose, std::uint64_t seed) {
 struct StoreRow {
   int width = 0, height = 0;
   ccmd::DenseMapStats stats;
-  std::vector<double> update_ms, update_cpu_ms, refilter_ms, add_ms, add_cpu_ms;
+  std::vector<double> update_ms, update_cpu_ms, update_cold_ms, refilter_ms, add_ms, add_cpu_ms;
   double load = 0;
   double rebuild_ms = 0;
   std::size_t rebuild_points = 0;
   double extract_ms = 0, export_ms = 0;
 };
 
-ccmd::Status MeasureStore(ccmd::DenseMap* store, KeyframeSource* source,
-                          std::vector<StoredKeyframe>* keyframes, int next, StoreRow* row) {
-  const int trials = 40, probes = 15;
-  // Local BA: one keyframe's pose, then the window re-filter Maintain() runs when idle.
-  for (int t = 0; t < trials; ++t) {
-    StoredKeyframe& k = (*keyframes)[(static_cast<std::size_t>(t) * 7919u) % keyframes->size()];
-    k.pose = Nudged(k.pose, 1000 + t);
-    ccmd::Stopwatch watch;
-    const double cpu = ThreadCpuMillis();
-    CCMD_RETURN_IF_ERROR(store->UpdateKeyframePose(k.id, k.pose));
-    row->update_ms.push_back(watch.ElapsedMillis());
-    row->update_cpu_ms.push_back(ThreadCpuMillis() - cpu);
-    watch.Restart();
-    store->Maintain();
-    row->refilter_ms.push_back(watch.ElapsedMillis());
-  }
-  // Adding the agent's next keyframe from its images; removed again (untimed) so that the
-  // store keeps its size.
-  for (int p = 0; p < probes; ++p) {
-    const ccmd::RenderedFrame frame = source->Render(next + p);
-    ccmd::DenseKeyframe k;
-    k.id = {AgentId(1), KeyframeId(static_cast<std::uint32_t>(next + p))};
-    k.T_world_cam = source->PoseOf(next + p);
-    k.depth_mm = frame.depth_mm;
-    k.bgr = frame.bgr;
-    k.camera = source->camera();
-    ccmd::Stopwatch watch;
-    const double cpu = ThreadCpuMillis();
-    CCMD_RETURN_IF_ERROR(store->AddKeyframe(k));
-    row->add_ms.push_back(watch.ElapsedMillis());
-    row->add_cpu_ms.push_back(ThreadCpuMillis() - cpu);
-    CCMD_RETURN_IF_ERROR(store->RemoveKeyframe(k.id));
-  }
-  std::vector<double> rebuilds;
-  for (int r = 0; r < 3; ++r) {
-    rebuilds.push_back(
-        NaiveRebuildMs(*keyframes, store->options().voxel_size_m, &row->rebuild_points));
-  }
-  row->rebuild_ms = Median(rebuilds);
+// One store of a given size and what the bench knows about it: its keyframes' clouds and
+// current poses (for the naive rebuild) and the measurements.
+struct Bench {
+  std::unique_ptr<ccmd::DenseMap> store;
+  std::vector<StoredKeyframe> keyframes;
+  std::size_t target = 0;
+  StoreRow row;
+};
+
+// Local BA: one keyframe's pose, then the window re-filter Maintain() runs when idle. Even
+// trials move one of the 8 newest keyframes (what local BA moves: recently added, so in cache
+// whatever the store's size); odd trials move a random keyframe after evicting the caches, so
+// that small and large stores are compared in the same (cold) state.
+ccmd::Status UpdateTrial(Bench* b, int t, std::vector<char>* evict) {
+  const bool cold = t % 2 == 1;
+  const std::size_t n = b->keyframes.size();
+  const std::size_t index =
+      cold ? (static_cast<std::size_t>(t) * 7919u) % n
+           : n - 1 - (static_cast<std::size_t>(t / 2) % std::min<std::size_t>(n, 8));
+  StoredKeyframe& k = b->keyframes[index];
+  k.pose = Nudged(k.pose, 1000 + t);
+  if (cold) std::fill(evict->begin(), evict->end(), static_cast<char>(t));
   ccmd::Stopwatch watch;
-  CCMD_ASSIGN_OR_RETURN(const ccmd::PointCloud kept,
-                        store->Extract(ccmd::DenseSelection::Global(), ccmd::DenseFilter::kWindow));
-  row->extract_ms = watch.ElapsedMillis();
-  const std::string path =
-      (std::filesystem::temp_directory_path() / "ccmd_dense_bench.ply").string();
+  const double cpu = ThreadCpuMillis();
+  CCMD_RETURN_IF_ERROR(b->store->UpdateKeyframePose(k.id, k.pose));
+  (cold ? b->row.update_cold_ms : b->row.update_ms).push_back(watch.ElapsedMillis());
+  if (!cold) b->row.update_cpu_ms.push_back(ThreadCpuMillis() - cpu);
   watch.Restart();
-  CCMD_RETURN_IF_ERROR(store->ExportPly(path, ccmd::DenseSelection::Global()));
-  row->export_ms = watch.ElapsedMillis();
-  std::filesystem::remove(path);
-  row->stats = store->Stats();
-  row->load = LoadAverage();
+  b->store->Maintain();
+  b->row.refilter_ms.push_back(watch.ElapsedMillis());
   return ccmd::Status::Ok();
 }
 
+// Adds the agent's next keyframe from its images, then removes it again (untimed) so that
+// the store keeps its size.
+ccmd::Status AddTrial(Bench* b, const ccmd::DenseKeyframe& keyframe) {
+  ccmd::Stopwatch watch;
+  const double cpu = ThreadCpuMillis();
+  CCMD_RETURN_IF_ERROR(b->store->AddKeyframe(keyframe));
+  b->row.add_ms.push_back(watch.ElapsedMillis());
+  b->row.add_cpu_ms.push_back(ThreadCpuMillis() - cpu);
+  return b->store->RemoveKeyframe(keyframe.id);
+}
+
+ccmd::Status MeasureReadsAndRebuild(Bench* b) {
+  std::vector<double> rebuilds;
+  for (int r = 0; r < 3; ++r) {
+    rebuilds.push_back(
+        NaiveRebuildMs(b->keyframes, b->store->options().voxel_size_m, &b->row.rebuild_points));
+  }
+  b->row.rebuild_ms = Median(rebuilds);
+  ccmd::Stopwatch watch;
+  CCMD_ASSIGN_OR_RETURN(
+      const ccmd::PointCloud kept,
+      b->store->Extract(ccmd::DenseSelection::Global(), ccmd::DenseFilter::kWindow));
+  b->row.extract_ms = watch.ElapsedMillis();
+  const std::string path =
+      (std::filesystem::temp_directory_path() / "ccmd_dense_bench.ply").string();
+  watch.Restart();
+  CCMD_RETURN_IF_ERROR(b->store->ExportPly(path, ccmd::DenseSelection::Global()));
+  b->row.export_ms = watch.ElapsedMillis();
+  std::filesystem::remove(path);
+  b->row.stats = b->store->Stats();
+  b->row.load = LoadAverage();
+  return ccmd::Status::Ok();
+}
+
+// Fills one store per target size with the same keyframe sequence, then measures them with
+// their trials interleaved, so that other load on the machine affects every size alike.
 ccmd::Status RunStoreSizes(int width, int height, const std::vector<std::size_t>& targets,
                            std::vector<StoreRow>* rows) {
   std::fprintf(stderr, "keyframes %dx%d: rendering and filling...\n", width, height);
   KeyframeSource source(width, height);
-  CCMD_ASSIGN_OR_RETURN(auto store, ccmd::DenseMap::Create({}));
-  std::vector<StoredKeyframe> keyframes;
+  std::vector<Bench> benches(targets.size());
+  for (std::size_t i = 0; i < targets.size(); ++i) {
+    CCMD_ASSIGN_OR_RETURN(benches[i].store, ccmd::DenseMap::Create({}));
+    benches[i].target = targets[i];
+    benches[i].row.width = width;
+    benches[i].row.height = height;
+  }
+  const ccmd::BackProjectionOptions projection = benches[0].store->options().projection;
   int next = 0;
   std::size_t points = 0;
-  for (const std::size_t target : targets) {
-    while (points < target) {
-      const ccmd::RenderedFrame frame = source.Render(next);
-      StoredKeyframe k;
-      k.id = {AgentId(1), KeyframeId(static_cast<std::uint32_t>(next))};
-      k.pose = source.PoseOf(next);
-      CCMD_ASSIGN_OR_RETURN(k.cloud,
-                            ccmd::BackProjectKeyframe(frame.depth_mm, frame.bgr, source.camera(),
-                                                      store->options().projection));
-      CCMD_RETURN_IF_ERROR(store->AddKeyframeCloud(k.id, k.pose, k.cloud));
-      points += k.cloud.size();
-      keyframes.push_back(std::move(k));
-      ++next;
+  while (points < targets.back()) {
+    const ccmd::RenderedFrame frame = source.Render(next);
+    StoredKeyframe k;
+    k.id = {AgentId(1), KeyframeId(static_cast<std::uint32_t>(next))};
+    k.pose = source.PoseOf(next);
+    CCMD_ASSIGN_OR_RETURN(
+        k.cloud, ccmd::BackProjectKeyframe(frame.depth_mm, frame.bgr, source.camera(), projection));
+    for (Bench& b : benches) {
+      if (points >= b.target) continue;
+      CCMD_RETURN_IF_ERROR(b.store->AddKeyframeCloud(k.id, k.pose, k.cloud));
+      b.keyframes.push_back(k);
     }
-    StoreRow row;
-    row.width = width;
-    row.height = height;
-    CCMD_RETURN_IF_ERROR(MeasureStore(store.get(), &source, &keyframes, next, &row));
-    std::fprintf(stderr, "  %zu points: update %.3f ms, rebuild %.1f ms\n", row.stats.points,
-                 Median(row.update_ms), row.rebuild_ms);
-    rows->push_back(std::move(row));
+    points += k.cloud.size();
+    ++next;
+  }
+  std::fprintf(stderr, "  measuring...\n");
+  std::vector<char> evict(64 << 20);
+  const int trials = 100, probes = 25;
+  for (int t = 0; t < trials; ++t) {
+    for (Bench& b : benches) CCMD_RETURN_IF_ERROR(UpdateTrial(&b, t, &evict));
+  }
+  for (int p = 0; p < probes; ++p) {
+    // Each store gets the keyframe that follows its own last one.
+    for (Bench& b : benches) {
+      const int index = static_cast<int>(b.keyframes.size()) + p;
+      const ccmd::RenderedFrame frame = source.Render(index);
+      ccmd::DenseKeyframe k;
+      k.id = {AgentId(1), KeyframeId(static_cast<std::uint32_t>(index))};
+      k.T_world_cam = source.PoseOf(index);
+      k.depth_mm = frame.depth_mm;
+      k.bgr = frame.bgr;
+      k.camera = source.camera();
+      CCMD_RETURN_IF_ERROR(AddTrial(&b, k));
+    }
+  }
+  for (Bench& b : benches) {
+    CCMD_RETURN_IF_ERROR(MeasureReadsAndRebuild(&b));
+    std::fprintf(stderr, "  %zu points: update %.3f ms, rebuild %.1f ms\n", b.row.stats.points,
+                 Median(b.row.update_ms), b.row.rebuild_ms);
+    rows->push_back(std::move(b.row));
   }
   return ccmd::Status::Ok();
 }
@@ -269,20 +309,21 @@ int RunStoreBench(const std::string& json_path, bool quick) {
   if (!s.ok()) return Fail(s);
 
   std::printf(
-      "| keyframe | points | kept | keyframes | update ms (cpu) | rebuild ms | rebuild / update | "
-      "refilter ms | add keyframe ms (cpu) | extract ms | export ms | bytes/point | load |\n"
-      "|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+      "| keyframe | points | kept | keyframes | update ms (cpu) | update cold ms | rebuild ms | "
+      "rebuild / update | refilter ms | add keyframe ms (cpu) | extract ms | export ms | "
+      "bytes/point | load |\n"
+      "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
   ccmd::Json json = ccmd::Json::MakeArray();
   for (const StoreRow& r : rows) {
     const double update = Median(r.update_ms);
     const double bytes_per_point = static_cast<double>(r.stats.memory_bytes) / r.stats.points;
     std::printf(
-        "| %dx%d | %zu | %zu | %zu | %.3f (%.3f) | %.1f | %.0f | %.2f | %.2f (%.2f) | %.1f | %.1f "
-        "| "
-        "%.1f | %.1f |\n",
+        "| %dx%d | %zu | %zu | %zu | %.3f (%.3f) | %.3f | %.1f | %.0f | %.2f | %.2f (%.2f) | "
+        "%.1f | %.1f | %.1f | %.1f |\n",
         r.width, r.height, r.stats.points, r.stats.kept_points, r.stats.keyframes, update,
-        Median(r.update_cpu_ms), r.rebuild_ms, r.rebuild_ms / update, Median(r.refilter_ms),
-        Median(r.add_ms), Median(r.add_cpu_ms), r.extract_ms, r.export_ms, bytes_per_point, r.load);
+        Median(r.update_cpu_ms), Median(r.update_cold_ms), r.rebuild_ms, r.rebuild_ms / update,
+        Median(r.refilter_ms), Median(r.add_ms), Median(r.add_cpu_ms), r.extract_ms, r.export_ms,
+        bytes_per_point, r.load);
     ccmd::Json j;
     j["keyframe_width"] = r.width;
     j["keyframe_height"] = r.height;
@@ -293,6 +334,7 @@ int RunStoreBench(const std::string& json_path, bool quick) {
     j["update_ms"] = update;
     j["update_ms_max"] = Max(r.update_ms);
     j["update_cpu_ms"] = Median(r.update_cpu_ms);
+    j["update_cold_ms"] = Median(r.update_cold_ms);
     j["refilter_ms"] = Median(r.refilter_ms);
     j["rebuild_ms"] = r.rebuild_ms;
     j["rebuild_points"] = r.rebuild_points;
