@@ -1,0 +1,65 @@
+#include "libccmd/tracking/keyframe_message.h"
+
+#include <cstring>
+
+namespace ccmd {
+
+WirePose ToWirePose(const Pose& T) {
+  const Eigen::Quaterniond q = QuaternionOf(T);
+  WirePose w;
+  w.q_xyzw = {q.x(), q.y(), q.z(), q.w()};
+  w.t = {T.translation().x(), T.translation().y(), T.translation().z()};
+  return w;
+}
+
+Pose FromWirePose(const WirePose& w) {
+  return PoseFromTranslationQuaternion(Eigen::Vector3d(w.t[0], w.t[1], w.t[2]),
+                                       Eigen::Quaterniond(w.q_xyzw[3], w.q_xyzw[0], w.q_xyzw[1], w.q_xyzw[2]));
+}
+
+StatusOr<KeyframeMessage> ToKeyframeMessage(const KeyframeSnapshot& s, const RgbdEncodeOptions& rgbd_options) {
+  KeyframeMessage m;
+  m.id = s.id;
+  m.timestamp = s.timestamp;
+  m.T_world_cam = ToWirePose(s.T_world_cam);
+  m.parent = s.parent;
+  m.keypoints.resize(s.keypoints.size());
+  for (std::size_t i = 0; i < s.keypoints.size(); ++i) {
+    WireKeypoint& k = m.keypoints[i];
+    k.u = s.keypoints[i].pt.x;
+    k.v = s.keypoints[i].pt.y;
+    k.octave = static_cast<std::uint8_t>(s.keypoints[i].octave);
+    k.angle_deg = s.keypoints[i].angle;
+    k.depth_m = s.depth[i];
+    k.map_point = s.point_ids[i];
+    // Only unlinked keypoints carry their descriptor; a linked one's is its map point's.
+    if (!k.map_point) std::memcpy(k.descriptor.data(), s.descriptors.ptr<std::uint8_t>(static_cast<int>(i)), 32);
+  }
+  for (const auto& p : s.new_points) {
+    NewMapPoint n;
+    n.id = p.id;
+    n.p_cam = {static_cast<float>(p.position_cam.x()), static_cast<float>(p.position_cam.y()),
+               static_cast<float>(p.position_cam.z())};
+    n.descriptor = p.descriptor;
+    m.new_map_points.push_back(n);
+  }
+  for (const auto& [id, weight] : s.covisibility) {
+    m.covisibility.push_back({id, static_cast<std::uint32_t>(weight)});
+  }
+  if (s.has_rgbd) {
+    RgbdFrame frame;
+    frame.bgr = s.bgr;
+    frame.depth_mm = s.depth_mm;
+    frame.timestamp = s.timestamp;
+    CCMD_ASSIGN_OR_RETURN(m.rgbd, EncodeRgbdPayload(frame, rgbd_options));
+  }
+  return m;
+}
+
+PoseUpdateMessage ToPoseUpdateMessage(const std::vector<PoseUpdate>& updates) {
+  PoseUpdateMessage m;
+  for (const PoseUpdate& u : updates) m.entries.push_back({u.id, ToWirePose(u.T_world_cam)});
+  return m;
+}
+
+}  // namespace ccmd
