@@ -1,0 +1,82 @@
+#include "libccmd/codec/depth_downsample.h"
+
+#include <algorithm>
+#include <cstdint>
+#include <string>
+
+namespace ccmd {
+
+const char* DownsampleMethodName(DownsampleMethod method) {
+  switch (method) {
+    case DownsampleMethod::kMedianValid:
+      return "median-valid";
+    case DownsampleMethod::kNearestValid:
+      return "nearest-valid";
+    case DownsampleMethod::kTopLeft:
+      return "top-left";
+  }
+  return "?";
+}
+
+int DownsampleFactorForRate(double r) {
+  if (r == 1.0) return 1;
+  if (r == 0.5) return 2;
+  if (r == 0.25) return 4;
+  return 0;
+}
+
+namespace {
+
+// Sorts up to 16 values in place (insertion sort: tiny inputs, branch-predictable).
+void SortSmall(std::uint16_t* v, int n) {
+  for (int i = 1; i < n; ++i) {
+    const std::uint16_t x = v[i];
+    int j = i - 1;
+    while (j >= 0 && v[j] > x) {
+      v[j + 1] = v[j];
+      --j;
+    }
+    v[j + 1] = x;
+  }
+}
+
+}  // namespace
+
+StatusOr<cv::Mat> DownsampleDepth(const cv::Mat& depth_mm, int factor, DownsampleMethod method) {
+  if (depth_mm.type() != CV_16UC1) return InvalidArgument("depth must be CV_16UC1 millimetres");
+  if (factor != 1 && factor != 2 && factor != 4) {
+    return InvalidArgument("downsample factor must be 1, 2 or 4, not " + std::to_string(factor));
+  }
+  if (factor == 1) return depth_mm.clone();
+  const int out_w = depth_mm.cols / factor;
+  const int out_h = depth_mm.rows / factor;
+  cv::Mat out(out_h, out_w, CV_16UC1);
+  std::uint16_t block[16];
+  for (int y = 0; y < out_h; ++y) {
+    std::uint16_t* dst = out.ptr<std::uint16_t>(y);
+    for (int x = 0; x < out_w; ++x) {
+      if (method == DownsampleMethod::kTopLeft) {
+        dst[x] = depth_mm.ptr<std::uint16_t>(y * factor)[x * factor];
+        continue;
+      }
+      int n = 0;
+      for (int dy = 0; dy < factor; ++dy) {
+        const std::uint16_t* src = depth_mm.ptr<std::uint16_t>(y * factor + dy) + x * factor;
+        for (int dx = 0; dx < factor; ++dx) {
+          if (src[dx] != 0) block[n++] = src[dx];
+        }
+      }
+      if (n == 0) {
+        dst[x] = 0;
+      } else if (method == DownsampleMethod::kNearestValid) {
+        dst[x] = *std::min_element(block, block + n);
+      } else {
+        SortSmall(block, n);
+        dst[x] = block[(n - 1) / 2];
+      }
+    }
+  }
+  return out;
+}
+
+}  // namespace ccmd

@@ -1,0 +1,42 @@
+#pragma once
+
+// Packing a keyframe's colour and depth into the wire format's RGB-D payload
+// (proto/messages.h) and unpacking it: the depth bitstream of depth_codec.h and the JPEG of
+// colour_codec.h, both at the same sampling rate r.
+
+#include <string>
+
+#include "libccmd/codec/colour_codec.h"
+#include "libccmd/codec/depth_codec.h"
+#include "libccmd/io/rgbd_frame.h"
+#include "libccmd/util/status.h"
+#include "proto/messages.h"
+
+namespace ccmd {
+
+struct RgbdEncodeOptions {
+  int downsample = 2;  // 1, 2, 4: r = 1, 0.5, 0.25 for both images
+  DepthMode depth_mode = DepthMode::kBounded;
+  int bound_e4 = kDefaultBoundE4;  // ccmd-bounded
+  int jpeg_quality = 75;
+  std::string Check() const;  // empty if valid
+};
+
+struct RgbdDecodeOptions {
+  std::uint32_t max_pixels = 4096u * 4096u;  // per image
+};
+
+// frame.depth_mm must be CV_16UC1 and frame.bgr CV_8UC3 (any size; resized to the depth's).
+StatusOr<RgbdPayload> EncodeRgbdPayload(const RgbdFrame& frame, const RgbdEncodeOptions& options);
+
+struct DecodedRgbd {
+  cv::Mat bgr;       // CV_8UC3, the depth's size
+  cv::Mat depth_mm;  // CV_16UC1
+  int downsample = 1;
+};
+
+// Checks that the two images agree in size and with the payload's sampling rate and mode.
+StatusOr<DecodedRgbd> DecodeRgbdPayload(const RgbdPayload& payload,
+                                        const RgbdDecodeOptions& options = {});
+
+}  // namespace ccmd
