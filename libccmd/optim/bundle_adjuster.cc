@@ -4,6 +4,7 @@
 
 #include <cmath>
 
+#include "libccmd/util/logging.h"
 #include "libccmd/util/timer.h"
 
 namespace ccmd {
@@ -27,7 +28,7 @@ bool IsOutlier(const BaObservation& o, const Intrinsics& k, const Pose& T, const
 
 }  // namespace
 
-BaSummary BundleAdjust(BaProblem* problem, const Intrinsics& intrinsics, const BaOptions& options) {
+BaSummary BundleAdjust(BaProblem* problem, const BaOptions& options) {
   const Stopwatch watch;
   BaSummary summary;
   const std::size_t num_obs = problem->observations.size();
@@ -35,6 +36,10 @@ BaSummary BundleAdjust(BaProblem* problem, const Intrinsics& intrinsics, const B
   if (problem->cameras.empty() || problem->points.empty() || num_obs == 0) {
     summary.message = "empty problem";
     return summary;
+  }
+  for (const BaCamera& c : problem->cameras) {
+    CCMD_CHECK(c.calibration >= 0 && c.calibration < static_cast<int>(problem->calibrations.size()))
+        << "camera without calibration";
   }
   std::vector<Eigen::Quaterniond> q(problem->cameras.size());
   std::vector<Eigen::Vector3d> t(problem->cameras.size());
@@ -56,6 +61,7 @@ BaSummary BundleAdjust(BaProblem* problem, const Intrinsics& intrinsics, const B
     for (std::size_t i = 0; i < num_obs; ++i) {
       if (summary.outlier[i]) continue;
       const BaObservation& o = problem->observations[i];
+      const Intrinsics& intrinsics = problem->calibrations[problem->cameras[o.camera].calibration];
       const ReprojectionResidual residual(intrinsics, o.uv, o.depth, std::sqrt(o.information),
                                           std::sqrt(o.depth_information));
       ceres::CostFunction* cost =
@@ -117,7 +123,8 @@ BaSummary BundleAdjust(BaProblem* problem, const Intrinsics& intrinsics, const B
       Pose T = Pose::Identity();
       T.linear() = q[o.camera].normalized().toRotationMatrix();
       T.translation() = t[o.camera];
-      summary.outlier[i] = IsOutlier(o, intrinsics, T, problem->points[o.point].position);
+      summary.outlier[i] = IsOutlier(o, problem->calibrations[problem->cameras[o.camera].calibration], T,
+                                     problem->points[o.point].position);
       summary.outliers += summary.outlier[i];
     }
     if (summary.aborted) break;

@@ -18,6 +18,7 @@ namespace ccmd {
 struct BaCamera {
   Pose T_cam_world = Pose::Identity();
   bool fixed = false;
+  int calibration = 0;  // index into BaProblem::calibrations (agents may differ)
 };
 
 struct BaPoint {
@@ -34,6 +35,7 @@ struct BaObservation {
 };
 
 struct BaProblem {
+  std::vector<Intrinsics> calibrations;  // at least one
   std::vector<BaCamera> cameras;
   std::vector<BaPoint> points;
   std::vector<BaObservation> observations;
@@ -61,6 +63,6 @@ struct BaSummary {
 };
 
 // Optimises problem->cameras (non-fixed) and problem->points in place.
-BaSummary BundleAdjust(BaProblem* problem, const Intrinsics& intrinsics, const BaOptions& options);
+BaSummary BundleAdjust(BaProblem* problem, const BaOptions& options);
 
 }  // namespace ccmd

@@ -252,8 +252,8 @@ void LocalMapper::LocalBundleAdjustment(Keyframe* keyframe) {
 
   BaOptions ba_options;
   ba_options.abort = &abort_ba_;
-  const Intrinsics k{camera_.fx, camera_.fy, camera_.cx, camera_.cy};
-  const BaSummary summary = BundleAdjust(&problem, k, ba_options);
+  problem.calibrations = {Intrinsics{camera_.fx, camera_.fy, camera_.cx, camera_.cy}};
+  const BaSummary summary = BundleAdjust(&problem, ba_options);
 
   {
     std::lock_guard<std::mutex> lock(map_->mutex());

@@ -28,6 +28,7 @@ Scene MakeScene(double pixel_noise, Rng* rng) {
   for (int j = 0; j < 150; ++j) {
     s.points.emplace_back(rng->Uniform(-1, 2), rng->Uniform(-1, 1), rng->Uniform(2.5, 4));
   }
+  s.problem.calibrations = {kCamera};
   for (const Pose& T : s.T_cam_world) s.problem.cameras.push_back({T, false});
   for (const auto& p : s.points) s.problem.points.push_back({p});
   for (int c = 0; c < 5; ++c) {
@@ -68,7 +69,7 @@ TEST(BundleAdjusterTest, FixesAPerturbedKeyframeAndLowersReprojectionError) {
   s.problem.cameras[3].T_cam_world = delta * s.problem.cameras[3].T_cam_world;
   for (auto& p : s.problem.points) p.position += Eigen::Vector3d(rng.Uniform(-0.02, 0.02), rng.Uniform(-0.02, 0.02), rng.Uniform(-0.02, 0.02));
   const double before = MeanReprojection(s.problem);
-  const BaSummary summary = BundleAdjust(&s.problem, kCamera, BaOptions());
+  const BaSummary summary = BundleAdjust(&s.problem, BaOptions());
   const double after = MeanReprojection(s.problem);
   EXPECT_LT(after, before / 5);
   EXPECT_LT(after, 1.0);  // pixel noise is 0.5 px
@@ -89,7 +90,7 @@ TEST(BundleAdjusterTest, MarksWrongObservationsAsOutliers) {
     s.problem.observations[i].uv += Eigen::Vector2d(25, -30);
     corrupted.push_back(static_cast<int>(i));
   }
-  const BaSummary summary = BundleAdjust(&s.problem, kCamera, BaOptions());
+  const BaSummary summary = BundleAdjust(&s.problem, BaOptions());
   for (int i : corrupted) EXPECT_TRUE(summary.outlier[i]) << i;
   EXPECT_LE(summary.outliers, static_cast<int>(corrupted.size()) + 3);
 }
@@ -102,7 +103,7 @@ TEST(BundleAdjusterTest, AbortFlagStopsTheSolver) {
   std::atomic<bool> abort{true};
   BaOptions options;
   options.abort = &abort;
-  const BaSummary summary = BundleAdjust(&s.problem, kCamera, options);
+  const BaSummary summary = BundleAdjust(&s.problem, options);
   EXPECT_TRUE(summary.aborted);
   EXPECT_LE(summary.iterations, 2);
 }
@@ -113,10 +114,10 @@ TEST(BundleAdjusterTest, SparseSchurGivesTheSameSolution) {
   a.problem.cameras[0].fixed = true;
   a.problem.cameras[2].T_cam_world.translation() += Eigen::Vector3d(0.03, 0, 0);
   Scene b = a;
-  BundleAdjust(&a.problem, kCamera, BaOptions());
+  BundleAdjust(&a.problem, BaOptions());
   BaOptions sparse;
   sparse.solver = BaLinearSolver::kSparseSchur;
-  BundleAdjust(&b.problem, kCamera, sparse);
+  BundleAdjust(&b.problem, sparse);
   EXPECT_LT(TranslationDistance(a.problem.cameras[2].T_cam_world, b.problem.cameras[2].T_cam_world), 1e-6);
 }
 
