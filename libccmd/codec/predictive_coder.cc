@@ -235,9 +235,10 @@ Status DecodePredictive(std::span<const std::uint8_t> in, int width, int height,
   CCMD_RETURN_IF_ERROR(dec.Init(in, kContexts, kAlphabet, &used));
   ByteReader r(in.subspan(used));
   std::uint64_t raw_size;
-  CCMD_RETURN_IF_ERROR(r.ReadVarintAtMost(r.remaining(), &raw_size, "raw bit stream size"));
-  BitReader bit_reader(r.current(), raw_size);
-  CCMD_RETURN_IF_ERROR(r.Skip(raw_size));
+  CCMD_RETURN_IF_ERROR(r.ReadVarint(&raw_size));
+  std::span<const std::uint8_t> raw;
+  CCMD_RETURN_IF_ERROR(r.ReadBytes(raw_size, &raw));  // checks the bytes are there
+  BitReader bit_reader(raw.data(), raw.size());
   TansDecoder::Cursor tans = dec.cursor();
   BitReader::Cursor bits = bit_reader.cursor();
   const SymbolTable& symbols = Symbols();
