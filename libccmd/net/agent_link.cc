@@ -1,0 +1,571 @@
+#include "libccmd/net/agent_link.h"
+
+#include <poll.h>
+#include <sys/socket.h>
+
+#include <algorithm>
+#include <cerrno>
+#include <chrono>
+#include <cmath>
+#include <cstring>
+#include <functional>
+
+#include "libccmd/net/psk.h"
+#include "libccmd/util/logging.h"
+#include "libccmd/util/random.h"
+#include "libccmd/util/timer.h"
+
+namespace ccmd {
+namespace {
+
+constexpr std::size_t kReadChunk = 64 << 10;
+// Frames prepared for writing at a time: enough to keep the socket busy, small enough that
+// an ack is read between batches.
+constexpr std::size_t kOutputBatch = 256 << 10;
+constexpr double kByeLingerSeconds = 1.0;
+// A server rejecting our frames this many times in a row will not change its mind.
+constexpr int kMaxProtocolErrorsInARow = 5;
+
+int PollMillis(double seconds) {
+  return static_cast<int>(std::clamp(std::ceil(seconds * 1e3), 0.0, 1e6));
+}
+
+// What a server's Bye means for the link: terminal configuration errors, or retry.
+Status StatusFromBye(const ByeMessage& bye) {
+  const std::string text = std::string("server closed the session (") +
+                           ByeReasonName(bye.reason) + ")" +
+                           (bye.text.empty() ? "" : ": " + bye.text);
+  switch (bye.reason) {
+    case ByeReason::kAuthFailed:
+    case ByeReason::kKeyMismatch:
+      return PermissionDenied(text);
+    case ByeReason::kUnsupportedVersion:
+      return Unsupported(text);
+    case ByeReason::kRefused:
+      return InvalidArgument(text);
+    case ByeReason::kProtocolError:
+      return Corrupt(text);
+    default:
+      return Unavailable(text);
+  }
+}
+
+bool IsTerminal(const Status& s) {
+  return s.code() == StatusCode::kPermissionDenied || s.code() == StatusCode::kUnsupported ||
+         s.code() == StatusCode::kInvalidArgument;
+}
+
+}  // namespace
+
+Status AgentLinkOptions::Validate() const {
+  CCMD_RETURN_IF_ERROR(ParseHostPort(server).status());
+  CCMD_RETURN_IF_ERROR(ValidateAgentName(name));
+  CCMD_RETURN_IF_ERROR(ValidateSessionCamera(camera));
+  if (!psk.empty() && psk.size() < kMinPskBytes) {
+    return InvalidArgument("the pre-shared key needs at least " + std::to_string(kMinPskBytes) +
+                           " bytes");
+  }
+  if (memory_limit_bytes == 0) return InvalidArgument("memory_limit_bytes must be positive");
+  if (!(connect_timeout_s > 0) || !(handshake_timeout_s > 0) || !(heartbeat_interval_s > 0)) {
+    return InvalidArgument("time-outs must be positive");
+  }
+  if (!(backoff_initial_s > 0) || backoff_max_s < backoff_initial_s) {
+    return InvalidArgument("backoff needs 0 < initial <= max");
+  }
+  return Status::Ok();
+}
+
+StatusOr<std::unique_ptr<AgentLink>> AgentLink::Create(AgentLinkOptions options) {
+  CCMD_RETURN_IF_ERROR(options.Validate());
+  CCMD_ASSIGN_OR_RETURN(HostPort address, ParseHostPort(options.server));
+  std::unique_ptr<SpillStore> spill;
+  if (!options.spill_dir.empty()) {
+    CCMD_ASSIGN_OR_RETURN(spill, SpillStore::Open(options.spill_dir, options.spill_limit_bytes));
+  }
+  std::unique_ptr<AgentLink> link(
+      new AgentLink(std::move(options), std::move(address), std::move(spill)));
+  if (!link->wake_.valid()) return IoError("eventfd: " + std::string(std::strerror(errno)));
+  link->thread_ = std::thread([l = link.get()] { l->Run(); });
+  return link;
+}
+
+AgentLink::AgentLink(AgentLinkOptions options, HostPort address,
+                     std::unique_ptr<SpillStore> spill)
+    : options_(std::move(options)), address_(std::move(address)), spill_(std::move(spill)) {}
+
+AgentLink::~AgentLink() { Close(); }
+
+void AgentLink::Close() {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (closed_) return;
+    closed_ = true;
+    stopping_ = true;
+  }
+  cv_.notify_all();
+  wake_.Signal();
+  if (thread_.joinable()) thread_.join();
+}
+
+StatusOr<std::uint64_t> AgentLink::Send(std::uint8_t type, std::vector<std::uint8_t> message) {
+  if (!IsDataType(type)) {
+    return InvalidArgument("type " + std::to_string(type) + " is not a data message type");
+  }
+  std::uint64_t local;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (!terminal_.ok()) return terminal_;
+    if (stopping_) return Cancelled("the link is closed");
+    if (message.size() > max_message_bytes_) {
+      return InvalidArgument("message of " + std::to_string(message.size()) +
+                             " bytes exceeds the server's limit of " +
+                             std::to_string(max_message_bytes_));
+    }
+    local = next_local_;
+    const bool fits = memory_.empty() || memory_bytes_ + message.size() <= options_.memory_limit_bytes;
+    if ((spill_ && !spill_->empty()) || !fits) {
+      if (!spill_) {
+        return OutOfRange("resend buffer full: " + std::to_string(memory_bytes_) +
+                          " bytes unacknowledged (memory limit " +
+                          std::to_string(options_.memory_limit_bytes) + ", no spill folder)");
+      }
+      CCMD_RETURN_IF_ERROR(spill_->Push(type, local, message));
+      ++stats_.spilled;
+    } else {
+      memory_bytes_ += message.size();
+      memory_.push_back(
+          Entry{local, type, std::make_shared<const std::vector<std::uint8_t>>(std::move(message))});
+    }
+    ++next_local_;
+    ++stats_.queued;
+  }
+  wake_.Signal();
+  return local;
+}
+
+Status AgentLink::Flush(double timeout_s) {
+  std::unique_lock<std::mutex> lock(mutex_);
+  const bool done = cv_.wait_for(lock, std::chrono::duration<double>(timeout_s), [&] {
+    return acked_local_ + 1 == next_local_ || !terminal_.ok() || stopping_;
+  });
+  if (!terminal_.ok()) return terminal_;
+  if (acked_local_ + 1 == next_local_) return Status::Ok();
+  if (!done) {
+    return Timeout(std::to_string(next_local_ - 1 - acked_local_) +
+                   " messages still unacknowledged after " + std::to_string(timeout_s) + " s" +
+                   (stats_.last_error.empty() ? "" : " (last error: " + stats_.last_error + ")"));
+  }
+  return Cancelled("the link is closed");
+}
+
+AgentLinkStats AgentLink::stats() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  AgentLinkStats s = stats_;
+  s.acked = acked_local_;
+  s.unacked = next_local_ - 1 - acked_local_;
+  s.memory_bytes = memory_bytes_;
+  s.spill_bytes = spill_ ? spill_->disk_bytes() : 0;
+  return s;
+}
+
+Status AgentLink::status() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return terminal_;
+}
+
+void AgentLink::RefillLocked() {
+  while (spill_ && !spill_->empty() &&
+         (memory_.empty() ||
+          memory_bytes_ + spill_->front_message_bytes() <= options_.memory_limit_bytes)) {
+    StatusOr<SpilledMessage> m = spill_->Pop();
+    if (!m.ok()) {
+      terminal_ = m.status().WithContext("reading back spilled messages");
+      return;
+    }
+    memory_bytes_ += m->message.size();
+    memory_.push_back(Entry{m->seq, m->type,
+                            std::make_shared<const std::vector<std::uint8_t>>(std::move(m->message))});
+  }
+}
+
+void AgentLink::ReleaseLocked(std::uint64_t last) {
+  while (!memory_.empty() && memory_.front().local <= last) {
+    memory_bytes_ -= memory_.front().message->size();
+    memory_.pop_front();
+  }
+  acked_local_ = last;
+  RefillLocked();
+}
+
+void AgentLink::Run() {
+  double backoff = options_.backoff_initial_s;
+  std::hash<std::string> hash;
+  Rng rng(options_.jitter_seed ^ hash(options_.name));
+  std::string last_logged;
+  while (true) {
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      if (stopping_) break;
+    }
+    const Status s = Session(&backoff);
+    double wait = 0;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      stats_.connected = false;
+      if (stopping_) break;
+      ++stats_.failed_attempts;
+      stats_.last_error = s.ToString();
+      if (s.code() == StatusCode::kCorrupt) {
+        ++protocol_errors_in_a_row_;
+      }
+      if (IsTerminal(s) || protocol_errors_in_a_row_ >= kMaxProtocolErrorsInARow) {
+        terminal_ = s;
+        CCMD_LOG(ERROR) << "agent '" << options_.name << "': link to " << options_.server
+                        << " stopped: " << s.ToString();
+        cv_.notify_all();
+        break;
+      }
+      // Full jitter within [backoff/2, backoff]: agents that lost the server together do not
+      // come back in lock step.
+      wait = backoff * (0.5 + 0.5 * rng.Uniform());
+      backoff = std::min(backoff * 2, options_.backoff_max_s);
+    }
+    if (s.ToString() != last_logged) {
+      CCMD_LOG(WARNING) << "agent '" << options_.name << "': " << s.ToString()
+                        << "; retrying (backoff up to " << options_.backoff_max_s << " s)";
+      last_logged = s.ToString();
+    }
+    std::unique_lock<std::mutex> lock(mutex_);
+    cv_.wait_for(lock, std::chrono::duration<double>(wait), [&] { return stopping_; });
+  }
+}
+
+Status AgentLink::WriteBlocking(int fd, ByteSpan bytes, double deadline, bool interruptible) {
+  std::size_t done = 0;
+  while (done < bytes.size()) {
+    CCMD_ASSIGN_OR_RETURN(const std::size_t n,
+                          WriteSome(fd, bytes.data() + done, bytes.size() - done));
+    done += n;
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      stats_.bytes_sent += n;
+    }
+    if (done == bytes.size()) break;
+    const double left = deadline - MonotonicSeconds();
+    if (left <= 0) return Timeout("writing to the server timed out");
+    pollfd fds[2] = {{fd, POLLOUT, 0}, {wake_.fd(), POLLIN, 0}};
+    if (::poll(fds, interruptible ? 2 : 1, PollMillis(left)) < 0 && errno != EINTR) {
+      return IoError(std::string("poll: ") + std::strerror(errno));
+    }
+    if (interruptible && (fds[1].revents & POLLIN)) {
+      wake_.Drain();
+      std::lock_guard<std::mutex> lock(mutex_);
+      if (stopping_) return Cancelled("link closing");
+    }
+  }
+  return Status::Ok();
+}
+
+StatusOr<Frame> AgentLink::ReadFrameBlocking(int fd, FrameDecoder* decoder,
+                                             std::deque<Frame>* inbox, double deadline) {
+  std::vector<std::uint8_t> buffer(kReadChunk);
+  std::vector<Frame> frames;
+  while (inbox->empty()) {
+    const double left = deadline - MonotonicSeconds();
+    if (left <= 0) return Timeout("the server did not answer the handshake in time");
+    pollfd fds[2] = {{fd, POLLIN, 0}, {wake_.fd(), POLLIN, 0}};
+    if (::poll(fds, 2, PollMillis(left)) < 0 && errno != EINTR) {
+      return IoError(std::string("poll: ") + std::strerror(errno));
+    }
+    if (fds[1].revents & POLLIN) {
+      wake_.Drain();
+      std::lock_guard<std::mutex> lock(mutex_);
+      if (stopping_) return Cancelled("link closing");
+    }
+    if (!(fds[0].revents & (POLLIN | POLLHUP | POLLERR))) continue;
+    StatusOr<std::size_t> n = ReadSome(fd, buffer.data(), buffer.size());
+    if (!n.ok()) {
+      if (n.status().code() == StatusCode::kEndOfStream) {
+        return Unavailable("the server closed the connection during the handshake");
+      }
+      return n.status();
+    }
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      stats_.bytes_received += *n;
+    }
+    frames.clear();
+    const Status fed = decoder->Feed(ByteSpan(buffer.data(), *n), &frames);
+    for (Frame& f : frames) inbox->push_back(std::move(f));
+    if (!fed.ok() && inbox->empty()) return fed.WithContext("from the server");
+  }
+  Frame f = std::move(inbox->front());
+  inbox->pop_front();
+  return f;
+}
+
+Status AgentLink::Session(double* backoff) {
+  CCMD_ASSIGN_OR_RETURN(UniqueFd socket,
+                        ConnectTcp(address_, options_.connect_timeout_s, wake_.fd(), [this] {
+                          std::lock_guard<std::mutex> lock(mutex_);
+                          return stopping_;
+                        }));
+  FrameDecoder decoder(FrameLimits{.max_payload_bytes = kDefaultMaxPayloadBytes});
+  std::deque<Frame> inbox;
+  double idle_timeout_s = 30;
+  CCMD_RETURN_IF_ERROR(Handshake(socket.get(), &decoder, &inbox, &idle_timeout_s));
+  *backoff = options_.backoff_initial_s;
+  return Stream(socket.get(), &decoder, &inbox, idle_timeout_s);
+}
+
+Status AgentLink::Handshake(int fd, FrameDecoder* decoder, std::deque<Frame>* inbox,
+                            double* idle_timeout_s) {
+  const double deadline = MonotonicSeconds() + options_.handshake_timeout_s;
+  HelloMessage hello;
+  hello.name = options_.name;
+  hello.camera = options_.camera;
+  CCMD_RETURN_IF_ERROR(RandomNonce(&hello.agent_nonce));
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    hello.fresh = !welcomed_once_;
+    hello.first_seq = acked_local_ + 1 + offset_;
+    hello.next_seq = next_local_ + offset_;
+  }
+  CCMD_RETURN_IF_ERROR(
+      WriteBlocking(fd, EncodeSessionFrame(SessionType::kHello, SerializeHello(hello)), deadline));
+
+  auto expect = [&](SessionType type) -> StatusOr<Frame> {
+    CCMD_ASSIGN_OR_RETURN(Frame f, ReadFrameBlocking(fd, decoder, inbox, deadline));
+    if (f.type == static_cast<std::uint8_t>(SessionType::kBye)) {
+      StatusOr<ByeMessage> bye = ParseBye(f.payload);
+      if (!bye.ok()) return bye.status().WithContext("server's bye");
+      return StatusFromBye(*bye);
+    }
+    if (f.type != static_cast<std::uint8_t>(type)) {
+      return Corrupt("the server sent message type " + std::to_string(f.type) +
+                     " during the handshake");
+    }
+    return f;
+  };
+  auto refuse = [&](const std::string& text, ByeReason reason) {
+    const std::vector<std::uint8_t> bye =
+        EncodeSessionFrame(SessionType::kBye, SerializeBye({reason, text}));
+    WriteBlocking(fd, bye, deadline).IgnoreError();
+    return PermissionDenied(text);
+  };
+
+  CCMD_ASSIGN_OR_RETURN(const Frame challenge_frame, expect(SessionType::kChallenge));
+  CCMD_ASSIGN_OR_RETURN(const ChallengeMessage challenge, ParseChallenge(challenge_frame.payload));
+  if (challenge.key_required && options_.psk.empty()) {
+    return refuse(
+        "the server requires a pre-shared key and this agent has none: give it the "
+        "deployment's key with --psk-file FILE or the environment variable CCMD_PSK",
+        ByeReason::kKeyMismatch);
+  }
+  if (!challenge.key_required && !options_.psk.empty()) {
+    return refuse(
+        "this agent has a pre-shared key but the server runs without one, so it cannot prove "
+        "who it is; start the server with the same key (or run both without a key on "
+        "loopback)",
+        ByeReason::kKeyMismatch);
+  }
+  AuthMessage auth;
+  if (!options_.psk.empty()) {
+    auth.proof = AgentProof(options_.psk, challenge.server_nonce, hello.agent_nonce, hello.name);
+  }
+  CCMD_RETURN_IF_ERROR(
+      WriteBlocking(fd, EncodeSessionFrame(SessionType::kAuth, SerializeAuth(auth)), deadline));
+
+  CCMD_ASSIGN_OR_RETURN(const Frame welcome_frame, expect(SessionType::kWelcome));
+  CCMD_ASSIGN_OR_RETURN(const WelcomeMessage welcome, ParseWelcome(welcome_frame.payload));
+  if (!options_.psk.empty()) {
+    const Mac expected = ServerProof(options_.psk, hello.agent_nonce, challenge.server_nonce,
+                                     welcome.agent.value(), welcome.last_stored_seq);
+    if (!welcome.server_proof || !ConstantTimeEquals(expected, *welcome.server_proof)) {
+      return refuse("the server could not prove it has the pre-shared key (wrong key on the "
+                    "server, or not a CCMD server)",
+                    ByeReason::kAuthFailed);
+    }
+  }
+  *idle_timeout_s = std::max(0.1, welcome.idle_timeout_ms / 1e3);
+
+  std::uint64_t released_first = 0, released_last = 0;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (!welcomed_once_) {
+      // A fresh link continues the numbering the server has for this agent name.
+      offset_ = welcome.last_stored_seq - acked_local_;
+      welcomed_once_ = true;
+    } else {
+      const std::uint64_t last_local =
+          welcome.last_stored_seq >= offset_ ? welcome.last_stored_seq - offset_ : 0;
+      if (last_local >= next_local_) {
+        return Corrupt("the server says it stored message " +
+                       std::to_string(welcome.last_stored_seq) + ", beyond what this agent sent");
+      }
+      if (last_local > acked_local_) {
+        released_first = acked_local_ + 1;
+        released_last = last_local;
+        ReleaseLocked(last_local);
+      }
+    }
+    max_message_bytes_ = welcome.max_payload_bytes - kDataEnvelopeBytes;
+    stats_.connected = true;
+    stats_.agent = welcome.agent;
+    ++stats_.sessions;
+    next_send_ = acked_local_ + 1;
+    protocol_errors_in_a_row_ = 0;
+  }
+  cv_.notify_all();
+  if (released_last > 0 && options_.on_acked) options_.on_acked(released_first, released_last);
+  CCMD_LOG(INFO) << "agent '" << options_.name << "' connected to " << options_.server
+                 << " as agent " << welcome.agent << "; server stored up to message "
+                 << welcome.last_stored_seq;
+  return Status::Ok();
+}
+
+Status AgentLink::HandleServerFrame(const Frame& frame) {
+  switch (frame.type) {
+    case static_cast<std::uint8_t>(SessionType::kAck): {
+      CCMD_ASSIGN_OR_RETURN(const AckMessage ack, ParseAck(frame.payload));
+      std::uint64_t first = 0, last = 0;
+      {
+        std::lock_guard<std::mutex> lock(mutex_);
+        if (ack.last_stored_seq < offset_) break;
+        const std::uint64_t local = ack.last_stored_seq - offset_;
+        if (local > highest_sent_) {
+          return Corrupt("the server acknowledged message " +
+                         std::to_string(ack.last_stored_seq) + " which was never sent");
+        }
+        if (local <= acked_local_) break;
+        first = acked_local_ + 1;
+        last = local;
+        ReleaseLocked(local);
+        protocol_errors_in_a_row_ = 0;
+      }
+      cv_.notify_all();
+      if (options_.on_acked) options_.on_acked(first, last);
+      break;
+    }
+    case static_cast<std::uint8_t>(SessionType::kHeartbeat):
+      CCMD_RETURN_IF_ERROR(ParseHeartbeat(frame.payload));
+      break;
+    case static_cast<std::uint8_t>(SessionType::kBye): {
+      CCMD_ASSIGN_OR_RETURN(const ByeMessage bye, ParseBye(frame.payload));
+      return StatusFromBye(bye);
+    }
+    default:
+      if (IsKnownDataType(frame.type)) {
+        // Messages from the server to agents are not used yet: accepted and ignored.
+        CCMD_LOG(DEBUG) << "ignoring a data message of type " << int{frame.type}
+                        << " from the server";
+        break;
+      }
+      return Corrupt("unexpected message type " + std::to_string(frame.type) +
+                     " from the server");
+  }
+  return Status::Ok();
+}
+
+Status AgentLink::Stream(int fd, FrameDecoder* decoder, std::deque<Frame>* inbox,
+                         double idle_timeout_s) {
+  const double heartbeat = std::min(options_.heartbeat_interval_s, idle_timeout_s / 3);
+  std::vector<std::uint8_t> out;
+  std::size_t out_pos = 0;
+  std::vector<std::uint8_t> buffer(kReadChunk);
+  std::vector<Frame> frames;
+  double last_rx = MonotonicSeconds();
+  double last_tx = last_rx;
+  while (true) {
+    while (!inbox->empty()) {
+      Frame f = std::move(inbox->front());
+      inbox->pop_front();
+      CCMD_RETURN_IF_ERROR(HandleServerFrame(f));
+    }
+    // Fill the output with the next messages in order.
+    if (out_pos == out.size()) {
+      out.clear();
+      out_pos = 0;
+    }
+    {
+      std::unique_lock<std::mutex> lock(mutex_);
+      if (stopping_) {
+        lock.unlock();
+        // Finish the frame in progress, then say bye, so the server logs an orderly end.
+        AppendFrame(static_cast<std::uint8_t>(SessionType::kBye), 0,
+                    SerializeBye({ByeReason::kNormal, "agent closing"}), &out);
+        WriteBlocking(fd, ByteSpan(out).subspan(out_pos), MonotonicSeconds() + kByeLingerSeconds,
+                      /*interruptible=*/false)
+            .IgnoreError();
+        return Cancelled("link closing");
+      }
+      if (!terminal_.ok()) return terminal_;
+      while (out.size() - out_pos < kOutputBatch && !memory_.empty()) {
+        const std::uint64_t index = next_send_ - memory_.front().local;
+        if (index >= memory_.size()) break;
+        const Entry& e = memory_[index];
+        AppendDataFrame(e.type, e.local + offset_, *e.message, &out);
+        if (e.local <= highest_sent_) ++stats_.resent;
+        highest_sent_ = std::max(highest_sent_, e.local);
+        ++stats_.frames_sent;
+        ++next_send_;
+      }
+    }
+    double now = MonotonicSeconds();
+    if (out_pos == out.size() && now - last_tx >= heartbeat) {
+      AppendFrame(static_cast<std::uint8_t>(SessionType::kHeartbeat), 0, {}, &out);
+    }
+    const bool writing = out_pos < out.size();
+    const double next_deadline = std::min(last_rx + idle_timeout_s, last_tx + heartbeat);
+    pollfd fds[2] = {{fd, static_cast<short>(POLLIN | (writing ? POLLOUT : 0)), 0},
+                     {wake_.fd(), POLLIN, 0}};
+    if (::poll(fds, 2, PollMillis(next_deadline - now)) < 0 && errno != EINTR) {
+      return IoError(std::string("poll: ") + std::strerror(errno));
+    }
+    if (fds[1].revents & POLLIN) wake_.Drain();
+    if (fds[0].revents & (POLLIN | POLLHUP | POLLERR)) {
+      StatusOr<std::size_t> n = ReadSome(fd, buffer.data(), buffer.size());
+      if (!n.ok()) {
+        if (n.status().code() == StatusCode::kEndOfStream) {
+          return Unavailable("the server closed the connection");
+        }
+        return n.status();
+      }
+      if (*n > 0) {
+        last_rx = MonotonicSeconds();
+        {
+          std::lock_guard<std::mutex> lock(mutex_);
+          stats_.bytes_received += *n;
+        }
+        frames.clear();
+        const Status fed = decoder->Feed(ByteSpan(buffer.data(), *n), &frames);
+        for (Frame& f : frames) inbox->push_back(std::move(f));
+        if (!fed.ok()) {
+          // Handle what arrived intact first (a bye explains more than the bad frame).
+          while (!inbox->empty()) {
+            Frame f = std::move(inbox->front());
+            inbox->pop_front();
+            CCMD_RETURN_IF_ERROR(HandleServerFrame(f));
+          }
+          return fed.WithContext("from the server");
+        }
+      }
+    }
+    if (writing && (fds[0].revents & POLLOUT)) {
+      StatusOr<std::size_t> n = WriteSome(fd, out.data() + out_pos, out.size() - out_pos);
+      if (!n.ok()) return n.status();
+      out_pos += *n;
+      if (*n > 0) {
+        last_tx = MonotonicSeconds();
+        std::lock_guard<std::mutex> lock(mutex_);
+        stats_.bytes_sent += *n;
+      }
+    }
+    if (MonotonicSeconds() - last_rx >= idle_timeout_s) {
+      return Timeout("nothing heard from the server for " + std::to_string(idle_timeout_s) +
+                     " s");
+    }
+  }
+}
+
+}  // namespace ccmd

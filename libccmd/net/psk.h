@@ -1,0 +1,61 @@
+#pragma once
+
+// Pre-shared key authentication. A deployment has one key, given to the server and every
+// agent as a file (--psk-file) or in the environment (CCMD_PSK). The key never crosses the
+// wire: each side proves it knows the key by an HMAC-SHA256 over both sides' random nonces
+// (challenge-response, in both directions; PROTOCOL.md "Session messages").
+//
+//   CCMD_ASSIGN_OR_RETURN(std::string key, ResolvePsk(psk_file));   // "" = no key
+//   Mac proof = AgentProof(key, server_nonce, agent_nonce, name);
+//   if (!ConstantTimeEquals(proof, received)) refuse;
+
+#include <array>
+#include <cstdint>
+#include <string>
+#include <string_view>
+
+#include "libccmd/util/status.h"
+#include "proto/byte_io.h"
+
+namespace ccmd {
+
+constexpr std::size_t kNonceSize = 32;
+constexpr std::size_t kMacSize = 32;
+using Nonce = std::array<std::uint8_t, kNonceSize>;
+using Mac = std::array<std::uint8_t, kMacSize>;
+
+// A key shorter than this is refused: a guessable key gives no protection.
+constexpr std::size_t kMinPskBytes = 16;
+constexpr std::size_t kMaxPskBytes = 4096;
+constexpr const char* kPskEnvironmentVariable = "CCMD_PSK";
+
+// Reads a key file: its bytes with trailing whitespace (the newline an editor adds) removed.
+// kInvalidArgument if shorter than kMinPskBytes or longer than kMaxPskBytes.
+StatusOr<std::string> ReadPskFile(const std::string& path);
+
+// The key from `psk_file` if given, else from $CCMD_PSK, else "" (no key).
+StatusOr<std::string> ResolvePsk(const std::string& psk_file);
+
+// HMAC-SHA256 (RFC 2104 with SHA-256), from OpenSSL's libcrypto.
+Mac HmacSha256(ByteSpan key, ByteSpan message);
+
+// Compares without an early exit, so the time taken does not reveal where a guess differs.
+bool ConstantTimeEquals(ByteSpan a, ByteSpan b);
+
+// Cryptographically random bytes (OpenSSL RAND_bytes).
+Status RandomNonce(Nonce* nonce);
+
+// What the agent sends to prove the key: HMAC(key, "CCMD agent proof v1" | server_nonce |
+// agent_nonce | u8 name length | name). Binding both nonces prevents replays; the name stops
+// a proof made for one agent from being used for another.
+Mac AgentProof(std::string_view key, const Nonce& server_nonce, const Nonce& agent_nonce,
+               std::string_view name);
+
+// What the server sends back to prove the key in turn, binding what it tells the agent:
+// HMAC(key, "CCMD server proof v1" | agent_nonce | server_nonce | u16 agent id |
+// u64 last stored sequence number). The different label means neither proof can be
+// reflected as the other.
+Mac ServerProof(std::string_view key, const Nonce& agent_nonce, const Nonce& server_nonce,
+                std::uint16_t agent_id, std::uint64_t last_stored_seq);
+
+}  // namespace ccmd

@@ -1,0 +1,283 @@
+#include "libccmd/net/session_messages.h"
+
+#include <cmath>
+#include <cstdio>
+
+namespace ccmd {
+namespace {
+
+constexpr std::uint8_t kHelloFresh = 1u << 0;
+constexpr std::uint8_t kWelcomeHasProof = 1u << 0;
+constexpr std::uint32_t kMaxImageSide = 16384;
+
+void PutNonce(const std::array<std::uint8_t, 32>& n, ByteWriter* w) {
+  w->PutBytes(n.data(), n.size());
+}
+
+Status ReadFlags(ByteReader* r, std::uint8_t known, const char* what, std::uint8_t* flags) {
+  CCMD_RETURN_IF_ERROR(r->ReadU8(flags));
+  if ((*flags & ~known) != 0) {
+    return Corrupt(std::string(what) + " has unknown flag bits " + std::to_string(*flags));
+  }
+  return Status::Ok();
+}
+
+Status Finish(const ByteReader& r, const char* what) {
+  Status s = r.ExpectEnd();
+  if (!s.ok()) return s.WithContext(what);
+  return Status::Ok();
+}
+
+}  // namespace
+
+const char* ByeReasonName(ByeReason reason) {
+  switch (reason) {
+    case ByeReason::kNormal: return "normal";
+    case ByeReason::kProtocolError: return "protocol error";
+    case ByeReason::kUnsupportedVersion: return "unsupported version";
+    case ByeReason::kAuthFailed: return "authentication failed";
+    case ByeReason::kKeyMismatch: return "key configuration mismatch";
+    case ByeReason::kServerFull: return "server full";
+    case ByeReason::kTimeout: return "time-out";
+    case ByeReason::kRefused: return "refused";
+    case ByeReason::kLimitExceeded: return "limit exceeded";
+    case ByeReason::kShuttingDown: return "shutting down";
+    case ByeReason::kServerError: return "server error";
+    case ByeReason::kReplaced: return "replaced";
+  }
+  return "unknown";
+}
+
+Status ValidateAgentName(std::string_view name) {
+  if (name.empty() || name.size() > kMaxAgentNameBytes) {
+    return InvalidArgument("agent name must have 1 to " + std::to_string(kMaxAgentNameBytes) +
+                           " characters (got " + std::to_string(name.size()) + ")");
+  }
+  if (name[0] == '.') return InvalidArgument("agent name must not start with '.'");
+  for (char c : name) {
+    const bool ok = (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || (c >= '0' && c <= '9') ||
+                    c == '.' || c == '_' || c == '-';
+    if (!ok) {
+      return InvalidArgument("agent name may contain only letters, digits, '.', '_' and '-'");
+    }
+  }
+  return Status::Ok();
+}
+
+Status ValidateSessionCamera(const SessionCamera& c) {
+  const bool finite = std::isfinite(c.fx) && std::isfinite(c.fy) && std::isfinite(c.cx) &&
+                      std::isfinite(c.cy) && std::isfinite(c.depth_scale);
+  if (!finite || c.fx <= 0 || c.fy <= 0 || c.depth_scale <= 0) {
+    return InvalidArgument("camera needs finite fx, fy, depth scale > 0 and finite cx, cy");
+  }
+  if (c.width == 0 || c.height == 0 || c.width > kMaxImageSide || c.height > kMaxImageSide) {
+    return InvalidArgument("camera image size must be 1.." + std::to_string(kMaxImageSide) +
+                           " pixels per side");
+  }
+  return Status::Ok();
+}
+
+std::string DescribeCamera(const SessionCamera& c) {
+  char text[160];
+  std::snprintf(text, sizeof(text), "fx %.3f fy %.3f cx %.3f cy %.3f %ux%u depth scale %.1f",
+                c.fx, c.fy, c.cx, c.cy, c.width, c.height, c.depth_scale);
+  return text;
+}
+
+std::vector<std::uint8_t> SerializeHello(const HelloMessage& m) {
+  ByteWriter w(128);
+  w.PutU8(m.version);
+  w.PutU8(m.fresh ? kHelloFresh : 0);
+  w.PutU8(static_cast<std::uint8_t>(m.name.size()));
+  w.PutBytes(m.name.data(), m.name.size());
+  w.PutF64(m.camera.fx);
+  w.PutF64(m.camera.fy);
+  w.PutF64(m.camera.cx);
+  w.PutF64(m.camera.cy);
+  w.PutU32(m.camera.width);
+  w.PutU32(m.camera.height);
+  w.PutF64(m.camera.depth_scale);
+  w.PutU64(m.first_seq);
+  w.PutU64(m.next_seq);
+  PutNonce(m.agent_nonce, &w);
+  return w.Take();
+}
+
+StatusOr<HelloMessage> ParseHello(ByteSpan payload) {
+  ByteReader r(payload);
+  HelloMessage m;
+  CCMD_RETURN_IF_ERROR(r.ReadU8(&m.version));
+  if (m.version != kProtocolVersion) {
+    return Unsupported("agent speaks protocol version " + std::to_string(m.version) +
+                       ", this server version " + std::to_string(kProtocolVersion));
+  }
+  std::uint8_t flags;
+  CCMD_RETURN_IF_ERROR(ReadFlags(&r, kHelloFresh, "hello", &flags));
+  m.fresh = (flags & kHelloFresh) != 0;
+  std::uint8_t name_size;
+  CCMD_RETURN_IF_ERROR(r.ReadU8(&name_size));
+  ByteSpan name;
+  CCMD_RETURN_IF_ERROR(r.ReadBytes(name_size, &name));
+  m.name.assign(name.begin(), name.end());
+  Status name_ok = ValidateAgentName(m.name);
+  if (!name_ok.ok()) return Corrupt("hello: " + name_ok.message());
+  CCMD_RETURN_IF_ERROR(r.ReadF64(&m.camera.fx));
+  CCMD_RETURN_IF_ERROR(r.ReadF64(&m.camera.fy));
+  CCMD_RETURN_IF_ERROR(r.ReadF64(&m.camera.cx));
+  CCMD_RETURN_IF_ERROR(r.ReadF64(&m.camera.cy));
+  CCMD_RETURN_IF_ERROR(r.ReadU32(&m.camera.width));
+  CCMD_RETURN_IF_ERROR(r.ReadU32(&m.camera.height));
+  CCMD_RETURN_IF_ERROR(r.ReadF64(&m.camera.depth_scale));
+  Status camera_ok = ValidateSessionCamera(m.camera);
+  if (!camera_ok.ok()) return Corrupt("hello: " + camera_ok.message());
+  CCMD_RETURN_IF_ERROR(r.ReadU64(&m.first_seq));
+  CCMD_RETURN_IF_ERROR(r.ReadU64(&m.next_seq));
+  if (m.first_seq == 0 || m.next_seq < m.first_seq) {
+    return Corrupt("hello: resume point " + std::to_string(m.first_seq) + ".." +
+                   std::to_string(m.next_seq) + " is not a range of sequence numbers >= 1");
+  }
+  CCMD_RETURN_IF_ERROR(r.ReadBytes(m.agent_nonce.size(), m.agent_nonce.data()));
+  CCMD_RETURN_IF_ERROR(Finish(r, "hello"));
+  return m;
+}
+
+std::vector<std::uint8_t> SerializeChallenge(const ChallengeMessage& m) {
+  ByteWriter w(33);
+  w.PutU8(m.key_required ? 1 : 0);
+  PutNonce(m.server_nonce, &w);
+  return w.Take();
+}
+
+StatusOr<ChallengeMessage> ParseChallenge(ByteSpan payload) {
+  ByteReader r(payload);
+  ChallengeMessage m;
+  std::uint8_t mode;
+  CCMD_RETURN_IF_ERROR(r.ReadU8(&mode));
+  if (mode > 1) return Corrupt("challenge: unknown authentication mode " + std::to_string(mode));
+  m.key_required = mode == 1;
+  CCMD_RETURN_IF_ERROR(r.ReadBytes(m.server_nonce.size(), m.server_nonce.data()));
+  CCMD_RETURN_IF_ERROR(Finish(r, "challenge"));
+  return m;
+}
+
+std::vector<std::uint8_t> SerializeAuth(const AuthMessage& m) {
+  if (!m.proof) return {};
+  return std::vector<std::uint8_t>(m.proof->begin(), m.proof->end());
+}
+
+StatusOr<AuthMessage> ParseAuth(ByteSpan payload) {
+  AuthMessage m;
+  if (payload.empty()) return m;
+  if (payload.size() != kMacSize) {
+    return Corrupt("auth: proof of " + std::to_string(payload.size()) + " bytes (expected 0 or " +
+                   std::to_string(kMacSize) + ")");
+  }
+  m.proof.emplace();
+  std::copy(payload.begin(), payload.end(), m.proof->begin());
+  return m;
+}
+
+std::vector<std::uint8_t> SerializeWelcome(const WelcomeMessage& m) {
+  ByteWriter w(64);
+  w.PutU8(m.server_proof ? kWelcomeHasProof : 0);
+  w.PutU16(m.agent.value());
+  w.PutU64(m.last_stored_seq);
+  w.PutU32(m.max_payload_bytes);
+  w.PutU32(m.idle_timeout_ms);
+  if (m.server_proof) w.PutBytes(m.server_proof->data(), m.server_proof->size());
+  return w.Take();
+}
+
+StatusOr<WelcomeMessage> ParseWelcome(ByteSpan payload) {
+  ByteReader r(payload);
+  WelcomeMessage m;
+  std::uint8_t flags;
+  CCMD_RETURN_IF_ERROR(ReadFlags(&r, kWelcomeHasProof, "welcome", &flags));
+  std::uint16_t id;
+  CCMD_RETURN_IF_ERROR(r.ReadU16(&id));
+  m.agent = AgentId(id);
+  CCMD_RETURN_IF_ERROR(r.ReadU64(&m.last_stored_seq));
+  CCMD_RETURN_IF_ERROR(r.ReadU32(&m.max_payload_bytes));
+  CCMD_RETURN_IF_ERROR(r.ReadU32(&m.idle_timeout_ms));
+  if (m.max_payload_bytes <= kDataEnvelopeBytes) {
+    return Corrupt("welcome: maximum payload of " + std::to_string(m.max_payload_bytes) +
+                   " bytes leaves no room for a message");
+  }
+  if (flags & kWelcomeHasProof) {
+    m.server_proof.emplace();
+    CCMD_RETURN_IF_ERROR(r.ReadBytes(m.server_proof->size(), m.server_proof->data()));
+  }
+  CCMD_RETURN_IF_ERROR(Finish(r, "welcome"));
+  return m;
+}
+
+std::vector<std::uint8_t> SerializeAck(const AckMessage& m) {
+  ByteWriter w(8);
+  w.PutU64(m.last_stored_seq);
+  return w.Take();
+}
+
+StatusOr<AckMessage> ParseAck(ByteSpan payload) {
+  ByteReader r(payload);
+  AckMessage m;
+  CCMD_RETURN_IF_ERROR(r.ReadU64(&m.last_stored_seq));
+  CCMD_RETURN_IF_ERROR(Finish(r, "ack"));
+  return m;
+}
+
+std::vector<std::uint8_t> SerializeBye(const ByeMessage& m) {
+  const std::size_t n = std::min(m.text.size(), kMaxByeTextBytes);
+  ByteWriter w(4 + n);
+  w.PutU8(static_cast<std::uint8_t>(m.reason));
+  w.PutU16(static_cast<std::uint16_t>(n));
+  w.PutBytes(m.text.data(), n);
+  return w.Take();
+}
+
+StatusOr<ByeMessage> ParseBye(ByteSpan payload) {
+  ByteReader r(payload);
+  ByeMessage m;
+  std::uint8_t reason;
+  CCMD_RETURN_IF_ERROR(r.ReadU8(&reason));
+  if (reason > kLastByeReason) return Corrupt("bye: unknown reason " + std::to_string(reason));
+  m.reason = static_cast<ByeReason>(reason);
+  std::uint16_t n;
+  CCMD_RETURN_IF_ERROR(r.ReadU16(&n));
+  if (n > kMaxByeTextBytes) return Corrupt("bye: text of " + std::to_string(n) + " bytes");
+  ByteSpan text;
+  CCMD_RETURN_IF_ERROR(r.ReadBytes(n, &text));
+  // The text goes into logs: keep printable ASCII only.
+  m.text.reserve(n);
+  for (std::uint8_t c : text) m.text.push_back(c >= 0x20 && c < 0x7F ? static_cast<char>(c) : '?');
+  CCMD_RETURN_IF_ERROR(Finish(r, "bye"));
+  return m;
+}
+
+Status ParseHeartbeat(ByteSpan payload) {
+  if (!payload.empty()) return Corrupt("heartbeat with a payload");
+  return Status::Ok();
+}
+
+std::vector<std::uint8_t> EncodeSessionFrame(SessionType type, ByteSpan payload) {
+  return EncodeFrame(static_cast<std::uint8_t>(type), 0, payload);
+}
+
+void AppendDataFrame(std::uint8_t type, std::uint64_t seq, ByteSpan message,
+                     std::vector<std::uint8_t>* out) {
+  std::vector<std::uint8_t> payload;
+  payload.reserve(kDataEnvelopeBytes + message.size());
+  for (int i = 0; i < 8; ++i) payload.push_back(static_cast<std::uint8_t>(seq >> (8 * i)));
+  payload.insert(payload.end(), message.begin(), message.end());
+  AppendFrame(type, 0, payload, out);
+}
+
+StatusOr<DataEnvelope> ParseDataEnvelope(ByteSpan payload) {
+  ByteReader r(payload);
+  DataEnvelope e;
+  CCMD_RETURN_IF_ERROR(r.ReadU64(&e.seq));
+  if (e.seq == 0) return Corrupt("data message with sequence number 0");
+  e.message = payload.subspan(kDataEnvelopeBytes);
+  return e;
+}
+
+}  // namespace ccmd
