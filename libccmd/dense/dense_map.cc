@@ -54,7 +54,8 @@ Status DenseMapOptions::Validate() const {
 std::string DenseMapOptions::ToString() const {
   std::ostringstream s;
   s << "voxel " << voxel_size_m << " m, window " << window_keyframes << " keyframes, depth "
-    << projection.min_depth_m << ".." << projection.max_depth_m << " m";
+    << projection.min_depth_m << ".." << projection.max_depth_m
+    << " m, incidence <= " << projection.max_incidence_deg << " deg";
   return s.str();
 }
 
@@ -135,9 +136,9 @@ void DenseMap::Transform(Entry* entry) const {
   for (std::size_t i = 0; i < cam.size(); ++i) entry->world[i] = r * cam[i] + t;
 }
 
-// The loops below are written without data-dependent branches: whether a point is the first
-// in its voxel is as good as random to the branch predictor, and mispredictions, not memory,
-// were their main cost.
+// The loops below avoid data-dependent branches (whether a point is the first in its voxel is
+// as good as random to a branch predictor): kept lists are built by writing every index and
+// advancing the end by 0 or 1.
 void DenseMap::FilterAppended(const AgentNode& agent, Entry* entry) {
   // The entry's own filter: the first point in each voxel (nothing follows it yet).
   const std::size_t n = entry->world.size();

@@ -23,6 +23,7 @@ struct SnapshotOptions {
   DenseFilter filter = DenseFilter::kGlobal;
 };
 
+// Not thread-safe itself (it keeps the time of the last snapshot): use it from one thread.
 class DenseSnapshotWriter {
  public:
   // `map` must outlive the writer.
