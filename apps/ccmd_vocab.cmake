@@ -1,0 +1,1 @@
+ccmd_add_executable(ccmd_vocab SOURCES ccmd_vocab.cc DEPS ccmd_features_training ccmd_util ccmd_app_common)
