@@ -254,7 +254,8 @@ RenderedFrame RenderFrame(const SyntheticScene& scene, const PinholeCamera& came
           color_row[3 * x + ch] = static_cast<uchar>(v > 255.0f ? 255.0f : v);
         }
 
-        if (marks && z >= dm.min_range && z <= dm.max_range && cos_t >= dm.grazing_cos_valid) {
+        // Cells count as seen wherever the sensor can return depth (even only sometimes).
+      if (marks && z >= dm.min_range && z <= dm.max_range && cos_t >= dm.grazing_cos_invalid) {
           const auto grid = scene.VisibilityGrid(k, marks->spacing);
           const int cs = static_cast<int>(s / marks->spacing);
           const int ct = static_cast<int>(t / marks->spacing);

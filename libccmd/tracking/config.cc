@@ -19,6 +19,10 @@ StatusOr<TrackingOptions> ReadTrackingOptions(const ConfigFile& c, TrackingOptio
   CCMD_ASSIGN_OR_RETURN(o.local_ba_window, c.GetInt("Tracking.localBAWindow", o.local_ba_window));
   CCMD_ASSIGN_OR_RETURN(o.max_keyframes, c.GetInt("Tracking.maxKeyframes", o.max_keyframes));
   CCMD_ASSIGN_OR_RETURN(const int cull, c.GetInt("Tracking.cullRedundantKeyframes", o.cull_redundant_keyframes));
+  CCMD_ASSIGN_OR_RETURN(o.max_new_points_per_keyframe,
+                        c.GetInt("Link.maxNewPointsPerKeyframe", o.max_new_points_per_keyframe));
+  CCMD_ASSIGN_OR_RETURN(const int unlinked, c.GetInt("Link.sendUnlinkedKeypoints", o.send_unlinked_keypoints));
+  o.send_unlinked_keypoints = unlinked != 0;
   o.cull_redundant_keyframes = cull != 0;
   RgbdSelectionOptions& r = o.rgbd_selection;
   CCMD_ASSIGN_OR_RETURN(const int enabled, c.GetInt("RgbdSelection.enabled", r.enabled));

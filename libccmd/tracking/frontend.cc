@@ -13,6 +13,8 @@ bool TrackingOptions::Check(std::string* why) const {
   if (local_ba_window < 1 || local_ba_window > 100) return fail("local BA window must be in [1, 100]");
   if (max_keyframes < local_ba_window + 5) return fail("max keyframes must exceed the local BA window by 5");
   if (max_frames_between_keyframes < 0) return fail("max frames between keyframes must be >= 0");
+  if (max_new_points_per_keyframe < 0) return fail("max new points per keyframe must be >= 0 (0: all)");
+  if (!(keyframe_tracked_ratio > 0 && keyframe_tracked_ratio < 1)) return fail("keyframe tracked ratio must be in (0, 1)");
   return rgbd_selection.Check(why);
 }
 

@@ -345,20 +345,45 @@ bool LocalMapper::Emit(Keyframe* keyframe, KeyframeSnapshot* s, std::vector<Pose
   s->T_world_cam = keyframe->T_world_cam();
   if (Keyframe* parent = keyframe->parent(); parent && parent->emitted) s->parent = parent->id();
   const FrameFeatures& f = keyframe->features();
-  s->keypoints = f.keypoints;
-  s->descriptors = f.descriptors;
-  s->depth = f.depth;
-  s->point_ids.assign(f.keypoints.size(), std::nullopt);
-  const Pose& T_cam_world = keyframe->T_cam_world();
+  // New map points go to the server at most `max_new_points_per_keyframe` per keyframe:
+  // those already seen by several keyframes first (they have survived culling and carry the
+  // most constraints), then the finer octaves. The rest stay on the agent and may be sent with
+  // a later keyframe that observes them.
+  std::vector<int> unsent;
   for (int i = 0; i < f.size(); ++i) {
     const MapPointPtr& p = keyframe->points()[i];
-    if (!p || p->bad()) continue;
-    s->point_ids[i] = p->id();
-    if (!p->sent()) {
-      s->new_points.push_back({p->id(), T_cam_world * p->position(), p->descriptor(), i});
+    if (p && !p->bad() && !p->sent()) unsent.push_back(i);
+  }
+  std::stable_sort(unsent.begin(), unsent.end(), [&](int a, int b) {
+    const int wa = keyframe->points()[a]->WeightedObservations(), wb = keyframe->points()[b]->WeightedObservations();
+    if (wa != wb) return wa > wb;
+    return f.keypoints[a].octave < f.keypoints[b].octave;
+  });
+  const int budget = options_.max_new_points_per_keyframe;
+  if (budget > 0 && static_cast<int>(unsent.size()) > budget) unsent.resize(budget);
+  std::vector<bool> send_new(f.size(), false);
+  for (int i : unsent) send_new[i] = true;
+
+  // Keypoints: those linked to a point the server has (or gets now), and, if configured,
+  // unlinked ones with their descriptors.
+  const Pose& T_cam_world = keyframe->T_cam_world();
+  std::vector<int> rows;
+  for (int i = 0; i < f.size(); ++i) {
+    const MapPointPtr& p = keyframe->points()[i];
+    const bool linked = p && !p->bad() && (p->sent() || send_new[i]);
+    if (!linked && !options_.send_unlinked_keypoints) continue;
+    const int row = static_cast<int>(s->keypoints.size());
+    rows.push_back(i);
+    s->keypoints.push_back(f.keypoints[i]);
+    s->depth.push_back(f.depth[i]);
+    s->point_ids.push_back(linked ? std::optional<MapPointId>(p->id()) : std::nullopt);
+    if (linked && send_new[i]) {
+      s->new_points.push_back({p->id(), T_cam_world * p->position(), p->descriptor(), row});
       p->set_sent();
     }
   }
+  s->descriptors = cv::Mat(static_cast<int>(rows.size()), 32, CV_8U);
+  for (std::size_t r = 0; r < rows.size(); ++r) f.descriptors.row(rows[r]).copyTo(s->descriptors.row(static_cast<int>(r)));
   for (const auto& [kf, weight] : keyframe->connections()) {
     if (kf->emitted) s->covisibility.emplace_back(kf->id(), weight);
   }

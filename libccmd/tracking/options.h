@@ -19,7 +19,7 @@ struct RgbdSelectionOptions {
   bool enabled = true;
   // S_min as a fraction of the keyframe's own tracked map points (adapts to how textured the
   // view is) and as an absolute floor.
-  double threshold_ratio = 0.5;
+  double threshold_ratio = 0.3;
   int threshold_min_points = 60;
   double decrement_ratio = 0.1;  // of the keyframe's tracked points, per covering keyframe
   int min_threshold = 30;
@@ -48,6 +48,10 @@ struct TrackingOptions {
   bool cull_redundant_keyframes = true;
   // Run local mapping in the tracking thread (deterministic; for tests and measurements).
   bool synchronous_mapping = false;
+  // Bandwidth: new map points sent per keyframe (0: all), and whether keypoints without a map
+  // point the server knows are sent at all (with their descriptors).
+  int max_new_points_per_keyframe = 250;
+  bool send_unlinked_keypoints = false;
   // Pose updates are sent for emitted keyframes that moved more than this after a local BA.
   double pose_update_min_translation = 0.0005;  // metres
   double pose_update_min_rotation = 0.0002;     // radians

@@ -4,6 +4,7 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <set>
 
 #include "libccmd/eval/trajectory_error.h"
@@ -76,10 +77,12 @@ TEST(FrontendTest, SinkGetsEveryKeyframeOnceWithConsistentLinks) {
       EXPECT_TRUE(sent_points.insert(p.id.value()).second) << "map point sent twice";
       ASSERT_GE(p.keypoint, 0);
       EXPECT_EQ(k.point_ids[p.keypoint], p.id);
-      // A new point's position in the keyframe frame projects close to its keypoint.
+      // A new point's position in the keyframe frame projects close to its keypoint: within
+      // the 95% gate of the keypoint's octave (sigma = 1.2^octave pixels), plus a pixel.
       const Eigen::Vector3d& pc = p.position_cam;
       const double u = 525.0 * pc.x() / pc.z() + 319.5;
-      EXPECT_NEAR(u, k.keypoints[p.keypoint].pt.x, 4.0);
+      const double gate = std::sqrt(5.991) * std::pow(1.2, k.keypoints[p.keypoint].octave) + 1.0;
+      EXPECT_NEAR(u, k.keypoints[p.keypoint].pt.x, gate);
     }
     // Every linked point was sent, with this keyframe or before.
     for (const auto& id : k.point_ids) {

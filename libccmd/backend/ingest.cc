@@ -1,0 +1,91 @@
+#include "libccmd/backend/ingest.h"
+
+#include "libccmd/util/logging.h"
+
+namespace ccmd {
+
+Pose PoseFromWire(const WirePose& w) {
+  return PoseFromTranslationQuaternion(Eigen::Vector3d(w.t[0], w.t[1], w.t[2]),
+                                       Eigen::Quaterniond(w.q_xyzw[3], w.q_xyzw[0], w.q_xyzw[1], w.q_xyzw[2]));
+}
+
+StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent, const KeyframeMessage& m,
+                                             const Pose& T_map_agent) {
+  const GlobalKeyframeId id{agent, m.id};
+  if (map->keyframe(id)) return InvalidArgument("keyframe " + std::to_string(m.id.value()) + " already known");
+  auto kf = std::make_unique<ServerKeyframe>();
+  kf->id = id;
+  kf->timestamp = m.timestamp;
+  kf->T_agent_cam = PoseFromWire(m.T_world_cam);
+  kf->parent = m.parent;
+
+  // Placement: relative to a keyframe of the same agent the server already has.
+  ServerKeyframe* reference = m.parent ? map->keyframe({agent, *m.parent}) : nullptr;
+  if (!reference) {
+    const auto own = map->AgentKeyframes(agent);
+    if (!own.empty()) reference = own.back();
+  }
+  kf->T_map_cam = reference ? reference->T_map_cam * (reference->T_agent_cam.inverse() * kf->T_agent_cam)
+                            : T_map_agent * kf->T_agent_cam;
+
+  const std::size_t n = m.keypoints.size();
+  kf->keypoints.resize(n);
+  kf->descriptors.resize(n);
+  kf->points.assign(n, nullptr);
+  for (std::size_t i = 0; i < n; ++i) {
+    const WireKeypoint& w = m.keypoints[i];
+    kf->keypoints[i] = {cv::Point2f(w.u, w.v), w.octave, w.angle_deg, w.depth_m > 0 ? w.depth_m : 0.0f};
+    kf->descriptors[i] = w.descriptor;
+  }
+  ServerKeyframe* raw = map->AddKeyframe(std::move(kf));
+
+  // New points are anchored here; the keypoint observing each is found by its link.
+  std::unordered_map<std::uint32_t, int> keypoint_of;
+  for (std::size_t i = 0; i < n; ++i) {
+    if (m.keypoints[i].map_point) keypoint_of[m.keypoints[i].map_point->value()] = static_cast<int>(i);
+  }
+  for (const NewMapPoint& p : m.new_map_points) {
+    const GlobalMapPointId pid{agent, p.id};
+    if (map->point(pid)) continue;  // resent after a reconnect: already known
+    ServerMapPoint* point = map->AddPoint(std::make_unique<ServerMapPoint>(
+        pid, raw, Eigen::Vector3d(p.p_cam[0], p.p_cam[1], p.p_cam[2]), p.descriptor));
+    const auto it = keypoint_of.find(p.id.value());
+    if (it != keypoint_of.end()) map->AddObservation(point, raw, it->second);
+  }
+  int unknown_links = 0;
+  for (std::size_t i = 0; i < n; ++i) {
+    if (!m.keypoints[i].map_point || raw->points[i]) continue;
+    ServerMapPoint* point = map->point({agent, *m.keypoints[i].map_point});
+    if (!point) {
+      ++unknown_links;
+      continue;
+    }
+    raw->descriptors[i] = point->descriptor;  // linked keypoints travel without descriptors
+    map->AddObservation(point, raw, static_cast<int>(i));
+  }
+  if (unknown_links > 0) {
+    CCMD_LOG(WARNING) << "keyframe " << m.id.value() << " of agent " << agent.value() << " links "
+                      << unknown_links << " map points the server never received";
+  }
+  for (const CovisibilityLink& link : m.covisibility) {
+    if (ServerKeyframe* other = map->keyframe({agent, link.keyframe})) {
+      map->AddCovisibility(raw, other, static_cast<int>(link.weight));
+    }
+  }
+  return raw;
+}
+
+std::vector<ServerKeyframe*> ApplyPoseUpdates(ServerMap* map, AgentId agent, const PoseUpdateMessage& m) {
+  std::vector<ServerKeyframe*> moved;
+  for (const PoseUpdateEntry& e : m.entries) {
+    ServerKeyframe* kf = map->keyframe({agent, e.keyframe});
+    if (!kf) continue;
+    const Pose T_agent_new = PoseFromWire(e.T_world_cam);
+    kf->T_map_cam = kf->T_map_cam * (kf->T_agent_cam.inverse() * T_agent_new);
+    kf->T_agent_cam = T_agent_new;
+    moved.push_back(kf);
+  }
+  return moved;
+}
+
+}  // namespace ccmd

@@ -1,0 +1,109 @@
+#include "libccmd/backend/loop_verification.h"
+
+#include <algorithm>
+#include <limits>
+#include <opencv2/calib3d.hpp>
+#include <opencv2/core/eigen.hpp>
+#include <unordered_set>
+
+#include "libccmd/optim/pose_optimizer.h"
+
+namespace ccmd {
+
+std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& camera,
+                                    ServerKeyframe* candidate, const ServerMap& candidate_map,
+                                    const LoopVerificationOptions& options) {
+  // Map points around the candidate.
+  std::vector<ServerKeyframe*> window = {candidate};
+  std::vector<std::pair<GlobalKeyframeId, int>> neighbours(candidate->covisibility.begin(),
+                                                           candidate->covisibility.end());
+  std::sort(neighbours.begin(), neighbours.end(),
+            [](const auto& a, const auto& b) { return a.second != b.second ? a.second > b.second : a.first < b.first; });
+  for (const auto& [id, weight] : neighbours) {
+    if (static_cast<int>(window.size()) > options.window_keyframes) break;
+    if (ServerKeyframe* kf = candidate_map.keyframe(id); kf && kf != query) window.push_back(kf);
+  }
+  std::vector<ServerMapPoint*> points;
+  std::unordered_set<const ServerMapPoint*> seen;
+  for (ServerKeyframe* kf : window) {
+    for (ServerMapPoint* p : kf->points) {
+      if (p && seen.insert(p).second) points.push_back(p);
+    }
+  }
+  if (static_cast<int>(points.size()) < options.min_matches) return std::nullopt;
+
+  // Each query keypoint to its best map point (ratio test), one keypoint per point.
+  std::vector<int> point_of(query->keypoints.size(), -1);
+  std::vector<int> best_distance_of_point(points.size(), std::numeric_limits<int>::max());
+  std::vector<int> keypoint_of_point(points.size(), -1);
+  for (std::size_t i = 0; i < query->keypoints.size(); ++i) {
+    int best = std::numeric_limits<int>::max(), second = best, best_j = -1;
+    for (std::size_t j = 0; j < points.size(); ++j) {
+      const int d = HammingDistance(query->descriptors[i], points[j]->descriptor);
+      if (d < best) {
+        second = best;
+        best = d;
+        best_j = static_cast<int>(j);
+      } else if (d < second) {
+        second = d;
+      }
+    }
+    if (best_j < 0 || best > options.max_hamming || best > options.ratio * second) continue;
+    if (best >= best_distance_of_point[best_j]) continue;
+    if (keypoint_of_point[best_j] >= 0) point_of[keypoint_of_point[best_j]] = -1;
+    best_distance_of_point[best_j] = best;
+    keypoint_of_point[best_j] = static_cast<int>(i);
+    point_of[i] = best_j;
+  }
+  std::vector<cv::Point3f> object;
+  std::vector<cv::Point2f> image;
+  std::vector<int> keypoint_index;
+  for (std::size_t i = 0; i < point_of.size(); ++i) {
+    if (point_of[i] < 0) continue;
+    const Eigen::Vector3d p = points[point_of[i]]->World();
+    object.emplace_back(static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z()));
+    image.push_back(query->keypoints[i].pt);
+    keypoint_index.push_back(static_cast<int>(i));
+  }
+  if (static_cast<int>(object.size()) < options.min_matches) return std::nullopt;
+
+  const cv::Mat K = (cv::Mat_<double>(3, 3) << camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1);
+  cv::Mat rvec, tvec;
+  std::vector<int> ransac_inliers;
+  cv::setRNGSeed(0x100b);  // deterministic RANSAC
+  const bool solved = cv::solvePnPRansac(object, image, K, cv::noArray(), rvec, tvec, false, 300,
+                                         static_cast<float>(options.ransac_reprojection_px), 0.999,
+                                         ransac_inliers, cv::SOLVEPNP_EPNP);
+  if (!solved || static_cast<int>(ransac_inliers.size()) < options.min_ransac_inliers) return std::nullopt;
+  cv::Mat R;
+  cv::Rodrigues(rvec, R);
+  Eigen::Matrix3d Re;
+  cv::cv2eigen(R, Re);
+  Pose T_cam_map = Pose::Identity();
+  T_cam_map.linear() = Re;
+  T_cam_map.translation() = Eigen::Vector3d(tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2));
+
+  // Refine with every match (outliers are re-classified) and the measured depths.
+  std::vector<PoseObservation> observations;
+  for (std::size_t k = 0; k < object.size(); ++k) {
+    const ServerKeypoint& kp = query->keypoints[keypoint_index[k]];
+    const double inv_sigma2 = std::pow(1.2, -2.0 * kp.octave);
+    observations.push_back({points[point_of[keypoint_index[k]]]->World(), Eigen::Vector2d(kp.pt.x, kp.pt.y),
+                            kp.depth, inv_sigma2, kp.depth > 0 ? options.depth_noise.Information(kp.depth) : 0.0});
+  }
+  const Intrinsics intrinsics{camera.fx, camera.fy, camera.cx, camera.cy};
+  const PoseOptimizationResult refined = OptimizePose(T_cam_map, observations, intrinsics);
+  if (refined.inliers < options.min_inliers) return std::nullopt;
+
+  LoopMatch match;
+  match.query = query;
+  match.candidate = candidate;
+  match.T_candidate_map_query = refined.T_cam_world.inverse();
+  match.inliers = refined.inliers;
+  for (std::size_t k = 0; k < observations.size(); ++k) {
+    if (refined.inlier[k]) match.matches.emplace_back(keypoint_index[k], points[point_of[keypoint_index[k]]]);
+  }
+  return match;
+}
+
+}  // namespace ccmd

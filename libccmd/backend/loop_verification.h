@@ -1,0 +1,42 @@
+#pragma once
+
+// Geometric verification of a place-recognition candidate: the query keyframe's keypoints are
+// matched against the map points around the candidate (the candidate and its strongest
+// covisible keyframes), a 3D-2D RANSAC (PnP) finds the query's pose in the candidate's map,
+// and a robust pose refinement with the query's measured depth keeps the matches that agree.
+
+#include <vector>
+
+#include "libccmd/backend/server_map.h"
+#include "libccmd/geometry/camera.h"
+#include "libccmd/optim/reprojection.h"
+
+namespace ccmd {
+
+struct LoopVerificationOptions {
+  int window_keyframes = 10;       // candidate + this many covisible neighbours
+  int max_hamming = 50;            // descriptor distance accepted
+  float ratio = 0.8f;              // best / second best
+  int min_matches = 30;            // before RANSAC
+  int min_ransac_inliers = 25;
+  int min_inliers = 40;            // after refinement: the loop's acceptance threshold
+  double ransac_reprojection_px = 4.0;
+  DepthNoise depth_noise;
+};
+
+struct LoopMatch {
+  ServerKeyframe* query = nullptr;
+  ServerKeyframe* candidate = nullptr;
+  Pose T_candidate_map_query = Pose::Identity();  // the query's pose in the candidate's map
+  int inliers = 0;
+  // (query keypoint, candidate-side map point) pairs that agree with the pose.
+  std::vector<std::pair<int, ServerMapPoint*>> matches;
+};
+
+// `query_camera`: intrinsics of the query keyframe's agent. Both keyframes may be in the same
+// map or in different ones (`candidate_map` is the candidate's).
+std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& query_camera,
+                                    ServerKeyframe* candidate, const ServerMap& candidate_map,
+                                    const LoopVerificationOptions& options = {});
+
+}  // namespace ccmd

@@ -1,0 +1,47 @@
+#pragma once
+
+// Optimisation of a whole server map: the pose graph after a loop closure and global bundle
+// adjustment. Both report which keyframes moved, for the dense map.
+
+#include <atomic>
+#include <map>
+#include <vector>
+
+#include "libccmd/backend/server_map.h"
+#include "libccmd/geometry/camera.h"
+#include "libccmd/optim/bundle_adjuster.h"
+#include "libccmd/optim/pose_graph.h"
+#include "libccmd/optim/reprojection.h"
+
+namespace ccmd {
+
+struct MapPoseGraphOptions {
+  int min_covisibility_weight = 50;  // covisibility edges kept in the graph
+  double odometry_sigma_rotation = 0.01;     // radians
+  double odometry_sigma_translation = 0.01;  // metres
+  double loop_sigma_rotation = 0.005;
+  double loop_sigma_translation = 0.005;
+  int max_iterations = 50;
+};
+
+// Nodes: every keyframe; edges: consecutive keyframes of each agent and covisibility links
+// (measured as the current relative poses), and the map's loop edges (their measurements).
+// The map's origin keyframe is fixed. Keyframes are moved in place; returns those that moved.
+StatusOr<std::vector<ServerKeyframe*>> OptimizeMapPoseGraph(ServerMap* map, const MapPoseGraphOptions& options = {});
+
+// Global BA in three steps so that the solve runs without holding the map:
+struct GlobalBaProblem {
+  BaProblem problem;
+  std::vector<GlobalKeyframeId> keyframes;  // per camera
+  std::vector<GlobalMapPointId> points;     // per point
+  std::map<GlobalKeyframeId, Pose> T_map_cam_before;
+};
+// Every keyframe and every point with at least two observations; the origin is fixed.
+GlobalBaProblem BuildGlobalBa(const ServerMap& map, const std::map<AgentId, PinholeCamera>& cameras,
+                              const DepthNoise& depth_noise);
+// Writes the result back: optimised keyframes get their new poses; keyframes added since the
+// problem was built move with the correction of the nearest optimised keyframe of their agent;
+// optimised points get their new positions. Returns the keyframes that moved.
+std::vector<ServerKeyframe*> ApplyGlobalBa(ServerMap* map, const GlobalBaProblem& result);
+
+}  // namespace ccmd

@@ -1,0 +1,75 @@
+#include "libccmd/backend/place_index.h"
+
+#include <cstring>
+
+#include "libccmd/util/logging.h"
+
+namespace ccmd {
+namespace {
+
+cv::Mat ToMat(const std::vector<Descriptor>& descriptors) {
+  cv::Mat m(static_cast<int>(descriptors.size()), 32, CV_8U);
+  for (std::size_t i = 0; i < descriptors.size(); ++i) std::memcpy(m.ptr(static_cast<int>(i)), descriptors[i].data(), 32);
+  return m;
+}
+
+}  // namespace
+
+PlaceIndex::PlaceIndex(const PlaceIndexOptions& options)
+    : options_(options), vocabulary_(options.vocabulary) {
+  if (options_.online_training && !vocabulary_) builder_ = std::make_unique<VocabularyBuilder>(options_.online);
+}
+
+std::vector<GlobalKeyframeId> PlaceIndex::Add(const GlobalKeyframeId& id, const std::vector<Descriptor>& descriptors) {
+  const cv::Mat mat = ToMat(descriptors);
+  descriptors_[id] = mat;
+  const bool had_vocabulary = vocabulary_ != nullptr;
+  if (builder_) {
+    builder_->Add(mat).IgnoreError();
+    if (builder_->TrainingDue()) Retrain();  // adds every stored keyframe, this one included
+  }
+  if (vocabulary_ && !database_.Contains(id)) database_.Add(id, MapId(0), vocabulary_->Transform(mat)).IgnoreError();
+  std::vector<GlobalKeyframeId> late;
+  if (!had_vocabulary && vocabulary_) {
+    for (const auto& [stored, m] : descriptors_) {
+      if (stored != id) late.push_back(stored);
+    }
+  }
+  return late;
+}
+
+void PlaceIndex::Retrain() {
+  VocabularyStats stats;
+  auto trained = builder_->Train(&stats);
+  if (!trained.ok()) {
+    CCMD_LOG(WARNING) << "vocabulary training failed: " << trained.status().ToString();
+    return;
+  }
+  vocabulary_ = std::make_shared<const Vocabulary>(std::move(trained).value());
+  ++trainings_;
+  database_.Clear();
+  for (const auto& [id, mat] : descriptors_) database_.Add(id, MapId(0), vocabulary_->Transform(mat)).IgnoreError();
+  CCMD_LOG(INFO) << "place recognition vocabulary trained online: " << stats.words << " words from "
+                 << stats.images << " keyframes in " << stats.seconds << " s";
+}
+
+std::vector<PlaceHit> PlaceIndex::Query(const std::vector<Descriptor>& descriptors, int max_results,
+                                        const std::function<bool(const GlobalKeyframeId&)>& accept) const {
+  std::vector<PlaceHit> hits;
+  if (!vocabulary_) return hits;
+  PlaceQueryOptions query;
+  query.max_results = max_results;
+  query.accept = [&](const GlobalKeyframeId& id, MapId) { return accept(id); };
+  for (const PlaceCandidate& c : database_.Query(vocabulary_->Transform(ToMat(descriptors)), query)) {
+    hits.push_back({c.keyframe, c.score});
+  }
+  return hits;
+}
+
+double PlaceIndex::Score(const GlobalKeyframeId& a, const GlobalKeyframeId& b) const {
+  const auto va = database_.Get(a), vb = database_.Get(b);
+  if (!va || !vb) return 0;
+  return L1Score(*va, *vb);
+}
+
+}  // namespace ccmd

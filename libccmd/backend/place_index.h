@@ -1,0 +1,60 @@
+#pragma once
+
+// Place recognition for the server: a bag-of-words vocabulary and keyframe database
+// (libccmd/features). The vocabulary is either given (trained offline with ccmd_vocab) or
+// trained online from the keyframes the server receives, and retrained on a growing schedule
+// (VocabularyBuilder); after each training every stored keyframe is transformed again.
+// Used by the back-end's loop stage only (one thread).
+
+#include <functional>
+#include <map>
+#include <memory>
+#include <vector>
+
+#include <opencv2/core.hpp>
+
+#include "libccmd/features/bow_database.h"
+#include "libccmd/features/bow_vocabulary.h"
+#include "libccmd/features/descriptor.h"
+#include "libccmd/features/vocabulary_builder.h"
+#include "libccmd/util/ids.h"
+
+namespace ccmd {
+
+struct PlaceIndexOptions {
+  std::shared_ptr<const Vocabulary> vocabulary;  // null: train online
+  bool online_training = true;                   // (re)train from received keyframes
+  VocabularyBuilderOptions online;
+};
+
+struct PlaceHit {
+  GlobalKeyframeId keyframe;
+  double score = 0;
+};
+
+class PlaceIndex {
+ public:
+  explicit PlaceIndex(const PlaceIndexOptions& options);
+
+  // Stores a keyframe. Returns the keyframes that could not be queried so far and can be now:
+  // those added before the first online training, once it has happened (empty otherwise).
+  std::vector<GlobalKeyframeId> Add(const GlobalKeyframeId& id, const std::vector<Descriptor>& descriptors);
+  std::vector<PlaceHit> Query(const std::vector<Descriptor>& descriptors, int max_results,
+                              const std::function<bool(const GlobalKeyframeId&)>& accept) const;
+  double Score(const GlobalKeyframeId& a, const GlobalKeyframeId& b) const;
+
+  bool ready() const { return vocabulary_ != nullptr; }
+  int trainings() const { return trainings_; }
+
+ private:
+  void Retrain();
+
+  PlaceIndexOptions options_;
+  std::shared_ptr<const Vocabulary> vocabulary_;
+  std::unique_ptr<VocabularyBuilder> builder_;
+  BowDatabase database_;
+  std::map<GlobalKeyframeId, cv::Mat> descriptors_;  // to transform again after a retraining
+  int trainings_ = 0;
+};
+
+}  // namespace ccmd

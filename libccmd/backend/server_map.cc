@@ -1,0 +1,105 @@
+#include "libccmd/backend/server_map.h"
+
+#include <algorithm>
+
+#include "libccmd/util/logging.h"
+
+namespace ccmd {
+
+Eigen::Vector3d ServerMapPoint::World() const { return anchor->T_map_cam * p_anchor; }
+
+void ServerMapPoint::SetWorld(const Eigen::Vector3d& p_world) {
+  p_anchor = anchor->T_map_cam.inverse() * p_world;
+}
+
+ServerKeyframe* ServerMap::keyframe(const GlobalKeyframeId& id) const {
+  const auto it = keyframes_.find(id);
+  return it == keyframes_.end() ? nullptr : it->second.get();
+}
+
+ServerMapPoint* ServerMap::point(const GlobalMapPointId& id) const {
+  GlobalMapPointId current = id;
+  for (int hops = 0; hops < 64; ++hops) {
+    const auto it = points_.find(current);
+    if (it != points_.end()) return it->second.get();
+    const auto alias = merged_into_.find(current);
+    if (alias == merged_into_.end()) return nullptr;
+    current = alias->second;
+  }
+  return nullptr;
+}
+
+ServerKeyframe* ServerMap::AddKeyframe(std::unique_ptr<ServerKeyframe> keyframe) {
+  ServerKeyframe* raw = keyframe.get();
+  if (!origin_) origin_ = raw->id;
+  if (std::find(agents_.begin(), agents_.end(), raw->id.agent) == agents_.end()) agents_.push_back(raw->id.agent);
+  keyframes_[raw->id] = std::move(keyframe);
+  return raw;
+}
+
+ServerMapPoint* ServerMap::AddPoint(std::unique_ptr<ServerMapPoint> point) {
+  ServerMapPoint* raw = point.get();
+  points_[raw->id] = std::move(point);
+  return raw;
+}
+
+void ServerMap::AddObservation(ServerMapPoint* point, ServerKeyframe* keyframe, int keypoint) {
+  CCMD_CHECK(keypoint >= 0 && keypoint < static_cast<int>(keyframe->points.size()));
+  for (const auto& o : point->observations) {
+    if (o.keyframe == keyframe) return;  // one observation per keyframe
+  }
+  keyframe->points[keypoint] = point;
+  point->observations.push_back({keyframe, keypoint});
+}
+
+void ServerMap::MergePoints(ServerMapPoint* from, ServerMapPoint* into) {
+  if (from == into) return;
+  for (const auto& o : from->observations) {
+    const bool seen = std::any_of(into->observations.begin(), into->observations.end(),
+                                  [&](const auto& x) { return x.keyframe == o.keyframe; });
+    if (seen) {
+      o.keyframe->points[o.keypoint] = nullptr;
+    } else {
+      o.keyframe->points[o.keypoint] = into;
+      into->observations.push_back(o);
+    }
+  }
+  const GlobalMapPointId id = from->id;
+  merged_into_[id] = into->id;
+  points_.erase(id);
+}
+
+void ServerMap::AddCovisibility(ServerKeyframe* a, ServerKeyframe* b, int weight) {
+  if (a == b) return;
+  a->covisibility[b->id] = std::max(a->covisibility[b->id], weight);
+  b->covisibility[a->id] = std::max(b->covisibility[a->id], weight);
+}
+
+void ServerMap::Absorb(ServerMap* other, const Pose& T_this_other) {
+  if (!origin_) origin_ = other->origin_;  // the first map absorbed gives the gauge
+  for (auto& [id, kf] : other->keyframes_) {
+    kf->T_map_cam = T_this_other * kf->T_map_cam;
+    keyframes_[id] = std::move(kf);
+  }
+  for (auto& [id, p] : other->points_) points_[id] = std::move(p);
+  for (const auto& [from, to] : other->merged_into_) merged_into_[from] = to;
+  loop_edges_.insert(loop_edges_.end(), other->loop_edges_.begin(), other->loop_edges_.end());
+  for (AgentId a : other->agents_) {
+    if (std::find(agents_.begin(), agents_.end(), a) == agents_.end()) agents_.push_back(a);
+  }
+  other->keyframes_.clear();
+  other->points_.clear();
+  other->merged_into_.clear();
+  other->loop_edges_.clear();
+  other->agents_.clear();
+}
+
+std::vector<ServerKeyframe*> ServerMap::AgentKeyframes(AgentId agent) const {
+  std::vector<ServerKeyframe*> result;
+  for (const auto& [id, kf] : keyframes_) {
+    if (id.agent == agent) result.push_back(kf.get());
+  }
+  return result;
+}
+
+}  // namespace ccmd

@@ -1,0 +1,117 @@
+#pragma once
+
+// The server's copy of the agents' maps. Keyframes and map points arrive in keyframe messages;
+// a server map holds the keyframes of one or more agents (several after map fusion) in one
+// frame. Map points are anchored to a keyframe (their position is kept in that keyframe's
+// camera frame), so any change to a keyframe's pose — a pose update from the agent, a pose
+// graph or a fusion transform — carries its points along; global BA writes positions back in
+// the anchor's frame.
+
+#include <map>
+#include <memory>
+#include <optional>
+#include <unordered_map>
+#include <vector>
+
+#include <opencv2/core.hpp>
+
+#include "libccmd/features/descriptor.h"
+#include "libccmd/geometry/camera.h"
+#include "libccmd/geometry/pose.h"
+#include "libccmd/util/ids.h"
+
+namespace ccmd {
+
+class ServerKeyframe;
+
+class ServerMapPoint {
+ public:
+  ServerMapPoint(GlobalMapPointId id, ServerKeyframe* anchor, const Eigen::Vector3d& p_anchor,
+                 const Descriptor& descriptor)
+      : id(id), anchor(anchor), p_anchor(p_anchor), descriptor(descriptor) {}
+
+  Eigen::Vector3d World() const;
+  void SetWorld(const Eigen::Vector3d& p_world);
+
+  GlobalMapPointId id;
+  ServerKeyframe* anchor;
+  Eigen::Vector3d p_anchor;  // in the anchor keyframe's camera frame
+  Descriptor descriptor;
+  struct Observation {
+    ServerKeyframe* keyframe;
+    int keypoint;
+  };
+  std::vector<Observation> observations;
+};
+
+struct ServerKeypoint {
+  cv::Point2f pt;
+  std::uint8_t octave = 0;
+  float angle = 0;
+  float depth = 0;  // metres, 0 = none
+};
+
+class ServerKeyframe {
+ public:
+  GlobalKeyframeId id;
+  double timestamp = 0;
+  Pose T_map_cam = Pose::Identity();    // in the server map it belongs to
+  Pose T_agent_cam = Pose::Identity();  // as its agent last reported it (agent's own frame)
+  std::optional<KeyframeId> parent;     // spanning tree, same agent
+  std::vector<ServerKeypoint> keypoints;
+  std::vector<Descriptor> descriptors;      // per keypoint (linked ones: the point's)
+  std::vector<ServerMapPoint*> points;      // per keypoint, may be null
+  std::map<GlobalKeyframeId, int> covisibility;  // weights, symmetric
+  // Dense data while the keyframe's map is not fused into the primary map.
+  cv::Mat rgbd_bgr, rgbd_depth_mm;
+  int rgbd_downsample = 0;  // 0: no RGB-D was sent
+  bool in_dense = false;
+
+  Eigen::Vector3d camera_center() const { return T_map_cam.translation(); }
+};
+
+struct LoopEdge {
+  GlobalKeyframeId a, b;
+  Pose T_a_b;  // measured
+};
+
+class ServerMap {
+ public:
+  explicit ServerMap(MapId id) : id_(id) {}
+  MapId id() const { return id_; }
+
+  ServerKeyframe* keyframe(const GlobalKeyframeId& id) const;
+  ServerMapPoint* point(const GlobalMapPointId& id) const;  // follows merges
+  const std::map<GlobalKeyframeId, std::unique_ptr<ServerKeyframe>>& keyframes() const { return keyframes_; }
+  std::size_t num_points() const { return points_.size(); }
+  const std::vector<LoopEdge>& loop_edges() const { return loop_edges_; }
+  const std::vector<AgentId>& agents() const { return agents_; }
+  // The keyframe whose pose is held fixed in optimisation (the founding agent's first).
+  std::optional<GlobalKeyframeId> origin() const { return origin_; }
+
+  ServerKeyframe* AddKeyframe(std::unique_ptr<ServerKeyframe> keyframe);
+  ServerMapPoint* AddPoint(std::unique_ptr<ServerMapPoint> point);
+  void AddObservation(ServerMapPoint* point, ServerKeyframe* keyframe, int keypoint);
+  // Fuses `from` into `into` (observations move over; ids of `from` resolve to `into`).
+  void MergePoints(ServerMapPoint* from, ServerMapPoint* into);
+  void AddLoopEdge(const LoopEdge& edge) { loop_edges_.push_back(edge); }
+  void AddCovisibility(ServerKeyframe* a, ServerKeyframe* b, int weight);
+
+  // Moves every keyframe and point of `other` into this map, `other`'s poses premultiplied by
+  // T_this_other. `other` is left empty.
+  void Absorb(ServerMap* other, const Pose& T_this_other);
+
+  // Keyframes of one agent in id order.
+  std::vector<ServerKeyframe*> AgentKeyframes(AgentId agent) const;
+
+ private:
+  MapId id_;
+  std::map<GlobalKeyframeId, std::unique_ptr<ServerKeyframe>> keyframes_;
+  std::unordered_map<GlobalMapPointId, std::unique_ptr<ServerMapPoint>> points_;
+  std::unordered_map<GlobalMapPointId, GlobalMapPointId> merged_into_;
+  std::vector<LoopEdge> loop_edges_;
+  std::vector<AgentId> agents_;
+  std::optional<GlobalKeyframeId> origin_;
+};
+
+}  // namespace ccmd

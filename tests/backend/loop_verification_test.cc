@@ -1,0 +1,117 @@
+#include "libccmd/backend/loop_verification.h"
+
+#include <gtest/gtest.h>
+
+#include "libccmd/util/random.h"
+
+namespace ccmd {
+namespace {
+
+Descriptor RandomDescriptor(Rng* rng) {
+  Descriptor d;
+  for (auto& b : d) b = static_cast<std::uint8_t>(rng->Next());
+  return d;
+}
+
+Descriptor FlipBits(Descriptor d, int bits, Rng* rng) {
+  for (int i = 0; i < bits; ++i) {
+    const int bit = rng->UniformInt(0, 255);
+    d[bit / 8] ^= static_cast<std::uint8_t>(1 << (bit % 8));
+  }
+  return d;
+}
+
+PinholeCamera Camera() {
+  PinholeCamera c;
+  c.fx = c.fy = 525;
+  c.cx = 319.5;
+  c.cy = 239.5;
+  return c;
+}
+
+TEST(LoopVerificationTest, RecoversTheQueryPoseDespiteOutliers) {
+  Rng rng(41);
+  const PinholeCamera camera = Camera();
+  ServerMap map(MapId(1));
+  // Candidate keyframe at the origin observing 400 points on a wall 2-4 m away.
+  auto candidate = std::make_unique<ServerKeyframe>();
+  candidate->id = {AgentId(1), KeyframeId(0)};
+  std::vector<Eigen::Vector3d> world;
+  std::vector<Descriptor> descriptors;
+  for (int j = 0; j < 400; ++j) {
+    world.emplace_back(rng.Uniform(-1.5, 1.5), rng.Uniform(-1, 1), rng.Uniform(2, 4));
+    descriptors.push_back(RandomDescriptor(&rng));
+    const Eigen::Vector2d uv = camera.Project(world.back());
+    candidate->keypoints.push_back({cv::Point2f(uv.x(), uv.y()), 0, 0, static_cast<float>(world.back().z())});
+    candidate->descriptors.push_back(descriptors.back());
+  }
+  candidate->points.assign(400, nullptr);
+  ServerKeyframe* cand = map.AddKeyframe(std::move(candidate));
+  for (int j = 0; j < 400; ++j) {
+    ServerMapPoint* p = map.AddPoint(std::make_unique<ServerMapPoint>(GlobalMapPointId{AgentId(1), MapPointId(j)}, cand,
+                                                                      world[j], descriptors[j]));
+    map.AddObservation(p, cand, j);
+  }
+  // Query: another agent's keyframe at a known pose, seeing the same points (noisy pixels and
+  // depth, descriptors with a few flipped bits); a third of its keypoints are unrelated.
+  Pose T_map_query = Pose::Identity();
+  T_map_query.linear() = Eigen::AngleAxisd(0.15, Eigen::Vector3d(0.2, 1, 0).normalized()).toRotationMatrix();
+  T_map_query.translation() = Eigen::Vector3d(0.3, -0.1, 0.2);
+  ServerKeyframe query;
+  query.id = {AgentId(2), KeyframeId(7)};
+  int true_matches = 0;
+  for (int j = 0; j < 400; ++j) {
+    const Eigen::Vector3d pc = T_map_query.inverse() * world[j];
+    const Eigen::Vector2d uv = camera.Project(pc);
+    if (!camera.InImage(uv) || j % 3 == 0) {
+      query.keypoints.push_back({cv::Point2f(rng.Uniform(0, 640), rng.Uniform(0, 480)), 0, 0, static_cast<float>(rng.Uniform(1, 4))});
+      query.descriptors.push_back(RandomDescriptor(&rng));
+      continue;
+    }
+    query.keypoints.push_back({cv::Point2f(uv.x() + 0.5 * rng.Normal(), uv.y() + 0.5 * rng.Normal()), 0, 0,
+                               static_cast<float>(pc.z() + 0.004 * rng.Normal())});
+    query.descriptors.push_back(FlipBits(descriptors[j], 10, &rng));
+    ++true_matches;
+  }
+  query.points.assign(query.keypoints.size(), nullptr);
+  auto match = VerifyLoop(&query, camera, cand, map);
+  ASSERT_TRUE(match.has_value());
+  EXPECT_LT(TranslationDistance(match->T_candidate_map_query, T_map_query), 0.01);
+  EXPECT_LT(RotationDistance(match->T_candidate_map_query, T_map_query), 0.5 * M_PI / 180);
+  EXPECT_GE(match->inliers, 0.9 * true_matches);
+  EXPECT_LE(match->inliers, true_matches);
+  for (const auto& [keypoint, point] : match->matches) {
+    EXPECT_EQ(point->id.point.value(), static_cast<std::uint32_t>(keypoint));  // keypoint j saw point j
+  }
+}
+
+TEST(LoopVerificationTest, UnrelatedViewsAreRejected) {
+  Rng rng(42);
+  const PinholeCamera camera = Camera();
+  ServerMap map(MapId(1));
+  auto candidate = std::make_unique<ServerKeyframe>();
+  candidate->id = {AgentId(1), KeyframeId(0)};
+  for (int j = 0; j < 300; ++j) {
+    candidate->keypoints.push_back({cv::Point2f(rng.Uniform(0, 640), rng.Uniform(0, 480)), 0, 0, 2.0f});
+    candidate->descriptors.push_back(RandomDescriptor(&rng));
+  }
+  candidate->points.assign(300, nullptr);
+  ServerKeyframe* cand = map.AddKeyframe(std::move(candidate));
+  for (int j = 0; j < 300; ++j) {
+    const cv::Point2f& pt = cand->keypoints[j].pt;
+    ServerMapPoint* p = map.AddPoint(std::make_unique<ServerMapPoint>(GlobalMapPointId{AgentId(1), MapPointId(j)}, cand,
+                                                                      camera.BackProject(pt.x, pt.y, 2.0), cand->descriptors[j]));
+    map.AddObservation(p, cand, j);
+  }
+  ServerKeyframe query;
+  query.id = {AgentId(2), KeyframeId(1)};
+  for (int j = 0; j < 300; ++j) {
+    query.keypoints.push_back({cv::Point2f(rng.Uniform(0, 640), rng.Uniform(0, 480)), 0, 0, 2.0f});
+    query.descriptors.push_back(RandomDescriptor(&rng));
+  }
+  query.points.assign(300, nullptr);
+  EXPECT_FALSE(VerifyLoop(&query, camera, cand, map).has_value());
+}
+
+}  // namespace
+}  // namespace ccmd

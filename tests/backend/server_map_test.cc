@@ -1,0 +1,115 @@
+#include "libccmd/backend/ingest.h"
+#include "libccmd/backend/map_manager.h"
+
+#include <gtest/gtest.h>
+
+namespace ccmd {
+namespace {
+
+Pose MakePose(double yaw, const Eigen::Vector3d& t) {
+  Pose T = Pose::Identity();
+  T.linear() = Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  T.translation() = t;
+  return T;
+}
+
+WirePose ToWire(const Pose& T) {
+  const Eigen::Quaterniond q = QuaternionOf(T);
+  WirePose w;
+  w.q_xyzw = {q.x(), q.y(), q.z(), q.w()};
+  w.t = {T.translation().x(), T.translation().y(), T.translation().z()};
+  return w;
+}
+
+// A keyframe message with one new map point 2 m in front of the camera.
+KeyframeMessage Message(std::uint32_t id, const Pose& T_world_cam, std::optional<std::uint32_t> parent) {
+  KeyframeMessage m;
+  m.id = KeyframeId(id);
+  m.timestamp = id;
+  m.T_world_cam = ToWire(T_world_cam);
+  if (parent) m.parent = KeyframeId(*parent);
+  WireKeypoint k;
+  k.u = 320;
+  k.v = 240;
+  k.depth_m = 2.0f;
+  k.map_point = MapPointId(100 + id);
+  m.keypoints.push_back(k);
+  NewMapPoint p;
+  p.id = MapPointId(100 + id);
+  p.p_cam = {0, 0, 2};
+  m.new_map_points.push_back(p);
+  return m;
+}
+
+TEST(ServerMapTest, KeyframesFollowTheAgentsRelativeMotionAndPoseUpdates) {
+  ServerMap map(MapId(1));
+  const AgentId agent(1);
+  const Pose T0 = MakePose(0.1, {1, 2, 0}), T1 = MakePose(0.3, {1.5, 2, 0.1});
+  auto k0 = AddKeyframeMessage(&map, agent, Message(0, T0, std::nullopt), Pose::Identity());
+  ASSERT_TRUE(k0.ok());
+  // The server corrects keyframe 0 (as a loop closure would): keyframe 1 must be placed by the
+  // agent's relative motion from keyframe 0's corrected pose, not at the agent's raw pose.
+  const Pose correction = MakePose(0.05, {0.2, 0, 0});
+  (*k0)->T_map_cam = correction * (*k0)->T_map_cam;
+  auto k1 = AddKeyframeMessage(&map, agent, Message(1, T1, 0), Pose::Identity());
+  ASSERT_TRUE(k1.ok());
+  const Pose expected1 = (*k0)->T_map_cam * T0.inverse() * T1;
+  EXPECT_LT(TranslationDistance((*k1)->T_map_cam, expected1), 1e-9);
+  // The new map point is anchored: it moves with its keyframe.
+  ServerMapPoint* point = map.point({agent, MapPointId(101)});
+  ASSERT_NE(point, nullptr);
+  EXPECT_LT((point->World() - expected1 * Eigen::Vector3d(0, 0, 2)).norm(), 1e-6);
+  // A pose update (local BA on the agent) applies the agent's change on top of the server's pose.
+  const Pose T1_refined = T1 * MakePose(0.01, {0.03, 0, 0});
+  PoseUpdateMessage update;
+  update.entries.push_back({KeyframeId(1), ToWire(T1_refined)});
+  const auto moved = ApplyPoseUpdates(&map, agent, update);
+  ASSERT_EQ(moved.size(), 1u);
+  EXPECT_LT(TranslationDistance((*k1)->T_map_cam, expected1 * MakePose(0.01, {0.03, 0, 0})), 1e-6);
+  EXPECT_LT((point->World() - (*k1)->T_map_cam * Eigen::Vector3d(0, 0, 2)).norm(), 1e-6);
+  // Duplicate keyframe ids are refused.
+  EXPECT_FALSE(AddKeyframeMessage(&map, agent, Message(1, T1, 0), Pose::Identity()).ok());
+}
+
+TEST(MapManagerTest, FusionPlacesTheOtherMapByTheTransform) {
+  MapManager maps;
+  const AgentId a(1), b(2);
+  std::vector<Pose> poses_b;
+  {
+    auto guard = maps.CheckOutAgent(a);
+    ASSERT_TRUE(AddKeyframeMessage(guard.get(), a, Message(0, Pose::Identity(), std::nullopt), Pose::Identity()).ok());
+  }
+  {
+    auto guard = maps.CheckOutAgent(b);
+    for (std::uint32_t i = 0; i < 3; ++i) {
+      poses_b.push_back(MakePose(0.2 * i, {0.5 * i, 0, 0}));
+      ASSERT_TRUE(AddKeyframeMessage(guard.get(), b, Message(i, poses_b.back(), i ? std::optional<std::uint32_t>(i - 1) : std::nullopt),
+                                     Pose::Identity()).ok());
+    }
+  }
+  EXPECT_EQ(*maps.primary(), MapId(1));
+  const Pose T_a_b = MakePose(1.2, {3, -1, 0.5});
+  auto [ga, gb] = maps.CheckOutPair(MapId(1), MapId(2));
+  MapManager::Guard fused = maps.Fuse(&ga, &gb, T_a_b);
+  ASSERT_TRUE(fused);
+  EXPECT_FALSE(ga);  // the old maps are gone
+  EXPECT_EQ(fused->keyframes().size(), 4u);
+  for (std::uint32_t i = 0; i < 3; ++i) {
+    const ServerKeyframe* kf = fused->keyframe({b, KeyframeId(i)});
+    ASSERT_NE(kf, nullptr);
+    EXPECT_LT(TranslationDistance(kf->T_map_cam, T_a_b * poses_b[i]), 1e-9);
+    // Points moved along with their anchors.
+    const ServerMapPoint* p = fused->point({b, MapPointId(100 + i)});
+    ASSERT_NE(p, nullptr);
+    EXPECT_LT((p->World() - T_a_b * poses_b[i] * Eigen::Vector3d(0, 0, 2)).norm(), 1e-6);
+  }
+  EXPECT_EQ(fused->origin()->agent, a);  // the kept (primary) map's gauge
+  const MapId fused_id = fused->id();
+  fused = MapManager::Guard();
+  EXPECT_EQ(*maps.primary(), fused_id);
+  EXPECT_EQ(*maps.MapOfAgent(b), fused_id);
+  EXPECT_EQ(maps.Maps().size(), 1u);
+}
+
+}  // namespace
+}  // namespace ccmd
