@@ -1,0 +1,165 @@
+#include "libccmd/net/session_messages.h"
+
+#include <cstring>
+#include <string>
+#include <vector>
+
+#include <gtest/gtest.h>
+
+namespace ccmd {
+namespace {
+
+using Bytes = std::vector<std::uint8_t>;
+
+void PutLe(Bytes* b, std::uint64_t v, int n) {
+  for (int i = 0; i < n; ++i) b->push_back(static_cast<std::uint8_t>(v >> (8 * i)));
+}
+void PutF64(Bytes* b, double d) {
+  std::uint64_t bits;
+  std::memcpy(&bits, &d, 8);
+  PutLe(b, bits, 8);
+}
+
+HelloMessage SampleHello() {
+  HelloMessage h;
+  h.fresh = false;
+  h.name = "robot-1";
+  h.camera = {517.3, 516.5, 318.6, 255.3, 640, 480, 5000};
+  h.first_seq = 3;
+  h.next_seq = 9;
+  for (int i = 0; i < 32; ++i) h.agent_nonce[i] = static_cast<std::uint8_t>(i);
+  return h;
+}
+
+TEST(SessionMessagesTest, HelloLayoutByteByByte) {
+  Bytes expected = {1, 0, 7, 'r', 'o', 'b', 'o', 't', '-', '1'};
+  for (double v : {517.3, 516.5, 318.6, 255.3}) PutF64(&expected, v);
+  PutLe(&expected, 640, 4);
+  PutLe(&expected, 480, 4);
+  PutF64(&expected, 5000);
+  PutLe(&expected, 3, 8);
+  PutLe(&expected, 9, 8);
+  for (int i = 0; i < 32; ++i) expected.push_back(static_cast<std::uint8_t>(i));
+  EXPECT_EQ(SerializeHello(SampleHello()), expected);
+  EXPECT_EQ(expected.size(), 3u + 7 + 32 + 8 + 8 + 16 + 32);
+
+  StatusOr<HelloMessage> parsed = ParseHello(expected);
+  ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+  EXPECT_EQ(parsed->name, "robot-1");
+  EXPECT_FALSE(parsed->fresh);
+  EXPECT_EQ(parsed->camera, SampleHello().camera);
+  EXPECT_EQ(parsed->first_seq, 3u);
+  EXPECT_EQ(parsed->next_seq, 9u);
+  EXPECT_EQ(parsed->agent_nonce, SampleHello().agent_nonce);
+}
+
+TEST(SessionMessagesTest, HelloRejectsBadFields) {
+  const Bytes good = SerializeHello(SampleHello());
+  Bytes version = good;
+  version[0] = 2;
+  EXPECT_EQ(ParseHello(version).status().code(), StatusCode::kUnsupported);
+  Bytes flags = good;
+  flags[1] = 0x80;
+  EXPECT_EQ(ParseHello(flags).status().code(), StatusCode::kCorrupt);
+  Bytes name = good;
+  name[3] = '/';  // "/obot-1" would become a path
+  EXPECT_EQ(ParseHello(name).status().code(), StatusCode::kCorrupt);
+  Bytes long_name = good;
+  long_name[2] = 200;  // more bytes than present
+  EXPECT_EQ(ParseHello(long_name).status().code(), StatusCode::kCorrupt);
+  HelloMessage bad_range = SampleHello();
+  bad_range.next_seq = 2;  // before first_seq
+  EXPECT_FALSE(ParseHello(SerializeHello(bad_range)).ok());
+  HelloMessage bad_camera = SampleHello();
+  bad_camera.camera.fx = -1;
+  EXPECT_FALSE(ParseHello(SerializeHello(bad_camera)).ok());
+  Bytes trailing = good;
+  trailing.push_back(0);
+  EXPECT_EQ(ParseHello(trailing).status().code(), StatusCode::kCorrupt);
+  for (std::size_t n = 0; n < good.size(); ++n) {
+    EXPECT_FALSE(ParseHello(ByteSpan(good.data(), n)).ok()) << n;
+  }
+}
+
+TEST(SessionMessagesTest, ChallengeAuthWelcomeAckByeLayouts) {
+  ChallengeMessage c;
+  c.key_required = true;
+  c.server_nonce.fill(0xAB);
+  Bytes expected_c = {1};
+  expected_c.insert(expected_c.end(), 32, 0xAB);
+  EXPECT_EQ(SerializeChallenge(c), expected_c);
+  EXPECT_TRUE(ParseChallenge(expected_c)->key_required);
+  expected_c[0] = 2;
+  EXPECT_FALSE(ParseChallenge(expected_c).ok());
+
+  EXPECT_TRUE(SerializeAuth(AuthMessage{}).empty());
+  EXPECT_FALSE(ParseAuth(Bytes{})->proof.has_value());
+  EXPECT_FALSE(ParseAuth(Bytes(31, 0)).ok());
+  EXPECT_TRUE(ParseAuth(Bytes(32, 0))->proof.has_value());
+
+  WelcomeMessage w;
+  w.agent = AgentId(0x0203);
+  w.last_stored_seq = 0x1122334455667788ull;
+  w.max_payload_bytes = 0x01000000;
+  w.idle_timeout_ms = 30000;
+  Bytes expected_w = {0, 0x03, 0x02};
+  PutLe(&expected_w, 0x1122334455667788ull, 8);
+  PutLe(&expected_w, 0x01000000, 4);
+  PutLe(&expected_w, 30000, 4);
+  EXPECT_EQ(SerializeWelcome(w), expected_w);
+  w.server_proof.emplace();
+  w.server_proof->fill(7);
+  const Bytes with_proof = SerializeWelcome(w);
+  EXPECT_EQ(with_proof[0], 1);
+  EXPECT_EQ(with_proof.size(), expected_w.size() + 32);
+  StatusOr<WelcomeMessage> pw = ParseWelcome(with_proof);
+  ASSERT_TRUE(pw.ok());
+  EXPECT_EQ(pw->agent, AgentId(0x0203));
+  EXPECT_EQ(pw->last_stored_seq, 0x1122334455667788ull);
+  EXPECT_EQ(*pw->server_proof, *w.server_proof);
+
+  EXPECT_EQ(SerializeAck({0x0102030405060708ull}),
+            (Bytes{0x08, 0x07, 0x06, 0x05, 0x04, 0x03, 0x02, 0x01}));
+  EXPECT_EQ(ParseAck(Bytes{1, 0, 0, 0, 0, 0, 0, 0})->last_stored_seq, 1u);
+  EXPECT_FALSE(ParseAck(Bytes{1, 0, 0}).ok());
+
+  EXPECT_EQ(SerializeBye({ByeReason::kAuthFailed, "no"}), (Bytes{3, 2, 0, 'n', 'o'}));
+  StatusOr<ByeMessage> bye = ParseBye(Bytes{11, 3, 0, 'a', 0x01, 'z'});
+  ASSERT_TRUE(bye.ok());
+  EXPECT_EQ(bye->reason, ByeReason::kReplaced);
+  EXPECT_EQ(bye->text, "a?z");  // control characters never reach the logs
+  EXPECT_FALSE(ParseBye(Bytes{12, 0, 0}).ok());      // unknown reason
+  EXPECT_FALSE(ParseBye(Bytes{0, 0xFF, 0xFF}).ok());  // text longer than allowed
+  EXPECT_TRUE(ParseHeartbeat(Bytes{}).ok());
+  EXPECT_FALSE(ParseHeartbeat(Bytes{0}).ok());
+}
+
+TEST(SessionMessagesTest, DataEnvelopeCarriesTheSequenceNumberFirst) {
+  const Bytes message = {9, 8, 7};
+  Bytes frame;
+  AppendDataFrame(16, 0x0102, message, &frame);
+  ASSERT_EQ(frame.size(), kFrameHeaderSize + 8 + 3);
+  StatusOr<Frame> decoded = DecodeFrame(frame);
+  ASSERT_TRUE(decoded.ok());
+  EXPECT_EQ(decoded->type, 16);
+  EXPECT_EQ(decoded->payload, (Bytes{0x02, 0x01, 0, 0, 0, 0, 0, 0, 9, 8, 7}));
+  StatusOr<DataEnvelope> env = ParseDataEnvelope(decoded->payload);
+  ASSERT_TRUE(env.ok());
+  EXPECT_EQ(env->seq, 0x0102u);
+  EXPECT_EQ(Bytes(env->message.begin(), env->message.end()), message);
+  EXPECT_FALSE(ParseDataEnvelope(Bytes{0, 0, 0, 0, 0, 0, 0, 0}).ok());  // seq 0
+  EXPECT_FALSE(ParseDataEnvelope(Bytes{1, 0, 0}).ok());
+}
+
+TEST(SessionMessagesTest, AgentNames) {
+  EXPECT_TRUE(ValidateAgentName("robot_1.a-b").ok());
+  EXPECT_FALSE(ValidateAgentName("").ok());
+  EXPECT_FALSE(ValidateAgentName(".hidden").ok());
+  EXPECT_FALSE(ValidateAgentName("a/b").ok());
+  EXPECT_FALSE(ValidateAgentName("a b").ok());
+  EXPECT_FALSE(ValidateAgentName(std::string(65, 'a')).ok());
+  EXPECT_TRUE(ValidateAgentName(std::string(64, 'a')).ok());
+}
+
+}  // namespace
+}  // namespace ccmd
