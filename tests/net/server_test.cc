@@ -2,6 +2,7 @@
 
 #include "libccmd/net/server.h"
 
+#include <cstdio>
 #include <memory>
 #include <thread>
 #include <vector>
@@ -10,6 +11,7 @@
 
 #include "libccmd/net/agent_link.h"
 #include "libccmd/net/journal.h"
+#include "libccmd/net/socket.h"
 #include "tests/net/net_test_util.h"
 #include "tests/support/test_support.h"
 
@@ -100,6 +102,129 @@ TEST(ServerTest, EightAgentsConcurrentlyExactlyOnceInOrder) {
     EXPECT_EQ(parts, kf.Get("bytes")->number());
     EXPECT_EQ(agent.Get("delivered")->Get("count")->number(), kMessages);
   }
+}
+
+}  // namespace
+}  // namespace ccmd
+
+namespace ccmd {
+namespace {
+
+std::vector<Bytes> SendAll(AgentLink* link, int agent, int from, int to) {
+  std::vector<Bytes> sent;
+  for (int i = from; i < to; ++i) {
+    Bytes m = SyntheticKeyframe(agent, i, 20, 1500);
+    EXPECT_TRUE(link->Send(MessageType::kKeyframe, m).ok());
+    sent.push_back(std::move(m));
+  }
+  return sent;
+}
+
+TEST(ServerTest, ResumeReplaysTheJournalThenContinuesTheSequence) {
+  testing::TempDir dir;
+  AgentId first_id;
+  {
+    RecordingConsumer consumer;
+    Server server(LoopbackOptions(dir.File("journal")), &consumer);
+    ASSERT_TRUE(server.Start().ok());
+    auto link = AgentLink::Create(LinkOptions(server.port(), "robot")).value();
+    SendAll(link.get(), 1, 0, 30);
+    ASSERT_TRUE(link->Flush(10).ok());
+    first_id = link->stats().agent;
+    link.reset();
+    server.Stop();
+  }
+  // A crash in the middle of the next append: half a record at the end of the journal.
+  const std::string journal = dir.File("journal/" + JournalFileName(first_id));
+  {
+    Bytes half;
+    AppendDataFrame(16, 31, SyntheticKeyframe(1, 30, 20, 1500), &half);
+    half.resize(half.size() / 2);
+    FILE* f = std::fopen(journal.c_str(), "ab");
+    std::fwrite(half.data(), 1, half.size(), f);
+    std::fclose(f);
+  }
+  // Without --resume, a folder holding journals is refused.
+  {
+    RecordingConsumer consumer;
+    Server server(LoopbackOptions(dir.File("journal")), &consumer);
+    EXPECT_EQ(server.Start().code(), StatusCode::kInvalidArgument);
+  }
+  RecordingConsumer consumer;
+  ServerOptions options = LoopbackOptions(dir.File("journal"));
+  options.resume = true;
+  Server server(options, &consumer);
+  ASSERT_TRUE(server.Start().ok());
+  // Everything journaled reached the consumer before Start returned.
+  EXPECT_EQ(consumer.total(), 30u);
+  EXPECT_EQ(consumer.known_from_journal(), 1);
+  ASSERT_EQ(consumer.events().back(), "replay finished 30");
+  // A new process under the same name continues after message 30 with the same id.
+  auto link = AgentLink::Create(LinkOptions(server.port(), "robot")).value();
+  SendAll(link.get(), 1, 30, 50);
+  ASSERT_TRUE(link->Flush(10).ok());
+  EXPECT_EQ(link->stats().agent, first_id);
+  link.reset();
+  server.Stop();
+  const auto got = consumer.messages().at("robot");
+  ASSERT_EQ(got.size(), 50u);
+  for (int i = 0; i < 50; ++i) {
+    EXPECT_EQ(got[i].seq, static_cast<std::uint64_t>(i + 1));
+    EXPECT_EQ(got[i].replayed, i < 30);
+    EXPECT_EQ(got[i].payload, SyntheticKeyframe(1, i, 20, 1500)) << i;
+  }
+  // The torn half record was cut, and the journal now holds exactly messages 1..50.
+  StatusOr<JournalScan> scan = ScanJournalFile(journal);
+  ASSERT_TRUE(scan.ok()) << scan.status().ToString();
+  EXPECT_EQ(scan->records, 50u);
+  EXPECT_EQ(scan->torn_bytes, 0u);
+}
+
+TEST(ServerTest, LinkSpillsToDiskWhileTheServerIsAwayAndDeliversInOrder) {
+  testing::TempDir dir;
+  // A free port for a server that starts later.
+  std::uint16_t port;
+  {
+    bool loopback;
+    UniqueFd probe = ListenTcp(HostPort{"127.0.0.1", 0}, 1, &loopback).value();
+    port = LocalPort(probe.get()).value();
+  }
+  AgentLinkOptions o = LinkOptions(port, "spiller");
+  o.memory_limit_bytes = 10000;
+  o.spill_dir = dir.File("spill");
+  auto link = AgentLink::Create(o).value();
+  const std::vector<Bytes> sent = SendAll(link.get(), 2, 0, 40);
+  const AgentLinkStats before = link->stats();
+  EXPECT_EQ(before.acked, 0u);
+  EXPECT_LE(before.memory_bytes, 10000u + sent[0].size());
+  EXPECT_GT(before.spilled, 30u);
+  EXPECT_GT(before.spill_bytes, 0u);
+
+  RecordingConsumer consumer;
+  ServerOptions so = LoopbackOptions(dir.File("journal"));
+  so.listen = "127.0.0.1:" + std::to_string(port);
+  Server server(so, &consumer);
+  ASSERT_TRUE(server.Start().ok());
+  ASSERT_TRUE(link->Flush(20).ok());
+  const AgentLinkStats after = link->stats();
+  EXPECT_EQ(after.acked, 40u);
+  EXPECT_EQ(after.spill_bytes, 0u);
+  link.reset();
+  server.Stop();
+  const auto got = consumer.messages().at("spiller");
+  ASSERT_EQ(got.size(), sent.size());
+  for (std::size_t i = 0; i < sent.size(); ++i) EXPECT_EQ(got[i].payload, sent[i]) << i;
+}
+
+TEST(ServerTest, RefusesNonLoopbackWithoutKey) {
+  testing::TempDir dir;
+  RecordingConsumer consumer;
+  ServerOptions o = LoopbackOptions(dir.File("journal"));
+  o.listen = "0.0.0.0:0";
+  Server server(o, &consumer);
+  const Status s = server.Start();
+  EXPECT_EQ(s.code(), StatusCode::kPermissionDenied);
+  EXPECT_NE(s.message().find("--psk-file"), std::string::npos);
 }
 
 }  // namespace
