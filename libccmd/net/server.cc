@@ -12,6 +12,7 @@
 #include <cstring>
 #include <deque>
 #include <map>
+#include <optional>
 
 #include "libccmd/net/journal_stage.h"
 #include "libccmd/net/psk.h"
@@ -175,6 +176,7 @@ class ServerIo {
     AgentId agent;
     std::uint64_t received_seq = 0;  // highest sequence number passed to the journal stage
     std::uint64_t inflight_bytes = 0;
+    std::optional<SessionCamera> camera;  // as registered, once known
   };
 
   const ServerOptions& options_;
@@ -632,6 +634,17 @@ void ServerIo::HandleAuth(Connection* c, const Frame& frame) {
     return;
   }
   Slot& slot = slots_[c->hello.name];
+  // A conflicting camera must not cost the registered agent its connection (the journal
+  // stage refuses it in any case).
+  if (slot.camera && !(*slot.camera == c->hello.camera)) {
+    stats_->Count("refused_refused");
+    Close(c, ByeReason::kRefused,
+          "agent '" + c->hello.name + "' is registered with camera " +
+              DescribeCamera(*slot.camera) + " but announces " + DescribeCamera(c->hello.camera) +
+              "; a different camera needs a new agent name",
+          now);
+    return;
+  }
   if (slot.conn != 0) {
     auto old = conns_.find(slot.conn);
     if (old != conns_.end() && !old->second->done) {
@@ -742,6 +755,7 @@ void ServerIo::HandleFeedback(double now) {
     Slot& slot = slots_[c->hello.name];
     slot.agent = r.agent;
     slot.received_seq = r.last_stored;
+    slot.camera = c->hello.camera;
     names_[r.agent] = c->hello.name;
     c->agent = r.agent;
     c->attached = true;

@@ -285,6 +285,7 @@ TEST_F(BadInputTest, OversizedDataFrame) {
 }
 
 TEST_F(BadInputTest, DifferentCameraUnderAKnownNameIsRefused) {
+  ASSERT_TRUE(good_->Flush(10).ok());  // "good" is registered
   AgentLinkOptions o = Link("good");
   o.psk = kKey;
   o.camera.fx = 600;
