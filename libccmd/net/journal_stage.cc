@@ -117,7 +117,10 @@ StatusOr<std::uint64_t> JournalStage::Resume() {
   CCMD_RETURN_IF_ERROR(MakeDirectories(options_.dir));
   CCMD_ASSIGN_OR_RETURN(auto files, ListJournals(options_.dir));
   std::uint64_t total = 0;
-  for (const auto& [file_id, path] : files) {
+  for (const auto& file : files) {
+    // Named copies: lambdas below capture them (clang does not capture structured bindings).
+    const AgentId file_id = file.first;
+    const std::string& path = file.second;
     Agent agent;
     JournalVisitor visitor;
     visitor.on_info = [&](const JournalAgentInfo& info) -> Status {
