@@ -138,8 +138,11 @@ StatusOr<std::vector<std::uint8_t>> EncodeDepth(const cv::Mat& depth_mm,
   if (const std::string why = options.Check(); !why.empty()) return InvalidArgument(why);
   if (depth_mm.type() != CV_16UC1) return InvalidArgument("depth must be CV_16UC1 millimetres");
   if (depth_mm.empty()) return InvalidArgument("empty depth image");
-  CCMD_ASSIGN_OR_RETURN(cv::Mat image,
-                        DownsampleDepth(depth_mm, options.downsample, options.downsample_method));
+  cv::Mat image = depth_mm;  // at r = 1 the input itself, not a copy
+  if (options.downsample != 1) {
+    CCMD_ASSIGN_OR_RETURN(image,
+                          DownsampleDepth(depth_mm, options.downsample, options.downsample_method));
+  }
   if (!image.isContinuous()) image = image.clone();
   if (image.cols > 65535 || image.rows > 65535 || image.empty()) {
     return InvalidArgument("depth image size not codable");

@@ -382,6 +382,7 @@ Status RunReconstruction(int frames, int downsample, Json* out) {
   so.frames = frames;
   so.fps = frames / so.path.loop_period_s;  // one loop around the room
   so.seed = 5;
+  std::fflush(stdout);  // keep the log line out of the tables above
   CCMD_LOG(INFO) << "rendering a " << frames << "-frame synthetic sequence into " << folder;
   CCMD_RETURN_IF_ERROR(WriteSyntheticSequence(folder, so).status());
   CCMD_ASSIGN_OR_RETURN(TumSequence seq, TumSequence::Open(folder, std::nullopt));
