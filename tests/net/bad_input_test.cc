@@ -51,6 +51,8 @@ class BadInputTest : public ::testing::Test {
     o.psk = kKey;
     o.fsync = false;
     o.handshake_timeout_s = 0.5;
+    o.idle_timeout_s = 1.5;  // the good agent's link heartbeats every 0.5 s
+    o.heartbeat_interval_s = 0.5;
     o.max_payload_bytes = 64 << 10;
     o.per_agent_memory_bytes = 1 << 20;
     server_ = std::make_unique<Server>(o, &consumer_);
@@ -202,6 +204,21 @@ TEST_F(BadInputTest, SilentClientTimesOut) {
   ASSERT_TRUE(bye.has_value());
   EXPECT_EQ(bye->reason, ByeReason::kTimeout);
   EXPECT_EQ(server_->stats().counter("handshake_timeouts"), 1u);
+}
+
+TEST_F(BadInputTest, SilentSessionTimesOut) {
+  RawClient c;
+  Handshake(&c, "quiet");
+  std::vector<Frame> frames;
+  EXPECT_TRUE(c.ReadUntilClosed(&frames, 10));
+  std::optional<ByeMessage> bye = FindBye(frames);
+  ASSERT_TRUE(bye.has_value());
+  EXPECT_EQ(bye->reason, ByeReason::kTimeout);
+  EXPECT_EQ(server_->stats().counter("idle_timeouts"), 1u);
+  // The server's own heartbeats kept coming while it waited.
+  int heartbeats = 0;
+  for (const Frame& f : frames) heartbeats += f.type == static_cast<std::uint8_t>(SessionType::kHeartbeat);
+  EXPECT_GE(heartbeats, 1);
 }
 
 TEST_F(BadInputTest, HandshakeOutOfOrder) {

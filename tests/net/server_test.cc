@@ -216,6 +216,42 @@ TEST(ServerTest, LinkSpillsToDiskWhileTheServerIsAwayAndDeliversInOrder) {
   for (std::size_t i = 0; i < sent.size(); ++i) EXPECT_EQ(got[i].payload, sent[i]) << i;
 }
 
+TEST(ServerTest, AgentsBeyondTheLimitAreRefusedKnownOnesStillServed) {
+  testing::TempDir dir;
+  RecordingConsumer consumer;
+  ServerOptions o = LoopbackOptions(dir.File("journal"));
+  o.max_agents = 2;
+  Server server(o, &consumer);
+  ASSERT_TRUE(server.Start().ok());
+  for (const char* name : {"a", "b"}) {
+    auto link = AgentLink::Create(LinkOptions(server.port(), name)).value();
+    SendAll(link.get(), 0, 0, 1);
+    ASSERT_TRUE(link->Flush(10).ok());
+  }
+  // A third name: refused with "server full" (a retryable refusal: the link keeps trying).
+  nettest::RawClient c;
+  ASSERT_TRUE(c.Connect(server.port()));
+  HelloMessage hello;
+  hello.name = "c";
+  hello.camera = TestCamera();
+  ASSERT_TRUE(c.SendBytes(EncodeSessionFrame(SessionType::kHello, SerializeHello(hello))));
+  std::optional<Frame> challenge = c.ReadFrame(5);
+  ASSERT_TRUE(challenge.has_value());
+  ASSERT_TRUE(c.SendBytes(EncodeSessionFrame(SessionType::kAuth, SerializeAuth({}))));
+  std::vector<Frame> frames;
+  ASSERT_TRUE(c.ReadUntilClosed(&frames, 10));
+  std::optional<ByeMessage> bye = nettest::FindBye(frames);
+  ASSERT_TRUE(bye.has_value());
+  EXPECT_EQ(bye->reason, ByeReason::kServerFull);
+  // A registered agent reconnecting is still welcome.
+  auto again = AgentLink::Create(LinkOptions(server.port(), "a")).value();
+  SendAll(again.get(), 0, 1, 2);
+  EXPECT_TRUE(again->Flush(10).ok());
+  again.reset();
+  server.Stop();
+  EXPECT_EQ(consumer.messages().at("a").size(), 2u);
+}
+
 TEST(ServerTest, RefusesNonLoopbackWithoutKey) {
   testing::TempDir dir;
   RecordingConsumer consumer;
