@@ -12,6 +12,7 @@
 #include <signal.h>
 
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <map>
@@ -115,7 +116,8 @@ int main(int argc, char** argv) {
   options.journal_dir = resume.empty() ? journal : resume;
   options.resume = !resume.empty();
   options.fsync = !no_fsync;
-  options.idle_timeout_s = std::max(options.idle_timeout_s, 3 * options.heartbeat_interval_s);
+  // Heartbeat often enough that a quiet agent never looks dead.
+  options.heartbeat_interval_s = std::min(options.heartbeat_interval_s, options.idle_timeout_s / 3);
   auto psk = ccmd::ResolvePsk(psk_file);
   if (!psk.ok()) {
     std::fprintf(stderr, "ccmd_server: %s\n", psk.status().ToString().c_str());
