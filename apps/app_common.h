@@ -16,6 +16,18 @@ inline std::string ConfigDir() {
   return CCMD_CONFIG_DIR;
 }
 
+// The default place-recognition vocabulary: $CCMD_VOCABULARY, else the one the build trains
+// from synthetic rooms (apps/ccmd_vocab.cmake; docs/place_recognition.md). The file may be
+// missing (built with -DCCMD_BUILD_VOCABULARY=OFF): callers then train online.
+inline std::string DefaultVocabularyPath() {
+  if (const char* env = std::getenv("CCMD_VOCABULARY")) return env;
+#ifdef CCMD_DEFAULT_VOCABULARY
+  return CCMD_DEFAULT_VOCABULARY;
+#else
+  return "";
+#endif
+}
+
 // One-line progress on a terminal ("\r" updates), a line per 10% otherwise.
 class Progress {
  public:
