@@ -40,8 +40,8 @@ class CountingConsumer : public ccmd::MessageConsumer {
   }
   void OnAgentDisconnected(ccmd::AgentId agent, const std::string& reason) override {
     std::lock_guard<std::mutex> lock(mutex_);
-    CCMD_LOG(INFO) << "back-end: agent " << agent << " left (" << reason << "); "
-                   << counts_[agent] << " messages so far";
+    CCMD_LOG(INFO) << "back-end: agent " << agent << " left (" << reason << "); " << counts_[agent]
+                   << " messages so far";
   }
   void OnMessage(ccmd::DeliveredMessage m) override {
     std::lock_guard<std::mutex> lock(mutex_);
@@ -82,16 +82,21 @@ int main(int argc, char** argv) {
   app.add_option("--psk-file", psk_file,
                  "Pre-shared key file (else $CCMD_PSK; without either: loopback only)");
   app.add_option("--max-agents", options.max_agents, "Agents the server registers")
-      ->check(CLI::Range(1, 65535))->capture_default_str();
+      ->check(CLI::Range(1, 65535))
+      ->capture_default_str();
   app.add_option("--stats", stats_path, "Traffic statistics JSON, rewritten periodically");
   app.add_option("--stats-interval", stats_interval, "Seconds between statistics writes")
-      ->check(CLI::PositiveNumber)->capture_default_str();
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
   app.add_option("--max-frame-bytes", options.max_payload_bytes, "Largest frame payload")
-      ->check(CLI::Range(1024u, 1u << 30))->capture_default_str();
+      ->check(CLI::Range(1024u, 1u << 30))
+      ->capture_default_str();
   app.add_option("--handshake-timeout", options.handshake_timeout_s, "Seconds")
-      ->check(CLI::PositiveNumber)->capture_default_str();
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
   app.add_option("--idle-timeout", options.idle_timeout_s, "Seconds")
-      ->check(CLI::PositiveNumber)->capture_default_str();
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
   app.add_option("--agent-memory", options.per_agent_memory_bytes,
                  "Bytes received from one agent and not yet journaled before reading pauses")
       ->capture_default_str();

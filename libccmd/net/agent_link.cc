@@ -32,9 +32,8 @@ int PollMillis(double seconds) {
 
 // What a server's Bye means for the link: terminal configuration errors, or retry.
 Status StatusFromBye(const ByeMessage& bye) {
-  const std::string text = std::string("server closed the session (") +
-                           ByeReasonName(bye.reason) + ")" +
-                           (bye.text.empty() ? "" : ": " + bye.text);
+  const std::string text = std::string("server closed the session (") + ByeReasonName(bye.reason) +
+                           ")" + (bye.text.empty() ? "" : ": " + bye.text);
   switch (bye.reason) {
     case ByeReason::kAuthFailed:
     case ByeReason::kKeyMismatch:
@@ -89,8 +88,7 @@ StatusOr<std::unique_ptr<AgentLink>> AgentLink::Create(AgentLinkOptions options)
   return link;
 }
 
-AgentLink::AgentLink(AgentLinkOptions options, HostPort address,
-                     std::unique_ptr<SpillStore> spill)
+AgentLink::AgentLink(AgentLinkOptions options, HostPort address, std::unique_ptr<SpillStore> spill)
     : options_(std::move(options)), address_(std::move(address)), spill_(std::move(spill)) {}
 
 AgentLink::~AgentLink() { Close(); }
@@ -122,7 +120,8 @@ StatusOr<std::uint64_t> AgentLink::Send(std::uint8_t type, std::vector<std::uint
                              std::to_string(max_message_bytes_));
     }
     local = next_local_;
-    const bool fits = memory_.empty() || memory_bytes_ + message.size() <= options_.memory_limit_bytes;
+    const bool fits =
+        memory_.empty() || memory_bytes_ + message.size() <= options_.memory_limit_bytes;
     if ((spill_ && !spill_->empty()) || !fits) {
       if (!spill_) {
         return OutOfRange("resend buffer full: " + std::to_string(memory_bytes_) +
@@ -133,8 +132,8 @@ StatusOr<std::uint64_t> AgentLink::Send(std::uint8_t type, std::vector<std::uint
       ++stats_.spilled;
     } else {
       memory_bytes_ += message.size();
-      memory_.push_back(
-          Entry{local, type, std::make_shared<const std::vector<std::uint8_t>>(std::move(message))});
+      memory_.push_back(Entry{
+          local, type, std::make_shared<const std::vector<std::uint8_t>>(std::move(message))});
     }
     ++next_local_;
     ++stats_.queued;
@@ -183,8 +182,8 @@ void AgentLink::RefillLocked() {
       return;
     }
     memory_bytes_ += m->message.size();
-    memory_.push_back(Entry{m->seq, m->type,
-                            std::make_shared<const std::vector<std::uint8_t>>(std::move(m->message))});
+    memory_.push_back(Entry{
+        m->seq, m->type, std::make_shared<const std::vector<std::uint8_t>>(std::move(m->message))});
   }
 }
 
@@ -382,9 +381,10 @@ Status AgentLink::Handshake(int fd, FrameDecoder* decoder, std::deque<Frame>* in
     const Mac expected = ServerProof(options_.psk, hello.agent_nonce, challenge.server_nonce,
                                      welcome.agent.value(), welcome.last_stored_seq);
     if (!welcome.server_proof || !ConstantTimeEquals(expected, *welcome.server_proof)) {
-      return refuse("the server could not prove it has the pre-shared key (wrong key on the "
-                    "server, or not a CCMD server)",
-                    ByeReason::kAuthFailed);
+      return refuse(
+          "the server could not prove it has the pre-shared key (wrong key on the "
+          "server, or not a CCMD server)",
+          ByeReason::kAuthFailed);
     }
   }
   *idle_timeout_s = std::max(0.1, welcome.idle_timeout_ms / 1e3);
@@ -434,8 +434,8 @@ Status AgentLink::HandleServerFrame(const Frame& frame) {
         if (ack.last_stored_seq < offset_) break;
         const std::uint64_t local = ack.last_stored_seq - offset_;
         if (local > highest_sent_) {
-          return Corrupt("the server acknowledged message " +
-                         std::to_string(ack.last_stored_seq) + " which was never sent");
+          return Corrupt("the server acknowledged message " + std::to_string(ack.last_stored_seq) +
+                         " which was never sent");
         }
         if (local <= acked_local_) break;
         first = acked_local_ + 1;
@@ -461,8 +461,7 @@ Status AgentLink::HandleServerFrame(const Frame& frame) {
                         << " from the server";
         break;
       }
-      return Corrupt("unexpected message type " + std::to_string(frame.type) +
-                     " from the server");
+      return Corrupt("unexpected message type " + std::to_string(frame.type) + " from the server");
   }
   return Status::Ok();
 }
@@ -562,8 +561,7 @@ Status AgentLink::Stream(int fd, FrameDecoder* decoder, std::deque<Frame>* inbox
       }
     }
     if (MonotonicSeconds() - last_rx >= idle_timeout_s) {
-      return Timeout("nothing heard from the server for " + std::to_string(idle_timeout_s) +
-                     " s");
+      return Timeout("nothing heard from the server for " + std::to_string(idle_timeout_s) + " s");
     }
   }
 }

@@ -114,8 +114,7 @@ class AgentLink {
   AgentLink(AgentLinkOptions options, HostPort address, std::unique_ptr<SpillStore> spill);
   void Run();
   Status Session(double* backoff);
-  Status Handshake(int fd, FrameDecoder* decoder, std::deque<Frame>* inbox,
-                   double* idle_timeout_s);
+  Status Handshake(int fd, FrameDecoder* decoder, std::deque<Frame>* inbox, double* idle_timeout_s);
   Status Stream(int fd, FrameDecoder* decoder, std::deque<Frame>* inbox, double idle_timeout_s);
   Status WriteBlocking(int fd, ByteSpan bytes, double deadline, bool interruptible = true);
   StatusOr<Frame> ReadFrameBlocking(int fd, FrameDecoder* decoder, std::deque<Frame>* inbox,

@@ -80,8 +80,8 @@ class FileSource : public ScanSource {
 StatusOr<bool> AllZeroFrom(ScanSource* src, std::uint64_t offset) {
   std::uint8_t chunk[4096];
   while (offset < src->size()) {
-    const std::size_t n = static_cast<std::size_t>(std::min<std::uint64_t>(sizeof(chunk),
-                                                                           src->size() - offset));
+    const std::size_t n =
+        static_cast<std::size_t>(std::min<std::uint64_t>(sizeof(chunk), src->size() - offset));
     CCMD_RETURN_IF_ERROR(src->Read(offset, n, chunk));
     for (std::size_t i = 0; i < n; ++i) {
       if (chunk[i] != 0) return false;
@@ -91,8 +91,8 @@ StatusOr<bool> AllZeroFrom(ScanSource* src, std::uint64_t offset) {
   return true;
 }
 
-StatusOr<JournalScan> Scan(ScanSource* src, const std::string& name,
-                           const JournalVisitor& visitor, const JournalScanOptions& options) {
+StatusOr<JournalScan> Scan(ScanSource* src, const std::string& name, const JournalVisitor& visitor,
+                           const JournalScanOptions& options) {
   JournalScan scan;
   std::uint64_t pos = 0;
   const std::uint64_t size = src->size();
@@ -134,7 +134,8 @@ StatusOr<JournalScan> Scan(ScanSource* src, const std::string& name,
       return corrupt("record payload CRC mismatch");
     }
     if (!scan.has_info) {
-      if (header->type != kJournalInfoRecord) return corrupt("first record is not a journal info record");
+      if (header->type != kJournalInfoRecord)
+        return corrupt("first record is not a journal info record");
       StatusOr<JournalAgentInfo> info = ParseJournalInfo(payload);
       if (!info.ok()) return corrupt(info.status().message());
       scan.info = std::move(*info);
@@ -256,7 +257,7 @@ StatusOr<std::unique_ptr<JournalWriter>> JournalWriter::OpenForAppend(const std:
                                                                       std::uint64_t valid_bytes) {
   UniqueFd fd(::open(path.c_str(), O_WRONLY | O_APPEND | O_CLOEXEC));
   if (!fd.valid()) return IoError(Errno("opening journal " + path));
-  struct stat st{};
+  struct stat st {};
   if (::fstat(fd.get(), &st) != 0) return IoError(Errno("stat " + path));
   if (static_cast<std::uint64_t>(st.st_size) != valid_bytes) {
     if (::ftruncate(fd.get(), static_cast<off_t>(valid_bytes)) != 0 || ::fsync(fd.get()) != 0) {
@@ -293,7 +294,7 @@ StatusOr<JournalScan> ScanJournalFile(const std::string& path, const JournalVisi
                                       const JournalScanOptions& options) {
   UniqueFd fd(::open(path.c_str(), O_RDONLY | O_CLOEXEC));
   if (!fd.valid()) return IoError(Errno("opening journal " + path));
-  struct stat st{};
+  struct stat st {};
   if (::fstat(fd.get(), &st) != 0) return IoError(Errno("stat " + path));
   FileSource src(fd.get(), static_cast<std::uint64_t>(st.st_size), path);
   return Scan(&src, path, visitor, options);

@@ -95,7 +95,7 @@ struct JournalScan {
   std::uint64_t records = 0;  // data records
   std::uint64_t first_seq = 0;
   std::uint64_t last_seq = 0;
-  std::uint64_t gaps = 0;  // forward jumps in the sequence numbers (see Server, resume)
+  std::uint64_t gaps = 0;         // forward jumps in the sequence numbers (see Server, resume)
   std::uint64_t valid_bytes = 0;  // the file up to the end of the last good record
   std::uint64_t torn_bytes = 0;   // bytes after that: a torn tail, to be cut off
   std::string torn_reason;

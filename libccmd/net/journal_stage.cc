@@ -13,11 +13,12 @@ namespace ccmd {
 
 // ---------------------------------------------------------------- DeliveryStage
 
-DeliveryStage::DeliveryStage(MessageConsumer* consumer, std::size_t capacity,
-                             TrafficStats* stats)
+DeliveryStage::DeliveryStage(MessageConsumer* consumer, std::size_t capacity, TrafficStats* stats)
     : consumer_(consumer), stats_(stats), queue_(capacity) {}
 
-void DeliveryStage::Start() { thread_ = std::thread([this] { Run(); }); }
+void DeliveryStage::Start() {
+  thread_ = std::thread([this] { Run(); });
+}
 
 void DeliveryStage::Push(DeliveryItem item) { queue_.Push(std::move(item)); }
 
@@ -168,8 +169,8 @@ StatusOr<std::uint64_t> JournalStage::Resume() {
     }
     CCMD_ASSIGN_OR_RETURN(agent.writer, JournalWriter::OpenForAppend(path, scan.valid_bytes));
     agent.written_seq = agent.durable_seq = scan.last_seq;
-    CCMD_LOG(INFO) << "resumed agent " << agent.info.id << " '" << agent.info.name << "': "
-                   << scan.records << " messages, last sequence number " << scan.last_seq;
+    CCMD_LOG(INFO) << "resumed agent " << agent.info.id << " '" << agent.info.name
+                   << "': " << scan.records << " messages, last sequence number " << scan.last_seq;
     total += scan.records;
     by_name_[agent.info.name] = file_id;
     agents_[file_id] = std::move(agent);
@@ -184,7 +185,9 @@ bool JournalStage::TryPush(StageItem& item) {
   return queue_.TryPush(std::move(item));
 }
 
-void JournalStage::Start() { thread_ = std::thread([this] { Run(); }); }
+void JournalStage::Start() {
+  thread_ = std::thread([this] { Run(); });
+}
 
 void JournalStage::Stop() {
   queue_.Close();
@@ -261,8 +264,7 @@ void JournalStage::ProcessBatch(std::vector<StageItem>* items) {
   for (DeliveryItem& d : batch.deliveries) delivery_->Push(std::move(d));
 }
 
-void JournalStage::Fail(AgentId id, const Status& status, Batch* batch,
-                        StageFeedback* feedback) {
+void JournalStage::Fail(AgentId id, const Status& status, Batch* batch, StageFeedback* feedback) {
   Agent& a = agents_[id];
   CCMD_LOG(ERROR) << "journal of agent " << id << " '" << a.info.name
                   << "' failed: " << status.ToString() << "; unsynced records discarded";
@@ -336,12 +338,12 @@ void JournalStage::Attach(const StageItem& item, Batch* batch) {
   std::uint64_t last = agent->written_seq;
   if (!hello.fresh) {
     if (hello.next_seq - 1 < last) {
-      return refuse(ByeReason::kRefused,
-                    InvalidArgument("the server holds " + std::to_string(last) +
-                                    " messages of agent '" + hello.name +
-                                    "' but the agent has sent only " +
-                                    std::to_string(hello.next_seq - 1) +
-                                    "; is another agent using the same name?"));
+      return refuse(
+          ByeReason::kRefused,
+          InvalidArgument("the server holds " + std::to_string(last) + " messages of agent '" +
+                          hello.name + "' but the agent has sent only " +
+                          std::to_string(hello.next_seq - 1) +
+                          "; is another agent using the same name?"));
     }
     if (hello.first_seq > last + 1) {
       // The agent no longer holds messages last+1 .. first_seq-1: they were acknowledged by

@@ -35,10 +35,10 @@ struct DeliveryItem {
   Kind kind = Kind::kMessage;
   AgentDescription agent;  // kAgentKnown
   bool from_journal = false;
-  AgentId id;                     // kConnected, kDisconnected
-  std::uint64_t value = 0;        // kConnected: last stored; kReplayFinished: messages
-  std::string reason;             // kDisconnected
-  DeliveredMessage message;       // kMessage
+  AgentId id;                // kConnected, kDisconnected
+  std::uint64_t value = 0;   // kConnected: last stored; kReplayFinished: messages
+  std::string reason;        // kDisconnected
+  DeliveredMessage message;  // kMessage
 };
 
 class DeliveryStage {
@@ -87,8 +87,8 @@ struct AttachResult {
 
 struct StageFeedback {
   std::vector<AttachResult> attached;
-  std::map<AgentId, std::uint64_t> stored;       // durable sequence numbers reached
-  std::map<AgentId, std::uint64_t> freed_bytes;  // message bytes the stage is done with
+  std::map<AgentId, std::uint64_t> stored;         // durable sequence numbers reached
+  std::map<AgentId, std::uint64_t> freed_bytes;    // message bytes the stage is done with
   std::vector<std::pair<AgentId, Status>> failed;  // journal write failures
   bool empty() const {
     return attached.empty() && stored.empty() && freed_bytes.empty() && failed.empty();

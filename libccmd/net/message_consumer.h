@@ -29,8 +29,8 @@ struct AgentDescription {
 
 struct DeliveredMessage {
   AgentId agent;
-  std::uint64_t seq = 0;  // per agent, 1-based, consecutive (see PROTOCOL.md on gaps)
-  std::uint8_t type = 0;  // MessageType: 16 keyframe, 17 pose update
+  std::uint64_t seq = 0;              // per agent, 1-based, consecutive (see PROTOCOL.md on gaps)
+  std::uint8_t type = 0;              // MessageType: 16 keyframe, 17 pose update
   std::vector<std::uint8_t> payload;  // the message (proto/messages.h Parse* input)
   bool replayed = false;              // read back from the journal at start
   double received_time = 0;           // MonotonicSeconds() at arrival; 0 when replayed

@@ -60,8 +60,7 @@ constexpr double kDrainSeconds = 2.0;
 enum class ConnState { kAwaitHello, kAwaitAuth, kAwaitAttach, kStreaming, kClosing };
 
 bool InHandshake(ConnState s) {
-  return s == ConnState::kAwaitHello || s == ConnState::kAwaitAuth ||
-         s == ConnState::kAwaitAttach;
+  return s == ConnState::kAwaitHello || s == ConnState::kAwaitAuth || s == ConnState::kAwaitAttach;
 }
 
 std::string CounterName(ByeReason reason) {
@@ -74,9 +73,12 @@ std::string CounterName(ByeReason reason) {
 
 ByeReason ReasonFor(const Status& s) {
   switch (s.code()) {
-    case StatusCode::kUnsupported: return ByeReason::kUnsupportedVersion;
-    case StatusCode::kOutOfRange: return ByeReason::kLimitExceeded;
-    default: return ByeReason::kProtocolError;
+    case StatusCode::kUnsupported:
+      return ByeReason::kUnsupportedVersion;
+    case StatusCode::kOutOfRange:
+      return ByeReason::kLimitExceeded;
+    default:
+      return ByeReason::kProtocolError;
   }
 }
 
@@ -171,7 +173,7 @@ class ServerIo {
   bool Paused(const Connection* c) const;
   double NextDeadline(double now) const;
 
-  struct Slot {  // per agent name
+  struct Slot {              // per agent name
     std::uint64_t conn = 0;  // current connection, 0 = none
     AgentId agent;
     std::uint64_t received_seq = 0;  // highest sequence number passed to the journal stage
@@ -338,8 +340,8 @@ void ServerIo::Accept(double now) {
       continue;
     }
     ++handshakes_;
-    c->decoder = std::make_unique<FrameDecoder>(
-        FrameLimits{.max_payload_bytes = kMaxHandshakePayloadBytes});
+    c->decoder =
+        std::make_unique<FrameDecoder>(FrameLimits{.max_payload_bytes = kMaxHandshakePayloadBytes});
     CCMD_LOG(DEBUG) << "connection from " << c->peer;
     conns_[c->token] = std::move(c);
   }
@@ -493,8 +495,7 @@ void ServerIo::CheckTimers(Connection* c, double now) {
       if (now - c->opened >= options_.handshake_timeout_s) {
         stats_->Count("handshake_timeouts");
         Close(c, ByeReason::kTimeout,
-              "no complete handshake within " + std::to_string(options_.handshake_timeout_s) +
-                  " s",
+              "no complete handshake within " + std::to_string(options_.handshake_timeout_s) + " s",
               now);
       }
       break;
@@ -569,8 +570,7 @@ void ServerIo::HandleFrame(Connection* c, Frame& frame, double now) {
         if (!s.ok()) Close(c, ByeReason::kProtocolError, s.message(), now);
       } else if (type <= kLastDefinedSessionType) {
         Close(c, ByeReason::kProtocolError,
-              "unexpected session message of type " + std::to_string(type) + " in a session",
-              now);
+              "unexpected session message of type " + std::to_string(type) + " in a session", now);
       } else {
         Close(c, ByeReason::kProtocolError, "unknown message type " + std::to_string(type), now);
       }
@@ -692,10 +692,10 @@ void ServerIo::HandleData(Connection* c, Frame& frame, double now) {
   if (keyframe) {
     StatusOr<KeyframeMessage> kf = ParseKeyframe(env->message);
     if (!kf.ok()) {
-      Close(c, ReasonFor(kf.status()),
-            "malformed keyframe (message " + std::to_string(env->seq) +
-                "): " + kf.status().message(),
-            now);
+      Close(
+          c, ReasonFor(kf.status()),
+          "malformed keyframe (message " + std::to_string(env->seq) + "): " + kf.status().message(),
+          now);
       return;
     }
     // The bytes per part, by serializing what arrived again (the format is canonical).
@@ -778,8 +778,8 @@ void ServerIo::HandleFeedback(double now) {
     c->last_rx = now;
     stats_->AgentConnected(r.agent, c->hello.name, now);
     stats_->Count("sessions");
-    CCMD_LOG(INFO) << "agent " << r.agent << " '" << c->hello.name << "' connected from "
-                   << c->peer << "; stored up to message " << r.last_stored;
+    CCMD_LOG(INFO) << "agent " << r.agent << " '" << c->hello.name << "' connected from " << c->peer
+                   << "; stored up to message " << r.last_stored;
     Send(c, SessionType::kWelcome, SerializeWelcome(welcome));
   }
   for (const auto& [agent, n] : fb.freed_bytes) {

@@ -36,16 +36,17 @@ struct ServerOptions {
   std::string listen = "127.0.0.1:7420";  // HOST:PORT; port 0 = any free port
   std::string journal_dir;                // required: one journal per agent
   bool resume = false;                    // replay journal_dir's journals before serving
-  std::string psk;  // pre-shared key; empty = no authentication, allowed on loopback only
-  int max_agents = 16;                   // agents registered (journals); new names beyond it are refused
-  int max_handshakes = 32;               // connections not yet through the handshake
+  std::string psk;          // pre-shared key; empty = no authentication, allowed on loopback only
+  int max_agents = 16;      // agents registered (journals); new names beyond it are refused
+  int max_handshakes = 32;  // connections not yet through the handshake
   std::uint32_t max_payload_bytes = kDefaultMaxPayloadBytes;  // per frame
-  double handshake_timeout_s = 5.0;      // accept to welcome
-  double idle_timeout_s = 30.0;          // a session silent this long is closed
-  double heartbeat_interval_s = 5.0;     // the server sends a heartbeat after this much silence
+  double handshake_timeout_s = 5.0;                           // accept to welcome
+  double idle_timeout_s = 30.0;       // a session silent this long is closed
+  double heartbeat_interval_s = 5.0;  // the server sends a heartbeat after this much silence
   std::size_t per_agent_memory_bytes = 64u << 20;  // received, not yet journaled
   std::size_t max_output_bytes = 8u << 20;         // unsent bytes to an agent not reading
-  bool fsync = true;  // fdatasync journals before acknowledging (off: survives process crashes only)
+  bool fsync =
+      true;  // fdatasync journals before acknowledging (off: survives process crashes only)
   std::size_t journal_queue = 256;
   std::size_t delivery_queue = 256;
   TrafficOptions traffic;

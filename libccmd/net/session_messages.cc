@@ -32,18 +32,30 @@ Status Finish(const ByteReader& r, const char* what) {
 
 const char* ByeReasonName(ByeReason reason) {
   switch (reason) {
-    case ByeReason::kNormal: return "normal";
-    case ByeReason::kProtocolError: return "protocol error";
-    case ByeReason::kUnsupportedVersion: return "unsupported version";
-    case ByeReason::kAuthFailed: return "authentication failed";
-    case ByeReason::kKeyMismatch: return "key configuration mismatch";
-    case ByeReason::kServerFull: return "server full";
-    case ByeReason::kTimeout: return "time-out";
-    case ByeReason::kRefused: return "refused";
-    case ByeReason::kLimitExceeded: return "limit exceeded";
-    case ByeReason::kShuttingDown: return "shutting down";
-    case ByeReason::kServerError: return "server error";
-    case ByeReason::kReplaced: return "replaced";
+    case ByeReason::kNormal:
+      return "normal";
+    case ByeReason::kProtocolError:
+      return "protocol error";
+    case ByeReason::kUnsupportedVersion:
+      return "unsupported version";
+    case ByeReason::kAuthFailed:
+      return "authentication failed";
+    case ByeReason::kKeyMismatch:
+      return "key configuration mismatch";
+    case ByeReason::kServerFull:
+      return "server full";
+    case ByeReason::kTimeout:
+      return "time-out";
+    case ByeReason::kRefused:
+      return "refused";
+    case ByeReason::kLimitExceeded:
+      return "limit exceeded";
+    case ByeReason::kShuttingDown:
+      return "shutting down";
+    case ByeReason::kServerError:
+      return "server error";
+    case ByeReason::kReplaced:
+      return "replaced";
   }
   return "unknown";
 }
@@ -79,8 +91,8 @@ Status ValidateSessionCamera(const SessionCamera& c) {
 
 std::string DescribeCamera(const SessionCamera& c) {
   char text[160];
-  std::snprintf(text, sizeof(text), "fx %.3f fy %.3f cx %.3f cy %.3f %ux%u depth scale %.1f",
-                c.fx, c.fy, c.cx, c.cy, c.width, c.height, c.depth_scale);
+  std::snprintf(text, sizeof(text), "fx %.3f fy %.3f cx %.3f cy %.3f %ux%u depth scale %.1f", c.fx,
+                c.fy, c.cx, c.cy, c.width, c.height, c.depth_scale);
   return text;
 }
 

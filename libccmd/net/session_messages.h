@@ -45,18 +45,18 @@ constexpr std::uint8_t kLastDefinedSessionType = 7;
 
 // Why a side closes a session (sent in Bye, logged on both sides).
 enum class ByeReason : std::uint8_t {
-  kNormal = 0,             // orderly end
-  kProtocolError = 1,      // malformed, unexpected or unknown message
-  kUnsupportedVersion = 2, // protocol version mismatch
-  kAuthFailed = 3,         // wrong pre-shared key
-  kKeyMismatch = 4,        // one side has a key, the other none
-  kServerFull = 5,         // too many agents or connections
-  kTimeout = 6,            // handshake or idle time-out
-  kRefused = 7,            // name/camera conflict with the agent registered under that name
-  kLimitExceeded = 8,      // frame too large, peer not reading
-  kShuttingDown = 9,       // server stopping
-  kServerError = 10,       // the server could not store the data (journal failure)
-  kReplaced = 11,          // a newer connection of the same agent took over
+  kNormal = 0,              // orderly end
+  kProtocolError = 1,       // malformed, unexpected or unknown message
+  kUnsupportedVersion = 2,  // protocol version mismatch
+  kAuthFailed = 3,          // wrong pre-shared key
+  kKeyMismatch = 4,         // one side has a key, the other none
+  kServerFull = 5,          // too many agents or connections
+  kTimeout = 6,             // handshake or idle time-out
+  kRefused = 7,             // name/camera conflict with the agent registered under that name
+  kLimitExceeded = 8,       // frame too large, peer not reading
+  kShuttingDown = 9,        // server stopping
+  kServerError = 10,        // the server could not store the data (journal failure)
+  kReplaced = 11,           // a newer connection of the same agent took over
 };
 constexpr std::uint8_t kLastByeReason = 11;
 const char* ByeReasonName(ByeReason reason);

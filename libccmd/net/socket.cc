@@ -98,8 +98,8 @@ StatusOr<UniqueFd> ListenTcp(const HostPort& address, int backlog, bool* loopbac
   CCMD_RETURN_IF_ERROR(Resolve(address, /*passive=*/true, &ai));
   Status last = IoError("no usable address");
   for (addrinfo* p = ai.list; p != nullptr; p = p->ai_next) {
-    UniqueFd fd(::socket(p->ai_family, p->ai_socktype | SOCK_NONBLOCK | SOCK_CLOEXEC,
-                         p->ai_protocol));
+    UniqueFd fd(
+        ::socket(p->ai_family, p->ai_socktype | SOCK_NONBLOCK | SOCK_CLOEXEC, p->ai_protocol));
     if (!fd.valid()) {
       last = IoError(Errno("socket"));
       continue;
@@ -174,8 +174,8 @@ StatusOr<UniqueFd> ConnectTcp(const HostPort& address, double timeout_s, int wak
   Status last = IoError("no usable address");
   const std::string where = address.host + ":" + std::to_string(address.port);
   for (addrinfo* p = ai.list; p != nullptr; p = p->ai_next) {
-    UniqueFd fd(::socket(p->ai_family, p->ai_socktype | SOCK_NONBLOCK | SOCK_CLOEXEC,
-                         p->ai_protocol));
+    UniqueFd fd(
+        ::socket(p->ai_family, p->ai_socktype | SOCK_NONBLOCK | SOCK_CLOEXEC, p->ai_protocol));
     if (!fd.valid()) {
       last = IoError(Errno("socket"));
       continue;

@@ -67,8 +67,8 @@ Status SpillStore::StartSegment() {
   Segment s;
   s.number = next_segment_++;
   char name[48];
-  std::snprintf(name, sizeof(name), "segment_%08llu%s",
-                static_cast<unsigned long long>(s.number), kSegmentSuffix);
+  std::snprintf(name, sizeof(name), "segment_%08llu%s", static_cast<unsigned long long>(s.number),
+                kSegmentSuffix);
   s.path = JoinPath(dir_, name);
   s.fd = UniqueFd(::open(s.path.c_str(), O_RDWR | O_CREAT | O_TRUNC | O_APPEND | O_CLOEXEC, 0644));
   if (!s.fd.valid()) return IoError(Errno("creating spill segment " + s.path));
@@ -86,8 +86,8 @@ void SpillStore::DropSegment() {
 Status SpillStore::Push(std::uint8_t type, std::uint64_t seq, ByteSpan message) {
   const std::uint64_t frame_bytes = kFrameHeaderSize + kDataEnvelopeBytes + message.size();
   if (disk_bytes_ + frame_bytes > max_bytes_) {
-    return OutOfRange("spill folder " + dir_ + " is full (" + std::to_string(disk_bytes_) +
-                      " of " + std::to_string(max_bytes_) + " bytes)");
+    return OutOfRange("spill folder " + dir_ + " is full (" + std::to_string(disk_bytes_) + " of " +
+                      std::to_string(max_bytes_) + " bytes)");
   }
   if (segments_.empty() || segments_.back().size >= segment_bytes_) {
     CCMD_RETURN_IF_ERROR(StartSegment());

@@ -30,8 +30,7 @@ class SpillStore {
  public:
   // max_bytes bounds the segment files on disk; segment_bytes is the size at which a new
   // segment file is started (a fully read segment is deleted).
-  static StatusOr<std::unique_ptr<SpillStore>> Open(const std::string& dir,
-                                                    std::uint64_t max_bytes,
+  static StatusOr<std::unique_ptr<SpillStore>> Open(const std::string& dir, std::uint64_t max_bytes,
                                                     std::uint64_t segment_bytes = 16u << 20);
   ~SpillStore();
   SpillStore(const SpillStore&) = delete;
@@ -66,7 +65,9 @@ class SpillStore {
   };
 
   SpillStore(std::string dir, UniqueFd lock, std::uint64_t max_bytes, std::uint64_t segment_bytes)
-      : dir_(std::move(dir)), lock_(std::move(lock)), max_bytes_(max_bytes),
+      : dir_(std::move(dir)),
+        lock_(std::move(lock)),
+        max_bytes_(max_bytes),
         segment_bytes_(segment_bytes) {}
   Status StartSegment();
   void DropSegment();

@@ -63,7 +63,8 @@ struct Result {
   double Percentile(double p) const {
     if (latency_ms.empty()) return 0;
     std::vector<double> v = latency_ms;
-    const std::size_t k = std::min(v.size() - 1, static_cast<std::size_t>(p * (v.size() - 1) + 0.5));
+    const std::size_t k =
+        std::min(v.size() - 1, static_cast<std::size_t>(p * (v.size() - 1) + 0.5));
     std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(k), v.end());
     return v[k];
   }
@@ -182,8 +183,9 @@ Result RunServer(const Config& config, const std::string& name, bool fsync,
   const std::string journal = tmp + "/journal_" + name;
   pid_t pid = -1;
   std::uint16_t port = 0;
-  std::vector<std::string> args = {"--journal", journal, "--max-agents",
-                                   std::to_string(config.agents), "--log-level", "warning"};
+  std::vector<std::string> args = {"--journal",    journal,
+                                   "--max-agents", std::to_string(config.agents),
+                                   "--log-level",  "warning"};
   if (!fsync) args.push_back("--no-fsync");
   if (!StartServer(args, &pid, &port, tmp + "/server_" + name + ".log")) {
     std::fprintf(stderr, "cannot start ccmd_server\n");
@@ -202,7 +204,8 @@ Result RunServer(const Config& config, const std::string& name, bool fsync,
     o.on_acked = [&, a](std::uint64_t first, std::uint64_t last) {
       const double now = MonotonicSeconds();
       std::lock_guard<std::mutex> lock(mutex);
-      for (std::uint64_t k = first; k <= last; ++k) latencies.push_back((now - sent_at[a][k]) * 1e3);
+      for (std::uint64_t k = first; k <= last; ++k)
+        latencies.push_back((now - sent_at[a][k]) * 1e3);
     };
     links.push_back(AgentLink::Create(o).value());
   }
@@ -318,11 +321,15 @@ int main(int argc, char** argv) {
   CLI::App app{"Load test of the transport: N agents at a fixed keyframe rate to ccmd_server."};
   Config config;
   std::string json_path;
-  app.add_option("--agents", config.agents, "Agents")->check(CLI::Range(1, 256))->capture_default_str();
+  app.add_option("--agents", config.agents, "Agents")
+      ->check(CLI::Range(1, 256))
+      ->capture_default_str();
   app.add_option("--seconds", config.seconds, "Sending time per configuration")
-      ->check(CLI::PositiveNumber)->capture_default_str();
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
   app.add_option("--rate", config.rate, "Keyframes per second per agent")
-      ->check(CLI::PositiveNumber)->capture_default_str();
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
   app.add_option("--bytes", config.bytes, "Keyframe message size")->capture_default_str();
   app.add_option("--json", json_path, "Write the results as JSON");
   CLI11_PARSE(app, argc, argv);
@@ -343,17 +350,17 @@ int main(int argc, char** argv) {
   std::system(("rm -rf " + tmp).c_str());
 
   const Result& raw = results[0];
-  std::printf("\n| configuration | messages | latency median ms | p99 ms | max ms | p99 / raw p99 |"
-              " server CPU %% of a core | server peak RSS MB |\n|---|---|---|---|---|---|---|---|\n");
+  std::printf(
+      "\n| configuration | messages | latency median ms | p99 ms | max ms | p99 / raw p99 |"
+      " server CPU %% of a core | server peak RSS MB |\n|---|---|---|---|---|---|---|---|\n");
   Json out = Json::MakeObject();
   for (const Result& r : results) {
-    const double max = r.latency_ms.empty()
-                           ? 0
-                           : *std::max_element(r.latency_ms.begin(), r.latency_ms.end());
+    const double max =
+        r.latency_ms.empty() ? 0 : *std::max_element(r.latency_ms.begin(), r.latency_ms.end());
     const bool server = r.name != "raw";
     std::printf("| %s | %llu | %.2f | %.2f | %.2f | %.1f | %s | %s |\n", r.name.c_str(),
-                static_cast<unsigned long long>(r.messages), r.Percentile(0.5),
-                r.Percentile(0.99), max, r.Percentile(0.99) / raw.Percentile(0.99),
+                static_cast<unsigned long long>(r.messages), r.Percentile(0.5), r.Percentile(0.99),
+                max, r.Percentile(0.99) / raw.Percentile(0.99),
                 server ? std::to_string(r.server_cpu_percent).substr(0, 5).c_str() : "-",
                 server ? std::to_string(r.server_peak_rss_mb).substr(0, 5).c_str() : "-");
     Json j = Json::MakeObject();

@@ -219,7 +219,8 @@ TEST_F(BadInputTest, SilentSessionTimesOut) {
   EXPECT_EQ(server_->stats().counter("idle_timeouts"), 1u);
   // The server's own heartbeats kept coming while it waited.
   int heartbeats = 0;
-  for (const Frame& f : frames) heartbeats += f.type == static_cast<std::uint8_t>(SessionType::kHeartbeat);
+  for (const Frame& f : frames)
+    heartbeats += f.type == static_cast<std::uint8_t>(SessionType::kHeartbeat);
   EXPECT_GE(heartbeats, 1);
 }
 

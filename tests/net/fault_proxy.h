@@ -75,13 +75,15 @@ class FaultProxy {
         std::lock_guard<std::mutex> lock(mutex_);
         if (options_.max_cut_bytes > 0) {
           budget = options_.min_cut_bytes +
-                   static_cast<std::size_t>(rng_.Uniform() * static_cast<double>(
-                                                                  options_.max_cut_bytes -
-                                                                  options_.min_cut_bytes));
+                   static_cast<std::size_t>(
+                       rng_.Uniform() *
+                       static_cast<double>(options_.max_cut_bytes - options_.min_cut_bytes));
         }
         delay_seed = rng_.Uniform();
-        pumps_.emplace_back([this, c = std::move(client), s = std::move(*server), budget,
-                             delay_seed]() mutable { Pump(std::move(c), std::move(s), budget, delay_seed); });
+        pumps_.emplace_back(
+            [this, c = std::move(client), s = std::move(*server), budget, delay_seed]() mutable {
+              Pump(std::move(c), std::move(s), budget, delay_seed);
+            });
       }
     }
   }
@@ -91,7 +93,8 @@ class FaultProxy {
     std::vector<std::uint8_t> buffer(4096);
     std::size_t forwarded = 0;
     while (!stop_.load()) {
-      pollfd fds[3] = {{client.get(), POLLIN, 0}, {server.get(), POLLIN, 0}, {wake_.fd(), POLLIN, 0}};
+      pollfd fds[3] = {
+          {client.get(), POLLIN, 0}, {server.get(), POLLIN, 0}, {wake_.fd(), POLLIN, 0}};
       ::poll(fds, 3, -1);
       if (stop_.load()) return;
       if (fds[0].revents & (POLLIN | POLLHUP | POLLERR)) {
@@ -105,7 +108,8 @@ class FaultProxy {
         }
         if (options_.max_delay_s > 0) {
           // Simulated network latency (not synchronisation).
-          std::this_thread::sleep_for(std::chrono::duration<double>(rng.Uniform() * options_.max_delay_s));
+          std::this_thread::sleep_for(
+              std::chrono::duration<double>(rng.Uniform() * options_.max_delay_s));
         }
         if (!WriteFully(server.get(), buffer.data(), count)) return;
         forwarded += count;

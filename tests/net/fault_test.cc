@@ -54,8 +54,8 @@ TEST(FaultTest, ProxyCutsConnectionsMidFrameAndDelaysTraffic) {
   so.fsync = false;
   Server server(so, &consumer);
   ASSERT_TRUE(server.Start().ok());
-  FaultProxy proxy({.seed = 7, .min_cut_bytes = 3000, .max_cut_bytes = 60000,
-                    .max_delay_s = 0.0005});
+  FaultProxy proxy(
+      {.seed = 7, .min_cut_bytes = 3000, .max_cut_bytes = 60000, .max_delay_s = 0.0005});
   ASSERT_TRUE(proxy.Start(server.port()));
 
   constexpr int kAgents = 4;
@@ -218,7 +218,8 @@ TEST(FaultTest, ServerKilledWithSigkillResumesFromItsJournal) {
     }
   }
   ServerProcess second;
-  ASSERT_TRUE(second.Start({"--listen", "127.0.0.1:0", "--resume", journal, "--stats", stats}, log));
+  ASSERT_TRUE(
+      second.Start({"--listen", "127.0.0.1:0", "--resume", journal, "--stats", stats}, log));
   proxy.SetTarget(second.port());
   for (auto& link : links) ASSERT_TRUE(link->Flush(60).ok()) << link->stats().last_error;
   links.clear();
@@ -239,7 +240,8 @@ TEST(FaultTest, ServerKilledWithSigkillResumesFromItsJournal) {
       records.emplace_back(r.seq, Bytes(r.message.begin(), r.message.end()));
       return Status::Ok();
     };
-    StatusOr<JournalScan> scan = ScanJournalFile(journal + "/" + JournalFileName(AgentId(a + 1)), v);
+    StatusOr<JournalScan> scan =
+        ScanJournalFile(journal + "/" + JournalFileName(AgentId(a + 1)), v);
     ASSERT_TRUE(scan.ok()) << scan.status().ToString();
     const int agent = name.back() - '0';
     ASSERT_EQ(records.size(), static_cast<std::size_t>(kMessages)) << name;

@@ -40,7 +40,7 @@ std::vector<std::uint64_t> WriteJournal(const std::string& path, int n) {
 }
 
 std::uint64_t FileSize(const std::string& path) {
-  struct stat st{};
+  struct stat st {};
   ::stat(path.c_str(), &st);
   return static_cast<std::uint64_t>(st.st_size);
 }
@@ -163,8 +163,7 @@ TEST(JournalTest, CorruptionBeforeTheLastRecordIsAnError) {
   StatusOr<JournalScan> scan = Replay(path, &r);
   ASSERT_FALSE(scan.ok());
   EXPECT_EQ(scan.status().code(), StatusCode::kCorrupt);
-  EXPECT_NE(scan.status().message().find("offset " + std::to_string(offsets[1])),
-            std::string::npos)
+  EXPECT_NE(scan.status().message().find("offset " + std::to_string(offsets[1])), std::string::npos)
       << scan.status().message();
   EXPECT_EQ(r.records.size(), 1u);  // what came before was delivered in order
 

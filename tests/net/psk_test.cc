@@ -33,9 +33,9 @@ TEST(PskTest, HmacSha256MatchesRfc4231) {
   EXPECT_EQ(Hex(HmacSha256(Span("Jefe"), Span("what do ya want for nothing?"))),
             "5bdcc146bf60754e6a042426089575c75a003f089d2739839dec58b964ec3843");
   const std::string key6(131, '\xaa');
-  EXPECT_EQ(Hex(HmacSha256(Span(key6),
-                           Span("Test Using Larger Than Block-Size Key - Hash Key First"))),
-            "60e431591ee0b67f0d8a26aacbf5b77f8e0bc6213728c5140546040f0ee37f54");
+  EXPECT_EQ(
+      Hex(HmacSha256(Span(key6), Span("Test Using Larger Than Block-Size Key - Hash Key First"))),
+      "60e431591ee0b67f0d8a26aacbf5b77f8e0bc6213728c5140546040f0ee37f54");
 }
 
 TEST(PskTest, ConstantTimeEqualsComparesWholeSpans) {

@@ -72,7 +72,8 @@ TEST(ServerTest, EightAgentsConcurrentlyExactlyOnceInOrder) {
     });
   }
   for (auto& t : threads) t.join();
-  for (int a = 0; a < kAgents; ++a) EXPECT_TRUE(results[a].ok()) << a << ": " << results[a].ToString();
+  for (int a = 0; a < kAgents; ++a)
+    EXPECT_TRUE(results[a].ok()) << a << ": " << results[a].ToString();
   ASSERT_TRUE(consumer.WaitForTotal(kAgents * kMessages, 10.0));
   server.Stop();
 

@@ -127,8 +127,8 @@ TEST(SessionMessagesTest, ChallengeAuthWelcomeAckByeLayouts) {
   StatusOr<ByeMessage> bye = ParseBye(Bytes{11, 3, 0, 'a', 0x01, 'z'});
   ASSERT_TRUE(bye.ok());
   EXPECT_EQ(bye->reason, ByeReason::kReplaced);
-  EXPECT_EQ(bye->text, "a?z");  // control characters never reach the logs
-  EXPECT_FALSE(ParseBye(Bytes{12, 0, 0}).ok());      // unknown reason
+  EXPECT_EQ(bye->text, "a?z");                        // control characters never reach the logs
+  EXPECT_FALSE(ParseBye(Bytes{12, 0, 0}).ok());       // unknown reason
   EXPECT_FALSE(ParseBye(Bytes{0, 0xFF, 0xFF}).ok());  // text longer than allowed
   EXPECT_TRUE(ParseHeartbeat(Bytes{}).ok());
   EXPECT_FALSE(ParseHeartbeat(Bytes{0}).ok());
