@@ -114,8 +114,14 @@ int main(int argc, char** argv) {
     }
     ccmd::SetMinLogLevel(level);
   }
-  if (journal.empty() == resume.empty()) {
-    std::fprintf(stderr, "ccmd_server: give either --journal DIR (new run) or --resume DIR\n");
+  if (journal.empty() && resume.empty()) {
+    std::fprintf(stderr, "ccmd_server: give --journal DIR (a new run) or --resume DIR\n");
+    return 2;
+  }
+  if (!journal.empty() && !resume.empty() && journal != resume) {
+    std::fprintf(stderr,
+                 "ccmd_server: --resume continues the journals where they are; give the same "
+                 "folder to --journal, or leave --journal out\n");
     return 2;
   }
   options.journal_dir = resume.empty() ? journal : resume;

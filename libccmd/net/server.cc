@@ -811,7 +811,9 @@ void ServerIo::HandleFeedback(double now) {
 // ---------------------------------------------------------------- Server
 
 Server::Server(ServerOptions options, MessageConsumer* consumer)
-    : options_(std::move(options)), consumer_(consumer) {}
+    : options_(std::move(options)),
+      consumer_(consumer),
+      stats_(std::make_unique<TrafficStats>(options_.traffic)) {}
 
 Server::~Server() { Stop(); }
 
@@ -838,7 +840,6 @@ Status Server::Start() {
     return Unavailable("journal folder " + options_.journal_dir +
                        " is in use by another running server");
   }
-  stats_ = std::make_unique<TrafficStats>(options_.traffic);
   io_ = std::make_unique<ServerIo>(options_, consumer_, stats_.get());
   Status s = io_->Start(std::move(listener));
   if (!s.ok()) {
@@ -864,7 +865,6 @@ void Server::Stop() {
 }
 
 Json Server::StatsJson() const {
-  if (!stats_) return Json::MakeObject();
   return stats_->ToJson(MonotonicSeconds());
 }
 
