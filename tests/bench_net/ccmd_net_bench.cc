@@ -60,6 +60,10 @@ struct Result {
   double server_peak_rss_mb = 0;
   double server_rss_mb = 0;
   double seconds = 0;
+  // The server's own accounting (stats JSON), averaged over the agents.
+  double accounted_bytes_per_s = 0;
+  double accounted_keyframe_hz = 0;
+  double accounted_keyframe_bytes = 0;
   double Percentile(double p) const {
     if (latency_ms.empty()) return 0;
     std::vector<double> v = latency_ms;
@@ -186,6 +190,9 @@ Result RunServer(const Config& config, const std::string& name, bool fsync,
   std::vector<std::string> args = {"--journal",    journal,
                                    "--max-agents", std::to_string(config.agents),
                                    "--log-level",  "warning"};
+  const std::string stats_path = tmp + "/stats_" + name + ".json";
+  args.push_back("--stats");
+  args.push_back(stats_path);
   if (!fsync) args.push_back("--no-fsync");
   if (!StartServer(args, &pid, &port, tmp + "/server_" + name + ".log")) {
     std::fprintf(stderr, "cannot start ccmd_server\n");
@@ -238,6 +245,14 @@ Result RunServer(const Config& config, const std::string& name, bool fsync,
   r.server_rss_mb = after.rss_mb;
   r.latency_ms = std::move(latencies);
   r.messages = r.latency_ms.size();
+  if (StatusOr<Json> stats = ReadJsonFile(stats_path); stats.ok() && stats->Get("agents")) {
+    const auto& agents = stats->Get("agents")->array();
+    for (const Json& a : agents) {
+      r.accounted_bytes_per_s += a.Get("average_traffic_bytes_per_s")->number() / agents.size();
+      r.accounted_keyframe_hz += a.Get("keyframe_rate_hz")->number() / agents.size();
+      r.accounted_keyframe_bytes += a.Get("average_keyframe_bytes")->number() / agents.size();
+    }
+  }
   return r;
 }
 
@@ -375,6 +390,17 @@ int main(int argc, char** argv) {
       j["server_rss_mb"] = r.server_rss_mb;
     }
     out[r.name] = j;
+  }
+  std::printf("\nServer accounting (stats JSON, mean over agents; per agent over its connected "
+              "time):\n| configuration | traffic kB/s | keyframe rate Hz | keyframe bytes |\n"
+              "|---|---|---|---|\n");
+  for (const Result& r : results) {
+    if (r.name == "raw") continue;
+    std::printf("| %s | %.1f | %.3f | %.0f |\n", r.name.c_str(), r.accounted_bytes_per_s / 1e3,
+                r.accounted_keyframe_hz, r.accounted_keyframe_bytes);
+    out[r.name]["accounted_traffic_bytes_per_s"] = r.accounted_bytes_per_s;
+    out[r.name]["accounted_keyframe_rate_hz"] = r.accounted_keyframe_hz;
+    out[r.name]["accounted_keyframe_bytes"] = r.accounted_keyframe_bytes;
   }
   out["agents"] = config.agents;
   out["rate_hz"] = config.rate;
