@@ -163,6 +163,29 @@ TEST(DepthCodecTest, ExtremeValuesSurvive) {
   }
 }
 
+// Noise-like depths: a dense histogram (about 1750 of the 2000 values in range are used, so
+// no value table) and residuals far beyond a byte (escapes) in every mode that predicts.
+TEST(DepthCodecTest, DenseValuesAndLargeResiduals) {
+  Rng rng(12);
+  cv::Mat depth(64, 64, CV_16UC1);
+  for (int y = 0; y < depth.rows; ++y) {
+    for (int x = 0; x < depth.cols; ++x) {
+      depth.at<std::uint16_t>(y, x) =
+          static_cast<std::uint16_t>(x % 13 == 5 ? 0 : rng.UniformInt(1000, 2999));
+    }
+  }
+  for (DepthMode mode : {DepthMode::kLossless, DepthMode::kQuantised, DepthMode::kBounded}) {
+    auto bytes = EncodeDepth(depth, Options(mode));
+    ASSERT_TRUE(bytes.ok());
+    if (mode == DepthMode::kLossless) {
+      EXPECT_EQ((*bytes)[kDepthHeaderSize], 0);  // plain depths, not packed
+    }
+    auto decoded = DecodeDepth(*bytes);
+    ASSERT_TRUE(decoded.ok()) << DepthModeName(mode) << ": " << decoded.status().ToString();
+    ExpectWithinModeBound(depth, *decoded, mode, kDefaultBoundE4);
+  }
+}
+
 TEST(DepthCodecTest, DownsamplesBeforeCoding) {
   const cv::Mat depth = MakeDepth(160, 120, 5);
   DepthEncodeOptions o = Options(DepthMode::kLossless);
