@@ -1,5 +1,6 @@
 #include "libccmd/net/session_messages.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 
@@ -280,6 +281,10 @@ void AppendDataFrame(std::uint8_t type, std::uint64_t seq, ByteSpan message,
   payload.reserve(kDataEnvelopeBytes + message.size());
   for (int i = 0; i < 8; ++i) payload.push_back(static_cast<std::uint8_t>(seq >> (8 * i)));
   payload.insert(payload.end(), message.begin(), message.end());
+  // Grow geometrically: AppendFrame reserves the exact size, which turns appending many
+  // frames to one buffer into quadratic copying.
+  const std::size_t needed = out->size() + kFrameHeaderSize + payload.size();
+  if (out->capacity() < needed) out->reserve(std::max(needed, 2 * out->capacity()));
   AppendFrame(type, 0, payload, out);
 }
 

@@ -10,10 +10,12 @@
 #include <cstdint>
 #include <map>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <vector>
 
 #include "libccmd/net/message_consumer.h"
+#include "libccmd/net/psk.h"
 #include "libccmd/net/session_messages.h"
 #include "libccmd/net/socket.h"
 #include "libccmd/util/random.h"
@@ -227,6 +229,36 @@ class RawClient {
   FrameDecoder decoder_;
   std::vector<Frame> pending_;
 };
+
+// Completes a handshake by hand (key "" for a keyless server); returns the Welcome.
+inline std::optional<WelcomeMessage> RawHandshake(RawClient* c, std::uint16_t port,
+                                                  const std::string& name,
+                                                  const std::string& key = "") {
+  if (!c->Connect(port)) return std::nullopt;
+  HelloMessage hello;
+  hello.name = name;
+  hello.camera = TestCamera();
+  for (int i = 0; i < 32; ++i) hello.agent_nonce[i] = static_cast<std::uint8_t>(i * 3);
+  if (!c->SendBytes(EncodeSessionFrame(SessionType::kHello, SerializeHello(hello)))) {
+    return std::nullopt;
+  }
+  std::optional<Frame> challenge = c->ReadFrame(5);
+  if (!challenge) return std::nullopt;
+  StatusOr<ChallengeMessage> ch = ParseChallenge(challenge->payload);
+  if (!ch.ok()) return std::nullopt;
+  AuthMessage auth;
+  if (!key.empty()) auth.proof = AgentProof(key, ch->server_nonce, hello.agent_nonce, name);
+  if (!c->SendBytes(EncodeSessionFrame(SessionType::kAuth, SerializeAuth(auth)))) {
+    return std::nullopt;
+  }
+  std::optional<Frame> welcome = c->ReadFrame(5);
+  if (!welcome || welcome->type != static_cast<std::uint8_t>(SessionType::kWelcome)) {
+    return std::nullopt;
+  }
+  StatusOr<WelcomeMessage> w = ParseWelcome(welcome->payload);
+  if (!w.ok()) return std::nullopt;
+  return *w;
+}
 
 // The Bye in a list of frames, if any.
 inline std::optional<ByeMessage> FindBye(const std::vector<Frame>& frames) {

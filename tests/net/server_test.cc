@@ -2,7 +2,9 @@
 
 #include "libccmd/net/server.h"
 
+#include <condition_variable>
 #include <cstdio>
+#include <mutex>
 #include <memory>
 #include <thread>
 #include <vector>
@@ -251,6 +253,61 @@ TEST(ServerTest, AgentsBeyondTheLimitAreRefusedKnownOnesStillServed) {
   again.reset();
   server.Stop();
   EXPECT_EQ(consumer.messages().at("a").size(), 2u);
+}
+
+// Holds the first message until released, so that everything behind it backs up.
+class StuckConsumer : public RecordingConsumer {
+ public:
+  void OnMessage(DeliveredMessage m) override {
+    {
+      std::unique_lock<std::mutex> lock(mutex_);
+      released_cv_.wait(lock, [&] { return released_; });
+    }
+    RecordingConsumer::OnMessage(std::move(m));
+  }
+  void Release() {
+    std::lock_guard<std::mutex> lock(mutex_);
+    released_ = true;
+    released_cv_.notify_all();
+  }
+
+ private:
+  std::mutex mutex_;
+  std::condition_variable released_cv_;
+  bool released_ = false;
+};
+
+TEST(ServerTest, ASlowConsumerStopsTheServerReadingInsteadOfBuffering) {
+  testing::TempDir dir;
+  StuckConsumer consumer;
+  ServerOptions o = LoopbackOptions(dir.File("journal"));
+  o.max_payload_bytes = 64 << 10;
+  o.per_agent_memory_bytes = 128 << 10;
+  o.journal_queue = 2;
+  o.delivery_queue = 2;
+  Server server(o, &consumer);
+  ASSERT_TRUE(server.Start().ok());
+  nettest::RawClient c;
+  const std::optional<WelcomeMessage> welcome = nettest::RawHandshake(&c, server.port(), "flood");
+  ASSERT_TRUE(welcome.has_value());
+  // 32 MB of keyframes: far more than the socket buffers hold. The send gives up after 5 s
+  // once the server has stopped reading.
+  const Bytes message = SyntheticKeyframe(3, 0, 20, 16000);
+  Bytes stream;
+  for (int i = 1; i <= 2000; ++i) AppendDataFrame(16, i, message, &stream);
+  EXPECT_FALSE(c.SendBytes(stream));
+  // What the server took in is bounded by its queues and the per-agent limit, not by what
+  // the agent sent: 2 delivery + 2 journal queue entries + the batch in progress + 128 kB in
+  // flight + one 256 kB read, about 30 messages of 16 kB.
+  const AgentTraffic t = server.stats().agent(welcome->agent);
+  EXPECT_LT(t.keyframes.count, 40u);
+  EXPECT_GT(t.keyframes.count, 0u);
+  consumer.Release();
+  c.Close();
+  server.Stop();
+  // Released, the server read on until the connection closed; whatever it accepted, it
+  // delivered.
+  EXPECT_EQ(consumer.total(), server.stats().agent(welcome->agent).keyframes.count);
 }
 
 TEST(ServerTest, RefusesNonLoopbackWithoutKey) {
