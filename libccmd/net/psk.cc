@@ -4,10 +4,12 @@
 #include <openssl/evp.h>
 #include <openssl/hmac.h>
 #include <openssl/rand.h>
+#include <sys/stat.h>
 
 #include <cstdlib>
 
 #include "libccmd/util/file_util.h"
+#include "libccmd/util/logging.h"
 
 namespace ccmd {
 namespace {
@@ -41,6 +43,11 @@ ByteSpan AsBytes(std::string_view s) {
 
 StatusOr<std::string> ReadPskFile(const std::string& path) {
   CCMD_ASSIGN_OR_RETURN(std::string text, ReadFileToString(path, 2 * kMaxPskBytes));
+  struct stat st{};
+  if (::stat(path.c_str(), &st) == 0 && (st.st_mode & (S_IRWXG | S_IRWXO)) != 0) {
+    CCMD_LOG(WARNING) << "key file " << path
+                      << " can be read by other users; consider `chmod 600 " << path << "`";
+  }
   std::string key = TrimTrailingSpace(std::move(text));
   CCMD_RETURN_IF_ERROR(CheckKeyLength(key, path));
   return key;
