@@ -13,7 +13,11 @@
 #include "libccmd/io/config.h"
 #include "libccmd/io/tum_recorder.h"
 #include "libccmd/io/split.h"
+#include "libccmd/net/agent_link.h"
+#include "libccmd/net/psk.h"
 #include "libccmd/sensors/source_factory.h"
+#include "libccmd/system/link_sink.h"
+#include "libccmd/system/server_runtime.h"
 #include "libccmd/tracking/config.h"
 #include "libccmd/tracking/frontend.h"
 #include "libccmd/util/json.h"
@@ -77,7 +81,9 @@ int main(int argc, char** argv) {
       "CCMD agent: ORB RGB-D visual odometry on a robot. Sends compact keyframes to a ccmd_server,\n"
       "or runs --offline and writes its trajectory (TUM format)."};
   std::string source_spec, config_path, segment_spec, trajectory_path, keyframe_trajectory_path,
-      stats_path, rate = "max", server, record_dir;
+      stats_path, rate = "max", server, record_dir, name, psk_file, spill_dir, progress_path;
+  double flush_timeout = 120.0;
+  ccmd::RgbdEncodeOptions rgbd;
   bool offline = false, synchronous = false;
   int max_frames = 0, record_compression = 1;
   app.add_option("--source", source_spec,
@@ -89,6 +95,21 @@ int main(int argc, char** argv) {
   app.add_option("--segment", segment_spec, "Replay only segment i of k (split replay), e.g. 2/3");
   app.add_flag("--offline", offline, "Run without a server");
   app.add_option("--server", server, "Server address HOST:PORT");
+  app.add_option("--name", name, "This agent's name at the server (default: host name and process id)");
+  app.add_option("--psk-file", psk_file, "Pre-shared key file (else $CCMD_PSK; none: loopback servers only)");
+  app.add_option("--spill-dir", spill_dir,
+                 "Folder for messages not yet acknowledged beyond the memory limit (default: a folder in /tmp)");
+  app.add_option("--flush-timeout", flush_timeout, "Seconds to wait at the end for the server's acknowledgements")
+      ->capture_default_str();
+  app.add_option("--rgbd-downsample", rgbd.downsample, "RGB-D sampling: 1, 2 or 4 (r = 1, 0.5, 0.25)")
+      ->check(CLI::IsMember({1, 2, 4}))
+      ->capture_default_str();
+  app.add_option("--jpeg-quality", rgbd.jpeg_quality, "Colour JPEG quality")->check(CLI::Range(1, 100))
+      ->capture_default_str();
+  app.add_option("--depth-bound", rgbd.bound_e4, "Depth error bound in 1/10000 of depth (ccmd-bounded)")
+      ->check(CLI::Range(1, 1000))
+      ->capture_default_str();
+  app.add_option("--progress", progress_path, "Rewrite a small progress JSON about once a second");
   app.add_option("--trajectory", trajectory_path, "Write every tracked frame's pose (TUM format)");
   app.add_option("--keyframe-trajectory", keyframe_trajectory_path, "Write keyframe poses (TUM format)");
   app.add_option("--stats", stats_path, "Write run statistics as JSON");
@@ -109,9 +130,7 @@ int main(int argc, char** argv) {
   if (!offline && server.empty()) {
     return Fail("give --server HOST:PORT, or --offline to run without a server");
   }
-  if (!offline) {
-    return Fail("the network link is not available in this build yet; use --offline");
-  }
+  if (offline && !server.empty()) return Fail("--offline and --server exclude each other");
   std::signal(SIGINT, OnSignal);
   std::signal(SIGTERM, OnSignal);
 
@@ -138,9 +157,6 @@ int main(int argc, char** argv) {
     if (!options.ok()) return Fail(options.status().ToString());
     tracking = *options;
   }
-  auto frontend = ccmd::Frontend::Create(camera, tracking, /*sink=*/nullptr);
-  if (!frontend.ok()) return Fail(frontend.status().ToString());
-
   std::unique_ptr<ccmd::TumRecorder> recorder;
   if (!record_dir.empty()) {
     ccmd::TumRecorderOptions record_options;
@@ -152,6 +168,30 @@ int main(int argc, char** argv) {
     if (!created.ok()) return Fail(created.status().ToString());
     recorder = std::move(created).value();
   }
+  // The link to the server: messages are kept (in memory, then on disk) until the server
+  // has stored them, and resent after reconnections.
+  std::unique_ptr<ccmd::AgentLink> link;
+  std::unique_ptr<ccmd::LinkSink> sink;
+  if (!offline) {
+    ccmd::AgentLinkOptions link_options;
+    link_options.server = server;
+    link_options.name = name.empty() ? ccmd::DefaultAgentName() : name;
+    link_options.camera = ccmd::SessionFromCamera(camera);
+    auto psk = ccmd::ResolvePsk(psk_file);
+    if (!psk.ok()) return Fail(psk.status().ToString());
+    link_options.psk = *psk;
+    link_options.spill_dir = spill_dir.empty() ? "/tmp/ccmd_agent_spill_" + link_options.name : spill_dir;
+    auto created = ccmd::AgentLink::Create(link_options);
+    if (!created.ok()) return Fail(created.status().ToString());
+    link = std::move(created).value();
+    if (const std::string why = rgbd.Check(); !why.empty()) return Fail(why);
+    sink = std::make_unique<ccmd::LinkSink>(link.get(), rgbd);
+    ccmd::SetLogTag(link_options.name);
+    CCMD_LOG(INFO) << "sending to " << server << " as '" << link_options.name << "'";
+  }
+  auto frontend = ccmd::Frontend::Create(camera, tracking, sink.get());
+  if (!frontend.ok()) return Fail(frontend.status().ToString());
+
   CCMD_LOG(INFO) << "source: " << (*source)->Describe();
   CCMD_LOG(INFO) << "camera: " << camera.ToString();
   const int total = (*source)->FrameCount();
@@ -159,6 +199,7 @@ int main(int argc, char** argv) {
   const ccmd::Stopwatch wall;
   double first_timestamp = -1;
   int frames = 0;
+  double last_progress = -1e9;
   ccmd::RgbdFrame frame;
   while (!g_stop) {
     const ccmd::Status status = (*source)->Read(&frame);
@@ -178,9 +219,42 @@ int main(int argc, char** argv) {
     (*frontend)->ProcessFrame(frame);
     ++frames;
     if (total > 0) progress.Update(frames, total);
+    if (!progress_path.empty() && wall.ElapsedSeconds() - last_progress >= 1.0) {
+      last_progress = wall.ElapsedSeconds();
+      ccmd::Json p;
+      p["frames"] = frames;
+      p["total_frames"] = total;
+      p["keyframes"] = (*frontend)->stats().keyframes;
+      if (sink) p["link"] = sink->StatsJson();
+      if (link) p["acked"] = link->stats().acked;
+      ccmd::WriteJsonFile(p, progress_path).IgnoreError();
+    }
     if (max_frames > 0 && frames >= max_frames) break;
   }
   (*frontend)->Finish();
+  ccmd::Json link_json;
+  if (link) {
+    // Everything must reach the server before the agent goes away.
+    const ccmd::Status flushed = link->Flush(flush_timeout);
+    const ccmd::AgentLinkStats ls = link->stats();
+    link_json = sink->StatsJson();
+    link_json["acked"] = ls.acked;
+    link_json["unacked"] = ls.unacked;
+    link_json["resent"] = ls.resent;
+    link_json["sessions"] = ls.sessions;
+    link_json["spilled"] = ls.spilled;
+    link_json["bytes_sent"] = ls.bytes_sent;
+    link->Close();
+    if (!flushed.ok()) {
+      std::fprintf(stderr, "ccmd_agent: %llu messages not acknowledged by the server: %s\n",
+                   static_cast<unsigned long long>(ls.unacked), flushed.ToString().c_str());
+    }
+    std::printf("sent %llu keyframes (%.1f kB each) and %llu pose updates; %llu acknowledged\n",
+                static_cast<unsigned long long>(link_json["keyframes_sent"].number()),
+                link_json["keyframe_bytes_mean"].number() / 1e3,
+                static_cast<unsigned long long>(link_json["pose_updates_sent"].number()),
+                static_cast<unsigned long long>(ls.acked));
+  }
   if (recorder) {
     const ccmd::Trajectory gt = (*source)->GroundTruth();
     if (!gt.empty()) recorder->WriteGroundTruth(gt).IgnoreError();
@@ -205,7 +279,9 @@ int main(int argc, char** argv) {
     if (!s.ok()) return Fail(s.ToString());
   }
   if (!stats_path.empty()) {
-    const ccmd::Status s = ccmd::WriteJsonFile(StatsJson(stats, seconds, (*frontend)->decisions()), stats_path);
+    ccmd::Json json = StatsJson(stats, seconds, (*frontend)->decisions());
+    if (link) json["link"] = link_json;
+    const ccmd::Status s = ccmd::WriteJsonFile(json, stats_path);
     if (!s.ok()) return Fail(s.ToString());
   }
   return 0;

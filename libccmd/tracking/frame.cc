@@ -5,7 +5,7 @@
 
 namespace ccmd {
 
-int Frame::TrackedPoints() const {
+int TrackingFrame::TrackedPoints() const {
   int n = 0;
   for (std::size_t i = 0; i < points.size(); ++i) {
     if (points[i] && !outlier[i] && !points[i]->bad()) ++n;
@@ -46,9 +46,9 @@ FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, cons
   return f;
 }
 
-std::unique_ptr<Frame> MakeFrame(const RgbdFrame& input, const OrbExtractor& orb,
+std::unique_ptr<TrackingFrame> MakeFrame(const RgbdFrame& input, const OrbExtractor& orb,
                                  const PinholeCamera& camera, double min_depth, double max_depth) {
-  auto frame = std::make_unique<Frame>();
+  auto frame = std::make_unique<TrackingFrame>();
   frame->index = input.index;
   frame->timestamp = input.timestamp;
   frame->bgr = input.bgr;

@@ -13,7 +13,7 @@
 
 namespace ccmd {
 
-struct Frame {
+struct TrackingFrame {
   int index = -1;
   double timestamp = 0;
   FrameFeatures features;
@@ -25,9 +25,9 @@ struct Frame {
   KeyframePtr reference;
   cv::Mat bgr, depth_mm;  // kept so that the frame can become a keyframe
 
-  Frame() = default;
-  Frame(const Frame&) = delete;
-  Frame& operator=(const Frame&) = delete;
+  TrackingFrame() = default;
+  TrackingFrame(const TrackingFrame&) = delete;
+  TrackingFrame& operator=(const TrackingFrame&) = delete;
 
   int size() const { return features.size(); }
   Eigen::Vector3d camera_center() const { return T_cam_world.inverse().translation(); }
@@ -41,7 +41,7 @@ struct Frame {
 
 // Detects features in the colour image and attaches depth (metres) from the depth image at
 // each keypoint; depth outside [min_depth, max_depth] counts as missing.
-std::unique_ptr<Frame> MakeFrame(const RgbdFrame& input, const OrbExtractor& orb,
+std::unique_ptr<TrackingFrame> MakeFrame(const RgbdFrame& input, const OrbExtractor& orb,
                                  const PinholeCamera& camera, double min_depth = 0.1,
                                  double max_depth = 10.0);
 

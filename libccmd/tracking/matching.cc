@@ -46,7 +46,7 @@ std::vector<int> RotationOutliers(const std::vector<float>& rotations) {
   return dropped;
 }
 
-int SearchFromLastFrame(Frame* current, const Frame& last, float radius, const OrbExtractor& orb,
+int SearchFromLastFrame(TrackingFrame* current, const TrackingFrame& last, float radius, const OrbExtractor& orb,
                         const PinholeCamera& camera) {
   const Pose& Tcw = current->T_cam_world;
   // Moving forward makes points look larger: search the same or finer octaves; backward the
@@ -101,7 +101,7 @@ int SearchFromLastFrame(Frame* current, const Frame& last, float radius, const O
   return matches;
 }
 
-int SearchLocalPoints(Frame* current, const std::vector<MapPointPtr>& candidates, float radius,
+int SearchLocalPoints(TrackingFrame* current, const std::vector<MapPointPtr>& candidates, float radius,
                       const OrbExtractor& orb, const PinholeCamera& camera) {
   const Pose& Tcw = current->T_cam_world;
   const Eigen::Vector3d center = current->camera_center();
@@ -155,7 +155,7 @@ int SearchLocalPoints(Frame* current, const std::vector<MapPointPtr>& candidates
   return matches;
 }
 
-int SearchByDescriptor(Frame* current, const Keyframe& keyframe, float ratio) {
+int SearchByDescriptor(TrackingFrame* current, const Keyframe& keyframe, float ratio) {
   std::vector<int> matched_keypoint;
   std::vector<float> rotations;
   std::vector<int> best_for_keypoint(current->size(), std::numeric_limits<int>::max());

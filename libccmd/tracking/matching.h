@@ -18,18 +18,18 @@ constexpr int kMatchLow = 50;    // strict threshold (fusion, brute force)
 
 // Matches the map points of `last` (already tracked there) into `current`, whose pose is the
 // prediction. Search radius = radius * scale of the last keypoint's octave. Returns matches.
-int SearchFromLastFrame(Frame* current, const Frame& last, float radius, const OrbExtractor& orb,
+int SearchFromLastFrame(TrackingFrame* current, const TrackingFrame& last, float radius, const OrbExtractor& orb,
                         const PinholeCamera& camera);
 
 // Projects candidate map points (not yet matched in `current`) and matches them.
 // `radius` multiplies ORB-SLAM's viewing-angle dependent window. Increases the points'
 // visible counters for those predicted in view. Returns the number of new matches.
-int SearchLocalPoints(Frame* current, const std::vector<MapPointPtr>& candidates, float radius,
+int SearchLocalPoints(TrackingFrame* current, const std::vector<MapPointPtr>& candidates, float radius,
                       const OrbExtractor& orb, const PinholeCamera& camera);
 
 // Brute-force matching of the keyframe's map points against the frame's descriptors (ratio
 // test and rotation consistency). Fills current->points; returns the number of matches.
-int SearchByDescriptor(Frame* current, const Keyframe& keyframe, float ratio = 0.75f);
+int SearchByDescriptor(TrackingFrame* current, const Keyframe& keyframe, float ratio = 0.75f);
 
 // Projects map points into a keyframe and fuses duplicates: a keypoint without a map point gets
 // the observation, one with a different map point is merged into the better observed one.

@@ -87,7 +87,7 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
   return result;
 }
 
-bool Tracker::Initialize(Frame* frame) {
+bool Tracker::Initialize(TrackingFrame* frame) {
   int with_depth = 0;
   for (float d : frame->features.depth) with_depth += d > 0;
   if (frame->size() < 300 || with_depth < 100) return false;
@@ -141,7 +141,7 @@ int Tracker::OptimizeCurrentPose() {
 namespace {
 
 // Drops outlier matches; returns matches with points that are in the map (observed).
-int DiscardOutliers(Frame* frame) {
+int DiscardOutliers(TrackingFrame* frame) {
   int in_map = 0;
   for (int i = 0; i < frame->size(); ++i) {
     if (!frame->points[i]) continue;

@@ -58,7 +58,7 @@ class Tracker {
   const std::vector<FrameRecord>& records() const { return records_; }
 
  private:
-  bool Initialize(Frame* frame);
+  bool Initialize(TrackingFrame* frame);
   bool TrackWithMotionModel();
   bool TrackReferenceKeyframe();
   bool Relocalize();
@@ -75,7 +75,7 @@ class Tracker {
   MappingQueue* mapping_;
 
   TrackingState state_ = TrackingState::kNotInitialized;
-  std::unique_ptr<Frame> current_, last_;
+  std::unique_ptr<TrackingFrame> current_, last_;
   std::optional<Pose> velocity_;  // T_current_last
   KeyframePtr reference_;
   KeyframePtr last_keyframe_;

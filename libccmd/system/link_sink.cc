@@ -1,0 +1,108 @@
+#include "libccmd/system/link_sink.h"
+
+#include <unistd.h>
+
+#include <cctype>
+
+#include "libccmd/util/logging.h"
+#include "libccmd/util/timer.h"
+
+namespace ccmd {
+
+void LinkSink::OnKeyframe(KeyframeSnapshot keyframe) {
+  const Stopwatch watch;
+  auto message = ToKeyframeMessage(keyframe, rgbd_);
+  if (!message.ok()) {
+    CCMD_LOG(ERROR) << "keyframe " << keyframe.id << " not encodable: " << message.status().ToString();
+    std::lock_guard<std::mutex> lock(mutex_);
+    ++stats_.failed;
+    return;
+  }
+  KeyframeSizeBreakdown parts;
+  auto bytes = SerializeKeyframe(*message, &parts);
+  if (!bytes.ok()) {
+    CCMD_LOG(ERROR) << "keyframe " << keyframe.id << " not serializable: " << bytes.status().ToString();
+    std::lock_guard<std::mutex> lock(mutex_);
+    ++stats_.failed;
+    return;
+  }
+  const std::size_t size = bytes->size();
+  const double encode_ms = watch.ElapsedMillis();
+  const auto sent = link_->Send(MessageType::kKeyframe, std::move(bytes).value());
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (!sent.ok()) {
+    CCMD_LOG(ERROR) << "keyframe " << keyframe.id << " refused by the link: " << sent.status().ToString();
+    ++stats_.failed;
+    return;
+  }
+  ++stats_.keyframes;
+  stats_.rgbd_keyframes += message->rgbd.has_value();
+  stats_.keyframe_bytes += size;
+  stats_.encode_ms_total += encode_ms;
+  stats_.parts.pose += parts.pose;
+  stats_.parts.keypoints += parts.keypoints;
+  stats_.parts.descriptors += parts.descriptors;
+  stats_.parts.map_points += parts.map_points;
+  stats_.parts.colour += parts.colour;
+  stats_.parts.depth += parts.depth;
+  stats_.parts.other += parts.other;
+}
+
+void LinkSink::OnPoseUpdates(std::vector<PoseUpdate> updates) {
+  auto bytes = SerializePoseUpdate(ToPoseUpdateMessage(updates));
+  if (!bytes.ok()) {
+    CCMD_LOG(ERROR) << "pose update not serializable: " << bytes.status().ToString();
+    return;
+  }
+  const std::size_t size = bytes->size();
+  const auto sent = link_->Send(MessageType::kPoseUpdate, std::move(bytes).value());
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (!sent.ok()) {
+    CCMD_LOG(ERROR) << "pose update refused by the link: " << sent.status().ToString();
+    ++stats_.failed;
+    return;
+  }
+  ++stats_.pose_updates;
+  stats_.pose_update_bytes += size;
+}
+
+LinkSinkStats LinkSink::stats() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return stats_;
+}
+
+Json LinkSink::StatsJson() const {
+  const LinkSinkStats s = stats();
+  Json j;
+  j["keyframes_sent"] = s.keyframes;
+  j["rgbd_keyframes_sent"] = s.rgbd_keyframes;
+  j["pose_updates_sent"] = s.pose_updates;
+  j["keyframe_bytes"] = s.keyframe_bytes;
+  j["pose_update_bytes"] = s.pose_update_bytes;
+  j["keyframe_bytes_mean"] = s.keyframes ? static_cast<double>(s.keyframe_bytes) / s.keyframes : 0.0;
+  j["encode_ms_mean"] = s.keyframes ? s.encode_ms_total / s.keyframes : 0.0;
+  j["failed"] = s.failed;
+  Json parts;
+  parts["pose"] = s.parts.pose;
+  parts["keypoints"] = s.parts.keypoints;
+  parts["descriptors"] = s.parts.descriptors;
+  parts["map_points"] = s.parts.map_points;
+  parts["colour"] = s.parts.colour;
+  parts["depth"] = s.parts.depth;
+  parts["other"] = s.parts.other;
+  j["keyframe_parts_bytes"] = parts;
+  return j;
+}
+
+std::string DefaultAgentName() {
+  char host[256] = {0};
+  if (gethostname(host, sizeof(host) - 1) != 0) host[0] = 0;
+  std::string name;
+  for (const char* c = host; *c; ++c) {
+    if (std::isalnum(static_cast<unsigned char>(*c)) || *c == '-' || *c == '_' || *c == '.') name.push_back(*c);
+  }
+  if (name.empty()) name = "agent";
+  return name + "-" + std::to_string(getpid());
+}
+
+}  // namespace ccmd
