@@ -310,6 +310,36 @@ TEST(ServerTest, ASlowConsumerStopsTheServerReadingInsteadOfBuffering) {
   EXPECT_EQ(consumer.total(), server.stats().agent(welcome->agent).keyframes.count);
 }
 
+TEST(ServerTest, AServerWithoutTheOldJournalContinuesAfterTheGap) {
+  testing::TempDir dir;
+  RecordingConsumer first_consumer;
+  Server first(LoopbackOptions(dir.File("journal1")), &first_consumer);
+  ASSERT_TRUE(first.Start().ok());
+  const std::uint16_t port = first.port();
+  auto link = AgentLink::Create(LinkOptions(port, "robot")).value();
+  SendAll(link.get(), 4, 0, 10);
+  ASSERT_TRUE(link->Flush(10).ok());
+  first.Stop();
+  // Restarted on the same port but with a fresh folder (the operator forgot --resume): the
+  // acknowledged messages 1..10 are not there, and the link no longer has them.
+  RecordingConsumer consumer;
+  ServerOptions o = LoopbackOptions(dir.File("journal2"));
+  o.listen = "127.0.0.1:" + std::to_string(port);
+  Server second(o, &consumer);
+  ASSERT_TRUE(second.Start().ok());
+  SendAll(link.get(), 4, 10, 15);
+  ASSERT_TRUE(link->Flush(10).ok()) << link->stats().last_error;
+  link.reset();
+  second.Stop();
+  const auto got = consumer.messages().at("robot");
+  ASSERT_EQ(got.size(), 5u);
+  for (int i = 0; i < 5; ++i) {
+    EXPECT_EQ(got[i].seq, static_cast<std::uint64_t>(11 + i));
+    EXPECT_EQ(got[i].payload, SyntheticKeyframe(4, 10 + i, 20, 1500));
+  }
+  EXPECT_EQ(second.stats().counter("sequence_gaps"), 1u);
+}
+
 TEST(ServerTest, RefusesNonLoopbackWithoutKey) {
   testing::TempDir dir;
   RecordingConsumer consumer;
