@@ -39,20 +39,11 @@ struct DeliveredMessage {
 class MessageConsumer {
  public:
   virtual ~MessageConsumer() = default;
-  virtual void OnAgentKnown(const AgentDescription& agent, bool from_journal) {
-    (void)agent;
-    (void)from_journal;
-  }
-  virtual void OnAgentConnected(AgentId agent, std::uint64_t last_stored_seq) {
-    (void)agent;
-    (void)last_stored_seq;
-  }
-  virtual void OnAgentDisconnected(AgentId agent, const std::string& reason) {
-    (void)agent;
-    (void)reason;
-  }
+  virtual void OnAgentKnown(const AgentDescription& /*agent*/, bool /*from_journal*/) {}
+  virtual void OnAgentConnected(AgentId /*agent*/, std::uint64_t /*last_stored_seq*/) {}
+  virtual void OnAgentDisconnected(AgentId /*agent*/, const std::string& /*reason*/) {}
   virtual void OnMessage(DeliveredMessage message) = 0;
-  virtual void OnReplayFinished(std::uint64_t messages) { (void)messages; }
+  virtual void OnReplayFinished(std::uint64_t /*messages*/) {}
 };
 
 }  // namespace ccmd
