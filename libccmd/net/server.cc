@@ -500,6 +500,8 @@ void ServerIo::CheckTimers(Connection* c, double now) {
       }
       break;
     case ConnState::kStreaming:
+      // While we are not reading (back-pressure), silence is ours, not the agent's.
+      if (Paused(c) || !pending_.empty()) c->last_rx = now;
       if (now - c->last_rx >= options_.idle_timeout_s) {
         stats_->Count("idle_timeouts");
         Close(c, ByeReason::kTimeout,
