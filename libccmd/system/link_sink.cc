@@ -37,6 +37,10 @@ void LinkSink::OnKeyframe(KeyframeSnapshot keyframe) {
   }
   ++stats_.keyframes;
   stats_.rgbd_keyframes += message->rgbd.has_value();
+  stats_.keypoints_sent += message->keypoints.size();
+  stats_.keypoints_extracted += keyframe.keypoints_extracted;
+  stats_.new_points += message->new_map_points.size();
+  stats_.full_rgbd_pixels += static_cast<std::uint64_t>(keyframe.image_width) * keyframe.image_height;
   stats_.keyframe_bytes += size;
   stats_.encode_ms_total += encode_ms;
   stats_.parts.pose += parts.pose;
@@ -91,6 +95,10 @@ Json LinkSink::StatsJson() const {
   parts["depth"] = s.parts.depth;
   parts["other"] = s.parts.other;
   j["keyframe_parts_bytes"] = parts;
+  j["keypoints_sent"] = s.keypoints_sent;
+  j["keypoints_extracted"] = s.keypoints_extracted;
+  j["new_points"] = s.new_points;
+  j["full_rgbd_pixels"] = s.full_rgbd_pixels;
   return j;
 }
 

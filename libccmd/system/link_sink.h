@@ -17,6 +17,9 @@ struct LinkSinkStats {
   std::uint64_t keyframes = 0, pose_updates = 0, rgbd_keyframes = 0;
   std::uint64_t keyframe_bytes = 0, pose_update_bytes = 0;
   KeyframeSizeBreakdown parts;
+  // Counts behind the parts, for the size an uncompressed format would need.
+  std::uint64_t keypoints_sent = 0, keypoints_extracted = 0, new_points = 0;
+  std::uint64_t full_rgbd_pixels = 0;  // width x height of every keyframe
   std::uint64_t failed = 0;  // messages the link refused (it logs why)
   double encode_ms_total = 0;
 };

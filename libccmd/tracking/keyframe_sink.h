@@ -49,6 +49,8 @@ struct KeyframeSnapshot {
 
   bool has_rgbd = false;
   cv::Mat bgr, depth_mm;  // full resolution; the codec downsamples
+  int keypoints_extracted = 0;  // before choosing what to send (for bandwidth statistics)
+  int image_width = 0, image_height = 0;
   RgbdDecision decision;
 };
 

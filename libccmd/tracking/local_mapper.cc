@@ -387,6 +387,9 @@ bool LocalMapper::Emit(Keyframe* keyframe, KeyframeSnapshot* s, std::vector<Pose
   for (const auto& [kf, weight] : keyframe->connections()) {
     if (kf->emitted) s->covisibility.emplace_back(kf->id(), weight);
   }
+  s->keypoints_extracted = f.size();
+  s->image_width = camera_.width;
+  s->image_height = camera_.height;
   s->has_rgbd = s->decision.transmit;
   if (s->has_rgbd) {
     s->bgr = keyframe->bgr;

@@ -1,0 +1,293 @@
+// ccmd_replay: split-replay evaluation. Splits a sequence into K segments with 10% overlap,
+// runs a ccmd_server and K ccmd_agent processes talking over real TCP on loopback, shows
+// progress, then evaluates what they produced: trajectories (ATE), dense map (reconstruction
+// error), bandwidth, CPU. Writes results.json, report.md and plots in the output folder.
+
+#include <signal.h>
+#include <unistd.h>
+
+#include <CLI/CLI.hpp>
+#include <chrono>
+#include <cstdio>
+#include <fstream>
+#include <thread>
+
+#include "apps/app_common.h"
+#include "libccmd/io/config.h"
+#include "libccmd/io/split.h"
+#include "libccmd/io/tum_dataset.h"
+#include "libccmd/system/replay_report.h"
+#include "libccmd/util/file_util.h"
+#include "libccmd/util/json.h"
+#include "libccmd/util/logging.h"
+#include "libccmd/util/string_util.h"
+#include "libccmd/util/subprocess.h"
+#include "libccmd/util/timer.h"
+
+namespace {
+
+using namespace ccmd;
+
+int Fail(const std::string& what) {
+  std::fprintf(stderr, "ccmd_replay: %s\n", what.c_str());
+  return 1;
+}
+
+std::string ExecutableDir() {
+  char path[4096] = {0};
+  const ssize_t n = ::readlink("/proc/self/exe", path, sizeof(path) - 1);
+  if (n <= 0) return ".";
+  std::string p(path, static_cast<std::size_t>(n));
+  return p.substr(0, p.find_last_of('/'));
+}
+
+std::string Tail(const std::string& path, int lines) {
+  auto text = ReadFileToString(path, 1 << 26);
+  if (!text.ok()) return "";
+  const std::vector<std::string> all = Split(*text, '\n');
+  std::string out;
+  for (std::size_t i = all.size() > static_cast<std::size_t>(lines) ? all.size() - lines : 0; i < all.size(); ++i) {
+    out += "    " + all[i] + "\n";
+  }
+  return out;
+}
+
+struct Tracked {
+  std::string name;
+  Subprocess process;
+  double started = 0, ended = -1;
+  double last_cpu = 0, last_time = 0;
+  ProcessResult result;
+  std::vector<std::pair<double, double>> cpu_percent;
+};
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{
+      "Split-replay evaluation: a ccmd_server and K ccmd_agent processes over TCP on loopback, each\n"
+      "agent replaying one segment (10% overlap) of a TUM-layout sequence; then ATE, reconstruction\n"
+      "error, bandwidth and CPU in DIR/report.md and DIR/results.json."};
+  std::string dataset, out, config, rate = "max", reference, bin_dir;
+  int agents = 3;
+  double timeout_s = 3600;
+  std::vector<std::string> agent_args, server_args;
+  app.add_option("--dataset", dataset, "TUM-layout folder (TUM RGB-D, ICL-NUIM, 7-Scenes converted, ccmd_synth)")
+      ->required();
+  app.add_option("--agents", agents, "Number of agents K (segments)")->check(CLI::Range(1, 32))->capture_default_str();
+  app.add_option("--out", out, "Results folder (created)")->required();
+  app.add_option("--config", config, "Camera/tracking config (default: the dataset's camera.yaml or a guess)");
+  app.add_option("--rate", rate, "realtime (the dataset's timestamps) or max")
+      ->check(CLI::IsMember({"realtime", "max"}))
+      ->capture_default_str();
+  app.add_option("--reference", reference,
+                 "Reference surface (PLY, points or mesh) for reconstruction error; default: the dataset's "
+                 "surface.ply, else a cloud built from ground-truth poses and depth");
+  app.add_option("--agent-arg", agent_args, "Extra argument for every ccmd_agent (repeatable)");
+  app.add_option("--server-arg", server_args, "Extra argument for ccmd_server (repeatable)");
+  app.add_option("--bin-dir", bin_dir, "Folder of ccmd_server and ccmd_agent (default: next to this program)");
+  app.add_option("--timeout", timeout_s, "Give up after this many seconds")->capture_default_str();
+  CLI11_PARSE(app, argc, argv);
+  if (bin_dir.empty()) bin_dir = ExecutableDir();
+  std::string command;
+  for (int i = 0; i < argc; ++i) command += (i ? " " : "") + std::string(argv[i]);
+
+  // The dataset: frame count, camera, ground truth.
+  std::optional<PinholeCamera> camera;
+  std::string camera_config = config;
+  if (camera_config.empty() && !FileExists(JoinPath(dataset, "camera.yaml"))) {
+    const std::string guess = GuessCameraConfigName(dataset);
+    if (!guess.empty()) camera_config = JoinPath(app::ConfigDir(), guess);
+  }
+  if (!camera_config.empty()) {
+    auto loaded = LoadCameraConfig(camera_config);
+    if (!loaded.ok()) return Fail(loaded.status().ToString());
+    camera = *loaded;
+  }
+  auto sequence = TumSequence::Open(dataset, camera);
+  if (!sequence.ok()) return Fail(sequence.status().ToString());
+  auto segments = SplitWithOverlap(static_cast<int>(sequence->size()), agents);
+  if (!segments.ok()) return Fail(segments.status().ToString());
+
+  for (const char* sub : {"server", "agents", "logs", "plots"}) {
+    const Status s = MakeDirectories(JoinPath(out, sub));
+    if (!s.ok()) return Fail(s.ToString());
+  }
+  if (FileExists(JoinPath(out, "journal"))) {
+    return Fail(out + " already holds a run (journal/): choose a new --out folder");
+  }
+  WriteFileAtomic(JoinPath(out, "command.txt"), command + "\n").IgnoreError();
+  if (!camera_config.empty()) {
+    auto text = ReadFileToString(camera_config);
+    if (text.ok()) WriteFileAtomic(JoinPath(out, "config.yaml"), *text).IgnoreError();
+  }
+  std::printf("replaying %s: %zu frames, %d agents\n", dataset.c_str(), sequence->size(), agents);
+  for (int i = 0; i < agents; ++i) {
+    std::printf("  agent%d: frames %d-%d\n", i + 1, (*segments)[i].first, (*segments)[i].last);
+  }
+  std::fflush(stdout);
+
+  // Server on a free loopback port; it prints the port once it serves.
+  const Stopwatch wall;
+  std::vector<std::string> server_argv = {JoinPath(bin_dir, "ccmd_server"), "--listen", "127.0.0.1:0", "--journal",
+                                          JoinPath(out, "journal"), "--out", JoinPath(out, "server"),
+                                          "--stats-interval", "1"};
+  server_argv.insert(server_argv.end(), server_args.begin(), server_args.end());
+  auto server_process = Subprocess::Start(server_argv, "", JoinPath(out, "logs/server.log"), /*pipe_stdout=*/true);
+  if (!server_process.ok()) return Fail("cannot start ccmd_server: " + server_process.status().ToString());
+  Tracked server{"server", std::move(server_process).value(), 0};
+  std::string port;
+  while (port.empty()) {
+    auto line = server.process.ReadLine(120);
+    if (!line.ok()) {
+      return Fail("ccmd_server did not start (" + line.status().ToString() + "); its log:\n" +
+                  Tail(JoinPath(out, "logs/server.log"), 20));
+    }
+    const auto at = line->find("listening on ");
+    if (at != std::string::npos) port = line->substr(line->find_last_of(':') + 1);
+  }
+  server.process.DrainStdoutTo(JoinPath(out, "logs/server.out"));
+  const std::string address = "127.0.0.1:" + port;
+
+  std::vector<Tracked> agent_processes;
+  for (int i = 1; i <= agents; ++i) {
+    const std::string name = "agent" + std::to_string(i);
+    std::vector<std::string> a = {JoinPath(bin_dir, "ccmd_agent"), "--source", "tum:" + dataset, "--segment",
+                                  std::to_string(i) + "/" + std::to_string(agents), "--server", address, "--name", name,
+                                  "--stats", JoinPath(out, "agents/" + name + "_stats.json"), "--trajectory",
+                                  JoinPath(out, "agents/" + name + "_frames.txt"), "--progress",
+                                  JoinPath(out, "agents/" + name + "_progress.json"), "--rate", rate,
+                                  "--spill-dir", JoinPath(out, "agents/" + name + "_spill")};
+    if (!camera_config.empty()) {
+      a.push_back("--config");
+      a.push_back(camera_config);
+    }
+    a.insert(a.end(), agent_args.begin(), agent_args.end());
+    auto p = Subprocess::Start(a, JoinPath(out, "logs/" + name + ".out"), JoinPath(out, "logs/" + name + ".log"));
+    if (!p.ok()) return Fail("cannot start ccmd_agent: " + p.status().ToString());
+    agent_processes.push_back({name, std::move(p).value(), wall.ElapsedSeconds()});
+  }
+
+  // Progress, once a second, until every agent is done.
+  const bool tty = ::isatty(1);
+  int failed = 0;
+  auto sample_cpu = [&](Tracked* t) {
+    const double now = wall.ElapsedSeconds();
+    const double cpu = t->process.CpuSecondsSoFar();
+    if (now > t->last_time) t->cpu_percent.emplace_back(now, 100 * (cpu - t->last_cpu) / (now - t->last_time));
+    t->last_cpu = cpu;
+    t->last_time = now;
+  };
+  while (true) {
+    int running = 0;
+    for (Tracked& a : agent_processes) {
+      if (a.ended >= 0) continue;
+      sample_cpu(&a);
+      if (a.process.Poll(&a.result)) {
+        a.ended = wall.ElapsedSeconds();
+        if (a.result.exit_code != 0) {
+          ++failed;
+          std::fprintf(stderr, "\n%s failed (exit %d, signal %d); its log ends:\n%s", a.name.c_str(), a.result.exit_code,
+                       a.result.signal, Tail(JoinPath(out, "logs/" + a.name + ".log"), 15).c_str());
+        }
+      } else {
+        ++running;
+      }
+    }
+    sample_cpu(&server);
+    std::string line;
+    for (const Tracked& a : agent_processes) {
+      auto p = ReadJsonFile(JoinPath(out, "agents/" + a.name + "_progress.json"));
+      char part[160];
+      if (p.ok()) {
+        const Json* link = p->Get("link");
+        std::snprintf(part, sizeof(part), "%s %d/%d fr %d kf %.0f kB | ", a.name.c_str(),
+                      static_cast<int>(p->Get("frames") ? p->Get("frames")->number() : 0),
+                      static_cast<int>(p->Get("total_frames") ? p->Get("total_frames")->number() : 0),
+                      static_cast<int>(link && link->Get("keyframes_sent") ? link->Get("keyframes_sent")->number() : 0),
+                      link && link->Get("keyframe_bytes") ? link->Get("keyframe_bytes")->number() / 1e3 : 0.0);
+      } else {
+        std::snprintf(part, sizeof(part), "%s starting | ", a.name.c_str());
+      }
+      line += a.ended >= 0 ? a.name + " done | " : part;
+    }
+    auto s = ReadJsonFile(JoinPath(out, "server/server_stats.json"));
+    if (s.ok() && s->Get("backend")) {
+      const Json* b = s->Get("backend");
+      char part[160];
+      std::snprintf(part, sizeof(part), "server: %d keyframes, loops %d, fusions %d, maps %d",
+                    static_cast<int>(b->Get("keyframes") ? b->Get("keyframes")->number() : 0),
+                    static_cast<int>(b->Get("loops") ? b->Get("loops")->number() : 0),
+                    static_cast<int>(b->Get("fusions") ? b->Get("fusions")->number() : 0),
+                    static_cast<int>(b->Get("maps") ? b->Get("maps")->number() : 0));
+      line += part;
+    }
+    if (tty) {
+      std::printf("\r%-150s", line.c_str());
+    } else {
+      std::printf("%.0f s  %s\n", wall.ElapsedSeconds(), line.c_str());
+    }
+    std::fflush(stdout);
+    if (running == 0) break;
+    if (wall.ElapsedSeconds() > timeout_s) {
+      std::fprintf(stderr, "\nccmd_replay: time-out after %.0f s, stopping\n", timeout_s);
+      for (Tracked& a : agent_processes) a.process.Signal(SIGINT).IgnoreError();
+      ++failed;
+    }
+    // A refresh period for the display and the CPU samples, not synchronisation: the loop
+    // ends on the children's exit status.
+    std::this_thread::sleep_for(std::chrono::seconds(1));
+  }
+  if (tty) std::printf("\n");
+
+  // The server writes its results when told to stop.
+  std::printf("agents done after %.1f s; stopping the server (it finishes optimisation and writes the map)\n",
+              wall.ElapsedSeconds());
+  std::fflush(stdout);
+  server.process.Signal(SIGINT).IgnoreError();
+  server.result = server.process.Wait();
+  server.ended = wall.ElapsedSeconds();
+  if (server.result.exit_code != 0) {
+    ++failed;
+    std::fprintf(stderr, "ccmd_server failed (exit %d, signal %d); its log ends:\n%s", server.result.exit_code,
+                 server.result.signal, Tail(JoinPath(out, "logs/server.log"), 20).c_str());
+  }
+
+  ReplayRunInfo info;
+  info.dataset_dir = dataset;
+  info.command = command;
+  info.config = camera_config;
+  info.agents = agents;
+  info.rate = rate;
+  info.wall_seconds = wall.ElapsedSeconds();
+  info.segments = *segments;
+  for (Tracked* t : [&] {
+         std::vector<Tracked*> all;
+         for (Tracked& a : agent_processes) all.push_back(&a);
+         all.push_back(&server);
+         return all;
+       }()) {
+    ReplayProcess p;
+    p.name = t->name;
+    p.cpu_seconds = t->result.cpu_seconds;
+    p.wall_seconds = t->ended - t->started;
+    p.max_rss_mb = t->result.max_rss_mb;
+    p.exit_code = t->result.exit_code;
+    p.cpu_percent = t->cpu_percent;
+    info.processes.push_back(p);
+  }
+  ReferenceOptions ref;
+  ref.reference_ply = reference;
+  std::printf("evaluating...\n");
+  std::fflush(stdout);
+  auto results = EvaluateReplay(out, *sequence, info, ref);
+  if (!results.ok()) return Fail("evaluation: " + results.status().ToString());
+  const Json& r = *results;
+  auto num = [&](const char* key) { return r.Get(key) ? r.Get(key)->number() : -1.0; };
+  std::printf("\nmaps after fusion: %.0f   fused ATE RMSE: %.4f m   reconstruction mean %.4f m, Hausdorff %.4f m\n",
+              num("maps_after_fusion"), num("ate_rmse_m"), num("recon_mean_m"), num("recon_hausdorff_m"));
+  std::printf("per agent: %.1f kB/s, %.1f kB per keyframe, %.2f keyframes/s\n", num("atps_kBps"), num("akfs_kB"),
+              num("akfr_hz"));
+  std::printf("report: %s\nmap:    %s\n", JoinPath(out, "report.md").c_str(), JoinPath(out, "server/map.ply").c_str());
+  return failed ? 1 : 0;
+}

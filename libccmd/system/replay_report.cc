@@ -1,0 +1,448 @@
+#include "libccmd/system/replay_report.h"
+
+#include <Eigen/Eigenvalues>
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <opencv2/imgproc.hpp>
+#include <sstream>
+
+#include "libccmd/dense/dense_map.h"
+#include "libccmd/eval/plot.h"
+#include "libccmd/eval/reconstruction_error.h"
+#include "libccmd/eval/trajectory_error.h"
+#include "libccmd/util/file_util.h"
+#include "libccmd/util/logging.h"
+#include "libccmd/util/random.h"
+#include "proto/messages.h"
+
+namespace ccmd {
+
+PointCloud SampleMesh(const PointCloud& mesh, double spacing) {
+  PointCloud out;
+  Rng rng(17);
+  for (const auto& t : mesh.triangles) {
+    const Eigen::Vector3f a = mesh.points[t[0]], b = mesh.points[t[1]], c = mesh.points[t[2]];
+    const Eigen::Vector3f cross = (b - a).cross(c - a);
+    const double area = 0.5 * cross.norm();
+    if (area <= 0) continue;
+    const Eigen::Vector3f normal = cross.normalized();
+    // Expected count area / spacing^2, the fraction drawn at random so small faces count too.
+    const double expected = area / (spacing * spacing);
+    int n = static_cast<int>(expected);
+    if (rng.Uniform() < expected - n) ++n;
+    for (int i = 0; i < n; ++i) {
+      double u = rng.Uniform(), v = rng.Uniform();
+      if (u + v > 1) u = 1 - u, v = 1 - v;
+      out.points.push_back(a + static_cast<float>(u) * (b - a) + static_cast<float>(v) * (c - a));
+      out.normals.push_back(normal);
+    }
+  }
+  return out;
+}
+
+StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset, const ReferenceOptions& options,
+                                          std::string* source) {
+  std::string path = options.reference_ply;
+  if (path.empty() && FileExists(JoinPath(dataset.folder(), "surface.ply"))) path = JoinPath(dataset.folder(), "surface.ply");
+  if (!path.empty()) {
+    CCMD_ASSIGN_OR_RETURN(PointCloud cloud, ReadPly(path));
+    if (!cloud.triangles.empty()) {
+      if (source) *source = path + " (mesh, sampled every 5 mm)";
+      return SampleMesh(cloud, 0.005);
+    }
+    if (source) *source = path;
+    return cloud;
+  }
+  // Ground-truth poses and the same depth: the best map the depth can make.
+  DenseMapOptions dense_options;
+  dense_options.voxel_size_m = options.voxel_m;
+  CCMD_ASSIGN_OR_RETURN(auto dense, DenseMap::Create(dense_options));
+  const int factor = std::max(1, options.downsample);
+  int added = 0;
+  for (std::size_t i = 0; i < dataset.size(); i += std::max(1, options.stride)) {
+    if (!dataset.frame(i).T_world_cam_gt) continue;
+    CCMD_ASSIGN_OR_RETURN(RgbdFrame frame, dataset.LoadFrame(i));
+    DenseKeyframe kf;
+    kf.id = {AgentId(1), KeyframeId(static_cast<std::uint32_t>(i))};
+    kf.T_world_cam = *dataset.frame(i).T_world_cam_gt;
+    cv::Mat depth = frame.depth_mm, bgr = frame.bgr;
+    if (bgr.size() != depth.size()) cv::resize(bgr, bgr, depth.size(), 0, 0, cv::INTER_AREA);
+    if (factor > 1) {
+      // Nearest (not averaging) for depth: no mixed depths across edges.
+      cv::resize(depth, depth, cv::Size(depth.cols / factor, depth.rows / factor), 0, 0, cv::INTER_NEAREST);
+      cv::resize(bgr, bgr, depth.size(), 0, 0, cv::INTER_AREA);
+    }
+    kf.depth_mm = depth;
+    kf.bgr = bgr;
+    kf.camera = dataset.camera().Resized(depth.cols, depth.rows);
+    CCMD_RETURN_IF_ERROR(dense->AddKeyframe(kf));
+    ++added;
+  }
+  if (added == 0) return NotFound("no frames with ground truth to build a reference cloud from");
+  if (source) {
+    *source = "back-projected from " + std::to_string(added) + " ground-truth frames (every " +
+              std::to_string(options.stride) + "th, 1/" + std::to_string(factor) + " resolution, " +
+              std::to_string(static_cast<int>(options.voxel_m * 1000)) + " mm voxels)";
+  }
+  return dense->Extract(DenseSelection::Global());
+}
+
+namespace {
+
+const Json* FindAgentTraffic(const Json& stats, const std::string& name) {
+  const Json* transport = stats.Get("transport");
+  if (!transport) return nullptr;
+  const Json* agents = transport->Get("agents");
+  if (!agents) return nullptr;
+  for (const Json& a : agents->array()) {
+    if (a.Get("name") && a.Get("name")->string() == name) return &a;
+  }
+  return nullptr;
+}
+
+double Num(const Json* j, const std::string& key, double fallback = 0) {
+  if (!j) return fallback;
+  const Json* v = j->Get(key);
+  return v ? v->number(fallback) : fallback;
+}
+
+std::string Fmt(const char* format, double v) {
+  char text[64];
+  std::snprintf(text, sizeof(text), format, v);
+  return text;
+}
+
+// The plane of most motion of the ground truth (its two principal directions): a "top view"
+// that does not depend on which world axis is up.
+Eigen::Matrix<double, 2, 3> ViewPlane(const Trajectory& gt) {
+  Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+  for (const auto& p : gt) mean += p.T_world_cam.translation();
+  mean /= std::max<std::size_t>(1, gt.size());
+  Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
+  for (const auto& p : gt) {
+    const Eigen::Vector3d d = p.T_world_cam.translation() - mean;
+    cov += d * d.transpose();
+  }
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(cov);
+  Eigen::Matrix<double, 2, 3> P;
+  P.row(0) = eig.eigenvectors().col(2).transpose();
+  P.row(1) = eig.eigenvectors().col(1).transpose();
+  return P;
+}
+
+PlotSeries Projected(const Trajectory& t, const Eigen::Matrix<double, 2, 3>& P, const std::string& label,
+                     cv::Scalar color, int thickness) {
+  PlotSeries s;
+  s.label = label;
+  s.color = color;
+  s.thickness = thickness;
+  for (const auto& p : t) {
+    const Eigen::Vector2d q = P * p.T_world_cam.translation();
+    s.x.push_back(q.x());
+    s.y.push_back(q.y());
+  }
+  return s;
+}
+
+}  // namespace
+
+StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dataset, const ReplayRunInfo& info,
+                              const ReferenceOptions& reference) {
+  const std::string server_dir = JoinPath(run_dir, "server");
+  const std::string plots_dir = JoinPath(run_dir, "plots");
+  CCMD_RETURN_IF_ERROR(MakeDirectories(plots_dir));
+  CCMD_ASSIGN_OR_RETURN(const Json server_stats, ReadJsonFile(JoinPath(server_dir, "server_stats.json")));
+  const Trajectory gt = dataset.GroundTruthAtFrames();
+  Json results;
+  results["dataset"] = info.dataset_dir;
+  results["agents_count"] = info.agents;
+  results["command"] = info.command;
+  results["wall_seconds"] = info.wall_seconds;
+  const Json* backend = server_stats.Get("backend");
+  results["maps_after_fusion"] = Num(backend, "maps", -1);
+  results["loops"] = Num(backend, "loops");
+  results["fusions"] = Num(backend, "fusions");
+  results["global_ba_runs"] = Num(backend, "global_ba_runs");
+
+  // Trajectories.
+  std::optional<AteResult> fused_ate;
+  Trajectory fused;
+  if (!gt.empty()) {
+    auto read = ReadTumTrajectory(JoinPath(server_dir, "trajectory_fused.txt"));
+    if (read.ok()) {
+      fused = *read;
+      auto ate = ComputeAte(gt, fused);
+      if (ate.ok()) {
+        fused_ate = *ate;
+        results["ate_rmse_m"] = ate->error.rmse;
+        results["ate_mean_m"] = ate->error.mean;
+        results["ate_max_m"] = ate->error.max;
+        results["fused_keyframes"] = ate->matched;
+      }
+    }
+  }
+  Json agents = Json::MakeArray();
+  std::vector<Trajectory> agent_trajectories;
+  double atps_sum = 0, akfs_sum = 0, akfr_sum = 0;
+  int with_traffic = 0;
+  KeyframeSizeBreakdown parts_total;
+  double keyframes_total = 0, rgbd_keyframes_total = 0;
+  double naive_pose = 0, naive_keypoints = 0, naive_descriptors = 0, naive_points = 0, naive_colour = 0, naive_depth = 0;
+  for (int i = 1; i <= info.agents; ++i) {
+    const std::string name = "agent" + std::to_string(i);
+    Json a;
+    a["name"] = name;
+    if (i - 1 < static_cast<int>(info.segments.size())) {
+      a["first_frame"] = info.segments[i - 1].first;
+      a["last_frame"] = info.segments[i - 1].last;
+    }
+    auto t = ReadTumTrajectory(JoinPath(server_dir, "trajectory_" + name + ".txt"));
+    agent_trajectories.push_back(t.ok() ? *t : Trajectory{});
+    if (t.ok() && !gt.empty()) {
+      auto ate = ComputeAte(gt, *t);
+      if (ate.ok()) a["ate_rmse_m"] = ate->error.rmse;
+    }
+    auto frames = ReadTumTrajectory(JoinPath(run_dir, "agents/" + name + "_frames.txt"));
+    if (frames.ok() && !gt.empty()) {
+      auto ate = ComputeAte(gt, *frames);
+      if (ate.ok()) a["agent_frames_ate_rmse_m"] = ate->error.rmse;  // the agent's own odometry
+    }
+    const Json* traffic = FindAgentTraffic(server_stats, name);
+    if (traffic) {
+      const Json* kf = traffic->Get("messages") ? traffic->Get("messages")->Get("keyframe") : nullptr;
+      a["keyframes"] = Num(kf, "count");
+      a["bytes"] = Num(kf, "bytes") + Num(traffic->Get("messages") ? traffic->Get("messages")->Get("pose_update") : nullptr, "bytes");
+      a["atps_kBps"] = Num(traffic, "average_traffic_bytes_per_s") / 1e3;
+      a["akfs_kB"] = Num(traffic, "average_keyframe_bytes") / 1e3;
+      a["akfr_hz"] = Num(traffic, "keyframe_rate_hz");
+      atps_sum += a["atps_kBps"].number();
+      akfs_sum += a["akfs_kB"].number();
+      akfr_sum += a["akfr_hz"].number();
+      ++with_traffic;
+      if (const Json* p = traffic->Get("keyframe_parts_bytes")) {
+        parts_total.pose += static_cast<std::size_t>(Num(p, "pose"));
+        parts_total.keypoints += static_cast<std::size_t>(Num(p, "keypoints"));
+        parts_total.descriptors += static_cast<std::size_t>(Num(p, "descriptors"));
+        parts_total.map_points += static_cast<std::size_t>(Num(p, "map_points"));
+        parts_total.colour += static_cast<std::size_t>(Num(p, "colour"));
+        parts_total.depth += static_cast<std::size_t>(Num(p, "depth"));
+        parts_total.other += static_cast<std::size_t>(Num(p, "other"));
+      }
+    }
+    auto agent_stats = ReadJsonFile(JoinPath(run_dir, "agents/" + name + "_stats.json"));
+    if (agent_stats.ok()) {
+      a["frames"] = Num(&*agent_stats, "frames");
+      a["lost_frames"] = Num(&*agent_stats, "lost_frames");
+      a["fps"] = Num(&*agent_stats, "fps");
+      if (const Json* link = agent_stats->Get("link")) {
+        const double k = Num(link, "keyframes_sent");
+        keyframes_total += k;
+        rgbd_keyframes_total += Num(link, "rgbd_keyframes_sent");
+        a["rgbd_keyframes"] = Num(link, "rgbd_keyframes_sent");
+        // What a format without any of the packing would need: a 4x4 float pose, 5 floats per
+        // keypoint, every descriptor, an id and xyz floats per keypoint's map point, colour at
+        // 3 bytes and depth as a float per pixel of the full image for every keyframe.
+        naive_pose += 64 * k;
+        naive_keypoints += 20 * Num(link, "keypoints_extracted");
+        naive_descriptors += 32 * Num(link, "keypoints_extracted");
+        naive_points += 16 * Num(link, "keypoints_extracted");
+        naive_colour += 3 * Num(link, "full_rgbd_pixels");
+        naive_depth += 4 * Num(link, "full_rgbd_pixels");
+      }
+    }
+    for (const ReplayProcess& p : info.processes) {
+      if (p.name != name) continue;
+      a["cpu_seconds"] = p.cpu_seconds;
+      a["cpu_percent"] = p.wall_seconds > 0 ? 100 * p.cpu_seconds / p.wall_seconds : 0.0;
+      a["max_rss_mb"] = p.max_rss_mb;
+    }
+    agents.Push(a);
+  }
+  results["agents"] = agents;
+  if (with_traffic) {
+    results["atps_kBps"] = atps_sum / with_traffic;
+    results["akfs_kB"] = akfs_sum / with_traffic;
+    results["akfr_hz"] = akfr_sum / with_traffic;
+  }
+  for (const ReplayProcess& p : info.processes) {
+    if (p.name != "server") continue;
+    results["server_cpu_seconds"] = p.cpu_seconds;
+    results["server_cpu_percent"] = p.wall_seconds > 0 ? 100 * p.cpu_seconds / p.wall_seconds : 0.0;
+    results["server_max_rss_mb"] = p.max_rss_mb;
+  }
+  const double k = std::max(1.0, keyframes_total);
+  Json kinds = Json::MakeArray();
+  const std::vector<std::tuple<std::string, double, double>> per_kind = {
+      {"pose", parts_total.pose / k, naive_pose / k},
+      {"keypoints", parts_total.keypoints / k, naive_keypoints / k},
+      {"descriptors", parts_total.descriptors / k, naive_descriptors / k},
+      {"map points", parts_total.map_points / k, naive_points / k},
+      {"colour", parts_total.colour / k, naive_colour / k},
+      {"depth", parts_total.depth / k, naive_depth / k},
+      {"other", parts_total.other / k, 0.0}};
+  for (const auto& [kind, ours, naive] : per_kind) {
+    Json e;
+    e["kind"] = kind;
+    e["bytes_per_keyframe"] = ours;
+    e["uncompressed_bytes_per_keyframe"] = naive;
+    kinds.Push(e);
+  }
+  results["bytes_per_kind"] = kinds;
+  results["rgbd_keyframe_fraction"] = rgbd_keyframes_total / k;
+
+  // Reconstruction error of the dense map, in the ground truth's frame.
+  const std::string map_path = JoinPath(server_dir, "map.ply");
+  if (FileExists(map_path) && fused_ate) {
+    std::string source;
+    auto ref = LoadOrBuildReference(dataset, reference, &source);
+    auto rec = ReadPly(map_path);
+    if (ref.ok() && rec.ok() && rec->size() > 0) {
+      for (auto& p : rec->points) p = (fused_ate->alignment * p.cast<double>()).cast<float>();
+      auto error = ComputeReconstructionError(*ref, *rec);
+      if (error.ok()) {
+        results["recon_mean_m"] = error->mean;
+        results["recon_median_m"] = error->median;
+        results["recon_p95_m"] = error->p95;
+        results["recon_hausdorff_m"] = error->hausdorff;
+        results["recon_completeness"] = error->completeness;
+        results["map_points"] = rec->size();
+        results["reference"] = source;
+        results["reference_points"] = ref->size();
+      }
+    } else if (!ref.ok()) {
+      CCMD_LOG(WARNING) << "no reference cloud: " << ref.status().ToString();
+    }
+  }
+
+  // Plots.
+  if (!gt.empty()) {
+    const auto P = ViewPlane(gt);
+    std::vector<PlotSeries> series = {Projected(gt, P, "ground truth", cv::Scalar(160, 160, 160), 4)};
+    for (std::size_t i = 0; i < agent_trajectories.size(); ++i) {
+      Trajectory aligned = fused_ate ? TransformTrajectory(agent_trajectories[i], fused_ate->alignment) : agent_trajectories[i];
+      series.push_back(Projected(aligned, P, "agent" + std::to_string(i + 1), SeriesColor(static_cast<int>(i)), 2));
+      series.back().points = true;
+    }
+    PlotOptions o;
+    o.title = "Keyframe trajectories (top view, aligned to ground truth)";
+    o.x_label = "metres";
+    o.y_label = "metres";
+    o.equal_aspect = true;
+    WritePng(PlotLines(series, o), JoinPath(plots_dir, "trajectories.png")).IgnoreError();
+  }
+  {
+    std::vector<PlotSeries> series;
+    for (int i = 1; i <= info.agents; ++i) {
+      const Json* traffic = FindAgentTraffic(server_stats, "agent" + std::to_string(i));
+      if (!traffic || !traffic->Get("per_bucket")) continue;
+      PlotSeries s;
+      s.label = "agent" + std::to_string(i);
+      s.color = SeriesColor(i - 1);
+      const double bucket = Num(server_stats.Get("transport"), "bucket_seconds", 1.0);
+      for (const Json& b : traffic->Get("per_bucket")->array()) {
+        s.x.push_back(Num(&b, "t"));
+        s.y.push_back(Num(&b, "bytes") / 1e3 / bucket);
+      }
+      series.push_back(s);
+    }
+    PlotOptions o;
+    o.title = "Traffic per agent";
+    o.x_label = "seconds since the server started";
+    o.y_label = "kB/s";
+    WritePng(PlotLines(series, o), JoinPath(plots_dir, "traffic.png")).IgnoreError();
+  }
+  {
+    std::vector<BarGroup> groups;
+    for (const auto& [kind, ours, naive] : per_kind) {
+      if (kind == "other") continue;
+      groups.push_back({kind, {ours, naive}});
+    }
+    PlotOptions o;
+    o.title = "Bytes per keyframe by kind (log scale)";
+    o.y_label = "log10(bytes)";
+    WritePng(PlotBars(groups, {"sent", "uncompressed"}, {SeriesColor(0), SeriesColor(6)}, o, /*log_scale=*/true),
+             JoinPath(plots_dir, "bytes_per_kind.png")).IgnoreError();
+  }
+  {
+    std::vector<PlotSeries> series;
+    int index = 0;
+    for (const ReplayProcess& p : info.processes) {
+      PlotSeries s;
+      s.label = p.name;
+      s.color = p.name == "server" ? cv::Scalar(0, 0, 0) : SeriesColor(index++);
+      for (const auto& [t, cpu] : p.cpu_percent) {
+        s.x.push_back(t);
+        s.y.push_back(cpu);
+      }
+      series.push_back(s);
+    }
+    PlotOptions o;
+    o.title = "CPU use per process";
+    o.x_label = "seconds";
+    o.y_label = "% of one core";
+    WritePng(PlotLines(series, o), JoinPath(plots_dir, "cpu.png")).IgnoreError();
+  }
+
+  // report.md
+  std::ostringstream md;
+  md << "# Split-replay report\n\n";
+  md << "- dataset: `" << info.dataset_dir << "` (" << dataset.size() << " frames)\n";
+  md << "- agents: " << info.agents << ", pace: " << info.rate << ", wall time " << Fmt("%.1f", info.wall_seconds) << " s\n";
+  md << "- command: `" << info.command << "`\n";
+  if (!info.config.empty()) md << "- config: `" << info.config << "` (copied to config.yaml)\n";
+  md << "\n## Maps and trajectories\n\n";
+  md << "Maps left after fusion: " << results["maps_after_fusion"].number() << " (loops " << results["loops"].number()
+     << ", fusions " << results["fusions"].number() << ", global BA runs " << results["global_ba_runs"].number() << ")\n\n";
+  md << "| agent | frames | server keyframes | ATE RMSE (server, m) | ATE RMSE (agent odometry, m) | lost frames |\n|---|---|---|---|---|---|\n";
+  for (const Json& a : agents.array()) {
+    md << "| " << a.Get("name")->string() << " | " << Num(&a, "first_frame") << "-" << Num(&a, "last_frame") << " | "
+       << Num(&a, "keyframes") << " | " << (a.Has("ate_rmse_m") ? Fmt("%.4f", Num(&a, "ate_rmse_m")) : "-") << " | "
+       << (a.Has("agent_frames_ate_rmse_m") ? Fmt("%.4f", Num(&a, "agent_frames_ate_rmse_m")) : "-") << " | "
+       << Num(&a, "lost_frames") << " |\n";
+  }
+  if (results.Has("ate_rmse_m")) {
+    md << "\nFused trajectory (every keyframe of the primary map): ATE RMSE **" << Fmt("%.4f", results["ate_rmse_m"].number())
+       << " m** over " << results["fused_keyframes"].number() << " keyframes (max " << Fmt("%.4f", results["ate_max_m"].number())
+       << " m).\n";
+  }
+  md << "\n![trajectories](plots/trajectories.png)\n\n## Dense map\n\n";
+  if (results.Has("recon_mean_m")) {
+    md << "| points | mean distance (m) | median (m) | 95% (m) | Hausdorff (m) | completeness (2 cm) |\n|---|---|---|---|---|---|\n";
+    md << "| " << results["map_points"].number() << " | " << Fmt("%.4f", results["recon_mean_m"].number()) << " | "
+       << Fmt("%.4f", results["recon_median_m"].number()) << " | " << Fmt("%.4f", results["recon_p95_m"].number()) << " | "
+       << Fmt("%.4f", results["recon_hausdorff_m"].number()) << " | "
+       << Fmt("%.1f%%", 100 * results["recon_completeness"].number()) << " |\n\n";
+    md << "Reference: " << results["reference"].string() << " (" << results["reference_points"].number() << " points).\n";
+  } else {
+    md << "No dense map or no reference to compare with.\n";
+  }
+  md << "\n## Bandwidth\n\n| agent | ATPS (kB/s) | AKFS (kB) | AKFR (Hz) | keyframes with RGB-D | bytes |\n|---|---|---|---|---|---|\n";
+  for (const Json& a : agents.array()) {
+    md << "| " << a.Get("name")->string() << " | " << Fmt("%.1f", Num(&a, "atps_kBps")) << " | " << Fmt("%.1f", Num(&a, "akfs_kB"))
+       << " | " << Fmt("%.2f", Num(&a, "akfr_hz")) << " | " << Num(&a, "rgbd_keyframes") << " of " << Num(&a, "keyframes")
+       << " | " << Num(&a, "bytes") << " |\n";
+  }
+  md << "| mean | " << Fmt("%.1f", Num(&results, "atps_kBps")) << " | " << Fmt("%.1f", Num(&results, "akfs_kB")) << " | "
+     << Fmt("%.2f", Num(&results, "akfr_hz")) << " | | |\n\n";
+  md << "Bytes per keyframe by kind, against an uncompressed format (4x4 float pose, 5 floats per keypoint, every "
+        "descriptor, id + xyz per map point, full-resolution colour and float depth with every keyframe):\n\n";
+  md << "| kind | sent (B/keyframe) | uncompressed (B/keyframe) | ratio |\n|---|---|---|---|\n";
+  for (const auto& [kind, ours, naive] : per_kind) {
+    md << "| " << kind << " | " << Fmt("%.0f", ours) << " | " << Fmt("%.0f", naive) << " | "
+       << (naive > 0 ? Fmt("%.3f", ours / naive) : "-") << " |\n";
+  }
+  md << "\n![traffic](plots/traffic.png)\n\n![bytes per kind](plots/bytes_per_kind.png)\n\n## CPU\n\n";
+  md << "| process | CPU (s) | CPU (% of one core) | peak memory (MB) |\n|---|---|---|---|\n";
+  for (const ReplayProcess& p : info.processes) {
+    md << "| " << p.name << " | " << Fmt("%.1f", p.cpu_seconds) << " | "
+       << Fmt("%.0f", p.wall_seconds > 0 ? 100 * p.cpu_seconds / p.wall_seconds : 0.0) << " | " << Fmt("%.0f", p.max_rss_mb)
+       << " |\n";
+  }
+  md << "\n![cpu](plots/cpu.png)\n";
+  CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(run_dir, "report.md"), md.str()));
+  CCMD_RETURN_IF_ERROR(WriteJsonFile(results, JoinPath(run_dir, "results.json")));
+  return results;
+}
+
+}  // namespace ccmd

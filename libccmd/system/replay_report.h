@@ -1,0 +1,58 @@
+#pragma once
+
+// Evaluation of a split-replay run from the files it left: the server's trajectories, dense
+// map and statistics, the agents' statistics, and the processes' CPU use. Produces
+// results.json, report.md and PNG plots in the run folder.
+
+#include <string>
+#include <vector>
+
+#include "libccmd/io/ply.h"
+#include "libccmd/io/split.h"
+#include "libccmd/io/tum_dataset.h"
+#include "libccmd/util/json.h"
+
+namespace ccmd {
+
+struct ReplayProcess {
+  std::string name;        // "agent1", ..., "server"
+  double cpu_seconds = 0;
+  double wall_seconds = 0;
+  double max_rss_mb = 0;
+  int exit_code = 0;
+  std::vector<std::pair<double, double>> cpu_percent;  // (seconds since start, % of one core)
+};
+
+struct ReplayRunInfo {
+  std::string dataset_dir;
+  std::string command;     // as typed
+  std::string config;      // camera/tracking config used ("" = from the dataset)
+  int agents = 0;
+  std::string rate;        // realtime or max
+  double wall_seconds = 0;
+  std::vector<FrameRange> segments;
+  std::vector<ReplayProcess> processes;
+};
+
+struct ReferenceOptions {
+  std::string reference_ply;  // "" = surface.ply in the dataset, else built from ground truth
+  int stride = 10;            // ground-truth build: every stride-th frame
+  int downsample = 2;         // and at 1/downsample resolution
+  double voxel_m = 0.01;
+};
+
+// The reference surface for reconstruction error: a given PLY (meshes are sampled), the
+// dataset's surface.ply (synthetic sequences), or a cloud back-projected from the dataset's
+// depth at its ground-truth poses (TUM, 7-Scenes). `source` says which.
+StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset, const ReferenceOptions& options,
+                                          std::string* source);
+
+// Points sampled on a triangle mesh at about `spacing` metres, with the faces' normals.
+PointCloud SampleMesh(const PointCloud& mesh, double spacing);
+
+// Reads the run folder (server/, agents/) and computes every figure; writes results.json,
+// report.md and plots/ there. Returns the results.
+StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dataset, const ReplayRunInfo& info,
+                              const ReferenceOptions& reference);
+
+}  // namespace ccmd
