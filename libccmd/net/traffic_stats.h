@@ -30,7 +30,9 @@ namespace ccmd {
 
 struct TrafficOptions {
   double bucket_seconds = 1.0;
-  std::size_t max_buckets = 86400;  // per agent; the oldest are dropped beyond this
+  // Per agent; beyond this the oldest buckets are dropped (the totals keep everything), so
+  // the JSON stays small on long runs: one hour of 1 s buckets.
+  std::size_t max_buckets = 3600;
 };
 
 struct KindCounter {
