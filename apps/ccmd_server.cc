@@ -1,13 +1,13 @@
 // ccmd_server: accepts agents over TCP, authenticates them with the deployment's pre-shared
 // key, journals every message before acknowledging it, and hands the messages to the
-// back-end. For now the back-end is a consumer that counts and logs.
+// back-end (loop closure, map fusion, optimisation, dense map). Results go to --out.
 //
-//   ccmd_server --listen 0.0.0.0:7420 --journal run/journal --psk-file ccmd.key --stats s.json
-//   ccmd_server --resume run/journal --psk-file ccmd.key      # after a crash or a stop
+//   ccmd_server --listen 0.0.0.0:7420 --journal run/journal --out run/results --psk-file ccmd.key
+//   ccmd_server --resume run/journal --out run/results --psk-file ccmd.key   # after a crash
 //
 // Prints "ccmd_server: listening on HOST:PORT" on stdout once it serves. SIGINT/SIGTERM stop
-// it cleanly: agents get a bye, everything received is journaled and delivered, the stats
-// file is written, exit code 0.
+// it cleanly: agents get a bye, everything received is journaled and delivered, the back-end
+// finishes, the map, trajectories and statistics are written, exit code 0.
 
 #include <signal.h>
 
@@ -18,49 +18,21 @@
 #include <map>
 #include <mutex>
 
+#include "libccmd/features/bow_vocabulary.h"
+#include "libccmd/util/file_util.h"
+
 #include "apps/app_common.h"
 #include "libccmd/net/psk.h"
-#include "libccmd/net/server.h"
+#include "libccmd/system/server_runtime.h"
 #include "libccmd/util/json.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/timer.h"
 
 namespace {
 
-// Stand-in for the back-end: counts what it is given and logs the agents' sessions.
-class CountingConsumer : public ccmd::MessageConsumer {
- public:
-  void OnAgentKnown(const ccmd::AgentDescription& agent, bool from_journal) override {
-    CCMD_LOG(INFO) << "back-end: agent " << agent.id << " '" << agent.name << "' "
-                   << (from_journal ? "restored from the journal" : "is new") << " ("
-                   << ccmd::DescribeCamera(agent.camera) << ")";
-  }
-  void OnAgentConnected(ccmd::AgentId agent, std::uint64_t last) override {
-    CCMD_LOG(DEBUG) << "back-end: agent " << agent << " session, stored up to " << last;
-  }
-  void OnAgentDisconnected(ccmd::AgentId agent, const std::string& reason) override {
-    std::lock_guard<std::mutex> lock(mutex_);
-    CCMD_LOG(INFO) << "back-end: agent " << agent << " left (" << reason << "); " << counts_[agent]
-                   << " messages so far";
-  }
-  void OnMessage(ccmd::DeliveredMessage m) override {
-    std::lock_guard<std::mutex> lock(mutex_);
-    ++counts_[m.agent];
-    CCMD_LOG(DEBUG) << "back-end: agent " << m.agent << " message " << m.seq << " type "
-                    << int{m.type} << ", " << m.payload.size() << " bytes";
-  }
-  void OnReplayFinished(std::uint64_t n) override {
-    CCMD_LOG(INFO) << "back-end: journal replay delivered " << n << " messages";
-  }
-
- private:
-  std::mutex mutex_;
-  std::map<ccmd::AgentId, std::uint64_t> counts_;
-};
-
-ccmd::Status WriteStats(const ccmd::Server& server, const std::string& path) {
+ccmd::Status WriteStats(const ccmd::Json& json, const std::string& path) {
   if (path.empty()) return ccmd::Status::Ok();
-  return ccmd::WriteJsonFile(server.StatsJson(), path);
+  return ccmd::WriteJsonFile(json, path);
 }
 
 }  // namespace
@@ -69,8 +41,10 @@ int main(int argc, char** argv) {
   CLI::App app{
       "CCMD server: accepts agents over TCP, journals and acknowledges their messages and\n"
       "hands them to the back-end. Without a key it listens on loopback only."};
-  ccmd::ServerOptions options;
-  std::string journal, resume, psk_file, stats_path;
+  ccmd::ServerRuntimeOptions runtime;
+  ccmd::ServerOptions& options = runtime.net;
+  std::string journal, resume, psk_file, stats_path, vocabulary = ccmd::app::DefaultVocabularyPath();
+  bool no_dense = false, no_gba = false;
   double stats_interval = 5.0;
   bool no_fsync = false;
   std::string log_level;
@@ -83,6 +57,16 @@ int main(int argc, char** argv) {
                  "Pre-shared key file (else $CCMD_PSK; without either: loopback only)");
   app.add_option("--max-agents", options.max_agents, "Agents the server registers")
       ->check(CLI::Range(1, 65535))
+      ->capture_default_str();
+  app.add_option("--out", runtime.output_dir,
+                 "Results folder: map.ply, trajectory_fused.txt, trajectory_<agent>.txt, "
+                 "server_stats.json, snapshots/ (default: the journal folder's name + .results)");
+  app.add_option("--vocabulary", vocabulary, "Place-recognition vocabulary (ccmd_vocab); missing: trained online")
+      ->capture_default_str();
+  app.add_flag("--no-dense", no_dense, "Do not build the dense map");
+  app.add_flag("--no-global-ba", no_gba, "No global bundle adjustment after loops");
+  app.add_option("--snapshot-interval", runtime.snapshot_period_s,
+                 "Seconds between dense-map snapshots (0: only at the end)")
       ->capture_default_str();
   app.add_option("--stats", stats_path, "Traffic statistics JSON, rewritten periodically");
   app.add_option("--stats-interval", stats_interval, "Seconds between statistics writes")
@@ -136,6 +120,30 @@ int main(int argc, char** argv) {
   }
   options.psk = *psk;
 
+  if (runtime.output_dir.empty()) {
+    std::string base = options.journal_dir;
+    while (base.size() > 1 && base.back() == '/') base.pop_back();
+    runtime.output_dir = base + ".results";
+  }
+  runtime.stats_period_s = stats_interval;
+  runtime.backend.dense = !no_dense;
+  runtime.backend.global_ba = !no_gba;
+  if (!vocabulary.empty() && ccmd::FileExists(vocabulary)) {
+    auto loaded = ccmd::Vocabulary::Load(vocabulary);
+    if (!loaded.ok()) {
+      std::fprintf(stderr, "ccmd_server: %s\n", loaded.status().ToString().c_str());
+      return 2;
+    }
+    runtime.backend.place.vocabulary = std::make_shared<const ccmd::Vocabulary>(std::move(loaded).value());
+    CCMD_LOG(INFO) << "vocabulary " << vocabulary << ": " << runtime.backend.place.vocabulary->word_count() << " words";
+  } else {
+    CCMD_LOG(WARNING) << "no vocabulary at '" << vocabulary
+                      << "': place recognition trains one online from the first keyframes";
+  }
+
+  // Whoever started us may have closed our stdout after reading the port line: a write to it
+  // must not kill the server (the network code never raises SIGPIPE itself).
+  signal(SIGPIPE, SIG_IGN);
   // Block the stop signals in every thread; the main thread waits for them below.
   sigset_t signals;
   sigemptyset(&signals);
@@ -143,35 +151,50 @@ int main(int argc, char** argv) {
   sigaddset(&signals, SIGTERM);
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
 
-  CountingConsumer consumer;
-  ccmd::Server server(options, &consumer);
-  if (ccmd::Status s = server.Start(); !s.ok()) {
+  auto server = ccmd::ServerRuntime::Create(runtime);
+  if (!server.ok()) {
+    std::fprintf(stderr, "ccmd_server: %s\n", server.status().ToString().c_str());
+    return 2;
+  }
+  if (ccmd::Status s = (*server)->Start(); !s.ok()) {
     std::fprintf(stderr, "ccmd_server: %s\n", s.ToString().c_str());
     return 1;
   }
   const std::size_t colon = options.listen.rfind(':');
   std::printf("ccmd_server: listening on %s:%u\n", options.listen.substr(0, colon).c_str(),
-              unsigned{server.port()});
+              unsigned{(*server)->port()});
+  std::printf("ccmd_server: results in %s\n", runtime.output_dir.c_str());
   std::fflush(stdout);
 
   int exit_code = 0;
+  // Wake at least once a second for periodic work (statistics, dense snapshots).
+  const double tick = std::min(1.0, stats_interval);
+  double last_stats = ccmd::MonotonicSeconds();
   while (true) {
     timespec wait{};
-    wait.tv_sec = static_cast<time_t>(stats_interval);
-    wait.tv_nsec = static_cast<long>((stats_interval - std::floor(stats_interval)) * 1e9);
+    wait.tv_sec = static_cast<time_t>(tick);
+    wait.tv_nsec = static_cast<long>((tick - std::floor(tick)) * 1e9);
     const int sig = sigtimedwait(&signals, nullptr, &wait);
     if (sig == SIGINT || sig == SIGTERM) {
       CCMD_LOG(INFO) << "stopping on " << (sig == SIGINT ? "SIGINT" : "SIGTERM");
       break;
     }
-    if (ccmd::Status s = WriteStats(server, stats_path); !s.ok()) {
-      CCMD_LOG(WARNING) << "cannot write statistics: " << s.ToString();
+    (*server)->Tick();
+    if (ccmd::MonotonicSeconds() - last_stats >= stats_interval) {
+      last_stats = ccmd::MonotonicSeconds();
+      if (ccmd::Status s = WriteStats((*server)->TransportStatsJson(), stats_path); !s.ok()) {
+        CCMD_LOG(WARNING) << "cannot write statistics: " << s.ToString();
+      }
     }
   }
-  server.Stop();
-  if (ccmd::Status s = WriteStats(server, stats_path); !s.ok()) {
+  if (ccmd::Status s = (*server)->Stop(); !s.ok()) {
+    std::fprintf(stderr, "ccmd_server: writing results: %s\n", s.ToString().c_str());
+    exit_code = 1;
+  }
+  if (ccmd::Status s = WriteStats((*server)->TransportStatsJson(), stats_path); !s.ok()) {
     std::fprintf(stderr, "ccmd_server: cannot write statistics: %s\n", s.ToString().c_str());
     exit_code = 1;
   }
+  std::printf("ccmd_server: results written to %s\n", runtime.output_dir.c_str());
   return exit_code;
 }

@@ -75,7 +75,8 @@ Status Backend::SubmitKeyframe(AgentId agent, KeyframeMessage message) {
     std::lock_guard<std::mutex> lock(work_mutex_);
     ++outstanding_;
   }
-  if (!ingest_queue_.Push({agent, std::move(message), Now()})) {
+  IngestItem item{agent, std::make_unique<KeyframeMessage>(std::move(message)), nullptr, Now()};
+  if (!ingest_queue_.Push(std::move(item))) {
     FinishedWork();
     return Unavailable("the back-end is shutting down");
   }
@@ -87,7 +88,8 @@ Status Backend::SubmitPoseUpdate(AgentId agent, PoseUpdateMessage message) {
     std::lock_guard<std::mutex> lock(work_mutex_);
     ++outstanding_;
   }
-  if (!ingest_queue_.Push({agent, std::move(message), Now()})) {
+  IngestItem item{agent, nullptr, std::make_unique<PoseUpdateMessage>(std::move(message)), Now()};
+  if (!ingest_queue_.Push(std::move(item))) {
     FinishedWork();
     return Unavailable("the back-end is shutting down");
   }
@@ -116,7 +118,7 @@ void Backend::IngestLoop() {
 
 void Backend::Ingest(IngestItem item) {
   const AgentId agent = item.agent;
-  if (auto* pose_update = std::get_if<PoseUpdateMessage>(&item.message)) {
+  if (const PoseUpdateMessage* pose_update = item.pose_update.get()) {
     std::vector<ServerKeyframe*> moved;
     MapManager::Guard guard = maps_.CheckOutAgent(agent);
     moved = ApplyPoseUpdates(guard.get(), agent, *pose_update);
@@ -125,7 +127,8 @@ void Backend::Ingest(IngestItem item) {
     stats_.pose_updates_received++;
     return;
   }
-  KeyframeMessage& message = std::get<KeyframeMessage>(item.message);
+  if (!item.keyframe) return;
+  KeyframeMessage& message = *item.keyframe;
   PinholeCamera camera;
   {
     std::lock_guard<std::mutex> lock(cameras_mutex_);

@@ -17,7 +17,6 @@
 #include <mutex>
 #include <string>
 #include <thread>
-#include <variant>
 #include <vector>
 
 #include "libccmd/backend/loop_verification.h"
@@ -112,7 +111,9 @@ class Backend {
  private:
   struct IngestItem {
     AgentId agent;
-    std::variant<KeyframeMessage, PoseUpdateMessage> message;
+    // Exactly one is set. Held by pointer: queue moves stay cheap.
+    std::unique_ptr<KeyframeMessage> keyframe;
+    std::unique_ptr<PoseUpdateMessage> pose_update;
     double submitted = 0;
   };
   struct DenseTask {

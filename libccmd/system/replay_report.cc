@@ -260,6 +260,22 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
     agents.Push(a);
   }
   results["agents"] = agents;
+  // Rates per second of dataset time: each agent's bytes and keyframes over its segment's duration.
+  double dataset_bytes_per_s = 0, dataset_keyframes_per_s = 0;
+  int with_duration = 0;
+  for (const Json& a : agents.array()) {
+    const int first = static_cast<int>(Num(&a, "first_frame", -1)), last = static_cast<int>(Num(&a, "last_frame", -1));
+    if (first < 0 || last <= first || last >= static_cast<int>(dataset.size())) continue;
+    const double duration = dataset.frame(last).timestamp - dataset.frame(first).timestamp;
+    if (duration <= 0) continue;
+    dataset_bytes_per_s += Num(&a, "bytes") / duration;
+    dataset_keyframes_per_s += Num(&a, "keyframes") / duration;
+    ++with_duration;
+  }
+  if (with_duration) {
+    results["atps_dataset_kBps"] = dataset_bytes_per_s / with_duration / 1e3;
+    results["akfr_dataset_hz"] = dataset_keyframes_per_s / with_duration;
+  }
   if (with_traffic) {
     results["atps_kBps"] = atps_sum / with_traffic;
     results["akfs_kB"] = akfs_sum / with_traffic;
@@ -305,6 +321,8 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
         results["recon_median_m"] = error->median;
         results["recon_p95_m"] = error->p95;
         results["recon_hausdorff_m"] = error->hausdorff;
+        results["recon_max_map_to_reference_m"] = error->max;
+        results["recon_max_reference_to_map_m"] = error->max_reverse;
         results["recon_completeness"] = error->completeness;
         results["map_points"] = rec->size();
         results["reference"] = source;
@@ -425,6 +443,10 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   }
   md << "| mean | " << Fmt("%.1f", Num(&results, "atps_kBps")) << " | " << Fmt("%.1f", Num(&results, "akfs_kB")) << " | "
      << Fmt("%.2f", Num(&results, "akfr_hz")) << " | | |\n\n";
+  md << "ATPS and AKFR are per second of connection (wall clock of this run); per second of the dataset's own time "
+        "(what a robot moving at that speed would send): "
+     << Fmt("%.1f", Num(&results, "atps_dataset_kBps")) << " kB/s and " << Fmt("%.2f", Num(&results, "akfr_dataset_hz"))
+     << " keyframes/s per agent.\n\n";
   md << "Bytes per keyframe by kind, against an uncompressed format (4x4 float pose, 5 floats per keypoint, every "
         "descriptor, id + xyz per map point, full-resolution colour and float depth with every keyframe):\n\n";
   md << "| kind | sent (B/keyframe) | uncompressed (B/keyframe) | ratio |\n|---|---|---|---|\n";

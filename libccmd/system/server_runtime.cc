@@ -1,5 +1,7 @@
 #include "libccmd/system/server_runtime.h"
 
+#include <algorithm>
+
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/timer.h"
@@ -145,7 +147,12 @@ Status ServerRuntime::WriteResults() {
                                                             : "keyframes, NOT fused: the agent's own map frame"));
   }
   if (backend_->dense() && backend_->PrimaryMap()) {
-    keep(backend_->ExportDenseMap(JoinPath(options_.output_dir, "map.ply")));
+    const auto dense_maps = backend_->dense()->Maps();
+    if (std::find(dense_maps.begin(), dense_maps.end(), *backend_->PrimaryMap()) != dense_maps.end()) {
+      keep(backend_->ExportDenseMap(JoinPath(options_.output_dir, "map.ply")));
+    } else {
+      CCMD_LOG(INFO) << "no RGB-D keyframe reached the primary map: no map.ply";
+    }
   }
   keep(WriteJsonFile(StatsJson(), JoinPath(options_.output_dir, "server_stats.json")));
   return first;

@@ -40,6 +40,7 @@ class ServerRuntime : public MessageConsumer {
 
   Backend* backend() { return backend_.get(); }
   Json StatsJson();
+  Json TransportStatsJson() const { return server_ ? server_->StatsJson() : Json(); }
   // Results written by Stop (and WriteResults): map.ply, trajectory_fused.txt,
   // trajectory_<agent name>.txt, server_stats.json.
   Status WriteResults();
