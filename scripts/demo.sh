@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
-# The main job end to end: set up, generate a synthetic RGB-D sequence with exact ground
-# truth, and evaluate it split into segments for three agents.
+# The main job end to end: set up, generate a synthetic RGB-D sequence with exact ground truth
+# (a textured room, 600 frames), split it into three overlapping segments, and replay them with
+# three agents talking to one server over TCP on loopback. The server fuses the three maps,
+# builds the dense point cloud, and the report compares everything with the ground truth.
 #
 #   scripts/demo.sh [OUT_DIR]      default out/demo
 set -euo pipefail
@@ -18,9 +20,12 @@ else
   echo "== reusing $OUT/sequence"
 fi
 
-echo "== split-replay segments for 3 agents (10% overlap)"
-"$BIN/ccmd_eval" split --dataset "$OUT/sequence" --agents 3 | tee "$OUT/segments.txt"
+RUN="$OUT/run-$(date +%Y%m%d-%H%M%S)"
+echo "== split replay: 3 agents and a server over TCP"
+"$BIN/ccmd_replay" --dataset "$OUT/sequence" --agents 3 --out "$RUN"
 
 echo
-echo "sequence:  $OUT/sequence (TUM layout, groundtruth.txt, surface.ply)"
-echo "segments:  $OUT/segments.txt"
+echo "report:      $RUN/report.md"
+echo "results:     $RUN/results.json"
+echo "dense map:   $RUN/server/map.ply (open with CloudCompare, MeshLab or Open3D)"
+echo "trajectories $RUN/server/trajectory_fused.txt, trajectory_agent1..3.txt (TUM format)"

@@ -1,0 +1,98 @@
+// ccmd_replay end to end on a small synthetic sequence: a server and two agent processes over
+// loopback TCP. The report's figures are checked against independent computations from the
+// files the run wrote.
+
+#include <gtest/gtest.h>
+
+#include "libccmd/eval/reconstruction_error.h"
+#include "libccmd/eval/trajectory_error.h"
+#include "libccmd/io/ply.h"
+#include "libccmd/io/trajectory.h"
+#include "libccmd/synth/sequence.h"
+#include "libccmd/util/file_util.h"
+#include "libccmd/util/json.h"
+#include "tests/support/test_support.h"
+
+namespace ccmd {
+namespace {
+
+TEST(ReplayCliTest, TwoAgentsFuseAndTheReportMatchesTheFiles) {
+  testing::TempDir dir;
+  SyntheticSequenceOptions synth;
+  synth.frames = 200;
+  synth.surface_spacing = 0.02;
+  ASSERT_TRUE(WriteSyntheticSequence(dir.File("seq"), synth).ok());
+  std::string out;
+  ASSERT_EQ(testing::RunCommand(testing::ProgramPath("ccmd_replay") + " --dataset " + dir.File("seq") +
+                                    " --agents 2 --out " + dir.File("run"),
+                                &out),
+            0)
+      << out;
+  auto results = ReadJsonFile(dir.File("run/results.json"));
+  ASSERT_TRUE(results.ok()) << out;
+  for (const char* key : {"ate_rmse_m", "maps_after_fusion", "recon_mean_m", "recon_hausdorff_m", "atps_kBps",
+                          "akfs_kB", "akfr_hz", "agents"}) {
+    ASSERT_TRUE(results->Has(key)) << key;
+  }
+  EXPECT_EQ(results->Get("maps_after_fusion")->number(), 1);
+  ASSERT_EQ(results->Get("agents")->size(), 2u);
+  for (const Json& a : results->Get("agents")->array()) {
+    for (const char* key : {"ate_rmse_m", "keyframes", "bytes"}) EXPECT_TRUE(a.Has(key)) << key;
+    EXPECT_GT(a.Get("keyframes")->number(), 5);
+  }
+  for (const char* file : {"run/report.md", "run/server/map.ply", "run/server/trajectory_fused.txt",
+                           "run/plots/trajectories.png", "run/plots/traffic.png", "run/plots/bytes_per_kind.png"}) {
+    EXPECT_TRUE(FileExists(dir.File(file))) << file;
+  }
+  // Independent check: the fused ATE from the written trajectory against the ground truth.
+  auto gt = ReadTumTrajectory(dir.File("seq/groundtruth.txt"));
+  auto fused = ReadTumTrajectory(dir.File("run/server/trajectory_fused.txt"));
+  ASSERT_TRUE(gt.ok() && fused.ok());
+  auto ate = ComputeAte(*gt, *fused);
+  ASSERT_TRUE(ate.ok());
+  EXPECT_NEAR(results->Get("ate_rmse_m")->number(), ate->error.rmse, 1e-9);
+  EXPECT_LT(ate->error.rmse, 0.01);
+  // And the reconstruction error from the written map, aligned by that trajectory.
+  auto reference = ReadPly(dir.File("seq/surface.ply"));
+  auto map = ReadPly(dir.File("run/server/map.ply"));
+  ASSERT_TRUE(reference.ok() && map.ok());
+  for (auto& p : map->points) p = (ate->alignment * p.cast<double>()).cast<float>();
+  auto recon = ComputeReconstructionError(*reference, *map);
+  ASSERT_TRUE(recon.ok());
+  EXPECT_NEAR(results->Get("recon_mean_m")->number(), recon->mean, 1e-9);
+  EXPECT_LT(recon->mean, 0.01);
+  // Bandwidth: the agents' bytes add up to what the server counted per agent.
+  auto stats = ReadJsonFile(dir.File("run/server/server_stats.json"));
+  ASSERT_TRUE(stats.ok());
+  double server_bytes = 0;
+  for (const Json& a : stats->Get("transport")->Get("agents")->array()) {
+    server_bytes += a.Get("messages")->Get("keyframe")->Get("bytes")->number() +
+                    a.Get("messages")->Get("pose_update")->Get("bytes")->number();
+  }
+  double agent_bytes = 0;
+  for (const char* name : {"agent1", "agent2"}) {
+    auto s = ReadJsonFile(dir.File(std::string("run/agents/") + name + "_stats.json"));
+    ASSERT_TRUE(s.ok());
+    agent_bytes += s->Get("link")->Get("keyframe_bytes")->number() + s->Get("link")->Get("pose_update_bytes")->number();
+  }
+  EXPECT_EQ(server_bytes, agent_bytes);
+}
+
+TEST(ReplayCliTest, RefusesAFolderThatHoldsARun) {
+  testing::TempDir dir;
+  ASSERT_TRUE(MakeDirectories(dir.File("run/journal")).ok());
+  SyntheticSequenceOptions synth;
+  synth.frames = 20;
+  synth.width = 160;
+  synth.height = 120;
+  ASSERT_TRUE(WriteSyntheticSequence(dir.File("seq"), synth).ok());
+  std::string out;
+  EXPECT_NE(testing::RunCommand(testing::ProgramPath("ccmd_replay") + " --dataset " + dir.File("seq") +
+                                    " --agents 2 --out " + dir.File("run"),
+                                &out),
+            0);
+  EXPECT_NE(out.find("already holds a run"), std::string::npos) << out;
+}
+
+}  // namespace
+}  // namespace ccmd
