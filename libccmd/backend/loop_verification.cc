@@ -10,7 +10,7 @@
 
 namespace ccmd {
 
-std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& camera,
+CCMD_POPCNT_CLONES std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& camera,
                                     ServerKeyframe* candidate, const ServerMap& candidate_map,
                                     const LoopVerificationOptions& options) {
   // Map points around the candidate.

@@ -34,14 +34,8 @@
 namespace ccmd {
 namespace {
 
-// Hamming distances dominate training and transforms, and the x86-64 baseline has no popcnt
-// instruction (std::popcount becomes ~12 instructions). The hot loops are therefore compiled
-// twice and the loader picks the popcnt version where the CPU has it (7-10x faster there).
-#if defined(__x86_64__) && defined(__linux__) && defined(__GNUC__)
-#define CCMD_POPCNT_CLONES __attribute__((target_clones("popcnt", "default")))
-#else
-#define CCMD_POPCNT_CLONES
-#endif
+// The hot loops are compiled with and without popcnt (CCMD_POPCNT_CLONES, descriptor.h):
+// 7-10x faster training and transforms where the CPU has it.
 
 constexpr WordId kNoWord = 0xFFFFFFFFu;
 constexpr char kMagic[8] = {'C', 'C', 'M', 'D', 'V', 'O', 'C', '\0'};

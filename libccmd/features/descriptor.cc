@@ -5,7 +5,7 @@
 
 namespace ccmd {
 
-Descriptor MedoidDescriptor(const std::vector<Descriptor>& descriptors) {
+CCMD_POPCNT_CLONES Descriptor MedoidDescriptor(const std::vector<Descriptor>& descriptors) {
   const std::size_t n = descriptors.size();
   std::size_t best = 0;
   int best_sum = std::numeric_limits<int>::max();

@@ -46,7 +46,7 @@ std::vector<int> RotationOutliers(const std::vector<float>& rotations) {
   return dropped;
 }
 
-int SearchFromLastFrame(TrackingFrame* current, const TrackingFrame& last, float radius, const OrbExtractor& orb,
+CCMD_POPCNT_CLONES int SearchFromLastFrame(TrackingFrame* current, const TrackingFrame& last, float radius, const OrbExtractor& orb,
                         const PinholeCamera& camera) {
   const Pose& Tcw = current->T_cam_world;
   // Moving forward makes points look larger: search the same or finer octaves; backward the
@@ -101,7 +101,7 @@ int SearchFromLastFrame(TrackingFrame* current, const TrackingFrame& last, float
   return matches;
 }
 
-int SearchLocalPoints(TrackingFrame* current, const std::vector<MapPointPtr>& candidates, float radius,
+CCMD_POPCNT_CLONES int SearchLocalPoints(TrackingFrame* current, const std::vector<MapPointPtr>& candidates, float radius,
                       const OrbExtractor& orb, const PinholeCamera& camera) {
   const Pose& Tcw = current->T_cam_world;
   const Eigen::Vector3d center = current->camera_center();
@@ -155,7 +155,7 @@ int SearchLocalPoints(TrackingFrame* current, const std::vector<MapPointPtr>& ca
   return matches;
 }
 
-int SearchByDescriptor(TrackingFrame* current, const Keyframe& keyframe, float ratio) {
+CCMD_POPCNT_CLONES int SearchByDescriptor(TrackingFrame* current, const Keyframe& keyframe, float ratio) {
   std::vector<int> matched_keypoint;
   std::vector<float> rotations;
   std::vector<int> best_for_keypoint(current->size(), std::numeric_limits<int>::max());
@@ -198,7 +198,7 @@ int SearchByDescriptor(TrackingFrame* current, const Keyframe& keyframe, float r
   return matches;
 }
 
-int FusePoints(LocalMap* map, Keyframe* keyframe, const std::vector<MapPointPtr>& points,
+CCMD_POPCNT_CLONES int FusePoints(LocalMap* map, Keyframe* keyframe, const std::vector<MapPointPtr>& points,
                const OrbExtractor& orb, const PinholeCamera& camera, float radius) {
   const Pose& Tcw = keyframe->T_cam_world();
   const Eigen::Vector3d center = keyframe->camera_center();
