@@ -84,7 +84,7 @@ int main(int argc, char** argv) {
       stats_path, rate = "max", server, record_dir, name, psk_file, spill_dir, progress_path;
   double flush_timeout = 120.0;
   ccmd::RgbdEncodeOptions rgbd;
-  bool offline = false, synchronous = false;
+  bool offline = false, synchronous = false, rgbd_every_keyframe = false;
   int max_frames = 0, record_compression = 1;
   app.add_option("--source", source_spec,
                  "Frame source: tum:DIR (TUM layout), synth[:frames=N,seed=S,...]")
@@ -109,6 +109,8 @@ int main(int argc, char** argv) {
   app.add_option("--depth-bound", rgbd.bound_e4, "Depth error bound in 1/10000 of depth (ccmd-bounded)")
       ->check(CLI::Range(1, 1000))
       ->capture_default_str();
+  app.add_flag("--rgbd-every-keyframe", rgbd_every_keyframe,
+               "Send RGB-D data with every keyframe (covisibility selection off; for comparisons)");
   app.add_option("--progress", progress_path, "Rewrite a small progress JSON about once a second");
   app.add_option("--trajectory", trajectory_path, "Write every tracked frame's pose (TUM format)");
   app.add_option("--keyframe-trajectory", keyframe_trajectory_path, "Write keyframe poses (TUM format)");
@@ -157,6 +159,7 @@ int main(int argc, char** argv) {
     if (!options.ok()) return Fail(options.status().ToString());
     tracking = *options;
   }
+  if (rgbd_every_keyframe) tracking.rgbd_selection.enabled = false;
   std::unique_ptr<ccmd::TumRecorder> recorder;
   if (!record_dir.empty()) {
     ccmd::TumRecorderOptions record_options;

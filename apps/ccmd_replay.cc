@@ -53,6 +53,8 @@ std::string Tail(const std::string& path, int lines) {
 }
 
 struct Tracked {
+  Tracked(std::string name, Subprocess process, double started)
+      : name(std::move(name)), process(std::move(process)), started(started) {}
   std::string name;
   Subprocess process;
   double started = 0, ended = -1;
@@ -61,87 +63,49 @@ struct Tracked {
   std::vector<std::pair<double, double>> cpu_percent;
 };
 
-}  // namespace
-
-int main(int argc, char** argv) {
-  CLI::App app{
-      "Split-replay evaluation: a ccmd_server and K ccmd_agent processes over TCP on loopback, each\n"
-      "agent replaying one segment (10% overlap) of a TUM-layout sequence; then ATE, reconstruction\n"
-      "error, bandwidth and CPU in DIR/report.md and DIR/results.json."};
-  std::string dataset, out, config, rate = "max", reference, bin_dir;
-  int agents = 3;
-  double timeout_s = 3600;
+// Everything a run needs, the same for every run of an ablation.
+struct Setup {
+  std::string dataset, camera_config, rate, bin_dir, command;
+  int agents = 0;
+  double timeout_s = 0;
   std::vector<std::string> agent_args, server_args;
-  app.add_option("--dataset", dataset, "TUM-layout folder (TUM RGB-D, ICL-NUIM, 7-Scenes converted, ccmd_synth)")
-      ->required();
-  app.add_option("--agents", agents, "Number of agents K (segments)")->check(CLI::Range(1, 32))->capture_default_str();
-  app.add_option("--out", out, "Results folder (created)")->required();
-  app.add_option("--config", config, "Camera/tracking config (default: the dataset's camera.yaml or a guess)");
-  app.add_option("--rate", rate, "realtime (the dataset's timestamps) or max")
-      ->check(CLI::IsMember({"realtime", "max"}))
-      ->capture_default_str();
-  app.add_option("--reference", reference,
-                 "Reference surface (PLY, points or mesh) for reconstruction error; default: the dataset's "
-                 "surface.ply, else a cloud built from ground-truth poses and depth");
-  app.add_option("--agent-arg", agent_args, "Extra argument for every ccmd_agent (repeatable)");
-  app.add_option("--server-arg", server_args, "Extra argument for ccmd_server (repeatable)");
-  app.add_option("--bin-dir", bin_dir, "Folder of ccmd_server and ccmd_agent (default: next to this program)");
-  app.add_option("--timeout", timeout_s, "Give up after this many seconds")->capture_default_str();
-  CLI11_PARSE(app, argc, argv);
-  if (bin_dir.empty()) bin_dir = ExecutableDir();
-  std::string command;
-  for (int i = 0; i < argc; ++i) command += (i ? " " : "") + std::string(argv[i]);
+  const TumSequence* sequence = nullptr;
+  std::vector<FrameRange> segments;
+  ReferenceOptions reference;
+};
 
-  // The dataset: frame count, camera, ground truth.
-  std::optional<PinholeCamera> camera;
-  std::string camera_config = config;
-  if (camera_config.empty() && !FileExists(JoinPath(dataset, "camera.yaml"))) {
-    const std::string guess = GuessCameraConfigName(dataset);
-    if (!guess.empty()) camera_config = JoinPath(app::ConfigDir(), guess);
-  }
-  if (!camera_config.empty()) {
-    auto loaded = LoadCameraConfig(camera_config);
-    if (!loaded.ok()) return Fail(loaded.status().ToString());
-    camera = *loaded;
-  }
-  auto sequence = TumSequence::Open(dataset, camera);
-  if (!sequence.ok()) return Fail(sequence.status().ToString());
-  auto segments = SplitWithOverlap(static_cast<int>(sequence->size()), agents);
-  if (!segments.ok()) return Fail(segments.status().ToString());
-
+// One split replay into `out`: server and agents, progress, evaluation. `failures` counts the
+// processes that failed (the run is still evaluated, from what they left).
+StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::vector<std::string>& extra_agent_args,
+                       int* failures) {
   for (const char* sub : {"server", "agents", "logs", "plots"}) {
     const Status s = MakeDirectories(JoinPath(out, sub));
-    if (!s.ok()) return Fail(s.ToString());
+    if (!s.ok()) return s;
   }
   if (FileExists(JoinPath(out, "journal"))) {
-    return Fail(out + " already holds a run (journal/): choose a new --out folder");
+    return InvalidArgument(out + " already holds a run (journal/): choose a new --out folder");
   }
-  WriteFileAtomic(JoinPath(out, "command.txt"), command + "\n").IgnoreError();
-  if (!camera_config.empty()) {
-    auto text = ReadFileToString(camera_config);
+  WriteFileAtomic(JoinPath(out, "command.txt"), setup.command + "\n").IgnoreError();
+  if (!setup.camera_config.empty()) {
+    auto text = ReadFileToString(setup.camera_config);
     if (text.ok()) WriteFileAtomic(JoinPath(out, "config.yaml"), *text).IgnoreError();
   }
-  std::printf("replaying %s: %zu frames, %d agents\n", dataset.c_str(), sequence->size(), agents);
-  for (int i = 0; i < agents; ++i) {
-    std::printf("  agent%d: frames %d-%d\n", i + 1, (*segments)[i].first, (*segments)[i].last);
-  }
-  std::fflush(stdout);
 
   // Server on a free loopback port; it prints the port once it serves.
   const Stopwatch wall;
-  std::vector<std::string> server_argv = {JoinPath(bin_dir, "ccmd_server"), "--listen", "127.0.0.1:0", "--journal",
+  std::vector<std::string> server_argv = {JoinPath(setup.bin_dir, "ccmd_server"), "--listen", "127.0.0.1:0", "--journal",
                                           JoinPath(out, "journal"), "--out", JoinPath(out, "server"),
                                           "--stats-interval", "1"};
-  server_argv.insert(server_argv.end(), server_args.begin(), server_args.end());
+  server_argv.insert(server_argv.end(), setup.server_args.begin(), setup.server_args.end());
   auto server_process = Subprocess::Start(server_argv, "", JoinPath(out, "logs/server.log"), /*pipe_stdout=*/true);
-  if (!server_process.ok()) return Fail("cannot start ccmd_server: " + server_process.status().ToString());
+  if (!server_process.ok()) return Unavailable("cannot start ccmd_server: " + server_process.status().ToString());
   Tracked server{"server", std::move(server_process).value(), 0};
   std::string port;
   while (port.empty()) {
     auto line = server.process.ReadLine(120);
     if (!line.ok()) {
-      return Fail("ccmd_server did not start (" + line.status().ToString() + "); its log:\n" +
-                  Tail(JoinPath(out, "logs/server.log"), 20));
+      return Unavailable("ccmd_server did not start (" + line.status().ToString() + "); its log:\n" +
+                         Tail(JoinPath(out, "logs/server.log"), 20));
     }
     const auto at = line->find("listening on ");
     if (at != std::string::npos) port = line->substr(line->find_last_of(':') + 1);
@@ -150,27 +114,28 @@ int main(int argc, char** argv) {
   const std::string address = "127.0.0.1:" + port;
 
   std::vector<Tracked> agent_processes;
-  for (int i = 1; i <= agents; ++i) {
+  for (int i = 1; i <= setup.agents; ++i) {
     const std::string name = "agent" + std::to_string(i);
-    std::vector<std::string> a = {JoinPath(bin_dir, "ccmd_agent"), "--source", "tum:" + dataset, "--segment",
-                                  std::to_string(i) + "/" + std::to_string(agents), "--server", address, "--name", name,
+    std::vector<std::string> a = {JoinPath(setup.bin_dir, "ccmd_agent"), "--source", "tum:" + setup.dataset, "--segment",
+                                  std::to_string(i) + "/" + std::to_string(setup.agents), "--server", address, "--name", name,
                                   "--stats", JoinPath(out, "agents/" + name + "_stats.json"), "--trajectory",
                                   JoinPath(out, "agents/" + name + "_frames.txt"), "--progress",
-                                  JoinPath(out, "agents/" + name + "_progress.json"), "--rate", rate,
+                                  JoinPath(out, "agents/" + name + "_progress.json"), "--rate", setup.rate,
                                   "--spill-dir", JoinPath(out, "agents/" + name + "_spill")};
-    if (!camera_config.empty()) {
+    if (!setup.camera_config.empty()) {
       a.push_back("--config");
-      a.push_back(camera_config);
+      a.push_back(setup.camera_config);
     }
-    a.insert(a.end(), agent_args.begin(), agent_args.end());
+    a.insert(a.end(), setup.agent_args.begin(), setup.agent_args.end());
+    a.insert(a.end(), extra_agent_args.begin(), extra_agent_args.end());
     auto p = Subprocess::Start(a, JoinPath(out, "logs/" + name + ".out"), JoinPath(out, "logs/" + name + ".log"));
-    if (!p.ok()) return Fail("cannot start ccmd_agent: " + p.status().ToString());
-    agent_processes.push_back({name, std::move(p).value(), wall.ElapsedSeconds()});
+    if (!p.ok()) return Unavailable("cannot start ccmd_agent: " + p.status().ToString());
+    agent_processes.emplace_back(name, std::move(p).value(), wall.ElapsedSeconds());
   }
 
   // Progress, once a second, until every agent is done.
   const bool tty = ::isatty(1);
-  int failed = 0;
+  int& failed = *failures;
   auto sample_cpu = [&](Tracked* t) {
     const double now = wall.ElapsedSeconds();
     const double cpu = t->process.CpuSecondsSoFar();
@@ -229,8 +194,8 @@ int main(int argc, char** argv) {
     }
     std::fflush(stdout);
     if (running == 0) break;
-    if (wall.ElapsedSeconds() > timeout_s) {
-      std::fprintf(stderr, "\nccmd_replay: time-out after %.0f s, stopping\n", timeout_s);
+    if (wall.ElapsedSeconds() > setup.timeout_s) {
+      std::fprintf(stderr, "\nccmd_replay: time-out after %.0f s, stopping\n", setup.timeout_s);
       for (Tracked& a : agent_processes) a.process.Signal(SIGINT).IgnoreError();
       ++failed;
     }
@@ -254,13 +219,13 @@ int main(int argc, char** argv) {
   }
 
   ReplayRunInfo info;
-  info.dataset_dir = dataset;
-  info.command = command;
-  info.config = camera_config;
-  info.agents = agents;
-  info.rate = rate;
+  info.dataset_dir = setup.dataset;
+  info.command = setup.command;
+  info.config = setup.camera_config;
+  info.agents = setup.agents;
+  info.rate = setup.rate;
   info.wall_seconds = wall.ElapsedSeconds();
-  info.segments = *segments;
+  info.segments = setup.segments;
   for (Tracked* t : [&] {
          std::vector<Tracked*> all;
          for (Tracked& a : agent_processes) all.push_back(&a);
@@ -276,12 +241,124 @@ int main(int argc, char** argv) {
     p.cpu_percent = t->cpu_percent;
     info.processes.push_back(p);
   }
-  ReferenceOptions ref;
-  ref.reference_ply = reference;
   std::printf("evaluating...\n");
   std::fflush(stdout);
-  auto results = EvaluateReplay(out, *sequence, info, ref);
-  if (!results.ok()) return Fail("evaluation: " + results.status().ToString());
+  return EvaluateReplay(out, *setup.sequence, info, setup.reference);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{
+      "Split-replay evaluation: a ccmd_server and K ccmd_agent processes over TCP on loopback, each\n"
+      "agent replaying one segment (10% overlap) of a TUM-layout sequence; then ATE, reconstruction\n"
+      "error, bandwidth and CPU in DIR/report.md and DIR/results.json."};
+  std::string dataset, out, config, rate = "max", reference, bin_dir;
+  int agents = 3;
+  double timeout_s = 3600;
+  bool ablation = false;
+  std::vector<std::string> agent_args, server_args;
+  app.add_option("--dataset", dataset, "TUM-layout folder (TUM RGB-D, ICL-NUIM, 7-Scenes converted, ccmd_synth)")
+      ->required();
+  app.add_option("--agents", agents, "Number of agents K (segments)")->check(CLI::Range(1, 32))->capture_default_str();
+  app.add_option("--out", out, "Results folder (created)")->required();
+  app.add_option("--config", config, "Camera/tracking config (default: the dataset's camera.yaml or a guess)");
+  app.add_option("--rate", rate, "realtime (the dataset's timestamps) or max")
+      ->check(CLI::IsMember({"realtime", "max"}))
+      ->capture_default_str();
+  app.add_option("--reference", reference,
+                 "Reference surface (PLY, points or mesh) for reconstruction error; default: the dataset's "
+                 "surface.ply, else a cloud built from ground-truth poses and depth");
+  app.add_option("--agent-arg", agent_args, "Extra argument for every ccmd_agent (repeatable)");
+  app.add_option("--server-arg", server_args, "Extra argument for ccmd_server (repeatable)");
+  app.add_option("--bin-dir", bin_dir, "Folder of ccmd_server and ccmd_agent (default: next to this program)");
+  app.add_option("--timeout", timeout_s, "Give up after each run after this many seconds")->capture_default_str();
+  app.add_flag("--ablation", ablation,
+               "Also run r = 1, 0.5, 0.25 with and without the RGB-D keyframe selection (six runs in all, "
+               "in DIR/ablation/) and add the RGB-D bytes and map points table to the report");
+  CLI11_PARSE(app, argc, argv);
+  if (ablation) {
+    for (const std::string& a : agent_args) {
+      if (a.rfind("--rgbd-downsample", 0) == 0 || a == "--rgbd-every-keyframe") {
+        return Fail("--ablation sets " + a + " itself; leave it out of --agent-arg");
+      }
+    }
+  }
+  if (bin_dir.empty()) bin_dir = ExecutableDir();
+  std::string command;
+  for (int i = 0; i < argc; ++i) command += (i ? " " : "") + std::string(argv[i]);
+
+  // The dataset: frame count, camera, ground truth.
+  std::optional<PinholeCamera> camera;
+  std::string camera_config = config;
+  if (camera_config.empty() && !FileExists(JoinPath(dataset, "camera.yaml"))) {
+    const std::string guess = GuessCameraConfigName(dataset);
+    if (!guess.empty()) camera_config = JoinPath(app::ConfigDir(), guess);
+  }
+  if (!camera_config.empty()) {
+    auto loaded = LoadCameraConfig(camera_config);
+    if (!loaded.ok()) return Fail(loaded.status().ToString());
+    camera = *loaded;
+  }
+  auto sequence = TumSequence::Open(dataset, camera);
+  if (!sequence.ok()) return Fail(sequence.status().ToString());
+  auto segments = SplitWithOverlap(static_cast<int>(sequence->size()), agents);
+  if (!segments.ok()) return Fail(segments.status().ToString());
+
+  Setup setup;
+  setup.dataset = dataset;
+  setup.camera_config = camera_config;
+  setup.rate = rate;
+  setup.bin_dir = bin_dir;
+  setup.command = command;
+  setup.agents = agents;
+  setup.timeout_s = timeout_s;
+  setup.agent_args = agent_args;
+  setup.server_args = server_args;
+  setup.sequence = &*sequence;
+  setup.segments = *segments;
+  setup.reference.reference_ply = reference;
+  std::printf("replaying %s: %zu frames, %d agents\n", dataset.c_str(), sequence->size(), agents);
+  for (int i = 0; i < agents; ++i) {
+    std::printf("  agent%d: frames %d-%d\n", i + 1, (*segments)[i].first, (*segments)[i].last);
+  }
+  std::fflush(stdout);
+  int failed = 0;
+  auto results = RunOnce(setup, out, {}, &failed);
+  if (!results.ok()) return Fail(results.status().ToString());
+  if (ablation) {
+    // The main run is r = 0.5 with the selection (the agent's defaults); five more runs cover
+    // the rest of the grid, each in its own folder.
+    std::vector<AblationRow> rows;
+    int variant_index = 0;
+    for (const int downsample : {1, 2, 4}) {
+      for (const bool selection : {true, false}) {
+        AblationRow row;
+        row.downsample = downsample;
+        row.selection = selection;
+        if (downsample == 2 && selection) {
+          row.run_dir = ".";
+          row.results = *results;
+          rows.push_back(row);
+          continue;
+        }
+        row.run_dir = "ablation/r" + std::to_string(downsample) + (selection ? "_selected" : "_every_keyframe");
+        std::printf("\nablation run %d of 5: r = 1/%d, %s\n", ++variant_index, downsample,
+                    selection ? "RGB-D selection on" : "RGB-D with every keyframe");
+        std::fflush(stdout);
+        std::vector<std::string> extra = {"--rgbd-downsample", std::to_string(downsample)};
+        if (!selection) extra.push_back("--rgbd-every-keyframe");
+        auto variant = RunOnce(setup, JoinPath(out, row.run_dir), extra, &failed);
+        if (!variant.ok()) return Fail("ablation " + row.run_dir + ": " + variant.status().ToString());
+        row.results = *variant;
+        rows.push_back(row);
+      }
+    }
+    const Status s = AppendAblation(out, rows);
+    if (!s.ok()) return Fail(s.ToString());
+    results = ReadJsonFile(JoinPath(out, "results.json"));
+    if (!results.ok()) return Fail(results.status().ToString());
+  }
   const Json& r = *results;
   auto num = [&](const char* key) { return r.Get(key) ? r.Get(key)->number() : -1.0; };
   std::printf("\nmaps after fusion: %.0f   fused ATE RMSE: %.4f m   reconstruction mean %.4f m, Hausdorff %.4f m\n",

@@ -4,11 +4,13 @@
 # three agents talking to one server over TCP on loopback. The server fuses the three maps,
 # builds the dense point cloud, and the report compares everything with the ground truth.
 #
-#   scripts/demo.sh [OUT_DIR]      default out/demo
+#   scripts/demo.sh [OUT_DIR [ccmd_replay options...]]   default out/demo
+#   scripts/demo.sh out/demo --ablation    also the r / keyframe-selection grid (six runs, ~4 min)
 set -euo pipefail
 
 cd "$(dirname "$0")/.."
 OUT=${1:-out/demo}
+shift || true
 scripts/setup.sh
 BIN=${CCMD_BUILD_DIR:-build}/bin
 
@@ -22,7 +24,7 @@ fi
 
 RUN="$OUT/run-$(date +%Y%m%d-%H%M%S)"
 echo "== split replay: 3 agents and a server over TCP"
-"$BIN/ccmd_replay" --dataset "$OUT/sequence" --agents 3 --out "$RUN"
+"$BIN/ccmd_replay" --dataset "$OUT/sequence" --agents 3 --out "$RUN" "$@"
 
 echo
 echo "report:      $RUN/report.md"

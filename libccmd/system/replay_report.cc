@@ -306,6 +306,10 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   }
   results["bytes_per_kind"] = kinds;
   results["rgbd_keyframe_fraction"] = rgbd_keyframes_total / k;
+  results["rgbd_keyframes"] = rgbd_keyframes_total;
+  results["keyframes_sent"] = keyframes_total;
+  results["colour_bytes"] = static_cast<double>(parts_total.colour);
+  results["depth_bytes"] = static_cast<double>(parts_total.depth);
 
   // Reconstruction error of the dense map, in the ground truth's frame.
   const std::string map_path = JoinPath(server_dir, "map.ply");
@@ -465,6 +469,53 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(run_dir, "report.md"), md.str()));
   CCMD_RETURN_IF_ERROR(WriteJsonFile(results, JoinPath(run_dir, "results.json")));
   return results;
+}
+
+Status AppendAblation(const std::string& run_dir, const std::vector<AblationRow>& rows) {
+  CCMD_ASSIGN_OR_RETURN(Json results, ReadJsonFile(JoinPath(run_dir, "results.json")));
+  CCMD_ASSIGN_OR_RETURN(std::string report, ReadFileToString(JoinPath(run_dir, "report.md")));
+  // The reference row: r = 1 with RGB-D for every keyframe, what a system without either
+  // saving sends.
+  double reference_bytes = 0, reference_points = 0;
+  for (const AblationRow& row : rows) {
+    if (row.downsample == 1 && !row.selection) {
+      reference_bytes = Num(&row.results, "colour_bytes") + Num(&row.results, "depth_bytes");
+      reference_points = Num(&row.results, "map_points");
+    }
+  }
+  std::ostringstream md;
+  md << "\n## Sampling rate and RGB-D keyframe selection\n\n"
+     << "Each row is a full run of the same replay; only the agents' RGB-D settings differ. RGB-D bytes are "
+        "colour and depth over all agents; ratios are to r = 1 with RGB-D for every keyframe.\n\n"
+     << "| r | selection | RGB-D keyframes | RGB-D bytes | ratio | map points | ratio | recon mean (m) | "
+        "fused ATE (m) | run |\n|---|---|---|---|---|---|---|---|---|---|\n";
+  Json list = Json::MakeArray();
+  for (const AblationRow& row : rows) {
+    const double bytes = Num(&row.results, "colour_bytes") + Num(&row.results, "depth_bytes");
+    const double points = Num(&row.results, "map_points");
+    Json e;
+    e["r"] = 1.0 / row.downsample;
+    e["selection"] = row.selection;
+    e["run_dir"] = row.run_dir;
+    e["rgbd_keyframes"] = Num(&row.results, "rgbd_keyframes");
+    e["keyframes"] = Num(&row.results, "keyframes_sent");
+    e["rgbd_bytes"] = bytes;
+    e["map_points"] = points;
+    if (row.results.Has("recon_mean_m")) e["recon_mean_m"] = Num(&row.results, "recon_mean_m");
+    if (row.results.Has("ate_rmse_m")) e["ate_rmse_m"] = Num(&row.results, "ate_rmse_m");
+    e["maps_after_fusion"] = Num(&row.results, "maps_after_fusion", -1);
+    list.Push(e);
+    md << "| " << (row.downsample == 1 ? std::string("1") : "1/" + std::to_string(row.downsample)) << " | "
+       << (row.selection ? "on" : "off") << " | " << Fmt("%.0f", e["rgbd_keyframes"].number()) << " of "
+       << Fmt("%.0f", e["keyframes"].number()) << " | " << Fmt("%.0f", bytes / 1e3) << " kB | "
+       << (reference_bytes > 0 ? Fmt("%.3f", bytes / reference_bytes) : "-") << " | " << Fmt("%.0f", points) << " | "
+       << (reference_points > 0 ? Fmt("%.3f", points / reference_points) : "-") << " | "
+       << (e.Has("recon_mean_m") ? Fmt("%.4f", e["recon_mean_m"].number()) : "-") << " | "
+       << (e.Has("ate_rmse_m") ? Fmt("%.4f", e["ate_rmse_m"].number()) : "-") << " | `" << row.run_dir << "` |\n";
+  }
+  results["ablation"] = list;
+  CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(run_dir, "report.md"), report + md.str()));
+  return WriteJsonFile(results, JoinPath(run_dir, "results.json"));
 }
 
 }  // namespace ccmd

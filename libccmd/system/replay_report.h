@@ -55,4 +55,16 @@ PointCloud SampleMesh(const PointCloud& mesh, double spacing);
 StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dataset, const ReplayRunInfo& info,
                               const ReferenceOptions& reference);
 
+// One run of the sampling-rate / keyframe-selection grid (the CCMD-SLAM paper's Table V).
+struct AblationRow {
+  int downsample = 2;    // r = 1 / downsample
+  bool selection = true;  // RGB-D only for keyframes the covisibility selection picks
+  std::string run_dir;    // relative to the main run's folder
+  Json results;           // that run's results.json
+};
+
+// Adds the grid to the main run's report.md (a table: RGB-D keyframes and bytes, map points,
+// reconstruction error, fused ATE) and results.json ("ablation").
+Status AppendAblation(const std::string& run_dir, const std::vector<AblationRow>& rows);
+
 }  // namespace ccmd

@@ -59,6 +59,36 @@ TEST(AgentCliTest, OfflineRunWritesTrajectoryStatsAndRecording) {
   EXPECT_EQ(cv::norm(live.bgr, first->bgr, cv::NORM_INF), 0);
 }
 
+// --rgbd-every-keyframe turns the covisibility selection off: every keyframe's decision is
+// "transmit", where the default skips views that transmitted keyframes already cover.
+TEST(AgentCliTest, RgbdEveryKeyframeOverridesTheSelection) {
+  testing::TempDir dir;
+  auto decisions = [&](const std::string& flags, int* transmitted, int* total) {
+    std::string out;
+    ASSERT_EQ(RunCommand(ProgramPath("ccmd_agent") + " --source synth:frames=60,seed=3 --offline --synchronous " +
+                             flags + " --stats " + dir.File("stats.json"),
+                         &out),
+              0)
+        << out;
+    auto stats = ReadJsonFile(dir.File("stats.json"));
+    ASSERT_TRUE(stats.ok());
+    ASSERT_TRUE(stats->Has("rgbd_decisions"));
+    *transmitted = *total = 0;
+    for (const Json& d : stats->Get("rgbd_decisions")->array()) {
+      ++*total;
+      *transmitted += d.Get("transmit")->boolean();
+    }
+  };
+  int selected = 0, selected_total = 0, every = 0, every_total = 0;
+  decisions("", &selected, &selected_total);
+  decisions("--rgbd-every-keyframe", &every, &every_total);
+  ASSERT_GT(selected_total, 3);
+  EXPECT_LT(selected, selected_total);  // the selection skipped some
+  EXPECT_GT(selected, 0);
+  EXPECT_EQ(every, every_total);
+  EXPECT_EQ(every_total, selected_total);  // the same keyframes (synchronous mapping is deterministic)
+}
+
 TEST(AgentCliTest, MissingServerOrSourceIsExplained) {
   std::string out;
   EXPECT_NE(RunCommand(ProgramPath("ccmd_agent") + " --source synth:frames=5", &out), 0);
