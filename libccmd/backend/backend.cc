@@ -171,8 +171,8 @@ void Backend::Ingest(IngestItem item) {
   {
     std::lock_guard<std::mutex> lock(stats_mutex_);
     stats_.keyframes_received++;
-    intake_ms_.push_back(intake_ms);
-    if (gba_running_) intake_during_gba_ms_.push_back(intake_ms);
+    timings_.intake_ms.push_back(intake_ms);
+    timings_.intake_during_gba.push_back(gba_running_);
   }
   if (added) {
     {
@@ -385,6 +385,7 @@ void Backend::DetectLoop(const GlobalKeyframeId& id, bool stored) {
     event.query = id;
     event.candidate = cand->id;
     event.inliers = match->inliers;
+    event.T_candidate_query = cand->T_map_cam.inverse() * match->T_candidate_map_query;
     ServerMap* result_map = cmap;
     MapManager::Guard fused_guard;
     std::vector<ServerKeyframe*> entering_primary;
@@ -520,15 +521,18 @@ void Backend::GlobalBaLoop() {
       }
     }
     gba_running_ = false;
+    const double seconds = watch.ElapsedSeconds();
     {
       std::lock_guard<std::mutex> lock(stats_mutex_);
       stats_.global_ba_runs++;
       stats_.global_ba_aborted += !applied;
-      stats_.global_ba_seconds += watch.ElapsedSeconds();
+      stats_.global_ba_seconds += seconds;
+      timings_.global_ba_seconds.push_back(seconds);
+      timings_.global_ba_applied.push_back(applied);
     }
     CCMD_LOG(INFO) << "global BA on map " << map_id.value() << ": " << problem.keyframes.size() << " keyframes, "
                    << problem.points.size() << " points, " << summary.iterations << " iterations, "
-                   << watch.ElapsedSeconds() << " s" << (applied ? "" : " (abandoned: newer work)");
+                   << seconds << " s" << (applied ? "" : " (abandoned: newer work)");
     FinishedWork();
   }
 }
@@ -579,8 +583,10 @@ BackendStats Backend::stats() {
   {
     std::lock_guard<std::mutex> lock(stats_mutex_);
     s = stats_;
-    intake = intake_ms_;
-    during = intake_during_gba_ms_;
+    intake = timings_.intake_ms;
+    for (std::size_t i = 0; i < intake.size(); ++i) {
+      if (timings_.intake_during_gba[i]) during.push_back(intake[i]);
+    }
   }
   s.intake_ms_median = Percentile(intake, 0.5);
   s.intake_ms_p99 = Percentile(intake, 0.99);
@@ -602,6 +608,11 @@ BackendStats Backend::stats() {
 std::vector<LoopEvent> Backend::loop_events() const {
   std::lock_guard<std::mutex> lock(stats_mutex_);
   return loop_events_;
+}
+
+BackendTimings Backend::timings() const {
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  return timings_;
 }
 
 Json Backend::StatsJson() {

@@ -55,6 +55,9 @@ struct LoopEvent {
   double server_time = 0;  // seconds since the back-end started
   GlobalKeyframeId query, candidate;
   int inliers = 0;
+  // What verification measured: the query's camera in the candidate's camera frame (the loop
+  // edge), so that a benchmark can check the transform against ground truth.
+  Pose T_candidate_query = Pose::Identity();
   bool fusion = false;     // two maps fused (else a loop inside a map)
   MapId map;               // the map after the event
 };
@@ -71,6 +74,15 @@ struct BackendStats {
   double intake_ms_median = 0, intake_ms_p99 = 0, intake_ms_max = 0;
   double intake_during_gba_ms_median = 0, intake_during_gba_ms_max = 0;
   std::size_t intake_during_gba_count = 0;
+};
+
+// The samples behind the intake and global BA figures of BackendStats, for benchmarks that
+// need other percentiles or compare intake with and without a global BA running.
+struct BackendTimings {
+  std::vector<double> intake_ms;          // per keyframe, in intake order
+  std::vector<char> intake_during_gba;    // per intake_ms entry: a global BA was running
+  std::vector<double> global_ba_seconds;  // per global BA run, abandoned ones included
+  std::vector<char> global_ba_applied;    // per run: the result was written to the map
 };
 
 class Backend {
@@ -106,6 +118,7 @@ class Backend {
 
   BackendStats stats();
   std::vector<LoopEvent> loop_events() const;
+  BackendTimings timings() const;
   Json StatsJson();
 
  private:
@@ -180,7 +193,7 @@ class Backend {
 
   mutable std::mutex stats_mutex_;
   BackendStats stats_;
-  std::vector<double> intake_ms_, intake_during_gba_ms_;
+  BackendTimings timings_;
   std::vector<LoopEvent> loop_events_;
 
   std::thread ingest_thread_, loop_thread_, gba_thread_, dense_thread_;

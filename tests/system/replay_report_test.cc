@@ -53,9 +53,9 @@ TEST(ReplayReportTest, AblationTableAddsRowsWithRatiosToTheFullRun) {
   ASSERT_TRUE(report.ok());
   EXPECT_EQ(report->rfind("# Split-replay report\n", 0), 0u);  // appended, not replaced
   // 2500 / 10000 bytes and 400 / 1000 points; 1000 / 10000 and 100 / 1000 for r = 1/4.
-  EXPECT_NE(report->find("| 1/2 | on | 5 of 20 | 2 kB | 0.250 | 400 | 0.400 |"), std::string::npos) << *report;
-  EXPECT_NE(report->find("| 1/4 | on | 5 of 21 | 1 kB | 0.100 | 100 | 0.100 |"), std::string::npos) << *report;
-  EXPECT_NE(report->find("| 1 | off | 20 of 20 | 10 kB | 1.000 | 1000 | 1.000 |"), std::string::npos) << *report;
+  EXPECT_NE(report->find("| 1/2 | on | 5 of 20 | 2 kB | 0.12 kB | 0.250 | 400 | 0.400 |"), std::string::npos) << *report;
+  EXPECT_NE(report->find("| 1/4 | on | 5 of 21 | 1 kB | 0.05 kB | 0.100 | 100 | 0.100 |"), std::string::npos) << *report;
+  EXPECT_NE(report->find("| 1 | off | 20 of 20 | 10 kB | 0.50 kB | 1.000 | 1000 | 1.000 |"), std::string::npos) << *report;
 }
 
 TEST(ReplayReportTest, AblationNeedsTheMainRunsFiles) {
