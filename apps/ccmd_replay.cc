@@ -272,7 +272,7 @@ int main(int argc, char** argv) {
   app.add_option("--agent-arg", agent_args, "Extra argument for every ccmd_agent (repeatable)");
   app.add_option("--server-arg", server_args, "Extra argument for ccmd_server (repeatable)");
   app.add_option("--bin-dir", bin_dir, "Folder of ccmd_server and ccmd_agent (default: next to this program)");
-  app.add_option("--timeout", timeout_s, "Give up after each run after this many seconds")->capture_default_str();
+  app.add_option("--timeout", timeout_s, "Stop a run (each run of --ablation) after this many seconds")->capture_default_str();
   app.add_flag("--ablation", ablation,
                "Also run r = 1, 0.5, 0.25 with and without the RGB-D keyframe selection (six runs in all, "
                "in DIR/ablation/) and add the RGB-D bytes and map points table to the report");

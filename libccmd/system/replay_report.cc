@@ -431,7 +431,7 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   md << "\n![trajectories](plots/trajectories.png)\n\n## Dense map\n\n";
   if (results.Has("recon_mean_m")) {
     md << "| points | mean distance (m) | median (m) | 95% (m) | Hausdorff (m) | completeness (2 cm) |\n|---|---|---|---|---|---|\n";
-    md << "| " << results["map_points"].number() << " | " << Fmt("%.4f", results["recon_mean_m"].number()) << " | "
+    md << "| " << Fmt("%.0f", results["map_points"].number()) << " | " << Fmt("%.4f", results["recon_mean_m"].number()) << " | "
        << Fmt("%.4f", results["recon_median_m"].number()) << " | " << Fmt("%.4f", results["recon_p95_m"].number()) << " | "
        << Fmt("%.4f", results["recon_hausdorff_m"].number()) << " | "
        << Fmt("%.1f%%", 100 * results["recon_completeness"].number()) << " |\n\n";
@@ -443,7 +443,7 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   for (const Json& a : agents.array()) {
     md << "| " << a.Get("name")->string() << " | " << Fmt("%.1f", Num(&a, "atps_kBps")) << " | " << Fmt("%.1f", Num(&a, "akfs_kB"))
        << " | " << Fmt("%.2f", Num(&a, "akfr_hz")) << " | " << Num(&a, "rgbd_keyframes") << " of " << Num(&a, "keyframes")
-       << " | " << Num(&a, "bytes") << " |\n";
+       << " | " << Fmt("%.0f", Num(&a, "bytes")) << " |\n";
   }
   md << "| mean | " << Fmt("%.1f", Num(&results, "atps_kBps")) << " | " << Fmt("%.1f", Num(&results, "akfs_kB")) << " | "
      << Fmt("%.2f", Num(&results, "akfr_hz")) << " | | |\n\n";
