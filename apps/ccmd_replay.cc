@@ -78,7 +78,7 @@ struct Setup {
 // processes that failed (the run is still evaluated, from what they left).
 StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::vector<std::string>& extra_agent_args,
                        int* failures) {
-  for (const char* sub : {"server", "agents", "logs", "plots"}) {
+  for (const char* sub : {"agents", "logs", "plots"}) {
     const Status s = MakeDirectories(JoinPath(out, sub));
     if (!s.ok()) return s;
   }
@@ -94,7 +94,7 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
   // Server on a free loopback port; it prints the port once it serves.
   const Stopwatch wall;
   std::vector<std::string> server_argv = {JoinPath(setup.bin_dir, "ccmd_server"), "--listen", "127.0.0.1:0", "--journal",
-                                          JoinPath(out, "journal"), "--out", JoinPath(out, "server"),
+                                          JoinPath(out, "journal"), "--out", out,
                                           "--stats-interval", "1"};
   server_argv.insert(server_argv.end(), setup.server_args.begin(), setup.server_args.end());
   auto server_process = Subprocess::Start(server_argv, "", JoinPath(out, "logs/server.log"), /*pipe_stdout=*/true);
@@ -176,7 +176,7 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
       }
       line += a.ended >= 0 ? a.name + " done | " : part;
     }
-    auto s = ReadJsonFile(JoinPath(out, "server/server_stats.json"));
+    auto s = ReadJsonFile(JoinPath(out, "server_stats.json"));
     if (s.ok() && s->Get("backend")) {
       const Json* b = s->Get("backend");
       char part[160];
@@ -365,6 +365,6 @@ int main(int argc, char** argv) {
               num("maps_after_fusion"), num("ate_rmse_m"), num("recon_mean_m"), num("recon_hausdorff_m"));
   std::printf("per agent: %.1f kB/s, %.1f kB per keyframe, %.2f keyframes/s\n", num("atps_kBps"), num("akfs_kB"),
               num("akfr_hz"));
-  std::printf("report: %s\nmap:    %s\n", JoinPath(out, "report.md").c_str(), JoinPath(out, "server/map.ply").c_str());
+  std::printf("report: %s\nmap:    %s\n", JoinPath(out, "report.md").c_str(), JoinPath(out, "map.ply").c_str());
   return failed ? 1 : 0;
 }

@@ -29,5 +29,5 @@ echo "== split replay: 3 agents and a server over TCP"
 echo
 echo "report:      $RUN/report.md"
 echo "results:     $RUN/results.json"
-echo "dense map:   $RUN/server/map.ply (open with CloudCompare, MeshLab or Open3D)"
-echo "trajectories $RUN/server/trajectory_fused.txt, trajectory_agent1..3.txt (TUM format)"
+echo "dense map:   $RUN/map.ply (open with CloudCompare, MeshLab or Open3D)"
+echo "trajectories $RUN/trajectory_fused.txt, trajectory_agent1..3.txt (TUM format)"

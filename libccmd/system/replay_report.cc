@@ -149,7 +149,7 @@ PlotSeries Projected(const Trajectory& t, const Eigen::Matrix<double, 2, 3>& P, 
 
 StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dataset, const ReplayRunInfo& info,
                               const ReferenceOptions& reference) {
-  const std::string server_dir = JoinPath(run_dir, "server");
+  const std::string& server_dir = run_dir;  // the server writes its results into the run folder
   const std::string plots_dir = JoinPath(run_dir, "plots");
   CCMD_RETURN_IF_ERROR(MakeDirectories(plots_dir));
   CCMD_ASSIGN_OR_RETURN(const Json server_stats, ReadJsonFile(JoinPath(server_dir, "server_stats.json")));

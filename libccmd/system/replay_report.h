@@ -50,7 +50,7 @@ StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset, const Refe
 // Points sampled on a triangle mesh at about `spacing` metres, with the faces' normals.
 PointCloud SampleMesh(const PointCloud& mesh, double spacing);
 
-// Reads the run folder (server/, agents/) and computes every figure; writes results.json,
+// Reads the run folder (the server's results, agents/) and computes every figure; writes results.json,
 // report.md and plots/ there. Returns the results.
 StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dataset, const ReplayRunInfo& info,
                               const ReferenceOptions& reference);

@@ -40,13 +40,13 @@ TEST(ReplayCliTest, TwoAgentsFuseAndTheReportMatchesTheFiles) {
     for (const char* key : {"ate_rmse_m", "keyframes", "bytes"}) EXPECT_TRUE(a.Has(key)) << key;
     EXPECT_GT(a.Get("keyframes")->number(), 5);
   }
-  for (const char* file : {"run/report.md", "run/server/map.ply", "run/server/trajectory_fused.txt",
+  for (const char* file : {"run/report.md", "run/map.ply", "run/trajectory_fused.txt",
                            "run/plots/trajectories.png", "run/plots/traffic.png", "run/plots/bytes_per_kind.png"}) {
     EXPECT_TRUE(FileExists(dir.File(file))) << file;
   }
   // Independent check: the fused ATE from the written trajectory against the ground truth.
   auto gt = ReadTumTrajectory(dir.File("seq/groundtruth.txt"));
-  auto fused = ReadTumTrajectory(dir.File("run/server/trajectory_fused.txt"));
+  auto fused = ReadTumTrajectory(dir.File("run/trajectory_fused.txt"));
   ASSERT_TRUE(gt.ok() && fused.ok());
   auto ate = ComputeAte(*gt, *fused);
   ASSERT_TRUE(ate.ok());
@@ -54,7 +54,7 @@ TEST(ReplayCliTest, TwoAgentsFuseAndTheReportMatchesTheFiles) {
   EXPECT_LT(ate->error.rmse, 0.01);
   // And the reconstruction error from the written map, aligned by that trajectory.
   auto reference = ReadPly(dir.File("seq/surface.ply"));
-  auto map = ReadPly(dir.File("run/server/map.ply"));
+  auto map = ReadPly(dir.File("run/map.ply"));
   ASSERT_TRUE(reference.ok() && map.ok());
   for (auto& p : map->points) p = (ate->alignment * p.cast<double>()).cast<float>();
   auto recon = ComputeReconstructionError(*reference, *map);
@@ -62,7 +62,7 @@ TEST(ReplayCliTest, TwoAgentsFuseAndTheReportMatchesTheFiles) {
   EXPECT_NEAR(results->Get("recon_mean_m")->number(), recon->mean, 1e-9);
   EXPECT_LT(recon->mean, 0.01);
   // Bandwidth: the agents' bytes add up to what the server counted per agent.
-  auto stats = ReadJsonFile(dir.File("run/server/server_stats.json"));
+  auto stats = ReadJsonFile(dir.File("run/server_stats.json"));
   ASSERT_TRUE(stats.ok());
   double server_bytes = 0;
   for (const Json& a : stats->Get("transport")->Get("agents")->array()) {
