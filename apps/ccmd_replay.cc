@@ -300,6 +300,13 @@ int main(int argc, char** argv) {
     if (!loaded.ok()) return Fail(loaded.status().ToString());
     camera = *loaded;
   }
+  std::optional<DepthToColorCalibration> registration;
+  const std::string camera_file = !camera_config.empty() ? camera_config : JoinPath(dataset, "camera.yaml");
+  if (FileExists(camera_file)) {
+    auto loaded = LoadDepthToColorCalibration(camera_file);
+    if (!loaded.ok()) return Fail(loaded.status().ToString());
+    registration = *loaded;
+  }
   auto sequence = TumSequence::Open(dataset, camera);
   if (!sequence.ok()) return Fail(sequence.status().ToString());
   auto segments = SplitWithOverlap(static_cast<int>(sequence->size()), agents);
@@ -318,6 +325,7 @@ int main(int argc, char** argv) {
   setup.sequence = &*sequence;
   setup.segments = *segments;
   setup.reference.reference_ply = reference;
+  setup.reference.registration = registration;
   std::printf("replaying %s: %zu frames, %d agents\n", dataset.c_str(), sequence->size(), agents);
   for (int i = 0; i < agents; ++i) {
     std::printf("  agent%d: frames %d-%d\n", i + 1, (*segments)[i].first, (*segments)[i].last);

@@ -2,6 +2,7 @@
 
 #include "libccmd/io/config.h"
 #include "libccmd/sensors/dataset_source.h"
+#include "libccmd/sensors/depth_registration.h"
 #include "libccmd/sensors/synthetic_source.h"
 #ifdef CCMD_HAVE_OPENNI2
 #include "libccmd/sensors/openni2_source.h"
@@ -15,6 +16,35 @@
 
 namespace ccmd {
 namespace {
+
+// A recorded sequence whose depth is not registered to its colour (7-Scenes, a raw Kinect
+// v1 recording): every frame's depth is moved into the colour camera, as the V4L2 source
+// does live, when the camera config has a Depth block.
+class RegisteredSource : public RgbdSource {
+ public:
+  RegisteredSource(std::unique_ptr<RgbdSource> inner, const DepthToColorCalibration& calibration)
+      : inner_(std::move(inner)), calibration_(calibration) {}
+
+  Status Read(RgbdFrame* frame) override {
+    CCMD_RETURN_IF_ERROR(inner_->Read(frame));
+    if (frame->depth_mm.cols != calibration_.depth.width || frame->depth_mm.rows != calibration_.depth.height) {
+      return InvalidArgument("depth image of frame " + std::to_string(frame->index) + " is " +
+                             std::to_string(frame->depth_mm.cols) + "x" + std::to_string(frame->depth_mm.rows) +
+                             ", the config's Depth block describes " + std::to_string(calibration_.depth.width) + "x" +
+                             std::to_string(calibration_.depth.height));
+    }
+    frame->depth_mm = RegisterDepthToColor(frame->depth_mm, calibration_.depth, camera(), calibration_.T_color_depth);
+    return Status::Ok();
+  }
+  const PinholeCamera& camera() const override { return inner_->camera(); }
+  std::string Describe() const override { return inner_->Describe() + ", depth registered to colour"; }
+  int FrameCount() const override { return inner_->FrameCount(); }
+  Trajectory GroundTruth() const override { return inner_->GroundTruth(); }
+
+ private:
+  std::unique_ptr<RgbdSource> inner_;
+  DepthToColorCalibration calibration_;
+};
 
 StatusOr<std::optional<FrameRange>> SegmentRange(int frames, const SourceOptions& options) {
   if (!options.segment) return std::optional<FrameRange>();
@@ -100,12 +130,19 @@ StatusOr<std::unique_ptr<RgbdSource>> OpenSource(const std::string& spec,
     if (!config.empty()) {
       CCMD_ASSIGN_OR_RETURN(camera, LoadCameraConfig(config));
     }
+    const std::string config_used = !config.empty() ? config : JoinPath(argument, "camera.yaml");
+    std::optional<DepthToColorCalibration> registration;
+    if (FileExists(config_used)) {
+      CCMD_ASSIGN_OR_RETURN(registration, LoadDepthToColorCalibration(config_used));
+    }
     // Open once to count frames, then with the segment range.
-    CCMD_ASSIGN_OR_RETURN(auto whole, DatasetSource::Open(argument, camera));
-    CCMD_ASSIGN_OR_RETURN(const auto range, SegmentRange(whole->FrameCount(), options));
-    if (!range) return std::unique_ptr<RgbdSource>(std::move(whole));
-    CCMD_ASSIGN_OR_RETURN(auto part, DatasetSource::Open(argument, camera, range));
-    return std::unique_ptr<RgbdSource>(std::move(part));
+    CCMD_ASSIGN_OR_RETURN(std::unique_ptr<RgbdSource> source, DatasetSource::Open(argument, camera));
+    CCMD_ASSIGN_OR_RETURN(const auto range, SegmentRange(source->FrameCount(), options));
+    if (range) {
+      CCMD_ASSIGN_OR_RETURN(source, DatasetSource::Open(argument, camera, range));
+    }
+    if (registration) source = std::make_unique<RegisteredSource>(std::move(source), *registration);
+    return source;
   }
   if (kind == "synth") {
     CCMD_ASSIGN_OR_RETURN(const SyntheticSequenceOptions synth, ParseSyntheticSpec(argument));

@@ -10,6 +10,7 @@
 #include "libccmd/io/ply.h"
 #include "libccmd/io/split.h"
 #include "libccmd/io/tum_dataset.h"
+#include "libccmd/sensors/depth_registration.h"
 #include "libccmd/util/json.h"
 
 namespace ccmd {
@@ -39,6 +40,9 @@ struct ReferenceOptions {
   int stride = 10;            // ground-truth build: every stride-th frame
   int downsample = 2;         // and at 1/downsample resolution
   double voxel_m = 0.01;
+  // Set when the camera config registers depth to colour (a Depth block): the reference's
+  // depth goes through the same registration as the agents' frames.
+  std::optional<DepthToColorCalibration> registration;
 };
 
 // The reference surface for reconstruction error: a given PLY (meshes are sampled), the

@@ -2,7 +2,12 @@
 
 #include <gtest/gtest.h>
 
+#include <opencv2/core.hpp>
+
+#include "libccmd/io/config.h"
+#include "libccmd/sensors/depth_registration.h"
 #include "libccmd/synth/sequence.h"
+#include "libccmd/util/file_util.h"
 #include "tests/support/test_support.h"
 
 namespace ccmd {
@@ -50,6 +55,57 @@ TEST(SourceFactoryTest, DatasetSegmentFromAWrittenSequence) {
   RgbdFrame frame;
   ASSERT_TRUE((*source)->Read(&frame).ok());
   EXPECT_EQ(frame.index, 0);
+}
+
+// A recording whose camera config has a Depth block gets its depth registered to colour, the
+// same way as a live camera's; a Depth block of another size is an error on the first frame.
+TEST(SourceFactoryTest, DatasetDepthIsRegisteredWhenTheConfigSaysHow) {
+  testing::TempDir dir;
+  SyntheticSequenceOptions o;
+  o.frames = 2;
+  o.width = 64;
+  o.height = 48;
+  o.room.shapes_per_m2 = 20;
+  o.surface_spacing = 0.1;
+  ASSERT_TRUE(WriteSyntheticSequence(dir.path(), o).ok());
+  auto camera_yaml = ReadFileToString(dir.File("camera.yaml"));
+  ASSERT_TRUE(camera_yaml.ok());
+  const PinholeCamera camera = SyntheticCamera(64, 48);
+  auto write_config = [&](const std::string& name, int depth_width) {
+    const std::string depth_block = "Depth.fx: " + std::to_string(camera.fx * 1.1) + "\nDepth.fy: " +
+                                    std::to_string(camera.fy * 1.1) + "\nDepth.cx: " + std::to_string(camera.cx) +
+                                    "\nDepth.cy: " + std::to_string(camera.cy) + "\nDepth.width: " +
+                                    std::to_string(depth_width) + "\nDepth.height: 48\nDepth.t_color_depth: [0.03, 0.0, 0.0]\n";
+    EXPECT_TRUE(WriteFileAtomic(dir.File(name), *camera_yaml + "\n" + depth_block).ok());
+    return dir.File(name);
+  };
+
+  auto raw_source = OpenSource("tum:" + dir.path(), SourceOptions());
+  ASSERT_TRUE(raw_source.ok()) << raw_source.status().ToString();
+  RgbdFrame raw;
+  ASSERT_TRUE((*raw_source)->Read(&raw).ok());
+
+  SourceOptions options;
+  options.camera_config = write_config("registered.yaml", 64);
+  auto source = OpenSource("tum:" + dir.path(), options);
+  ASSERT_TRUE(source.ok()) << source.status().ToString();
+  EXPECT_NE((*source)->Describe().find("registered"), std::string::npos);
+  RgbdFrame frame;
+  ASSERT_TRUE((*source)->Read(&frame).ok());
+  auto calibration = LoadDepthToColorCalibration(options.camera_config);
+  ASSERT_TRUE(calibration.ok() && calibration->has_value());
+  const cv::Mat expected =
+      RegisterDepthToColor(raw.depth_mm, (*calibration)->depth, (*source)->camera(), (*calibration)->T_color_depth);
+  ASSERT_EQ(frame.depth_mm.size(), expected.size());
+  EXPECT_EQ(cv::countNonZero(frame.depth_mm != expected), 0);
+  EXPECT_GT(cv::countNonZero(frame.depth_mm != raw.depth_mm), 100);  // registration moved the depth
+
+  options.camera_config = write_config("wrong_size.yaml", 80);
+  auto wrong = OpenSource("tum:" + dir.path(), options);
+  ASSERT_TRUE(wrong.ok()) << wrong.status().ToString();
+  const Status status = (*wrong)->Read(&frame);
+  EXPECT_EQ(status.code(), StatusCode::kInvalidArgument);
+  EXPECT_NE(status.message().find("80x48"), std::string::npos) << status.ToString();
 }
 
 TEST(SourceFactoryTest, BadSpecsAreExplained) {
