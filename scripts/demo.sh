@@ -15,8 +15,11 @@ scripts/setup.sh
 BIN=${CCMD_BUILD_DIR:-build}/bin
 
 mkdir -p "$OUT"
-if [ ! -f "$OUT/sequence/groundtruth.txt" ]; then
+# A sequence is reused only if the generator has not been rebuilt since: a changed renderer
+# would leave images and ground-truth surface that no longer match the current code.
+if [ ! -f "$OUT/sequence/groundtruth.txt" ] || [ "$BIN/ccmd_synth" -nt "$OUT/sequence/surface.ply" ]; then
   echo "== generating the synthetic sequence (600 frames, 640x480)"
+  rm -rf "$OUT/sequence"
   "$BIN/ccmd_synth" --out "$OUT/sequence" --frames 600 --seed 1
 else
   echo "== reusing $OUT/sequence"
