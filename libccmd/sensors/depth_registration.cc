@@ -90,6 +90,17 @@ StatusOr<std::optional<DepthToColorCalibration>> LoadDepthToColorCalibration(
   return std::optional<DepthToColorCalibration>(calibration);
 }
 
+StatusOr<cv::Mat> RegisterDepth(const cv::Mat& depth_mm, const DepthToColorCalibration& calibration,
+                                const PinholeCamera& color_camera) {
+  const PinholeCamera& depth = calibration.depth;
+  if (depth_mm.cols != depth.width || depth_mm.rows != depth.height) {
+    return InvalidArgument("depth image is " + std::to_string(depth_mm.cols) + "x" + std::to_string(depth_mm.rows) +
+                           ", the config's Depth block describes " + std::to_string(depth.width) + "x" +
+                           std::to_string(depth.height));
+  }
+  return RegisterDepthToColor(depth_mm, depth, color_camera, calibration.T_color_depth);
+}
+
 cv::Mat RegisterDepthToColor(const cv::Mat& depth_mm, const PinholeCamera& depth_camera,
                              const PinholeCamera& color_camera, const Pose& T_color_depth,
                              int max_footprint) {

@@ -41,4 +41,9 @@ cv::Mat RegisterDepthToColor(const cv::Mat& depth_mm, const PinholeCamera& depth
                              const PinholeCamera& color_camera, const Pose& T_color_depth,
                              int max_footprint = 8);
 
+// RegisterDepthToColor with `calibration`, once the depth image is checked to have the size
+// the calibration describes (a recording or camera mode that does not match is an error).
+StatusOr<cv::Mat> RegisterDepth(const cv::Mat& depth_mm, const DepthToColorCalibration& calibration,
+                                const PinholeCamera& color_camera);
+
 }  // namespace ccmd

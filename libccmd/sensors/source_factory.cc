@@ -27,13 +27,11 @@ class RegisteredSource : public RgbdSource {
 
   Status Read(RgbdFrame* frame) override {
     CCMD_RETURN_IF_ERROR(inner_->Read(frame));
-    if (frame->depth_mm.cols != calibration_.depth.width || frame->depth_mm.rows != calibration_.depth.height) {
-      return InvalidArgument("depth image of frame " + std::to_string(frame->index) + " is " +
-                             std::to_string(frame->depth_mm.cols) + "x" + std::to_string(frame->depth_mm.rows) +
-                             ", the config's Depth block describes " + std::to_string(calibration_.depth.width) + "x" +
-                             std::to_string(calibration_.depth.height));
+    auto registered = RegisterDepth(frame->depth_mm, calibration_, camera());
+    if (!registered.ok()) {
+      return InvalidArgument("frame " + std::to_string(frame->index) + ": " + registered.status().message());
     }
-    frame->depth_mm = RegisterDepthToColor(frame->depth_mm, calibration_.depth, camera(), calibration_.T_color_depth);
+    frame->depth_mm = std::move(registered).value();
     return Status::Ok();
   }
   const PinholeCamera& camera() const override { return inner_->camera(); }

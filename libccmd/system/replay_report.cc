@@ -68,11 +68,7 @@ StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset, const Refe
     kf.T_world_cam = *dataset.frame(i).T_world_cam_gt;
     cv::Mat depth = frame.depth_mm, bgr = frame.bgr;
     if (options.registration) {
-      const DepthToColorCalibration& r = *options.registration;
-      if (depth.cols != r.depth.width || depth.rows != r.depth.height) {
-        return InvalidArgument("depth of frame " + std::to_string(i) + " does not have the size of the config's Depth block");
-      }
-      depth = RegisterDepthToColor(depth, r.depth, dataset.camera(), r.T_color_depth);
+      CCMD_ASSIGN_OR_RETURN(depth, RegisterDepth(depth, *options.registration, dataset.camera()));
     }
     if (bgr.size() != depth.size()) cv::resize(bgr, bgr, depth.size(), 0, 0, cv::INTER_AREA);
     if (factor > 1) {

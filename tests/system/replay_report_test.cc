@@ -4,6 +4,11 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <cstdio>
+
+#include "libccmd/eval/reconstruction_error.h"
+#include "libccmd/synth/sequence.h"
 #include "libccmd/util/file_util.h"
 #include "tests/support/test_support.h"
 
@@ -21,6 +26,52 @@ Json RunResults(double colour, double depth, double points, double rgbd_keyframe
   j["ate_rmse_m"] = 0.003;
   j["maps_after_fusion"] = 1;
   return j;
+}
+
+double MedianOf(std::vector<double> v) {
+  std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+  return v[v.size() / 2];
+}
+
+// With a Depth block the ground-truth reference is built from registered depth, as the agents
+// see it: registration by a pure offset t moves every point by t in the camera frame.
+TEST(ReplayReportTest, ReferenceCloudUsesTheDepthRegistration) {
+  testing::TempDir dir;
+  SyntheticSequenceOptions o;
+  o.frames = 1;
+  o.width = 160;
+  o.height = 120;
+  o.noise = false;
+  o.room.shapes_per_m2 = 20;
+  o.surface_spacing = 0.1;
+  ASSERT_TRUE(WriteSyntheticSequence(dir.path(), o).ok());
+  ASSERT_EQ(std::remove(dir.File("surface.ply").c_str()), 0);  // build the reference from ground truth
+  auto dataset = TumSequence::Open(dir.path(), std::nullopt);
+  ASSERT_TRUE(dataset.ok()) << dataset.status().ToString();
+  ReferenceOptions options;
+  options.downsample = 1;
+  options.voxel_m = 0.005;
+  auto plain = LoadOrBuildReference(*dataset, options, nullptr);
+  ASSERT_TRUE(plain.ok()) << plain.status().ToString();
+
+  DepthToColorCalibration calibration;
+  calibration.depth = dataset->camera();
+  const Eigen::Vector3d t(0.04, 0, 0);
+  calibration.T_color_depth.translation() = t;
+  options.registration = calibration;
+  auto registered = LoadOrBuildReference(*dataset, options, nullptr);
+  ASSERT_TRUE(registered.ok()) << registered.status().ToString();
+  ASSERT_GT(registered->size(), plain->size() / 2);
+
+  const Pose T_world_cam = *dataset->frame(0).T_world_cam_gt;
+  PointCloud moved_back = *registered;
+  for (Eigen::Vector3f& p : moved_back.points) p -= (T_world_cam.linear() * t).cast<float>();
+  EXPECT_LT(MedianOf(NearestDistances(moved_back, *plain)), 0.004);
+  EXPECT_GT(MedianOf(NearestDistances(*registered, *plain)), 0.02);
+
+  calibration.depth = dataset->camera().Resized(80, 60);
+  options.registration = calibration;
+  EXPECT_EQ(LoadOrBuildReference(*dataset, options, nullptr).status().code(), StatusCode::kInvalidArgument);
 }
 
 TEST(ReplayReportTest, AblationTableAddsRowsWithRatiosToTheFullRun) {
