@@ -173,6 +173,30 @@ TransformError PlaceGroundTruth::Error(const GlobalKeyframeId& a, const GlobalKe
 
 namespace {
 
+// One server map per agent, fed with the recorded messages as the back-end's ingest would
+// (no fusion: every agent stays in its own frame).
+class AgentMaps {
+ public:
+  ServerMap* Of(AgentId agent) {
+    auto& map = maps_[agent];
+    if (!map) map = std::make_unique<ServerMap>(MapId(agent.value()));
+    return map.get();
+  }
+  // True when `m` added a keyframe.
+  bool Apply(const RecordedMessage& m) {
+    ServerMap* map = Of(m.agent);
+    if (m.pose_update) {
+      ApplyPoseUpdates(map, m.agent, *m.pose_update);
+      return false;
+    }
+    return m.keyframe && AddKeyframeMessage(map, m.agent, *m.keyframe, Pose::Identity()).ok();
+  }
+  const std::map<AgentId, std::unique_ptr<ServerMap>>& all() const { return maps_; }
+
+ private:
+  std::map<AgentId, std::unique_ptr<ServerMap>> maps_;
+};
+
 class OfflineDetector {
  public:
   OfflineDetector(const std::map<AgentId, PinholeCamera>& cameras, const BackendOptions& options,
@@ -180,12 +204,7 @@ class OfflineDetector {
       : cameras_(cameras), options_(options), truth_(truth), place_(options.place), out_(out) {}
 
   void Receive(const RecordedMessage& m) {
-    ServerMap* map = MapOf(m.agent);
-    if (m.pose_update) {
-      ApplyPoseUpdates(map, m.agent, *m.pose_update);
-      return;
-    }
-    if (!m.keyframe || !AddKeyframeMessage(map, m.agent, *m.keyframe, Pose::Identity()).ok()) return;
+    if (!maps_.Apply(m)) return;
     ++out_->keyframes;
     Detect({m.agent, m.keyframe->id}, /*stored=*/false);
     while (!late_.empty()) {
@@ -203,15 +222,11 @@ class OfflineDetector {
     int count = 0;
   };
 
-  ServerMap* MapOf(AgentId agent) {
-    auto& map = maps_[agent];
-    if (!map) map = std::make_unique<ServerMap>(MapId(agent.value()));
-    return map.get();
-  }
+
 
   // The steps of Backend::DetectLoop up to acceptance, on per-agent maps.
   void Detect(const GlobalKeyframeId& id, bool stored) {
-    ServerMap* qmap = MapOf(id.agent);
+    ServerMap* qmap = maps_.Of(id.agent);
     ServerKeyframe* query = qmap->keyframe(id);
     if (!query) return;
     const bool ready = place_.ready();
@@ -269,7 +284,7 @@ class OfflineDetector {
 
     bool found = false, first = true;
     for (const PlaceHit& hit : hits) {
-      ServerMap* cmap = MapOf(hit.keyframe.agent);
+      ServerMap* cmap = maps_.Of(hit.keyframe.agent);
       ServerKeyframe* candidate = cmap->keyframe(hit.keyframe);
       if (!candidate) continue;
       const auto match = VerifyLoop(query, cameras_.at(id.agent), candidate, *cmap, options_.verification);
@@ -318,7 +333,7 @@ class OfflineDetector {
   const PlaceGroundTruth& truth_;
   PlaceIndex place_;
   DetectorEvaluation* out_;
-  std::map<AgentId, std::unique_ptr<ServerMap>> maps_;
+  AgentMaps maps_;
   std::map<AgentId, Pending> pending_;
   std::vector<GlobalKeyframeId> late_;
   std::vector<GlobalKeyframeId> indexed_;
@@ -339,18 +354,10 @@ DetectorEvaluation EvaluateDetector(const std::vector<RecordedMessage>& messages
 
 std::vector<TransformError> CovisiblePairErrors(const std::vector<RecordedMessage>& messages,
                                                 const PlaceGroundTruth& truth) {
-  std::map<AgentId, std::unique_ptr<ServerMap>> maps;
-  for (const RecordedMessage& m : messages) {
-    auto& map = maps[m.agent];
-    if (!map) map = std::make_unique<ServerMap>(MapId(m.agent.value()));
-    if (m.pose_update) {
-      ApplyPoseUpdates(map.get(), m.agent, *m.pose_update);
-    } else if (m.keyframe) {
-      if (!AddKeyframeMessage(map.get(), m.agent, *m.keyframe, Pose::Identity()).ok()) continue;
-    }
-  }
+  AgentMaps maps;
+  for (const RecordedMessage& m : messages) maps.Apply(m);
   std::vector<TransformError> errors;
-  for (const auto& [agent, map] : maps) {
+  for (const auto& [agent, map] : maps.all()) {
     for (const auto& [id, kf] : map->keyframes()) {
       for (const auto& [other_id, weight] : kf->covisibility) {
         const ServerKeyframe* other = map->keyframe(other_id);

@@ -13,6 +13,17 @@
 namespace ccmd {
 namespace {
 
+// A 64x48 synthetic recording in the TUM layout, quick to write.
+Status WriteSmallSequence(const std::string& folder, int frames) {
+  SyntheticSequenceOptions o;
+  o.frames = frames;
+  o.width = 64;
+  o.height = 48;
+  o.room.shapes_per_m2 = 20;
+  o.surface_spacing = 0.1;
+  return WriteSyntheticSequence(folder, o).status();
+}
+
 TEST(SourceFactoryTest, SyntheticSegmentDeliversItsFramesThenEnds) {
   SourceOptions options;
   options.segment = std::make_pair(2, 3);
@@ -40,13 +51,7 @@ TEST(SourceFactoryTest, SyntheticSegmentDeliversItsFramesThenEnds) {
 
 TEST(SourceFactoryTest, DatasetSegmentFromAWrittenSequence) {
   testing::TempDir dir;
-  SyntheticSequenceOptions o;
-  o.frames = 10;
-  o.width = 64;
-  o.height = 48;
-  o.room.shapes_per_m2 = 20;
-  o.surface_spacing = 0.1;
-  ASSERT_TRUE(WriteSyntheticSequence(dir.path(), o).ok());
+  ASSERT_TRUE(WriteSmallSequence(dir.path(), 10).ok());
   SourceOptions options;
   options.segment = std::make_pair(1, 2);
   auto source = OpenSource("tum:" + dir.path(), options);
@@ -61,13 +66,7 @@ TEST(SourceFactoryTest, DatasetSegmentFromAWrittenSequence) {
 // same way as a live camera's; a Depth block of another size is an error on the first frame.
 TEST(SourceFactoryTest, DatasetDepthIsRegisteredWhenTheConfigSaysHow) {
   testing::TempDir dir;
-  SyntheticSequenceOptions o;
-  o.frames = 2;
-  o.width = 64;
-  o.height = 48;
-  o.room.shapes_per_m2 = 20;
-  o.surface_spacing = 0.1;
-  ASSERT_TRUE(WriteSyntheticSequence(dir.path(), o).ok());
+  ASSERT_TRUE(WriteSmallSequence(dir.path(), 2).ok());
   auto camera_yaml = ReadFileToString(dir.File("camera.yaml"));
   ASSERT_TRUE(camera_yaml.ok());
   const PinholeCamera camera = SyntheticCamera(64, 48);
