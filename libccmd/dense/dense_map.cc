@@ -364,11 +364,7 @@ Status DenseMap::UpdateKeyframePose(const GlobalKeyframeId& id, const Pose& T_wo
   return Status::Ok();
 }
 
-Status DenseMap::UpdateLoopPoses(const std::vector<KeyframePose>& poses) {
-  for (const KeyframePose& p : poses) {
-    CCMD_RETURN_IF_ERROR(CheckPose(p.T_world_cam).WithContext(IdText(p.id)));
-  }
-  std::lock_guard<std::mutex> lock(mutex_);
+StatusOr<std::vector<DenseMap::Entry*>> DenseMap::EntriesOf(const std::vector<KeyframePose>& poses) const {
   std::vector<Entry*> entries;
   entries.reserve(poses.size());
   for (const KeyframePose& p : poses) {
@@ -377,6 +373,15 @@ Status DenseMap::UpdateLoopPoses(const std::vector<KeyframePose>& poses) {
     if (entry == nullptr) return NotFound(IdText(p.id) + " is not in the dense map");
     entries.push_back(entry);
   }
+  return entries;
+}
+
+Status DenseMap::UpdateLoopPoses(const std::vector<KeyframePose>& poses) {
+  for (const KeyframePose& p : poses) {
+    CCMD_RETURN_IF_ERROR(CheckPose(p.T_world_cam).WithContext(IdText(p.id)));
+  }
+  std::lock_guard<std::mutex> lock(mutex_);
+  CCMD_ASSIGN_OR_RETURN(const std::vector<Entry*> entries, EntriesOf(poses));
   for (std::size_t i = 0; i < poses.size(); ++i) {
     entries[i]->T_world_cam = poses[i].T_world_cam;
     Transform(entries[i]);
@@ -391,14 +396,7 @@ StatusOr<std::size_t> DenseMap::UpdateGlobalPoses(const std::vector<KeyframePose
     CCMD_RETURN_IF_ERROR(CheckPose(p.T_world_cam).WithContext(IdText(p.id)));
   }
   std::lock_guard<std::mutex> lock(mutex_);
-  std::vector<Entry*> entries;
-  entries.reserve(poses.size());
-  for (const KeyframePose& p : poses) {
-    const AgentNode* node = FindAgent(p.id.agent);
-    Entry* entry = node ? Find(*node, p.id.keyframe.value()) : nullptr;
-    if (entry == nullptr) return NotFound(IdText(p.id) + " is not in the dense map");
-    entries.push_back(entry);
-  }
+  CCMD_ASSIGN_OR_RETURN(const std::vector<Entry*> entries, EntriesOf(poses));
   std::size_t moved = 0;
   for (std::size_t i = 0; i < poses.size(); ++i) {
     const Eigen::Matrix<double, 3, 4> delta =

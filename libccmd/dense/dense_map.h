@@ -214,6 +214,8 @@ class DenseMap {
   const AgentNode* FindAgent(AgentId agent) const;
   AgentNode& AgentOrCreate(AgentId agent);
   static Entry* Find(const AgentNode& agent, std::uint32_t id);
+  // Every keyframe of `poses`, or NotFound for the first that is not in the map (lock held).
+  StatusOr<std::vector<Entry*>> EntriesOf(const std::vector<KeyframePose>& poses) const;
   static Entry* Next(const AgentNode& agent, std::uint32_t id);
   static Entry* Prev(const AgentNode& agent, std::uint32_t id);
   // The id W keyframes before `id` (or the first one), `id` itself if it has no predecessor.
