@@ -172,6 +172,41 @@ void HuffmanEncode(std::span<const std::uint8_t> in, std::vector<std::uint8_t>* 
   out->insert(out->end(), w.data(), w.data() + w.size());
 }
 
+namespace {
+
+// One of the interleaved bit streams, read through a 64-bit accumulator.
+struct Reader {
+  const std::uint8_t* data;
+  std::size_t size;
+  std::size_t pos;
+  std::uint64_t acc;
+  int count;
+};
+
+// The streams that follow the sizes of all but the last (which takes the rest of the input),
+// copied into `padded` with 8 zero bytes after each, so refills may load 8 bytes at a clamped
+// position.
+Status SplitStreams(ByteReader* r, std::array<std::uint64_t, kStreams> stream_size, std::vector<std::uint8_t>* padded,
+                    std::array<Reader, kStreams>* readers) {
+  std::uint64_t total = 0;
+  for (int k = 0; k + 1 < kStreams; ++k) total += stream_size[k];
+  if (total > r->remaining()) return Corrupt("Huffman streams exceed the input");
+  stream_size[kStreams - 1] = r->remaining() - total;
+  padded->assign(r->remaining() + 8 * kStreams + 8, 0);
+  std::size_t offset = 0;
+  for (int k = 0; k < kStreams; ++k) {
+    std::span<const std::uint8_t> bytes;
+    CCMD_RETURN_IF_ERROR(r->ReadBytes(stream_size[k], &bytes));
+    std::uint8_t* dst = padded->data() + offset;
+    if (!bytes.empty()) std::memcpy(dst, bytes.data(), bytes.size());
+    (*readers)[k] = Reader{dst, bytes.size(), 0, 0, 0};
+    offset += bytes.size() + 8;
+  }
+  return Status::Ok();
+}
+
+}  // namespace
+
 Status HuffmanDecode(std::span<const std::uint8_t> in, std::size_t max_output,
                      std::vector<std::uint8_t>* out, std::size_t* consumed) {
   ByteReader r(in);
@@ -238,29 +273,9 @@ Status HuffmanDecode(std::span<const std::uint8_t> in, std::size_t max_output,
     }
   }
 
-  std::uint64_t total = 0;
-  for (int k = 0; k + 1 < kStreams; ++k) total += stream_size[k];
-  if (total > r.remaining()) return Corrupt("Huffman streams exceed the input");
-  stream_size[kStreams - 1] = r.remaining() - total;
-  // Padded copy: refills load 8 bytes at a clamped position.
-  std::vector<std::uint8_t> padded(r.remaining() + 8 * kStreams + 8, 0);
-  struct Reader {
-    const std::uint8_t* data;
-    std::size_t size;
-    std::size_t pos;
-    std::uint64_t acc;
-    int count;
-  };
+  std::vector<std::uint8_t> padded;
   std::array<Reader, kStreams> readers;
-  std::size_t offset = 0;
-  for (int k = 0; k < kStreams; ++k) {
-    std::span<const std::uint8_t> bytes;
-    CCMD_RETURN_IF_ERROR(r.ReadBytes(stream_size[k], &bytes));
-    std::uint8_t* dst = padded.data() + offset;
-    if (!bytes.empty()) std::memcpy(dst, bytes.data(), bytes.size());
-    readers[k] = Reader{dst, bytes.size(), 0, 0, 0};
-    offset += bytes.size() + 8;
-  }
+  CCMD_RETURN_IF_ERROR(SplitStreams(&r, stream_size, &padded, &readers));
 
   out->resize(n);
   const std::array<std::size_t, kStreams> sizes = Quarters(n);
@@ -470,28 +485,9 @@ Status HuffmanDecodeImage(std::span<const std::uint8_t> in, int width, int heigh
   for (int k = 0; k + 1 < kStreams; ++k) {
     CCMD_RETURN_IF_ERROR(r.ReadVarintAtMost(r.remaining(), &stream_size[k], "Huffman stream"));
   }
-  std::uint64_t total = 0;
-  for (int k = 0; k + 1 < kStreams; ++k) total += stream_size[k];
-  if (total > r.remaining()) return Corrupt("Huffman streams exceed the input");
-  stream_size[kStreams - 1] = r.remaining() - total;
-  std::vector<std::uint8_t> padded(r.remaining() + 8 * kStreams + 8, 0);
-  struct Reader {
-    const std::uint8_t* data;
-    std::size_t size;
-    std::size_t pos;
-    std::uint64_t acc;
-    int count;
-  };
+  std::vector<std::uint8_t> padded;
   std::array<Reader, kStreams> readers;
-  std::size_t offset = 0;
-  for (int k = 0; k < kStreams; ++k) {
-    std::span<const std::uint8_t> bytes;
-    CCMD_RETURN_IF_ERROR(r.ReadBytes(stream_size[k], &bytes));
-    std::uint8_t* dst = padded.data() + offset;
-    if (!bytes.empty()) std::memcpy(dst, bytes.data(), bytes.size());
-    readers[k] = Reader{dst, bytes.size(), 0, 0, 0};
-    offset += bytes.size() + 8;
-  }
+  CCMD_RETURN_IF_ERROR(SplitStreams(&r, stream_size, &padded, &readers));
 
   out->resize(static_cast<std::size_t>(width) * height);
   const std::array<int, kStreams> bands = Bands(height);
