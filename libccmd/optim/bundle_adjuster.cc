@@ -21,6 +21,35 @@ class AbortCallback : public ceres::IterationCallback {
   const std::atomic<bool>* abort_;
 };
 
+// Residual of a BaRelativePose; parameters: q_a, t_a, q_b, t_b (T_cam_world of each camera).
+struct RelativePoseResidual {
+  RelativePoseResidual(const Pose& T_b_a, const Eigen::Matrix<double, 6, 6>& sqrt_information)
+      : q_m_(T_b_a.linear()), t_m_(T_b_a.translation()), sqrt_information_(sqrt_information) {}
+
+  template <typename T>
+  bool operator()(const T* qa_, const T* ta_, const T* qb_, const T* tb_, T* residual) const {
+    using Vec3 = Eigen::Matrix<T, 3, 1>;
+    const Eigen::Map<const Eigen::Quaternion<T>> qa(qa_), qb(qb_);
+    const Eigen::Map<const Vec3> ta(ta_), tb(tb_);
+    // Estimate T_b_a = T_b * T_a^-1, error E = T_b_a * T_measured^-1.
+    const Eigen::Quaternion<T> q_ba = qb * qa.conjugate();
+    const Vec3 t_ba = tb - q_ba * ta;
+    Eigen::Quaternion<T> q_e = q_ba * q_m_.conjugate().cast<T>();
+    if (q_e.w() < T(0)) q_e.coeffs() = -q_e.coeffs();
+    const Vec3 t_e = t_ba - q_e * t_m_.cast<T>();
+    Eigen::Matrix<T, 6, 1> xi;
+    xi << T(2) * q_e.vec(), t_e;
+    Eigen::Map<Eigen::Matrix<T, 6, 1>> out(residual);
+    out = sqrt_information_.cast<T>() * xi;
+    return true;
+  }
+
+ private:
+  Eigen::Quaterniond q_m_;
+  Eigen::Vector3d t_m_;
+  Eigen::Matrix<double, 6, 6> sqrt_information_;
+};
+
 bool IsOutlier(const BaObservation& o, const Intrinsics& k, const Pose& T, const Eigen::Vector3d& p) {
   const double chi2 = ReprojectionChi2(k, T, p, o.uv, o.depth, o.information, o.depth_information);
   return chi2 > (o.depth > 0 ? kChi2Stereo : kChi2Mono) || (T * p).z() <= 0;
@@ -58,6 +87,19 @@ BaSummary BundleAdjust(BaProblem* problem, const BaOptions& options) {
     std::vector<bool> camera_added(problem->cameras.size(), false);
     std::vector<bool> point_added(problem->points.size(), false);
     int residuals = 0;
+    auto add_camera = [&](int c) {
+      if (camera_added[c]) return;
+      camera_added[c] = true;
+      double* qc = q[c].coeffs().data();
+      double* tc = t[c].data();
+      ceres_problem.SetManifold(qc, new ceres::EigenQuaternionManifold);
+      if (problem->cameras[c].fixed) {
+        ceres_problem.SetParameterBlockConstant(qc);
+        ceres_problem.SetParameterBlockConstant(tc);
+      }
+      ordering->AddElementToGroup(qc, 1);
+      ordering->AddElementToGroup(tc, 1);
+    };
     for (std::size_t i = 0; i < num_obs; ++i) {
       if (summary.outlier[i]) continue;
       const BaObservation& o = problem->observations[i];
@@ -76,20 +118,21 @@ BaSummary BundleAdjust(BaProblem* problem, const BaOptions& options) {
       double* p = problem->points[o.point].position.data();
       ceres_problem.AddResidualBlock(cost, loss, qc, tc, p);
       ++residuals;
-      if (!camera_added[o.camera]) {
-        camera_added[o.camera] = true;
-        ceres_problem.SetManifold(qc, new ceres::EigenQuaternionManifold);
-        if (problem->cameras[o.camera].fixed) {
-          ceres_problem.SetParameterBlockConstant(qc);
-          ceres_problem.SetParameterBlockConstant(tc);
-        }
-        ordering->AddElementToGroup(qc, 1);
-        ordering->AddElementToGroup(tc, 1);
-      }
+      add_camera(o.camera);
       if (!point_added[o.point]) {
         point_added[o.point] = true;
         ordering->AddElementToGroup(p, 0);  // eliminated first (Schur complement)
       }
+    }
+    for (const BaRelativePose& r : problem->relative_poses) {
+      if (problem->cameras[r.camera_a].fixed && problem->cameras[r.camera_b].fixed) continue;
+      ceres_problem.AddResidualBlock(
+          new ceres::AutoDiffCostFunction<RelativePoseResidual, 6, 4, 3, 4, 3>(
+              new RelativePoseResidual(r.T_b_a, r.sqrt_information)),
+          nullptr, q[r.camera_a].coeffs().data(), t[r.camera_a].data(), q[r.camera_b].coeffs().data(),
+          t[r.camera_b].data());
+      add_camera(r.camera_a);
+      add_camera(r.camera_b);
     }
     if (residuals == 0) {
       delete ordering;

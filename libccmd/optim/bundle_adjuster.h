@@ -34,11 +34,21 @@ struct BaObservation {
   double depth_information = 0.0;  // 1 / depth sigma^2 at that depth
 };
 
+// A measured relative pose between two cameras (from dense depth alignment):
+// T_b_a = T_cam_world[b] * T_cam_world[a]^-1. Its residual is sqrt_information * xi, where
+// xi = (rotation vector, translation) of T_b_a_estimate * T_b_a^-1.
+struct BaRelativePose {
+  int camera_a = 0, camera_b = 0;
+  Pose T_b_a = Pose::Identity();
+  Eigen::Matrix<double, 6, 6> sqrt_information = Eigen::Matrix<double, 6, 6>::Identity();
+};
+
 struct BaProblem {
   std::vector<Intrinsics> calibrations;  // at least one
   std::vector<BaCamera> cameras;
   std::vector<BaPoint> points;
   std::vector<BaObservation> observations;
+  std::vector<BaRelativePose> relative_poses;
 };
 
 enum class BaLinearSolver { kDenseSchur, kSparseSchur };

@@ -121,5 +121,51 @@ TEST(BundleAdjusterTest, SparseSchurGivesTheSameSolution) {
   EXPECT_LT(TranslationDistance(a.problem.cameras[2].T_cam_world, b.problem.cameras[2].T_cam_world), 1e-6);
 }
 
+// A relative pose places a camera that has no observation at all: T_b = T_b_a * T_a. The
+// inverse convention (T_a_b) would put it elsewhere, so this pins the residual's meaning.
+TEST(BundleAdjusterTest, RelativePosePlacesACameraWithoutObservations) {
+  Rng rng(35);
+  Scene s = MakeScene(0.3, &rng);
+  s.problem.cameras[0].fixed = true;
+  Pose T_b_a = Pose::Identity();
+  T_b_a.linear() = RotationFromAngleAxis({0.05, 0.1, -0.02});
+  T_b_a.translation() = Eigen::Vector3d(0.2, -0.1, 0.05);
+  const Pose truth = T_b_a * s.T_cam_world[2];
+  BaCamera extra;
+  extra.T_cam_world = truth;
+  extra.T_cam_world.translation() += Eigen::Vector3d(0.1, 0.05, -0.08);  // start 14 cm off
+  s.problem.cameras.push_back(extra);
+  const int b = static_cast<int>(s.problem.cameras.size()) - 1;
+  s.problem.relative_poses.push_back({2, b, T_b_a, 100 * Eigen::Matrix<double, 6, 6>::Identity()});
+  BundleAdjust(&s.problem, BaOptions());
+  const Pose expected = T_b_a * s.problem.cameras[2].T_cam_world;  // from camera 2 as estimated
+  EXPECT_LT(TranslationDistance(s.problem.cameras[b].T_cam_world, expected), 1e-5);
+  EXPECT_LT(RotationDistance(s.problem.cameras[b].T_cam_world, expected), 1e-5);
+  // Camera 2 itself stays where its observations put it.
+  EXPECT_LT(TranslationDistance(s.problem.cameras[2].T_cam_world, s.T_cam_world[2]), 0.005);
+}
+
+// A relative pose agreeing with the observations pulls a camera with few observations back
+// to the truth; a wrong measurement with a weak weight barely moves a well observed one.
+TEST(BundleAdjusterTest, RelativePoseIsWeighedByItsInformation) {
+  Rng rng(36);
+  Scene s = MakeScene(0.3, &rng);
+  s.problem.cameras[0].fixed = true;
+  Pose wrong = s.T_cam_world[3] * s.T_cam_world[1].inverse();  // T_3_1, true
+  wrong.translation() += Eigen::Vector3d(0.05, 0, 0);           // 5 cm off
+  Scene weak = s, strong = s;
+  weak.problem.relative_poses.push_back({1, 3, wrong, 0.01 * Eigen::Matrix<double, 6, 6>::Identity()});
+  strong.problem.relative_poses.push_back({1, 3, wrong, 1e5 * Eigen::Matrix<double, 6, 6>::Identity()});
+  BundleAdjust(&weak.problem, BaOptions());
+  BundleAdjust(&strong.problem, BaOptions());
+  const auto relative = [](const BaProblem& p) {
+    return p.cameras[3].T_cam_world * p.cameras[1].T_cam_world.inverse();
+  };
+  // Weak: the observations win, the relative pose stays near the truth (5 cm from `wrong`).
+  EXPECT_GT(TranslationDistance(relative(weak.problem), wrong), 0.04);
+  // Strong: the relative pose is met.
+  EXPECT_LT(TranslationDistance(relative(strong.problem), wrong), 0.005);
+}
+
 }  // namespace
 }  // namespace ccmd
