@@ -17,6 +17,9 @@ StatusOr<TrackingOptions> ReadTrackingOptions(const ConfigFile& c, TrackingOptio
                         c.GetInt("Tracking.maxFramesBetweenKeyframes", o.max_frames_between_keyframes));
   CCMD_ASSIGN_OR_RETURN(o.keyframe_tracked_ratio, c.GetDouble("Tracking.keyframeTrackedRatio", o.keyframe_tracked_ratio));
   CCMD_ASSIGN_OR_RETURN(o.local_ba_window, c.GetInt("Tracking.localBAWindow", o.local_ba_window));
+  CCMD_ASSIGN_OR_RETURN(o.depth_alignment_neighbours,
+                        c.GetInt("Tracking.depthAlignmentNeighbours", o.depth_alignment_neighbours));
+  CCMD_ASSIGN_OR_RETURN(o.depth_alignment_weight, c.GetDouble("Tracking.depthAlignmentWeight", o.depth_alignment_weight));
   CCMD_ASSIGN_OR_RETURN(o.max_keyframes, c.GetInt("Tracking.maxKeyframes", o.max_keyframes));
   CCMD_ASSIGN_OR_RETURN(const int cull, c.GetInt("Tracking.cullRedundantKeyframes", o.cull_redundant_keyframes));
   CCMD_ASSIGN_OR_RETURN(o.max_new_points_per_keyframe,

@@ -11,6 +11,8 @@ bool TrackingOptions::Check(std::string* why) const {
   if (!(min_depth > 0 && max_depth > min_depth)) return fail("depth range must satisfy 0 < min < max");
   if (!(depth_noise.sigma_0 > 0 && depth_noise.sigma_2 >= 0)) return fail("depth noise sigmas must be positive");
   if (local_ba_window < 1 || local_ba_window > 100) return fail("local BA window must be in [1, 100]");
+  if (depth_alignment_neighbours < 0 || depth_alignment_neighbours > 20) return fail("depth alignment neighbours must be in [0, 20]");
+  if (!(depth_alignment_weight >= 0)) return fail("depth alignment weight must be >= 0");
   if (max_keyframes < local_ba_window + 5) return fail("max keyframes must exceed the local BA window by 5");
   if (max_frames_between_keyframes < 0) return fail("max frames between keyframes must be >= 0");
   if (max_new_points_per_keyframe < 0) return fail("max new points per keyframe must be >= 0 (0: all)");

@@ -4,7 +4,10 @@
 #include <unordered_map>
 #include <unordered_set>
 
+#include <Eigen/Eigenvalues>
+
 #include "libccmd/optim/bundle_adjuster.h"
+#include "libccmd/tracking/depth_alignment.h"
 #include "libccmd/tracking/matching.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/timer.h"
@@ -108,6 +111,7 @@ void LocalMapper::Process(const KeyframePtr& keyframe_ptr) {
     CullRecentPoints(*keyframe);
     FuseWithNeighbours(keyframe);
   }
+  AlignWithNeighbours(keyframe);
   abort_ba_ = false;
   bool more_waiting;
   {
@@ -124,6 +128,10 @@ void LocalMapper::Process(const KeyframePtr& keyframe_ptr) {
     std::lock_guard<std::mutex> lock(map_->mutex());
     if (options_.cull_redundant_keyframes) CullRedundantKeyframes(keyframe);
     EvictOldKeyframes(keyframe);
+    std::erase_if(depth_edges_, [&](const DepthEdge& e) {
+      const KeyframePtr a = map_->keyframe(e.a), b = map_->keyframe(e.b);
+      return !a || !b || a->bad() || b->bad();
+    });
     emitted = Emit(keyframe, &snapshot, &updates);
   }
   {
@@ -194,6 +202,57 @@ void LocalMapper::FuseWithNeighbours(Keyframe* keyframe) {
   stats_.fused_points += fused;
 }
 
+void LocalMapper::AlignWithNeighbours(Keyframe* keyframe) {
+  if (options_.depth_alignment_weight <= 0 || options_.depth_alignment_neighbours == 0) return;
+  const Stopwatch watch;
+  cv::Mat depth;
+  {
+    std::lock_guard<std::mutex> lock(map_->mutex());
+    if (keyframe->bad()) return;
+    depth = keyframe->depth_mm;
+  }
+  // Quarter resolution: 160x120 cells for VGA, a few milliseconds per alignment.
+  auto model = std::make_shared<const DepthModel>(
+      DepthModel::FromDepth(depth, camera_, 4, options_.min_depth, options_.max_depth));
+  struct Job {
+    KeyframeId id;
+    Pose T_kf_neighbour;
+    std::shared_ptr<const DepthModel> model;
+  };
+  if (model->empty()) return;
+  std::vector<Job> jobs;
+  {
+    std::lock_guard<std::mutex> lock(map_->mutex());
+    if (keyframe->bad()) return;
+    keyframe->depth_model = model;
+    for (Keyframe* n : keyframe->BestCovisible(options_.depth_alignment_neighbours)) {
+      if (n->bad() || !n->depth_model) continue;
+      jobs.push_back({n->id(), keyframe->T_cam_world() * n->T_world_cam(), n->depth_model});
+    }
+  }
+  int accepted = 0, failed = 0;
+  for (const Job& job : jobs) {
+    const auto aligned = AlignDepth(*job.model, *model, job.T_kf_neighbour, options_.depth_noise);
+    // An alignment far from what the features say has converged elsewhere: not trusted.
+    if (!aligned || TranslationDistance(aligned->T_target_source, job.T_kf_neighbour) > 0.1 ||
+        RotationDistance(aligned->T_target_source, job.T_kf_neighbour) > 0.1) {
+      ++failed;
+      continue;
+    }
+    // sqrt_information = D^(1/2) V^T of the (weighted) information V D V^T; directions the
+    // geometry does not constrain have eigenvalues near zero and add nothing.
+    const Eigen::SelfAdjointEigenSolver<Matrix6d> eigen(options_.depth_alignment_weight * aligned->information);
+    const Eigen::Matrix<double, 6, 1> d = eigen.eigenvalues().cwiseMax(0.0).cwiseSqrt();
+    depth_edges_.push_back({job.id, keyframe->id(), aligned->T_target_source,
+                            d.asDiagonal() * eigen.eigenvectors().transpose()});
+    ++accepted;
+  }
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  stats_.depth_alignments += accepted;
+  stats_.depth_alignments_failed += failed;
+  stats_.depth_alignment_ms_total += watch.ElapsedMillis();
+}
+
 void LocalMapper::LocalBundleAdjustment(Keyframe* keyframe) {
   const Stopwatch watch;
   BaProblem problem;
@@ -247,6 +306,16 @@ void LocalMapper::LocalBundleAdjustment(Keyframe* keyframe) {
       if (cameras[c]->id() < cameras[oldest]->id()) oldest = static_cast<int>(c);
     }
     if (!any_fixed) problem.cameras[oldest].fixed = true;
+  }
+  if (!depth_edges_.empty()) {
+    std::unordered_map<KeyframeId, int> index;
+    for (std::size_t c = 0; c < cameras.size(); ++c) index[cameras[c]->id()] = static_cast<int>(c);
+    for (const DepthEdge& e : depth_edges_) {
+      const auto a = index.find(e.a), b = index.find(e.b);
+      if (a != index.end() && b != index.end()) {
+        problem.relative_poses.push_back({a->second, b->second, e.T_b_a, e.sqrt_information});
+      }
+    }
   }
   if (problem.observations.empty()) return;
 

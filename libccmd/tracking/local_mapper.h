@@ -34,6 +34,9 @@ struct MappingStats {
   int culled_points = 0;
   int fused_points = 0;
   int pose_updates = 0;
+  int depth_alignments = 0;         // accepted keyframe-to-keyframe depth alignments
+  int depth_alignments_failed = 0;  // tried and rejected
+  double depth_alignment_ms_total = 0;
   int rgbd_transmitted = 0;
 };
 
@@ -63,6 +66,8 @@ class LocalMapper : public MappingQueue {
   void Process(const KeyframePtr& keyframe);
   void CullRecentPoints(const Keyframe& keyframe);
   void FuseWithNeighbours(Keyframe* keyframe);
+  // Aligns the keyframe's depth with its best covisible neighbours' (depth_edges_).
+  void AlignWithNeighbours(Keyframe* keyframe);
   void LocalBundleAdjustment(Keyframe* keyframe);
   void CullRedundantKeyframes(Keyframe* keyframe);
   void EvictOldKeyframes(Keyframe* keyframe);
@@ -86,6 +91,13 @@ class LocalMapper : public MappingQueue {
   std::thread thread_;
 
   std::vector<MapPointPtr> recent_points_;
+  // Dense depth alignments between keyframes still in the map (mapping thread only).
+  struct DepthEdge {
+    KeyframeId a, b;
+    Pose T_b_a;
+    Eigen::Matrix<double, 6, 6> sqrt_information;
+  };
+  std::vector<DepthEdge> depth_edges_;
   mutable std::mutex stats_mutex_;
   MappingStats stats_;
   std::vector<RgbdDecision> decisions_;

@@ -23,6 +23,7 @@
 
 namespace ccmd {
 
+class DepthModel;
 class Keyframe;
 class OrbExtractor;
 
@@ -127,6 +128,8 @@ class Keyframe {
 
   // Images kept until the keyframe has been handed to the link (then released).
   cv::Mat bgr, depth_mm;
+  // Reduced depth for dense alignment with later keyframes (kept while in the map).
+  std::shared_ptr<const DepthModel> depth_model;
   // Link bookkeeping.
   bool emitted = false;   // sent to the link
   bool rgbd_sent = false; // its RGB-D data went with it

@@ -42,6 +42,11 @@ struct TrackingOptions {
   // Local bundle adjustment window: the new keyframe and this many best covisible keyframes
   // are optimised; keyframes that see their points are held fixed.
   int local_ba_window = 10;
+  // Dense depth alignment (depth_alignment.h): each new keyframe's depth is aligned with that
+  // of this many best covisible keyframes, and the local BA weighs each alignment by its
+  // information times `depth_alignment_weight` (0 turns it off).
+  int depth_alignment_neighbours = 3;
+  double depth_alignment_weight = 0.1;
   // Bounded local map: keyframes beyond this many (oldest first, outside the current local
   // window) are dropped from the agent's memory, so memory and CPU stay flat.
   int max_keyframes = 60;

@@ -1,0 +1,126 @@
+// Dense depth alignment on depth images ray-cast from planes with exact poses.
+
+#include "libccmd/tracking/depth_alignment.h"
+
+#include <gtest/gtest.h>
+
+#include <Eigen/Eigenvalues>
+
+#include "libccmd/util/random.h"
+
+namespace ccmd {
+namespace {
+
+struct Plane {
+  Eigen::Vector3d n;  // world normal
+  double k;           // n . x = k
+};
+
+PinholeCamera Vga() {
+  PinholeCamera c;
+  c.fx = c.fy = 525;
+  c.cx = 319.5;
+  c.cy = 239.5;
+  return c;
+}
+
+// Depth (mm) seen from T_world_cam: the nearest plane along each pixel's ray, plus noise.
+cv::Mat RenderDepth(const std::vector<Plane>& planes, const Pose& T_world_cam, double noise_m, Rng* rng) {
+  const PinholeCamera cam = Vga();
+  cv::Mat depth(cam.height, cam.width, CV_16UC1, cv::Scalar(0));
+  const Eigen::Vector3d c = T_world_cam.translation();
+  for (int v = 0; v < cam.height; ++v) {
+    for (int u = 0; u < cam.width; ++u) {
+      const Eigen::Vector3d ray = T_world_cam.linear() * Eigen::Vector3d((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1);
+      double best = 1e9;
+      for (const Plane& p : planes) {
+        const double denom = p.n.dot(ray);
+        if (std::abs(denom) < 1e-9) continue;
+        const double t = (p.k - p.n.dot(c)) / denom;  // ray z = 1, so t is the depth
+        if (t > 0.2 && t < best) best = t;
+      }
+      if (best < 8) depth.at<std::uint16_t>(v, u) = static_cast<std::uint16_t>(std::lround(1000 * (best + noise_m * rng->Normal())));
+    }
+  }
+  return depth;
+}
+
+// A room corner: floor, back wall and a side wall (camera y points down, z forward).
+const std::vector<Plane> kCorner = {{{0, 1, 0}, 1.0}, {{0, 0, 1}, 3.0}, {{1, 0, 0}, 1.2}};
+
+Pose Motion(const Eigen::Vector3d& omega, const Eigen::Vector3d& t) {
+  Pose T = Pose::Identity();
+  T.linear() = RotationFromAngleAxis(omega);
+  T.translation() = t;
+  return T;
+}
+
+DepthModel Model(const cv::Mat& depth) { return DepthModel::FromDepth(depth, Vga(), 4, 0.1, 10.0); }
+
+TEST(DepthAlignmentTest, RecoversTheRelativePoseOfTwoViews) {
+  Rng rng(41);
+  const Pose T_world_a = Motion({0.0, 0.2, 0.0}, {0, 0, 0});
+  const Pose T_world_b = T_world_a * Motion({0.03, -0.05, 0.02}, {0.04, -0.02, 0.05});
+  const DepthModel a = Model(RenderDepth(kCorner, T_world_a, 0, &rng));
+  const DepthModel b = Model(RenderDepth(kCorner, T_world_b, 0, &rng));
+  ASSERT_GT(a.valid_points(), 5000);
+  const Pose truth = T_world_b.inverse() * T_world_a;  // T_b_a
+  const Pose guess = Motion({0.01, -0.015, 0.01}, {0.02, 0.015, -0.02}) * truth;  // ~3 cm, ~1 degree off
+  const auto aligned = AlignDepth(a, b, guess, DepthNoise());
+  ASSERT_TRUE(aligned.has_value());
+  EXPECT_LT(TranslationDistance(aligned->T_target_source, truth), 0.001);
+  EXPECT_LT(RotationDistance(aligned->T_target_source, truth), 0.05 * M_PI / 180);
+  EXPECT_GT(aligned->inliers, 1000);
+  // Three planes constrain all six directions.
+  const Eigen::SelfAdjointEigenSolver<Matrix6d> eigen(aligned->information);
+  EXPECT_GT(eigen.eigenvalues()(0), 1e-3 * eigen.eigenvalues()(5));
+}
+
+TEST(DepthAlignmentTest, NoisyDepthStillAlignsWithinMillimetres) {
+  Rng rng(42);
+  const Pose T_world_a = Motion({0.0, 0.2, 0.0}, {0, 0, 0});
+  const Pose T_world_b = T_world_a * Motion({-0.02, 0.04, 0.01}, {-0.03, 0.01, 0.06});
+  const DepthModel a = Model(RenderDepth(kCorner, T_world_a, 0.004, &rng));
+  const DepthModel b = Model(RenderDepth(kCorner, T_world_b, 0.004, &rng));
+  const Pose truth = T_world_b.inverse() * T_world_a;
+  const auto aligned = AlignDepth(a, b, Motion({0.01, 0, -0.01}, {0.01, -0.01, 0.01}) * truth, DepthNoise());
+  ASSERT_TRUE(aligned.has_value());
+  EXPECT_LT(TranslationDistance(aligned->T_target_source, truth), 0.003);
+  EXPECT_LT(RotationDistance(aligned->T_target_source, truth), 0.2 * M_PI / 180);
+}
+
+// A single wall fixes depth and two tilts only: the information says so, and the free
+// directions (sliding along the wall, turning about its normal) keep the guess.
+TEST(DepthAlignmentTest, APlaneLeavesThreeDirectionsWithoutInformation) {
+  Rng rng(43);
+  const std::vector<Plane> wall = {{{0, 0, 1}, 2.0}};
+  const Pose T_world_a = Pose::Identity();
+  const Pose T_world_b = Motion({0, 0, 0}, {0, 0, 0.1});
+  const DepthModel a = Model(RenderDepth(wall, T_world_a, 0, &rng));
+  const DepthModel b = Model(RenderDepth(wall, T_world_b, 0, &rng));
+  const Pose truth = T_world_b.inverse() * T_world_a;
+  const Pose guess = Motion({0, 0, 0}, {0.02, 0, 0.03}) * truth;  // 2 cm along the wall, 3 cm in depth
+  const auto aligned = AlignDepth(a, b, guess, DepthNoise());
+  ASSERT_TRUE(aligned.has_value());
+  EXPECT_NEAR(aligned->T_target_source.translation().z(), truth.translation().z(), 0.001);  // depth fixed
+  EXPECT_NEAR(aligned->T_target_source.translation().x(), guess.translation().x(), 0.001);  // slide kept
+  const Eigen::SelfAdjointEigenSolver<Matrix6d> eigen(aligned->information);
+  const auto& e = eigen.eigenvalues();  // ascending
+  EXPECT_LT(e(2), 1e-6 * e(5));
+  EXPECT_GT(e(3), 1e-4 * e(5));
+}
+
+TEST(DepthAlignmentTest, RefusesViewsThatDoNotOverlap) {
+  Rng rng(44);
+  const DepthModel a = Model(RenderDepth(kCorner, Pose::Identity(), 0, &rng));
+  const DepthModel b = Model(RenderDepth(kCorner, Motion({0, 0.2, 0}, {0, 0, 0}), 0, &rng));
+  // A guess that puts the source 2 m to the side: nothing projects into the target.
+  EXPECT_FALSE(AlignDepth(a, b, Motion({0, 0, 0}, {3.0, 0, 0}), DepthNoise()).has_value());
+  // No depth at all.
+  const DepthModel empty = Model(cv::Mat(480, 640, CV_16UC1, cv::Scalar(0)));
+  EXPECT_TRUE(empty.empty());
+  EXPECT_FALSE(AlignDepth(empty, b, Pose::Identity(), DepthNoise()).has_value());
+}
+
+}  // namespace
+}  // namespace ccmd
