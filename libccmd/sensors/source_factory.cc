@@ -130,7 +130,7 @@ StatusOr<std::unique_ptr<RgbdSource>> OpenSource(const std::string& spec,
     }
     const std::string config_used = !config.empty() ? config : JoinPath(argument, "camera.yaml");
     std::optional<DepthToColorCalibration> registration;
-    if (FileExists(config_used)) {
+    if (options.register_depth && FileExists(config_used)) {
       CCMD_ASSIGN_OR_RETURN(registration, LoadDepthToColorCalibration(config_used));
     }
     // Open once to count frames, then with the segment range.
