@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "libccmd/util/file_util.h"
 
@@ -161,6 +162,32 @@ cv::Mat RegisterDepthToColor(const cv::Mat& depth_mm, const PinholeCamera& depth
     }
   }
   return out;
+}
+
+double EdgeAlignmentScore(const cv::Mat& bgr, const cv::Mat& depth_mm) {
+  if (bgr.empty() || bgr.size() != depth_mm.size() || depth_mm.type() != CV_16UC1) return 0;
+  cv::Mat gray, gx, gy, magnitude;
+  cv::cvtColor(bgr, gray, cv::COLOR_BGR2GRAY);
+  cv::GaussianBlur(gray, gray, cv::Size(5, 5), 1.5);
+  cv::Sobel(gray, gx, CV_32F, 1, 0, 3);
+  cv::Sobel(gray, gy, CV_32F, 0, 1, 3);
+  cv::magnitude(gx, gy, magnitude);
+  double sum = 0;
+  long count = 0;
+  for (int y = 1; y + 1 < depth_mm.rows; ++y) {
+    for (int x = 1; x + 1 < depth_mm.cols; ++x) {
+      const int d = depth_mm.at<std::uint16_t>(y, x);
+      if (d == 0) continue;
+      const int neighbours[4] = {depth_mm.at<std::uint16_t>(y, x - 1), depth_mm.at<std::uint16_t>(y, x + 1),
+                                 depth_mm.at<std::uint16_t>(y - 1, x), depth_mm.at<std::uint16_t>(y + 1, x)};
+      bool edge = false;
+      for (int n : neighbours) edge |= n == 0 || n - d > d / 20;
+      if (!edge) continue;
+      sum += magnitude.at<float>(y, x);
+      ++count;
+    }
+  }
+  return count ? sum / count : 0;
 }
 
 }  // namespace ccmd

@@ -117,5 +117,25 @@ TEST(DepthRegistrationTest, CalibrationFromTheCameraConfig) {
   EXPECT_EQ(LoadDepthToColorCalibration(millimetres).status().code(), StatusCode::kInvalidArgument);
 }
 
+// A bright box in front of a dark wall: the score is highest when the box's depth outline lies
+// on its colour outline, and falls as the depth moves sideways (as a wrong offset moves it).
+TEST(DepthRegistrationTest, EdgeAlignmentScorePeaksWhenDepthEdgesMeetColourEdges) {
+  cv::Mat bgr(240, 320, CV_8UC3, cv::Scalar(40, 40, 40));
+  bgr(cv::Rect(100, 60, 120, 100)).setTo(cv::Scalar(200, 200, 200));
+  const auto depth_with_box_at = [](int x) {
+    cv::Mat depth(240, 320, CV_16UC1, cv::Scalar(2000));
+    depth(cv::Rect(x, 60, 120, 100)).setTo(1000);
+    return depth;
+  };
+  const double aligned = EdgeAlignmentScore(bgr, depth_with_box_at(100));
+  const double off_by_3 = EdgeAlignmentScore(bgr, depth_with_box_at(103));
+  const double off_by_8 = EdgeAlignmentScore(bgr, depth_with_box_at(108));
+  EXPECT_GT(aligned, 1.5 * off_by_3);
+  EXPECT_GT(off_by_3, off_by_8);
+  // No depth edge, or images that do not match: nothing to score.
+  EXPECT_EQ(EdgeAlignmentScore(bgr, cv::Mat(240, 320, CV_16UC1, cv::Scalar(1500))), 0);
+  EXPECT_EQ(EdgeAlignmentScore(bgr, cv::Mat(120, 160, CV_16UC1, cv::Scalar(1500))), 0);
+}
+
 }  // namespace
 }  // namespace ccmd
