@@ -56,6 +56,9 @@ ccmd::Json StatsJson(const ccmd::FrontendStats& s, double wall_seconds,
   j["culled_keyframes"] = m.culled_keyframes;
   j["evicted_keyframes"] = m.evicted_keyframes;
   j["pose_updates"] = m.pose_updates;
+  j["depth_alignments"] = m.depth_alignments;
+  j["depth_alignments_failed"] = m.depth_alignments_failed;
+  j["depth_alignment_ms_mean"] = m.keyframes ? m.depth_alignment_ms_total / m.keyframes : 0.0;
   j["rgbd_transmitted"] = m.rgbd_transmitted;
   ccmd::Json list = ccmd::Json::MakeArray();
   for (const auto& d : decisions) {
