@@ -319,21 +319,30 @@ void Backend::DetectLoop(const GlobalKeyframeId& id, bool stored) {
     if (min_score == 1e9) min_score = 0;
     const std::map<GlobalKeyframeId, int> connected = query->covisibility;
     const int exclude = options_.exclude_recent_keyframes;
-    if (!in_cooldown) {
-      candidates = place_.Query(descriptors, options_.loop_candidates * 3, [&](const GlobalKeyframeId& c) {
-        if (c == id || connected.count(c)) return false;
-        if (c.agent == agent &&
-            std::abs(static_cast<long>(c.keyframe.value()) - static_cast<long>(id.keyframe.value())) <= exclude) {
-          return false;
-        }
-        return true;
-      });
-      candidates.erase(std::remove_if(candidates.begin(), candidates.end(),
-                                      [&](const PlaceHit& c) { return c.score < min_score; }),
-                       candidates.end());
-      if (static_cast<int>(candidates.size()) > options_.loop_candidates) candidates.resize(options_.loop_candidates);
-    }
+    candidates = place_.Query(descriptors, options_.loop_candidates * 3, [&](const GlobalKeyframeId& c) {
+      if (c == id || connected.count(c)) return false;
+      if (c.agent == agent &&
+          std::abs(static_cast<long>(c.keyframe.value()) - static_cast<long>(id.keyframe.value())) <= exclude) {
+        return false;
+      }
+      return true;
+    });
+    candidates.erase(std::remove_if(candidates.begin(), candidates.end(),
+                                    [&](const PlaceHit& c) { return c.score < min_score; }),
+                     candidates.end());
   }
+  // The cool-down after a loop holds back further loops inside the map only: a keyframe that
+  // sees another agent's map can still fuse the two (an agent that closes a loop just before
+  // its segment's overlap with the next one would otherwise never fuse).
+  if (in_cooldown) {
+    candidates.erase(std::remove_if(candidates.begin(), candidates.end(),
+                                    [&](const PlaceHit& c) {
+                                      const auto map = maps_.MapOfAgent(c.keyframe.agent);
+                                      return !map || *map == query_map;
+                                    }),
+                     candidates.end());
+  }
+  if (static_cast<int>(candidates.size()) > options_.loop_candidates) candidates.resize(options_.loop_candidates);
   if (!stored) {
     std::vector<GlobalKeyframeId> late = place_.Add(id, descriptors);
     late_queries_.insert(late_queries_.end(), late.begin(), late.end());

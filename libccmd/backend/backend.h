@@ -38,7 +38,7 @@ struct BackendOptions {
   double consistency_translation = 0.05;  // metres between confirming map-to-map transforms
   double consistency_rotation_deg = 3.0;
   int exclude_recent_keyframes = 25;    // same-agent neighbours in id that never count as loops
-  int loop_cooldown_keyframes = 10;     // after a loop, the agent's next keyframes skip detection
+  int loop_cooldown_keyframes = 10;     // after a loop, the agent's next keyframes seek no loop in their own map
   MapPoseGraphOptions pose_graph;
   bool global_ba = true;
   int global_ba_iterations = 10;
