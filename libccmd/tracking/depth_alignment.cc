@@ -80,6 +80,7 @@ std::optional<DepthAlignment> AlignDepth(const DepthModel& source, const DepthMo
   Pose T = T_target_source;
   DepthAlignment result;
   bool settled = false;
+  double last_rotation_step = 0, last_translation_step = 0;
   for (int it = 0; it < options.iterations; ++it) {
     const double max_distance = it < options.iterations / 2 ? options.max_distance : 0.5 * options.max_distance;
     Matrix6d H = Matrix6d::Zero();
@@ -125,13 +126,17 @@ std::optional<DepthAlignment> AlignDepth(const DepthModel& source, const DepthMo
     if (angle > 1e-12) step.linear() = Eigen::AngleAxisd(angle, xi.head<3>() / angle).toRotationMatrix();
     step.translation() = xi.tail<3>();
     T = step * T;
-    if (xi.head<3>().norm() < 1e-5 && xi.tail<3>().norm() < 1e-5 && it >= options.iterations / 2) {
+    last_rotation_step = xi.head<3>().norm();
+    last_translation_step = xi.tail<3>().norm();
+    if (last_rotation_step < 1e-5 && last_translation_step < 1e-5 && it >= options.iterations / 2) {
       settled = true;
       break;
     }
   }
-  // Not settled in the iterations given: the last step must at least be small.
-  if (!settled && result.rms > 0.5 * options.max_distance) return std::nullopt;
+  // Not settled in the iterations given: still sliding along a weakly constrained direction
+  // is fine (its information is small), but a last step of more than 5 mm or 5 mrad means the
+  // association has not converged.
+  if (!settled && (last_translation_step > 0.005 || last_rotation_step > 0.005)) return std::nullopt;
   result.T_target_source = T;
   return result;
 }
