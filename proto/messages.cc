@@ -8,9 +8,11 @@ namespace {
 
 constexpr std::uint8_t kHasParent = 1u << 0;
 constexpr std::uint8_t kHasRgbd = 1u << 1;
-constexpr std::uint8_t kKnownFlags = kHasParent | kHasRgbd;
+constexpr std::uint8_t kHasDepthLinks = 1u << 2;
+constexpr std::uint8_t kKnownFlags = kHasParent | kHasRgbd | kHasDepthLinks;
 
 constexpr std::size_t kPoseBytes = 7 * 4;
+constexpr std::size_t kDepthLinkBytes = 1 + kPoseBytes + 21 * 4;
 constexpr std::size_t kKeypointBytes = 8;
 constexpr std::size_t kDescriptorBytes = 32;
 constexpr std::int16_t kPositionEscape = INT16_MIN;
@@ -113,6 +115,9 @@ StatusOr<std::vector<std::uint8_t>> SerializeKeyframe(const KeyframeMessage& m,
   if (m.covisibility.size() > limits.max_covisibility) {
     return InvalidArgument("too many covisibility links: " + std::to_string(m.covisibility.size()));
   }
+  if (m.depth_links.size() > limits.max_depth_links) {
+    return InvalidArgument("too many depth links: " + std::to_string(m.depth_links.size()));
+  }
   if (m.rgbd) {
     if (m.rgbd->downsample != 1 && m.rgbd->downsample != 2 && m.rgbd->downsample != 4) {
       return InvalidArgument("RGB-D downsample must be 1, 2 or 4");
@@ -136,7 +141,8 @@ StatusOr<std::vector<std::uint8_t>> SerializeKeyframe(const KeyframeMessage& m,
     mark = w.size();
   };
 
-  w.PutU8(static_cast<std::uint8_t>((m.parent ? kHasParent : 0) | (m.rgbd ? kHasRgbd : 0)));
+  w.PutU8(static_cast<std::uint8_t>((m.parent ? kHasParent : 0) | (m.rgbd ? kHasRgbd : 0) |
+                                    (m.depth_links.empty() ? 0 : kHasDepthLinks)));
   w.PutVarint(m.id.value());
   w.PutF64(m.timestamp);
   account(&b.other);
@@ -208,6 +214,20 @@ StatusOr<std::vector<std::uint8_t>> SerializeKeyframe(const KeyframeMessage& m,
     w.PutVarint(c.weight);
   }
   account(&b.other);
+
+  if (!m.depth_links.empty()) {
+    w.PutVarint(m.depth_links.size());
+    for (const DepthLink& l : m.depth_links) {
+      if (!Finite(l.T_this_other)) return InvalidArgument("depth link pose is not finite");
+      for (float v : l.information) {
+        if (!std::isfinite(v)) return InvalidArgument("depth link information is not finite");
+      }
+      w.PutSignedVarint(static_cast<std::int64_t>(l.keyframe.value()) - m.id.value());
+      PutPose(l.T_this_other, &w);
+      for (float v : l.information) w.PutF32(v);
+    }
+    account(&b.other);
+  }
 
   if (m.rgbd) {
     w.PutU8(m.rgbd->downsample);
@@ -326,6 +346,24 @@ StatusOr<KeyframeMessage> ParseKeyframe(ByteSpan payload, const MessageLimits& l
     CCMD_RETURN_IF_ERROR(ApplyDelta(id, delta, "covisible keyframe", &other));
     c.keyframe = KeyframeId(other);
     CCMD_RETURN_IF_ERROR(r.ReadVarint32(&c.weight));
+  }
+
+  if (flags & kHasDepthLinks) {
+    CCMD_RETURN_IF_ERROR(ReadCount(&r, limits.max_depth_links, kDepthLinkBytes, "depth link count", &n));
+    if (n == 0) return Corrupt("depth link section without links");
+    m.depth_links.resize(n);
+    for (DepthLink& l : m.depth_links) {
+      std::int64_t delta;
+      std::uint32_t other;
+      CCMD_RETURN_IF_ERROR(r.ReadSignedVarint(&delta));
+      CCMD_RETURN_IF_ERROR(ApplyDelta(id, delta, "depth link keyframe", &other));
+      l.keyframe = KeyframeId(other);
+      CCMD_RETURN_IF_ERROR(ReadPose(&r, &l.T_this_other));
+      for (float& v : l.information) {
+        CCMD_RETURN_IF_ERROR(r.ReadF32(&v));
+        if (!std::isfinite(v)) return Corrupt("depth link information is not finite");
+      }
+    }
   }
 
   if (flags & kHasRgbd) {

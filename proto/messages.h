@@ -17,6 +17,7 @@
 //   new map point position             1 mm per coordinate (error <= 0.5 mm) within
 //                                      +-32.767 m of the camera; beyond that the point is
 //                                      sent as three float32 metres instead (an escape)
+//   depth link pose and information      float32
 //   everything else (ids, timestamp, octave, descriptors, links, weights, RGB-D bytes): exact
 
 #include <array>
@@ -62,6 +63,16 @@ struct CovisibilityLink {
   std::uint32_t weight = 0;  // map points shared with that keyframe
 };
 
+// A dense depth alignment the agent measured between this keyframe and an earlier one it sent
+// (libccmd/tracking/depth_alignment.h): T_this_other, with the information of the relative
+// pose's perturbation (rotation, then translation) as the upper triangle of the 6x6 matrix,
+// row by row (21 values), already weighted as the agent's local BA uses it.
+struct DepthLink {
+  KeyframeId keyframe;
+  WirePose T_this_other;
+  std::array<float, 21> information{};
+};
+
 // Optional dense payload. The depth bytes are a self-describing libccmd/codec bitstream;
 // the two fields before them let a receiver route it without decoding.
 struct RgbdPayload {
@@ -79,6 +90,7 @@ struct KeyframeMessage {
   std::vector<WireKeypoint> keypoints;
   std::vector<NewMapPoint> new_map_points;
   std::vector<CovisibilityLink> covisibility;
+  std::vector<DepthLink> depth_links;  // flag bit 2; empty: the section is absent
   std::optional<RgbdPayload> rgbd;
 };
 
@@ -97,6 +109,7 @@ struct MessageLimits {
   std::uint32_t max_keypoints = 65535;
   std::uint32_t max_new_map_points = 65535;
   std::uint32_t max_covisibility = 65535;
+  std::uint32_t max_depth_links = 64;
   std::uint32_t max_colour_bytes = 8u << 20;
   std::uint32_t max_depth_bytes = 8u << 20;
   std::uint32_t max_pose_updates = 1u << 20;

@@ -1,5 +1,6 @@
 #include "libccmd/backend/ingest.h"
 
+#include "libccmd/optim/bundle_adjuster.h"
 #include "libccmd/util/logging.h"
 
 namespace ccmd {
@@ -71,6 +72,14 @@ StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent, cons
     if (ServerKeyframe* other = map->keyframe({agent, link.keyframe})) {
       map->AddCovisibility(raw, other, static_cast<int>(link.weight));
     }
+  }
+  for (const DepthLink& link : m.depth_links) {
+    Eigen::Matrix<double, 6, 6> information;
+    int k = 0;
+    for (int r = 0; r < 6; ++r) {
+      for (int c = r; c < 6; ++c) information(r, c) = information(c, r) = link.information[k++];
+    }
+    raw->depth_links.push_back({{agent, link.keyframe}, PoseFromWire(link.T_this_other), SqrtInformation(information)});
   }
   return raw;
 }

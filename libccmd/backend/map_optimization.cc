@@ -69,6 +69,15 @@ GlobalBaProblem BuildGlobalBa(const ServerMap& map, const std::map<AgentId, Pinh
     g.T_map_cam_before[id] = kf->T_map_cam;
     g.problem.cameras.push_back({kf->T_map_cam.inverse(), map.origin() && id == *map.origin(), c->second});
   }
+  // The agents' dense depth alignments between keyframes both in this map.
+  for (const auto& [id, kf] : map.keyframes()) {
+    const auto b = camera_index.find(kf.get());
+    if (b == camera_index.end()) continue;
+    for (const ServerKeyframe::DepthLink& link : kf->depth_links) {
+      const auto a = camera_index.find(map.keyframe(link.other));
+      if (a != camera_index.end()) g.problem.relative_poses.push_back({a->second, b->second, link.T_this_other, link.sqrt_information});
+    }
+  }
   // Points: collected through the keyframes (each once), kept if seen at least twice.
   std::unordered_map<const ServerMapPoint*, int> point_index;
   for (const auto& [id, kf] : map.keyframes()) {

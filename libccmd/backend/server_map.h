@@ -62,6 +62,14 @@ class ServerKeyframe {
   std::vector<Descriptor> descriptors;      // per keypoint (linked ones: the point's)
   std::vector<ServerMapPoint*> points;      // per keypoint, may be null
   std::map<GlobalKeyframeId, int> covisibility;  // weights, symmetric
+  // Dense depth alignments its agent measured with earlier keyframes of its own (the global BA
+  // weighs them as the agent's local BA does).
+  struct DepthLink {
+    GlobalKeyframeId other;
+    Pose T_this_other;
+    Eigen::Matrix<double, 6, 6> sqrt_information;
+  };
+  std::vector<DepthLink> depth_links;
   // Dense data while the keyframe's map is not fused into the primary map.
   cv::Mat rgbd_bgr, rgbd_depth_mm;
   int rgbd_downsample = 0;  // 0: no RGB-D was sent

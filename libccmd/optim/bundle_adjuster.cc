@@ -4,6 +4,8 @@
 
 #include <cmath>
 
+#include <Eigen/Eigenvalues>
+
 #include "libccmd/util/logging.h"
 #include "libccmd/util/timer.h"
 
@@ -56,6 +58,12 @@ bool IsOutlier(const BaObservation& o, const Intrinsics& k, const Pose& T, const
 }
 
 }  // namespace
+
+Eigen::Matrix<double, 6, 6> SqrtInformation(const Eigen::Matrix<double, 6, 6>& information) {
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 6, 6>> eigen(information);
+  const Eigen::Matrix<double, 6, 1> d = eigen.eigenvalues().cwiseMax(0.0).cwiseSqrt();
+  return d.asDiagonal() * eigen.eigenvectors().transpose();
+}
 
 BaSummary BundleAdjust(BaProblem* problem, const BaOptions& options) {
   const Stopwatch watch;

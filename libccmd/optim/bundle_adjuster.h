@@ -43,6 +43,10 @@ struct BaRelativePose {
   Eigen::Matrix<double, 6, 6> sqrt_information = Eigen::Matrix<double, 6, 6>::Identity();
 };
 
+// D^(1/2) V^T of an information matrix V D V^T, negative eigenvalues (round-off) clamped to
+// zero: the sqrt_information of a BaRelativePose. Directions without information stay free.
+Eigen::Matrix<double, 6, 6> SqrtInformation(const Eigen::Matrix<double, 6, 6>& information);
+
 struct BaProblem {
   std::vector<Intrinsics> calibrations;  // at least one
   std::vector<BaCamera> cameras;

@@ -43,6 +43,16 @@ StatusOr<KeyframeMessage> ToKeyframeMessage(const KeyframeSnapshot& s, const Rgb
     n.descriptor = p.descriptor;
     m.new_map_points.push_back(n);
   }
+  for (const KeyframeSnapshot::DepthLink& l : s.depth_links) {
+    DepthLink link;
+    link.keyframe = l.other;
+    link.T_this_other = ToWirePose(l.T_this_other);
+    int k = 0;
+    for (int r = 0; r < 6; ++r) {
+      for (int c = r; c < 6; ++c) link.information[k++] = static_cast<float>(l.information(r, c));
+    }
+    m.depth_links.push_back(link);
+  }
   for (const auto& [id, weight] : s.covisibility) {
     m.covisibility.push_back({id, static_cast<std::uint32_t>(weight)});
   }

@@ -46,6 +46,14 @@ struct KeyframeSnapshot {
   };
   std::vector<NewPoint> new_points;
   std::vector<std::pair<KeyframeId, int>> covisibility;  // emitted neighbours and weights
+  // Dense depth alignments with emitted keyframes: T_this_other and its information (as the
+  // local BA weighs it; perturbation order rotation, translation).
+  struct DepthLink {
+    KeyframeId other;
+    Pose T_this_other;
+    Eigen::Matrix<double, 6, 6> information;
+  };
+  std::vector<DepthLink> depth_links;
 
   bool has_rgbd = false;
   cv::Mat bgr, depth_mm;  // full resolution; the codec downsamples

@@ -4,8 +4,6 @@
 #include <unordered_map>
 #include <unordered_set>
 
-#include <Eigen/Eigenvalues>
-
 #include "libccmd/optim/bundle_adjuster.h"
 #include "libccmd/tracking/depth_alignment.h"
 #include "libccmd/tracking/matching.h"
@@ -239,12 +237,9 @@ void LocalMapper::AlignWithNeighbours(Keyframe* keyframe) {
       ++failed;
       continue;
     }
-    // sqrt_information = D^(1/2) V^T of the (weighted) information V D V^T; directions the
-    // geometry does not constrain have eigenvalues near zero and add nothing.
-    const Eigen::SelfAdjointEigenSolver<Matrix6d> eigen(options_.depth_alignment_weight * aligned->information);
-    const Eigen::Matrix<double, 6, 1> d = eigen.eigenvalues().cwiseMax(0.0).cwiseSqrt();
+    // Directions the geometry does not constrain have eigenvalues near zero and add nothing.
     depth_edges_.push_back({job.id, keyframe->id(), aligned->T_target_source,
-                            d.asDiagonal() * eigen.eigenvectors().transpose()});
+                            SqrtInformation(options_.depth_alignment_weight * aligned->information)});
     ++accepted;
   }
   std::lock_guard<std::mutex> lock(stats_mutex_);
@@ -455,6 +450,13 @@ bool LocalMapper::Emit(Keyframe* keyframe, KeyframeSnapshot* s, std::vector<Pose
   for (std::size_t r = 0; r < rows.size(); ++r) f.descriptors.row(rows[r]).copyTo(s->descriptors.row(static_cast<int>(r)));
   for (const auto& [kf, weight] : keyframe->connections()) {
     if (kf->emitted) s->covisibility.emplace_back(kf->id(), weight);
+  }
+  for (const DepthEdge& e : depth_edges_) {
+    if (e.b != keyframe->id()) continue;
+    const KeyframePtr other = map_->keyframe(e.a);
+    if (other && other->emitted) {
+      s->depth_links.push_back({e.a, e.T_b_a, e.sqrt_information.transpose() * e.sqrt_information});
+    }
   }
   s->keypoints_extracted = f.size();
   s->image_width = camera_.width;

@@ -1,5 +1,6 @@
 #include "libccmd/backend/ingest.h"
 #include "libccmd/backend/map_manager.h"
+#include "libccmd/backend/map_optimization.h"
 
 #include <gtest/gtest.h>
 
@@ -69,6 +70,41 @@ TEST(ServerMapTest, KeyframesFollowTheAgentsRelativeMotionAndPoseUpdates) {
   EXPECT_LT((point->World() - (*k1)->T_map_cam * Eigen::Vector3d(0, 0, 2)).norm(), 1e-6);
   // Duplicate keyframe ids are refused.
   EXPECT_FALSE(AddKeyframeMessage(&map, agent, Message(1, T1, 0), Pose::Identity()).ok());
+}
+
+// A keyframe's depth links reach the global BA as relative poses between the right cameras,
+// with the information the agent sent; a link to a keyframe the map does not hold is dropped.
+TEST(ServerMapTest, DepthLinksBecomeRelativePosesInTheGlobalBa) {
+  ServerMap map(MapId(1));
+  const AgentId agent(1);
+  const Pose T0 = MakePose(0.1, {1, 2, 0}), T1 = MakePose(0.3, {1.5, 2, 0.1});
+  ASSERT_TRUE(AddKeyframeMessage(&map, agent, Message(0, T0, std::nullopt), Pose::Identity()).ok());
+  KeyframeMessage m1 = Message(1, T1, 0);
+  Eigen::Matrix<double, 6, 6> information = Eigen::Matrix<double, 6, 6>::Zero();
+  for (int i = 0; i < 6; ++i) information(i, i) = 100.0 * (i + 1);
+  information(0, 3) = information(3, 0) = 20.0;
+  DepthLink link;
+  link.keyframe = KeyframeId(0);
+  link.T_this_other = ToWire(T1.inverse() * T0);
+  int k = 0;
+  for (int r = 0; r < 6; ++r) {
+    for (int c = r; c < 6; ++c) link.information[k++] = static_cast<float>(information(r, c));
+  }
+  DepthLink missing = link;
+  missing.keyframe = KeyframeId(7);
+  m1.depth_links = {link, missing};
+  auto k1 = AddKeyframeMessage(&map, agent, m1, Pose::Identity());
+  ASSERT_TRUE(k1.ok());
+  ASSERT_EQ((*k1)->depth_links.size(), 2u);
+  const auto& stored = (*k1)->depth_links[0];
+  EXPECT_LT(((stored.sqrt_information.transpose() * stored.sqrt_information) - information).norm(), 1e-3);
+
+  const GlobalBaProblem g = BuildGlobalBa(map, {{agent, PinholeCamera()}}, DepthNoise());
+  ASSERT_EQ(g.problem.relative_poses.size(), 1u);
+  const BaRelativePose& r = g.problem.relative_poses[0];
+  EXPECT_EQ(g.keyframes[r.camera_a], (GlobalKeyframeId{agent, KeyframeId(0)}));
+  EXPECT_EQ(g.keyframes[r.camera_b], (GlobalKeyframeId{agent, KeyframeId(1)}));
+  EXPECT_LT(TranslationDistance(r.T_b_a, T1.inverse() * T0), 1e-6);
 }
 
 TEST(MapManagerTest, FusionPlacesTheOtherMapByTheTransform) {

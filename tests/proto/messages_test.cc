@@ -325,6 +325,38 @@ TEST(MessagesTest, UnknownFlagsAndBadFieldsAreCorrupt) {
   EXPECT_EQ(ParseKeyframe(rgbd).status().code(), StatusCode::kCorrupt);
 }
 
+// Depth links: flag bit 2, then a count and per link the keyframe delta, pose and 21 float32s;
+// the values come back as float32, and a keyframe without links has no section at all.
+TEST(MessagesTest, DepthLinksRoundTripAndCostTheirBytes) {
+  KeyframeMessage m = RandomKeyframe(5, 20);
+  const Bytes without = *SerializeKeyframe(m);
+  EXPECT_EQ(without[0] & 0x04, 0);
+  DepthLink link;
+  link.keyframe = KeyframeId(m.id.value() - 3);
+  link.T_this_other.q_xyzw = {0, 0, std::sin(0.05), std::cos(0.05)};
+  link.T_this_other.t = {0.1, -0.02, 0.3};
+  for (int i = 0; i < 21; ++i) link.information[i] = 1000.0f * (i + 1) + 0.125f;
+  m.depth_links = {link, link};
+  m.depth_links[1].keyframe = KeyframeId(m.id.value() - 1);
+  const Bytes with = *SerializeKeyframe(m);
+  EXPECT_EQ(with[0] & 0x04, 0x04);
+  EXPECT_EQ(with.size(), without.size() + 1 + 2 * (1 + 28 + 21 * 4));
+  auto back = ParseKeyframe(with);
+  ASSERT_TRUE(back.ok()) << back.status().ToString();
+  ASSERT_EQ(back->depth_links.size(), 2u);
+  EXPECT_EQ(back->depth_links[0].keyframe, link.keyframe);
+  EXPECT_EQ(back->depth_links[1].keyframe, KeyframeId(m.id.value() - 1));
+  for (int i = 0; i < 21; ++i) EXPECT_EQ(back->depth_links[0].information[i], link.information[i]);
+  for (int i = 0; i < 3; ++i) ExpectFloatRounded(link.T_this_other.t[i], back->depth_links[0].T_this_other.t[i]);
+  EXPECT_EQ(back->keypoints.size(), m.keypoints.size());
+  // Every truncation of the section is an error; a non-finite value cannot be sent.
+  for (std::size_t n = without.size() - 1; n < with.size(); ++n) {
+    EXPECT_EQ(ParseKeyframe(ByteSpan(with.data(), n)).status().code(), StatusCode::kCorrupt) << n;
+  }
+  m.depth_links[0].information[7] = std::nanf("");
+  EXPECT_EQ(SerializeKeyframe(m).status().code(), StatusCode::kInvalidArgument);
+}
+
 TEST(MessagesTest, RandomBitFlipsNeverCrash) {
   const Bytes bytes = *SerializeKeyframe(RandomKeyframe(9, 50));
   Rng rng(99);

@@ -87,6 +87,7 @@ TEST(FrontendTest, SinkGetsEveryKeyframeOnceWithConsistentLinks) {
   ASSERT_FALSE(r.sink.keyframes.empty());
   std::set<std::uint32_t> ids;
   std::set<std::uint32_t> sent_points;
+  int depth_links = 0;
   for (const KeyframeSnapshot& k : r.sink.keyframes) {
     EXPECT_TRUE(ids.insert(k.id.value()).second) << "keyframe sent twice";
     ASSERT_EQ(k.point_ids.size(), k.keypoints.size());
@@ -109,8 +110,16 @@ TEST(FrontendTest, SinkGetsEveryKeyframeOnceWithConsistentLinks) {
       }
     }
     for (const auto& [neighbour, weight] : k.covisibility) EXPECT_TRUE(ids.count(neighbour.value()));
+    // Depth links go to keyframes sent before, with a usable information matrix.
+    for (const auto& link : k.depth_links) {
+      EXPECT_TRUE(ids.count(link.other.value()) && link.other != k.id) << "depth link to an unsent keyframe";
+      EXPECT_TRUE(link.information.allFinite());
+      EXPECT_GT(link.information.trace(), 0);
+      ++depth_links;
+    }
     EXPECT_EQ(k.has_rgbd, !k.bgr.empty());
   }
+  EXPECT_GT(depth_links, static_cast<int>(r.sink.keyframes.size()));  // several per keyframe
   EXPECT_TRUE(r.sink.keyframes.front().has_rgbd);  // nothing was sent before the first
   for (const PoseUpdate& u : r.sink.updates) EXPECT_TRUE(ids.count(u.id.value()));
 }
