@@ -80,6 +80,13 @@ Status ApplyDelta(std::uint64_t base, std::int64_t delta, const char* what, std:
   return Status::Ok();
 }
 
+// Reads a signed varint delta and applies it to `base` (ApplyDelta).
+Status ReadDelta(ByteReader* r, std::uint64_t base, const char* what, std::uint32_t* id) {
+  std::int64_t delta;
+  CCMD_RETURN_IF_ERROR(r->ReadSignedVarint(&delta));
+  return ApplyDelta(base, delta, what, id);
+}
+
 }  // namespace
 
 std::int16_t QuantizePixel(float u) { return static_cast<std::int16_t>(std::lround(u * 8.0f)); }
@@ -260,10 +267,8 @@ StatusOr<KeyframeMessage> ParseKeyframe(ByteSpan payload, const MessageLimits& l
   if (!std::isfinite(m.timestamp)) return Corrupt("keyframe timestamp is not finite");
   CCMD_RETURN_IF_ERROR(ReadPose(&r, &m.T_world_cam));
   if (flags & kHasParent) {
-    std::int64_t delta;
     std::uint32_t parent;
-    CCMD_RETURN_IF_ERROR(r.ReadSignedVarint(&delta));
-    CCMD_RETURN_IF_ERROR(ApplyDelta(id, delta, "parent keyframe", &parent));
+    CCMD_RETURN_IF_ERROR(ReadDelta(&r, id, "parent keyframe", &parent));
     m.parent = KeyframeId(parent);
   }
 
@@ -314,10 +319,8 @@ StatusOr<KeyframeMessage> ParseKeyframe(ByteSpan payload, const MessageLimits& l
   m.new_map_points.resize(n);
   previous = 0;
   for (NewMapPoint& p : m.new_map_points) {
-    std::int64_t delta;
     std::uint32_t point;
-    CCMD_RETURN_IF_ERROR(r.ReadSignedVarint(&delta));
-    CCMD_RETURN_IF_ERROR(ApplyDelta(previous, delta, "new map point", &point));
+    CCMD_RETURN_IF_ERROR(ReadDelta(&r, previous, "new map point", &point));
     p.id = MapPointId(point);
     previous = point;
     std::int16_t x;
@@ -340,10 +343,8 @@ StatusOr<KeyframeMessage> ParseKeyframe(ByteSpan payload, const MessageLimits& l
       ReadCount(&r, limits.max_covisibility, kMinCovisibilityBytes, "covisibility count", &n));
   m.covisibility.resize(n);
   for (CovisibilityLink& c : m.covisibility) {
-    std::int64_t delta;
     std::uint32_t other;
-    CCMD_RETURN_IF_ERROR(r.ReadSignedVarint(&delta));
-    CCMD_RETURN_IF_ERROR(ApplyDelta(id, delta, "covisible keyframe", &other));
+    CCMD_RETURN_IF_ERROR(ReadDelta(&r, id, "covisible keyframe", &other));
     c.keyframe = KeyframeId(other);
     CCMD_RETURN_IF_ERROR(r.ReadVarint32(&c.weight));
   }
@@ -353,10 +354,8 @@ StatusOr<KeyframeMessage> ParseKeyframe(ByteSpan payload, const MessageLimits& l
     if (n == 0) return Corrupt("depth link section without links");
     m.depth_links.resize(n);
     for (DepthLink& l : m.depth_links) {
-      std::int64_t delta;
       std::uint32_t other;
-      CCMD_RETURN_IF_ERROR(r.ReadSignedVarint(&delta));
-      CCMD_RETURN_IF_ERROR(ApplyDelta(id, delta, "depth link keyframe", &other));
+      CCMD_RETURN_IF_ERROR(ReadDelta(&r, id, "depth link keyframe", &other));
       l.keyframe = KeyframeId(other);
       CCMD_RETURN_IF_ERROR(ReadPose(&r, &l.T_this_other));
       for (float& v : l.information) {
@@ -412,10 +411,8 @@ StatusOr<PoseUpdateMessage> ParsePoseUpdate(ByteSpan payload, const MessageLimit
   m.entries.resize(n);
   std::uint64_t previous = 0;
   for (PoseUpdateEntry& e : m.entries) {
-    std::int64_t delta;
     std::uint32_t id;
-    CCMD_RETURN_IF_ERROR(r.ReadSignedVarint(&delta));
-    CCMD_RETURN_IF_ERROR(ApplyDelta(previous, delta, "pose update keyframe", &id));
+    CCMD_RETURN_IF_ERROR(ReadDelta(&r, previous, "pose update keyframe", &id));
     e.keyframe = KeyframeId(id);
     previous = id;
     CCMD_RETURN_IF_ERROR(ReadPose(&r, &e.T_world_cam));

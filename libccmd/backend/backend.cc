@@ -310,26 +310,8 @@ void Backend::DetectLoop(const GlobalKeyframeId& id, bool stored) {
     descriptors = DescriptorsOf(*query);
     const auto cooldown = loop_cooldown_until_.find(agent);
     in_cooldown = cooldown != loop_cooldown_until_.end() && id.keyframe <= cooldown->second;
-    // The weakest score between the query and its covisible keyframes: a loop candidate
-    // must look at least as much like the query as its own neighbours do (ORB-SLAM).
-    double min_score = 1e9;
-    for (const auto& [other, weight] : query->covisibility) {
-      if (weight >= 30) min_score = std::min(min_score, place_.Score(id, other));
-    }
-    if (min_score == 1e9) min_score = 0;
-    const std::map<GlobalKeyframeId, int> connected = query->covisibility;
-    const int exclude = options_.exclude_recent_keyframes;
-    candidates = place_.Query(descriptors, options_.loop_candidates * 3, [&](const GlobalKeyframeId& c) {
-      if (c == id || connected.count(c)) return false;
-      if (c.agent == agent &&
-          std::abs(static_cast<long>(c.keyframe.value()) - static_cast<long>(id.keyframe.value())) <= exclude) {
-        return false;
-      }
-      return true;
-    });
-    candidates.erase(std::remove_if(candidates.begin(), candidates.end(),
-                                    [&](const PlaceHit& c) { return c.score < min_score; }),
-                     candidates.end());
+    const LoopCandidateRule rule = MakeLoopCandidateRule(place_, id, *query, options_.exclude_recent_keyframes);
+    candidates = QueryLoopCandidates(place_, descriptors, rule, options_.loop_candidates * 3);
   }
   // The cool-down after a loop holds back further loops inside the map only: a keyframe that
   // sees another agent's map can still fuse the two (an agent that closes a loop just before

@@ -1,6 +1,7 @@
 #include "libccmd/backend/loop_verification.h"
 
 #include <algorithm>
+#include <cmath>
 #include <limits>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/core/eigen.hpp>
@@ -9,6 +10,35 @@
 #include "libccmd/optim/pose_optimizer.h"
 
 namespace ccmd {
+
+bool LoopCandidateRule::Allowed(const GlobalKeyframeId& c) const {
+  if (c == query || connected.count(c)) return false;
+  return c.agent != query.agent ||
+         std::abs(static_cast<long>(c.keyframe.value()) - static_cast<long>(query.keyframe.value())) > exclude_recent;
+}
+
+LoopCandidateRule MakeLoopCandidateRule(const PlaceIndex& place, const GlobalKeyframeId& id,
+                                        const ServerKeyframe& query, int exclude_recent) {
+  LoopCandidateRule rule;
+  rule.query = id;
+  rule.connected = query.covisibility;
+  rule.exclude_recent = exclude_recent;
+  double min_score = 1e9;
+  for (const auto& [other, weight] : query.covisibility) {
+    if (weight >= 30) min_score = std::min(min_score, place.Score(id, other));
+  }
+  rule.min_score = min_score == 1e9 ? 0 : min_score;
+  return rule;
+}
+
+std::vector<PlaceHit> QueryLoopCandidates(const PlaceIndex& place, const std::vector<Descriptor>& descriptors,
+                                          const LoopCandidateRule& rule, int max_results) {
+  std::vector<PlaceHit> hits =
+      place.Query(descriptors, max_results, [&rule](const GlobalKeyframeId& c) { return rule.Allowed(c); });
+  hits.erase(std::remove_if(hits.begin(), hits.end(), [&](const PlaceHit& h) { return h.score < rule.min_score; }),
+             hits.end());
+  return hits;
+}
 
 CCMD_POPCNT_CLONES std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& camera,
                                     ServerKeyframe* candidate, const ServerMap& candidate_map,

@@ -7,11 +7,29 @@
 
 #include <vector>
 
+#include "libccmd/backend/place_index.h"
 #include "libccmd/backend/server_map.h"
 #include "libccmd/geometry/camera.h"
 #include "libccmd/optim/reprojection.h"
 
 namespace ccmd {
+
+// Which indexed keyframes may be loop candidates of a query (ORB-SLAM's rules): not the query,
+// not one it is covisible with, not one of its own agent's `exclude_recent` nearest keyframes
+// (the same pass), and, for a hit of the place index, a score at least as high as the weakest
+// between the query and its well-connected neighbours (covisibility >= 30).
+struct LoopCandidateRule {
+  GlobalKeyframeId query;
+  std::map<GlobalKeyframeId, int> connected;
+  int exclude_recent = 0;
+  double min_score = 0;
+  bool Allowed(const GlobalKeyframeId& candidate) const;
+};
+LoopCandidateRule MakeLoopCandidateRule(const PlaceIndex& place, const GlobalKeyframeId& id,
+                                        const ServerKeyframe& query, int exclude_recent);
+// The place index's best hits that pass the rule, best first, at most `max_results`.
+std::vector<PlaceHit> QueryLoopCandidates(const PlaceIndex& place, const std::vector<Descriptor>& descriptors,
+                                          const LoopCandidateRule& rule, int max_results);
 
 struct LoopVerificationOptions {
   int window_keyframes = 10;       // candidate + this many covisible neighbours

@@ -7,6 +7,18 @@
 
 namespace ccmd {
 
+Json KeyframePartsJson(const KeyframeSizeBreakdown& parts) {
+  Json j = Json::MakeObject();
+  j["pose"] = parts.pose;
+  j["keypoints"] = parts.keypoints;
+  j["descriptors"] = parts.descriptors;
+  j["map_points"] = parts.map_points;
+  j["colour"] = parts.colour;
+  j["depth"] = parts.depth;
+  j["other"] = parts.other;
+  return j;
+}
+
 TrafficStats::TrafficStats(TrafficOptions options, double start_time)
     : options_(options), start_(start_time >= 0 ? start_time : MonotonicSeconds()) {}
 
@@ -156,15 +168,7 @@ Json TrafficStats::ToJson(double now) const {
     j["messages"] = messages;
     j["wire_overhead_bytes"] = a.wire_overhead_bytes;
     j["duplicates"] = Counter(a.duplicates);
-    Json parts = Json::MakeObject();
-    parts["pose"] = a.keyframe_parts.pose;
-    parts["keypoints"] = a.keyframe_parts.keypoints;
-    parts["descriptors"] = a.keyframe_parts.descriptors;
-    parts["map_points"] = a.keyframe_parts.map_points;
-    parts["colour"] = a.keyframe_parts.colour;
-    parts["depth"] = a.keyframe_parts.depth;
-    parts["other"] = a.keyframe_parts.other;
-    j["keyframe_parts_bytes"] = parts;
+    j["keyframe_parts_bytes"] = KeyframePartsJson(a.keyframe_parts);
     const double data_bytes = static_cast<double>(a.keyframes.bytes + a.pose_updates.bytes);
     j["average_traffic_bytes_per_s"] = Ratio(data_bytes, connected);
     j["average_keyframe_bytes"] =

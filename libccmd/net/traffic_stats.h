@@ -28,6 +28,10 @@
 
 namespace ccmd {
 
+// Bytes per keyframe part as JSON ("pose", "keypoints", "descriptors", "map_points", "colour",
+// "depth", "other"): the agent's link statistics and the server's traffic report share it.
+Json KeyframePartsJson(const KeyframeSizeBreakdown& parts);
+
 struct TrafficOptions {
   double bucket_seconds = 1.0;
   // Per agent; beyond this the oldest buckets are dropped (the totals keep everything), so

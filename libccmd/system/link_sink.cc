@@ -4,6 +4,7 @@
 
 #include <cctype>
 
+#include "libccmd/net/traffic_stats.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/timer.h"
 
@@ -86,15 +87,7 @@ Json LinkSink::StatsJson() const {
   j["keyframe_bytes_mean"] = s.keyframes ? static_cast<double>(s.keyframe_bytes) / s.keyframes : 0.0;
   j["encode_ms_mean"] = s.keyframes ? s.encode_ms_total / s.keyframes : 0.0;
   j["failed"] = s.failed;
-  Json parts;
-  parts["pose"] = s.parts.pose;
-  parts["keypoints"] = s.parts.keypoints;
-  parts["descriptors"] = s.parts.descriptors;
-  parts["map_points"] = s.parts.map_points;
-  parts["colour"] = s.parts.colour;
-  parts["depth"] = s.parts.depth;
-  parts["other"] = s.parts.other;
-  j["keyframe_parts_bytes"] = parts;
+  j["keyframe_parts_bytes"] = KeyframePartsJson(s.parts);
   j["keypoints_sent"] = s.keypoints_sent;
   j["keypoints_extracted"] = s.keypoints_extracted;
   j["new_points"] = s.new_points;

@@ -231,32 +231,16 @@ class OfflineDetector {
     if (!query) return;
     const bool ready = place_.ready();
     std::vector<PlaceHit> hits;
-    std::function<bool(const GlobalKeyframeId&)> accept;
+    LoopCandidateRule rule;
     if (ready) {
-      double min_score = 1e9;
-      for (const auto& [other, weight] : query->covisibility) {
-        if (weight >= 30) min_score = std::min(min_score, place_.Score(id, other));
-      }
-      if (min_score == 1e9) min_score = 0;
-      const std::map<GlobalKeyframeId, int> connected = query->covisibility;
-      const int exclude = options_.exclude_recent_keyframes;
-      accept = [id, connected, exclude](const GlobalKeyframeId& c) {
-        if (c == id || connected.count(c)) return false;
-        if (c.agent == id.agent &&
-            std::abs(static_cast<long>(c.keyframe.value()) - static_cast<long>(id.keyframe.value())) <= exclude) {
-          return false;
-        }
-        return true;
-      };
-      hits = place_.Query(query->descriptors, options_.loop_candidates * 3, accept);
-      hits.erase(std::remove_if(hits.begin(), hits.end(), [&](const PlaceHit& h) { return h.score < min_score; }),
-                 hits.end());
+      rule = MakeLoopCandidateRule(place_, id, *query, options_.exclude_recent_keyframes);
+      hits = QueryLoopCandidates(place_, query->descriptors, rule, options_.loop_candidates * 3);
     }
     // What the index held when the query ran: the allowed candidates, and among them revisits.
     bool revisit = false;
     if (ready && truth_.Has(id)) {
       for (const GlobalKeyframeId& other : indexed_) {
-        if (accept(other) && truth_.SamePlace(id, other)) {
+        if (rule.Allowed(other) && truth_.SamePlace(id, other)) {
           revisit = true;
           break;
         }
