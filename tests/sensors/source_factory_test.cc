@@ -98,6 +98,15 @@ TEST(SourceFactoryTest, DatasetDepthIsRegisteredWhenTheConfigSaysHow) {
   ASSERT_EQ(frame.depth_mm.size(), expected.size());
   EXPECT_EQ(cv::countNonZero(frame.depth_mm != expected), 0);
   EXPECT_GT(cv::countNonZero(frame.depth_mm != raw.depth_mm), 100);  // registration moved the depth
+  // register_depth = false: the same config gives the frames as recorded.
+  SourceOptions as_recorded = options;
+  as_recorded.register_depth = false;
+  auto unregistered = OpenSource("tum:" + dir.path(), as_recorded);
+  ASSERT_TRUE(unregistered.ok()) << unregistered.status().ToString();
+  EXPECT_EQ((*unregistered)->Describe().find("registered"), std::string::npos);
+  RgbdFrame recorded;
+  ASSERT_TRUE((*unregistered)->Read(&recorded).ok());
+  EXPECT_EQ(cv::countNonZero(recorded.depth_mm != raw.depth_mm), 0);
 
   options.camera_config = write_config("wrong_size.yaml", 80);
   auto wrong = OpenSource("tum:" + dir.path(), options);
