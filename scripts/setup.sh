@@ -32,6 +32,8 @@ PACKAGES=(
   libgtest-dev libgmock-dev libbenchmark-dev libzstd-dev liblz4-dev
   # fuzzing (libFuzzer) and sanitizer runtimes
   clang libclang-rt-14-dev
+  # shaped evaluation links (ccmd_replay --link): ip netns, veth, tc tbf
+  iproute2
 )
 
 missing=()
