@@ -5,6 +5,7 @@
 #include <CLI/CLI.hpp>
 #include <atomic>
 #include <chrono>
+#include <cmath>
 #include <csignal>
 #include <cstdio>
 #include <thread>
@@ -68,6 +69,8 @@ ccmd::Json StatsJson(const ccmd::FrontendStats& s, double wall_seconds,
     e["tracked_points"] = d.tracked_points;
     e["threshold"] = d.threshold;
     e["covering"] = d.covering;
+    e["threshold_scale"] = d.request.threshold_scale;
+    e["allowed"] = d.request.allow;
     ccmd::Json considered = ccmd::Json::MakeArray();
     for (const auto& [id, w] : d.considered) considered.Push(ccmd::Json(ccmd::Json::Array{id.value(), w}));
     e["considered"] = considered;
@@ -85,7 +88,7 @@ int main(int argc, char** argv) {
       "or runs --offline and writes its trajectory (TUM format)."};
   std::string source_spec, config_path, segment_spec, trajectory_path, keyframe_trajectory_path,
       stats_path, rate = "max", server, record_dir, name, psk_file, spill_dir, progress_path;
-  double flush_timeout = 120.0;
+  double flush_timeout = 120.0, budget_kBps = 0, max_queue_s = 1.0, threshold_scale = 1.0;
   ccmd::RgbdEncodeOptions rgbd;
   bool offline = false, synchronous = false, rgbd_every_keyframe = false;
   int max_frames = 0, record_compression = 1;
@@ -114,6 +117,19 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   app.add_flag("--rgbd-every-keyframe", rgbd_every_keyframe,
                "Send RGB-D data with every keyframe (covisibility selection off; for comparisons)");
+  app.add_option("--rgbd-threshold-scale", threshold_scale,
+                 "Multiply the RGB-D selection's thresholds (S_min): below 1 fewer keyframes send RGB-D")
+      ->check(CLI::Range(0.05, 20.0))
+      ->capture_default_str();
+  app.add_option("--bandwidth-budget", budget_kBps,
+                 "Keep to KB_PER_S kilobytes (1000 bytes) per second: keyframe geometry always goes, the RGB-D "
+                 "selection and coding adapt to the budget and to what the link acknowledges, and the "
+                 "connection is paced at the budget (0: no budget)")
+      ->check(CLI::NonNegativeNumber);
+  app.add_option("--max-queue", max_queue_s,
+                 "With a budget: seconds of unacknowledged data beyond which keyframes go without RGB-D")
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
   app.add_option("--progress", progress_path, "Rewrite a small progress JSON about once a second");
   app.add_option("--trajectory", trajectory_path, "Write every tracked frame's pose (TUM format)");
   app.add_option("--keyframe-trajectory", keyframe_trajectory_path, "Write keyframe poses (TUM format)");
@@ -163,6 +179,13 @@ int main(int argc, char** argv) {
     tracking = *options;
   }
   if (rgbd_every_keyframe) tracking.rgbd_selection.enabled = false;
+  if (threshold_scale != 1.0) {
+    ccmd::RgbdSelectionOptions& s = tracking.rgbd_selection;
+    s.threshold_ratio = std::min(1.0, s.threshold_ratio * threshold_scale);
+    s.threshold_min_points = static_cast<int>(std::lround(s.threshold_min_points * threshold_scale));
+    s.min_threshold = static_cast<int>(std::lround(s.min_threshold * threshold_scale));
+  }
+  if (budget_kBps > 0 && offline) return Fail("--bandwidth-budget needs a server (not --offline)");
   std::unique_ptr<ccmd::TumRecorder> recorder;
   if (!record_dir.empty()) {
     ccmd::TumRecorderOptions record_options;
@@ -187,11 +210,22 @@ int main(int argc, char** argv) {
     if (!psk.ok()) return Fail(psk.status().ToString());
     link_options.psk = *psk;
     link_options.spill_dir = spill_dir.empty() ? "/tmp/ccmd_agent_spill_" + link_options.name : spill_dir;
+    link_options.max_send_bytes_per_s = budget_kBps * 1e3;
+    if (const std::string why = rgbd.Check(); !why.empty()) return Fail(why);
+    std::unique_ptr<ccmd::BandwidthBudget> budget;
+    if (budget_kBps > 0) {
+      ccmd::BandwidthBudgetOptions budget_options;
+      budget_options.budget_bytes_per_s = budget_kBps * 1e3;
+      budget_options.max_queue_s = max_queue_s;
+      if (const ccmd::Status s = budget_options.Validate(); !s.ok()) return Fail(s.ToString());
+      int default_level = 0;
+      auto ladder = ccmd::DefaultBudgetLadder(rgbd, &default_level);
+      budget = std::make_unique<ccmd::BandwidthBudget>(budget_options, std::move(ladder), default_level);
+    }
     auto created = ccmd::AgentLink::Create(link_options);
     if (!created.ok()) return Fail(created.status().ToString());
     link = std::move(created).value();
-    if (const std::string why = rgbd.Check(); !why.empty()) return Fail(why);
-    sink = std::make_unique<ccmd::LinkSink>(link.get(), rgbd);
+    sink = std::make_unique<ccmd::LinkSink>(link.get(), rgbd, std::move(budget));
     ccmd::SetLogTag(link_options.name);
     CCMD_LOG(INFO) << "sending to " << server << " as '" << link_options.name << "'";
   }
@@ -231,7 +265,7 @@ int main(int argc, char** argv) {
       p["frames"] = frames;
       p["total_frames"] = total;
       p["keyframes"] = (*frontend)->stats().keyframes;
-      if (sink) p["link"] = sink->StatsJson();
+      if (sink) p["link"] = sink->StatsJson(/*detailed=*/false);
       if (link) p["acked"] = link->stats().acked;
       ccmd::WriteJsonFile(p, progress_path).IgnoreError();
     }

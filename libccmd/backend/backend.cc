@@ -151,6 +151,10 @@ void Backend::Ingest(IngestItem item) {
     }
   }
   GlobalKeyframeId id{agent, message.id};
+  {
+    std::lock_guard<std::mutex> lock(stats_mutex_);
+    arrivals_.push_back({id, KeyframeArrival::Stage::kReceived, WallSeconds(), false});
+  }
   bool added = false;
   {
     MapManager::Guard guard = maps_.CheckOutAgent(agent);
@@ -185,13 +189,14 @@ void Backend::Ingest(IngestItem item) {
 
 // ---------------------------------------------------------------- dense
 
-void Backend::QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>& keyframes) {
+void Backend::QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>& keyframes, bool after_fusion) {
   if (!dense_) return;
   for (ServerKeyframe* kf : keyframes) {
     if (kf->in_dense || kf->rgbd_downsample == 0 || kf->rgbd_depth_mm.empty()) continue;
     DenseTask task;
     task.kind = DenseTask::Kind::kAdd;
     task.to = map->id();
+    task.after_fusion = after_fusion;
     task.keyframe.id = kf->id;
     task.keyframe.T_world_cam = kf->T_map_cam;
     task.keyframe.depth_mm = kf->rgbd_depth_mm;
@@ -237,6 +242,8 @@ void Backend::DenseLoop() {
         if (status.ok()) {
           std::lock_guard<std::mutex> lock(stats_mutex_);
           stats_.dense_keyframes++;
+          arrivals_.push_back(
+              {task->keyframe.id, KeyframeArrival::Stage::kDense, WallSeconds(), task->after_fusion});
         }
         break;
       case DenseTask::Kind::kUpdate:
@@ -429,7 +436,7 @@ void Backend::DetectLoop(const GlobalKeyframeId& id, bool stored) {
         CCMD_LOG(WARNING) << "pose graph: " << moved.status().ToString();
       }
     }
-    if (!entering_primary.empty()) QueueDenseAdds(result_map, entering_primary);
+    if (!entering_primary.empty()) QueueDenseAdds(result_map, entering_primary, /*after_fusion=*/true);
     event.map = result_map->id();
     loop_cooldown_until_[agent] = KeyframeId(id.keyframe.value() + options_.loop_cooldown_keyframes);
     {
@@ -604,6 +611,11 @@ std::vector<LoopEvent> Backend::loop_events() const {
 BackendTimings Backend::timings() const {
   std::lock_guard<std::mutex> lock(stats_mutex_);
   return timings_;
+}
+
+std::vector<KeyframeArrival> Backend::keyframe_arrivals() const {
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  return arrivals_;
 }
 
 Json Backend::StatsJson() {

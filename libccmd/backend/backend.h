@@ -85,6 +85,17 @@ struct BackendTimings {
   std::vector<char> global_ba_applied;    // per run: the result was written to the map
 };
 
+// When a keyframe reached the back-end (once per delivery: a duplicate would show twice) and
+// the dense map (wall clock, Unix seconds): an evaluation matches these with the agents'
+// creation times for the map latency.
+struct KeyframeArrival {
+  enum class Stage { kReceived, kDense };
+  GlobalKeyframeId id;
+  Stage stage = Stage::kReceived;
+  double wall_s = 0;
+  bool after_fusion = false;  // kDense: it came in with its map's fusion into the primary map
+};
+
 class Backend {
  public:
   static StatusOr<std::unique_ptr<Backend>> Create(const BackendOptions& options);
@@ -119,6 +130,7 @@ class Backend {
   BackendStats stats();
   std::vector<LoopEvent> loop_events() const;
   BackendTimings timings() const;
+  std::vector<KeyframeArrival> keyframe_arrivals() const;
   Json StatsJson();
 
  private:
@@ -134,6 +146,7 @@ class Backend {
     DenseKeyframe keyframe;                 // kAdd
     std::vector<KeyframePose> poses;        // updates
     MapId from, to;                         // kMergeMaps
+    bool after_fusion = false;              // kAdd: the keyframe's map was just fused
   };
 
   explicit Backend(const BackendOptions& options);
@@ -148,7 +161,7 @@ class Backend {
   void DetectLoop(const GlobalKeyframeId& id, bool stored);
   void RequestGlobalBa(AgentId agent);
   // Dense work for keyframes that entered the primary map, and pose changes of keyframes in it.
-  void QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>& keyframes);
+  void QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>& keyframes, bool after_fusion = false);
   void QueueDenseUpdates(const std::vector<ServerKeyframe*>& moved, DenseTask::Kind kind);
   void FinishedWork();
   double Now() const;
@@ -195,6 +208,7 @@ class Backend {
   BackendStats stats_;
   BackendTimings timings_;
   std::vector<LoopEvent> loop_events_;
+  std::vector<KeyframeArrival> arrivals_;
 
   std::thread ingest_thread_, loop_thread_, gba_thread_, dense_thread_;
   bool shut_down_ = false;

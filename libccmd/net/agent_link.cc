@@ -71,6 +71,7 @@ Status AgentLinkOptions::Validate() const {
   if (!(backoff_initial_s > 0) || backoff_max_s < backoff_initial_s) {
     return InvalidArgument("backoff needs 0 < initial <= max");
   }
+  if (!(max_send_bytes_per_s >= 0)) return InvalidArgument("the send rate limit must be >= 0");
   return Status::Ok();
 }
 
@@ -309,6 +310,12 @@ Status AgentLink::Session(double* backoff) {
                           std::lock_guard<std::mutex> lock(mutex_);
                           return stopping_;
                         }));
+  if (options_.max_send_bytes_per_s > 0) {
+    const unsigned rate = static_cast<unsigned>(std::min(options_.max_send_bytes_per_s, 4e9));
+    if (::setsockopt(socket.get(), SOL_SOCKET, SO_MAX_PACING_RATE, &rate, sizeof(rate)) != 0) {
+      CCMD_LOG(WARNING) << "cannot pace the connection: " << std::strerror(errno);
+    }
+  }
   FrameDecoder decoder(FrameLimits{.max_payload_bytes = kDefaultMaxPayloadBytes});
   std::deque<Frame> inbox;
   double idle_timeout_s = 30;

@@ -3,6 +3,7 @@
 #include <unistd.h>
 
 #include <cctype>
+#include <cmath>
 
 #include "libccmd/net/traffic_stats.h"
 #include "libccmd/util/logging.h"
@@ -10,9 +11,43 @@
 
 namespace ccmd {
 
+RgbdRequest LinkSink::NextRgbdRequest() {
+  if (!budget_) return {};
+  std::lock_guard<std::mutex> lock(mutex_);
+  const RgbdLevel& level = budget_->Plan(ObserveLocked());
+  planned_ = level.encode;
+  return level.request;
+}
+
+LinkObservation LinkSink::ObserveLocked() {
+  // Messages are acknowledged in order: the link's count says which of ours are stored.
+  const std::uint64_t acked = link_->stats().acked;
+  while (!unacked_.empty() && unacked_.front().first <= acked) {
+    unacked_bytes_ -= unacked_.front().second;
+    unacked_.pop_front();
+  }
+  LinkObservation o;
+  o.now_s = MonotonicSeconds();
+  o.handed_bytes = handed_bytes_;
+  o.unacked_bytes = unacked_bytes_;
+  return o;
+}
+
+void LinkSink::Handed(std::uint64_t link_number, std::size_t bytes) {
+  handed_bytes_ += bytes;
+  unacked_bytes_ += bytes;
+  unacked_.emplace_back(link_number, bytes);
+}
+
 void LinkSink::OnKeyframe(KeyframeSnapshot keyframe) {
   const Stopwatch watch;
-  auto message = ToKeyframeMessage(keyframe, rgbd_);
+  RgbdEncodeOptions rgbd = rgbd_;
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (planned_) rgbd = *planned_;
+    planned_.reset();
+  }
+  auto message = ToKeyframeMessage(keyframe, rgbd);
   if (!message.ok()) {
     CCMD_LOG(ERROR) << "keyframe " << keyframe.id << " not encodable: " << message.status().ToString();
     std::lock_guard<std::mutex> lock(mutex_);
@@ -36,6 +71,9 @@ void LinkSink::OnKeyframe(KeyframeSnapshot keyframe) {
     ++stats_.failed;
     return;
   }
+  Handed(*sent, size);
+  sent_.push_back({keyframe.id, keyframe.created_wall_s, WallSeconds(), size, parts.colour + parts.depth});
+  if (budget_) budget_->Record(keyframe.id, size, parts.colour + parts.depth, message->rgbd.has_value());
   ++stats_.keyframes;
   stats_.rgbd_keyframes += message->rgbd.has_value();
   stats_.keypoints_sent += message->keypoints.size();
@@ -67,6 +105,7 @@ void LinkSink::OnPoseUpdates(std::vector<PoseUpdate> updates) {
     ++stats_.failed;
     return;
   }
+  Handed(*sent, size);
   ++stats_.pose_updates;
   stats_.pose_update_bytes += size;
 }
@@ -76,7 +115,7 @@ LinkSinkStats LinkSink::stats() const {
   return stats_;
 }
 
-Json LinkSink::StatsJson() const {
+Json LinkSink::StatsJson(bool detailed) const {
   const LinkSinkStats s = stats();
   Json j;
   j["keyframes_sent"] = s.keyframes;
@@ -92,6 +131,16 @@ Json LinkSink::StatsJson() const {
   j["keypoints_extracted"] = s.keypoints_extracted;
   j["new_points"] = s.new_points;
   j["full_rgbd_pixels"] = s.full_rgbd_pixels;
+  if (!detailed) return j;
+  std::lock_guard<std::mutex> lock(mutex_);
+  Json log = Json::MakeArray();
+  for (const SentKeyframe& k : sent_) {
+    // Whole milliseconds since the Unix epoch: JSON numbers keep them exactly.
+    log.Push(Json(Json::Array{k.id.value(), std::llround(k.created_wall_s * 1e3), std::llround(k.handed_wall_s * 1e3),
+                              k.bytes, k.rgbd_bytes}));
+  }
+  j["keyframe_log"] = log;
+  if (budget_) j["budget"] = budget_->ToJson();
   return j;
 }
 

@@ -4,9 +4,13 @@
 // wire (keyframe_message.h) and handed to the transport link, which stores them until the
 // server acknowledges them.
 
+#include <deque>
+#include <memory>
 #include <mutex>
+#include <optional>
 
 #include "libccmd/net/agent_link.h"
+#include "libccmd/system/bandwidth_budget.h"
 #include "libccmd/tracking/keyframe_message.h"
 #include "libccmd/tracking/keyframe_sink.h"
 #include "libccmd/util/json.h"
@@ -24,19 +28,43 @@ struct LinkSinkStats {
   double encode_ms_total = 0;
 };
 
+// One keyframe as handed to the link: when it was made and handed over (wall clock, Unix
+// seconds), its size. Matched with the server's arrival times for the map latency.
+struct SentKeyframe {
+  KeyframeId id;
+  double created_wall_s = 0, handed_wall_s = 0;
+  std::uint64_t bytes = 0, rgbd_bytes = 0;
+};
+
 class LinkSink : public KeyframeSink {
  public:
-  LinkSink(AgentLink* link, const RgbdEncodeOptions& rgbd) : link_(link), rgbd_(rgbd) {}
+  // With a budget, each keyframe's RGB-D selection and coding follow its plan.
+  LinkSink(AgentLink* link, const RgbdEncodeOptions& rgbd, std::unique_ptr<BandwidthBudget> budget = nullptr)
+      : link_(link), rgbd_(rgbd), budget_(std::move(budget)) {}
   void OnKeyframe(KeyframeSnapshot keyframe) override;
   void OnPoseUpdates(std::vector<PoseUpdate> updates) override;
+  RgbdRequest NextRgbdRequest() override;
   LinkSinkStats stats() const;
-  Json StatsJson() const;
+  // Counters, the keyframe log ("keyframe_log": [id, created, handed, bytes, RGB-D bytes]
+  // per keyframe, times in milliseconds since the Unix epoch) and the budget's decisions.
+  // `detailed` = false leaves the per-keyframe lists out (progress files).
+  Json StatsJson(bool detailed = true) const;
 
  private:
+  // Message bytes handed over and not yet acknowledged (mutex held).
+  LinkObservation ObserveLocked();
+  void Handed(std::uint64_t link_number, std::size_t bytes);  // mutex held
+
   AgentLink* link_;
   RgbdEncodeOptions rgbd_;
   mutable std::mutex mutex_;
   LinkSinkStats stats_;
+  std::unique_ptr<BandwidthBudget> budget_;
+  std::optional<RgbdEncodeOptions> planned_;  // the budget's coding for the next keyframe
+  std::vector<SentKeyframe> sent_;
+  std::uint64_t handed_bytes_ = 0;
+  std::deque<std::pair<std::uint64_t, std::size_t>> unacked_;  // link number, bytes
+  std::uint64_t unacked_bytes_ = 0;
 };
 
 // host name and process id: a name that differs between agents started on one machine.

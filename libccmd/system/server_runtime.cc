@@ -1,6 +1,7 @@
 #include "libccmd/system/server_runtime.h"
 
 #include <algorithm>
+#include <cstdio>
 
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/logging.h"
@@ -154,8 +155,24 @@ Status ServerRuntime::WriteResults() {
       CCMD_LOG(INFO) << "no RGB-D keyframe reached the primary map: no map.ply";
     }
   }
+  keep(WriteKeyframeArrivals(names));
   keep(WriteJsonFile(StatsJson(), JoinPath(options_.output_dir, "server_stats.json")));
   return first;
+}
+
+Status ServerRuntime::WriteKeyframeArrivals(const std::map<AgentId, std::string>& names) {
+  std::string csv = "# agent,keyframe,stage,wall_ms (stage: received by the back-end, dense = points in the dense map, "
+                    "dense_fused = came in with a map fusion)\n";
+  char line[160];
+  for (const KeyframeArrival& a : backend_->keyframe_arrivals()) {
+    const auto name = names.find(a.id.agent);
+    const char* stage = a.stage == KeyframeArrival::Stage::kReceived ? "received" : a.after_fusion ? "dense_fused" : "dense";
+    std::snprintf(line, sizeof(line), "%s,%u,%s,%.3f\n",
+                  name != names.end() ? name->second.c_str() : std::to_string(a.id.agent.value()).c_str(),
+                  a.id.keyframe.value(), stage, a.wall_s * 1e3);
+    csv += line;
+  }
+  return WriteFileAtomic(JoinPath(options_.output_dir, "keyframe_arrivals.csv"), csv);
 }
 
 Status ServerRuntime::Stop() {

@@ -42,8 +42,10 @@ class ServerRuntime : public MessageConsumer {
   Json StatsJson();
   Json TransportStatsJson() const { return server_ ? server_->StatsJson() : Json(); }
   // Results written by Stop (and WriteResults): map.ply, trajectory_fused.txt,
-  // trajectory_<agent name>.txt, server_stats.json.
+  // trajectory_<agent name>.txt, keyframe_arrivals.csv, server_stats.json.
   Status WriteResults();
+  // keyframe_arrivals.csv: when each keyframe reached the back-end and the dense map.
+  Status WriteKeyframeArrivals(const std::map<AgentId, std::string>& names);
 
   // MessageConsumer
   void OnAgentKnown(const AgentDescription& agent, bool from_journal) override;

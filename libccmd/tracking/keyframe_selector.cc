@@ -18,26 +18,34 @@ bool RgbdSelectionOptions::Check(std::string* why) const {
 }
 
 RgbdDecision RgbdSelector::Decide(KeyframeId keyframe, int tracked_points,
-                                  std::vector<std::pair<KeyframeId, int>> neighbours) const {
+                                  std::vector<std::pair<KeyframeId, int>> neighbours,
+                                  const RgbdRequest& request) const {
   RgbdDecision d;
   d.keyframe = keyframe;
   d.tracked_points = tracked_points;
+  d.request = request;
   // Strongest links first (ties: older keyframe first, for a stable order).
   std::sort(neighbours.begin(), neighbours.end(), [](const auto& a, const auto& b) {
     return a.second != b.second ? a.second > b.second : a.first < b.first;
   });
   d.considered = neighbours;
-  double threshold = std::max<double>(options_.threshold_min_points, options_.threshold_ratio * tracked_points);
+  const double scale = request.threshold_scale;
+  double threshold =
+      scale * std::max<double>(options_.threshold_min_points, options_.threshold_ratio * tracked_points);
   d.threshold = static_cast<int>(std::lround(threshold));
-  if (!options_.enabled) {
+  if (!request.allow) {
+    d.transmit = false;
+    return d;
+  }
+  if (!options_.enabled || request.every_keyframe) {
     d.transmit = true;
     return d;
   }
-  const double decrement = options_.decrement_ratio * tracked_points;
+  const double decrement = scale * options_.decrement_ratio * tracked_points;
   for (const auto& [id, weight] : neighbours) {
     if (weight > threshold) {
       ++d.covering;
-      threshold = std::max<double>(options_.min_threshold, threshold - decrement);
+      threshold = std::max<double>(scale * options_.min_threshold, threshold - decrement);
     }
   }
   d.transmit = d.covering < options_.required_covering;

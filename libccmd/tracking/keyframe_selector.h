@@ -15,8 +15,10 @@ class RgbdSelector {
 
   // `transmitted_neighbours`: covisible keyframes whose RGB-D data was sent, with the number
   // of map points they share with the keyframe; `tracked_points`: the keyframe's map points.
+  // `request` (from the sink) scales S_min, forces the data on or off.
   RgbdDecision Decide(KeyframeId keyframe, int tracked_points,
-                      std::vector<std::pair<KeyframeId, int>> transmitted_neighbours) const;
+                      std::vector<std::pair<KeyframeId, int>> transmitted_neighbours,
+                      const RgbdRequest& request = {}) const;
 
  private:
   RgbdSelectionOptions options_;

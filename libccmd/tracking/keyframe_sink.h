@@ -14,10 +14,20 @@
 
 namespace ccmd {
 
+// What the sink asks of the next keyframe's RGB-D selection: a bandwidth budget
+// (libccmd/system/bandwidth_budget.h) makes it stricter or more generous. The default asks
+// nothing.
+struct RgbdRequest {
+  bool allow = true;             // false: no RGB-D for this keyframe (geometry only)
+  bool every_keyframe = false;   // RGB-D whatever the selection would say
+  double threshold_scale = 1.0;  // multiplies S_min: below 1 fewer keyframes send RGB-D, above 1 more
+};
+
 // One decision of the RGB-D keyframe selection, recorded for statistics.
 struct RgbdDecision {
   KeyframeId keyframe;
   bool transmit = true;
+  RgbdRequest request;          // what the sink asked
   int tracked_points = 0;       // map points of the keyframe
   int threshold = 0;            // S_min at the start
   int covering = 0;             // transmitted neighbours above the (decreasing) threshold
@@ -27,6 +37,7 @@ struct RgbdDecision {
 struct KeyframeSnapshot {
   KeyframeId id;
   double timestamp = 0;
+  double created_wall_s = 0;  // wall clock (Unix seconds) when the tracker made it
   int frame_index = -1;
   Pose T_world_cam = Pose::Identity();  // in the agent's map
   std::optional<KeyframeId> parent;     // spanning tree
@@ -74,6 +85,9 @@ class KeyframeSink {
   virtual ~KeyframeSink() = default;
   virtual void OnKeyframe(KeyframeSnapshot keyframe) = 0;
   virtual void OnPoseUpdates(std::vector<PoseUpdate> updates) = 0;
+  // Asked just before each keyframe's RGB-D decision (mapping thread, the agent's map
+  // locked): must be quick and must not call into the front-end.
+  virtual RgbdRequest NextRgbdRequest() { return {}; }
 };
 
 }  // namespace ccmd

@@ -32,6 +32,7 @@ bool LocalMapper::CanAccept() const {
 }
 
 void LocalMapper::Insert(const KeyframePtr& keyframe) {
+  keyframe->created_wall_s = WallSeconds();  // the start of its map latency
   {
     std::lock_guard<std::mutex> lock(queue_mutex_);
     queue_.push_back(keyframe);
@@ -402,7 +403,9 @@ bool LocalMapper::Emit(Keyframe* keyframe, KeyframeSnapshot* s, std::vector<Pose
   for (const auto& [kf, weight] : keyframe->connections()) {
     if (kf->emitted && kf->rgbd_sent) transmitted.emplace_back(kf->id(), weight);
   }
-  s->decision = selector_.Decide(keyframe->id(), keyframe->TrackedPoints(1), transmitted);
+  const RgbdRequest request = sink_ ? sink_->NextRgbdRequest() : RgbdRequest{};
+  s->decision = selector_.Decide(keyframe->id(), keyframe->TrackedPoints(1), transmitted, request);
+  s->created_wall_s = keyframe->created_wall_s;
   s->id = keyframe->id();
   s->timestamp = keyframe->timestamp();
   s->frame_index = keyframe->frame_index();

@@ -133,6 +133,7 @@ class Keyframe {
   // Link bookkeeping.
   bool emitted = false;   // sent to the link
   bool rgbd_sent = false; // its RGB-D data went with it
+  double created_wall_s = 0;  // wall clock (Unix seconds) when the tracker made it
   Pose emitted_T_world_cam = Pose::Identity();  // pose last sent (for pose updates)
 
  private:

@@ -1,0 +1,183 @@
+#include "libccmd/system/bandwidth_budget.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include "libccmd/util/logging.h"
+
+namespace ccmd {
+
+std::vector<RgbdLevel> DefaultBudgetLadder(const RgbdEncodeOptions& base, int* default_level) {
+  // Built outwards from the agent's own options. Richer: more keyframes with RGB-D first,
+  // then resolution, then finer coding. Leaner, in the order of docs/benchmarks/link.md:
+  // what costs the map least per byte saved gives way first.
+  auto level = [&](std::string name, double scale, int downsample, int quality, int bound_e4, bool every = false,
+                   bool allow = true) {
+    RgbdLevel l;
+    l.name = std::move(name);
+    l.request.threshold_scale = scale;
+    l.request.every_keyframe = every;
+    l.request.allow = allow;
+    l.encode = base;
+    l.encode.downsample = downsample;
+    l.encode.jpeg_quality = quality;
+    l.encode.bound_e4 = bound_e4;
+    return l;
+  };
+  const int r = base.downsample, q = base.jpeg_quality, e = base.bound_e4;
+  const int finer_r = std::max(1, r / 2), coarser_r = std::min(4, r * 2);
+  std::vector<RgbdLevel> ladder = {
+      level("every keyframe, r x2, fine coding", 1, finer_r, std::max(q, 90), std::max(1, e / 2), true),
+      level("every keyframe, r x2", 1, finer_r, q, e, true),
+      level("S_min x2.5, r x2", 2.5, finer_r, q, e),
+      level("S_min x1.5, r x2", 1.5, finer_r, q, e),
+      level("S_min x1.5", 1.5, r, q, e),
+      level("agent settings", 1, r, q, e),
+      level("JPEG q-25", 1, r, std::max(10, q - 25), e),
+      level("JPEG q-40, depth bound x2", 1, r, std::max(10, q - 40), std::min(2000, e * 2)),
+      level("JPEG q-40, depth bound x4", 1, r, std::max(10, q - 40), std::min(2000, e * 4)),
+      level("r /2, JPEG q-40, depth bound x4", 1, coarser_r, std::max(10, q - 40), std::min(2000, e * 4)),
+      level("S_min x0.7, r /2, JPEG q-40, depth bound x4", 0.7, coarser_r, std::max(10, q - 40), std::min(2000, e * 4)),
+      level("S_min x0.5, r /2, JPEG q-40, depth bound x4", 0.5, coarser_r, std::max(10, q - 40), std::min(2000, e * 4)),
+      level("geometry only", 1, r, q, e, false, /*allow=*/false)};
+  if (default_level) *default_level = 5;
+  return ladder;
+}
+
+Status BandwidthBudgetOptions::Validate() const {
+  if (!(budget_bytes_per_s >= 1000)) return InvalidArgument("a bandwidth budget below 1 kB/s cannot carry a keyframe stream");
+  if (!(max_queue_s > 0)) return InvalidArgument("the send queue bound must be positive");
+  if (!(band_s > 0) || !(max_credit_s > band_s)) return InvalidArgument("budget credit needs 0 < band < max credit");
+  if (!(window_s > 0)) return InvalidArgument("the acknowledgement window must be positive");
+  if (!(payload_share > 0 && payload_share <= 1)) return InvalidArgument("payload share must be in (0, 1]");
+  return Status::Ok();
+}
+
+BandwidthBudget::BandwidthBudget(const BandwidthBudgetOptions& options, std::vector<RgbdLevel> ladder, int start_level)
+    : options_(options), ladder_(std::move(ladder)), level_(start_level), rgbd_bytes_(ladder_.size(), 0.0) {
+  CCMD_CHECK(!ladder_.empty() && !ladder_.back().request.allow);  // the last rung sends geometry only
+  CCMD_CHECK(start_level >= 0 && start_level < static_cast<int>(ladder_.size()));
+}
+
+void BandwidthBudget::Observe(const LinkObservation& link) {
+  const double budget = options_.budget_bytes_per_s * options_.payload_share;
+  if (!started_) {
+    started_ = true;
+    start_s_ = last_s_ = link.now_s;
+    last_handed_ = link.handed_bytes;
+    credit_bytes_ = options_.band_s * budget;  // neither richer nor leaner before sizes are known
+  }
+  const std::uint64_t acked = link.handed_bytes - std::min(link.handed_bytes, link.unacked_bytes);
+  samples_.push_back({link.now_s, acked, link.unacked_bytes});
+  while (samples_.size() > 2 && samples_[1].t <= link.now_s - options_.window_s) samples_.erase(samples_.begin());
+  // The rate the server acknowledges at says what the link gives only while there was
+  // always something waiting for it.
+  const Sample& oldest = samples_.front();
+  const bool backlogged = std::all_of(samples_.begin(), samples_.end(), [](const Sample& s) { return s.unacked > 0; });
+  const double span = link.now_s - oldest.t;
+  link_rate_ = backlogged && span >= 0.5 * options_.window_s ? (acked - oldest.acked) / span : 0.0;
+  const double fill = link_rate_ > 0 ? std::min(budget, link_rate_) : budget;
+  credit_bytes_ += fill * std::max(0.0, link.now_s - last_s_) - static_cast<double>(link.handed_bytes - last_handed_);
+  credit_bytes_ = std::min(credit_bytes_, options_.max_credit_s * budget);
+  last_s_ = link.now_s;
+  last_handed_ = link.handed_bytes;
+}
+
+const RgbdLevel& BandwidthBudget::Plan(const LinkObservation& link) {
+  Observe(link);
+  const double budget = options_.budget_bytes_per_s * options_.payload_share;
+  const double rate = link_rate_ > 0 ? std::min(link_rate_, budget) : budget;
+  BudgetDecision d;
+  d.time_s = link.now_s - start_s_;
+  d.queue_s = link.unacked_bytes / rate;
+  d.credit_s = credit_bytes_ / budget;
+  d.link_rate_bytes_per_s = link_rate_;
+  max_queue_seen_s_ = std::max(max_queue_seen_s_, d.queue_s);
+  const int leanest = static_cast<int>(ladder_.size()) - 1;
+  if (d.queue_s > options_.max_queue_s) {
+    d.shed = true;
+    ++shed_;
+  } else if (d.credit_s < -options_.band_s) {
+    level_ = std::min(level_ + 1, leanest);
+  } else if (d.credit_s > options_.band_s && d.queue_s < 0.5 * options_.max_queue_s) {
+    int richer = level_ - 1;
+    const double floor = -options_.band_s * budget;
+    if (richer >= 0 && credit_bytes_ - geometry_bytes_ - ExpectedRgbdBytes(richer) >= floor) level_ = richer;
+  }
+  d.level = d.shed ? leanest : level_;
+  decisions_.push_back(d);
+  pending_ = true;
+  return ladder_[d.level];
+}
+
+double BandwidthBudget::ExpectedRgbdBytes(int level) const {
+  if (rgbd_bytes_[level] > 0) return rgbd_bytes_[level];
+  auto pixels = [&](int l) { return 1.0 / (ladder_[l].encode.downsample * ladder_[l].encode.downsample); };
+  for (int distance = 1; distance < static_cast<int>(ladder_.size()); ++distance) {
+    for (const int l : {level + distance, level - distance}) {
+      if (l >= 0 && l < static_cast<int>(ladder_.size()) && rgbd_bytes_[l] > 0) {
+        return rgbd_bytes_[l] * pixels(level) / pixels(l);
+      }
+    }
+  }
+  return 0;  // nothing seen yet: the first RGB-D keyframe teaches the sizes
+}
+
+void BandwidthBudget::Record(KeyframeId keyframe, std::uint64_t message_bytes, std::uint64_t rgbd_bytes, bool rgbd) {
+  if (!pending_) return;  // a keyframe without a plan (the sink was not asked): nothing to add
+  pending_ = false;
+  BudgetDecision& d = decisions_.back();
+  // Running means (weight 0.3 for the newest): sizes follow the scene.
+  auto update = [](double* mean, double sample) { *mean = *mean > 0 ? 0.7 * *mean + 0.3 * sample : sample; };
+  update(&geometry_bytes_, static_cast<double>(message_bytes - rgbd_bytes));
+  if (rgbd) update(&rgbd_bytes_[d.level], static_cast<double>(rgbd_bytes));
+  d.keyframe = keyframe;
+  d.message_bytes = message_bytes;
+  d.rgbd_bytes = rgbd_bytes;
+  d.rgbd = rgbd;
+}
+
+Json BandwidthBudget::ToJson() const {
+  Json j;
+  j["budget_kBps"] = options_.budget_bytes_per_s / 1e3;
+  j["queue_bound_s"] = options_.max_queue_s;
+  j["queue_max_s"] = max_queue_seen_s_;
+  j["shed_keyframes"] = shed_;
+  Json ladder = Json::MakeArray();
+  for (const RgbdLevel& l : ladder_) {
+    Json e;
+    e["name"] = l.name;
+    e["allow"] = l.request.allow;
+    e["every_keyframe"] = l.request.every_keyframe;
+    e["threshold_scale"] = l.request.threshold_scale;
+    e["r"] = 1.0 / l.encode.downsample;
+    e["jpeg_quality"] = l.encode.jpeg_quality;
+    e["depth_bound"] = l.encode.bound_e4 / 1e4;
+    ladder.Push(e);
+  }
+  j["ladder"] = ladder;
+  Json list = Json::MakeArray();
+  std::vector<int> used(ladder_.size(), 0);
+  for (const BudgetDecision& d : decisions_) {
+    Json e;
+    e["keyframe"] = d.keyframe.value();
+    e["t"] = d.time_s;
+    e["level"] = d.level;
+    e["shed"] = d.shed;
+    e["credit_s"] = d.credit_s;
+    e["queue_s"] = d.queue_s;
+    e["link_kBps"] = d.link_rate_bytes_per_s / 1e3;
+    e["bytes"] = d.message_bytes;
+    e["rgbd_bytes"] = d.rgbd_bytes;
+    e["rgbd"] = d.rgbd;
+    list.Push(e);
+    ++used[d.level];
+  }
+  j["decisions"] = list;
+  Json histogram = Json::MakeArray();
+  for (int n : used) histogram.Push(n);
+  j["keyframes_per_level"] = histogram;
+  return j;
+}
+
+}  // namespace ccmd

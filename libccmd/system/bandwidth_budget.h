@@ -1,0 +1,115 @@
+#pragma once
+
+// The agent's bandwidth budget (ccmd_agent --bandwidth-budget). Keyframe geometry always
+// goes; what the budget adapts is the optional RGB-D part, through a ladder of levels from
+// the richest (RGB-D with every keyframe, full resolution, fine coding) through the agent's
+// own settings down to geometry only. The order in which the knobs give way (JPEG quality,
+// depth error bound, sampling rate r, selection threshold S_min) follows what each costs the
+// dense map per byte saved (docs/benchmarks/link.md).
+//
+// Before each keyframe's RGB-D decision the budget looks at the link:
+//   credit  budget accrued minus bytes handed to the link, at most max_credit_s of budget
+//           saved up; the budget accrues at the lower of the budget and the rate the server
+//           acknowledges at while the link is backlogged (what the link really gives);
+//   queue   bytes not yet acknowledged, in seconds at that rate.
+// A queue longer than max_queue_s sends this keyframe without RGB-D (the send queue stays
+// bounded in time as long as geometry alone fits); otherwise a credit below -band_s of
+// budget steps one level leaner, above +band_s one level richer, but only as far as the
+// credit pays for a keyframe at that level (sizes are learnt per level), so that one large
+// keyframe does not overdraw the budget by seconds. Every decision is recorded.
+// The wire itself is paced at the budget by the link (AgentLinkOptions::max_send_bytes_per_s).
+//
+// No clock of its own and no threads: callers pass observations, so tests are exact.
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "libccmd/codec/rgbd_payload.h"
+#include "libccmd/tracking/keyframe_sink.h"
+#include "libccmd/util/ids.h"
+#include "libccmd/util/json.h"
+#include "libccmd/util/status.h"
+
+namespace ccmd {
+
+// One rung: what the selection is asked and how the RGB-D payload is coded.
+struct RgbdLevel {
+  std::string name;
+  RgbdRequest request;
+  RgbdEncodeOptions encode;
+};
+
+// The shipped ladder around the agent's own coding options `base`; *default_level is the
+// index of the level equal to `base` with the selection as configured.
+std::vector<RgbdLevel> DefaultBudgetLadder(const RgbdEncodeOptions& base, int* default_level);
+
+struct BandwidthBudgetOptions {
+  double budget_bytes_per_s = 0;
+  double max_queue_s = 1.0;   // longer: no RGB-D until it drains
+  double band_s = 0.25;       // credit dead band, in seconds of budget
+  double max_credit_s = 1.0;  // unused budget kept for later, in seconds of budget
+  double window_s = 2.0;      // acknowledgement rate measured over this window
+  // Message bytes aim at this share of the budget: the pacing counts whole TCP/IP packets.
+  double payload_share = 0.96;
+  Status Validate() const;
+};
+
+// What the agent's link reports (AgentLink::stats and the bytes handed to it).
+struct LinkObservation {
+  double now_s = 0;                // monotonic
+  std::uint64_t handed_bytes = 0;  // message bytes handed to the link so far
+  std::uint64_t unacked_bytes = 0; // of those, not yet acknowledged by the server
+};
+
+struct BudgetDecision {
+  KeyframeId keyframe;
+  double time_s = 0;  // since the first observation
+  int level = 0;
+  bool shed = false;  // RGB-D withheld because the queue was too long
+  double credit_s = 0, queue_s = 0, link_rate_bytes_per_s = 0;
+  std::uint64_t message_bytes = 0, rgbd_bytes = 0;
+  bool rgbd = false;  // the keyframe carried RGB-D
+};
+
+class BandwidthBudget {
+ public:
+  BandwidthBudget(const BandwidthBudgetOptions& options, std::vector<RgbdLevel> ladder, int start_level);
+
+  // The level for the next keyframe (recorded, to be completed by Record).
+  const RgbdLevel& Plan(const LinkObservation& link);
+  // The keyframe the last plan went to, as it was sent.
+  void Record(KeyframeId keyframe, std::uint64_t message_bytes, std::uint64_t rgbd_bytes, bool rgbd);
+
+  const std::vector<BudgetDecision>& decisions() const { return decisions_; }
+  const std::vector<RgbdLevel>& ladder() const { return ladder_; }
+  Json ToJson() const;
+
+ private:
+  void Observe(const LinkObservation& link);
+  // Bytes of RGB-D a keyframe sent at `level` is expected to carry (learnt per level; a level
+  // not seen yet is estimated from the nearest one seen, by its pixel count).
+  double ExpectedRgbdBytes(int level) const;
+
+  BandwidthBudgetOptions options_;
+  std::vector<RgbdLevel> ladder_;
+  int level_;
+  bool started_ = false;
+  double start_s_ = 0, last_s_ = 0;
+  std::uint64_t last_handed_ = 0;
+  double credit_bytes_ = 0;
+  double link_rate_ = 0;  // acknowledged bytes per second while backlogged; 0 = not measured
+  struct Sample {
+    double t;
+    std::uint64_t acked, unacked;
+  };
+  std::vector<Sample> samples_;  // within window_s
+  double geometry_bytes_ = 0;            // running mean of a keyframe without its RGB-D
+  std::vector<double> rgbd_bytes_;       // running mean per level; 0 = not seen
+  double max_queue_seen_s_ = 0;
+  int shed_ = 0;
+  std::vector<BudgetDecision> decisions_;
+  bool pending_ = false;
+};
+
+}  // namespace ccmd
