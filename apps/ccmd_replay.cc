@@ -1,12 +1,16 @@
 // ccmd_replay: split-replay evaluation. Splits a sequence into K segments with 10% overlap,
-// runs a ccmd_server and K ccmd_agent processes talking over real TCP on loopback, shows
-// progress, then evaluates what they produced: trajectories (ATE), dense map (reconstruction
-// error), bandwidth, CPU. Writes results.json, report.md and plots in the output folder.
+// runs a ccmd_server and K ccmd_agent processes talking over real TCP on loopback (or, with
+// --link, over a shaped link between network namespaces made for the run), shows progress,
+// then evaluates what they produced: trajectories (ATE), dense map (reconstruction error),
+// bandwidth, map latency, CPU. Writes results.json, report.md and plots in the output folder.
 
 #include <signal.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <CLI/CLI.hpp>
+#include <atomic>
+#include <csignal>
 #include <chrono>
 #include <cstdio>
 #include <fstream>
@@ -16,6 +20,8 @@
 #include "libccmd/io/config.h"
 #include "libccmd/io/split.h"
 #include "libccmd/io/tum_dataset.h"
+#include "libccmd/netsim/netns_link.h"
+#include "libccmd/system/link_report.h"
 #include "libccmd/system/replay_report.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/json.h"
@@ -27,6 +33,11 @@
 namespace {
 
 using namespace ccmd;
+
+// Set by SIGINT/SIGTERM/SIGHUP during a --link run: the run stops its processes and removes
+// its namespaces instead of leaving them behind.
+std::atomic<bool> g_interrupted{false};
+void OnSignal(int) { g_interrupted = true; }
 
 int Fail(const std::string& what) {
   std::fprintf(stderr, "ccmd_replay: %s\n", what.c_str());
@@ -72,6 +83,41 @@ struct Setup {
   const TumSequence* sequence = nullptr;
   std::vector<FrameRange> segments;
   ReferenceOptions reference;
+  std::optional<LinkSpec> link;  // none: loopback
+  std::string link_text;         // as given
+};
+
+// Where a run's processes talk: loopback, or a shaped link between network namespaces that
+// exist for this run only (the server in one, the agents in another). Over the link the
+// server is not on loopback, so the run makes a random key for itself.
+struct RunNetwork {
+  std::unique_ptr<NetnsLink> link;
+  std::string server_host = "127.0.0.1";
+  std::vector<std::string> key_args;
+
+  static StatusOr<RunNetwork> Open(const Setup& setup, const std::string& out) {
+    RunNetwork n;
+    if (!setup.link) return n;
+    CCMD_ASSIGN_OR_RETURN(n.link, NetnsLink::Create(*setup.link));
+    n.server_host = n.link->address(NetnsLink::Side::kServer);
+    std::ifstream urandom("/dev/urandom", std::ios::binary);
+    char random[32];
+    if (!urandom.read(random, sizeof(random))) return IoError("cannot read /dev/urandom for the run's key");
+    std::string key;
+    for (const char c : random) {
+      key += "0123456789abcdef"[(static_cast<unsigned char>(c) >> 4) & 15];
+      key += "0123456789abcdef"[static_cast<unsigned char>(c) & 15];
+    }
+    const std::string path = JoinPath(out, "logs/link.key");
+    CCMD_RETURN_IF_ERROR(WriteFileAtomic(path, key + "\n"));
+    ::chmod(path.c_str(), 0600);
+    n.key_args = {"--psk-file", path};
+    return n;
+  }
+  std::vector<std::string> In(NetnsLink::Side side, std::vector<std::string> argv) const {
+    argv.insert(argv.end(), key_args.begin(), key_args.end());
+    return link ? link->Command(side, argv) : argv;
+  }
 };
 
 // One split replay into `out`: server and agents, progress, evaluation. `failures` counts the
@@ -91,13 +137,22 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
     if (text.ok()) WriteFileAtomic(JoinPath(out, "config.yaml"), *text).IgnoreError();
   }
 
-  // Server on a free loopback port; it prints the port once it serves.
+  CCMD_ASSIGN_OR_RETURN(const RunNetwork network, RunNetwork::Open(setup, out));
+  if (network.link) {
+    std::printf("link %s: namespaces %s, %s, %s\n", setup.link_text.c_str(),
+                network.link->namespace_name(NetnsLink::Side::kAgents).c_str(),
+                network.link->namespace_name(NetnsLink::Side::kLink).c_str(),
+                network.link->namespace_name(NetnsLink::Side::kServer).c_str());
+    std::fflush(stdout);
+  }
+  // Server on a free port; it prints the port once it serves.
   const Stopwatch wall;
-  std::vector<std::string> server_argv = {JoinPath(setup.bin_dir, "ccmd_server"), "--listen", "127.0.0.1:0", "--journal",
-                                          JoinPath(out, "journal"), "--out", out,
+  std::vector<std::string> server_argv = {JoinPath(setup.bin_dir, "ccmd_server"), "--listen", network.server_host + ":0",
+                                          "--journal", JoinPath(out, "journal"), "--out", out,
                                           "--stats-interval", "1"};
   server_argv.insert(server_argv.end(), setup.server_args.begin(), setup.server_args.end());
-  auto server_process = Subprocess::Start(server_argv, "", JoinPath(out, "logs/server.log"), /*pipe_stdout=*/true);
+  auto server_process = Subprocess::Start(network.In(NetnsLink::Side::kServer, server_argv), "",
+                                          JoinPath(out, "logs/server.log"), /*pipe_stdout=*/true);
   if (!server_process.ok()) return Unavailable("cannot start ccmd_server: " + server_process.status().ToString());
   Tracked server{"server", std::move(server_process).value(), 0};
   std::string port;
@@ -111,7 +166,7 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
     if (at != std::string::npos) port = line->substr(line->find_last_of(':') + 1);
   }
   server.process.DrainStdoutTo(JoinPath(out, "logs/server.out"));
-  const std::string address = "127.0.0.1:" + port;
+  const std::string address = network.server_host + ":" + port;
 
   std::vector<Tracked> agent_processes;
   for (int i = 1; i <= setup.agents; ++i) {
@@ -128,7 +183,8 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
     }
     a.insert(a.end(), setup.agent_args.begin(), setup.agent_args.end());
     a.insert(a.end(), extra_agent_args.begin(), extra_agent_args.end());
-    auto p = Subprocess::Start(a, JoinPath(out, "logs/" + name + ".out"), JoinPath(out, "logs/" + name + ".log"));
+    auto p = Subprocess::Start(network.In(NetnsLink::Side::kAgents, a), JoinPath(out, "logs/" + name + ".out"),
+                               JoinPath(out, "logs/" + name + ".log"));
     if (!p.ok()) return Unavailable("cannot start ccmd_agent: " + p.status().ToString());
     agent_processes.emplace_back(name, std::move(p).value(), wall.ElapsedSeconds());
   }
@@ -194,6 +250,12 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
     }
     std::fflush(stdout);
     if (running == 0) break;
+    if (g_interrupted) {
+      std::fprintf(stderr, "\nccmd_replay: interrupted; stopping the processes and removing the link\n");
+      for (Tracked& a : agent_processes) a.process.Signal(SIGINT).IgnoreError();
+      server.process.Signal(SIGINT).IgnoreError();
+      return Cancelled("interrupted");
+    }
     if (wall.ElapsedSeconds() > setup.timeout_s) {
       std::fprintf(stderr, "\nccmd_replay: time-out after %.0f s, stopping\n", setup.timeout_s);
       for (Tracked& a : agent_processes) a.process.Signal(SIGINT).IgnoreError();
@@ -226,6 +288,12 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
   info.rate = setup.rate;
   info.wall_seconds = wall.ElapsedSeconds();
   info.segments = setup.segments;
+  if (network.link) {
+    info.link = setup.link_text;
+    info.link_stats = network.link->ToJson();
+    const Status closed = network.link->Close();
+    if (!closed.ok()) std::fprintf(stderr, "ccmd_replay: removing the link: %s\n", closed.ToString().c_str());
+  }
   for (Tracked* t : [&] {
          std::vector<Tracked*> all;
          for (Tracked& a : agent_processes) all.push_back(&a);
@@ -246,6 +314,34 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
   return EvaluateReplay(out, *setup.sequence, info, setup.reference);
 }
 
+// --budgets: the same replay once per budget, every agent under it, in DIR/budget/<B>kBps;
+// the main run is the unbudgeted reference.
+Status RunBudgetSweep(const Setup& setup, const std::string& out, const std::vector<double>& budgets,
+                      const Json& main_results, int* failed) {
+  std::vector<BudgetRow> rows;
+  BudgetRow reference;
+  reference.run_dir = ".";
+  reference.results = main_results;
+  rows.push_back(reference);
+  int index = 0;
+  for (const double budget : budgets) {
+    char name[64];
+    std::snprintf(name, sizeof(name), "budget/%gkBps", budget);
+    std::printf("\nbudget run %d of %zu: %g kB/s per agent\n", ++index, budgets.size(), budget);
+    std::fflush(stdout);
+    char value[32];
+    std::snprintf(value, sizeof(value), "%g", budget);
+    auto run = RunOnce(setup, JoinPath(out, name), {"--bandwidth-budget", value}, failed);
+    if (!run.ok()) return run.status().WithContext(std::string("budget run ") + name);
+    BudgetRow row;
+    row.budget_kBps = budget;
+    row.run_dir = name;
+    row.results = *run;
+    rows.push_back(row);
+  }
+  return AppendBudgetSweep(out, rows);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -257,6 +353,7 @@ int main(int argc, char** argv) {
   int agents = 3;
   double timeout_s = 3600;
   bool ablation = false;
+  std::string link_text, budgets_text;
   std::vector<std::string> agent_args, server_args;
   app.add_option("--dataset", dataset, "TUM-layout folder (TUM RGB-D, ICL-NUIM, 7-Scenes converted, ccmd_synth)")
       ->required();
@@ -276,7 +373,37 @@ int main(int argc, char** argv) {
   app.add_flag("--ablation", ablation,
                "Also run r = 1, 0.5, 0.25 with and without the RGB-D keyframe selection (six runs in all, "
                "in DIR/ablation/) and add the RGB-D bytes and map points table to the report");
+  app.add_option("--link", link_text,
+                 "Run over a shaped link instead of loopback, e.g. rate=2.4mbit,delay=50ms,jitter=10ms,loss=0.02 "
+                 "(keys: rate, delay, jitter, loss, queue, seed; docs/benchmarks/link.md). The server and the agents "
+                 "run in network namespaces made for the run and removed after it. Needs root");
+  app.add_option("--budgets", budgets_text,
+                 "Also run with every agent under each of these bandwidth budgets (kB/s, comma-separated, e.g. "
+                 "25,50,100,200; runs in DIR/budget/) and add the reconstruction-against-budget table and plot");
   CLI11_PARSE(app, argc, argv);
+  std::optional<LinkSpec> link;
+  if (!link_text.empty()) {
+    auto parsed = ParseLinkSpec(link_text);
+    if (!parsed.ok()) return Fail("--link: " + parsed.status().message());
+    const Status available = CheckNetnsLinkAvailable();
+    if (!available.ok()) return Fail("--link: " + available.message());
+    link = *parsed;
+    // Stop cleanly on a signal: processes stopped, namespaces removed.
+    std::signal(SIGINT, OnSignal);
+    std::signal(SIGTERM, OnSignal);
+    std::signal(SIGHUP, OnSignal);
+  }
+  std::vector<double> budgets;
+  if (!budgets_text.empty()) {
+    for (const std::string& part : Split(budgets_text, ',')) {
+      auto b = ParseDouble(Trim(part));
+      if (!b.ok() || !(*b >= 1)) return Fail("--budgets: '" + part + "' is not a budget in kB/s (>= 1)");
+      budgets.push_back(*b);
+    }
+    for (const std::string& a : agent_args) {
+      if (a.rfind("--bandwidth-budget", 0) == 0) return Fail("--budgets sets --bandwidth-budget itself; leave it out of --agent-arg");
+    }
+  }
   if (ablation) {
     for (const std::string& a : agent_args) {
       if (a.rfind("--rgbd-downsample", 0) == 0 || a == "--rgbd-every-keyframe") {
@@ -326,6 +453,8 @@ int main(int argc, char** argv) {
   setup.segments = *segments;
   setup.reference.reference_ply = reference;
   setup.reference.registration = registration;
+  setup.link = link;
+  setup.link_text = link_text;
   std::printf("replaying %s: %zu frames, %d agents\n", dataset.c_str(), sequence->size(), agents);
   for (int i = 0; i < agents; ++i) {
     std::printf("  agent%d: frames %d-%d\n", i + 1, (*segments)[i].first, (*segments)[i].last);
@@ -367,12 +496,21 @@ int main(int argc, char** argv) {
     results = ReadJsonFile(JoinPath(out, "results.json"));
     if (!results.ok()) return Fail(results.status().ToString());
   }
+  if (!budgets.empty()) {
+    if (const Status s = RunBudgetSweep(setup, out, budgets, *results, &failed); !s.ok()) return Fail(s.ToString());
+    results = ReadJsonFile(JoinPath(out, "results.json"));
+    if (!results.ok()) return Fail(results.status().ToString());
+  }
   const Json& r = *results;
   auto num = [&](const char* key) { return r.Get(key) ? r.Get(key)->number() : -1.0; };
   std::printf("\nmaps after fusion: %.0f   fused ATE RMSE: %.4f m   reconstruction mean %.4f m, Hausdorff %.4f m\n",
               num("maps_after_fusion"), num("ate_rmse_m"), num("recon_mean_m"), num("recon_hausdorff_m"));
   std::printf("per agent: %.1f kB/s, %.1f kB per keyframe, %.2f keyframes/s\n", num("atps_kBps"), num("akfs_kB"),
               num("akfr_hz"));
+  std::printf("link: %s   map latency p50 %.2f s, p95 %.2f s   every keyframe once: %s\n",
+              r.Get("link") ? r.Get("link")->string().c_str() : "loopback", num("map_latency_p50_s"),
+              num("map_latency_p95_s"),
+              r.Get("keyframes_delivered_once") && r.Get("keyframes_delivered_once")->boolean() ? "yes" : "NO");
   std::printf("report: %s\nmap:    %s\n", JoinPath(out, "report.md").c_str(), JoinPath(out, "map.ply").c_str());
   return failed ? 1 : 0;
 }

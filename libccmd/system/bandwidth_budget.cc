@@ -44,6 +44,13 @@ std::vector<RgbdLevel> DefaultBudgetLadder(const RgbdEncodeOptions& base, int* d
   return ladder;
 }
 
+double RelativeRgbdSize(const RgbdEncodeOptions& encode) {
+  const double pixels = 1.0 / (encode.downsample * encode.downsample);
+  const double colour = std::exp(0.021 * (encode.jpeg_quality - 75));
+  const double depth = std::pow(50.0 / std::max(1, encode.bound_e4), 0.8);
+  return pixels * (0.6 * colour + 0.4 * depth);
+}
+
 Status BandwidthBudgetOptions::Validate() const {
   if (!(budget_bytes_per_s >= 1000)) return InvalidArgument("a bandwidth budget below 1 kB/s cannot carry a keyframe stream");
   if (!(max_queue_s > 0)) return InvalidArgument("the send queue bound must be positive");
@@ -94,33 +101,41 @@ const RgbdLevel& BandwidthBudget::Plan(const LinkObservation& link) {
   d.link_rate_bytes_per_s = link_rate_;
   max_queue_seen_s_ = std::max(max_queue_seen_s_, d.queue_s);
   const int leanest = static_cast<int>(ladder_.size()) - 1;
-  if (d.queue_s > options_.max_queue_s) {
-    d.shed = true;
-    ++shed_;
-  } else if (d.credit_s < -options_.band_s) {
+  if (d.credit_s < -options_.band_s) {
     level_ = std::min(level_ + 1, leanest);
-  } else if (d.credit_s > options_.band_s && d.queue_s < 0.5 * options_.max_queue_s) {
-    int richer = level_ - 1;
+  } else if (d.credit_s > options_.band_s) {
+    const int richer = level_ - 1;
     const double floor = -options_.band_s * budget;
-    if (richer >= 0 && credit_bytes_ - geometry_bytes_ - ExpectedRgbdBytes(richer) >= floor) level_ = richer;
+    // Never richer on a guess: only once some RGB-D keyframe has shown what they cost.
+    const double expected = richer >= 0 ? ExpectedRgbdBytes(richer) : -1;
+    if (expected >= 0 && credit_bytes_ - geometry_bytes_ - expected >= floor) level_ = richer;
   }
-  d.level = d.shed ? leanest : level_;
+  // What is left of the queue bound, in bytes at the link's rate: the keyframe must fit.
+  const double room = options_.max_queue_s * rate - static_cast<double>(link.unacked_bytes) - geometry_bytes_;
+  while (level_ < leanest && ExpectedRgbdBytes(level_) > room) ++level_;
+  d.level = level_;
+  if (d.queue_s > options_.max_queue_s) {
+    // Geometry alone keeps the queue over its bound: nothing optional until it drains.
+    d.shed = true;
+    d.level = leanest;
+    ++shed_;
+  }
   decisions_.push_back(d);
   pending_ = true;
   return ladder_[d.level];
 }
 
 double BandwidthBudget::ExpectedRgbdBytes(int level) const {
+  if (!ladder_[level].request.allow) return 0;
   if (rgbd_bytes_[level] > 0) return rgbd_bytes_[level];
-  auto pixels = [&](int l) { return 1.0 / (ladder_[l].encode.downsample * ladder_[l].encode.downsample); };
   for (int distance = 1; distance < static_cast<int>(ladder_.size()); ++distance) {
     for (const int l : {level + distance, level - distance}) {
       if (l >= 0 && l < static_cast<int>(ladder_.size()) && rgbd_bytes_[l] > 0) {
-        return rgbd_bytes_[l] * pixels(level) / pixels(l);
+        return rgbd_bytes_[l] * RelativeRgbdSize(ladder_[level].encode) / RelativeRgbdSize(ladder_[l].encode);
       }
     }
   }
-  return 0;  // nothing seen yet: the first RGB-D keyframe teaches the sizes
+  return -1;  // nothing seen yet: the first RGB-D keyframe teaches the sizes
 }
 
 void BandwidthBudget::Record(KeyframeId keyframe, std::uint64_t message_bytes, std::uint64_t rgbd_bytes, bool rgbd) {

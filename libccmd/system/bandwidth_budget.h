@@ -12,11 +12,13 @@
 //           saved up; the budget accrues at the lower of the budget and the rate the server
 //           acknowledges at while the link is backlogged (what the link really gives);
 //   queue   bytes not yet acknowledged, in seconds at that rate.
-// A queue longer than max_queue_s sends this keyframe without RGB-D (the send queue stays
-// bounded in time as long as geometry alone fits); otherwise a credit below -band_s of
-// budget steps one level leaner, above +band_s one level richer, but only as far as the
-// credit pays for a keyframe at that level (sizes are learnt per level), so that one large
-// keyframe does not overdraw the budget by seconds. Every decision is recorded.
+// A credit below -band_s of budget steps one level leaner, above +band_s one level richer
+// if the credit pays for a keyframe at that level. Whatever the credit, the level is then
+// made lean enough that the keyframe fits in what is left of max_queue_s at the link's
+// rate (sizes are learnt per level; unseen levels are estimated from seen ones), so the
+// send queue, and with it the keyframes' wait, stays bounded in time. When geometry alone
+// overflows it, the keyframe goes without RGB-D and the queue grows: geometry is never
+// dropped, and the decisions say so. Every decision is recorded.
 // The wire itself is paced at the budget by the link (AgentLinkOptions::max_send_bytes_per_s).
 //
 // No clock of its own and no threads: callers pass observations, so tests are exact.
@@ -43,6 +45,11 @@ struct RgbdLevel {
 // The shipped ladder around the agent's own coding options `base`; *default_level is the
 // index of the level equal to `base` with the selection as configured.
 std::vector<RgbdLevel> DefaultBudgetLadder(const RgbdEncodeOptions& base, int* default_level);
+
+// A rough model of an RGB-D payload's size relative to r = 1, JPEG quality 75, depth bound
+// 0.5 % (from docs/benchmarks/codec.md: colour about 60 % of the bytes, JPEG bytes grow about
+// 2 % per quality step, bounded depth bytes about as bound^-0.8), for levels not seen yet.
+double RelativeRgbdSize(const RgbdEncodeOptions& encode);
 
 struct BandwidthBudgetOptions {
   double budget_bytes_per_s = 0;
@@ -88,7 +95,8 @@ class BandwidthBudget {
  private:
   void Observe(const LinkObservation& link);
   // Bytes of RGB-D a keyframe sent at `level` is expected to carry (learnt per level; a level
-  // not seen yet is estimated from the nearest one seen, by its pixel count).
+  // not seen yet is estimated from the nearest one seen, by RelativeRgbdSize); -1 before any
+  // RGB-D keyframe was seen.
   double ExpectedRgbdBytes(int level) const;
 
   BandwidthBudgetOptions options_;

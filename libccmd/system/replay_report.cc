@@ -11,6 +11,7 @@
 #include "libccmd/eval/plot.h"
 #include "libccmd/eval/reconstruction_error.h"
 #include "libccmd/eval/trajectory_error.h"
+#include "libccmd/system/link_report.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/random.h"
@@ -469,6 +470,12 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
        << " |\n";
   }
   md << "\n![cpu](plots/cpu.png)\n";
+  auto link_section = AddLinkFigures(run_dir, LinkRunInfo{info.link, info.link_stats, info.agents}, &results);
+  if (link_section.ok()) {
+    md << *link_section;
+  } else {
+    CCMD_LOG(WARNING) << "link figures: " << link_section.status().ToString();
+  }
   CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(run_dir, "report.md"), md.str()));
   CCMD_RETURN_IF_ERROR(WriteJsonFile(results, JoinPath(run_dir, "results.json")));
   return results;

@@ -33,6 +33,8 @@ struct ReplayRunInfo {
   double wall_seconds = 0;
   std::vector<FrameRange> segments;
   std::vector<ReplayProcess> processes;
+  std::string link;  // the shaped link's spec ("" = loopback)
+  Json link_stats;   // its counters (null on loopback)
 };
 
 struct ReferenceOptions {
