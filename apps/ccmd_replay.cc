@@ -342,6 +342,34 @@ Status RunBudgetSweep(const Setup& setup, const std::string& out, const std::vec
   return AppendBudgetSweep(out, rows);
 }
 
+// --knob-costs: one run per RGB-D setting, each changed alone from the agents' defaults (the
+// main run), in DIR/knobs/; the measurement behind the order of the budget's ladder.
+Status RunKnobCosts(const Setup& setup, const std::string& out, const Json& main_results, int* failed) {
+  const std::vector<std::pair<std::string, std::vector<std::string>>> variants = {
+      {"JPEG quality 50", {"--jpeg-quality", "50"}},
+      {"JPEG quality 35", {"--jpeg-quality", "35"}},
+      {"depth bound 1 %", {"--depth-bound", "100"}},
+      {"depth bound 2 %", {"--depth-bound", "200"}},
+      {"r = 1/4", {"--rgbd-downsample", "4"}},
+      {"S_min x0.7", {"--rgbd-threshold-scale", "0.7"}},
+      {"S_min x0.5", {"--rgbd-threshold-scale", "0.5"}},
+      {"JPEG quality 90, depth bound 0.25 %", {"--jpeg-quality", "90", "--depth-bound", "25"}},
+      {"S_min x1.5", {"--rgbd-threshold-scale", "1.5"}},
+      {"r = 1", {"--rgbd-downsample", "1"}},
+      {"every keyframe", {"--rgbd-every-keyframe"}}};
+  std::vector<KnobRow> rows = {{"agent defaults", ".", main_results}};
+  int index = 0;
+  for (const auto& [knob, args] : variants) {
+    const std::string dir = "knobs/" + std::to_string(++index);
+    std::printf("\nknob run %d of %zu: %s\n", index, variants.size(), knob.c_str());
+    std::fflush(stdout);
+    auto run = RunOnce(setup, JoinPath(out, dir), args, failed);
+    if (!run.ok()) return run.status().WithContext("knob run " + knob);
+    rows.push_back({knob, dir, *run});
+  }
+  return AppendKnobCosts(out, rows);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -352,7 +380,7 @@ int main(int argc, char** argv) {
   std::string dataset, out, config, rate = "max", reference, bin_dir;
   int agents = 3;
   double timeout_s = 3600;
-  bool ablation = false;
+  bool ablation = false, knob_costs = false;
   std::string link_text, budgets_text;
   std::vector<std::string> agent_args, server_args;
   app.add_option("--dataset", dataset, "TUM-layout folder (TUM RGB-D, ICL-NUIM, 7-Scenes converted, ccmd_synth)")
@@ -380,6 +408,9 @@ int main(int argc, char** argv) {
   app.add_option("--budgets", budgets_text,
                  "Also run with every agent under each of these bandwidth budgets (kB/s, comma-separated, e.g. "
                  "25,50,100,200; runs in DIR/budget/) and add the reconstruction-against-budget table and plot");
+  app.add_flag("--knob-costs", knob_costs,
+               "Also run with each RGB-D setting (JPEG quality, depth bound, r, S_min, every keyframe) changed alone "
+               "(eleven runs in DIR/knobs/) and add what each saves and costs the map to the report");
   CLI11_PARSE(app, argc, argv);
   std::optional<LinkSpec> link;
   if (!link_text.empty()) {
@@ -392,6 +423,14 @@ int main(int argc, char** argv) {
     std::signal(SIGINT, OnSignal);
     std::signal(SIGTERM, OnSignal);
     std::signal(SIGHUP, OnSignal);
+  }
+  if (knob_costs) {
+    for (const std::string& a : agent_args) {
+      for (const char* knob : {"--jpeg-quality", "--depth-bound", "--rgbd-downsample", "--rgbd-threshold-scale",
+                               "--rgbd-every-keyframe", "--bandwidth-budget"}) {
+        if (a.rfind(knob, 0) == 0) return Fail(std::string("--knob-costs sets ") + knob + " itself; leave it out of --agent-arg");
+      }
+    }
   }
   std::vector<double> budgets;
   if (!budgets_text.empty()) {
@@ -493,6 +532,11 @@ int main(int argc, char** argv) {
     }
     const Status s = AppendAblation(out, rows);
     if (!s.ok()) return Fail(s.ToString());
+    results = ReadJsonFile(JoinPath(out, "results.json"));
+    if (!results.ok()) return Fail(results.status().ToString());
+  }
+  if (knob_costs) {
+    if (const Status s = RunKnobCosts(setup, out, *results, &failed); !s.ok()) return Fail(s.ToString());
     results = ReadJsonFile(JoinPath(out, "results.json"));
     if (!results.ok()) return Fail(results.status().ToString());
   }

@@ -41,4 +41,17 @@ struct BudgetRow {
 // budget, and plots/budget_sweep.png (reconstruction error and completeness against budget).
 Status AppendBudgetSweep(const std::string& run_dir, const std::vector<BudgetRow>& rows);
 
+// One run of the knob-cost measurement: the same replay with one RGB-D setting changed.
+struct KnobRow {
+  std::string knob;     // "JPEG quality 50", ...; the first row is the agents' defaults
+  std::string run_dir;  // relative to the main run's folder
+  Json results;
+};
+
+// What each RGB-D knob saves and what it costs the dense map, against the first row:
+// RGB-D bytes per keyframe, map points, completeness, mean error, fused ATE, and the
+// completeness lost per kB saved per keyframe. Appended to report.md and results.json
+// ("knob_costs"); the budget's ladder gives way in the order of these costs.
+Status AppendKnobCosts(const std::string& run_dir, const std::vector<KnobRow>& rows);
+
 }  // namespace ccmd
