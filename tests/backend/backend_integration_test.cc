@@ -123,6 +123,23 @@ TEST(BackendIntegrationTest, TwoAgentsAreFusedIntoOneAccurateMap) {
   ASSERT_TRUE(cloud.ok());
   EXPECT_GT(cloud->size(), 10000u);
   EXPECT_EQ((*backend)->dense()->Agents().size(), 2u);
+  // Arrival times: each keyframe reached the back-end once; every keyframe in the dense map
+  // entered it once, not before it arrived; agent 2's came in with the fusion.
+  std::map<GlobalKeyframeId, double> received;
+  int dense = 0, fused_in = 0;
+  for (const KeyframeArrival& a : (*backend)->keyframe_arrivals()) {
+    if (a.stage == KeyframeArrival::Stage::kReceived) {
+      EXPECT_TRUE(received.emplace(a.id, a.wall_s).second) << "keyframe received twice";
+      continue;
+    }
+    ++dense;
+    fused_in += a.after_fusion;
+    ASSERT_TRUE(received.count(a.id));
+    EXPECT_GE(a.wall_s, received[a.id]);
+  }
+  EXPECT_EQ(received.size(), stats.keyframes_received);
+  EXPECT_EQ(static_cast<std::size_t>(dense), (*backend)->stats().dense_keyframes);
+  EXPECT_GT(fused_in, 0);
   (*backend)->Shutdown();
 }
 
