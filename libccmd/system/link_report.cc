@@ -7,23 +7,16 @@
 #include <sstream>
 
 #include "libccmd/eval/plot.h"
+#include "libccmd/system/report_format.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/string_util.h"
 
 namespace ccmd {
 namespace {
 
-double Num(const Json* j, const std::string& key, double fallback = 0) {
-  if (!j) return fallback;
-  const Json* v = j->Get(key);
-  return v ? v->number(fallback) : fallback;
-}
-
-std::string Fmt(const char* format, double v) {
-  char text[64];
-  std::snprintf(text, sizeof(text), format, v);
-  return text;
-}
+using report::FindAgentTraffic;
+using report::Fmt;
+using report::Num;
 
 // The server's record of one keyframe.
 struct Arrival {
@@ -55,16 +48,6 @@ StatusOr<ArrivalMap> ReadArrivals(const std::string& path) {
   return arrivals;
 }
 
-const Json* FindTraffic(const Json& server_stats, const std::string& name) {
-  const Json* transport = server_stats.Get("transport");
-  const Json* agents = transport ? transport->Get("agents") : nullptr;
-  if (!agents) return nullptr;
-  for (const Json& a : agents->array()) {
-    if (a.Get("name") && a.Get("name")->string() == name) return &a;
-  }
-  return nullptr;
-}
-
 // Message bytes per second between the agent's first and last message at the server.
 double AgentRateBytesPerSecond(const Json* traffic) {
   if (!traffic) return 0;
@@ -81,7 +64,7 @@ void PlotBudget(const Json& server_stats, const std::vector<std::pair<std::strin
   std::vector<PlotSeries> series;
   const double bucket = Num(server_stats.Get("transport"), "bucket_seconds", 1.0);
   for (std::size_t i = 0; i < budgets.size(); ++i) {
-    const Json* traffic = FindTraffic(server_stats, budgets[i].first);
+    const Json* traffic = FindAgentTraffic(server_stats, budgets[i].first);
     if (!traffic || !traffic->Get("per_bucket") || traffic->Get("per_bucket")->size() == 0) continue;
     std::map<long, double> kBps;
     for (const Json& b : traffic->Get("per_bucket")->array()) {
@@ -158,7 +141,7 @@ StatusOr<std::string> AddLinkFigures(const std::string& run_dir, const LinkRunIn
         "(queue) |\n|---|---:|---:|---:|---:|---:|---:|---:|\n";
   for (Json& a : agents) {
     const std::string name = a.Get("name") ? a.Get("name")->string() : "";
-    const double rate = server_stats.ok() ? AgentRateBytesPerSecond(FindTraffic(*server_stats, name)) / 1e3 : 0.0;
+    const double rate = server_stats.ok() ? AgentRateBytesPerSecond(FindAgentTraffic(*server_stats, name)) / 1e3 : 0.0;
     a["kBps"] = rate;
     auto stats = ReadJsonFile(JoinPath(run_dir, "agents/" + name + "_stats.json"));
     const Json* link = stats.ok() ? stats->Get("link") : nullptr;

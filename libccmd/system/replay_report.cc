@@ -12,6 +12,7 @@
 #include "libccmd/eval/reconstruction_error.h"
 #include "libccmd/eval/trajectory_error.h"
 #include "libccmd/system/link_report.h"
+#include "libccmd/system/report_format.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/random.h"
@@ -94,28 +95,9 @@ StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset, const Refe
 
 namespace {
 
-const Json* FindAgentTraffic(const Json& stats, const std::string& name) {
-  const Json* transport = stats.Get("transport");
-  if (!transport) return nullptr;
-  const Json* agents = transport->Get("agents");
-  if (!agents) return nullptr;
-  for (const Json& a : agents->array()) {
-    if (a.Get("name") && a.Get("name")->string() == name) return &a;
-  }
-  return nullptr;
-}
-
-double Num(const Json* j, const std::string& key, double fallback = 0) {
-  if (!j) return fallback;
-  const Json* v = j->Get(key);
-  return v ? v->number(fallback) : fallback;
-}
-
-std::string Fmt(const char* format, double v) {
-  char text[64];
-  std::snprintf(text, sizeof(text), format, v);
-  return text;
-}
+using report::FindAgentTraffic;
+using report::Fmt;
+using report::Num;
 
 // The plane of most motion of the ground truth (its two principal directions): a "top view"
 // that does not depend on which world axis is up.
