@@ -66,5 +66,29 @@ TEST(RgbdSelectorTest, DisabledSendsEverything) {
   EXPECT_TRUE(RgbdSelector(o).Decide(KeyframeId(5), 400, {{KeyframeId(4), 390}}).transmit);
 }
 
+TEST(RgbdSelectorTest, TheSinksRequestScalesSminOrForcesTheDecision) {
+  const RgbdSelector selector(Options());
+  const Links links = {{KeyframeId(3), 150}, {KeyframeId(4), 180}};
+  // S = 200: 180 does not cover; S x0.8 = 160 it does; S x1.5 = 300 and 250 no longer covers.
+  EXPECT_TRUE(selector.Decide(KeyframeId(5), 400, links).transmit);
+  RgbdRequest leaner;
+  leaner.threshold_scale = 0.8;
+  const RgbdDecision d = selector.Decide(KeyframeId(5), 400, links, leaner);
+  EXPECT_FALSE(d.transmit);
+  EXPECT_EQ(d.threshold, 160);
+  EXPECT_DOUBLE_EQ(d.request.threshold_scale, 0.8);
+  RgbdRequest richer;
+  richer.threshold_scale = 1.5;
+  EXPECT_TRUE(selector.Decide(KeyframeId(5), 400, {{KeyframeId(4), 250}}, richer).transmit);
+  EXPECT_FALSE(selector.Decide(KeyframeId(5), 400, {{KeyframeId(4), 250}}).transmit);
+  // Forced: geometry only, or RGB-D whatever the neighbours.
+  RgbdRequest none;
+  none.allow = false;
+  EXPECT_FALSE(selector.Decide(KeyframeId(0), 500, {}, none).transmit);
+  RgbdRequest every;
+  every.every_keyframe = true;
+  EXPECT_TRUE(selector.Decide(KeyframeId(5), 400, {{KeyframeId(4), 390}}, every).transmit);
+}
+
 }  // namespace
 }  // namespace ccmd
