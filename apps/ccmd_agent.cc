@@ -80,6 +80,25 @@ ccmd::Json StatsJson(const ccmd::FrontendStats& s, double wall_seconds,
   return j;
 }
 
+// A budget or a slow link can need minutes to deliver what is queued: wait as long as the
+// server keeps acknowledging, and give up only after `stall_s` without progress.
+ccmd::Status FlushWhileProgressing(ccmd::AgentLink* link, double stall_s) {
+  std::uint64_t acked = link->stats().acked;
+  ccmd::Stopwatch since_progress;
+  while (true) {
+    const double left = stall_s - since_progress.ElapsedSeconds();
+    const ccmd::Status s = link->Flush(std::max(0.0, std::min(left, 5.0)));
+    if (s.ok() || s.code() != ccmd::StatusCode::kTimeout) return s;
+    const std::uint64_t now_acked = link->stats().acked;
+    if (now_acked > acked) {
+      acked = now_acked;
+      since_progress.Restart();
+    } else if (since_progress.ElapsedSeconds() >= stall_s) {
+      return s;
+    }
+  }
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -105,7 +124,9 @@ int main(int argc, char** argv) {
   app.add_option("--psk-file", psk_file, "Pre-shared key file (else $CCMD_PSK; none: loopback servers only)");
   app.add_option("--spill-dir", spill_dir,
                  "Folder for messages not yet acknowledged beyond the memory limit (default: a folder in /tmp)");
-  app.add_option("--flush-timeout", flush_timeout, "Seconds to wait at the end for the server's acknowledgements")
+  app.add_option("--flush-timeout", flush_timeout,
+                 "At the end, wait for the server's acknowledgements as long as they keep coming; give up after "
+                 "this many seconds without one")
       ->capture_default_str();
   app.add_option("--rgbd-downsample", rgbd.downsample, "RGB-D sampling: 1, 2 or 4 (r = 1, 0.5, 0.25)")
       ->check(CLI::IsMember({1, 2, 4}))
@@ -275,7 +296,7 @@ int main(int argc, char** argv) {
   ccmd::Json link_json;
   if (link) {
     // Everything must reach the server before the agent goes away.
-    const ccmd::Status flushed = link->Flush(flush_timeout);
+    const ccmd::Status flushed = FlushWhileProgressing(link.get(), flush_timeout);
     const ccmd::AgentLinkStats ls = link->stats();
     link_json = sink->StatsJson();
     link_json["acked"] = ls.acked;
