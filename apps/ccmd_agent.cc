@@ -107,7 +107,7 @@ int main(int argc, char** argv) {
       "or runs --offline and writes its trajectory (TUM format)."};
   std::string source_spec, config_path, segment_spec, trajectory_path, keyframe_trajectory_path,
       stats_path, rate = "max", server, record_dir, name, psk_file, spill_dir, progress_path;
-  double flush_timeout = 120.0, budget_kBps = 0, max_queue_s = 1.0, threshold_scale = 1.0;
+  double flush_timeout = 120.0, budget_kBps = 0, max_queue_s = 0.5, threshold_scale = 1.0;
   ccmd::RgbdEncodeOptions rgbd;
   bool offline = false, synchronous = false, rgbd_every_keyframe = false;
   int max_frames = 0, record_compression = 1;

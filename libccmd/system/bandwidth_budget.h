@@ -53,7 +53,7 @@ double RelativeRgbdSize(const RgbdEncodeOptions& encode);
 
 struct BandwidthBudgetOptions {
   double budget_bytes_per_s = 0;
-  double max_queue_s = 1.0;   // longer: no RGB-D until it drains
+  double max_queue_s = 0.5;   // longer: no RGB-D until it drains; each keyframe fits in it
   double band_s = 0.25;       // credit dead band, in seconds of budget
   double max_credit_s = 1.0;  // unused budget kept for later, in seconds of budget
   double window_s = 2.0;      // acknowledgement rate measured over this window

@@ -327,7 +327,9 @@ Status AppendKnobCosts(const std::string& run_dir, const std::vector<KnobRow>& r
   md << "\n## What each RGB-D knob costs the map\n\n"
      << "Each row is a full run of the same replay with one RGB-D setting changed from the agents' defaults (first "
         "row). Bytes are colour and depth per keyframe sent (with or without RGB-D). Cost: completeness points lost "
-        "per kB saved per keyframe (negative: gained per kB spent).\n\n"
+        "per kB saved per keyframe; for a setting that spends more, points gained per kB spent. Completeness moves by "
+        "several points between runs of one setting (the trajectories differ), so single runs rank only large "
+        "effects; ccmd_knob_bench measures the same knobs at ground-truth poses.\n\n"
      << "| setting | RGB-D kB/keyframe | change | RGB-D keyframes | map points | completeness | change (pp) | "
         "recon mean (mm) | fused ATE (cm) | cost (pp per kB) | run |\n"
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|\n";
