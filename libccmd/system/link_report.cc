@@ -119,113 +119,146 @@ double Percentile(std::vector<double> values, double q) {
   return values[below] + (position - below) * (values[above] - values[below]);
 }
 
+namespace {
+
+// Keyframe delivery and latencies over all agents.
+struct Latencies {
+  std::vector<double> to_server, to_dense, to_dense_direct;
+  int sent = 0, missing = 0, duplicated = 0, fused_in = 0, rgbd = 0;
+};
+
+// Matches one agent's keyframe log with the server's arrivals. Returns its keyframe and
+// RGB-D counts.
+std::pair<int, int> MatchKeyframes(const std::string& name, const Json* log, const ArrivalMap& arrivals,
+                                   Latencies* out) {
+  int keyframes = 0, rgbd = 0;
+  if (!log) return {0, 0};
+  for (const Json& k : log->array()) {
+    if (k.size() < 5) continue;
+    ++keyframes;
+    const double created_ms = k.at(1).number();
+    rgbd += k.at(4).number() > 0;
+    const auto it = arrivals.find({name, static_cast<long long>(k.at(0).number())});
+    if (it == arrivals.end() || it->second.received == 0) {
+      ++out->missing;
+      continue;
+    }
+    if (it->second.received > 1) ++out->duplicated;
+    out->to_server.push_back((it->second.received_ms - created_ms) / 1e3);
+    if (it->second.dense_ms < 0) continue;
+    const double latency = (it->second.dense_ms - created_ms) / 1e3;
+    out->to_dense.push_back(latency);
+    if (it->second.fused) {
+      ++out->fused_in;
+    } else {
+      out->to_dense_direct.push_back(latency);
+    }
+  }
+  out->sent += keyframes;
+  out->rgbd += rgbd;
+  return {keyframes, rgbd};
+}
+
+// One agent's rate and budget figures into its results entry `a`, and its report row.
+std::string AgentRow(const std::string& run_dir, const StatusOr<Json>& server_stats, const ArrivalMap& arrivals,
+                     Json* a, Latencies* latencies, double* budget_kBps) {
+  const std::string name = a->Get("name") ? a->Get("name")->string() : "";
+  const double rate = server_stats.ok() ? AgentRateBytesPerSecond(FindAgentTraffic(*server_stats, name)) / 1e3 : 0.0;
+  (*a)["kBps"] = rate;
+  auto stats = ReadJsonFile(JoinPath(run_dir, "agents/" + name + "_stats.json"));
+  const Json* link = stats.ok() ? stats->Get("link") : nullptr;
+  const Json* budget = link ? link->Get("budget") : nullptr;
+  *budget_kBps = Num(budget, "budget_kBps");
+  if (budget) {
+    (*a)["budget_kBps"] = *budget_kBps;
+    (*a)["kBps_over_budget"] = *budget_kBps > 0 ? rate / *budget_kBps : 0.0;
+    (*a)["queue_max_s"] = Num(budget, "queue_max_s");
+    (*a)["queue_bound_s"] = Num(budget, "queue_bound_s");
+    (*a)["rgbd_withheld_for_queue"] = Num(budget, "shed_keyframes");
+    if (const Json* levels = budget->Get("keyframes_per_level")) (*a)["keyframes_per_level"] = *levels;
+  }
+  const auto [keyframes, rgbd] = MatchKeyframes(name, link ? link->Get("keyframe_log") : nullptr, arrivals, latencies);
+  std::ostringstream md;
+  md << "| " << name << " | " << (budget ? Fmt("%.0f", *budget_kBps) : "-") << " | " << Fmt("%.1f", rate) << " | "
+     << (budget && *budget_kBps > 0 ? Fmt("%.3f", rate / *budget_kBps) : "-") << " | " << keyframes << " | " << rgbd
+     << " | " << (budget ? Fmt("%.2f", Num(budget, "queue_max_s")) : "-") << " | "
+     << (budget ? Fmt("%.0f", Num(budget, "shed_keyframes")) : "-") << " |\n";
+  return md.str();
+}
+
+void AddLatencyResults(const Latencies& l, Json* results) {
+  (*results)["keyframes_logged"] = l.sent;
+  (*results)["keyframes_missing"] = l.missing;
+  (*results)["keyframes_duplicated"] = l.duplicated;
+  (*results)["keyframes_delivered_once"] = l.sent > 0 && l.missing == 0 && l.duplicated == 0;
+  (*results)["keyframe_latency_p50_s"] = Percentile(l.to_server, 0.5);
+  (*results)["keyframe_latency_p95_s"] = Percentile(l.to_server, 0.95);
+  // The map latency proper counts keyframes whose map was in the world frame when they
+  // arrived; the others' wait for their map's fusion is reported beside it ("_all").
+  (*results)["map_latency_keyframes"] = static_cast<int>(l.to_dense_direct.size());
+  (*results)["map_latency_p50_s"] = Percentile(l.to_dense_direct, 0.5);
+  (*results)["map_latency_p95_s"] = Percentile(l.to_dense_direct, 0.95);
+  (*results)["map_latency_max_s"] = Percentile(l.to_dense_direct, 1.0);
+  (*results)["map_latency_all_keyframes"] = static_cast<int>(l.to_dense.size());
+  (*results)["map_latency_all_p50_s"] = Percentile(l.to_dense, 0.5);
+  (*results)["map_latency_all_p95_s"] = Percentile(l.to_dense, 0.95);
+  (*results)["map_latency_after_fusion_keyframes"] = l.fused_in;
+}
+
+std::string LatencySection(const Latencies& l) {
+  std::ostringstream md;
+  const bool once = l.sent > 0 && l.missing == 0 && l.duplicated == 0;
+  md << "Keyframes: " << l.sent << " sent, " << (l.sent - l.missing) << " received, " << l.missing << " missing, "
+     << l.duplicated << " received more than once" << (once ? " (every keyframe exactly once)" : "") << ".\n\n";
+  md << "| latency | keyframes | median (s) | 95 % (s) | max (s) |\n|---|---:|---:|---:|---:|\n";
+  auto row = [&](const std::string& what, const std::vector<double>& v) {
+    md << "| " << what << " | " << v.size() << " | " << Fmt("%.3f", Percentile(v, 0.5)) << " | "
+       << Fmt("%.3f", Percentile(v, 0.95)) << " | " << Fmt("%.3f", Percentile(v, 1.0)) << " |\n";
+  };
+  row("creation on the agent -> received by the server's back-end", l.to_server);
+  row("**creation -> points in the dense map (map latency)**", l.to_dense_direct);
+  row("the same with keyframes that waited for their map's fusion", l.to_dense);
+  md << "\n" << l.rgbd << " keyframes carried RGB-D; " << l.to_dense.size() << " have points in the dense map, "
+     << l.fused_in << " of them came in with a map fusion. The dense map holds only maps in the world frame (the "
+                      "primary map and what is fused into it): a keyframe of another map waits for that fusion, "
+                      "which depends on when the agents' views first overlap, not on the link; the map latency counts "
+                      "the keyframes whose map was already in the world frame.\n";
+  return md.str();
+}
+
+}  // namespace
+
 StatusOr<std::string> AddLinkFigures(const std::string& run_dir, const LinkRunInfo& info, Json* results) {
   (*results)["link"] = info.link.empty() ? std::string("loopback") : info.link;
   if (!info.link_stats.is_null()) (*results)["link_stats"] = info.link_stats;
-  auto server_stats = ReadJsonFile(JoinPath(run_dir, "server_stats.json"));
-  auto arrivals = ReadArrivals(JoinPath(run_dir, "keyframe_arrivals.csv"));
+  const auto server_stats = ReadJsonFile(JoinPath(run_dir, "server_stats.json"));
+  const auto arrivals = ReadArrivals(JoinPath(run_dir, "keyframe_arrivals.csv"));
   std::ostringstream md;
   md << "\n## Link, budget and map latency\n\n";
-  md << "Link: " << (info.link.empty() ? "loopback (no shaping)" : "`" + info.link + "` (network namespaces, tbf rate, "
-                                                                     "delay/jitter/loss stage)")
+  md << "Link: "
+     << (info.link.empty() ? "loopback (no shaping)"
+                           : "`" + info.link + "` (network namespaces, tbf rate, delay/jitter/loss stage)")
      << ".\n\n";
   if (!arrivals.ok()) {
     md << "No keyframe_arrivals.csv from the server (" << arrivals.status().ToString() << "): no latency figures.\n";
     return md.str();
   }
-  std::vector<double> to_dense, to_dense_direct, to_server;
-  int sent = 0, missing = 0, duplicated = 0, fused_in = 0, rgbd_sent = 0;
+  Latencies latencies;
   std::vector<std::pair<std::string, double>> budgets;
   Json::Array agents = results->Get("agents") ? results->Get("agents")->array() : Json::Array{};
   md << "| agent | budget (kB/s) | rate (kB/s) | rate / budget | keyframes | RGB-D | queue max (s) | RGB-D withheld "
         "(queue) |\n|---|---:|---:|---:|---:|---:|---:|---:|\n";
   for (Json& a : agents) {
-    const std::string name = a.Get("name") ? a.Get("name")->string() : "";
-    const double rate = server_stats.ok() ? AgentRateBytesPerSecond(FindAgentTraffic(*server_stats, name)) / 1e3 : 0.0;
-    a["kBps"] = rate;
-    auto stats = ReadJsonFile(JoinPath(run_dir, "agents/" + name + "_stats.json"));
-    const Json* link = stats.ok() ? stats->Get("link") : nullptr;
-    const Json* budget = link ? link->Get("budget") : nullptr;
-    const double budget_kBps = Num(budget, "budget_kBps");
-    budgets.emplace_back(name, budget_kBps);
-    if (budget) {
-      a["budget_kBps"] = budget_kBps;
-      a["kBps_over_budget"] = budget_kBps > 0 ? rate / budget_kBps : 0.0;
-      a["queue_max_s"] = Num(budget, "queue_max_s");
-      a["queue_bound_s"] = Num(budget, "queue_bound_s");
-      a["rgbd_withheld_for_queue"] = Num(budget, "shed_keyframes");
-      if (const Json* levels = budget->Get("keyframes_per_level")) a["keyframes_per_level"] = *levels;
-    }
-    int agent_keyframes = 0, agent_rgbd = 0;
-    if (const Json* log = link ? link->Get("keyframe_log") : nullptr) {
-      for (const Json& k : log->array()) {
-        if (k.size() < 5) continue;
-        ++agent_keyframes;
-        const double created_ms = k.at(1).number();
-        agent_rgbd += k.at(4).number() > 0;
-        const auto it = arrivals->find({name, static_cast<long long>(k.at(0).number())});
-        if (it == arrivals->end() || it->second.received == 0) {
-          ++missing;
-          continue;
-        }
-        if (it->second.received > 1) ++duplicated;
-        to_server.push_back((it->second.received_ms - created_ms) / 1e3);
-        if (it->second.dense_ms < 0) continue;
-        const double latency = (it->second.dense_ms - created_ms) / 1e3;
-        to_dense.push_back(latency);
-        if (it->second.fused) {
-          ++fused_in;
-        } else {
-          to_dense_direct.push_back(latency);
-        }
-      }
-    }
-    sent += agent_keyframes;
-    rgbd_sent += agent_rgbd;
-    md << "| " << name << " | " << (budget ? Fmt("%.0f", budget_kBps) : "-") << " | " << Fmt("%.1f", rate) << " | "
-       << (budget && budget_kBps > 0 ? Fmt("%.3f", rate / budget_kBps) : "-") << " | " << agent_keyframes << " | "
-       << agent_rgbd << " | " << (budget ? Fmt("%.2f", Num(budget, "queue_max_s")) : "-") << " | "
-       << (budget ? Fmt("%.0f", Num(budget, "shed_keyframes")) : "-") << " |\n";
+    double budget_kBps = 0;
+    md << AgentRow(run_dir, server_stats, *arrivals, &a, &latencies, &budget_kBps);
+    budgets.emplace_back(a.Get("name") ? a.Get("name")->string() : "", budget_kBps);
   }
   (*results)["agents"] = Json(agents);
-  (*results)["keyframes_logged"] = sent;
-  (*results)["keyframes_missing"] = missing;
-  (*results)["keyframes_duplicated"] = duplicated;
-  (*results)["keyframes_delivered_once"] = sent > 0 && missing == 0 && duplicated == 0;
-  (*results)["keyframe_latency_p50_s"] = Percentile(to_server, 0.5);
-  (*results)["keyframe_latency_p95_s"] = Percentile(to_server, 0.95);
-  // The map latency proper counts keyframes whose map was in the world frame when they
-  // arrived; the others' wait for their map's fusion is reported beside it ("_all").
-  (*results)["map_latency_keyframes"] = static_cast<int>(to_dense_direct.size());
-  (*results)["map_latency_p50_s"] = Percentile(to_dense_direct, 0.5);
-  (*results)["map_latency_p95_s"] = Percentile(to_dense_direct, 0.95);
-  (*results)["map_latency_max_s"] =
-      to_dense_direct.empty() ? 0.0 : *std::max_element(to_dense_direct.begin(), to_dense_direct.end());
-  (*results)["map_latency_all_keyframes"] = static_cast<int>(to_dense.size());
-  (*results)["map_latency_all_p50_s"] = Percentile(to_dense, 0.5);
-  (*results)["map_latency_all_p95_s"] = Percentile(to_dense, 0.95);
-  (*results)["map_latency_after_fusion_keyframes"] = fused_in;
+  AddLatencyResults(latencies, results);
   md << "\nRate: message bytes the server received from the agent between its first and last message, per second. "
         "Queue: bytes handed to the link and not yet acknowledged, in seconds at the rate the link gave.\n\n";
-  md << "Keyframes: " << sent << " sent, " << (sent - missing) << " received, " << missing << " missing, " << duplicated
-     << " received more than once" << (sent > 0 && missing == 0 && duplicated == 0 ? " (every keyframe exactly once)" : "")
-     << ".\n\n";
-  md << "| latency | keyframes | median (s) | 95 % (s) | max (s) |\n|---|---:|---:|---:|---:|\n";
-  auto row = [&](const std::string& what, const std::vector<double>& v) {
-    md << "| " << what << " | " << v.size() << " | " << Fmt("%.3f", Percentile(v, 0.5)) << " | "
-       << Fmt("%.3f", Percentile(v, 0.95)) << " | "
-       << Fmt("%.3f", v.empty() ? 0.0 : *std::max_element(v.begin(), v.end())) << " |\n";
-  };
-  row("creation on the agent -> received by the server's back-end", to_server);
-  row("**creation -> points in the dense map (map latency)**", to_dense_direct);
-  row("the same with keyframes that waited for their map's fusion", to_dense);
-  md << "\n" << rgbd_sent << " keyframes carried RGB-D; " << to_dense.size() << " have points in the dense map, "
-     << fused_in << " of them came in with a map fusion. The dense map holds only maps in the world frame (the "
-                    "primary map and what is fused into it): a keyframe of another map waits for that fusion, which "
-                    "depends on when the agents' views first overlap, not on the link; the map latency counts the "
-                    "keyframes whose map was already in the world frame.\n";
-  const bool any_budget =
-      std::any_of(budgets.begin(), budgets.end(), [](const auto& b) { return b.second > 0; });
+  md << LatencySection(latencies);
+  const bool any_budget = std::any_of(budgets.begin(), budgets.end(), [](const auto& b) { return b.second > 0; });
   if (any_budget && server_stats.ok()) {
     PlotBudget(*server_stats, budgets, JoinPath(run_dir, "plots/budget.png"));
     md << "\n![budget](plots/budget.png)\n";
