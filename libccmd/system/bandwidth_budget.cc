@@ -115,10 +115,13 @@ const RgbdLevel& BandwidthBudget::Plan(const LinkObservation& link) {
     if (expected >= 0 && credit_bytes_ - geometry_bytes_ - expected >= floor) level_ = richer;
   }
   // What is left of the queue bound, in bytes at the link's rate: the keyframe must fit.
-  const double room = options_.max_queue_s * rate - static_cast<double>(link.unacked_bytes) - geometry_bytes_;
+  // The bound holds at least two keyframes' geometry: below that, a small budget could never
+  // carry any RGB-D, however slowly keyframes came.
+  const double bound_s = std::max(options_.max_queue_s, 2 * geometry_bytes_ / rate);
+  const double room = bound_s * rate - static_cast<double>(link.unacked_bytes) - geometry_bytes_;
   while (level_ < leanest && ExpectedRgbdBytes(level_) > room) ++level_;
   d.level = level_;
-  if (d.queue_s > options_.max_queue_s) {
+  if (d.queue_s > bound_s) {
     // Geometry alone keeps the queue over its bound: nothing optional until it drains.
     d.shed = true;
     d.level = leanest;

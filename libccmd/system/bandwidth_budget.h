@@ -14,8 +14,8 @@
 //   queue   bytes not yet acknowledged, in seconds at that rate.
 // A credit below -band_s of budget steps one level leaner, above +band_s one level richer
 // if the credit pays for a keyframe at that level. Whatever the credit, the level is then
-// made lean enough that the keyframe fits in what is left of max_queue_s at the link's
-// rate (sizes are learnt per level; unseen levels are estimated from seen ones), so the
+// made lean enough that the keyframe fits in what is left of the queue bound (max_queue_s,
+// or two keyframes' geometry if that takes longer) at the link's rate (sizes are learnt per level; unseen levels are estimated from seen ones), so the
 // send queue, and with it the keyframes' wait, stays bounded in time. When geometry alone
 // overflows it, the keyframe goes without RGB-D and the queue grows: geometry is never
 // dropped, and the decisions say so. Every decision is recorded.
@@ -53,7 +53,9 @@ double RelativeRgbdSize(const RgbdEncodeOptions& encode);
 
 struct BandwidthBudgetOptions {
   double budget_bytes_per_s = 0;
-  double max_queue_s = 0.5;   // longer: no RGB-D until it drains; each keyframe fits in it
+  // Send queue bound: at least this, and two keyframes' geometry at the budget. Longer: no
+  // RGB-D until it drains; each keyframe's RGB-D must fit in what is left of it.
+  double max_queue_s = 0.5;
   double band_s = 0.25;       // credit dead band, in seconds of budget
   double max_credit_s = 1.0;  // unused budget kept for later, in seconds of budget
   double window_s = 2.0;      // acknowledgement rate measured over this window
