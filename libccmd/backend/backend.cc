@@ -153,7 +153,7 @@ void Backend::Ingest(IngestItem item) {
   GlobalKeyframeId id{agent, message.id};
   {
     std::lock_guard<std::mutex> lock(stats_mutex_);
-    arrivals_.push_back({id, KeyframeArrival::Stage::kReceived, WallSeconds(), false});
+    RecordArrival({id, KeyframeArrival::Stage::kReceived, WallSeconds(), false});
   }
   bool added = false;
   {
@@ -242,8 +242,7 @@ void Backend::DenseLoop() {
         if (status.ok()) {
           std::lock_guard<std::mutex> lock(stats_mutex_);
           stats_.dense_keyframes++;
-          arrivals_.push_back(
-              {task->keyframe.id, KeyframeArrival::Stage::kDense, WallSeconds(), task->after_fusion});
+          RecordArrival({task->keyframe.id, KeyframeArrival::Stage::kDense, WallSeconds(), task->after_fusion});
         }
         break;
       case DenseTask::Kind::kUpdate:
@@ -611,6 +610,15 @@ std::vector<LoopEvent> Backend::loop_events() const {
 BackendTimings Backend::timings() const {
   std::lock_guard<std::mutex> lock(stats_mutex_);
   return timings_;
+}
+
+void Backend::RecordArrival(const KeyframeArrival& arrival) {
+  // Bounded: a server running for days must not grow with its keyframe count here.
+  if (arrivals_.size() < kMaxArrivals) {
+    arrivals_.push_back(arrival);
+  } else {
+    ++arrivals_not_recorded_;
+  }
 }
 
 std::vector<KeyframeArrival> Backend::keyframe_arrivals() const {

@@ -130,6 +130,7 @@ class Backend {
   BackendStats stats();
   std::vector<LoopEvent> loop_events() const;
   BackendTimings timings() const;
+  // The first arrivals of the run (bounded; see RecordArrival).
   std::vector<KeyframeArrival> keyframe_arrivals() const;
   Json StatsJson();
 
@@ -208,7 +209,10 @@ class Backend {
   BackendStats stats_;
   BackendTimings timings_;
   std::vector<LoopEvent> loop_events_;
-  std::vector<KeyframeArrival> arrivals_;
+  std::vector<KeyframeArrival> arrivals_;  // the first kMaxArrivals
+  std::uint64_t arrivals_not_recorded_ = 0;
+  static constexpr std::size_t kMaxArrivals = 400000;
+  void RecordArrival(const KeyframeArrival& arrival);  // stats_mutex_ held
 
   std::thread ingest_thread_, loop_thread_, gba_thread_, dense_thread_;
   bool shut_down_ = false;

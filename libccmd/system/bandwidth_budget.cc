@@ -66,7 +66,11 @@ Status BandwidthBudgetOptions::Validate() const {
 }
 
 BandwidthBudget::BandwidthBudget(const BandwidthBudgetOptions& options, std::vector<RgbdLevel> ladder, int start_level)
-    : options_(options), ladder_(std::move(ladder)), level_(start_level), rgbd_bytes_(ladder_.size(), 0.0) {
+    : options_(options),
+      ladder_(std::move(ladder)),
+      level_(start_level),
+      rgbd_bytes_(ladder_.size(), 0.0),
+      keyframes_per_level_(ladder_.size(), 0) {
   CCMD_CHECK(!ladder_.empty() && !ladder_.back().request.allow);  // the last rung sends geometry only
   CCMD_CHECK(start_level >= 0 && start_level < static_cast<int>(ladder_.size()));
 }
@@ -128,7 +132,7 @@ const RgbdLevel& BandwidthBudget::Plan(const LinkObservation& link) {
     d.level = leanest;
     ++shed_;
   }
-  decisions_.push_back(d);
+  current_ = d;
   pending_ = true;
   return ladder_[d.level];
 }
@@ -149,7 +153,7 @@ double BandwidthBudget::ExpectedRgbdBytes(int level) const {
 void BandwidthBudget::Record(KeyframeId keyframe, std::uint64_t message_bytes, std::uint64_t rgbd_bytes, bool rgbd) {
   if (!pending_) return;  // a keyframe without a plan (the sink was not asked): nothing to add
   pending_ = false;
-  BudgetDecision& d = decisions_.back();
+  BudgetDecision& d = current_;
   // Running means (weight 0.3 for the newest): sizes follow the scene.
   auto update = [](double* mean, double sample) { *mean = *mean > 0 ? 0.7 * *mean + 0.3 * sample : sample; };
   update(&geometry_bytes_, static_cast<double>(message_bytes - rgbd_bytes));
@@ -158,6 +162,12 @@ void BandwidthBudget::Record(KeyframeId keyframe, std::uint64_t message_bytes, s
   d.message_bytes = message_bytes;
   d.rgbd_bytes = rgbd_bytes;
   d.rgbd = rgbd;
+  ++keyframes_per_level_[d.level];
+  if (decisions_.size() < kMaxRecorded) {
+    decisions_.push_back(d);
+  } else {
+    ++not_recorded_;
+  }
 }
 
 Json BandwidthBudget::ToJson() const {
@@ -180,7 +190,6 @@ Json BandwidthBudget::ToJson() const {
   }
   j["ladder"] = ladder;
   Json list = Json::MakeArray();
-  std::vector<int> used(ladder_.size(), 0);
   for (const BudgetDecision& d : decisions_) {
     Json e;
     e["keyframe"] = d.keyframe.value();
@@ -194,11 +203,11 @@ Json BandwidthBudget::ToJson() const {
     e["rgbd_bytes"] = d.rgbd_bytes;
     e["rgbd"] = d.rgbd;
     list.Push(e);
-    ++used[d.level];
   }
   j["decisions"] = list;
+  j["decisions_not_recorded"] = not_recorded_;
   Json histogram = Json::MakeArray();
-  for (int n : used) histogram.Push(n);
+  for (int n : keyframes_per_level_) histogram.Push(n);
   j["keyframes_per_level"] = histogram;
   return j;
 }

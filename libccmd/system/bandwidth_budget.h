@@ -90,7 +90,10 @@ class BandwidthBudget {
   // The keyframe the last plan went to, as it was sent.
   void Record(KeyframeId keyframe, std::uint64_t message_bytes, std::uint64_t rgbd_bytes, bool rgbd);
 
+  // The recorded decisions: the first kMaxRecorded (a run's memory must not grow without
+  // end; the counts per level and the queue figures cover every keyframe).
   const std::vector<BudgetDecision>& decisions() const { return decisions_; }
+  static constexpr std::size_t kMaxRecorded = 100000;
   const std::vector<RgbdLevel>& ladder() const { return ladder_; }
   Json ToJson() const;
 
@@ -118,8 +121,11 @@ class BandwidthBudget {
   std::vector<double> rgbd_bytes_;       // running mean per level; 0 = not seen
   double max_queue_seen_s_ = 0;
   int shed_ = 0;
-  std::vector<BudgetDecision> decisions_;
+  std::vector<int> keyframes_per_level_;
+  BudgetDecision current_;  // planned, waiting for Record
   bool pending_ = false;
+  std::vector<BudgetDecision> decisions_;
+  std::uint64_t not_recorded_ = 0;
 };
 
 }  // namespace ccmd

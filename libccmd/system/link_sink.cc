@@ -72,7 +72,11 @@ void LinkSink::OnKeyframe(KeyframeSnapshot keyframe) {
     return;
   }
   Handed(*sent, size);
-  sent_.push_back({keyframe.id, keyframe.created_wall_s, WallSeconds(), size, parts.colour + parts.depth});
+  if (sent_.size() < kMaxLogged) {
+    sent_.push_back({keyframe.id, keyframe.created_wall_s, WallSeconds(), size, parts.colour + parts.depth});
+  } else {
+    ++not_logged_;  // memory must not grow with the run's length
+  }
   if (budget_) budget_->Record(keyframe.id, size, parts.colour + parts.depth, message->rgbd.has_value());
   ++stats_.keyframes;
   stats_.rgbd_keyframes += message->rgbd.has_value();
@@ -140,6 +144,7 @@ Json LinkSink::StatsJson(bool detailed) const {
                               k.bytes, k.rgbd_bytes}));
   }
   j["keyframe_log"] = log;
+  j["keyframe_log_not_logged"] = not_logged_;
   if (budget_) j["budget"] = budget_->ToJson();
   return j;
 }

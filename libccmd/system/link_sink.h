@@ -61,7 +61,9 @@ class LinkSink : public KeyframeSink {
   LinkSinkStats stats_;
   std::unique_ptr<BandwidthBudget> budget_;
   std::optional<RgbdEncodeOptions> planned_;  // the budget's coding for the next keyframe
-  std::vector<SentKeyframe> sent_;
+  std::vector<SentKeyframe> sent_;  // the first kMaxLogged keyframes
+  std::uint64_t not_logged_ = 0;
+  static constexpr std::size_t kMaxLogged = 100000;
   std::uint64_t handed_bytes_ = 0;
   std::deque<std::pair<std::uint64_t, std::size_t>> unacked_;  // link number, bytes
   std::uint64_t unacked_bytes_ = 0;
