@@ -91,8 +91,9 @@ void BandwidthBudget::Observe(const LinkObservation& link) {
   const Sample& oldest = samples_.front();
   const bool backlogged = std::all_of(samples_.begin(), samples_.end(), [](const Sample& s) { return s.unacked > 0; });
   const double span = link.now_s - oldest.t;
-  link_rate_ = backlogged && span >= 0.5 * options_.window_s ? (acked - oldest.acked) / span : 0.0;
-  const double fill = link_rate_ > 0 ? std::min(budget, link_rate_) : budget;
+  link_rate_ = backlogged && span >= 0.5 * options_.window_s ? (acked - oldest.acked) / span : -1.0;
+  // A stalled link (backlogged, nothing acknowledged) earns no credit.
+  const double fill = link_rate_ >= 0 ? std::min(budget, link_rate_) : budget;
   credit_bytes_ += fill * std::max(0.0, link.now_s - last_s_) - static_cast<double>(link.handed_bytes - last_handed_);
   credit_bytes_ = std::min(credit_bytes_, options_.max_credit_s * budget);
   last_s_ = link.now_s;
@@ -102,12 +103,14 @@ void BandwidthBudget::Observe(const LinkObservation& link) {
 const RgbdLevel& BandwidthBudget::Plan(const LinkObservation& link) {
   Observe(link);
   const double budget = options_.budget_bytes_per_s * options_.payload_share;
-  const double rate = link_rate_ > 0 ? std::min(link_rate_, budget) : budget;
+  // Queue time at the rate the link gives (a stalled one counts as 5 % of the budget, so its
+  // queue reads as long, not infinite).
+  const double rate = link_rate_ >= 0 ? std::max(0.05 * budget, std::min(link_rate_, budget)) : budget;
   BudgetDecision d;
   d.time_s = link.now_s - start_s_;
   d.queue_s = link.unacked_bytes / rate;
   d.credit_s = credit_bytes_ / budget;
-  d.link_rate_bytes_per_s = link_rate_;
+  d.link_rate_bytes_per_s = std::max(0.0, link_rate_);
   max_queue_seen_s_ = std::max(max_queue_seen_s_, d.queue_s);
   const int leanest = static_cast<int>(ladder_.size()) - 1;
   if (d.credit_s < -options_.band_s) {

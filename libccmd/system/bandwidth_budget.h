@@ -111,7 +111,7 @@ class BandwidthBudget {
   double start_s_ = 0, last_s_ = 0;
   std::uint64_t last_handed_ = 0;
   double credit_bytes_ = 0;
-  double link_rate_ = 0;  // acknowledged bytes per second while backlogged; 0 = not measured
+  double link_rate_ = -1;  // acknowledged bytes per second while backlogged; < 0 = not measured
   struct Sample {
     double t;
     std::uint64_t acked, unacked;

@@ -124,6 +124,7 @@ namespace {
 // Keyframe delivery and latencies over all agents.
 struct Latencies {
   std::vector<double> to_server, to_dense, to_dense_direct;
+  std::vector<double> on_agent, on_link;  // creation -> hand-over -> the server's back-end
   int sent = 0, missing = 0, duplicated = 0, fused_in = 0, rgbd = 0;
 };
 
@@ -136,8 +137,9 @@ std::pair<int, int> MatchKeyframes(const std::string& name, const Json* log, con
   for (const Json& k : log->array()) {
     if (k.size() < 5) continue;
     ++keyframes;
-    const double created_ms = k.at(1).number();
+    const double created_ms = k.at(1).number(), handed_ms = k.at(2).number();
     rgbd += k.at(4).number() > 0;
+    out->on_agent.push_back((handed_ms - created_ms) / 1e3);
     const auto it = arrivals.find({name, static_cast<long long>(k.at(0).number())});
     if (it == arrivals.end() || it->second.received == 0) {
       ++out->missing;
@@ -145,6 +147,7 @@ std::pair<int, int> MatchKeyframes(const std::string& name, const Json* log, con
     }
     if (it->second.received > 1) ++out->duplicated;
     out->to_server.push_back((it->second.received_ms - created_ms) / 1e3);
+    out->on_link.push_back((it->second.received_ms - handed_ms) / 1e3);
     if (it->second.dense_ms < 0) continue;
     const double latency = (it->second.dense_ms - created_ms) / 1e3;
     out->to_dense.push_back(latency);
@@ -193,6 +196,10 @@ void AddLatencyResults(const Latencies& l, Json* results) {
   (*results)["keyframes_delivered_once"] = l.sent > 0 && l.missing == 0 && l.duplicated == 0;
   (*results)["keyframe_latency_p50_s"] = Percentile(l.to_server, 0.5);
   (*results)["keyframe_latency_p95_s"] = Percentile(l.to_server, 0.95);
+  (*results)["keyframe_on_agent_p50_s"] = Percentile(l.on_agent, 0.5);
+  (*results)["keyframe_on_agent_p95_s"] = Percentile(l.on_agent, 0.95);
+  (*results)["keyframe_on_link_p50_s"] = Percentile(l.on_link, 0.5);
+  (*results)["keyframe_on_link_p95_s"] = Percentile(l.on_link, 0.95);
   // The map latency proper counts keyframes whose map was in the world frame when they
   // arrived; the others' wait for their map's fusion is reported beside it ("_all").
   (*results)["map_latency_keyframes"] = static_cast<int>(l.to_dense_direct.size());
@@ -215,6 +222,8 @@ std::string LatencySection(const Latencies& l) {
     md << "| " << what << " | " << v.size() << " | " << Fmt("%.3f", Percentile(v, 0.5)) << " | "
        << Fmt("%.3f", Percentile(v, 0.95)) << " | " << Fmt("%.3f", Percentile(v, 1.0)) << " |\n";
   };
+  row("creation -> handed to the link (the agent's local mapping, selection, coding)", l.on_agent);
+  row("handed to the link -> received by the server's back-end (queue, link, journal)", l.on_link);
   row("creation on the agent -> received by the server's back-end", l.to_server);
   row("**creation -> points in the dense map (map latency)**", l.to_dense_direct);
   row("the same with keyframes that waited for their map's fusion", l.to_dense);

@@ -120,6 +120,32 @@ TEST(BandwidthBudgetTest, FollowsALinkSlowerThanTheBudget) {
   EXPECT_LE(r.max_queue_s, 1.0);  // the link's rate is learnt over a 2 s window
 }
 
+TEST(BandwidthBudgetTest, AStalledLinkEarnsNoCreditAndGetsGeometryOnly) {
+  BandwidthBudgetOptions options;
+  options.budget_bytes_per_s = 100e3;
+  int start = 0;
+  std::vector<RgbdLevel> ladder = DefaultBudgetLadder(RgbdEncodeOptions{}, &start);
+  const int leanest = static_cast<int>(ladder.size()) - 1;
+  BandwidthBudget b(options, std::move(ladder), start);
+  // 40 kB handed over and never acknowledged (the server is away): after the window, every
+  // keyframe goes without RGB-D and the credit does not grow.
+  double handed = 0;
+  for (int i = 0; i < 20; ++i) {
+    LinkObservation o;
+    o.now_s = 0.25 * i;
+    o.handed_bytes = static_cast<std::uint64_t>(handed);
+    o.unacked_bytes = static_cast<std::uint64_t>(handed);
+    b.Plan(o);
+    b.Record(KeyframeId(i), 20000, 0, false);
+    handed += 20000;
+  }
+  const BudgetDecision& last = b.decisions().back();
+  EXPECT_EQ(last.level, leanest);
+  EXPECT_TRUE(last.shed);
+  EXPECT_EQ(last.link_rate_bytes_per_s, 0);
+  EXPECT_LT(last.credit_s, b.decisions()[8].credit_s);  // 20 kB handed every 0.25 s, nothing earned
+}
+
 TEST(BandwidthBudgetTest, LargeRgbdNeverOverflowsTheQueueBound) {
   // 400 kB of RGB-D at r = 1 (100 kB at the default r = 1/2) into 100 kB/s: only lean levels
   // fit in a 0.5 s queue, however much credit two keyframes a second leave.

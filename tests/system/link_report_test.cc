@@ -74,8 +74,11 @@ TEST(LinkReportTest, LatenciesDeliveryAndRatesComeFromTheLogs) {
   EXPECT_EQ(results.Get("map_latency_all_keyframes")->number(), 3);
   EXPECT_NEAR(results.Get("map_latency_all_p50_s")->number(), 0.9, 1e-9);
   EXPECT_EQ(results.Get("map_latency_after_fusion_keyframes")->number(), 1);
-  // Creation to the server: 0.2, 0.3, 0.4, 0.2 s (the first delivery counts).
+  // Creation to the server: 0.2, 0.3, 0.4, 0.2 s (the first delivery counts), of which 10 ms
+  // on the agent each time.
   EXPECT_NEAR(results.Get("keyframe_latency_p50_s")->number(), 0.25, 1e-9);
+  EXPECT_NEAR(results.Get("keyframe_on_agent_p95_s")->number(), 0.01, 1e-9);
+  EXPECT_NEAR(results.Get("keyframe_on_link_p50_s")->number(), 0.24, 1e-9);
   const Json& agent1 = results.Get("agents")->at(0);
   EXPECT_NEAR(agent1.Get("kBps")->number(), 40, 1e-9);
   EXPECT_EQ(agent1.Get("budget_kBps")->number(), 50);
