@@ -47,8 +47,9 @@ struct RgbdLevel {
 std::vector<RgbdLevel> DefaultBudgetLadder(const RgbdEncodeOptions& base, int* default_level);
 
 // A rough model of an RGB-D payload's size relative to r = 1, JPEG quality 75, depth bound
-// 0.5 % (from docs/benchmarks/codec.md: colour about 60 % of the bytes, JPEG bytes grow about
-// 2 % per quality step, bounded depth bytes about as bound^-0.8), for levels not seen yet.
+// 0.5 % (docs/benchmarks/codec.md and link.md: bytes about as pixels^0.72, colour about 60 %
+// of them growing about 2 % per JPEG quality step, bounded depth about as bound^-0.8), for
+// levels not seen yet.
 double RelativeRgbdSize(const RgbdEncodeOptions& encode);
 
 struct BandwidthBudgetOptions {

@@ -181,6 +181,18 @@ TEST(BandwidthBudgetTest, DecisionsAreRecordedPerKeyframe) {
   EXPECT_DOUBLE_EQ(j.Get("budget_kBps")->number(), 50);
 }
 
+TEST(BandwidthBudgetTest, SizeModelFollowsTheMeasuredRatios) {
+  // ccmd_knob_bench, 7-Scenes: r 1/2 -> 1/4 divides the bytes by 2.6, JPEG 50 saves 20 %,
+  // depth bound 1 % 16 %; the model is within a quarter of each.
+  RgbdEncodeOptions base, quarter = base, q50 = base, bound = base;
+  quarter.downsample = 4;
+  q50.jpeg_quality = 50;
+  bound.bound_e4 = 100;
+  EXPECT_NEAR(RelativeRgbdSize(base) / RelativeRgbdSize(quarter), 2.62, 0.25 * 2.62);
+  EXPECT_NEAR(1 - RelativeRgbdSize(q50) / RelativeRgbdSize(base), 0.20, 0.05);
+  EXPECT_NEAR(1 - RelativeRgbdSize(bound) / RelativeRgbdSize(base), 0.16, 0.04);
+}
+
 TEST(BandwidthBudgetTest, OptionsAreValidated) {
   BandwidthBudgetOptions o;
   EXPECT_FALSE(o.Validate().ok());  // no budget
