@@ -137,6 +137,7 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
     if (text.ok()) WriteFileAtomic(JoinPath(out, "config.yaml"), *text).IgnoreError();
   }
 
+  if (g_interrupted) return Cancelled("interrupted");
   CCMD_ASSIGN_OR_RETURN(const RunNetwork network, RunNetwork::Open(setup, out));
   if (network.link) {
     std::printf("link %s: namespaces %s, %s, %s\n", setup.link_text.c_str(),
@@ -374,9 +375,10 @@ Status RunKnobCosts(const Setup& setup, const std::string& out, const Json& main
 
 int main(int argc, char** argv) {
   CLI::App app{
-      "Split-replay evaluation: a ccmd_server and K ccmd_agent processes over TCP on loopback, each\n"
-      "agent replaying one segment (10% overlap) of a TUM-layout sequence; then ATE, reconstruction\n"
-      "error, bandwidth and CPU in DIR/report.md and DIR/results.json."};
+      "Split-replay evaluation: a ccmd_server and K ccmd_agent processes over TCP on loopback (or a\n"
+      "shaped link with --link), each agent replaying one segment (10% overlap) of a TUM-layout\n"
+      "sequence; then ATE, reconstruction error, bandwidth, map latency and CPU in DIR/report.md and\n"
+      "DIR/results.json."};
   std::string dataset, out, config, rate = "max", reference, bin_dir;
   int agents = 3;
   double timeout_s = 3600;
