@@ -29,9 +29,18 @@ PinholeCamera Camera() {
   return c;
 }
 
-TEST(LoopVerificationTest, RecoversTheQueryPoseDespiteOutliers) {
+// ICL-NUIM's camera: image rows run opposite to the camera's y axis.
+PinholeCamera NegativeFyCamera() {
+  PinholeCamera c;
+  c.fx = 481.2;
+  c.fy = -480;
+  c.cx = 319.5;
+  c.cy = 239.5;
+  return c;
+}
+
+void ExpectQueryPoseRecovered(const PinholeCamera& camera) {
   Rng rng(41);
-  const PinholeCamera camera = Camera();
   ServerMap map(MapId(1));
   // Candidate keyframe at the origin observing 400 points on a wall 2-4 m away.
   auto candidate = std::make_unique<ServerKeyframe>();
@@ -84,6 +93,12 @@ TEST(LoopVerificationTest, RecoversTheQueryPoseDespiteOutliers) {
     EXPECT_EQ(point->id.point.value(), static_cast<std::uint32_t>(keypoint));  // keypoint j saw point j
   }
 }
+
+TEST(LoopVerificationTest, RecoversTheQueryPoseDespiteOutliers) { ExpectQueryPoseRecovered(Camera()); }
+
+// The PnP RANSAC and the refinement take the signed focal length: a camera with fy < 0 finds
+// the same pose, not its mirror image.
+TEST(LoopVerificationTest, NegativeFocalLengthGivesTheSamePose) { ExpectQueryPoseRecovered(NegativeFyCamera()); }
 
 TEST(LoopVerificationTest, UnrelatedViewsAreRejected) {
   Rng rng(42);
