@@ -371,6 +371,14 @@ int main(int argc, char** argv) {
   auto num = [&](const char* key) { return r.Get(key) ? r.Get(key)->number() : -1.0; };
   std::printf("\nmaps after fusion: %.0f   fused ATE RMSE: %.4f m   reconstruction mean %.4f m, Hausdorff %.4f m\n",
               num("maps_after_fusion"), num("ate_rmse_m"), num("recon_mean_m"), num("recon_hausdorff_m"));
+  if (num("maps_after_fusion") > 1) {
+    std::string members;
+    if (const Json* names = r.Get("primary_map_agents")) {
+      for (const Json& n : names->array()) members += (members.empty() ? "" : ", ") + n.string();
+    }
+    std::printf("not every map fused: the figures above are the primary map's (%s); see report.md for the others\n",
+                members.empty() ? "no agent" : members.c_str());
+  }
   std::printf("per agent: %.1f kB/s, %.1f kB per keyframe, %.2f keyframes/s\n", num("atps_kBps"), num("akfs_kB"),
               num("akfr_hz"));
   std::printf("report: %s\nmap:    %s\n", JoinPath(out, "report.md").c_str(), JoinPath(out, "map.ply").c_str());

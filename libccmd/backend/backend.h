@@ -112,6 +112,7 @@ class Backend {
   std::vector<MapId> Maps() const { return maps_.Maps(); }
   std::vector<AgentId> Agents() const { return maps_.Agents(); }
   bool AgentInPrimaryMap(AgentId agent) const;
+  std::optional<MapId> MapOfAgent(AgentId agent) const { return maps_.MapOfAgent(agent); }
 
   DenseMap* dense() { return dense_.get(); }
   Status ExportDenseMap(const std::string& path);

@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <map>
 #include <opencv2/imgproc.hpp>
 #include <sstream>
 
@@ -148,6 +149,57 @@ PlotSeries Projected(const Trajectory& t, const Eigen::Matrix<double, 2, 3>& P, 
   return s;
 }
 
+// Which map each agent's keyframes ended in, from server_stats.json ("agent_maps"; runs
+// written before it only say how many maps there were).
+struct MapMembership {
+  int primary = -1;
+  std::map<std::string, int> map_of;
+
+  bool InPrimary(const std::string& agent) const {
+    const auto it = map_of.find(agent);
+    return it != map_of.end() && it->second == primary;
+  }
+  std::vector<std::string> PrimaryAgents() const {
+    std::vector<std::string> names;
+    for (const auto& [name, map] : map_of) {
+      if (map == primary) names.push_back(name);
+    }
+    return names;
+  }
+};
+
+MapMembership ReadMembership(const Json& stats, int agents) {
+  MapMembership m;
+  m.primary = static_cast<int>(Num(&stats, "primary_map", -1));
+  if (const Json* maps = stats.Get("agent_maps")) {
+    for (int i = 1; i <= agents; ++i) {
+      const std::string name = "agent" + std::to_string(i);
+      if (maps->Has(name)) m.map_of[name] = static_cast<int>(Num(maps, name));
+    }
+  } else if (Num(stats.Get("backend"), "maps", -1) == 1) {
+    for (int i = 1; i <= agents; ++i) m.map_of["agent" + std::to_string(i)] = m.primary;
+  }
+  return m;
+}
+
+// The ATE of one map's keyframes (in that map's frame). Maps of a few keyframes close together
+// (agents that did not fuse often have one or two) are aligned by the keyframes' whole poses:
+// their positions alone cannot fix the rotation, and the dense map would be tilted with it.
+std::optional<AteResult> MapAte(const Trajectory& gt, const Trajectory& keyframes) {
+  if (gt.empty() || keyframes.empty()) return std::nullopt;
+  AteOptions options;
+  options.pose_alignment_below_spread_m = 0.1;
+  auto ate = ComputeAte(gt, keyframes, options);
+  if (!ate.ok()) return std::nullopt;
+  return *ate;
+}
+
+std::string JoinNames(const std::vector<std::string>& names) {
+  std::string out;
+  for (const std::string& n : names) out += (out.empty() ? "" : ", ") + n;
+  return out.empty() ? "none" : out;
+}
+
 }  // namespace
 
 StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dataset, const ReplayRunInfo& info,
@@ -168,21 +220,24 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   results["fusions"] = Num(backend, "fusions");
   results["global_ba_runs"] = Num(backend, "global_ba_runs");
 
-  // Trajectories.
+  // Trajectories: the agents' own odometry, then the primary map's keyframes (every agent's
+  // when all fused; otherwise those of the agents in it, named in the results).
+  const MapMembership membership = ReadMembership(server_stats, info.agents);
+  const std::vector<std::string> primary_agents = membership.PrimaryAgents();
+  Json primary_names = Json::MakeArray();
+  for (const std::string& n : primary_agents) primary_names.Push(n);
+  results["primary_map_agents"] = primary_names;
+  results["all_maps_fused"] = results["maps_after_fusion"].number() == 1;
   std::optional<AteResult> fused_ate;
-  Trajectory fused;
-  if (!gt.empty()) {
-    auto read = ReadTumTrajectory(JoinPath(server_dir, "trajectory_fused.txt"));
-    if (read.ok()) {
-      fused = *read;
-      auto ate = ComputeAte(gt, fused);
-      if (ate.ok()) {
-        fused_ate = *ate;
-        results["ate_rmse_m"] = ate->error.rmse;
-        results["ate_mean_m"] = ate->error.mean;
-        results["ate_max_m"] = ate->error.max;
-        results["fused_keyframes"] = ate->matched;
-      }
+  auto read_fused = ReadTumTrajectory(JoinPath(server_dir, "trajectory_fused.txt"));
+  if (read_fused.ok()) {
+    fused_ate = MapAte(gt, *read_fused);
+    if (fused_ate) {
+      results["ate_rmse_m"] = fused_ate->error.rmse;
+      results["ate_mean_m"] = fused_ate->error.mean;
+      results["ate_max_m"] = fused_ate->error.max;
+      results["fused_keyframes"] = fused_ate->matched;
+      results["ate_aligned_by"] = fused_ate->aligned_by_poses ? "poses" : "positions";
     }
   }
   Json agents = Json::MakeArray();
@@ -202,9 +257,10 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
     }
     auto t = ReadTumTrajectory(JoinPath(server_dir, "trajectory_" + name + ".txt"));
     agent_trajectories.push_back(t.ok() ? *t : Trajectory{});
-    if (t.ok() && !gt.empty()) {
-      auto ate = ComputeAte(gt, *t);
-      if (ate.ok()) a["ate_rmse_m"] = ate->error.rmse;
+    a["in_primary_map"] = membership.InPrimary(name);
+    if (t.ok()) {
+      const auto ate = MapAte(gt, *t);
+      if (ate) a["ate_rmse_m"] = ate->error.rmse;
     }
     auto frames = ReadTumTrajectory(JoinPath(run_dir, "agents/" + name + "_frames.txt"));
     if (frames.ok() && !gt.empty()) {
@@ -419,17 +475,34 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   md << "\n## Maps and trajectories\n\n";
   md << "Maps left after fusion: " << results["maps_after_fusion"].number() << " (loops " << results["loops"].number()
      << ", fusions " << results["fusions"].number() << ", global BA runs " << results["global_ba_runs"].number() << ")\n\n";
-  md << "| agent | frames | server keyframes | ATE RMSE (server, m) | ATE RMSE (agent odometry, m) | lost frames |\n|---|---|---|---|---|---|\n";
+  if (results["maps_after_fusion"].number() > 1) {
+    std::vector<std::string> others;
+    for (int i = 1; i <= info.agents; ++i) {
+      if (!membership.InPrimary("agent" + std::to_string(i))) others.push_back("agent" + std::to_string(i));
+    }
+    md << "**Not every map fused.** The fused trajectory and the dense map below are the primary map's, which holds "
+       << JoinNames(primary_agents) << "; " << JoinNames(others)
+       << " kept their own maps: their server ATE in the table is in their own map's frame.\n\n";
+  }
+  md << "| agent | frames | map | server keyframes | ATE RMSE (server, m) | ATE RMSE (agent odometry, m) | lost frames |\n"
+        "|---|---|---|---|---|---|---|\n";
   for (const Json& a : agents.array()) {
     md << "| " << a.Get("name")->string() << " | " << Num(&a, "first_frame") << "-" << Num(&a, "last_frame") << " | "
+       << (a.Get("in_primary_map")->boolean() ? "primary" : "own") << " | "
        << Num(&a, "keyframes") << " | " << (a.Has("ate_rmse_m") ? Fmt("%.4f", Num(&a, "ate_rmse_m")) : "-") << " | "
        << (a.Has("agent_frames_ate_rmse_m") ? Fmt("%.4f", Num(&a, "agent_frames_ate_rmse_m")) : "-") << " | "
        << Num(&a, "lost_frames") << " |\n";
   }
   if (results.Has("ate_rmse_m")) {
-    md << "\nFused trajectory (every keyframe of the primary map): ATE RMSE **" << Fmt("%.4f", results["ate_rmse_m"].number())
-       << " m** over " << results["fused_keyframes"].number() << " keyframes (max " << Fmt("%.4f", results["ate_max_m"].number())
-       << " m).\n";
+    md << "\nFused trajectory (every keyframe of the primary map: " << JoinNames(primary_agents) << "): ATE RMSE **"
+       << Fmt("%.4f", results["ate_rmse_m"].number()) << " m** over " << results["fused_keyframes"].number()
+       << " keyframes (max " << Fmt("%.4f", results["ate_max_m"].number()) << " m)"
+       << (results["ate_aligned_by"].string() == "poses"
+               ? ", aligned by whole keyframe poses: too few keyframes, or too close together, to align by positions"
+               : "")
+       << ".\n";
+  } else {
+    md << "\nNo fused ATE: the primary map has no keyframe matching the ground truth.\n";
   }
   md << "\n![trajectories](plots/trajectories.png)\n\n## Dense map\n\n";
   if (results.Has("recon_mean_m")) {

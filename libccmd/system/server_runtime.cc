@@ -77,14 +77,18 @@ Json ServerRuntime::StatsJson() {
   Json j;
   if (server_) j["transport"] = server_->StatsJson();
   if (backend_) j["backend"] = backend_->StatsJson();
-  Json agents;
+  Json agents, agent_maps;
   {
     std::lock_guard<std::mutex> lock(names_mutex_);
     for (const auto& [id, name] : names_) {
       agents[name] = Json(static_cast<int>(id.value()));
+      // Which map each agent's keyframes are in: the evaluation names the primary map's agents.
+      const auto map = backend_ ? backend_->MapOfAgent(id) : std::nullopt;
+      if (map) agent_maps[name] = Json(static_cast<int>(map->value()));
     }
   }
   j["agent_ids"] = agents;
+  j["agent_maps"] = agent_maps;
   if (backend_ && backend_->PrimaryMap()) j["primary_map"] = static_cast<int>(backend_->PrimaryMap()->value());
   j["malformed_messages"] = malformed_messages_.load();
   return j;
