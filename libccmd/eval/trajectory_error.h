@@ -24,7 +24,7 @@ struct AteOptions {
   bool correct_scale = false;         // similarity alignment (-as), for monocular systems
   // Alignment fitted to whole poses instead of positions when the positions cannot fix it:
   // fewer than three, or spread less than this (metres, standard deviation across their main
-  // direction) so that a millimetre of noise would tilt the alignment by a degree. The fit
+  // direction: points that close to a line leave the rotation about it to the noise). The fit
   // uses each pose's centre and the points 10 cm along its three axes, so one pose is enough;
   // the errors are still those of the centres. 0: positions only (evo's behaviour).
   double pose_alignment_below_spread_m = 0;
