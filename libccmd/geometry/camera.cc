@@ -1,6 +1,7 @@
 #include "libccmd/geometry/camera.h"
 
 #include <Eigen/LU>
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 
@@ -120,22 +121,41 @@ PixelRays::PixelRays(const PinholeCamera& camera) : width_(camera.width), height
   const std::size_t n = static_cast<std::size_t>(width_) * height_;
   x_.resize(n);
   y_.resize(n);
-  const bool distorted = camera.HasDistortion();
-  for (int v = 0; v < height_; ++v) {
-    float* xs = x_.data() + static_cast<std::size_t>(v) * width_;
-    float* ys = y_.data() + static_cast<std::size_t>(v) * width_;
-    const double y_d = (v - camera.cy) / camera.fy;
-    // Newton from the neighbour's solution converges in one or two steps.
-    Eigen::Vector2d xy((0 - camera.cx) / camera.fx, y_d);
-    for (int u = 0; u < width_; ++u) {
-      const Eigen::Vector2d target((u - camera.cx) / camera.fx, y_d);
-      if (distorted) {
-        if (!SolveUndistort(camera.distortion, target, &xy)) xy = camera.Undistort(target);
-      } else {
-        xy = target;
+  const double fx = camera.fx, fy = camera.fy, cx = camera.cx, cy = camera.cy;
+  if (!camera.HasDistortion()) {
+    for (int v = 0; v < height_; ++v) {
+      for (int u = 0; u < width_; ++u) {
+        x_[static_cast<std::size_t>(v) * width_ + u] = static_cast<float>((u - cx) / fx);
+        y_[static_cast<std::size_t>(v) * width_ + u] = static_cast<float>((v - cy) / fy);
       }
-      xs[u] = static_cast<float>(xy.x());
-      ys[u] = static_cast<float>(xy.y());
+    }
+    return;
+  }
+  // Exact undistortion on a grid of kStep pixels (the last row and column included), then the
+  // correction (undistorted - distorted), which varies slowly, interpolated bilinearly between
+  // the nodes: 1/16 of the solves, within 0.02 pixels for TUM fr1's strong lens (0.1 mm at
+  // 2 m, far below depth noise).
+  constexpr int kStep = 4;
+  auto node = [&](int i, int size) { return std::min(i * kStep, size - 1); };
+  const int nu = (width_ - 1 + kStep - 1) / kStep + 1, nv = (height_ - 1 + kStep - 1) / kStep + 1;
+  std::vector<Eigen::Vector2d> correction(static_cast<std::size_t>(nu) * nv);
+  for (int j = 0; j < nv; ++j) {
+    for (int i = 0; i < nu; ++i) {
+      const Eigen::Vector2d distorted((node(i, width_) - cx) / fx, (node(j, height_) - cy) / fy);
+      correction[static_cast<std::size_t>(j) * nu + i] = camera.Undistort(distorted) - distorted;
+    }
+  }
+  for (int v = 0; v < height_; ++v) {
+    const int j = std::min(v / kStep, nv - 2);
+    const double b = static_cast<double>(v - node(j, height_)) / (node(j + 1, height_) - node(j, height_));
+    for (int u = 0; u < width_; ++u) {
+      const int i = std::min(u / kStep, nu - 2);
+      const double a = static_cast<double>(u - node(i, width_)) / (node(i + 1, width_) - node(i, width_));
+      const Eigen::Vector2d* c = &correction[static_cast<std::size_t>(j) * nu + i];
+      const Eigen::Vector2d delta =
+          (1 - b) * ((1 - a) * c[0] + a * c[1]) + b * ((1 - a) * c[nu] + a * c[nu + 1]);
+      x_[static_cast<std::size_t>(v) * width_ + u] = static_cast<float>((u - cx) / fx + delta.x());
+      y_[static_cast<std::size_t>(v) * width_ + u] = static_cast<float>((v - cy) / fy + delta.y());
     }
   }
 }
