@@ -117,7 +117,7 @@ Eigen::Vector2d PinholeCamera::DistortPixel(const Eigen::Vector2d& ideal) const 
   return {fx * xy.x() + cx, fy * xy.y() + cy};
 }
 
-PixelRays::PixelRays(const PinholeCamera& camera) : width_(camera.width), height_(camera.height) {
+PixelRays::PixelRays(const PinholeCamera& camera, bool exact) : width_(camera.width), height_(camera.height) {
   const std::size_t n = static_cast<std::size_t>(width_) * height_;
   x_.resize(n);
   y_.resize(n);
@@ -127,6 +127,19 @@ PixelRays::PixelRays(const PinholeCamera& camera) : width_(camera.width), height
       for (int u = 0; u < width_; ++u) {
         x_[static_cast<std::size_t>(v) * width_ + u] = static_cast<float>((u - cx) / fx);
         y_[static_cast<std::size_t>(v) * width_ + u] = static_cast<float>((v - cy) / fy);
+      }
+    }
+    return;
+  }
+  if (exact) {
+    for (int v = 0; v < height_; ++v) {
+      // Newton from the neighbour's solution converges in one or two steps.
+      Eigen::Vector2d xy = camera.Undistort({-cx / fx, (v - cy) / fy});
+      for (int u = 0; u < width_; ++u) {
+        const Eigen::Vector2d target((u - cx) / fx, (v - cy) / fy);
+        if (!SolveUndistort(camera.distortion, target, &xy)) xy = camera.Undistort(target);
+        x_[static_cast<std::size_t>(v) * width_ + u] = static_cast<float>(xy.x());
+        y_[static_cast<std::size_t>(v) * width_ + u] = static_cast<float>(xy.y());
       }
     }
     return;

@@ -95,7 +95,10 @@ struct PinholeCamera {
 // distortion x depends on u only and y on v only, as (u - cx) / fx and (v - cy) / fy.
 class PixelRays {
  public:
-  explicit PixelRays(const PinholeCamera& camera);
+  // With distortion the rays are solved exactly on a 4-pixel grid and interpolated between
+  // (within 0.02 px for TUM fr1's lens), or with `exact` solved at every pixel (a few times
+  // slower: for rendering ground truth).
+  explicit PixelRays(const PinholeCamera& camera, bool exact = false);
   int width() const { return width_; }
   int height() const { return height_; }
   // Row v of the x and y tables (width() values each).

@@ -223,7 +223,7 @@ class OutputRays {
  public:
   explicit OutputRays(const PinholeCamera& camera) : camera_(camera), ray_x_(camera.width) {
     for (int x = 0; x < camera.width; ++x) ray_x_[x] = static_cast<float>((x - camera.cx) / camera.fx);
-    if (camera.HasDistortion()) table_.emplace(camera);
+    if (camera.HasDistortion()) table_.emplace(camera, /*exact=*/true);
   }
   // Fills `y_fill` (width values) when the rows are separable.
   std::pair<const float*, const float*> Row(int y, std::vector<float>* y_fill) const {

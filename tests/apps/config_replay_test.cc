@@ -26,6 +26,7 @@
 
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/json.h"
+#include "tests/apps/replay_test_util.h"
 #include "tests/support/test_support.h"
 
 namespace ccmd {
@@ -65,18 +66,9 @@ TEST_P(ConfigReplayTest, RenderedThroughTheCameraReplaysIntoAnAccurateMap) {
                                 &out),
             0)
       << out;
-  ASSERT_EQ(testing::RunCommand(testing::ProgramPath("ccmd_replay") + " --dataset " + dir.File("seq") +
-                                    " --agents 2 --config " + config + " --out " + dir.File("run"),
-                                &out),
-            0)
-      << out;
-  auto results = ReadJsonFile(dir.File("run/results.json"));
-  ASSERT_TRUE(results.ok()) << out;
-  EXPECT_EQ(results->Get("maps_after_fusion")->number(), 1) << out;
-  ASSERT_TRUE(results->Has("ate_rmse_m")) << out;
-  ASSERT_TRUE(results->Has("recon_mean_m")) << out;
-  EXPECT_LT(results->Get("ate_rmse_m")->number(), 0.005);
-  EXPECT_LT(results->Get("recon_mean_m")->number(), 0.010);
+  auto results = testing::RunReplay(dir.File("seq"), 2, config, dir.File("run"), &out);
+  ASSERT_TRUE(results.ok()) << results.status().ToString() << "\n" << out;
+  testing::ExpectFusedWithin(*results, 0.005, 0.010, out);
   EXPECT_GT(results->Get("recon_completeness")->number(), 0.6);
   for (const Json& agent : results->Get("agents")->array()) {
     EXPECT_EQ(agent.Get("lost_frames")->number(), 0) << agent.Get("name")->string();

@@ -12,7 +12,7 @@
 #include "libccmd/io/trajectory.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/json.h"
-#include "libccmd/util/string_util.h"
+#include "tests/apps/replay_test_util.h"
 #include "tests/support/test_support.h"
 
 namespace ccmd {
@@ -75,18 +75,9 @@ TEST(DatasetReplayTest, TwoAgentsFuseOnIclNuim) {
   testing::TempDir dir;
   MakeExcerpt(dataset, dir.File("icl"), 180);
   std::string out;
-  ASSERT_EQ(testing::RunCommand(testing::ProgramPath("ccmd_replay") + " --dataset " + dir.File("icl") +
-                                    " --agents 2 --config " + Config("icl_nuim.yaml") + " --out " + dir.File("run"),
-                                &out),
-            0)
-      << out;
-  auto results = ReadJsonFile(dir.File("run/results.json"));
-  ASSERT_TRUE(results.ok()) << out;
-  EXPECT_EQ(results->Get("maps_after_fusion")->number(), 1) << out;
-  ASSERT_TRUE(results->Has("ate_rmse_m")) << out;
-  ASSERT_TRUE(results->Has("recon_mean_m")) << out;
-  EXPECT_LT(results->Get("ate_rmse_m")->number(), 0.02);
-  EXPECT_LT(results->Get("recon_mean_m")->number(), 0.03);
+  auto results = testing::RunReplay(dir.File("icl"), 2, Config("icl_nuim.yaml"), dir.File("run"), &out);
+  ASSERT_TRUE(results.ok()) << results.status().ToString() << "\n" << out;
+  testing::ExpectFusedWithin(*results, 0.02, 0.03, out);
 }
 
 }  // namespace

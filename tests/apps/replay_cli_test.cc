@@ -11,6 +11,7 @@
 #include "libccmd/synth/sequence.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/json.h"
+#include "tests/apps/replay_test_util.h"
 #include "tests/support/test_support.h"
 
 namespace ccmd {
@@ -23,13 +24,8 @@ TEST(ReplayCliTest, TwoAgentsFuseAndTheReportMatchesTheFiles) {
   synth.surface_spacing = 0.02;
   ASSERT_TRUE(WriteSyntheticSequence(dir.File("seq"), synth).ok());
   std::string out;
-  ASSERT_EQ(testing::RunCommand(testing::ProgramPath("ccmd_replay") + " --dataset " + dir.File("seq") +
-                                    " --agents 2 --out " + dir.File("run"),
-                                &out),
-            0)
-      << out;
-  auto results = ReadJsonFile(dir.File("run/results.json"));
-  ASSERT_TRUE(results.ok()) << out;
+  auto results = testing::RunReplay(dir.File("seq"), 2, "", dir.File("run"), &out);
+  ASSERT_TRUE(results.ok()) << results.status().ToString() << "\n" << out;
   for (const char* key : {"ate_rmse_m", "maps_after_fusion", "recon_mean_m", "recon_hausdorff_m", "atps_kBps",
                           "akfs_kB", "akfr_hz", "agents"}) {
     ASSERT_TRUE(results->Has(key)) << key;
@@ -96,13 +92,8 @@ TEST(ReplayCliTest, ShortSlowSplitStillReportsThePrimaryMap) {
   synth.path.loop_period_s = 400;
   ASSERT_TRUE(WriteSyntheticSequence(dir.File("seq"), synth).ok());
   std::string out;
-  ASSERT_EQ(testing::RunCommand(testing::ProgramPath("ccmd_replay") + " --dataset " + dir.File("seq") +
-                                    " --agents 2 --out " + dir.File("run"),
-                                &out),
-            0)
-      << out;
-  auto results = ReadJsonFile(dir.File("run/results.json"));
-  ASSERT_TRUE(results.ok()) << out;
+  auto results = testing::RunReplay(dir.File("seq"), 2, "", dir.File("run"), &out);
+  ASSERT_TRUE(results.ok()) << results.status().ToString() << "\n" << out;
   ASSERT_GE(results->Get("fused_keyframes") ? results->Get("fused_keyframes")->number() : 0, 1) << out;
   ASSERT_TRUE(results->Has("ate_rmse_m")) << out;
   ASSERT_TRUE(results->Has("recon_mean_m")) << out;

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include "libccmd/util/random.h"
+#include "tests/support/test_cameras.h"
 
 namespace ccmd {
 namespace {
@@ -24,16 +25,6 @@ Descriptor FlipBits(Descriptor d, int bits, Rng* rng) {
 PinholeCamera Camera() {
   PinholeCamera c;
   c.fx = c.fy = 525;
-  c.cx = 319.5;
-  c.cy = 239.5;
-  return c;
-}
-
-// ICL-NUIM's camera: image rows run opposite to the camera's y axis.
-PinholeCamera NegativeFyCamera() {
-  PinholeCamera c;
-  c.fx = 481.2;
-  c.fy = -480;
   c.cx = 319.5;
   c.cy = 239.5;
   return c;
@@ -98,7 +89,7 @@ TEST(LoopVerificationTest, RecoversTheQueryPoseDespiteOutliers) { ExpectQueryPos
 
 // The PnP RANSAC and the refinement take the signed focal length: a camera with fy < 0 finds
 // the same pose, not its mirror image.
-TEST(LoopVerificationTest, NegativeFocalLengthGivesTheSamePose) { ExpectQueryPoseRecovered(NegativeFyCamera()); }
+TEST(LoopVerificationTest, NegativeFocalLengthGivesTheSamePose) { ExpectQueryPoseRecovered(testing::IclNuimCamera()); }
 
 TEST(LoopVerificationTest, UnrelatedViewsAreRejected) {
   Rng rng(42);

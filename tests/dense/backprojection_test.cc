@@ -9,6 +9,7 @@
 #include <opencv2/core.hpp>
 
 #include "libccmd/dense/label.h"
+#include "tests/support/test_cameras.h"
 
 namespace ccmd {
 namespace {
@@ -50,12 +51,7 @@ TEST(BackProjectionTest, PixelsFollowThePinholeModelWithColoursAsRgb) {
 // undistorted ray: the point lands back on that pixel through the lens model (TUM fr1, whose
 // corners move by 9 pixels), and a negative fy (ICL-NUIM) puts rows below the centre at y < 0.
 TEST(BackProjectionTest, RecordedPixelsGoAlongTheirUndistortedRays) {
-  PinholeCamera camera;
-  camera.fx = 517.306408;
-  camera.fy = 516.469215;
-  camera.cx = 318.643040;
-  camera.cy = 255.313989;
-  camera.distortion = {0.262383, -0.953104, -0.005358, 0.002628, 1.163314};
+  const PinholeCamera camera = testing::TumFr1Camera();
   const cv::Mat depth(480, 640, CV_16UC1, cv::Scalar(2000));
   const cv::Mat bgr(480, 640, CV_8UC3, cv::Scalar(0, 0, 0));
   BackProjectionOptions options;

@@ -6,6 +6,8 @@
 #include <limits>
 #include <opencv2/calib3d.hpp>
 
+#include "tests/support/test_cameras.h"
+
 namespace ccmd {
 namespace {
 
@@ -45,17 +47,6 @@ TEST(CameraTest, ValidityChecksExplainTheProblem) {
   EXPECT_NE(why.find("focal"), std::string::npos);
 }
 
-// TUM fr1's colour camera: strong radial distortion (k2, k3 of order one).
-PinholeCamera TumFr1() {
-  PinholeCamera c;
-  c.fx = 517.306408;
-  c.fy = 516.469215;
-  c.cx = 318.643040;
-  c.cy = 255.313989;
-  c.distortion = {0.262383, -0.953104, -0.005358, 0.002628, 1.163314};
-  return c;
-}
-
 TEST(CameraTest, DistortionFollowsTheBrownConradyFormula) {
   PinholeCamera c;
   c.distortion = {0.1, 0, 0, 0, 0};
@@ -69,7 +60,7 @@ TEST(CameraTest, DistortionFollowsTheBrownConradyFormula) {
 }
 
 TEST(CameraTest, DistortionMatchesOpenCv) {
-  const PinholeCamera c = TumFr1();
+  const PinholeCamera c = testing::TumFr1Camera();
   const cv::Mat K = (cv::Mat_<double>(3, 3) << c.fx, 0, c.cx, 0, c.fy, c.cy, 0, 0, 1);
   const cv::Mat dist = (cv::Mat_<double>(1, 5) << c.distortion[0], c.distortion[1], c.distortion[2],
                         c.distortion[3], c.distortion[4]);
@@ -87,8 +78,8 @@ TEST(CameraTest, DistortionMatchesOpenCv) {
 }
 
 TEST(CameraTest, UndistortInvertsDistortOverTheImage) {
-  for (PinholeCamera c : {TumFr1(), [] {
-                            PinholeCamera n = TumFr1();
+  for (PinholeCamera c : {testing::TumFr1Camera(), [] {
+                            PinholeCamera n = testing::TumFr1Camera();
                             n.fy = -n.fy;  // the model works on signed normalised coordinates
                             return n;
                           }()}) {
@@ -107,7 +98,7 @@ TEST(CameraTest, UndistortInvertsDistortOverTheImage) {
 }
 
 TEST(CameraTest, PixelRaysAreTheUndistortedRays) {
-  const PinholeCamera c = TumFr1();
+  const PinholeCamera c = testing::TumFr1Camera();
   const PixelRays rays(c);
   auto plain_ray = [&](int u, int v) { return Eigen::Vector3d((u - c.cx) / c.fx, (v - c.cy) / c.fy, 1.0); };
   ASSERT_EQ(rays.width(), 640);
@@ -121,6 +112,14 @@ TEST(CameraTest, PixelRaysAreTheUndistortedRays) {
     }
   }
   EXPECT_LT(worst, 0.02);  // pixels: the table interpolates between exact nodes
+  const PixelRays exact(c, /*exact=*/true);
+  worst = 0;
+  for (int v = 0; v < c.height; v += 3) {
+    for (int u = 0; u < c.width; u += 3) {
+      worst = std::max(worst, (c.ProjectToImage(exact.Ray(u, v)) - Eigen::Vector2d(u, v)).norm());
+    }
+  }
+  EXPECT_LT(worst, 1e-3);  // float rounding only
   EXPECT_GT((rays.Ray(0, 0) - plain_ray(0, 0)).norm() * c.fx, 3.0);  // and it is not the pinhole's
   PinholeCamera plain = c;
   plain.distortion = {0, 0, 0, 0, 0};
@@ -133,18 +132,18 @@ TEST(CameraTest, UnusableValuesAreRefusedWithAReason) {
   const double nan = std::numeric_limits<double>::quiet_NaN();
   const double inf = std::numeric_limits<double>::infinity();
   std::string why;
-  PinholeCamera c = TumFr1();
+  PinholeCamera c = testing::TumFr1Camera();
   EXPECT_TRUE(c.IsUsable(&why)) << why;
   c.distortion[1] = nan;
   EXPECT_FALSE(c.IsValid(&why));
   EXPECT_NE(why.find("distortion"), std::string::npos);
-  c = TumFr1();
+  c = testing::TumFr1Camera();
   c.cx = inf;
   EXPECT_FALSE(c.IsValid(&why));
-  c = TumFr1();
+  c = testing::TumFr1Camera();
   c.fy = nan;
   EXPECT_FALSE(c.IsValid(&why));
-  c = TumFr1();
+  c = testing::TumFr1Camera();
   c.depth_map_factor = 0;
   EXPECT_FALSE(c.IsValid(&why));
   // x (1 - r^2) turns back at r = 1/sqrt(3) = 0.58, inside a 640-wide image with fx 300.
@@ -157,7 +156,7 @@ TEST(CameraTest, UnusableValuesAreRefusedWithAReason) {
 }
 
 TEST(CameraTest, ResizingKeepsTheDistortionOfNormalisedCoordinates) {
-  const PinholeCamera c = TumFr1();
+  const PinholeCamera c = testing::TumFr1Camera();
   const PinholeCamera half = c.Scaled(0.5);
   EXPECT_EQ(half.distortion, c.distortion);
   // The same 3D point lands on the same spot of the (halved) recorded image.

@@ -8,6 +8,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "libccmd/synth/sequence.h"
+#include "tests/support/test_cameras.h"
 
 namespace ccmd {
 namespace {
@@ -155,24 +156,13 @@ TEST(RendererTest, RoomTextureGivesManyWellSpreadOrbFeatures) {
   }
 }
 
-// TUM fr1's colour camera: strong radial distortion.
-PinholeCamera DistortedCamera() {
-  PinholeCamera c = SyntheticCamera(640, 480);
-  c.fx = 517.306408;
-  c.fy = 516.469215;
-  c.cx = 318.643040;
-  c.cy = 255.313989;
-  c.distortion = {0.262383, -0.953104, -0.005358, 0.002628, 1.163314};
-  return c;
-}
-
 // The depth of a distorted camera's pixel is the plane's depth along the pixel's undistorted
 // ray, here found with OpenCV's undistortPoints (an implementation independent of ours).
 TEST(RendererTest, DistortedCameraSeesAlongEachRawPixelsRay) {
   const Eigen::Vector3d point(0.1, -0.05, 2.0);
   const Eigen::Vector3d n = Eigen::Vector3d(0.3, -0.2, -1.0).normalized();
   const SyntheticScene scene = SyntheticScene::FromPolygons({Quad(point, n, 5.0, Eigen::Vector3d::Zero())});
-  const PinholeCamera camera = DistortedCamera();
+  const PinholeCamera camera = testing::TumFr1Camera();
   const RenderedFrame frame = RenderFrame(scene, camera, Pose::Identity(), Exact());
   const cv::Mat K = (cv::Mat_<double>(3, 3) << camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1);
   const cv::Mat dist(camera.distortion, true);
@@ -197,7 +187,7 @@ TEST(RendererTest, DistortedCameraImagesObjectsWhereTheLensPutsThem) {
   const SyntheticScene scene = SyntheticScene::FromPolygons(
       {Quad({0, 0, 3}, -Eigen::Vector3d::UnitZ(), 5, Eigen::Vector3d::Zero()),
        Quad(centre, -Eigen::Vector3d::UnitZ(), 0.03, Eigen::Vector3d::Zero())});
-  const PinholeCamera camera = DistortedCamera();
+  const PinholeCamera camera = testing::TumFr1Camera();
   const RenderedFrame frame = RenderFrame(scene, camera, Pose::Identity(), Exact());
   double su = 0, sv = 0;
   int count = 0;

@@ -10,6 +10,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "libccmd/sensors/synthetic_source.h"
+#include "tests/support/test_cameras.h"
 
 namespace ccmd {
 namespace {
@@ -22,7 +23,7 @@ TEST(TrackingFrameTest, KeypointsAreUndistortedAfterTheDepthLookupAtTheRecordedP
   cv::cvtColor(frame.bgr, gray, cv::COLOR_BGR2GRAY);
   PinholeCamera plain = source.camera();
   PinholeCamera distorted = plain;
-  distorted.distortion = {0.262383, -0.953104, -0.005358, 0.002628, 1.163314};  // TUM fr1
+  distorted.distortion = testing::TumFr1Camera().distortion;
   const OrbExtractor orb;
   const FrameFeatures raw = ComputeFeatures(gray, frame.depth_mm, orb, plain, 0.1, 10.0);
   const FrameFeatures undistorted = ComputeFeatures(gray, frame.depth_mm, orb, distorted, 0.1, 10.0);
