@@ -386,6 +386,11 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
     std::string source;
     auto ref = LoadOrBuildReference(dataset, reference, &source);
     auto rec = ReadPly(map_path);
+    // A reference built here is kept, so that the map can be compared again (ccmd_eval recon).
+    if (ref.ok() && reference.reference_ply.empty() && !FileExists(JoinPath(dataset.folder(), "surface.ply"))) {
+      const Status kept = WritePly(*ref, JoinPath(run_dir, "reference.ply"));
+      if (!kept.ok()) CCMD_LOG(WARNING) << kept.ToString();
+    }
     if (ref.ok() && rec.ok() && rec->size() > 0) {
       for (auto& p : rec->points) p = (*map_alignment * p.cast<double>()).cast<float>();
       auto error = ComputeReconstructionError(*ref, *rec);
