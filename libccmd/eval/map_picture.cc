@@ -167,6 +167,7 @@ StatusOr<cv::Mat> RenderMapPerspective(const PointCloud& map, const MapViewFrame
   const double y0 = Percentile(ys, 0.01), y1 = Percentile(ys, 0.99);
   const double h0 = Percentile(hs, 0.01), h1 = Percentile(hs, 0.99);
   const Eigen::Vector3d target = 0.5 * (x0 + x1) * e1 + 0.5 * (y0 + y1) * e2 + 0.5 * (h0 + h1) * frame.up;
+  const double near_limit = y0 + o.cutaway_fraction * (y1 - y0), floor_limit = h0 + 0.3;
   // Seen across its shorter side (along e2) from above: the long side fills the width.
   const double half_fov = 0.5 * o.field_of_view_deg * M_PI / 180;
   const double distance = 1.1 * 0.5 * (x1 - x0) / std::tan(half_fov) + 0.5 * (y1 - y0);
@@ -180,6 +181,7 @@ StatusOr<cv::Mat> RenderMapPerspective(const PointCloud& map, const MapViewFrame
   for (std::size_t i = 0; i < map.size(); ++i) {
     const Eigen::Vector3d p = map.points[i].cast<double>();
     if (p.dot(frame.up) > frame.cut_height) continue;
+    if (p.dot(e2) < near_limit && p.dot(frame.up) > floor_limit) continue;  // the cutaway
     const Eigen::Vector3d d = p - eye;
     const double depth = d.dot(z);
     if (depth < 0.05) continue;

@@ -32,6 +32,9 @@ struct MapPictureOptions {
   double point_size_m = 0.01;        // the dense map's voxel
   double ceiling_margin_m = 0.4;     // kept above the highest camera
   double elevation_deg = 40;         // perspective view: camera above the horizon
+  // Perspective view: points in the nearest part of the map (this fraction of its depth) that
+  // stand higher than the floor are left out, so the near wall does not hide the room.
+  double cutaway_fraction = 0.12;
   double field_of_view_deg = 60;     // perspective view, horizontal
   cv::Scalar background = cv::Scalar(255, 255, 255);  // BGR
   // Agent id (the label's top byte) -> name and colour (BGR) for the agent panels and legend.

@@ -90,7 +90,8 @@ void ViewModel::OnPoses(PoseSource source, MapId map, const std::vector<Keyframe
     Json item = Json::MakeArray();
     item.Push(static_cast<int>(p.id.agent.value()));
     item.Push(p.id.keyframe.value());
-    for (const Json& v : PoseJson(p.T_world_cam).array()) item.Push(v);
+    const Json pose = PoseJson(p.T_world_cam);
+    for (const Json& v : pose.array()) item.Push(v);
     list.Push(std::move(item));
   }
   if (list.size() == 0) return;

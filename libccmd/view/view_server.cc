@@ -9,14 +9,15 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
-#include <httplib.h>
-
 #include <cstdio>
 
 #include "libccmd/net/socket.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/string_util.h"
+
+// Last: httplib.h brings <resolv.h>, whose _res macro breaks Eigen headers included after it.
+#include <httplib.h>
 
 namespace ccmd {
 
