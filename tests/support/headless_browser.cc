@@ -117,7 +117,7 @@ StatusOr<std::unique_ptr<HeadlessBrowser>> HeadlessBrowser::Launch(const Browser
 
 HeadlessBrowser::~HeadlessBrowser() {
   if (pid_ > 0) {
-    if (to_browser_ >= 0) Call("Browser.close", Json::MakeObject(), 10, false).IgnoreError();
+    if (to_browser_ >= 0) Call("Browser.close", Json::MakeObject(), 10, false).status().IgnoreError();
     // The browser closes its end of the pipe when it exits; read until then (bounded).
     const double deadline = MonotonicSeconds() + 10;
     while (Read(deadline).ok()) {

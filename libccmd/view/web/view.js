@@ -821,6 +821,18 @@
         })();
       });
     },
+    // Resolves with the statistics' number once the page has received newer ones than `after`.
+    whenStats: function (after) {
+      return new Promise(function (resolve) {
+        (function check() { if (S.statsVersion > after) resolve(S.statsVersion); else requestAnimationFrame(check); })();
+      });
+    },
+    // Resolves once the connection to the server is in state `c` (live, connecting, gone).
+    whenConnection: function (c) {
+      return new Promise(function (resolve) {
+        (function check() { if (S.connection === c) resolve(c); else requestAnimationFrame(check); })();
+      });
+    },
     // Frames with the camera orbiting the map, each waited for (a one-pixel read), the point
     // budget adapting as in interactive use. lod = false draws every point in each frame.
     benchmark: function (options) {
