@@ -167,6 +167,7 @@ TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
   }
 
   // A picture of it: the 3D view (left of the panel) is not empty.
+  script("ccmdView.whenRested()");
   auto png = page.Screenshot();
   ASSERT_TRUE(png.ok());
   const cv::Mat image = cv::imdecode(std::vector<uchar>(png->begin(), png->end()), cv::IMREAD_COLOR);

@@ -42,7 +42,7 @@
     statsVersion: 0,
     connection: 'connecting',
     frames: 0,
-    latency: { keyframe: [], cloud: [], pose: [], delivery: [] },
+    latency: { keyframe: [], backend: [], cloud: [], pose: [], delivery: [] },
     pendingPose: [],        // pose events applied but not yet drawn: {t, src}
     cloudErrors: 0,
   };
@@ -693,12 +693,13 @@
       if (kf.loaded && !kf.drawn) {
         kf.drawn = true;
         if (kf.arrived) S.latency.keyframe.push(t - kf.arrived);
+        if (kf.arrived && kf.ready) S.latency.backend.push(kf.ready - kf.arrived);
         if (kf.ready) S.latency.cloud.push(t - kf.ready);
       }
     }
     for (const p of S.pendingPose) S.latency.pose.push({ ms: t - p.t, src: p.src });
     S.pendingPose = [];
-    for (const list of [S.latency.keyframe, S.latency.cloud, S.latency.pose, S.latency.delivery]) {
+    for (const list of Object.values(S.latency)) {
       if (list.length > 20000) list.splice(0, list.length - 20000);
     }
   }
@@ -799,16 +800,21 @@
       }
       return null;
     },
+    // Milliseconds (docs/view.md): keyframe = arrival at the server to the first frame that
+    // draws its points (keyframes of the world map only); backend = arrival to its cloud in
+    // the dense store; cloud = that to drawn; delivery = that to the event reaching the page;
+    // pose = a pose change's arrival (or computation) to the first frame drawn with it.
     latency: function () {
-      const pose = S.latency.pose.map((p) => p.ms);
-      return { keyframe: { n: S.latency.keyframe.length, median: percentile(S.latency.keyframe, 0.5),
-        p95: percentile(S.latency.keyframe, 0.95), max: percentile(S.latency.keyframe, 1) },
-      cloud: { n: S.latency.cloud.length, median: percentile(S.latency.cloud, 0.5), p95: percentile(S.latency.cloud, 0.95),
-        max: percentile(S.latency.cloud, 1) },
-      delivery: { n: S.latency.delivery.length, median: percentile(S.latency.delivery, 0.5),
-        max: percentile(S.latency.delivery, 1) },
-      pose: { n: pose.length, median: percentile(pose, 0.5), p95: percentile(pose, 0.95), max: percentile(pose, 1),
-        bySource: S.latency.pose.reduce(function (m, p) { (m[p.src] = m[p.src] || []).push(p.ms); return m; }, {}) } };
+      const summary = function (list) {
+        return { n: list.length, median: percentile(list, 0.5), p95: percentile(list, 0.95), max: percentile(list, 1) };
+      };
+      const bySource = {};
+      for (const p of S.latency.pose) (bySource[p.src] = bySource[p.src] || []).push(p.ms);
+      const out = { pose_by_source: {} };
+      for (const name of ['keyframe', 'backend', 'cloud', 'delivery']) out[name] = summary(S.latency[name]);
+      out.pose = summary(S.latency.pose.map((p) => p.ms));
+      for (const src in bySource) out.pose_by_source[src] = summary(bySource[src]);
+      return out;
     },
     // Resolves once the page has applied event `seq`, loaded every cloud the server has
     // announced and drawn a frame with them.
@@ -825,6 +831,12 @@
     whenStats: function (after) {
       return new Promise(function (resolve) {
         (function check() { if (S.statsVersion > after) resolve(S.statsVersion); else requestAnimationFrame(check); })();
+      });
+    },
+    // Resolves once the image is complete: every point drawn, nothing left to refine.
+    whenRested: function () {
+      return new Promise(function (resolve) {
+        (function check() { if (!view.fresh && !view.refine.length) resolve(S.frames); else requestAnimationFrame(check); })();
       });
     },
     // Resolves once the connection to the server is in state `c` (live, connecting, gone).
