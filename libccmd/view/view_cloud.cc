@@ -78,6 +78,19 @@ void AppendViewCloud(const GlobalKeyframeId& id, const CameraCloud* cloud, const
   while (out->size() % 4 != 0) out->push_back('\0');
 }
 
+std::string EncodeBase64(std::string_view bytes) {
+  static constexpr char kDigits[] = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+  std::string out;
+  out.reserve((bytes.size() + 2) / 3 * 4);
+  for (std::size_t i = 0; i < bytes.size(); i += 3) {
+    const std::size_t n = std::min<std::size_t>(3, bytes.size() - i);
+    std::uint32_t v = 0;
+    for (std::size_t j = 0; j < 3; ++j) v = (v << 8) | (j < n ? static_cast<std::uint8_t>(bytes[i + j]) : 0u);
+    for (std::size_t j = 0; j < 4; ++j) out.push_back(j <= n ? kDigits[(v >> (18 - 6 * j)) & 63] : '=');
+  }
+  return out;
+}
+
 StatusOr<std::vector<ViewCloud>> ParseViewClouds(std::string_view bytes) {
   std::vector<ViewCloud> clouds;
   std::size_t at = 0;

@@ -47,6 +47,9 @@ struct ViewCloud {
   std::vector<std::array<std::uint8_t, 3>> colors;
 };
 
+// Standard base64 (clouds inlined in the event stream, which carries text).
+std::string EncodeBase64(std::string_view bytes);
+
 // Reads records back (tests, benchmarks). Untrusted bytes: a truncated or inconsistent
 // record is an error.
 StatusOr<std::vector<ViewCloud>> ParseViewClouds(std::string_view bytes);

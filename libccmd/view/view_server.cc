@@ -15,6 +15,7 @@
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/string_util.h"
+#include "libccmd/util/timer.h"
 
 // Last: httplib.h brings <resolv.h>, whose _res macro breaks Eigen headers included after it.
 #include <httplib.h>
@@ -318,18 +319,37 @@ void ViewServer::ServeEvents(const httplib::Request& request, httplib::Response*
           case EventBatch::Kind::kTimeout:
             text = ": keep-alive\n\n";
             break;
-          case EventBatch::Kind::kEvents:
+          case EventBatch::Kind::kEvents: {
+            int inline_budget = options_.max_inline_clouds;
             for (const auto& [seq, json] : batch.events) {
-              text += SseMessage(seq, json);
+              text += StreamEvent(seq, json, &inline_budget);
               cursor->after = seq;
             }
             if (!batch.stats.empty()) text += SseMessage(0, R"({"type":"stats","stats":)" + batch.stats + "}");
             cursor->stats_version = batch.stats_version;
             break;
+          }
         }
         return sink.write(text.data(), text.size());
       },
       [this](bool) { streams_.fetch_sub(1); });
+}
+
+std::string ViewServer::StreamEvent(std::uint64_t seq, const std::string& json, int* inline_budget) const {
+  if (*inline_budget <= 0 || dense_ == nullptr || json.find(R"("type":"cloud")") == std::string::npos) {
+    return SseMessage(seq, json);
+  }
+  auto event = Json::Parse(json);
+  if (!event.ok() || !event->Get("a") || !event->Get("k")) return SseMessage(seq, json);
+  const GlobalKeyframeId id{AgentId(static_cast<std::uint16_t>(event->Get("a")->number())),
+                            KeyframeId(static_cast<std::uint32_t>(event->Get("k")->number()))};
+  auto cloud = dense_->KeyframeCloud(id);
+  if (!cloud.ok()) return SseMessage(seq, json);
+  std::string record;
+  AppendViewCloud(id, &*cloud, options_.cloud, &record);
+  (*event)["data"] = EncodeBase64(record);
+  --*inline_budget;
+  return SseMessage(seq, event->Dump(-1));
 }
 
 void ViewServer::ServeClouds(const httplib::Request& request, httplib::Response* response) const {
@@ -341,6 +361,7 @@ void ViewServer::ServeClouds(const httplib::Request& request, httplib::Response*
                           "text/plain");
     return;
   }
+  const Stopwatch watch;
   std::string body;
   for (const std::string& text : ids) {
     const std::vector<std::string> parts = Split(text, ':');
@@ -357,6 +378,8 @@ void ViewServer::ServeClouds(const httplib::Request& request, httplib::Response*
     AppendViewCloud(id, cloud.ok() ? &*cloud : nullptr, options_.cloud, &body);
   }
   NoStore(response);
+  // The time the server took (Server-Timing, visible in the browser's developer tools).
+  response->set_header("Server-Timing", "clouds;dur=" + std::to_string(watch.ElapsedMillis()));
   response->set_content(std::move(body), "application/octet-stream");
 }
 

@@ -54,6 +54,7 @@ struct ViewServerOptions {
   double stats_period_s = 1.0;         // statistics pushed to the streams this often
   double keepalive_s = 15;             // an idle stream gets a comment this often
   std::size_t max_clouds_per_request = 64;
+  int max_inline_clouds = 16;          // per write of an event stream; later ones are fetched
   ViewCloudOptions cloud;
 
   Status Validate() const;
@@ -123,6 +124,9 @@ class ViewServer {
   // Answers a request the server must refuse (wrong method, token or host): true if refused.
   bool Refuse(const httplib::Request& request, httplib::Response* response) const;
   void ServeEvents(const httplib::Request& request, httplib::Response* response);
+  // An event as the stream sends it: a "cloud" event carries the cloud's record (base64, in
+  // "data") while `inline_budget` lasts, so the browser draws it without another request.
+  std::string StreamEvent(std::uint64_t seq, const std::string& json, int* inline_budget) const;
   void ServeClouds(const httplib::Request& request, httplib::Response* response) const;
 
   const ViewServerOptions options_;

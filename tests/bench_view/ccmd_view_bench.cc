@@ -189,6 +189,9 @@ int RunLatency(const LatencyOptions& o, const Common& common) {
   PrintLatencyRow("of which back-end (arrival -> cloud in the dense store; reference)", l.Get("backend"), 0);
   PrintLatencyRow("of which view (cloud stored -> drawn)", l.Get("cloud"), 0);
   PrintLatencyRow("of which event delivery (cloud stored -> page told)", l.Get("delivery"), 0);
+  PrintLatencyRow("of which cloud request (page told -> points uploaded)", l.Get("fetch"), 0);
+  PrintLatencyRow("of which next frame (uploaded -> drawn)", l.Get("frame"), 0);
+  PrintLatencyRow("cloud request handled in the server", l.Get("server"), 0);
   PrintLatencyRow("pose update -> drawn (all)", l.Get("pose"), 200);
   if (const Json* by = l.Get("pose_by_source")) {
     for (const auto& [src, s] : by->object()) PrintLatencyRow(("pose update -> drawn (" + src + ")").c_str(), &s, 200);

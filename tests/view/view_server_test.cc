@@ -10,6 +10,7 @@
 
 #include "libccmd/util/file_util.h"
 #include "libccmd/view/view_server.h"
+#include "tests/support/headless_browser.h"
 #include "tests/support/test_support.h"
 
 // After Eigen (through the headers above): httplib.h brings <resolv.h>, whose _res macro
@@ -241,6 +242,26 @@ TEST_F(ViewServerTest, APoseUpdateReachesAnOpenEventStream) {
       EXPECT_NEAR(k.Get("T")->at(3).number(), moved.translation().x(), 1e-9);
     }
   }
+}
+
+TEST_F(ViewServerTest, CloudEventsCarryTheCloudSoTheBrowserNeedNotAsk) {
+  auto server = Start();
+  ASSERT_TRUE(server);
+  const std::string text = ReadStream(server->port(), "/api/events?after=0", "\"type\":\"cloud\"");
+  const std::size_t at = text.find("\"type\":\"cloud\"");
+  ASSERT_NE(at, std::string::npos) << text;
+  const std::size_t start = text.rfind("data: ", at) + 6;
+  auto event = Json::Parse(text.substr(start, text.find('\n', start) - start));
+  ASSERT_TRUE(event.ok());
+  ASSERT_TRUE(event->Get("data")) << "no cloud inlined";
+  auto bytes = testing::DecodeBase64(event->Get("data")->string());
+  ASSERT_TRUE(bytes.ok());
+  const std::string id = std::to_string(static_cast<int>(event->Get("a")->number())) + ":" +
+                         std::to_string(static_cast<int>(event->Get("k")->number()));
+  httplib::Client client("127.0.0.1", server->port());
+  auto asked = client.Get(("/api/clouds?ids=" + id).c_str());
+  ASSERT_TRUE(asked && asked->status == 200);
+  EXPECT_EQ(*bytes, asked->body);  // the same record either way
 }
 
 TEST_F(ViewServerTest, AStreamTooFarBehindIsToldToReload) {

@@ -42,7 +42,7 @@
     statsVersion: 0,
     connection: 'connecting',
     frames: 0,
-    latency: { keyframe: [], backend: [], cloud: [], pose: [], delivery: [] },
+    latency: { keyframe: [], backend: [], cloud: [], pose: [], delivery: [], fetch: [], frame: [], server: [] },
     pendingPose: [],        // pose events applied but not yet drawn: {t, src}
     cloudErrors: 0,
   };
@@ -60,7 +60,6 @@
   // How the map is drawn: level of detail (see the top of this file) and display options.
   const view = {
     fresh: true,          // the next frame starts a new image
-    moving: false,
     refine: [],           // slices still to draw on the current image: [level, first, count]
     budget: 400000,       // points per fresh frame
     totalPoints: 0,
@@ -70,7 +69,7 @@
     pointSize: 2,
     showOverlay: true,
     lastFrame: 0,
-    lastWasFresh: false,
+    lastRendered: false,
     follow: 0,
     framed: false,
   };
@@ -90,7 +89,7 @@
   const controls = new THREE.OrbitControls(camera, renderer.domElement);
   controls.target.set(0, 0, 1.5);
   controls.update();
-  controls.addEventListener('change', function () { view.fresh = true; view.moving = true; });
+  controls.addEventListener('change', function () { view.fresh = true; });
 
   const overlay = new THREE.Group();  // trajectories and loop edges
   scene.add(overlay);
@@ -225,6 +224,8 @@
       first = Math.max(first, last);
     });
     kf.loaded = true;
+    kf.fetched = nowMs();
+    if (kf.told) S.latency.fetch.push(kf.fetched - kf.told);
     view.totalPoints += n;
     view.fresh = true;
   }
@@ -434,7 +435,12 @@
       const batch = cloudQueue.splice(0, 64);
       cloudRequests++;
       fetch(apiUrl('/api/clouds', { ids: batch.map((kf) => key(kf.a, kf.k)).join(',') }))
-        .then(function (r) { if (!r.ok) throw new Error('HTTP ' + r.status); return r.arrayBuffer(); })
+        .then(function (r) {
+          if (!r.ok) throw new Error('HTTP ' + r.status);
+          const timing = /dur=([0-9.]+)/.exec(r.headers.get('Server-Timing') || '');
+          if (timing) S.latency.server.push(Number(timing[1]));
+          return r.arrayBuffer();
+        })
         .then(function (buffer) { parseClouds(buffer); })
         .catch(function () {
           S.cloudErrors++;
@@ -489,7 +495,18 @@
       case 'cloud': {
         S.latency.delivery.push(nowMs() - e.t);
         const kf = S.keyframes.get(key(e.a, e.k));
-        if (kf) { kf.cloud = true; kf.ready = e.t; wantCloud(kf); }
+        if (!kf) break;
+        kf.cloud = true;
+        kf.ready = e.t;
+        kf.told = nowMs();
+        if (e.data && !kf.loaded) {
+          // The server sent the cloud with the event: no request needed.
+          const text = atob(e.data), bytes = new Uint8Array(text.length);
+          for (let i = 0; i < text.length; ++i) bytes[i] = text.charCodeAt(i);
+          parseClouds(bytes.buffer);
+        } else {
+          wantCloud(kf);
+        }
         break;
       }
       case 'poses':
@@ -695,6 +712,7 @@
         if (kf.arrived) S.latency.keyframe.push(t - kf.arrived);
         if (kf.arrived && kf.ready) S.latency.backend.push(kf.ready - kf.arrived);
         if (kf.ready) S.latency.cloud.push(t - kf.ready);
+        if (kf.fetched) S.latency.frame.push(t - kf.fetched);
       }
     }
     for (const p of S.pendingPose) S.latency.pose.push({ ms: t - p.t, src: p.src });
@@ -709,20 +727,21 @@
     if (overlayDirty) rebuildOverlay();
     if (!view.framed && S.keyframes.size) frameMap();
     if (view.follow) followAgent();
-    const t = nowMs();
-    if (view.fresh) {
-      if (view.lastWasFresh && view.moving) adaptBudget(t - view.lastFrame);
-      view.fresh = false;
-      view.moving = false;
-      drawFresh();
-      view.lastWasFresh = true;
-    } else if (view.refine.length) {
-      drawRefinement();
-      view.lastWasFresh = false;
-    } else {
-      view.lastWasFresh = false;
+    if (!view.fresh && !view.refine.length) {
+      view.lastRendered = false;
       return;
     }
+    // Frames back to back (the camera moves, data arrives, the image is refined): the time
+    // between them is what one costs, and the budget keeps it near 1/30 s.
+    const t = performance.now();
+    if (view.lastRendered) adaptBudget(t - view.lastFrame);
+    if (view.fresh) {
+      view.fresh = false;
+      drawFresh();
+    } else {
+      drawRefinement();
+    }
+    view.lastRendered = true;
     view.lastFrame = t;
     S.frames++;
     noteDrawn(nowMs());
@@ -811,7 +830,7 @@
       const bySource = {};
       for (const p of S.latency.pose) (bySource[p.src] = bySource[p.src] || []).push(p.ms);
       const out = { pose_by_source: {} };
-      for (const name of ['keyframe', 'backend', 'cloud', 'delivery']) out[name] = summary(S.latency[name]);
+      for (const name of ['keyframe', 'backend', 'cloud', 'delivery', 'fetch', 'frame', 'server']) out[name] = summary(S.latency[name]);
       out.pose = summary(S.latency.pose.map((p) => p.ms));
       for (const src in bySource) out.pose_by_source[src] = summary(bySource[src]);
       return out;
