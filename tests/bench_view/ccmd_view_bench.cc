@@ -85,7 +85,7 @@ StatusOr<Json> Page(testing::HeadlessBrowser* browser, const std::string& js, do
 // ---------------------------------------------------------------- latency
 
 struct LatencyOptions {
-  std::string dataset, config;
+  std::string dataset, config, keep;
   int agents = 3, frames = 600;
   std::string rate = "realtime";
 };
@@ -209,6 +209,12 @@ int RunLatency(const LatencyOptions& o, const Common& common) {
     if (auto s = WriteJsonFile(out, common.json_path); !s.ok()) return Fail(s.ToString());
   }
   std::error_code ec;
+  if (!o.keep.empty()) {
+    std::filesystem::rename(work, o.keep, ec);
+    if (ec) return Fail("cannot move the run to " + o.keep + ": " + ec.message());
+    std::printf("\nthe run (server results, logs) is in %s\n", o.keep.c_str());
+    return 0;
+  }
   std::filesystem::remove_all(work, ec);
   return 0;
 }
@@ -287,7 +293,7 @@ int RunFps(std::size_t points, int frames, const Common& common) {
   if (auto s = KeepScreenshot(browser->get(), common.screenshot_path); !s.ok()) return Fail(s.ToString());
   const auto num = [](const Json& j, const char* k) { return j.Get(k) && j.Get(k)->is_number() ? j.Get(k)->number() : 0.0; };
   std::printf("\n%.0f view points loaded and drawn in %.1f s; canvas %dx%d; load average %s\n\n", num(*lod, "total_points"),
-              load_s, common.width - 340, common.height, load_avg.c_str());
+              load_s, common.width - 360, common.height, load_avg.c_str());
   std::printf("| drawing | points per frame | frames/s | mean ms | p95 ms | ratio to every point |\n|---|---|---|---|---|---|\n");
   std::printf("| level of detail (moving camera) | %.0f | %.1f | %.1f | %.1f | %.1f |\n", num(*lod, "drawn_points"),
               num(*lod, "fps"), num(*lod, "mean_ms"), num(*lod, "p95_ms"), num(*lod, "fps") / std::max(1e-9, num(*full, "fps")));
@@ -316,7 +322,7 @@ int main(int argc, char** argv) {
   Common common;
   app.add_option("--json", common.json_path, "Write the figures as JSON");
   app.add_option("--screenshot", common.screenshot_path, "Keep a PNG of the page at the end");
-  app.add_option("--width", common.width, "Browser window width (the 3D view is 340 px narrower)")->capture_default_str();
+  app.add_option("--width", common.width, "Browser window width (the 3D view is 360 px narrower)")->capture_default_str();
   app.add_option("--height", common.height, "Browser window height")->capture_default_str();
   LatencyOptions latency;
   auto* lat = app.add_subcommand("latency", "Keyframe and pose-update latency to the browser during a split replay");
@@ -324,6 +330,7 @@ int main(int argc, char** argv) {
   lat->add_option("--config", latency.config, "Camera config for --dataset");
   lat->add_option("--agents", latency.agents, "Agents")->check(CLI::Range(1, 16))->capture_default_str();
   lat->add_option("--frames", latency.frames, "Frames of the synthetic room")->capture_default_str();
+  lat->add_option("--keep", latency.keep, "Keep the run (the server's results/, logs) in this new folder");
   lat->add_option("--rate", latency.rate, "realtime or max")->check(CLI::IsMember({"realtime", "max"}))->capture_default_str();
   std::size_t points = 3000000;
   int frames = 60;

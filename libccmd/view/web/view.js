@@ -71,7 +71,7 @@
     lastFrame: 0,
     lastRendered: false,
     follow: 0,
-    framed: false,
+    userMoved: false,     // the camera is the user's: no more automatic framing
   };
 
   // ------------------------------------------------------------------ scene
@@ -405,16 +405,31 @@
     view.fresh = true;
   }
 
-  // First keyframes: look at them from above and behind the first camera.
+  // Until the user moves the camera, it keeps the whole world map in view as it grows: it
+  // looks at what the keyframes look at (1.5 m in front of them, on average) from above and
+  // behind, far enough for their spread.
   function frameMap() {
-    const ps = [];
-    for (const kf of S.keyframes.values()) if (kf.m === primaryMap()) ps.push([kf.T[3], kf.T[7], kf.T[11]]);
-    if (!ps.length) return;
-    const c = ps.reduce((s, p) => [s[0] + p[0], s[1] + p[1], s[2] + p[2]], [0, 0, 0]).map((v) => v / ps.length);
-    controls.target.set(c[0], c[1], c[2] + 1.5);
-    camera.position.set(c[0], c[1] - 3, c[2] - 3);
+    const primary = primaryMap();
+    const centre = new THREE.Vector3(), ahead = new THREE.Vector3(), lo = new THREE.Vector3(Infinity, Infinity, Infinity);
+    const hi = new THREE.Vector3(-Infinity, -Infinity, -Infinity);
+    let n = 0;
+    for (const kf of S.keyframes.values()) {
+      if (kf.m !== primary) continue;
+      const p = new THREE.Vector3(kf.T[3], kf.T[7], kf.T[11]);
+      const forward = new THREE.Vector3(kf.T[2], kf.T[6], kf.T[10]);
+      centre.add(p).addScaledVector(forward, 1.5);
+      ahead.add(forward);
+      lo.min(p);
+      hi.max(p);
+      ++n;
+    }
+    if (!n) return;
+    centre.divideScalar(n);
+    const look = ahead.lengthSq() > 0.01 * n * n ? ahead.normalize() : new THREE.Vector3(0, 0, 1);
+    const distance = Math.max(3, 1.2 * hi.distanceTo(lo) + 2.5);
+    controls.target.copy(centre);
+    camera.position.copy(centre).addScaledVector(look, -0.6 * distance).addScaledVector(camera.up, 0.8 * distance);
     controls.update();
-    view.framed = true;
     view.fresh = true;
   }
 
@@ -643,7 +658,13 @@
         '<td class="num bytes"></td><td class="num rate"></td><td><canvas class="spark"></canvas></td>' +
         '<td><button type="button">follow</button></td>';
       tr.querySelector('.swatch').style.background = agentColour(a.id);
-      tr.querySelector('.name').textContent = a.name + (a.connected ? '' : ' (offline)');
+      tr.querySelector('.name').textContent = a.name;
+      if (!a.connected) {
+        const note = document.createElement('span');
+        note.className = 'offline';
+        note.textContent = 'offline';
+        tr.querySelector('.name').appendChild(note);
+      }
       tr.querySelector('.keyframes').textContent = String(a.keyframes);
       tr.querySelector('.bytes').textContent = formatBytes(a.bytes);
       tr.querySelector('.rate').textContent = a.rate_kBps.toFixed(1) + ' kB/s';
@@ -724,8 +745,9 @@
 
   function frame() {
     requestAnimationFrame(frame);
+    const overlayChanged = overlayDirty;
     if (overlayDirty) rebuildOverlay();
-    if (!view.framed && S.keyframes.size) frameMap();
+    if (!view.userMoved && !view.follow && overlayChanged) frameMap();
     if (view.follow) followAgent();
     if (!view.fresh && !view.refine.length) {
       view.lastRendered = false;
@@ -766,7 +788,11 @@
     view.showOverlay = e.target.checked;
     view.fresh = true;
   });
-  document.getElementById('resetView').addEventListener('click', frameMap);
+  document.getElementById('resetView').addEventListener('click', function () {
+    view.userMoved = false;
+    frameMap();
+  });
+  controls.addEventListener('start', function () { view.userMoved = true; });
 
   // ------------------------------------------------------------------ the page's own state
 
@@ -786,7 +812,7 @@
       }
       const panel = [];
       for (const tr of document.querySelectorAll('#agents tbody tr')) {
-        panel.push({ id: Number(tr.dataset.agent), name: tr.querySelector('.name').textContent,
+        panel.push({ id: Number(tr.dataset.agent), name: tr.querySelector('.name').firstChild.textContent,
           keyframes: Number(tr.querySelector('.keyframes').textContent) });
       }
       return { seq: S.seq, connection: S.connection, frames: S.frames, keyframes: keyframes, panel: panel,
