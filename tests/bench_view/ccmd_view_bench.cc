@@ -22,6 +22,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <thread>
 
 #include "apps/app_common.h"
 #include "libccmd/synth/sequence.h"
@@ -83,6 +84,55 @@ StatusOr<Json> Page(testing::HeadlessBrowser* browser, const std::string& js, do
 }
 
 // ---------------------------------------------------------------- latency
+
+// A plain HTTP client on the event stream (the reference for the page's delivery figures):
+// for every cloud and pose event, the time from its stamp to its arrival here.
+class StreamProbe {
+ public:
+  StreamProbe(std::uint16_t port, std::uint64_t after) {
+    thread_ = std::thread([this, port, after] {
+      httplib::Client client("127.0.0.1", port);
+      client.set_read_timeout(3600, 0);
+      std::string buffer;
+      client.Get(("/api/events?after=" + std::to_string(after)).c_str(), [&](const char* data, std::size_t n) {
+        const double now_ms = WallSeconds() * 1e3;
+        buffer.append(data, n);
+        for (std::size_t end; (end = buffer.find("\n\n")) != std::string::npos; buffer.erase(0, end + 2)) {
+          const std::size_t at = buffer.find("data: ");
+          if (at == std::string::npos || at > end) continue;
+          auto e = Json::Parse(buffer.substr(at + 6, end - at - 6));
+          if (!e.ok() || !e->Get("t") || !e->Get("type")) continue;
+          const std::string type = e->Get("type")->string();
+          if (type == "cloud") cloud_ms_.push_back(now_ms - e->Get("t")->number());
+          if (type == "poses") pose_ms_.push_back(now_ms - e->Get("t")->number());
+        }
+        return true;
+      });
+    });
+  }
+  // Call after the server stopped (its stream has ended).
+  Json Finish() {
+    thread_.join();
+    auto summary = [](std::vector<double> v) {
+      Json j;
+      j["n"] = v.size();
+      if (v.empty()) return j;
+      std::sort(v.begin(), v.end());
+      j["median"] = v[v.size() / 2];
+      j["p95"] = v[std::min(v.size() - 1, static_cast<std::size_t>(0.95 * (v.size() - 1) + 0.5))];
+      j["max"] = v.back();
+      return j;
+    };
+    Json out;
+    out["cloud"] = summary(cloud_ms_);
+    out["pose"] = summary(pose_ms_);
+    return out;
+  }
+
+ private:
+  std::thread thread_;
+  std::vector<double> cloud_ms_, pose_ms_;  // the probe's thread only, until Finish
+};
 
 struct LatencyOptions {
   std::string dataset, config, keep;
@@ -149,6 +199,7 @@ int RunLatency(const LatencyOptions& o, const Common& common) {
   if (auto s = (*browser)->Open(server->url); !s.ok()) return Fail(s.ToString());
   if (auto s = Page(browser->get(), "ccmdView.whenConnection('live')"); !s.ok()) return Fail(s.status().ToString());
   const std::string load_before = LoadAverage();
+  StreamProbe probe(server->view_port, 0);
   const Stopwatch watch;
   std::vector<Subprocess> agents;
   for (int i = 1; i <= o.agents; ++i) {
@@ -179,6 +230,7 @@ int RunLatency(const LatencyOptions& o, const Common& common) {
   if (auto s = KeepScreenshot(browser->get(), common.screenshot_path); !s.ok()) return Fail(s.ToString());
   server->process.Signal(SIGINT).IgnoreError();
   server->process.Wait();
+  const Json plain = probe.Finish();
 
   const Json& l = *latency;
   std::printf("\nreplay %.1f s, %zu keyframes, %.0f view points; load average %s (before) / %s (after)\n\n",
@@ -189,10 +241,12 @@ int RunLatency(const LatencyOptions& o, const Common& common) {
   PrintLatencyRow("of which back-end (arrival -> cloud in the dense store; reference)", l.Get("backend"), 0);
   PrintLatencyRow("of which view (cloud stored -> drawn)", l.Get("cloud"), 0);
   PrintLatencyRow("of which event delivery (cloud stored -> page told)", l.Get("delivery"), 0);
+  PrintLatencyRow("event delivery to a plain HTTP client (reference)", plain.Get("cloud"), 0);
   PrintLatencyRow("of which cloud request (page told -> points uploaded)", l.Get("fetch"), 0);
   PrintLatencyRow("of which next frame (uploaded -> drawn)", l.Get("frame"), 0);
   PrintLatencyRow("cloud request handled in the server", l.Get("server"), 0);
   PrintLatencyRow("pose update -> drawn (all)", l.Get("pose"), 200);
+  PrintLatencyRow("pose update -> plain HTTP client (reference)", plain.Get("pose"), 0);
   if (const Json* by = l.Get("pose_by_source")) {
     for (const auto& [src, s] : by->object()) PrintLatencyRow(("pose update -> drawn (" + src + ")").c_str(), &s, 200);
   }
@@ -206,6 +260,7 @@ int RunLatency(const LatencyOptions& o, const Common& common) {
     out["load_average_before"] = load_before;
     out["load_average_after"] = load_after;
     out["latency_ms"] = l;
+    out["plain_client_ms"] = plain;
     if (auto s = WriteJsonFile(out, common.json_path); !s.ok()) return Fail(s.ToString());
   }
   std::error_code ec;
@@ -293,7 +348,7 @@ int RunFps(std::size_t points, int frames, const Common& common) {
   if (auto s = KeepScreenshot(browser->get(), common.screenshot_path); !s.ok()) return Fail(s.ToString());
   const auto num = [](const Json& j, const char* k) { return j.Get(k) && j.Get(k)->is_number() ? j.Get(k)->number() : 0.0; };
   std::printf("\n%.0f view points loaded and drawn in %.1f s; canvas %dx%d; load average %s\n\n", num(*lod, "total_points"),
-              load_s, common.width - 360, common.height, load_avg.c_str());
+              load_s, common.width - 380, common.height, load_avg.c_str());
   std::printf("| drawing | points per frame | frames/s | mean ms | p95 ms | ratio to every point |\n|---|---|---|---|---|---|\n");
   std::printf("| level of detail (moving camera) | %.0f | %.1f | %.1f | %.1f | %.1f |\n", num(*lod, "drawn_points"),
               num(*lod, "fps"), num(*lod, "mean_ms"), num(*lod, "p95_ms"), num(*lod, "fps") / std::max(1e-9, num(*full, "fps")));
@@ -322,7 +377,7 @@ int main(int argc, char** argv) {
   Common common;
   app.add_option("--json", common.json_path, "Write the figures as JSON");
   app.add_option("--screenshot", common.screenshot_path, "Keep a PNG of the page at the end");
-  app.add_option("--width", common.width, "Browser window width (the 3D view is 360 px narrower)")->capture_default_str();
+  app.add_option("--width", common.width, "Browser window width (the 3D view is 380 px narrower)")->capture_default_str();
   app.add_option("--height", common.height, "Browser window height")->capture_default_str();
   LatencyOptions latency;
   auto* lat = app.add_subcommand("latency", "Keyframe and pose-update latency to the browser during a split replay");

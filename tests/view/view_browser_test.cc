@@ -172,12 +172,12 @@ TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
   ASSERT_EQ(image.cols, browser_options.width);
   int drawn_pixels = 0;
   for (int v = 0; v < image.rows; ++v) {
-    for (int u = 0; u < image.cols - 360; ++u) {
+    for (int u = 0; u < image.cols - 380; ++u) {
       const cv::Vec3b c = image.at<cv::Vec3b>(v, u);
       drawn_pixels += std::abs(c[0] - 29) + std::abs(c[1] - 24) + std::abs(c[2] - 21) > 30;
     }
   }
-  EXPECT_GT(drawn_pixels, image.rows * (image.cols - 360) / 20);
+  EXPECT_GT(drawn_pixels, image.rows * (image.cols - 380) / 20);
   if (const char* keep = std::getenv("CCMD_VIEW_SCREENSHOT")) {
     EXPECT_TRUE(WriteFileAtomic(keep, *png).ok());
   }
