@@ -52,7 +52,8 @@ struct ViewServerOptions {
   int max_event_streams = 8;           // browsers following at once
   int extra_workers = 8;               // for everything else
   double stats_period_s = 1.0;         // statistics pushed to the streams this often
-  double keepalive_s = 15;             // an idle stream gets a comment this often
+  double keepalive_s = 5;              // an idle stream gets a comment this often (a closed
+                                       // browser's stream is noticed then, and freed)
   std::size_t max_clouds_per_request = 64;
   int max_inline_clouds = 16;          // per write of an event stream; later ones are fetched
   ViewCloudOptions cloud;

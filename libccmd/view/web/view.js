@@ -543,12 +543,15 @@
         }
         overlayDirty = true;
         break;
-      case 'stats':
+      case 'stats': {
+        // The drawing depends on the statistics only through which map is the world map.
+        const before = primaryMap();
         S.stats = e.stats;
         S.statsVersion++;
-        overlayDirty = true;
+        if (primaryMap() !== before) overlayDirty = true;
         updatePanel();
         break;
+      }
       case 'reset':
         reload();
         return;
@@ -576,7 +579,13 @@
       apply(e);
     };
     events.onerror = function () {
-      // EventSource reconnects by itself (with Last-Event-ID); tell the user meanwhile.
+      // EventSource reconnects by itself (with Last-Event-ID), except after an answer that is
+      // not a stream (503: too many browsers follow the server): then we try again later.
+      if (events.readyState === EventSource.CLOSED) {
+        const closed = events;
+        setTimeout(function () { if (events === closed) follow(S.seq); }, 3000);
+      }
+      // Tell the user meanwhile.
       fetch(apiUrl('/api/summary')).then(function (r) {
         if (!r.ok) throw new Error();
         if (S.connection !== 'live') setConnection('connecting');
