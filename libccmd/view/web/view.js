@@ -4,9 +4,9 @@
 // Drawing: a keyframe's points stay in its camera frame on the GPU; its pose is one 3x4
 // matrix in a uniform array, so a pose update moves all its points by changing 12 numbers
 // (the paper's update strategy carried to the screen). Points are grouped per agent in
-// chunks of up to SLOTS keyframes (one uniform array each) and, inside a chunk, in LEVELS
-// levels of detail: the server sends every cloud in a shuffled order, so the first 1/64 of
-// it is an even subsample, the next 1/64 another, then 1/32, 1/16, ... While the camera
+// chunks of up to SLOTS keyframes (one uniform array each) and, inside a chunk, in levels of
+// detail: the server sends every cloud in a shuffled order, so the first 1/256 of it is an
+// even subsample, the next 1/256 another, then 1/128, 1/64, ... 1/2. While the camera
 // moves, the view draws the coarsest levels that fit a point budget that adapts to hold
 // 30 frames per second; when it stops, the remaining levels are added frame by frame on top
 // of the same image until every point is drawn.
@@ -14,9 +14,10 @@
   'use strict';
 
   const SLOTS = 256;
-  const LEVEL_ENDS = [1 / 64, 2 / 64, 4 / 64, 8 / 64, 16 / 64, 32 / 64, 1];
+  const LEVEL_ENDS = [1 / 256, 2 / 256, 4 / 256, 8 / 256, 16 / 256, 32 / 256, 64 / 256, 128 / 256, 1];
   const TARGET_MS = 1000 / 30;
-  const MIN_BUDGET = 20000;
+  const MIN_BUDGET = 10000;
+  const REFINE_AFTER_MS = 250;
   const COLOURS = ['#1e50c8', '#f08c28', '#3caa3c', '#d23232', '#965aaa', '#c8be28', '#787878', '#149696'];
   const token = new URLSearchParams(location.search).get('token');
 
@@ -57,6 +58,8 @@
     if (kf.chunk) kf.chunk.setPose(kf.slot, kf.T);
   }
 
+  let frameRequested = false;  // a frame is scheduled (frames are drawn on demand, see frame())
+
   // How the map is drawn: level of detail (see the top of this file) and display options.
   const view = {
     fresh: true,          // the next frame starts a new image
@@ -70,6 +73,7 @@
     showOverlay: true,
     lastFrame: 0,
     lastRendered: false,
+    changedAt: 0,         // when the last fresh image started
     follow: 0,
     userMoved: false,     // the camera is the user's: no more automatic framing
   };
@@ -89,7 +93,7 @@
   const controls = new THREE.OrbitControls(camera, renderer.domElement);
   controls.target.set(0, 0, 1.5);
   controls.update();
-  controls.addEventListener('change', function () { view.fresh = true; });
+  controls.addEventListener('change', function () { markFresh(); });
 
   const overlay = new THREE.Group();  // trajectories and loop edges
   scene.add(overlay);
@@ -227,7 +231,7 @@
     kf.fetched = nowMs();
     if (kf.told) S.latency.fetch.push(kf.fetched - kf.told);
     view.totalPoints += n;
-    view.fresh = true;
+    markFresh();
   }
 
   function clearScene() {
@@ -269,6 +273,7 @@
   }
 
   function drawFresh() {
+    view.changedAt = performance.now();
     const choice = levelsForBudget();
     setVisibleLevels(0, choice.levels);
     overlay.visible = view.showOverlay;
@@ -318,6 +323,7 @@
   // ------------------------------------------------------------------ overlay: trajectories, loops
 
   let overlayDirty = true;
+  function markOverlay() { overlayDirty = true; requestDraw(); }
 
   function primaryMap() {
     if (S.stats && S.stats.map_list) {
@@ -402,7 +408,7 @@
       g.setAttribute('position', new THREE.Float32BufferAttribute(list, 3));
       overlay.add(new THREE.LineSegments(g, new THREE.LineBasicMaterial({ color: colour })));
     }
-    view.fresh = true;
+    markFresh();
   }
 
   // Until the user moves the camera, it keeps the whole world map in view as it grows: it
@@ -430,7 +436,7 @@
     controls.target.copy(centre);
     camera.position.copy(centre).addScaledVector(look, -0.6 * distance).addScaledVector(camera.up, 0.8 * distance);
     controls.update();
-    view.fresh = true;
+    markFresh();
   }
 
   // ------------------------------------------------------------------ clouds
@@ -495,7 +501,7 @@
     // that wait for their map to be fused).
     if (e.t && e.primary) kf.arrived = e.t;
     if (e.cloud) { kf.cloud = true; wantCloud(kf); }
-    overlayDirty = true;
+    markOverlay();
   }
 
   function apply(e) {
@@ -533,22 +539,22 @@
           setPose(kf, item, 2);
         }
         S.pendingPose.push({ t: e.t, src: e.src });
-        overlayDirty = true;
-        view.fresh = true;
+        markOverlay();
+        markFresh();
         break;
       case 'loop':
         S.loops.push(e);
         if (e.fusion) {
           for (const kf of S.keyframes.values()) if (e.from.indexOf(kf.m) >= 0) kf.m = e.m;
         }
-        overlayDirty = true;
+        markOverlay();
         break;
       case 'stats': {
         // The drawing depends on the statistics only through which map is the world map.
         const before = primaryMap();
         S.stats = e.stats;
         S.statsVersion++;
-        if (primaryMap() !== before) overlayDirty = true;
+        if (primaryMap() !== before) markOverlay();
         updatePanel();
         break;
       }
@@ -557,6 +563,7 @@
         return;
     }
     updateStatus();
+    requestDraw();
   }
 
   let events = null;
@@ -608,7 +615,7 @@
       S.stats = state.stats;
       S.statsVersion++;
       S.seq = state.seq;
-      overlayDirty = true;
+      markOverlay();
       updatePanel();
       follow(state.seq);
     }).catch(function () {
@@ -717,7 +724,7 @@
     renderer.setSize(w, h);
     camera.aspect = w / Math.max(1, h);
     camera.updateProjectionMatrix();
-    view.fresh = true;
+    markFresh();
   }
   window.addEventListener('resize', resize);
   resize();
@@ -752,13 +759,32 @@
     }
   }
 
-  function frame() {
+  // Frames are drawn on demand: nothing runs while nothing changes (a software renderer shares
+  // the processor with everything else, the server and agents included).
+  function requestDraw() {
+    if (frameRequested) return;
+    frameRequested = true;
     requestAnimationFrame(frame);
+  }
+  function markFresh() {
+    view.fresh = true;
+    requestDraw();
+  }
+
+  function frame() {
+    frameRequested = false;
     const overlayChanged = overlayDirty;
     if (overlayDirty) rebuildOverlay();
     if (!view.userMoved && !view.follow && overlayChanged) frameMap();
-    if (view.follow) followAgent();
-    if (!view.fresh && !view.refine.length) {
+    if (view.follow) {
+      followAgent();
+      requestDraw();
+    }
+    // While data keeps coming, the image stays at the coarse levels; the rest is added once
+    // nothing changed for a moment.
+    const quiet = performance.now() - view.changedAt;
+    if (!view.fresh && (!view.refine.length || quiet < REFINE_AFTER_MS)) {
+      if (view.refine.length) setTimeout(requestDraw, REFINE_AFTER_MS - quiet);
       view.lastRendered = false;
       return;
     }
@@ -777,6 +803,7 @@
     S.frames++;
     noteDrawn(nowMs());
     updateDetail();
+    if (view.fresh || view.refine.length) requestDraw();
   }
 
   // ------------------------------------------------------------------ controls
@@ -785,17 +812,17 @@
     input.addEventListener('change', function () {
       view.byAgent = input.value === 'agent' && input.checked;
       for (const c of chunks) c.material.uniforms.byAgent.value = view.byAgent ? 1 : 0;
-      view.fresh = true;
+      markFresh();
     });
   }
   document.getElementById('pointSize').addEventListener('input', function (e) {
     view.pointSize = Number(e.target.value);
     for (const c of chunks) c.material.uniforms.pointSize.value = view.pointSize;
-    view.fresh = true;
+    markFresh();
   });
   document.getElementById('trajectories').addEventListener('change', function (e) {
     view.showOverlay = e.target.checked;
-    view.fresh = true;
+    markFresh();
   });
   document.getElementById('resetView').addEventListener('click', function () {
     view.userMoved = false;
@@ -932,7 +959,7 @@
       if (!lod) view.budget = saved;
       camera.position.copy(controls.target).add(offset);
       controls.update();
-      view.fresh = true;
+      markFresh();
       const total = times.reduce((s, v) => s + v, 0);
       return { frames: times.length, fps: (1000 * times.length) / total, mean_ms: total / times.length,
         p95_ms: percentile(times, 0.95), drawn_points: drawn.reduce((s, v) => s + v, 0) / drawn.length,
@@ -942,5 +969,5 @@
 
   updateStatus();
   reload();
-  requestAnimationFrame(frame);
+  requestDraw();
 })();
