@@ -203,8 +203,14 @@ cv::Mat Titled(const cv::Mat& panel, const std::string& title) {
 }
 
 void DrawLegend(cv::Mat* panel, const MapPictureOptions& o) {
+  // In the order of the names (agent2 before agent10), not of the ids.
+  std::vector<std::pair<std::string, cv::Scalar>> legend;
+  for (const auto& [id, named] : o.agents) legend.push_back(named);
+  std::sort(legend.begin(), legend.end(), [](const auto& a, const auto& b) {
+    return a.first.size() != b.first.size() ? a.first.size() < b.first.size() : a.first < b.first;
+  });
   int y = 14;
-  for (const auto& [id, named] : o.agents) {
+  for (const auto& named : legend) {
     cv::rectangle(*panel, cv::Rect(10, y - 10, 14, 14), named.second, cv::FILLED);
     cv::putText(*panel, named.first, cv::Point(30, y + 2), cv::FONT_HERSHEY_SIMPLEX, 0.5, cv::Scalar(40, 40, 40), 1,
                 cv::LINE_AA);

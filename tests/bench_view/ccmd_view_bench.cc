@@ -18,6 +18,7 @@
 #include <unistd.h>
 
 #include <CLI/CLI.hpp>
+#include <atomic>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
@@ -106,9 +107,14 @@ class StreamProbe {
           if (type == "cloud") cloud_ms_.push_back(now_ms - e->Get("t")->number());
           if (type == "poses") pose_ms_.push_back(now_ms - e->Get("t")->number());
         }
-        return true;
+        return !stop_;
       });
     });
+  }
+  // An early return (a failed agent): the stream is left at its next keep-alive comment.
+  ~StreamProbe() {
+    stop_ = true;
+    if (thread_.joinable()) thread_.join();
   }
   // Call after the server stopped (its stream has ended).
   Json Finish() {
@@ -131,6 +137,7 @@ class StreamProbe {
 
  private:
   std::thread thread_;
+  std::atomic<bool> stop_{false};
   std::vector<double> cloud_ms_, pose_ms_;  // the probe's thread only, until Finish
 };
 

@@ -27,7 +27,17 @@
     const q = p.toString();
     return q ? path + '?' + q : path;
   }
-  function agentColour(a) { return COLOURS[(Math.max(1, a) - 1) % COLOURS.length]; }
+  // Agents are coloured in the order of their names (agent1, agent2, ... agent10), as in the
+  // replay report's plots; ids follow the order agents first connected.
+  let agentOrder = [];
+  function agentColour(a) {
+    const i = agentOrder.indexOf(a);
+    return COLOURS[(i >= 0 ? i : agentOrder.length + a) % COLOURS.length];
+  }
+  function sortAgents(names) {
+    return [...names.keys()].sort((p, q) =>
+      names.get(p).localeCompare(names.get(q), 'en', { numeric: true }) || p - q);
+  }
   function key(a, k) { return a + ':' + k; }
   // The server stamps events with its wall clock; on the same machine the browser's agrees.
   function nowMs() { return Date.now(); }
@@ -654,12 +664,20 @@
     const stats = S.stats || { agents: [], map_list: [] };
     const names = new Map(S.agents);
     for (const a of stats.agents || []) names.set(a.id, a.name);
+    const order = sortAgents(names);
+    if (order.join() !== agentOrder.join()) {
+      agentOrder = order;
+      for (const c of chunks) c.material.uniforms.agentColour.value.set(agentColour(c.agent));
+      markOverlay();
+      markFresh();
+    }
     const maps = document.getElementById('maps');
     maps.innerHTML = '';
     for (const m of stats.map_list || []) {
       const li = document.createElement('li');
       li.className = m.primary ? 'fused' : 'apart';
-      const who = m.agents.map((a) => names.get(a) || 'agent ' + a).join(', ');
+      const who = m.agents.slice().sort((p, q) => agentOrder.indexOf(p) - agentOrder.indexOf(q))
+        .map((a) => names.get(a) || 'agent ' + a).join(', ');
       li.textContent = 'map ' + m.id + (m.primary ? ' (world)' : ' (not fused)') + ': ' + who + ', ' +
         m.keyframes + ' keyframes';
       li.dataset.map = m.id;
@@ -667,7 +685,8 @@
     }
     const body = document.querySelector('#agents tbody');
     body.innerHTML = '';
-    for (const a of stats.agents || []) {
+    const rows = (stats.agents || []).slice().sort((p, q) => agentOrder.indexOf(p.id) - agentOrder.indexOf(q.id));
+    for (const a of rows) {
       const tr = document.createElement('tr');
       tr.dataset.agent = a.id;
       tr.innerHTML = '<td><span class="swatch"></span></td><td class="name"></td><td class="num keyframes"></td>' +
