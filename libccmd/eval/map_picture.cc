@@ -59,7 +59,8 @@ cv::Vec3b PointColour(const PointCloud& map, std::size_t i, MapColouring colouri
   return cv::Vec3b(static_cast<uchar>(s[0]), static_cast<uchar>(s[1]), static_cast<uchar>(s[2]));
 }
 
-Status CheckMap(const PointCloud& map, MapColouring colouring) {
+Status CheckMap(const PointCloud& map, MapColouring colouring, const MapPictureOptions& options) {
+  CCMD_RETURN_IF_ERROR(options.Validate());
   if (map.size() == 0) return InvalidArgument("map picture: the map has no points");
   if (colouring == MapColouring::kAgent && map.labels.size() != map.size()) {
     return InvalidArgument("map picture: colouring by agent needs the points' labels");
@@ -81,6 +82,20 @@ void Splat(cv::Mat* image, cv::Mat* zbuffer, int x, int y, int r, float depth, c
 }
 
 }  // namespace
+
+Status MapPictureOptions::Validate() const {
+  if (panel_width < 16 || panel_height < 16 || panel_width > 8192 || panel_height > 8192) {
+    return InvalidArgument("map picture: panels must be 16 to 8192 pixels wide and high");
+  }
+  if (!(point_size_m > 0)) return InvalidArgument("map picture: point size must be > 0");
+  if (!(ceiling_margin_m >= 0)) return InvalidArgument("map picture: ceiling margin must be >= 0");
+  if (!(elevation_deg > 0 && elevation_deg < 90)) return InvalidArgument("map picture: elevation must be in (0, 90)");
+  if (!(field_of_view_deg > 1 && field_of_view_deg < 170)) {
+    return InvalidArgument("map picture: field of view must be in (1, 170) degrees");
+  }
+  if (!(cutaway_fraction >= 0 && cutaway_fraction < 1)) return InvalidArgument("map picture: cutaway must be in [0, 1)");
+  return Status::Ok();
+}
 
 MapViewFrame EstimateMapViewFrame(const Trajectory& cameras, double ceiling_margin_m) {
   MapViewFrame frame;
@@ -116,7 +131,7 @@ MapViewFrame EstimateMapViewFrame(const Trajectory& cameras, double ceiling_marg
 
 StatusOr<cv::Mat> RenderMapTop(const PointCloud& map, const MapViewFrame& frame, MapColouring colouring,
                                const MapPictureOptions& o) {
-  CCMD_RETURN_IF_ERROR(CheckMap(map, colouring));
+  CCMD_RETURN_IF_ERROR(CheckMap(map, colouring, o));
   Eigen::Vector3d e1, e2;
   HorizontalAxes(map, frame.up, &e1, &e2);
   std::vector<double> xs, ys;
@@ -150,7 +165,7 @@ StatusOr<cv::Mat> RenderMapTop(const PointCloud& map, const MapViewFrame& frame,
 
 StatusOr<cv::Mat> RenderMapPerspective(const PointCloud& map, const MapViewFrame& frame, MapColouring colouring,
                                        const MapPictureOptions& o) {
-  CCMD_RETURN_IF_ERROR(CheckMap(map, colouring));
+  CCMD_RETURN_IF_ERROR(CheckMap(map, colouring, o));
   Eigen::Vector3d e1, e2;
   HorizontalAxes(map, frame.up, &e1, &e2);
   std::vector<double> xs, ys, hs;

@@ -39,6 +39,8 @@ struct MapPictureOptions {
   cv::Scalar background = cv::Scalar(255, 255, 255);  // BGR
   // Agent id (the label's top byte) -> name and colour (BGR) for the agent panels and legend.
   std::map<int, std::pair<std::string, cv::Scalar>> agents;
+
+  Status Validate() const;
 };
 
 // The frame the pictures use: up from the cameras (or -y of the map frame without any), and

@@ -332,7 +332,11 @@ void ViewServer::ServeEvents(const httplib::Request& request, httplib::Response*
         }
         return sink.write(text.data(), text.size());
       },
-      [this](bool) { streams_.fetch_sub(1); });
+      [this](bool) {
+        std::lock_guard<std::mutex> lock(stop_mutex_);
+        streams_.fetch_sub(1);
+        stop_cv_.notify_all();
+      });
 }
 
 std::string ViewServer::StreamEvent(std::uint64_t seq, const std::string& json, int* inline_budget) const {
@@ -401,6 +405,12 @@ void ViewServer::Stop() {
   }
   stop_cv_.notify_all();
   model_->Close();  // ends the event streams
+  {
+    // Let them finish their last write, so browsers see the stream end rather than a broken
+    // connection; a browser that does not read is not waited for long.
+    std::unique_lock<std::mutex> lock(stop_mutex_);
+    stop_cv_.wait_for(lock, std::chrono::seconds(2), [&] { return streams_.load() == 0; });
+  }
   if (http_) http_->stop();
   if (listen_thread_.joinable()) listen_thread_.join();
   if (stats_thread_.joinable()) stats_thread_.join();
