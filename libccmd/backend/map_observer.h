@@ -30,10 +30,14 @@ enum class PoseSource {
 
 inline const char* PoseSourceName(PoseSource source) {
   switch (source) {
-    case PoseSource::kAgent: return "agent";
-    case PoseSource::kLoop: return "loop";
-    case PoseSource::kGlobalBa: return "global_ba";
-    case PoseSource::kFusion: return "fusion";
+    case PoseSource::kAgent:
+      return "agent";
+    case PoseSource::kLoop:
+      return "loop";
+    case PoseSource::kGlobalBa:
+      return "global_ba";
+    case PoseSource::kFusion:
+      return "fusion";
   }
   return "unknown";
 }
@@ -51,8 +55,8 @@ class MapObserver {
                           double /*arrived_s*/, bool /*primary*/) {}
   // Keyframes of `map` have new poses. `arrived_s`: when the agent's message arrived (kAgent),
   // else when the change was computed.
-  virtual void OnPoses(PoseSource /*source*/, MapId /*map*/, const std::vector<KeyframePose>& /*poses*/,
-                       double /*arrived_s*/) {}
+  virtual void OnPoses(PoseSource /*source*/, MapId /*map*/,
+                       const std::vector<KeyframePose>& /*poses*/, double /*arrived_s*/) {}
   // A loop was accepted (before the poses it moves are reported with OnPoses).
   virtual void OnLoop(const LoopEvent& /*event*/) {}
   // The keyframe's points are in the dense store (DenseMap::KeyframeCloud can read them).

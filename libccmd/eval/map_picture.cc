@@ -17,8 +17,10 @@ namespace {
 constexpr int kTitleHeight = 34;
 
 // Horizontal axes: e1 along the map's largest horizontal spread, e2 = up x e1.
-void HorizontalAxes(const PointCloud& map, const Eigen::Vector3d& up, Eigen::Vector3d* e1, Eigen::Vector3d* e2) {
-  Eigen::Vector3d any = std::abs(up.x()) < 0.9 ? Eigen::Vector3d::UnitX() : Eigen::Vector3d::UnitY();
+void HorizontalAxes(const PointCloud& map, const Eigen::Vector3d& up, Eigen::Vector3d* e1,
+                    Eigen::Vector3d* e2) {
+  Eigen::Vector3d any =
+      std::abs(up.x()) < 0.9 ? Eigen::Vector3d::UnitX() : Eigen::Vector3d::UnitY();
   Eigen::Vector3d a = (any - any.dot(up) * up).normalized();
   Eigen::Vector3d b = up.cross(a);
   Eigen::Vector2d mean = Eigen::Vector2d::Zero();
@@ -48,7 +50,8 @@ double Percentile(std::vector<double> v, double q) {
   return v[k];
 }
 
-cv::Vec3b PointColour(const PointCloud& map, std::size_t i, MapColouring colouring, const MapPictureOptions& o) {
+cv::Vec3b PointColour(const PointCloud& map, std::size_t i, MapColouring colouring,
+                      const MapPictureOptions& o) {
   if (colouring == MapColouring::kRgb) {
     if (map.colors.empty()) return cv::Vec3b(90, 90, 90);
     const auto& c = map.colors[i];
@@ -69,7 +72,8 @@ Status CheckMap(const PointCloud& map, MapColouring colouring, const MapPictureO
 }
 
 // Draws a square of half-width r at (x, y) where `depth` is nearer than the buffer's.
-void Splat(cv::Mat* image, cv::Mat* zbuffer, int x, int y, int r, float depth, const cv::Vec3b& colour) {
+void Splat(cv::Mat* image, cv::Mat* zbuffer, int x, int y, int r, float depth,
+           const cv::Vec3b& colour) {
   for (int v = std::max(0, y - r); v <= std::min(image->rows - 1, y + r); ++v) {
     for (int u = std::max(0, x - r); u <= std::min(image->cols - 1, x + r); ++u) {
       float& z = zbuffer->at<float>(v, u);
@@ -89,11 +93,13 @@ Status MapPictureOptions::Validate() const {
   }
   if (!(point_size_m > 0)) return InvalidArgument("map picture: point size must be > 0");
   if (!(ceiling_margin_m >= 0)) return InvalidArgument("map picture: ceiling margin must be >= 0");
-  if (!(elevation_deg > 0 && elevation_deg < 90)) return InvalidArgument("map picture: elevation must be in (0, 90)");
+  if (!(elevation_deg > 0 && elevation_deg < 90))
+    return InvalidArgument("map picture: elevation must be in (0, 90)");
   if (!(field_of_view_deg > 1 && field_of_view_deg < 170)) {
     return InvalidArgument("map picture: field of view must be in (1, 170) degrees");
   }
-  if (!(cutaway_fraction >= 0 && cutaway_fraction < 1)) return InvalidArgument("map picture: cutaway must be in [0, 1)");
+  if (!(cutaway_fraction >= 0 && cutaway_fraction < 1))
+    return InvalidArgument("map picture: cutaway must be in [0, 1)");
   return Status::Ok();
 }
 
@@ -120,17 +126,19 @@ MapViewFrame EstimateMapViewFrame(const Trajectory& cameras, double ceiling_marg
   Eigen::Vector3d normal = solver.eigenvectors().col(0);
   if (normal.dot(frame.up) < 0) normal = -normal;
   constexpr double kMinSpreadM = 0.2;
-  if (l(1) > 6 * l(0) && std::sqrt(l(1)) > kMinSpreadM && normal.dot(frame.up) > std::cos(M_PI / 4)) {
+  if (l(1) > 6 * l(0) && std::sqrt(l(1)) > kMinSpreadM &&
+      normal.dot(frame.up) > std::cos(M_PI / 4)) {
     frame.up = normal;
   }
   double highest = -std::numeric_limits<double>::infinity();
-  for (const StampedPose& p : cameras) highest = std::max(highest, p.T_world_cam.translation().dot(frame.up));
+  for (const StampedPose& p : cameras)
+    highest = std::max(highest, p.T_world_cam.translation().dot(frame.up));
   frame.cut_height = highest + ceiling_margin_m;
   return frame;
 }
 
-StatusOr<cv::Mat> RenderMapTop(const PointCloud& map, const MapViewFrame& frame, MapColouring colouring,
-                               const MapPictureOptions& o) {
+StatusOr<cv::Mat> RenderMapTop(const PointCloud& map, const MapViewFrame& frame,
+                               MapColouring colouring, const MapPictureOptions& o) {
   CCMD_RETURN_IF_ERROR(CheckMap(map, colouring, o));
   Eigen::Vector3d e1, e2;
   HorizontalAxes(map, frame.up, &e1, &e2);
@@ -148,10 +156,12 @@ StatusOr<cv::Mat> RenderMapTop(const PointCloud& map, const MapViewFrame& frame,
   // Bounds without the stray 0.5% on each side, and a margin.
   const double x0 = Percentile(xs, 0.005), x1 = Percentile(xs, 0.995);
   const double y0 = Percentile(ys, 0.005), y1 = Percentile(ys, 0.995);
-  const double scale = 0.94 * std::min(o.panel_width / std::max(1e-6, x1 - x0), o.panel_height / std::max(1e-6, y1 - y0));
+  const double scale = 0.94 * std::min(o.panel_width / std::max(1e-6, x1 - x0),
+                                       o.panel_height / std::max(1e-6, y1 - y0));
   const double cx = 0.5 * (x0 + x1), cy = 0.5 * (y0 + y1);
   const int r = std::max(0, static_cast<int>(std::lround(o.point_size_m * scale / 2)));
-  cv::Mat zbuffer(o.panel_height, o.panel_width, CV_32F, cv::Scalar(std::numeric_limits<float>::infinity()));
+  cv::Mat zbuffer(o.panel_height, o.panel_width, CV_32F,
+                  cv::Scalar(std::numeric_limits<float>::infinity()));
   for (std::size_t j = 0; j < shown.size(); ++j) {
     const std::size_t i = shown[j];
     const int u = static_cast<int>(std::lround(o.panel_width / 2.0 + (xs[j] - cx) * scale));
@@ -163,8 +173,8 @@ StatusOr<cv::Mat> RenderMapTop(const PointCloud& map, const MapViewFrame& frame,
   return image;
 }
 
-StatusOr<cv::Mat> RenderMapPerspective(const PointCloud& map, const MapViewFrame& frame, MapColouring colouring,
-                                       const MapPictureOptions& o) {
+StatusOr<cv::Mat> RenderMapPerspective(const PointCloud& map, const MapViewFrame& frame,
+                                       MapColouring colouring, const MapPictureOptions& o) {
   CCMD_RETURN_IF_ERROR(CheckMap(map, colouring, o));
   Eigen::Vector3d e1, e2;
   HorizontalAxes(map, frame.up, &e1, &e2);
@@ -181,18 +191,21 @@ StatusOr<cv::Mat> RenderMapPerspective(const PointCloud& map, const MapViewFrame
   const double x0 = Percentile(xs, 0.01), x1 = Percentile(xs, 0.99);
   const double y0 = Percentile(ys, 0.01), y1 = Percentile(ys, 0.99);
   const double h0 = Percentile(hs, 0.01), h1 = Percentile(hs, 0.99);
-  const Eigen::Vector3d target = 0.5 * (x0 + x1) * e1 + 0.5 * (y0 + y1) * e2 + 0.5 * (h0 + h1) * frame.up;
+  const Eigen::Vector3d target =
+      0.5 * (x0 + x1) * e1 + 0.5 * (y0 + y1) * e2 + 0.5 * (h0 + h1) * frame.up;
   const double near_limit = y0 + o.cutaway_fraction * (y1 - y0), floor_limit = h0 + 0.3;
   // Seen across its shorter side (along e2) from above: the long side fills the width.
   const double half_fov = 0.5 * o.field_of_view_deg * M_PI / 180;
   const double distance = 1.1 * 0.5 * (x1 - x0) / std::tan(half_fov) + 0.5 * (y1 - y0);
   const double elevation = o.elevation_deg * M_PI / 180;
-  const Eigen::Vector3d eye = target - distance * std::cos(elevation) * e2 + distance * std::sin(elevation) * frame.up;
+  const Eigen::Vector3d eye =
+      target - distance * std::cos(elevation) * e2 + distance * std::sin(elevation) * frame.up;
   const Eigen::Vector3d z = (target - eye).normalized();
   const Eigen::Vector3d x = z.cross(frame.up).normalized();
   const Eigen::Vector3d y = z.cross(x);
   const double f = 0.5 * o.panel_width / std::tan(half_fov);
-  cv::Mat zbuffer(o.panel_height, o.panel_width, CV_32F, cv::Scalar(std::numeric_limits<float>::infinity()));
+  cv::Mat zbuffer(o.panel_height, o.panel_width, CV_32F,
+                  cv::Scalar(std::numeric_limits<float>::infinity()));
   for (std::size_t i = 0; i < map.size(); ++i) {
     const Eigen::Vector3d p = map.points[i].cast<double>();
     if (p.dot(frame.up) > frame.cut_height) continue;
@@ -213,7 +226,8 @@ namespace {
 cv::Mat Titled(const cv::Mat& panel, const std::string& title) {
   cv::Mat out(panel.rows + kTitleHeight, panel.cols, CV_8UC3, cv::Scalar(255, 255, 255));
   panel.copyTo(out(cv::Rect(0, kTitleHeight, panel.cols, panel.rows)));
-  cv::putText(out, title, cv::Point(8, 23), cv::FONT_HERSHEY_SIMPLEX, 0.6, cv::Scalar(40, 40, 40), 1, cv::LINE_AA);
+  cv::putText(out, title, cv::Point(8, 23), cv::FONT_HERSHEY_SIMPLEX, 0.6, cv::Scalar(40, 40, 40),
+              1, cv::LINE_AA);
   return out;
 }
 
@@ -227,20 +241,22 @@ void DrawLegend(cv::Mat* panel, const MapPictureOptions& o) {
   int y = 14;
   for (const auto& named : legend) {
     cv::rectangle(*panel, cv::Rect(10, y - 10, 14, 14), named.second, cv::FILLED);
-    cv::putText(*panel, named.first, cv::Point(30, y + 2), cv::FONT_HERSHEY_SIMPLEX, 0.5, cv::Scalar(40, 40, 40), 1,
-                cv::LINE_AA);
+    cv::putText(*panel, named.first, cv::Point(30, y + 2), cv::FONT_HERSHEY_SIMPLEX, 0.5,
+                cv::Scalar(40, 40, 40), 1, cv::LINE_AA);
     y += 20;
   }
 }
 
 }  // namespace
 
-Status WriteMapPictures(const PointCloud& map, const Trajectory& cameras, const MapPictureOptions& o,
-                        const std::string& folder) {
+Status WriteMapPictures(const PointCloud& map, const Trajectory& cameras,
+                        const MapPictureOptions& o, const std::string& folder) {
   const MapViewFrame frame = EstimateMapViewFrame(cameras, o.ceiling_margin_m);
   const bool by_agent = map.labels.size() == map.size();
-  using Renderer = StatusOr<cv::Mat> (*)(const PointCloud&, const MapViewFrame&, MapColouring, const MapPictureOptions&);
-  const std::pair<Renderer, std::string> views[] = {{&RenderMapTop, "map_top.png"}, {&RenderMapPerspective, "map_view.png"}};
+  using Renderer = StatusOr<cv::Mat> (*)(const PointCloud&, const MapViewFrame&, MapColouring,
+                                         const MapPictureOptions&);
+  const std::pair<Renderer, std::string> views[] = {{&RenderMapTop, "map_top.png"},
+                                                    {&RenderMapPerspective, "map_view.png"}};
   for (const auto& [render, name] : views) {
     const std::string what = render == &RenderMapTop ? "top view" : "perspective";
     CCMD_ASSIGN_OR_RETURN(cv::Mat rgb, render(map, frame, MapColouring::kRgb, o));

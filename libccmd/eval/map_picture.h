@@ -29,13 +29,13 @@ enum class MapColouring { kRgb, kAgent };
 struct MapPictureOptions {
   int panel_width = 640;
   int panel_height = 480;
-  double point_size_m = 0.01;        // the dense map's voxel
-  double ceiling_margin_m = 0.4;     // kept above the highest camera
-  double elevation_deg = 40;         // perspective view: camera above the horizon
+  double point_size_m = 0.01;     // the dense map's voxel
+  double ceiling_margin_m = 0.4;  // kept above the highest camera
+  double elevation_deg = 40;      // perspective view: camera above the horizon
   // Perspective view: points in the nearest part of the map (this fraction of its depth) that
   // stand higher than the floor are left out, so the near wall does not hide the room.
   double cutaway_fraction = 0.12;
-  double field_of_view_deg = 60;     // perspective view, horizontal
+  double field_of_view_deg = 60;                      // perspective view, horizontal
   cv::Scalar background = cv::Scalar(255, 255, 255);  // BGR
   // Agent id (the label's top byte) -> name and colour (BGR) for the agent panels and legend.
   std::map<int, std::pair<std::string, cv::Scalar>> agents;
@@ -52,14 +52,14 @@ struct MapViewFrame {
 MapViewFrame EstimateMapViewFrame(const Trajectory& cameras, double ceiling_margin_m);
 
 // One panel (CV_8UC3, panel size). Errors: an empty map, agent colouring without labels.
-StatusOr<cv::Mat> RenderMapTop(const PointCloud& map, const MapViewFrame& frame, MapColouring colouring,
-                               const MapPictureOptions& options);
-StatusOr<cv::Mat> RenderMapPerspective(const PointCloud& map, const MapViewFrame& frame, MapColouring colouring,
-                                       const MapPictureOptions& options);
+StatusOr<cv::Mat> RenderMapTop(const PointCloud& map, const MapViewFrame& frame,
+                               MapColouring colouring, const MapPictureOptions& options);
+StatusOr<cv::Mat> RenderMapPerspective(const PointCloud& map, const MapViewFrame& frame,
+                                       MapColouring colouring, const MapPictureOptions& options);
 
 // map_top.png and map_view.png in `folder`: each the RGB panel beside the agent panel (the
 // RGB panel alone when the map has no labels), with titles and the agents' legend.
-Status WriteMapPictures(const PointCloud& map, const Trajectory& cameras, const MapPictureOptions& options,
-                        const std::string& folder);
+Status WriteMapPictures(const PointCloud& map, const Trajectory& cameras,
+                        const MapPictureOptions& options, const std::string& folder);
 
 }  // namespace ccmd

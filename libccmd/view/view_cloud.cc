@@ -19,7 +19,8 @@ void PutLe(std::uint64_t v, int bytes, std::string* out) {
 
 std::uint64_t GetLe(std::string_view bytes, std::size_t at, int n) {
   std::uint64_t v = 0;
-  for (int i = 0; i < n; ++i) v |= static_cast<std::uint64_t>(static_cast<std::uint8_t>(bytes[at + i])) << (8 * i);
+  for (int i = 0; i < n; ++i)
+    v |= static_cast<std::uint64_t>(static_cast<std::uint8_t>(bytes[at + i])) << (8 * i);
   return v;
 }
 
@@ -33,10 +34,12 @@ std::vector<std::uint32_t> ViewOrder(const GlobalKeyframeId& id, const CameraClo
   const double inv = 1.0 / options.voxel_m;
   for (std::uint32_t i = 0; i < cloud.size(); ++i) {
     const Eigen::Vector3f& p = cloud.points[i];
-    if (!p.allFinite() || (p.cast<double>() * 1e3).cwiseAbs().maxCoeff() > kMaxMillimetres) continue;
+    if (!p.allFinite() || (p.cast<double>() * 1e3).cwiseAbs().maxCoeff() > kMaxMillimetres)
+      continue;
     std::uint64_t key = 0;
     for (int a = 0; a < 3; ++a) {
-      key = (key << 21) | (static_cast<std::uint64_t>(std::floor(p[a] * inv) + (1 << 20)) & 0x1fffff);
+      key =
+          (key << 21) | (static_cast<std::uint64_t>(std::floor(p[a] * inv) + (1 << 20)) & 0x1fffff);
     }
     if (voxels.insert(key).second) kept.push_back(i);
   }
@@ -53,13 +56,15 @@ std::vector<std::uint32_t> ViewOrder(const GlobalKeyframeId& id, const CameraClo
 }  // namespace
 
 Status ViewCloudOptions::Validate() const {
-  if (!(voxel_m >= 0.001 && voxel_m <= 1.0)) return InvalidArgument("view voxel must be in [0.001, 1] m");
-  if (max_points < 1 || max_points > 1000000) return InvalidArgument("view points per keyframe must be in [1, 1e6]");
+  if (!(voxel_m >= 0.001 && voxel_m <= 1.0))
+    return InvalidArgument("view voxel must be in [0.001, 1] m");
+  if (max_points < 1 || max_points > 1000000)
+    return InvalidArgument("view points per keyframe must be in [1, 1e6]");
   return Status::Ok();
 }
 
-void AppendViewCloud(const GlobalKeyframeId& id, const CameraCloud* cloud, const ViewCloudOptions& options,
-                     std::string* out) {
+void AppendViewCloud(const GlobalKeyframeId& id, const CameraCloud* cloud,
+                     const ViewCloudOptions& options, std::string* out) {
   const std::vector<std::uint32_t> order =
       cloud ? ViewOrder(id, *cloud, options) : std::vector<std::uint32_t>();
   PutLe(id.agent.value(), 2, out);
@@ -74,19 +79,23 @@ void AppendViewCloud(const GlobalKeyframeId& id, const CameraCloud* cloud, const
       PutLe(static_cast<std::uint16_t>(static_cast<std::int16_t>(mm)), 2, out);
     }
   }
-  for (std::uint32_t i : order) out->append(reinterpret_cast<const char*>(cloud->colors[i].data()), 3);
+  for (std::uint32_t i : order)
+    out->append(reinterpret_cast<const char*>(cloud->colors[i].data()), 3);
   while (out->size() % 4 != 0) out->push_back('\0');
 }
 
 std::string EncodeBase64(std::string_view bytes) {
-  static constexpr char kDigits[] = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+  static constexpr char kDigits[] =
+      "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
   std::string out;
   out.reserve((bytes.size() + 2) / 3 * 4);
   for (std::size_t i = 0; i < bytes.size(); i += 3) {
     const std::size_t n = std::min<std::size_t>(3, bytes.size() - i);
     std::uint32_t v = 0;
-    for (std::size_t j = 0; j < 3; ++j) v = (v << 8) | (j < n ? static_cast<std::uint8_t>(bytes[i + j]) : 0u);
-    for (std::size_t j = 0; j < 4; ++j) out.push_back(j <= n ? kDigits[(v >> (18 - 6 * j)) & 63] : '=');
+    for (std::size_t j = 0; j < 3; ++j)
+      v = (v << 8) | (j < n ? static_cast<std::uint8_t>(bytes[i + j]) : 0u);
+    for (std::size_t j = 0; j < 4; ++j)
+      out.push_back(j <= n ? kDigits[(v >> (18 - 6 * j)) & 63] : '=');
   }
   return out;
 }
@@ -109,7 +118,8 @@ StatusOr<std::vector<ViewCloud>> ParseViewClouds(std::string_view bytes) {
     c.colors.resize(n);
     for (std::uint64_t i = 0; i < n; ++i) {
       for (int a = 0; a < 3; ++a) {
-        c.points_mm[i][a] = static_cast<std::int16_t>(static_cast<std::uint16_t>(GetLe(bytes, at + 6 * i + 2 * a, 2)));
+        c.points_mm[i][a] = static_cast<std::int16_t>(
+            static_cast<std::uint16_t>(GetLe(bytes, at + 6 * i + 2 * a, 2)));
       }
     }
     std::memcpy(c.colors.data(), bytes.data() + at + 6 * n, 3 * n);

@@ -37,8 +37,8 @@ struct ViewCloudOptions {
 inline constexpr std::size_t kViewCloudHeaderBytes = 12;
 
 // Appends the record of `id` to `out`; `cloud` null: the "not found" record.
-void AppendViewCloud(const GlobalKeyframeId& id, const CameraCloud* cloud, const ViewCloudOptions& options,
-                     std::string* out);
+void AppendViewCloud(const GlobalKeyframeId& id, const CameraCloud* cloud,
+                     const ViewCloudOptions& options, std::string* out);
 
 struct ViewCloud {
   GlobalKeyframeId id;

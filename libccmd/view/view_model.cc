@@ -9,7 +9,8 @@ namespace ccmd {
 
 Status ViewModelOptions::Validate() const {
   if (max_events < 16) return InvalidArgument("the view keeps at least 16 events");
-  if (max_event_bytes < (1u << 16)) return InvalidArgument("the view's event log needs at least 64 KiB");
+  if (max_event_bytes < (1u << 16))
+    return InvalidArgument("the view's event log needs at least 64 KiB");
   return Status::Ok();
 }
 
@@ -45,7 +46,8 @@ void ViewModel::Append(Json event) {
   std::string text = event.Dump(-1);
   event_bytes_ += text.size();
   events_.emplace_back(++seq_, std::move(text));
-  while (events_.size() > 1 && (events_.size() > options_.max_events || event_bytes_ > options_.max_event_bytes)) {
+  while (events_.size() > 1 &&
+         (events_.size() > options_.max_events || event_bytes_ > options_.max_event_bytes)) {
     event_bytes_ -= events_.front().second.size();
     events_.pop_front();
   }
@@ -62,8 +64,8 @@ void ViewModel::OnAgent(AgentId agent, const std::string& name) {
   Append(std::move(e));
 }
 
-void ViewModel::OnKeyframe(const GlobalKeyframeId& id, MapId map, const Pose& T_map_cam, double arrived_s,
-                           bool primary) {
+void ViewModel::OnKeyframe(const GlobalKeyframeId& id, MapId map, const Pose& T_map_cam,
+                           double arrived_s, bool primary) {
   const double t = EpochMillis(arrived_s);
   std::lock_guard<std::mutex> lock(mutex_);
   ViewKeyframe& kf = keyframes_[id];
@@ -77,7 +79,8 @@ void ViewModel::OnKeyframe(const GlobalKeyframeId& id, MapId map, const Pose& T_
   Append(std::move(e));
 }
 
-void ViewModel::OnPoses(PoseSource source, MapId map, const std::vector<KeyframePose>& poses, double arrived_s) {
+void ViewModel::OnPoses(PoseSource source, MapId map, const std::vector<KeyframePose>& poses,
+                        double arrived_s) {
   const double t = EpochMillis(arrived_s);
   std::lock_guard<std::mutex> lock(mutex_);
   Json list = Json::MakeArray();
@@ -192,7 +195,8 @@ Json ViewModel::StateJson() const {
   return state;
 }
 
-EventBatch ViewModel::WaitEvents(std::uint64_t after, std::uint64_t stats_version, double timeout_s) const {
+EventBatch ViewModel::WaitEvents(std::uint64_t after, std::uint64_t stats_version,
+                                 double timeout_s) const {
   EventBatch batch;
   std::unique_lock<std::mutex> lock(mutex_);
   if (after > seq_) {  // a number from another server run
@@ -200,7 +204,8 @@ EventBatch ViewModel::WaitEvents(std::uint64_t after, std::uint64_t stats_versio
     return batch;
   }
   const auto ready = [&] { return closed_ || seq_ > after || stats_version_ != stats_version; };
-  if (!changed_.wait_for(lock, std::chrono::duration<double>(timeout_s), ready)) return batch;  // kTimeout
+  if (!changed_.wait_for(lock, std::chrono::duration<double>(timeout_s), ready))
+    return batch;  // kTimeout
   if (closed_) {
     batch.kind = EventBatch::Kind::kClosed;
     return batch;

@@ -36,8 +36,8 @@
 namespace ccmd {
 
 struct ViewModelOptions {
-  std::size_t max_events = 4096;              // events kept for browsers catching up
-  std::size_t max_event_bytes = 32u << 20;    // and their text, at most
+  std::size_t max_events = 4096;            // events kept for browsers catching up
+  std::size_t max_event_bytes = 32u << 20;  // and their text, at most
 
   Status Validate() const;
 };
@@ -67,7 +67,8 @@ class ViewModel : public MapObserver {
   void OnAgent(AgentId agent, const std::string& name) override;
   void OnKeyframe(const GlobalKeyframeId& id, MapId map, const Pose& T_map_cam, double arrived_s,
                   bool primary) override;
-  void OnPoses(PoseSource source, MapId map, const std::vector<KeyframePose>& poses, double arrived_s) override;
+  void OnPoses(PoseSource source, MapId map, const std::vector<KeyframePose>& poses,
+               double arrived_s) override;
   void OnLoop(const LoopEvent& event) override;
   void OnDenseKeyframe(const GlobalKeyframeId& id) override;
 
@@ -106,15 +107,15 @@ class ViewModel : public MapObserver {
   const ViewModelOptions options_;
   mutable std::mutex mutex_;
   mutable std::condition_variable changed_;
-  std::map<AgentId, std::string> agents_;              // guarded by mutex_
-  std::map<GlobalKeyframeId, ViewKeyframe> keyframes_;  // guarded by mutex_
-  std::vector<Loop> loops_;                             // guarded by mutex_
+  std::map<AgentId, std::string> agents_;                     // guarded by mutex_
+  std::map<GlobalKeyframeId, ViewKeyframe> keyframes_;        // guarded by mutex_
+  std::vector<Loop> loops_;                                   // guarded by mutex_
   std::deque<std::pair<std::uint64_t, std::string>> events_;  // guarded by mutex_
-  std::size_t event_bytes_ = 0;                         // guarded by mutex_
-  std::uint64_t seq_ = 0;                               // guarded by mutex_
-  std::string stats_ = "{}";                            // guarded by mutex_
-  std::uint64_t stats_version_ = 0;                     // guarded by mutex_
-  bool closed_ = false;                                 // guarded by mutex_
+  std::size_t event_bytes_ = 0;                               // guarded by mutex_
+  std::uint64_t seq_ = 0;                                     // guarded by mutex_
+  std::string stats_ = "{}";                                  // guarded by mutex_
+  std::uint64_t stats_version_ = 0;                           // guarded by mutex_
+  bool closed_ = false;                                       // guarded by mutex_
 };
 
 }  // namespace ccmd

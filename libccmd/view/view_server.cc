@@ -33,7 +33,8 @@ std::array<unsigned char, 32> Sha256(const std::string& text) {
 
 StatusOr<std::string> RandomToken() {
   unsigned char bytes[16];
-  if (RAND_bytes(bytes, sizeof(bytes)) != 1) return Internal("no random bytes for the view's access token");
+  if (RAND_bytes(bytes, sizeof(bytes)) != 1)
+    return Internal("no random bytes for the view's access token");
   std::string hex;
   for (unsigned char b : bytes) {
     char two[3];
@@ -63,9 +64,11 @@ StatusOr<bool> ResolvesToLoopback(const std::string& host) {
   hints.ai_flags = AI_PASSIVE;
   addrinfo* found = nullptr;
   const int rc = getaddrinfo(host.c_str(), nullptr, &hints, &found);
-  if (rc != 0) return InvalidArgument("map view: cannot resolve '" + host + "': " + gai_strerror(rc));
+  if (rc != 0)
+    return InvalidArgument("map view: cannot resolve '" + host + "': " + gai_strerror(rc));
   bool loopback = true;
-  for (const addrinfo* p = found; p; p = p->ai_next) loopback = loopback && IsLoopbackAddress(p->ai_addr);
+  for (const addrinfo* p = found; p; p = p->ai_next)
+    loopback = loopback && IsLoopbackAddress(p->ai_addr);
   freeaddrinfo(found);
   return loopback;
 }
@@ -93,11 +96,14 @@ void NoStore(httplib::Response* response) { response->set_header("Cache-Control"
 Status ViewServerOptions::Validate() const {
   CCMD_RETURN_IF_ERROR(ParseHostPort(listen).status());
   if (web_dir.empty()) return InvalidArgument("map view: no folder for its web page");
-  if (max_event_streams < 1 || max_event_streams > 1024) return InvalidArgument("map view: streams must be 1..1024");
-  if (extra_workers < 2 || extra_workers > 1024) return InvalidArgument("map view: extra workers must be 2..1024");
+  if (max_event_streams < 1 || max_event_streams > 1024)
+    return InvalidArgument("map view: streams must be 1..1024");
+  if (extra_workers < 2 || extra_workers > 1024)
+    return InvalidArgument("map view: extra workers must be 2..1024");
   if (!(stats_period_s > 0)) return InvalidArgument("map view: statistics period must be > 0");
   if (!(keepalive_s > 0)) return InvalidArgument("map view: keep-alive period must be > 0");
-  if (max_clouds_per_request < 1) return InvalidArgument("map view: at least one cloud per request");
+  if (max_clouds_per_request < 1)
+    return InvalidArgument("map view: at least one cloud per request");
   for (char c : token) {
     if (!std::isalnum(static_cast<unsigned char>(c)) && c != '-' && c != '_' && c != '.') {
       return InvalidArgument("map view: the token may hold letters, digits, '-', '_' and '.' only");
@@ -147,10 +153,12 @@ ViewServer::ViewServer(const ViewServerOptions& options, ViewModel* model, const
                        ViewStatsSource stats)
     : options_(options), model_(model), dense_(dense), stats_(std::move(stats)) {}
 
-StatusOr<std::unique_ptr<ViewServer>> ViewServer::Start(const ViewServerOptions& options, ViewModel* model,
-                                                        const DenseMap* dense, ViewStatsSource stats) {
+StatusOr<std::unique_ptr<ViewServer>> ViewServer::Start(const ViewServerOptions& options,
+                                                        ViewModel* model, const DenseMap* dense,
+                                                        ViewStatsSource stats) {
   CCMD_RETURN_IF_ERROR(options.Validate());
-  if (model == nullptr || !stats) return InvalidArgument("map view: needs a model and a statistics source");
+  if (model == nullptr || !stats)
+    return InvalidArgument("map view: needs a model and a statistics source");
   std::unique_ptr<ViewServer> server(new ViewServer(options, model, dense, std::move(stats)));
   const std::vector<std::array<std::string, 3>> files = {
       {"/", "index.html", "text/html; charset=utf-8"},
@@ -162,7 +170,8 @@ StatusOr<std::unique_ptr<ViewServer>> ViewServer::Start(const ViewServerOptions&
     auto body = ReadFileToString(JoinPath(options.web_dir, name), 16u << 20);
     if (!body.ok()) {
       return NotFound("map view: " + JoinPath(options.web_dir, name) +
-                      " is missing (three.js comes from Debian's libjs-three: run scripts/setup.sh and rebuild)");
+                      " is missing (three.js comes from Debian's libjs-three: run scripts/setup.sh "
+                      "and rebuild)");
     }
     server->files_.push_back({path, type, std::move(body).value()});
   }
@@ -191,9 +200,12 @@ Status ViewServer::Bind() {
 
   http_ = std::make_unique<httplib::Server>();
   const int workers = options_.max_event_streams + options_.extra_workers;
-  http_->new_task_queue = [workers] { return new httplib::ThreadPool(static_cast<std::size_t>(workers)); };
+  http_->new_task_queue = [workers] {
+    return new httplib::ThreadPool(static_cast<std::size_t>(workers));
+  };
   http_->set_keep_alive_timeout(2);
-  http_->set_tcp_nodelay(true);  // events are small writes: no waiting for earlier ones' ACKs  // Stop waits for idle connections this long at most
+  http_->set_tcp_nodelay(true);  // events are small writes: no waiting for earlier ones' ACKs  //
+                                 // Stop waits for idle connections this long at most
   http_->set_payload_max_length(1 << 16);  // nothing is uploaded
   int port = address.port;
   if (port == 0) {
@@ -201,7 +213,8 @@ Status ViewServer::Bind() {
   } else if (!http_->bind_to_port(host_, port)) {
     port = -1;
   }
-  if (port <= 0) return Unavailable("map view: cannot listen on " + options_.listen + " (address in use?)");
+  if (port <= 0)
+    return Unavailable("map view: cannot listen on " + options_.listen + " (address in use?)");
   port_ = static_cast<std::uint16_t>(port);
   return Status::Ok();
 }
@@ -230,8 +243,9 @@ bool ViewServer::Refuse(const httplib::Request& request, httplib::Response* resp
   if (token_.empty()) {
     if (!IsLoopbackName(HostOfHeader(request.get_header_value("Host")))) {
       response->status = 403;
-      response->set_content("the map view answers loopback names only (start it with a token for others)\n",
-                            "text/plain");
+      response->set_content(
+          "the map view answers loopback names only (start it with a token for others)\n",
+          "text/plain");
       return true;
     }
     return false;
@@ -252,10 +266,11 @@ bool ViewServer::Refuse(const httplib::Request& request, httplib::Response* resp
 }
 
 void ViewServer::Routes() {
-  http_->set_pre_routing_handler([this](const httplib::Request& request, httplib::Response& response) {
-    return Refuse(request, &response) ? httplib::Server::HandlerResponse::Handled
-                                      : httplib::Server::HandlerResponse::Unhandled;
-  });
+  http_->set_pre_routing_handler(
+      [this](const httplib::Request& request, httplib::Response& response) {
+        return Refuse(request, &response) ? httplib::Server::HandlerResponse::Handled
+                                          : httplib::Server::HandlerResponse::Unhandled;
+      });
   for (const StaticFile& file : files_) {
     http_->Get(file.path, [&file](const httplib::Request&, httplib::Response& response) {
       response.set_content(file.body, file.content_type);
@@ -304,7 +319,8 @@ void ViewServer::ServeEvents(const httplib::Request& request, httplib::Response*
   response->set_chunked_content_provider(
       "text/event-stream",
       [this, cursor](std::size_t, httplib::DataSink& sink) {
-        const EventBatch batch = model_->WaitEvents(cursor->after, cursor->stats_version, options_.keepalive_s);
+        const EventBatch batch =
+            model_->WaitEvents(cursor->after, cursor->stats_version, options_.keepalive_s);
         std::string text;
         switch (batch.kind) {
           case EventBatch::Kind::kClosed:
@@ -325,7 +341,8 @@ void ViewServer::ServeEvents(const httplib::Request& request, httplib::Response*
               text += StreamEvent(seq, json, &inline_budget);
               cursor->after = seq;
             }
-            if (!batch.stats.empty()) text += SseMessage(0, R"({"type":"stats","stats":)" + batch.stats + "}");
+            if (!batch.stats.empty())
+              text += SseMessage(0, R"({"type":"stats","stats":)" + batch.stats + "}");
             cursor->stats_version = batch.stats_version;
             break;
           }
@@ -339,8 +356,10 @@ void ViewServer::ServeEvents(const httplib::Request& request, httplib::Response*
       });
 }
 
-std::string ViewServer::StreamEvent(std::uint64_t seq, const std::string& json, int* inline_budget) const {
-  if (*inline_budget <= 0 || dense_ == nullptr || json.find(R"("type":"cloud")") == std::string::npos) {
+std::string ViewServer::StreamEvent(std::uint64_t seq, const std::string& json,
+                                    int* inline_budget) const {
+  if (*inline_budget <= 0 || dense_ == nullptr ||
+      json.find(R"("type":"cloud")") == std::string::npos) {
     return SseMessage(seq, json);
   }
   auto event = Json::Parse(json);
@@ -369,16 +388,20 @@ void ViewServer::ServeClouds(const httplib::Request& request, httplib::Response*
   std::string body;
   for (const std::string& text : ids) {
     const std::vector<std::string> parts = Split(text, ':');
-    const auto agent = parts.size() == 2 ? ParseInt(parts[0]) : StatusOr<long long>(InvalidArgument(""));
-    const auto keyframe = parts.size() == 2 ? ParseInt(parts[1]) : StatusOr<long long>(InvalidArgument(""));
-    if (!agent.ok() || !keyframe.ok() || *agent < 0 || *agent > 65535 || *keyframe < 0 || *keyframe > 0xffffffffll) {
+    const auto agent =
+        parts.size() == 2 ? ParseInt(parts[0]) : StatusOr<long long>(InvalidArgument(""));
+    const auto keyframe =
+        parts.size() == 2 ? ParseInt(parts[1]) : StatusOr<long long>(InvalidArgument(""));
+    if (!agent.ok() || !keyframe.ok() || *agent < 0 || *agent > 65535 || *keyframe < 0 ||
+        *keyframe > 0xffffffffll) {
       response->status = 400;
       response->set_content("ids: '" + text + "' is not AGENT:KEYFRAME\n", "text/plain");
       return;
     }
     const GlobalKeyframeId id{AgentId(static_cast<std::uint16_t>(*agent)),
                               KeyframeId(static_cast<std::uint32_t>(*keyframe))};
-    StatusOr<CameraCloud> cloud = dense_ ? dense_->KeyframeCloud(id) : StatusOr<CameraCloud>(NotFound(""));
+    StatusOr<CameraCloud> cloud =
+        dense_ ? dense_->KeyframeCloud(id) : StatusOr<CameraCloud>(NotFound(""));
     AppendViewCloud(id, cloud.ok() ? &*cloud : nullptr, options_.cloud, &body);
   }
   NoStore(response);
@@ -393,7 +416,8 @@ void ViewServer::StatsLoop() {
     lock.unlock();
     model_->PublishStats(stats_().ToJson());
     lock.lock();
-    stop_cv_.wait_for(lock, std::chrono::duration<double>(options_.stats_period_s), [&] { return stopping_; });
+    stop_cv_.wait_for(lock, std::chrono::duration<double>(options_.stats_period_s),
+                      [&] { return stopping_; });
   }
 }
 

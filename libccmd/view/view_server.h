@@ -48,14 +48,14 @@ namespace ccmd {
 struct ViewServerOptions {
   std::string listen = "127.0.0.1:0";  // HOST:PORT (port 0: any free port)
   std::string token;                   // "" : none on loopback, made up otherwise
-  std::string web_dir;                 // index.html, view.js, view.css, three.min.js, OrbitControls.js
-  int max_event_streams = 8;           // browsers following at once
-  int extra_workers = 8;               // for everything else
-  double stats_period_s = 1.0;         // statistics pushed to the streams this often
-  double keepalive_s = 5;              // an idle stream gets a comment this often (a closed
-                                       // browser's stream is noticed then, and freed)
+  std::string web_dir;          // index.html, view.js, view.css, three.min.js, OrbitControls.js
+  int max_event_streams = 8;    // browsers following at once
+  int extra_workers = 8;        // for everything else
+  double stats_period_s = 1.0;  // statistics pushed to the streams this often
+  double keepalive_s = 5;       // an idle stream gets a comment this often (a closed
+                                // browser's stream is noticed then, and freed)
   std::size_t max_clouds_per_request = 64;
-  int max_inline_clouds = 16;          // per write of an event stream; later ones are fetched
+  int max_inline_clouds = 16;  // per write of an event stream; later ones are fetched
   ViewCloudOptions cloud;
 
   Status Validate() const;
@@ -66,12 +66,12 @@ struct ViewServerOptions {
 struct ViewAgentStats {
   AgentId id;
   std::string name;
-  std::size_t keyframes = 0;          // held by the server
-  std::uint64_t bytes = 0;            // keyframe and pose-update messages received
-  double rate_kBps = 0;               // average over the agent's connected time
+  std::size_t keyframes = 0;  // held by the server
+  std::uint64_t bytes = 0;    // keyframe and pose-update messages received
+  double rate_kBps = 0;       // average over the agent's connected time
   bool connected = false;
   std::optional<MapId> map;
-  double bucket_s = 1;                // traffic_kBps: one value per bucket, oldest first
+  double bucket_s = 1;  // traffic_kBps: one value per bucket, oldest first
   std::vector<double> traffic_kBps;
 };
 
@@ -99,8 +99,9 @@ using ViewStatsSource = std::function<ViewStats()>;
 class ViewServer {
  public:
   // Binds and starts serving. `model` and `dense` (null: no clouds) must outlive the server.
-  static StatusOr<std::unique_ptr<ViewServer>> Start(const ViewServerOptions& options, ViewModel* model,
-                                                     const DenseMap* dense, ViewStatsSource stats);
+  static StatusOr<std::unique_ptr<ViewServer>> Start(const ViewServerOptions& options,
+                                                     ViewModel* model, const DenseMap* dense,
+                                                     ViewStatsSource stats);
   ~ViewServer();
   ViewServer(const ViewServer&) = delete;
   ViewServer& operator=(const ViewServer&) = delete;
@@ -118,7 +119,8 @@ class ViewServer {
   struct StaticFile {
     std::string path, content_type, body;
   };
-  ViewServer(const ViewServerOptions& options, ViewModel* model, const DenseMap* dense, ViewStatsSource stats);
+  ViewServer(const ViewServerOptions& options, ViewModel* model, const DenseMap* dense,
+             ViewStatsSource stats);
   Status Bind();
   void Routes();
   void StatsLoop();

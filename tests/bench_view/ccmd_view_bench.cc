@@ -78,7 +78,8 @@ Status KeepScreenshot(testing::HeadlessBrowser* browser, const std::string& path
   return WriteFileAtomic(path, png);
 }
 
-StatusOr<Json> Page(testing::HeadlessBrowser* browser, const std::string& js, double timeout_s = 600) {
+StatusOr<Json> Page(testing::HeadlessBrowser* browser, const std::string& js,
+                    double timeout_s = 600) {
   auto r = browser->Evaluate(js, timeout_s);
   if (!r.ok()) return Status(r.status().code(), r.status().message() + "\n" + browser->PageLog());
   return r;
@@ -95,20 +96,22 @@ class StreamProbe {
       httplib::Client client("127.0.0.1", port);
       client.set_read_timeout(3600, 0);
       std::string buffer;
-      client.Get(("/api/events?after=" + std::to_string(after)).c_str(), [&](const char* data, std::size_t n) {
-        const double now_ms = WallSeconds() * 1e3;
-        buffer.append(data, n);
-        for (std::size_t end; (end = buffer.find("\n\n")) != std::string::npos; buffer.erase(0, end + 2)) {
-          const std::size_t at = buffer.find("data: ");
-          if (at == std::string::npos || at > end) continue;
-          auto e = Json::Parse(buffer.substr(at + 6, end - at - 6));
-          if (!e.ok() || !e->Get("t") || !e->Get("type")) continue;
-          const std::string type = e->Get("type")->string();
-          if (type == "cloud") cloud_ms_.push_back(now_ms - e->Get("t")->number());
-          if (type == "poses") pose_ms_.push_back(now_ms - e->Get("t")->number());
-        }
-        return !stop_;
-      });
+      client.Get(("/api/events?after=" + std::to_string(after)).c_str(),
+                 [&](const char* data, std::size_t n) {
+                   const double now_ms = WallSeconds() * 1e3;
+                   buffer.append(data, n);
+                   for (std::size_t end; (end = buffer.find("\n\n")) != std::string::npos;
+                        buffer.erase(0, end + 2)) {
+                     const std::size_t at = buffer.find("data: ");
+                     if (at == std::string::npos || at > end) continue;
+                     auto e = Json::Parse(buffer.substr(at + 6, end - at - 6));
+                     if (!e.ok() || !e->Get("t") || !e->Get("type")) continue;
+                     const std::string type = e->Get("type")->string();
+                     if (type == "cloud") cloud_ms_.push_back(now_ms - e->Get("t")->number());
+                     if (type == "poses") pose_ms_.push_back(now_ms - e->Get("t")->number());
+                   }
+                   return !stop_;
+                 });
     });
   }
   // An early return (a failed agent): the stream is left at its next keep-alive comment.
@@ -157,11 +160,13 @@ Status Settle(testing::HeadlessBrowser* browser, std::uint16_t view_port) {
     if (!a || a->status != 200) return Unavailable("the view stopped answering");
     CCMD_ASSIGN_OR_RETURN(const Json state, Json::Parse(a->body));
     const long seq = static_cast<long>(state.Get("seq")->number());
-    CCMD_ASSIGN_OR_RETURN(const Json shown, Page(browser, "ccmdView.whenSettled(" + std::to_string(seq) + ")"));
+    CCMD_ASSIGN_OR_RETURN(const Json shown,
+                          Page(browser, "ccmdView.whenSettled(" + std::to_string(seq) + ")"));
     auto b = client.Get("/api/state");
     if (!b || b->status != 200) return Unavailable("the view stopped answering");
     CCMD_ASSIGN_OR_RETURN(const Json again, Json::Parse(b->body));
-    if (static_cast<long>(again.Get("seq")->number()) == seq && static_cast<long>(shown.number()) == seq) {
+    if (static_cast<long>(again.Get("seq")->number()) == seq &&
+        static_cast<long>(shown.number()) == seq) {
       return Status::Ok();
     }
   }
@@ -170,11 +175,15 @@ Status Settle(testing::HeadlessBrowser* browser, std::uint16_t view_port) {
 
 void PrintLatencyRow(const char* what, const Json* s, double target_ms) {
   if (!s || !s->Get("n") || s->Get("n")->number() == 0) {
-    std::printf("| %s | 0 | - | - | - | %s |\n", what, target_ms > 0 ? std::to_string(target_ms).c_str() : "-");
+    std::printf("| %s | 0 | - | - | - | %s |\n", what,
+                target_ms > 0 ? std::to_string(target_ms).c_str() : "-");
     return;
   }
-  const auto num = [&](const char* k) { return s->Get(k) && s->Get(k)->is_number() ? s->Get(k)->number() : -1.0; };
-  std::printf("| %s | %.0f | %.0f | %.0f | %.0f |", what, num("n"), num("median"), num("p95"), num("max"));
+  const auto num = [&](const char* k) {
+    return s->Get(k) && s->Get(k)->is_number() ? s->Get(k)->number() : -1.0;
+  };
+  std::printf("| %s | %.0f | %.0f | %.0f | %.0f |", what, num("n"), num("median"), num("p95"),
+              num("max"));
   if (target_ms > 0) {
     std::printf(" %.0f | %.2f |\n", target_ms, num("median") / target_ms);
   } else {
@@ -187,12 +196,14 @@ int RunLatency(const LatencyOptions& o, const Common& common) {
   if (work.empty()) return Fail("cannot make a temporary folder");
   std::string dataset = o.dataset;
   if (dataset.empty()) {
-    std::printf("generating the demo's synthetic room (%d frames, 640x480) in %s\n", o.frames, work.c_str());
+    std::printf("generating the demo's synthetic room (%d frames, 640x480) in %s\n", o.frames,
+                work.c_str());
     std::fflush(stdout);
     SyntheticSequenceOptions synth;
     synth.frames = o.frames;
     dataset = JoinPath(work, "sequence");
-    if (auto s = WriteSyntheticSequence(dataset, synth); !s.ok()) return Fail(s.status().ToString());
+    if (auto s = WriteSyntheticSequence(dataset, synth); !s.ok())
+      return Fail(s.status().ToString());
   }
   const std::string bin = ExecutableDir();
   auto server = testing::StartServerWithView(JoinPath(bin, "ccmd_server"), work);
@@ -204,16 +215,24 @@ int RunLatency(const LatencyOptions& o, const Common& common) {
   auto browser = testing::HeadlessBrowser::Launch(browser_options);
   if (!browser.ok()) return Fail(browser.status().ToString());
   if (auto s = (*browser)->Open(server->url); !s.ok()) return Fail(s.ToString());
-  if (auto s = Page(browser->get(), "ccmdView.whenConnection('live')"); !s.ok()) return Fail(s.status().ToString());
+  if (auto s = Page(browser->get(), "ccmdView.whenConnection('live')"); !s.ok())
+    return Fail(s.status().ToString());
   const std::string load_before = LoadAverage();
   StreamProbe probe(server->view_port, 0);
   const Stopwatch watch;
   std::vector<Subprocess> agents;
   for (int i = 1; i <= o.agents; ++i) {
-    std::vector<std::string> argv = {JoinPath(bin, "ccmd_agent"), "--source", "tum:" + dataset, "--segment",
-                                     std::to_string(i) + "/" + std::to_string(o.agents), "--server",
-                                     "127.0.0.1:" + std::to_string(server->port), "--name", "agent" + std::to_string(i),
-                                     "--rate", o.rate};
+    std::vector<std::string> argv = {JoinPath(bin, "ccmd_agent"),
+                                     "--source",
+                                     "tum:" + dataset,
+                                     "--segment",
+                                     std::to_string(i) + "/" + std::to_string(o.agents),
+                                     "--server",
+                                     "127.0.0.1:" + std::to_string(server->port),
+                                     "--name",
+                                     "agent" + std::to_string(i),
+                                     "--rate",
+                                     o.rate};
     if (!o.config.empty()) {
       argv.push_back("--config");
       argv.push_back(o.config);
@@ -223,7 +242,8 @@ int RunLatency(const LatencyOptions& o, const Common& common) {
     if (!agent.ok()) return Fail(agent.status().ToString());
     agents.push_back(std::move(agent).value());
   }
-  std::printf("%d agents replaying %s (%s pace); the page follows\n", o.agents, dataset.c_str(), o.rate.c_str());
+  std::printf("%d agents replaying %s (%s pace); the page follows\n", o.agents, dataset.c_str(),
+              o.rate.c_str());
   std::fflush(stdout);
   for (Subprocess& a : agents) {
     if (a.Wait().exit_code != 0) return Fail("an agent failed; logs in " + work);
@@ -234,18 +254,23 @@ int RunLatency(const LatencyOptions& o, const Common& common) {
   auto latency = Page(browser->get(), "ccmdView.latency()");
   auto state = Page(browser->get(), "ccmdView.state()");
   if (!latency.ok() || !state.ok()) return Fail("cannot read the page's figures");
-  if (auto s = KeepScreenshot(browser->get(), common.screenshot_path); !s.ok()) return Fail(s.ToString());
+  if (auto s = KeepScreenshot(browser->get(), common.screenshot_path); !s.ok())
+    return Fail(s.ToString());
   server->process.Signal(SIGINT).IgnoreError();
   server->process.Wait();
   const Json plain = probe.Finish();
 
   const Json& l = *latency;
-  std::printf("\nreplay %.1f s, %zu keyframes, %.0f view points; load average %s (before) / %s (after)\n\n",
-              replay_s, state->Get("keyframes")->size(), state->Get("totalPoints")->number(), load_before.c_str(),
-              load_after.c_str());
-  std::printf("| latency (ms) | n | median | p95 | max | target | median / target |\n|---|---|---|---|---|---|---|\n");
+  std::printf(
+      "\nreplay %.1f s, %zu keyframes, %.0f view points; load average %s (before) / %s (after)\n\n",
+      replay_s, state->Get("keyframes")->size(), state->Get("totalPoints")->number(),
+      load_before.c_str(), load_after.c_str());
+  std::printf(
+      "| latency (ms) | n | median | p95 | max | target | median / target "
+      "|\n|---|---|---|---|---|---|---|\n");
   PrintLatencyRow("keyframe arrival -> points drawn", l.Get("keyframe"), 500);
-  PrintLatencyRow("of which back-end (arrival -> cloud in the dense store; reference)", l.Get("backend"), 0);
+  PrintLatencyRow("of which back-end (arrival -> cloud in the dense store; reference)",
+                  l.Get("backend"), 0);
   PrintLatencyRow("of which view (cloud stored -> drawn)", l.Get("cloud"), 0);
   PrintLatencyRow("of which event delivery (cloud stored -> page told)", l.Get("delivery"), 0);
   PrintLatencyRow("event delivery to a plain HTTP client (reference)", plain.Get("cloud"), 0);
@@ -255,7 +280,8 @@ int RunLatency(const LatencyOptions& o, const Common& common) {
   PrintLatencyRow("pose update -> drawn (all)", l.Get("pose"), 200);
   PrintLatencyRow("pose update -> plain HTTP client (reference)", plain.Get("pose"), 0);
   if (const Json* by = l.Get("pose_by_source")) {
-    for (const auto& [src, s] : by->object()) PrintLatencyRow(("pose update -> drawn (" + src + ")").c_str(), &s, 200);
+    for (const auto& [src, s] : by->object())
+      PrintLatencyRow(("pose update -> drawn (" + src + ")").c_str(), &s, 200);
   }
   if (!common.json_path.empty()) {
     Json out;
@@ -290,9 +316,11 @@ CameraCloud WallPatch(int keyframe) {
   const float depth = 1.5f + 0.5f * static_cast<float>(keyframe % 3);
   for (int i = 0; i < 100; ++i) {
     for (int j = 0; j < 100; ++j) {
-      cloud.points.emplace_back(0.021f * (i - 50), 0.021f * (j - 50), depth + 0.002f * static_cast<float>(i % 7));
+      cloud.points.emplace_back(0.021f * (i - 50), 0.021f * (j - 50),
+                                depth + 0.002f * static_cast<float>(i % 7));
       const bool stripe = ((i / 8) + (j / 8) + keyframe) % 2 == 0;
-      cloud.colors.push_back({static_cast<std::uint8_t>(60 + (keyframe * 37) % 160), static_cast<std::uint8_t>(stripe ? 170 : 90),
+      cloud.colors.push_back({static_cast<std::uint8_t>(60 + (keyframe * 37) % 160),
+                              static_cast<std::uint8_t>(stripe ? 170 : 90),
                               static_cast<std::uint8_t>(100 + (i + j) % 100)});
     }
   }
@@ -303,7 +331,8 @@ Pose PatchPose(int keyframe, int count) {
   const double yaw = 2 * M_PI * keyframe / count * 3.0;  // three turns, at three heights
   Pose T = Pose::Identity();
   T.linear() = Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitY()).toRotationMatrix();
-  T.translation() = Eigen::Vector3d(0.5 * std::cos(yaw), -1.0 * (keyframe * 3 / count), 0.5 * std::sin(yaw));
+  T.translation() =
+      Eigen::Vector3d(0.5 * std::cos(yaw), -1.0 * (keyframe * 3 / count), 0.5 * std::sin(yaw));
   return T;
 }
 
@@ -317,7 +346,8 @@ int RunFps(std::size_t points, int frames, const Common& common) {
   std::fflush(stdout);
   for (int k = 0; k < keyframes; ++k) {
     const GlobalKeyframeId id{AgentId(1), KeyframeId(static_cast<std::uint32_t>(k))};
-    if (auto s = (*dense)->AddKeyframeCloud(id, PatchPose(k, keyframes), WallPatch(k)); !s.ok()) return Fail(s.ToString());
+    if (auto s = (*dense)->AddKeyframeCloud(id, PatchPose(k, keyframes), WallPatch(k)); !s.ok())
+      return Fail(s.ToString());
     model.OnKeyframe(id, MapId(1), PatchPose(k, keyframes), MonotonicSeconds(), true);
     model.OnDenseKeyframe(id);
   }
@@ -345,24 +375,35 @@ int RunFps(std::size_t points, int frames, const Common& common) {
   if (!browser.ok()) return Fail(browser.status().ToString());
   if (auto s = (*browser)->Open((*server)->url()); !s.ok()) return Fail(s.ToString());
   const Stopwatch load;
-  auto settled = Page(browser->get(), "ccmdView.whenSettled(" + std::to_string(model.last_seq()) + ")", 1800);
+  auto settled =
+      Page(browser->get(), "ccmdView.whenSettled(" + std::to_string(model.last_seq()) + ")", 1800);
   if (!settled.ok()) return Fail(settled.status().ToString());
   const double load_s = load.ElapsedSeconds();
   const std::string load_avg = LoadAverage();
-  auto lod = Page(browser->get(), "ccmdView.benchmark({frames: " + std::to_string(frames) + ", warmup: 30})", 1800);
+  auto lod = Page(browser->get(),
+                  "ccmdView.benchmark({frames: " + std::to_string(frames) + ", warmup: 30})", 1800);
   auto full = Page(browser->get(), "ccmdView.benchmark({frames: 3, warmup: 1, lod: false})", 1800);
-  if (!lod.ok() || !full.ok()) return Fail("benchmark failed: " + (lod.ok() ? full.status() : lod.status()).ToString());
-  if (auto s = KeepScreenshot(browser->get(), common.screenshot_path); !s.ok()) return Fail(s.ToString());
-  const auto num = [](const Json& j, const char* k) { return j.Get(k) && j.Get(k)->is_number() ? j.Get(k)->number() : 0.0; };
-  std::printf("\n%.0f view points loaded and drawn in %.1f s; canvas %dx%d; load average %s\n\n", num(*lod, "total_points"),
-              load_s, common.width - 380, common.height, load_avg.c_str());
-  std::printf("| drawing | points per frame | frames/s | mean ms | p95 ms | ratio to every point |\n|---|---|---|---|---|---|\n");
-  std::printf("| level of detail (moving camera) | %.0f | %.1f | %.1f | %.1f | %.1f |\n", num(*lod, "drawn_points"),
-              num(*lod, "fps"), num(*lod, "mean_ms"), num(*lod, "p95_ms"), num(*lod, "fps") / std::max(1e-9, num(*full, "fps")));
-  std::printf("| every point (reference) | %.0f | %.2f | %.0f | %.0f | 1 |\n", num(*full, "drawn_points"), num(*full, "fps"),
-              num(*full, "mean_ms"), num(*full, "p95_ms"));
-  std::printf("\nat rest, the rest of the points are added in %.0f frames (%.0f ms)\n", num(*lod, "refine_frames"),
-              num(*lod, "refine_ms"));
+  if (!lod.ok() || !full.ok())
+    return Fail("benchmark failed: " + (lod.ok() ? full.status() : lod.status()).ToString());
+  if (auto s = KeepScreenshot(browser->get(), common.screenshot_path); !s.ok())
+    return Fail(s.ToString());
+  const auto num = [](const Json& j, const char* k) {
+    return j.Get(k) && j.Get(k)->is_number() ? j.Get(k)->number() : 0.0;
+  };
+  std::printf("\n%.0f view points loaded and drawn in %.1f s; canvas %dx%d; load average %s\n\n",
+              num(*lod, "total_points"), load_s, common.width - 380, common.height,
+              load_avg.c_str());
+  std::printf(
+      "| drawing | points per frame | frames/s | mean ms | p95 ms | ratio to every point "
+      "|\n|---|---|---|---|---|---|\n");
+  std::printf("| level of detail (moving camera) | %.0f | %.1f | %.1f | %.1f | %.1f |\n",
+              num(*lod, "drawn_points"), num(*lod, "fps"), num(*lod, "mean_ms"),
+              num(*lod, "p95_ms"), num(*lod, "fps") / std::max(1e-9, num(*full, "fps")));
+  std::printf("| every point (reference) | %.0f | %.2f | %.0f | %.0f | 1 |\n",
+              num(*full, "drawn_points"), num(*full, "fps"), num(*full, "mean_ms"),
+              num(*full, "p95_ms"));
+  std::printf("\nat rest, the rest of the points are added in %.0f frames (%.0f ms)\n",
+              num(*lod, "refine_frames"), num(*lod, "refine_ms"));
   if (!common.json_path.empty()) {
     Json out;
     out["mode"] = "fps";
@@ -384,21 +425,34 @@ int main(int argc, char** argv) {
   Common common;
   app.add_option("--json", common.json_path, "Write the figures as JSON");
   app.add_option("--screenshot", common.screenshot_path, "Keep a PNG of the page at the end");
-  app.add_option("--width", common.width, "Browser window width (the 3D view is 380 px narrower)")->capture_default_str();
+  app.add_option("--width", common.width, "Browser window width (the 3D view is 380 px narrower)")
+      ->capture_default_str();
   app.add_option("--height", common.height, "Browser window height")->capture_default_str();
   LatencyOptions latency;
-  auto* lat = app.add_subcommand("latency", "Keyframe and pose-update latency to the browser during a split replay");
-  lat->add_option("--dataset", latency.dataset, "TUM-layout sequence (default: the demo's synthetic room)");
+  auto* lat = app.add_subcommand(
+      "latency", "Keyframe and pose-update latency to the browser during a split replay");
+  lat->add_option("--dataset", latency.dataset,
+                  "TUM-layout sequence (default: the demo's synthetic room)");
   lat->add_option("--config", latency.config, "Camera config for --dataset");
-  lat->add_option("--agents", latency.agents, "Agents")->check(CLI::Range(1, 16))->capture_default_str();
-  lat->add_option("--frames", latency.frames, "Frames of the synthetic room")->capture_default_str();
-  lat->add_option("--keep", latency.keep, "Keep the run (the server's results/, logs) in this new folder");
-  lat->add_option("--rate", latency.rate, "realtime or max")->check(CLI::IsMember({"realtime", "max"}))->capture_default_str();
+  lat->add_option("--agents", latency.agents, "Agents")
+      ->check(CLI::Range(1, 16))
+      ->capture_default_str();
+  lat->add_option("--frames", latency.frames, "Frames of the synthetic room")
+      ->capture_default_str();
+  lat->add_option("--keep", latency.keep,
+                  "Keep the run (the server's results/, logs) in this new folder");
+  lat->add_option("--rate", latency.rate, "realtime or max")
+      ->check(CLI::IsMember({"realtime", "max"}))
+      ->capture_default_str();
   std::size_t points = 3000000;
   int frames = 60;
-  auto* fps = app.add_subcommand("fps", "Frames per second of a large map in the software renderer");
-  fps->add_option("--points", points, "View points in the map")->check(CLI::Range(10000, 50000000))->capture_default_str();
-  fps->add_option("--frames", frames, "Measured frames (after 30 to settle the level of detail)")->capture_default_str();
+  auto* fps =
+      app.add_subcommand("fps", "Frames per second of a large map in the software renderer");
+  fps->add_option("--points", points, "View points in the map")
+      ->check(CLI::Range(10000, 50000000))
+      ->capture_default_str();
+  fps->add_option("--frames", frames, "Measured frames (after 30 to settle the level of detail)")
+      ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   if (*lat) return RunLatency(latency, common);
   return RunFps(points, frames, common);

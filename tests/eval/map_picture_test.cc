@@ -15,17 +15,21 @@ namespace ccmd {
 namespace {
 
 constexpr double kSpacing = 0.02;
-const cv::Vec3b kRed(30, 30, 220), kBlue(220, 30, 30), kGreen(30, 200, 30), kGrey(128, 128, 128);  // BGR
+const cv::Vec3b kRed(30, 30, 220), kBlue(220, 30, 30), kGreen(30, 200, 30),
+    kGrey(128, 128, 128);  // BGR
 
-void AddPatch(PointCloud* cloud, const Eigen::Vector3d& origin, const Eigen::Vector3d& u, const Eigen::Vector3d& v,
-              const cv::Vec3b& bgr, const std::function<int(const Eigen::Vector3d&)>& agent) {
+void AddPatch(PointCloud* cloud, const Eigen::Vector3d& origin, const Eigen::Vector3d& u,
+              const Eigen::Vector3d& v, const cv::Vec3b& bgr,
+              const std::function<int(const Eigen::Vector3d&)>& agent) {
   const int nu = static_cast<int>(u.norm() / kSpacing), nv = static_cast<int>(v.norm() / kSpacing);
   for (int i = 0; i <= nu; ++i) {
     for (int j = 0; j <= nv; ++j) {
-      const Eigen::Vector3d p = origin + u * (static_cast<double>(i) / nu) + v * (static_cast<double>(j) / nv);
+      const Eigen::Vector3d p =
+          origin + u * (static_cast<double>(i) / nu) + v * (static_cast<double>(j) / nv);
       cloud->points.push_back(p.cast<float>());
       cloud->colors.push_back({bgr[2], bgr[1], bgr[0]});
-      cloud->labels.push_back(*EncodeLabel({AgentId(static_cast<std::uint16_t>(agent(p))), KeyframeId(7)}));
+      cloud->labels.push_back(
+          *EncodeLabel({AgentId(static_cast<std::uint16_t>(agent(p))), KeyframeId(7)}));
     }
   }
 }
@@ -50,9 +54,11 @@ Trajectory Cameras(double radius = 0.5) {
   Trajectory t;
   for (int i = 0; i < 24; ++i) {
     const double yaw = 2 * M_PI * i / 24;
-    const Eigen::Matrix3d level = (Eigen::Matrix3d() << 0, 0, 1, -1, 0, 0, 0, -1, 0).finished();  // looks along +x
-    const Eigen::Matrix3d R = Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ()).toRotationMatrix() * level *
-                              Eigen::AngleAxisd(20 * M_PI / 180, Eigen::Vector3d::UnitX()).toRotationMatrix();
+    const Eigen::Matrix3d level =
+        (Eigen::Matrix3d() << 0, 0, 1, -1, 0, 0, 0, -1, 0).finished();  // looks along +x
+    const Eigen::Matrix3d R =
+        Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitZ()).toRotationMatrix() * level *
+        Eigen::AngleAxisd(20 * M_PI / 180, Eigen::Vector3d::UnitX()).toRotationMatrix();
     Pose T = Pose::Identity();
     T.linear() = R;
     T.translation() = Eigen::Vector3d(radius * std::cos(yaw), radius * std::sin(yaw), 1.2);
@@ -70,7 +76,8 @@ MapPictureOptions Options() {
   return o;
 }
 
-double Fraction(const cv::Mat& image, const cv::Rect& area, const cv::Vec3b& colour, int tolerance = 12) {
+double Fraction(const cv::Mat& image, const cv::Rect& area, const cv::Vec3b& colour,
+                int tolerance = 12) {
   int n = 0;
   for (int v = area.y; v < area.y + area.height; ++v) {
     for (int u = area.x; u < area.x + area.width; ++u) {
@@ -118,17 +125,18 @@ TEST(MapPictureTest, TopViewShowsTheRoomFromAboveWithoutItsCeiling) {
   EXPECT_EQ(Fraction(*rgb, box, cv::Vec3b(250, 250, 250), 4), 0.0);
   EXPECT_GT(Fraction(*rgb, box, kGrey), 0.7);
   // The red wall is at one end of the long side, the blue at the other.
-  const cv::Rect left(box.x, box.y, 4, box.height), right(box.x + box.width - 4, box.y, 4, box.height);
+  const cv::Rect left(box.x, box.y, 4, box.height),
+      right(box.x + box.width - 4, box.y, 4, box.height);
   const bool red_right = Fraction(*rgb, right, kRed) > Fraction(*rgb, left, kRed);
   EXPECT_GT(Fraction(*rgb, red_right ? right : left, kRed), 0.8);
   EXPECT_GT(Fraction(*rgb, red_right ? left : right, kBlue), 0.8);
   // By agent: the floor half next to the red wall is agent two's.
   auto agents = RenderMapTop(room, frame, MapColouring::kAgent, Options());
   ASSERT_TRUE(agents.ok());
-  const cv::Rect near_red(red_right ? box.x + box.width * 3 / 4 : box.x + box.width / 8, box.y + box.height / 4,
-                          box.width / 8, box.height / 2);
-  const cv::Rect near_blue(red_right ? box.x + box.width / 8 : box.x + box.width * 3 / 4, box.y + box.height / 4,
-                           box.width / 8, box.height / 2);
+  const cv::Rect near_red(red_right ? box.x + box.width * 3 / 4 : box.x + box.width / 8,
+                          box.y + box.height / 4, box.width / 8, box.height / 2);
+  const cv::Rect near_blue(red_right ? box.x + box.width / 8 : box.x + box.width * 3 / 4,
+                           box.y + box.height / 4, box.width / 8, box.height / 2);
   EXPECT_GT(Fraction(*agents, near_red, cv::Vec3b(40, 140, 240)), 0.95);
   EXPECT_GT(Fraction(*agents, near_blue, cv::Vec3b(200, 80, 30)), 0.95);
   // Without labels there is no agent picture.

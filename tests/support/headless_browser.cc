@@ -65,7 +65,8 @@ StatusOr<std::string> DecodeBase64(const std::string& text) {
 
 StatusOr<std::unique_ptr<HeadlessBrowser>> HeadlessBrowser::Launch(const BrowserOptions& options) {
   if (!OnPath(options.executable)) {
-    return NotFound(options.executable + " is not installed (scripts/setup.sh installs Debian's chromium)");
+    return NotFound(options.executable +
+                    " is not installed (scripts/setup.sh installs Debian's chromium)");
   }
   ::signal(SIGPIPE, SIG_IGN);  // a browser that died is an error to report, not a reason to die
   std::unique_ptr<HeadlessBrowser> browser(new HeadlessBrowser());
@@ -74,17 +75,28 @@ StatusOr<std::unique_ptr<HeadlessBrowser>> HeadlessBrowser::Launch(const Browser
   if (::mkdtemp(profile) == nullptr) return IoError("cannot make a browser profile folder");
   browser->profile_dir_ = profile;
   int commands[2], answers[2];
-  if (::pipe2(commands, O_CLOEXEC) != 0 || ::pipe2(answers, O_CLOEXEC) != 0) return IoError("pipe failed");
+  if (::pipe2(commands, O_CLOEXEC) != 0 || ::pipe2(answers, O_CLOEXEC) != 0)
+    return IoError("pipe failed");
   // Every flag keeps the browser quiet and local: no first-run work, no background network
   // (it would hammer a closed network), no GPU; WebGL uses the software renderer.
-  std::vector<std::string> args = {options.executable, "--headless", "--no-sandbox", "--disable-gpu",
-                                   "--disable-quic", "--no-first-run", "--disable-background-networking",
-                                   "--disable-component-update", "--disable-sync", "--disable-dev-shm-usage",
-                                   "--enable-unsafe-swiftshader", "--hide-scrollbars", "--mute-audio",
-                                   "--user-data-dir=" + browser->profile_dir_, "--remote-debugging-pipe",
-                                   "--window-size=" + std::to_string(options.width) + "," +
-                                       std::to_string(options.height),
-                                   "about:blank"};
+  std::vector<std::string> args = {
+      options.executable,
+      "--headless",
+      "--no-sandbox",
+      "--disable-gpu",
+      "--disable-quic",
+      "--no-first-run",
+      "--disable-background-networking",
+      "--disable-component-update",
+      "--disable-sync",
+      "--disable-dev-shm-usage",
+      "--enable-unsafe-swiftshader",
+      "--hide-scrollbars",
+      "--mute-audio",
+      "--user-data-dir=" + browser->profile_dir_,
+      "--remote-debugging-pipe",
+      "--window-size=" + std::to_string(options.width) + "," + std::to_string(options.height),
+      "about:blank"};
   const pid_t pid = ::fork();
   if (pid < 0) return IoError("fork failed");
   if (pid == 0) {
@@ -93,8 +105,9 @@ StatusOr<std::unique_ptr<HeadlessBrowser>> HeadlessBrowser::Launch(const Browser
     const int in = ::fcntl(commands[0], F_DUPFD, 10), out = ::fcntl(answers[1], F_DUPFD, 10);
     ::dup2(in, 3);
     ::dup2(out, 4);
-    const int log = options.log_path.empty() ? ::open("/dev/null", O_WRONLY)
-                                             : ::open(options.log_path.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
+    const int log = options.log_path.empty()
+                        ? ::open("/dev/null", O_WRONLY)
+                        : ::open(options.log_path.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
     if (log >= 0) {
       ::dup2(log, 1);
       ::dup2(log, 2);
@@ -117,7 +130,8 @@ StatusOr<std::unique_ptr<HeadlessBrowser>> HeadlessBrowser::Launch(const Browser
 
 HeadlessBrowser::~HeadlessBrowser() {
   if (pid_ > 0) {
-    if (to_browser_ >= 0) Call("Browser.close", Json::MakeObject(), 10, false).status().IgnoreError();
+    if (to_browser_ >= 0)
+      Call("Browser.close", Json::MakeObject(), 10, false).status().IgnoreError();
     // The browser closes its end of the pipe when it exits; read until then (bounded).
     const double deadline = MonotonicSeconds() + 10;
     while (Read(deadline).ok()) {
@@ -163,7 +177,8 @@ void HeadlessBrowser::NoteEvent(const Json& message) {
   if (method->string() == "Runtime.consoleAPICalled" && params && params->Get("args")) {
     page_log_ += "console:";
     for (const Json& a : params->Get("args")->array()) {
-      page_log_ += " " + (a.Get("value") ? a.Get("value")->Dump(-1) : a.Dump(-1));
+      page_log_ += ' ';
+      page_log_ += a.Get("value") ? a.Get("value")->Dump(-1) : a.Dump(-1);
     }
     page_log_ += "\n";
   } else if (method->string() == "Runtime.exceptionThrown" && params) {
@@ -173,7 +188,8 @@ void HeadlessBrowser::NoteEvent(const Json& message) {
   if (events_.size() > 1000) events_.erase(events_.begin(), events_.begin() + 500);
 }
 
-StatusOr<Json> HeadlessBrowser::Call(const std::string& method, Json params, double timeout_s, bool page) {
+StatusOr<Json> HeadlessBrowser::Call(const std::string& method, Json params, double timeout_s,
+                                     bool page) {
   Json message;
   const int id = ++next_id_;
   message["id"] = id;
@@ -222,11 +238,13 @@ Status HeadlessBrowser::Open(const std::string& url) {
   Json navigate;
   navigate["url"] = url;
   CCMD_ASSIGN_OR_RETURN(const Json navigated, Call("Page.navigate", navigate));
-  if (const Json* error = navigated.Get("errorText")) return Unavailable("cannot open " + url + ": " + error->string());
+  if (const Json* error = navigated.Get("errorText"))
+    return Unavailable("cannot open " + url + ": " + error->string());
   const double deadline = MonotonicSeconds() + options_.timeout_s;
   while (true) {
     for (const Json& e : events_) {
-      if (e.Get("method") && e.Get("method")->string() == "Page.loadEventFired") return Status::Ok();
+      if (e.Get("method") && e.Get("method")->string() == "Page.loadEventFired")
+        return Status::Ok();
     }
     CCMD_ASSIGN_OR_RETURN(Json message, Read(deadline));
     NoteEvent(message);
@@ -241,7 +259,8 @@ StatusOr<Json> HeadlessBrowser::Evaluate(const std::string& expression, double t
   CCMD_ASSIGN_OR_RETURN(const Json result, Call("Runtime.evaluate", params, timeout_s));
   if (const Json* exception = result.Get("exceptionDetails")) {
     const Json* e = exception->Get("exception");
-    return Internal("page: " + (e && e->Get("description") ? e->Get("description")->string() : exception->Dump(-1)));
+    return Internal("page: " + (e && e->Get("description") ? e->Get("description")->string()
+                                                           : exception->Dump(-1)));
   }
   const Json* value = result.Get("result");
   return value && value->Get("value") ? *value->Get("value") : Json();

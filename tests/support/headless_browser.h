@@ -21,8 +21,8 @@ namespace ccmd::testing {
 struct BrowserOptions {
   std::string executable = "chromium";
   int width = 1280, height = 800;
-  double timeout_s = 60;       // per command unless told otherwise
-  std::string log_path;        // Chromium's stderr ("" : discarded)
+  double timeout_s = 60;  // per command unless told otherwise
+  std::string log_path;   // Chromium's stderr ("" : discarded)
 };
 
 class HeadlessBrowser {
@@ -46,7 +46,8 @@ class HeadlessBrowser {
  private:
   HeadlessBrowser() = default;
   // Sends a command and waits for its answer; events that arrive meanwhile are kept.
-  StatusOr<Json> Call(const std::string& method, Json params, double timeout_s = -1, bool page = true);
+  StatusOr<Json> Call(const std::string& method, Json params, double timeout_s = -1,
+                      bool page = true);
   // Reads one message (waiting at most until `deadline`, MonotonicSeconds()).
   StatusOr<Json> Read(double deadline);
   void NoteEvent(const Json& message);

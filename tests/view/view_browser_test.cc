@@ -71,16 +71,17 @@ TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
   // Before any agent: connected, and it says there is no map yet.
   const Json waiting = script("ccmdView.whenConnection('live').then(() => ccmdView.state())");
   ASSERT_TRUE(waiting.Get("status"));
-  EXPECT_NE(waiting.Get("status")->string().find("No map yet"), std::string::npos) << waiting.Dump();
+  EXPECT_NE(waiting.Get("status")->string().find("No map yet"), std::string::npos)
+      << waiting.Dump();
 
   std::vector<Subprocess> agents;
   for (int i = 1; i <= 2; ++i) {
-    auto agent = Subprocess::Start({testing::ProgramPath("ccmd_agent"), "--source", "tum:" + dir.File("seq"),
-                                    "--segment", std::to_string(i) + "/2", "--server",
-                                    "127.0.0.1:" + std::to_string(server->port), "--name", "agent" + std::to_string(i),
-                                    "--rgbd-every-keyframe"},  // more clouds to check
-                                   dir.File("agent" + std::to_string(i) + ".out"),
-                                   dir.File("agent" + std::to_string(i) + ".log"));
+    auto agent = Subprocess::Start(
+        {testing::ProgramPath("ccmd_agent"), "--source", "tum:" + dir.File("seq"), "--segment",
+         std::to_string(i) + "/2", "--server", "127.0.0.1:" + std::to_string(server->port),
+         "--name", "agent" + std::to_string(i), "--rgbd-every-keyframe"},  // more clouds to check
+        dir.File("agent" + std::to_string(i) + ".out"),
+        dir.File("agent" + std::to_string(i) + ".log"));
     ASSERT_TRUE(agent.ok());
     agents.push_back(std::move(agent).value());
   }
@@ -94,7 +95,8 @@ TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
   while (true) {
     state = Get(view, "/api/state");
     const long seq = static_cast<long>(state.Get("seq")->number());
-    shown = script("ccmdView.whenSettled(" + std::to_string(seq) + ").then(() => ccmdView.state())", 240);
+    shown = script("ccmdView.whenSettled(" + std::to_string(seq) + ").then(() => ccmdView.state())",
+                   240);
     if (static_cast<long>(Get(view, "/api/state").Get("seq")->number()) == seq &&
         static_cast<long>(shown.Get("seq")->number()) == seq) {
       break;
@@ -113,7 +115,8 @@ TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
     ASSERT_EQ(on_page.count(Key(kf)), 1u) << Key(kf);
     const Json& p = *on_page[Key(kf)];
     EXPECT_EQ(p.Get("m")->number(), kf.Get("m")->number()) << Key(kf);
-    for (int i = 0; i < 12; ++i) EXPECT_NEAR(p.Get("T")->at(i).number(), kf.Get("T")->at(i).number(), 1e-9);
+    for (int i = 0; i < 12; ++i)
+      EXPECT_NEAR(p.Get("T")->at(i).number(), kf.Get("T")->at(i).number(), 1e-9);
     if (kf.Get("cloud")->boolean()) {
       ++clouds;
       EXPECT_TRUE(p.Get("drawn")->boolean()) << Key(kf);
@@ -125,7 +128,8 @@ TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
 
   // Keyframes that moved after they were drawn first are drawn where the server says now:
   // their points go through the pose the page holds for them on the GPU.
-  ASSERT_FALSE(moved.empty()) << "no keyframe with a cloud moved: nothing shows that updates reach the page";
+  ASSERT_FALSE(moved.empty())
+      << "no keyframe with a cloud moved: nothing shows that updates reach the page";
   for (std::size_t i = 0; i < moved.size() && i < 8; ++i) {
     const Json& kf = *moved[i];
     httplib::Client client("127.0.0.1", view);
@@ -137,10 +141,12 @@ TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
     for (int j = 0; j < 12; ++j) T(j / 4, j % 4) = kf.Get("T")->at(j).number();
     for (std::size_t j : {std::size_t{0}, cloud->front().points_mm.size() - 1}) {
       const auto& mm = cloud->front().points_mm[j];
-      const Eigen::Vector3d expected = T * Eigen::Vector4d(mm[0] * 1e-3, mm[1] * 1e-3, mm[2] * 1e-3, 1);
-      const Json drawn = script("ccmdView.worldPoint(" + std::to_string(static_cast<int>(kf.Get("a")->number())) +
-                                ", " + std::to_string(static_cast<long>(kf.Get("k")->number())) + ", " +
-                                std::to_string(j) + ")");
+      const Eigen::Vector3d expected =
+          T * Eigen::Vector4d(mm[0] * 1e-3, mm[1] * 1e-3, mm[2] * 1e-3, 1);
+      const Json drawn =
+          script("ccmdView.worldPoint(" + std::to_string(static_cast<int>(kf.Get("a")->number())) +
+                 ", " + std::to_string(static_cast<long>(kf.Get("k")->number())) + ", " +
+                 std::to_string(j) + ")");
       ASSERT_EQ(drawn.size(), 3u) << Key(kf);
       for (int a = 0; a < 3; ++a) EXPECT_NEAR(drawn.at(a).number(), expected(a), 1e-3) << Key(kf);
     }
@@ -150,7 +156,8 @@ TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
   const Json summary = Get(view, "/api/summary");
   EXPECT_EQ(summary.Get("keyframes")->number(), static_cast<double>(on_page.size()));
   std::map<std::string, double> counts;
-  for (const Json& a : summary.Get("agents")->array()) counts[a.Get("name")->string()] = a.Get("keyframes")->number();
+  for (const Json& a : summary.Get("agents")->array())
+    counts[a.Get("name")->string()] = a.Get("keyframes")->number();
   ASSERT_EQ(counts.size(), 2u);
   Json panel_state = shown;
   while (true) {
@@ -160,15 +167,18 @@ TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
     }
     if (panel == counts) break;
     ASSERT_LT(MonotonicSeconds(), deadline) << "the panel never showed the server's counts";
-    panel_state = script("ccmdView.whenStats(" + std::to_string(static_cast<long>(panel_state.Get("statsVersion")->number())) +
-                         ").then(() => ccmdView.state())");
+    panel_state =
+        script("ccmdView.whenStats(" +
+               std::to_string(static_cast<long>(panel_state.Get("statsVersion")->number())) +
+               ").then(() => ccmdView.state())");
   }
 
   // A picture of it: the 3D view (left of the panel) is not empty.
   script("ccmdView.whenRested()");
   auto png = page.Screenshot();
   ASSERT_TRUE(png.ok());
-  const cv::Mat image = cv::imdecode(std::vector<uchar>(png->begin(), png->end()), cv::IMREAD_COLOR);
+  const cv::Mat image =
+      cv::imdecode(std::vector<uchar>(png->begin(), png->end()), cv::IMREAD_COLOR);
   ASSERT_EQ(image.cols, browser_options.width);
   int drawn_pixels = 0;
   for (int v = 0; v < image.rows; ++v) {
@@ -191,7 +201,8 @@ TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
     EXPECT_EQ(static_cast<double>(trajectory->size()), n) << name;
   }
   const Json gone = script("ccmdView.whenConnection('gone').then(() => ccmdView.state())");
-  EXPECT_NE(gone.Get("status")->string().find("Server gone"), std::string::npos) << gone.Get("status")->string();
+  EXPECT_NE(gone.Get("status")->string().find("Server gone"), std::string::npos)
+      << gone.Get("status")->string();
   EXPECT_EQ(gone.Get("keyframes")->size(), on_page.size());  // the last map stays on screen
 }
 

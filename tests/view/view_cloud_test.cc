@@ -58,14 +58,16 @@ TEST(ViewCloudTest, OnePointPerVoxelInMillimetresWithItsColour) {
     const auto it = by_mm.find({p[0], p[1], p[2]});
     ASSERT_NE(it, by_mm.end()) << "a point that is not in the cloud";
     EXPECT_EQ(it->second, c.colors[i]);
-    seen.insert({static_cast<long>(std::floor(p[0] / 20.0)), static_cast<long>(std::floor(p[1] / 20.0)),
+    seen.insert({static_cast<long>(std::floor(p[0] / 20.0)),
+                 static_cast<long>(std::floor(p[1] / 20.0)),
                  static_cast<long>(std::floor(p[2] / 20.0))});
   }
   EXPECT_EQ(seen.size(), voxels.size());  // one per voxel
   // Shuffled, not in raster order: the first few points are spread over the plane.
   int increasing = 0;
-  for (int i = 1; i < 50; ++i) increasing += c.points_mm[i][0] * 1000 + c.points_mm[i][1] >
-                                              c.points_mm[i - 1][0] * 1000 + c.points_mm[i - 1][1];
+  for (int i = 1; i < 50; ++i)
+    increasing += c.points_mm[i][0] * 1000 + c.points_mm[i][1] >
+                  c.points_mm[i - 1][0] * 1000 + c.points_mm[i - 1][1];
   EXPECT_GT(increasing, 10);
   EXPECT_LT(increasing, 40);
   // The same keyframe always gets the same order; another keyframe another one.

@@ -12,7 +12,8 @@ namespace ccmd {
 namespace {
 
 GlobalKeyframeId Id(int agent, int keyframe) {
-  return {AgentId(static_cast<std::uint16_t>(agent)), KeyframeId(static_cast<std::uint32_t>(keyframe))};
+  return {AgentId(static_cast<std::uint16_t>(agent)),
+          KeyframeId(static_cast<std::uint32_t>(keyframe))};
 }
 
 Pose Moved(double x, double yaw) {
@@ -49,7 +50,8 @@ TEST(ViewModelTest, TheStateFollowsKeyframesPoseUpdatesAndAFusion) {
   fusion.fusion = true;
   fusion.map = MapId(1000);
   model.OnLoop(fusion);
-  model.OnPoses(PoseSource::kFusion, MapId(1000), {{Id(2, 0), Moved(7, 0.2)}, {Id(2, 1), Moved(8, 0.3)}}, 3.0);
+  model.OnPoses(PoseSource::kFusion, MapId(1000),
+                {{Id(2, 0), Moved(7, 0.2)}, {Id(2, 1), Moved(8, 0.3)}}, 3.0);
   model.OnDenseKeyframe(Id(1, 0));
 
   const Json state = model.StateJson();
@@ -79,8 +81,8 @@ TEST(ViewModelTest, TheStateFollowsKeyframesPoseUpdatesAndAFusion) {
     ASSERT_TRUE(e.ok());
     types.push_back(e->Get("type")->string());
   }
-  EXPECT_EQ(types, (std::vector<std::string>{"agent", "agent", "kf", "kf", "kf", "kf", "kf", "poses", "loop", "poses",
-                                             "cloud"}));
+  EXPECT_EQ(types, (std::vector<std::string>{"agent", "agent", "kf", "kf", "kf", "kf", "kf",
+                                             "poses", "loop", "poses", "cloud"}));
   auto loop = Json::Parse(batch.events[8].second);
   ASSERT_TRUE(loop.ok());
   ASSERT_EQ(loop->Get("from")->size(), 2u);  // the two maps that became map 1000
@@ -105,7 +107,8 @@ TEST(ViewModelTest, TheLogIsBoundedAndABrowserTooFarBehindReloads) {
   for (int k = 0; k < 40; ++k) model.OnKeyframe(Id(1, k), MapId(1), Pose::Identity(), 1.0, true);
   EXPECT_EQ(model.last_seq(), 40u);
   EXPECT_EQ(model.WaitEvents(5, 0, 1.0).kind, EventBatch::Kind::kReset);
-  EXPECT_EQ(model.WaitEvents(41, 0, 1.0).kind, EventBatch::Kind::kReset);  // a number from another run
+  EXPECT_EQ(model.WaitEvents(41, 0, 1.0).kind,
+            EventBatch::Kind::kReset);  // a number from another run
   const EventBatch recent = model.WaitEvents(37, 0, 1.0);
   ASSERT_EQ(recent.kind, EventBatch::Kind::kEvents);
   ASSERT_EQ(recent.events.size(), 3u);

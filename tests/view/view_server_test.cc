@@ -21,13 +21,15 @@ namespace ccmd {
 namespace {
 
 GlobalKeyframeId Id(int agent, int keyframe) {
-  return {AgentId(static_cast<std::uint16_t>(agent)), KeyframeId(static_cast<std::uint32_t>(keyframe))};
+  return {AgentId(static_cast<std::uint16_t>(agent)),
+          KeyframeId(static_cast<std::uint32_t>(keyframe))};
 }
 
 Pose PoseOf(int agent, int keyframe) {
   Pose T = Pose::Identity();
-  T.linear() = Eigen::AngleAxisd(0.1 * keyframe + 0.5 * agent, Eigen::Vector3d(0.2, 1, 0.1).normalized())
-                   .toRotationMatrix();
+  T.linear() =
+      Eigen::AngleAxisd(0.1 * keyframe + 0.5 * agent, Eigen::Vector3d(0.2, 1, 0.1).normalized())
+          .toRotationMatrix();
   T.translation() = Eigen::Vector3d(0.3 * keyframe, -0.1 * agent, 0.05 * keyframe);
   return T;
 }
@@ -51,7 +53,8 @@ const std::vector<std::pair<int, int>> kKeyframes = {{1, 0}, {1, 1}, {1, 2}, {2,
 class ViewServerTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    for (const char* name : {"index.html", "view.js", "view.css", "three.min.js", "OrbitControls.js"}) {
+    for (const char* name :
+         {"index.html", "view.js", "view.css", "three.min.js", "OrbitControls.js"}) {
       ASSERT_TRUE(WriteFileAtomic(web_.File(name), std::string("content of ") + name).ok());
     }
     auto dense = DenseMap::Create();
@@ -89,13 +92,15 @@ class ViewServerTest : public ::testing::Test {
     return s;
   }
 
-  std::unique_ptr<ViewServer> Start(const std::string& listen = "127.0.0.1:0", const std::string& token = "") {
+  std::unique_ptr<ViewServer> Start(const std::string& listen = "127.0.0.1:0",
+                                    const std::string& token = "") {
     ViewServerOptions options;
     options.listen = listen;
     options.token = token;
     options.web_dir = web_.path();
     options.max_event_streams = max_streams_;
-    auto server = ViewServer::Start(options, model_.get(), dense_.get(), [this] { return Stats(); });
+    auto server =
+        ViewServer::Start(options, model_.get(), dense_.get(), [this] { return Stats(); });
     EXPECT_TRUE(server.ok()) << server.status().ToString();
     return server.ok() ? std::move(server).value() : nullptr;
   }
@@ -126,12 +131,14 @@ TEST_F(ViewServerTest, StateSummaryAndCloudsAreExactlyTheMapItWasFed) {
   ASSERT_EQ(state.Get("keyframes")->size(), kKeyframes.size());
   std::set<std::pair<int, int>> ids;
   for (const Json& kf : state.Get("keyframes")->array()) {
-    const int a = static_cast<int>(kf.Get("a")->number()), k = static_cast<int>(kf.Get("k")->number());
+    const int a = static_cast<int>(kf.Get("a")->number()),
+              k = static_cast<int>(kf.Get("k")->number());
     ids.insert({a, k});
     EXPECT_TRUE(kf.Get("cloud")->boolean());
     EXPECT_EQ(kf.Get("m")->number(), 1);
     for (int r = 0; r < 3; ++r) {
-      for (int c = 0; c < 4; ++c) EXPECT_NEAR(kf.Get("T")->at(4 * r + c).number(), PoseOf(a, k).matrix()(r, c), 1e-9);
+      for (int c = 0; c < 4; ++c)
+        EXPECT_NEAR(kf.Get("T")->at(4 * r + c).number(), PoseOf(a, k).matrix()(r, c), 1e-9);
     }
   }
   const std::set<std::pair<int, int>> fed(kKeyframes.begin(), kKeyframes.end());
@@ -180,7 +187,8 @@ TEST_F(ViewServerTest, StateSummaryAndCloudsAreExactlyTheMapItWasFed) {
   EXPECT_FALSE(clouds->back().found);
 
   // Bad requests get a clear refusal.
-  for (const char* bad : {"/api/clouds", "/api/clouds?ids=1-0", "/api/clouds?ids=1:x", "/api/events?after=-3"}) {
+  for (const char* bad :
+       {"/api/clouds", "/api/clouds?ids=1-0", "/api/clouds?ids=1:x", "/api/events?after=-3"}) {
     auto b = client.Get(bad);
     ASSERT_TRUE(b);
     EXPECT_EQ(b->status, 400) << bad;
@@ -212,7 +220,8 @@ TEST_F(ViewServerTest, APoseUpdateReachesAnOpenEventStream) {
   ASSERT_TRUE(server);
   const std::uint64_t seq = model_->last_seq();
   auto stream = std::async(std::launch::async, [&] {
-    return ReadStream(server->port(), "/api/events?after=" + std::to_string(seq), "\"type\":\"poses\"");
+    return ReadStream(server->port(), "/api/events?after=" + std::to_string(seq),
+                      "\"type\":\"poses\"");
   });
   Pose moved = PoseOf(1, 1);
   moved.translation() += Eigen::Vector3d(0.5, -0.25, 0.125);
@@ -228,7 +237,8 @@ TEST_F(ViewServerTest, APoseUpdateReachesAnOpenEventStream) {
   EXPECT_EQ(kf.at(0).number(), 1);
   EXPECT_EQ(kf.at(1).number(), 1);
   for (int r = 0; r < 3; ++r) {
-    for (int c = 0; c < 4; ++c) EXPECT_NEAR(kf.at(2 + 4 * r + c).number(), moved.matrix()(r, c), 1e-9);
+    for (int c = 0; c < 4; ++c)
+      EXPECT_NEAR(kf.at(2 + 4 * r + c).number(), moved.matrix()(r, c), 1e-9);
   }
   // A browser that reconnects names the last event it saw (Last-Event-ID) and gets the rest.
   const std::string resumed = ReadStream(server->port(), "/api/events", "\"type\":\"poses\"",
@@ -317,7 +327,8 @@ TEST_F(ViewServerTest, RefusesWritesForeignHostsAndMissingScripts) {
   options.web_dir = web_.File("nowhere");
   auto missing = ViewServer::Start(options, model_.get(), dense_.get(), [this] { return Stats(); });
   ASSERT_FALSE(missing.ok());
-  EXPECT_NE(missing.status().message().find("libjs-three"), std::string::npos) << missing.status().ToString();
+  EXPECT_NE(missing.status().message().find("libjs-three"), std::string::npos)
+      << missing.status().ToString();
   options.web_dir = web_.path();
   options.token = "no spaces please";
   EXPECT_FALSE(options.Validate().ok());
