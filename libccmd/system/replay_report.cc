@@ -10,6 +10,7 @@
 #include <sstream>
 
 #include "libccmd/dense/dense_map.h"
+#include "libccmd/eval/map_picture.h"
 #include "libccmd/eval/plot.h"
 #include "libccmd/eval/reconstruction_error.h"
 #include "libccmd/eval/trajectory_error.h"
@@ -200,6 +201,24 @@ std::string JoinNames(const std::vector<std::string>& names) {
   std::string out;
   for (const std::string& n : names) out += (out.empty() ? "" : ", ") + n;
   return out.empty() ? "none" : out;
+}
+
+// plots/map_top.png and plots/map_view.png, drawn from the server's map.ply (in its own world
+// frame, up from its keyframes); agents coloured as in the other plots. False without a map.
+bool WriteMapPlots(const std::string& server_dir, const std::string& plots_dir, const Json& server_stats,
+                   int agents) {
+  auto map = ReadPly(JoinPath(server_dir, "map.ply"));
+  if (!map.ok() || map->size() == 0) return false;
+  auto cameras = ReadTumTrajectory(JoinPath(server_dir, "trajectory_fused.txt"));
+  MapPictureOptions options;
+  const Json* ids = server_stats.Get("agent_ids");
+  for (int i = 1; i <= agents; ++i) {
+    const std::string name = "agent" + std::to_string(i);
+    if (ids && ids->Get(name)) options.agents[static_cast<int>(ids->Get(name)->number())] = {name, SeriesColor(i - 1)};
+  }
+  const Status s = WriteMapPictures(*map, cameras.ok() ? *cameras : Trajectory{}, options, plots_dir);
+  if (!s.ok()) CCMD_LOG(WARNING) << "map pictures: " << s.ToString();
+  return s.ok();
 }
 
 }  // namespace
@@ -412,6 +431,7 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   }
 
   // Plots.
+  const bool map_plots = WriteMapPlots(server_dir, plots_dir, server_stats, info.agents);
   if (!gt.empty()) {
     const auto P = ViewPlane(gt);
     std::vector<PlotSeries> series = {Projected(gt, P, "ground truth", cv::Scalar(160, 160, 160), 4)};
@@ -533,6 +553,7 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   } else {
     md << "No dense map or no reference to compare with.\n";
   }
+  if (map_plots) md << "\n![dense map, top view](plots/map_top.png)\n\n![dense map, perspective](plots/map_view.png)\n";
   md << "\n## Bandwidth\n\n| agent | ATPS (kB/s) | AKFS (kB) | AKFR (Hz) | keyframes with RGB-D | bytes |\n|---|---|---|---|---|---|\n";
   for (const Json& a : agents.array()) {
     md << "| " << a.Get("name")->string() << " | " << Fmt("%.1f", Num(&a, "atps_kBps")) << " | " << Fmt("%.1f", Num(&a, "akfs_kB"))

@@ -37,7 +37,8 @@ TEST(ReplayCliTest, TwoAgentsFuseAndTheReportMatchesTheFiles) {
     EXPECT_GT(a.Get("keyframes")->number(), 5);
   }
   for (const char* file : {"run/report.md", "run/map.ply", "run/trajectory_fused.txt",
-                           "run/plots/trajectories.png", "run/plots/traffic.png", "run/plots/bytes_per_kind.png"}) {
+                           "run/plots/trajectories.png", "run/plots/traffic.png", "run/plots/bytes_per_kind.png",
+                           "run/plots/map_top.png", "run/plots/map_view.png"}) {
     EXPECT_TRUE(FileExists(dir.File(file))) << file;
   }
   // Independent check: the fused ATE from the written trajectory against the ground truth.
