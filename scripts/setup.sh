@@ -34,6 +34,9 @@ PACKAGES=(
   clang libclang-rt-14-dev
   # shaped evaluation links (ccmd_replay --link): ip netns, veth, tc tbf
   iproute2
+  # the server's live map view: HTTP server, three.js served to the browser, and the headless
+  # browser its test and benchmark drive
+  libcpp-httplib-dev libjs-three chromium
 )
 
 missing=()
