@@ -73,12 +73,18 @@ TEST(BudgetCliTest, AgentUnderABudgetStaysWithinItAndSendsEveryKeyframe) {
   EXPECT_EQ(budget->Get("budget_kBps")->number(), 30);
 }
 
-TEST(BudgetCliTest, RefusesABudgetWithoutAServerAndABadLink) {
+TEST(BudgetCliTest, RefusesABudgetWithoutAServerABadLinkAndAViewOverALink) {
   std::string out;
   EXPECT_NE(RunCommand(ProgramPath("ccmd_agent") + " --source synth:frames=5 --offline --bandwidth-budget 50", &out), 0);
   EXPECT_NE(out.find("--bandwidth-budget"), std::string::npos) << out;
   EXPECT_NE(RunCommand(ProgramPath("ccmd_replay") + " --dataset /nonexistent --out /tmp/x --link rate=fast", &out), 0);
   EXPECT_NE(out.find("rate"), std::string::npos) << out;
+  // The live view would serve inside the server's namespace, out of every browser's reach.
+  EXPECT_NE(RunCommand(ProgramPath("ccmd_replay") +
+                           " --dataset /nonexistent --out /tmp/x --link rate=1mbit --view",
+                       &out),
+            0);
+  EXPECT_NE(out.find("its own network namespace"), std::string::npos) << out;
 }
 
 TEST(BudgetCliTest, ReplayOverAShapedLinkDeliversEveryKeyframeAndRemovesTheLink) {
