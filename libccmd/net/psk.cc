@@ -97,16 +97,4 @@ Mac AgentProof(std::string_view key, const Nonce& server_nonce, const Nonce& age
   return HmacSha256(AsBytes(key), w.bytes());
 }
 
-Mac ServerProof(std::string_view key, const Nonce& agent_nonce, const Nonce& server_nonce,
-                std::uint16_t agent_id, std::uint64_t last_stored_seq) {
-  ByteWriter w;
-  static constexpr std::string_view kLabel = "CCMD server proof v1";
-  w.PutBytes(kLabel.data(), kLabel.size());
-  w.PutBytes(agent_nonce.data(), agent_nonce.size());
-  w.PutBytes(server_nonce.data(), server_nonce.size());
-  w.PutU16(agent_id);
-  w.PutU64(last_stored_seq);
-  return HmacSha256(AsBytes(key), w.bytes());
-}
-
 }  // namespace ccmd

@@ -36,8 +36,6 @@ std::vector<std::vector<std::uint8_t>> FuzzSeeds() {
   welcome.last_stored_seq = 8;
   welcome.max_payload_bytes = 1 << 24;
   welcome.idle_timeout_ms = 30000;
-  welcome.server_proof.emplace();
-  welcome.server_proof->fill(0x5A);
   ChallengeMessage challenge;
   challenge.key_required = true;
   std::vector<std::uint8_t> journal =

@@ -42,7 +42,7 @@ TEST(FrameTest, HeaderLayoutByteByByte) {
   const Bytes frame = EncodeFrame(16, 0x0102, payload);
   ASSERT_EQ(frame.size(), 20u + 3u);
   EXPECT_EQ(Bytes(frame.begin(), frame.begin() + 4), Payload("CCMD"));
-  EXPECT_EQ(frame[4], 1);     // version
+  EXPECT_EQ(frame[4], 2);     // version
   EXPECT_EQ(frame[5], 16);    // type
   EXPECT_EQ(frame[6], 0x02);  // flags, little-endian
   EXPECT_EQ(frame[7], 0x01);
@@ -76,10 +76,17 @@ TEST(FrameTest, WrongMagicVersionAndTypeAreClearErrors) {
   EXPECT_NE(s1.status().message().find("magic"), std::string::npos);
 
   Bytes bad_version = frame;
-  bad_version[4] = 2;
+  bad_version[4] = 1;
   auto s2 = DecodeFrame(bad_version);
   EXPECT_EQ(s2.status().code(), StatusCode::kUnsupported);
-  EXPECT_NE(s2.status().message().find("version 2"), std::string::npos);
+  EXPECT_NE(s2.status().message().find("version 1"), std::string::npos);
+  // Readers of old journals accept version 1 explicitly.
+  ResealHeader(&bad_version);
+  EXPECT_TRUE(DecodeFrame(bad_version, {.oldest_version = 1}).ok());
+  bad_version[4] = 3;
+  ResealHeader(&bad_version);
+  EXPECT_EQ(DecodeFrame(bad_version, {.oldest_version = 1}).status().code(),
+            StatusCode::kUnsupported);
 
   Bytes type_zero = frame;
   type_zero[5] = 0;

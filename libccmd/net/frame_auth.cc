@@ -1,0 +1,183 @@
+#include "libccmd/net/frame_auth.h"
+
+#include <openssl/core_names.h>
+#include <openssl/crypto.h>
+#include <openssl/evp.h>
+#include <openssl/params.h>
+#include <time.h>
+
+#include <algorithm>
+
+#include "libccmd/net/session_messages.h"
+#include "libccmd/util/logging.h"
+
+namespace ccmd {
+namespace {
+
+constexpr std::string_view kAgentToServerLabel = "CCMD v2 agent to server";
+constexpr std::string_view kServerToAgentLabel = "CCMD v2 server to agent";
+constexpr std::string_view kIdentityPadLabel = "CCMD v2 identity pad";
+
+ByteSpan AsBytes(std::string_view s) {
+  return ByteSpan(reinterpret_cast<const std::uint8_t*>(s.data()), s.size());
+}
+
+// HKDF-Expand's info: label | u8 name length | name.
+std::vector<std::uint8_t> Info(std::string_view label, std::string_view name) {
+  ByteWriter info(label.size() + 1 + name.size());
+  info.PutBytes(label.data(), label.size());
+  info.PutU8(static_cast<std::uint8_t>(name.size()));
+  info.PutBytes(name.data(), name.size());
+  return info.Take();
+}
+
+double ThreadCpuSeconds() {
+  timespec t{};
+  ::clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
+  return static_cast<double>(t.tv_sec) + 1e-9 * static_cast<double>(t.tv_nsec);
+}
+
+void PutCounter(std::uint64_t counter, std::uint8_t out[8]) {
+  for (int i = 0; i < 8; ++i) out[i] = static_cast<std::uint8_t>(counter >> (8 * i));
+}
+
+}  // namespace
+
+std::vector<std::uint8_t> HkdfSha256(ByteSpan salt, ByteSpan ikm, ByteSpan info,
+                                     std::size_t length) {
+  CCMD_CHECK(length <= 255 * kMacSize) << "HKDF output too long";
+  const Mac prk = HmacSha256(salt, ikm);
+  std::vector<std::uint8_t> okm;
+  okm.reserve(length);
+  std::vector<std::uint8_t> block;  // T(i - 1) | info | i
+  Mac t{};
+  for (std::uint8_t i = 1; okm.size() < length; ++i) {
+    block.clear();
+    if (i > 1) block.insert(block.end(), t.begin(), t.end());
+    block.insert(block.end(), info.begin(), info.end());
+    block.push_back(i);
+    t = HmacSha256(prk, block);
+    const std::size_t take = std::min(t.size(), length - okm.size());
+    okm.insert(okm.end(), t.begin(), t.begin() + static_cast<std::ptrdiff_t>(take));
+  }
+  return okm;
+}
+
+SessionKeys DeriveSessionKeys(std::string_view psk, const Nonce& agent_nonce,
+                              const Nonce& server_nonce, std::string_view name) {
+  std::array<std::uint8_t, 2 * kNonceSize> salt;
+  std::copy(agent_nonce.begin(), agent_nonce.end(), salt.begin());
+  std::copy(server_nonce.begin(), server_nonce.end(), salt.begin() + kNonceSize);
+  auto derive = [&](std::string_view label, SessionKey* key) {
+    const std::vector<std::uint8_t> okm =
+        HkdfSha256(salt, AsBytes(psk), Info(label, name), key->size());
+    std::copy(okm.begin(), okm.end(), key->begin());
+  };
+  SessionKeys keys;
+  derive(kAgentToServerLabel, &keys.agent_to_server);
+  derive(kServerToAgentLabel, &keys.server_to_agent);
+  derive(kIdentityPadLabel, &keys.identity_pad);
+  return keys;
+}
+
+// HMAC-SHA256 keyed once per session; each frame reuses the keyed state (OpenSSL 3
+// EVP_MAC_init with a null key restarts from it), so a tag costs the hashing only.
+class SessionAuth::Mac {
+ public:
+  explicit Mac(const SessionKey& key) {
+    EVP_MAC* mac = EVP_MAC_fetch(nullptr, "HMAC", nullptr);
+    CCMD_CHECK(mac != nullptr) << "OpenSSL has no HMAC";
+    ctx_ = EVP_MAC_CTX_new(mac);
+    EVP_MAC_free(mac);  // the context keeps its own reference
+    CCMD_CHECK(ctx_ != nullptr) << "EVP_MAC_CTX_new failed";
+    char digest[] = "SHA256";
+    const OSSL_PARAM params[] = {
+        OSSL_PARAM_construct_utf8_string(OSSL_MAC_PARAM_DIGEST, digest, 0), OSSL_PARAM_END};
+    CCMD_CHECK(EVP_MAC_init(ctx_, key.data(), key.size(), params) == 1) << "HMAC init failed";
+  }
+  ~Mac() { EVP_MAC_CTX_free(ctx_); }
+  Mac(const Mac&) = delete;
+  Mac& operator=(const Mac&) = delete;
+
+  FrameTag Tag(std::uint64_t counter, ByteSpan header, ByteSpan payload) {
+    std::uint8_t counter_bytes[8];
+    PutCounter(counter, counter_bytes);
+    std::uint8_t full[EVP_MAX_MD_SIZE];
+    std::size_t length = 0;
+    const bool ok = EVP_MAC_init(ctx_, nullptr, 0, nullptr) == 1 &&
+                    EVP_MAC_update(ctx_, counter_bytes, sizeof(counter_bytes)) == 1 &&
+                    EVP_MAC_update(ctx_, header.data(), header.size()) == 1 &&
+                    (payload.empty() || EVP_MAC_update(ctx_, payload.data(), payload.size()) == 1) &&
+                    EVP_MAC_final(ctx_, full, &length, sizeof(full)) == 1;
+    CCMD_CHECK(ok && length == kMacSize) << "HMAC-SHA256 failed";
+    FrameTag tag;
+    std::copy_n(full, kFrameTagSize, tag.begin());
+    return tag;
+  }
+
+ private:
+  EVP_MAC_CTX* ctx_ = nullptr;
+};
+
+SessionAuth::SessionAuth() = default;
+
+SessionAuth::SessionAuth(FrameRole role, const SessionKeys& keys, bool keyed) : keyed_(keyed) {
+  if (!keyed_) return;
+  const bool agent = role == FrameRole::kAgent;
+  send_mac_ = std::make_unique<Mac>(agent ? keys.agent_to_server : keys.server_to_agent);
+  receive_mac_ = std::make_unique<Mac>(agent ? keys.server_to_agent : keys.agent_to_server);
+}
+
+SessionAuth::~SessionAuth() = default;
+SessionAuth::SessionAuth(SessionAuth&&) noexcept = default;
+SessionAuth& SessionAuth::operator=(SessionAuth&&) noexcept = default;
+
+FrameTag SessionAuth::Tag(const SessionKey& key, std::uint64_t counter, ByteSpan header,
+                          ByteSpan payload) {
+  return Mac(key).Tag(counter, header, payload);
+}
+
+void SessionAuth::SealLast(std::size_t frame_start, std::vector<std::uint8_t>* out) {
+  const double start = ThreadCpuSeconds();
+  const ByteSpan frame(out->data() + frame_start, out->size() - frame_start);
+  const FrameTag tag = send_mac_->Tag(sent_++, frame.first(kFrameHeaderSize),
+                                      frame.subspan(kFrameHeaderSize));
+  out->insert(out->end(), tag.begin(), tag.end());
+  cpu_seconds_ += ThreadCpuSeconds() - start;
+}
+
+void SessionAuth::AppendFrame(std::uint8_t type, ByteSpan payload,
+                              std::vector<std::uint8_t>* out) {
+  const std::size_t start = out->size();
+  ::ccmd::AppendFrame(type, keyed_ ? kFrameTagged : 0, payload, out);
+  if (keyed_) SealLast(start, out);
+}
+
+void SessionAuth::AppendDataFrame(std::uint8_t type, std::uint64_t seq, ByteSpan message,
+                                  std::vector<std::uint8_t>* out) {
+  const std::size_t start = out->size();
+  ::ccmd::AppendDataFrame(type, seq, message, out, keyed_ ? kFrameTagged : 0);
+  if (keyed_) SealLast(start, out);
+}
+
+Status SessionAuth::Verify(const Frame& frame) {
+  if (!keyed_) {
+    if (frame.tag) return Corrupt("a tagged frame in a session without a key");
+    return Status::Ok();
+  }
+  const std::string what = "frame " + std::to_string(received_) + " of this session (type " +
+                           std::to_string(frame.type) + ", " +
+                           std::to_string(frame.payload.size()) + " bytes)";
+  if (!frame.tag) return PermissionDenied(what + " carries no authentication tag");
+  const double start = ThreadCpuSeconds();
+  const FrameTag expected = receive_mac_->Tag(received_, frame.header, frame.payload);
+  cpu_seconds_ += ThreadCpuSeconds() - start;
+  if (!ConstantTimeEquals(expected, *frame.tag)) {
+    return PermissionDenied(what +
+                            " failed authentication: forged, altered, replayed or out of order");
+  }
+  ++received_;
+  return Status::Ok();
+}
+
+}  // namespace ccmd
