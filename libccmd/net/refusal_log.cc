@@ -26,7 +26,8 @@ void RefusalLog::Note(const std::string& source, const std::string& peer,
                       const std::string& reason, const std::string& text, double now) {
   Flush(now);
   std::string key = source;
-  if (!sources_.count(key) && sources_.size() >= options_.max_sources) key = kOtherSources;
+  const std::size_t tracked = sources_.size() - sources_.count(kOtherSources);
+  if (!sources_.count(key) && tracked >= options_.max_sources) key = kOtherSources;
   auto [it, added] = sources_.try_emplace(key);
   if (added) {
     it->second.interval_start = now;
