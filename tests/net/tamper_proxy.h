@@ -65,7 +65,7 @@ class TamperProxy {
   ~TamperProxy() { Stop(); }
 
   bool Start(std::uint16_t target_port) {
-    target_ = target_port;
+    target_.store(target_port);
     bool loopback;
     StatusOr<UniqueFd> fd = ListenTcp(HostPort{"127.0.0.1", 0}, 16, &loopback);
     if (!fd.ok()) return false;
@@ -75,6 +75,8 @@ class TamperProxy {
     return true;
   }
   std::uint16_t port() const { return port_; }
+  // A restarted server on a new port: later connections go there.
+  void SetTarget(std::uint16_t port) { target_.store(port); }
 
   void Stop() {
     stop_.store(true);
@@ -99,7 +101,7 @@ class TamperProxy {
       const int fd = ::accept4(listener_.get(), nullptr, nullptr, SOCK_NONBLOCK | SOCK_CLOEXEC);
       if (fd < 0) continue;
       UniqueFd agent(fd);
-      StatusOr<UniqueFd> server = ConnectTcp(HostPort{"127.0.0.1", target_}, 2.0);
+      StatusOr<UniqueFd> server = ConnectTcp(HostPort{"127.0.0.1", target_.load()}, 2.0);
       if (!server.ok()) continue;
       std::lock_guard<std::mutex> lock(mutex_);
       pumps_.emplace_back([this, a = std::move(agent), s = std::move(*server)]() mutable {
@@ -170,7 +172,7 @@ class TamperProxy {
   std::mutex mutex_;
   UniqueFd listener_;
   std::uint16_t port_ = 0;
-  std::uint16_t target_ = 0;
+  std::atomic<std::uint16_t> target_{0};
   WakeFd wake_;
   std::atomic<bool> stop_{false};
   std::thread acceptor_;
