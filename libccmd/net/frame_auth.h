@@ -4,12 +4,14 @@
 //
 // After the handshake both sides derive the session's keys from the pre-shared key and both
 // nonces (HKDF-SHA256, RFC 5869), one key per direction. Every frame after that carries a
-// 16-byte tag (flags bit 15, proto/frame.h): HMAC-SHA256 truncated to 16 bytes over
-//   u64 counter | the 20 header bytes | the payload
-// where `counter` numbers the tagged frames of that direction in this session (0, 1, 2, ...).
-// A forged, altered, replayed, reordered, dropped or injected frame fails the check at the
-// receiver, which closes the connection. Without a pre-shared key (loopback only) the
-// session is keyless: frames carry no tag and a tagged frame is an error.
+// 16-byte tag (flags bit 15, proto/frame.h): the GMAC (AES-256-GCM with no plaintext) of
+//   the 20 header bytes | the payload
+// under the 96-bit nonce u32 sender (0 agent, 1 server) | u64 counter, where `counter`
+// numbers the tagged frames of that direction in this session (0, 1, 2, ...). A forged,
+// altered, replayed, reordered, dropped or injected frame fails the check at the receiver,
+// which closes the connection. GMAC rather than HMAC-SHA256: a third of the cost per
+// keyframe on the server (docs/benchmarks/transport.md). Without a pre-shared key (loopback
+// only) the session is keyless: frames carry no tag and a tagged frame is an error.
 //
 //   SessionKeys keys = DeriveSessionKeys(psk, agent_nonce, server_nonce, name);
 //   SessionAuth auth(FrameRole::kServer, keys, /*keyed=*/!psk.empty());
@@ -82,9 +84,9 @@ class SessionAuth {
     return s;
   }
 
-  // The tag of one frame (exposed for tests and benchmarks).
-  static FrameTag Tag(const SessionKey& key, std::uint64_t counter, ByteSpan header,
-                      ByteSpan payload);
+  // The tag of one frame sent by `sender` (exposed for tests and benchmarks).
+  static FrameTag Tag(const SessionKey& key, FrameRole sender, std::uint64_t counter,
+                      ByteSpan header, ByteSpan payload);
 
  private:
   class Mac;

@@ -96,7 +96,7 @@ ServerIo::ServerIo(const ServerOptions& options, MessageConsumer* consumer, Traf
                                    .max_payload_bytes = options.max_payload_bytes},
                &delivery_, &wake_, stats),
       read_buffer_(kReadChunk),
-      refusals_(RefusalLogOptions{.interval_s = options.refusal_log_interval_s}) {}
+      refusals_(RefusalLogOptions{.interval_s = options.refusal_log_interval_s, .sink = {}}) {}
 
 Status ServerIo::Start(UniqueFd listener) {
   if (!wake_.valid()) return IoError("eventfd: " + std::string(std::strerror(errno)));

@@ -1,5 +1,8 @@
 #include "libccmd/net/frame_auth.h"
 
+#include <openssl/core_names.h>
+#include <openssl/evp.h>
+#include <openssl/params.h>
 #include <sys/stat.h>
 
 #include <fstream>
@@ -38,19 +41,41 @@ TEST(FrameAuthTest, HkdfMatchesRfc5869) {
                     "b61a96c8"));
 }
 
-TEST(FrameAuthTest, TagIsTruncatedHmacOverCounterHeaderAndPayload) {
+// The tag is AES-256-GCM's over no plaintext (GMAC): NIST's test case 13 (all-zero key and
+// nonce, nothing authenticated) is the tag of an empty frame 0 from the agent.
+TEST(FrameAuthTest, TagIsGmacUnderSenderAndCounter) {
+  const SessionKey zero{};
+  const FrameTag empty = SessionAuth::Tag(zero, FrameRole::kAgent, 0, {}, {});
+  EXPECT_EQ(Bytes(empty.begin(), empty.end()), FromHex("530f8afbc74536b9a963b4f1c4cb738b"));
+
+  // With data, against OpenSSL's separate GMAC implementation (EVP_MAC "GMAC").
   SessionKey key;
   for (std::size_t i = 0; i < key.size(); ++i) key[i] = static_cast<std::uint8_t>(i * 7);
   const Bytes frame = EncodeFrame(16, kFrameTagged, Bytes{1, 2, 3, 4, 5});
   const ByteSpan header(frame.data(), kFrameHeaderSize);
   const ByteSpan payload(frame.data() + kFrameHeaderSize, 5);
-  // The definition, spelled out with the plain HMAC of psk.h.
-  Bytes message = {0x2A, 0x01, 0, 0, 0, 0, 0, 0};  // counter 0x012A, little-endian
-  message.insert(message.end(), frame.begin(), frame.end());
-  const Mac full = HmacSha256(key, message);
-  const FrameTag tag = SessionAuth::Tag(key, 0x012A, header, payload);
-  EXPECT_TRUE(std::equal(tag.begin(), tag.end(), full.begin()));
-  EXPECT_NE(tag, SessionAuth::Tag(key, 0x012B, header, payload));
+  Bytes nonce = {1, 0, 0, 0, 0x2A, 0x01, 0, 0, 0, 0, 0, 0};  // server, counter 0x012A
+  EVP_MAC* mac = EVP_MAC_fetch(nullptr, "GMAC", nullptr);
+  ASSERT_NE(mac, nullptr);
+  EVP_MAC_CTX* ctx = EVP_MAC_CTX_new(mac);
+  char cipher[] = "AES-256-GCM";
+  const OSSL_PARAM params[] = {
+      OSSL_PARAM_construct_utf8_string(OSSL_MAC_PARAM_CIPHER, cipher, 0),
+      OSSL_PARAM_construct_octet_string(OSSL_MAC_PARAM_IV, nonce.data(), nonce.size()),
+      OSSL_PARAM_END};
+  std::uint8_t expected[16];
+  std::size_t length = 0;
+  ASSERT_EQ(EVP_MAC_init(ctx, key.data(), key.size(), params), 1);
+  ASSERT_EQ(EVP_MAC_update(ctx, frame.data(), frame.size()), 1);
+  ASSERT_EQ(EVP_MAC_final(ctx, expected, &length, sizeof(expected)), 1);
+  EVP_MAC_CTX_free(ctx);
+  EVP_MAC_free(mac);
+  ASSERT_EQ(length, 16u);
+  const FrameTag tag = SessionAuth::Tag(key, FrameRole::kServer, 0x012A, header, payload);
+  EXPECT_EQ(Bytes(tag.begin(), tag.end()), Bytes(expected, expected + 16));
+  // The sender and the counter are in the nonce.
+  EXPECT_NE(tag, SessionAuth::Tag(key, FrameRole::kAgent, 0x012A, header, payload));
+  EXPECT_NE(tag, SessionAuth::Tag(key, FrameRole::kServer, 0x012B, header, payload));
 }
 
 TEST(FrameAuthTest, KeysDependOnKeyNoncesNameAndDirection) {

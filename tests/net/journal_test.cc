@@ -171,7 +171,7 @@ TEST(JournalTest, ACompleteLastRecordFailingItsCrcIsDamageNotATornWrite) {
   Replayed r;
   StatusOr<JournalScan> scan = Replay(path, &r);
   ASSERT_EQ(scan.status().code(), StatusCode::kCorrupt);
-  const std::string& text = scan.status().message();
+  const std::string text = scan.status().message();
   // Nothing after it passes its checks, so the advice is a cut exactly there.
   EXPECT_NE(text.find("nothing after it passes"), std::string::npos) << text;
   EXPECT_NE(text.find("truncate -s " + std::to_string(offsets[2])), std::string::npos) << text;
@@ -188,7 +188,7 @@ TEST(JournalTest, DamageAdviceNeverCutsAwayIntactRecords) {
   Replayed r;
   StatusOr<JournalScan> scan = Replay(path, &r);
   ASSERT_EQ(scan.status().code(), StatusCode::kCorrupt);
-  const std::string& text = scan.status().message();
+  const std::string text = scan.status().message();
   EXPECT_NE(text.find("3 intact record(s) follow it (sequence numbers 3..5)"), std::string::npos)
       << text;
   EXPECT_EQ(text.find("truncate"), std::string::npos) << text;
