@@ -76,8 +76,8 @@ class SessionAuth {
 
   std::uint64_t frames_sent() const { return sent_; }
   std::uint64_t frames_verified() const { return received_; }
-  // Thread CPU time spent computing tags (sending and checking) since the last call, for
-  // the statistics.
+  // Time spent computing tags (sending and checking) since the last call, for the
+  // statistics (pure computation: measured with the cheap monotonic clock).
   double TakeCpuSeconds() {
     const double s = cpu_seconds_;
     cpu_seconds_ = 0;

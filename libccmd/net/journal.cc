@@ -143,7 +143,9 @@ struct IntactAfter {
 
 StatusOr<IntactAfter> FindIntactAfter(ScanSource* src, std::uint64_t pos) {
   IntactAfter found;
-  std::vector<std::uint8_t> chunk(1 << 20), payload;
+  std::vector<std::uint8_t> chunk(
+      static_cast<std::size_t>(std::min<std::uint64_t>(1 << 20, src->size() - pos))),
+      payload;
   std::uint64_t at = pos + 1;
   while (at + kFrameHeaderSize <= src->size()) {
     const std::size_t n =

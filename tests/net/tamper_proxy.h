@@ -3,8 +3,7 @@
 // A man in the middle for attack tests: forwards 127.0.0.1:port() to a target port frame by
 // frame and hands every frame to a hook, which decides what goes on (unchanged, altered,
 // dropped) and may inject frames in either direction. It knows the framing (PROTOCOL.md)
-// but no key: whatever it forges, it cannot tag correctly. Every thread is owned and joined
-// by Stop().
+// but no key: whatever it forges, it cannot tag correctly.
 
 #include <poll.h>
 #include <sys/socket.h>
@@ -12,12 +11,14 @@
 #include <atomic>
 #include <cstdint>
 #include <functional>
+#include <memory>
 #include <mutex>
 #include <optional>
 #include <thread>
 #include <vector>
 
 #include "libccmd/net/socket.h"
+#include "tests/net/loopback_proxy.h"
 #include "proto/crc32c.h"
 #include "proto/frame.h"
 
@@ -59,32 +60,15 @@ using TamperHook =
     std::function<void(bool from_agent, WireFrame frame, std::vector<WireFrame>* forward,
                        std::vector<WireFrame>* back)>;
 
-class TamperProxy {
+class TamperProxy : public LoopbackProxy {
  public:
   explicit TamperProxy(TamperHook hook) : hook_(std::move(hook)) {}
-  ~TamperProxy() { Stop(); }
+  ~TamperProxy() override { Stop(); }
 
-  bool Start(std::uint16_t target_port) {
-    target_.store(target_port);
-    bool loopback;
-    StatusOr<UniqueFd> fd = ListenTcp(HostPort{"127.0.0.1", 0}, 16, &loopback);
-    if (!fd.ok()) return false;
-    listener_ = std::move(*fd);
-    port_ = LocalPort(listener_.get()).value();
-    acceptor_ = std::thread([this] { AcceptLoop(); });
-    return true;
-  }
-  std::uint16_t port() const { return port_; }
-  // A restarted server on a new port: later connections go there.
-  void SetTarget(std::uint16_t port) { target_.store(port); }
-
-  void Stop() {
-    stop_.store(true);
-    wake_.Signal();
-    if (acceptor_.joinable()) acceptor_.join();
-    std::lock_guard<std::mutex> lock(mutex_);
-    for (std::thread& t : pumps_) t.join();
-    pumps_.clear();
+ protected:
+  std::function<void()> NewPump(UniqueFd agent, UniqueFd server) override {
+    auto pair = std::make_shared<std::pair<UniqueFd, UniqueFd>>(std::move(agent), std::move(server));
+    return [this, pair] { Pump(std::move(pair->first), std::move(pair->second)); };
   }
 
  private:
@@ -93,34 +77,17 @@ class TamperProxy {
     std::vector<std::uint8_t> in;
   };
 
-  void AcceptLoop() {
-    while (!stop_.load()) {
-      pollfd fds[2] = {{listener_.get(), POLLIN, 0}, {wake_.fd(), POLLIN, 0}};
-      ::poll(fds, 2, -1);
-      if (stop_.load()) return;
-      const int fd = ::accept4(listener_.get(), nullptr, nullptr, SOCK_NONBLOCK | SOCK_CLOEXEC);
-      if (fd < 0) continue;
-      UniqueFd agent(fd);
-      StatusOr<UniqueFd> server = ConnectTcp(HostPort{"127.0.0.1", target_.load()}, 2.0);
-      if (!server.ok()) continue;
-      std::lock_guard<std::mutex> lock(mutex_);
-      pumps_.emplace_back([this, a = std::move(agent), s = std::move(*server)]() mutable {
-        Pump(std::move(a), std::move(s));
-      });
-    }
-  }
-
   void Pump(UniqueFd agent_fd, UniqueFd server_fd) {
     Side sides[2];
     sides[0].fd = std::move(agent_fd);
     sides[1].fd = std::move(server_fd);
     std::vector<std::uint8_t> buffer(64 << 10);
-    while (!stop_.load()) {
+    while (!stopping()) {
       pollfd fds[3] = {{sides[0].fd.get(), POLLIN, 0},
                        {sides[1].fd.get(), POLLIN, 0},
-                       {wake_.fd(), POLLIN, 0}};
+                       {wake_fd(), POLLIN, 0}};
       ::poll(fds, 3, -1);
-      if (stop_.load()) return;
+      if (stopping()) return;
       for (int from = 0; from < 2; ++from) {
         if (!(fds[from].revents & (POLLIN | POLLHUP | POLLERR))) continue;
         StatusOr<std::size_t> n = ReadSome(sides[from].fd.get(), buffer.data(), buffer.size());
@@ -145,38 +112,16 @@ class TamperProxy {
       std::vector<WireFrame> forward, back;
       hook_(from_agent, std::move(f), &forward, &back);
       for (const WireFrame& w : forward) {
-        if (!WriteFully(to_fd, w.bytes)) return false;
+        if (!WriteFully(to_fd, w.bytes.data(), w.bytes.size())) return false;
       }
       for (const WireFrame& w : back) {
-        if (!WriteFully(back_fd, w.bytes)) return false;
+        if (!WriteFully(back_fd, w.bytes.data(), w.bytes.size())) return false;
       }
     }
     return true;
   }
 
-  bool WriteFully(int fd, const std::vector<std::uint8_t>& bytes) {
-    std::size_t done = 0;
-    while (done < bytes.size() && !stop_.load()) {
-      StatusOr<std::size_t> n = WriteSome(fd, bytes.data() + done, bytes.size() - done);
-      if (!n.ok()) return false;
-      done += *n;
-      if (done < bytes.size()) {
-        pollfd p{fd, POLLOUT, 0};
-        ::poll(&p, 1, 100);
-      }
-    }
-    return done == bytes.size();
-  }
-
   TamperHook hook_;
-  std::mutex mutex_;
-  UniqueFd listener_;
-  std::uint16_t port_ = 0;
-  std::atomic<std::uint16_t> target_{0};
-  WakeFd wake_;
-  std::atomic<bool> stop_{false};
-  std::thread acceptor_;
-  std::vector<std::thread> pumps_;
 };
 
 }  // namespace ccmd::nettest
