@@ -2,35 +2,12 @@
 
 #include <algorithm>
 
+#include "libccmd/net/session_camera.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/timer.h"
 
 namespace ccmd {
-
-PinholeCamera CameraFromSession(const SessionCamera& s) {
-  PinholeCamera c;
-  c.fx = s.fx;
-  c.fy = s.fy;
-  c.cx = s.cx;
-  c.cy = s.cy;
-  c.width = static_cast<int>(s.width);
-  c.height = static_cast<int>(s.height);
-  if (s.depth_scale > 0) c.depth_map_factor = s.depth_scale;
-  return c;
-}
-
-SessionCamera SessionFromCamera(const PinholeCamera& c) {
-  SessionCamera s;
-  s.fx = c.fx;
-  s.fy = c.fy;
-  s.cx = c.cx;
-  s.cy = c.cy;
-  s.width = static_cast<std::uint32_t>(c.width);
-  s.height = static_cast<std::uint32_t>(c.height);
-  s.depth_scale = c.depth_map_factor;
-  return s;
-}
 
 StatusOr<std::unique_ptr<ServerRuntime>> ServerRuntime::Create(const ServerRuntimeOptions& options) {
   if (options.output_dir.empty()) return InvalidArgument("the server needs an output folder");
@@ -109,7 +86,7 @@ Json ServerRuntime::StatsJson() {
   }
   j["agent_ids"] = agents;
   if (backend_ && backend_->PrimaryMap()) j["primary_map"] = static_cast<int>(backend_->PrimaryMap()->value());
-  j["malformed_messages"] = malformed_messages_;
+  j["malformed_messages"] = malformed_messages_.load();
   return j;
 }
 

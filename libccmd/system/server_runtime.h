@@ -4,6 +4,7 @@
 // to the back-end (libccmd/backend); results (dense map, trajectories, statistics) are written
 // to an output folder, periodically and at the end. ccmd_server is a thin shell around it.
 
+#include <atomic>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -60,13 +61,10 @@ class ServerRuntime : public MessageConsumer {
   std::unique_ptr<DenseSnapshotWriter> snapshots_;
   std::mutex names_mutex_;
   std::map<AgentId, std::string> names_;
-  std::uint64_t malformed_messages_ = 0;
+  // Counted on the delivery thread, read by StatsJson on the caller's thread.
+  std::atomic<std::uint64_t> malformed_messages_{0};
   double last_stats_ = -1e9;
   bool stopped_ = false;
 };
-
-// The camera an agent announced in its handshake.
-PinholeCamera CameraFromSession(const SessionCamera& camera);
-SessionCamera SessionFromCamera(const PinholeCamera& camera);
 
 }  // namespace ccmd
