@@ -16,6 +16,9 @@
 namespace ccmd {
 namespace {
 
+// Optional trailer of the info record: this byte, then the camera's 5 distortion coefficients.
+constexpr std::uint8_t kJournalCameraDistortion = 1;
+
 std::string Errno(const std::string& what) { return what + ": " + std::strerror(errno); }
 
 Status WriteAll(int fd, const std::uint8_t* data, std::size_t size, const std::string& path) {
@@ -225,7 +228,7 @@ class Scanner {
       }
       return Damaged("record payload CRC mismatch");
     }
-    CCMD_RETURN_IF_ERROR(Record(header->type));
+    CCMD_RETURN_IF_ERROR(Record(header->type, header->version));
     pos_ = end;
     return false;
   }
@@ -237,10 +240,10 @@ class Scanner {
     return std::min(recorded, options_.max_payload_bytes);
   }
 
-  Status Record(std::uint8_t type) {
+  Status Record(std::uint8_t type, std::uint8_t version) {
     if (!scan_.has_info) {
       if (type != kJournalInfoRecord) return Damaged("first record is not a journal info record").status();
-      StatusOr<JournalAgentInfo> info = ParseJournalInfo(payload_);
+      StatusOr<JournalAgentInfo> info = ParseJournalInfo(payload_, version);
       if (!info.ok()) return Damaged(info.status().message()).status();
       scan_.info = std::move(*info);
       scan_.has_info = true;
@@ -323,15 +326,14 @@ std::vector<std::uint8_t> SerializeJournalInfo(const JournalAgentInfo& info) {
   w.PutU16(info.id.value());
   w.PutU8(static_cast<std::uint8_t>(info.name.size()));
   w.PutBytes(info.name.data(), info.name.size());
-  w.PutF64(info.camera.fx);
-  w.PutF64(info.camera.fy);
-  w.PutF64(info.camera.cx);
-  w.PutF64(info.camera.cy);
-  w.PutU32(info.camera.width);
-  w.PutU32(info.camera.height);
-  w.PutF64(info.camera.depth_scale);
+  PutSessionCamera(info.camera, &w);
   w.PutU32(info.max_payload_bytes);
   w.PutBytes(info.verifier.data(), info.verifier.size());
+  // Distortion is appended only when there is some, as in version 1.
+  if (info.camera.HasDistortion()) {
+    w.PutU8(kJournalCameraDistortion);
+    PutDistortion(info.camera, &w);
+  }
   return w.Take();
 }
 
@@ -342,13 +344,12 @@ Status ReadLimitAndVerifier(ByteReader* r, std::uint32_t* limit, IdentityVerifie
   if (*limit < kFrameHeaderSize || *limit > kMaxJournalPayloadBytes) {
     return Corrupt("journal: payload limit of " + std::to_string(*limit) + " bytes");
   }
-  CCMD_RETURN_IF_ERROR(r->ReadBytes(verifier->size(), verifier->data()));
-  return r->ExpectEnd();
+  return r->ReadBytes(verifier->size(), verifier->data());
 }
 
 }  // namespace
 
-StatusOr<JournalAgentInfo> ParseJournalInfo(ByteSpan payload) {
+StatusOr<JournalAgentInfo> ParseJournalInfo(ByteSpan payload, std::uint8_t version) {
   ByteReader r(payload);
   JournalAgentInfo info;
   std::uint16_t id;
@@ -361,20 +362,24 @@ StatusOr<JournalAgentInfo> ParseJournalInfo(ByteSpan payload) {
   info.name.assign(name.begin(), name.end());
   Status name_ok = ValidateAgentName(info.name);
   if (!name_ok.ok()) return Corrupt("journal info: " + name_ok.message());
-  CCMD_RETURN_IF_ERROR(r.ReadF64(&info.camera.fx));
-  CCMD_RETURN_IF_ERROR(r.ReadF64(&info.camera.fy));
-  CCMD_RETURN_IF_ERROR(r.ReadF64(&info.camera.cx));
-  CCMD_RETURN_IF_ERROR(r.ReadF64(&info.camera.cy));
-  CCMD_RETURN_IF_ERROR(r.ReadU32(&info.camera.width));
-  CCMD_RETURN_IF_ERROR(r.ReadU32(&info.camera.height));
-  CCMD_RETURN_IF_ERROR(r.ReadF64(&info.camera.depth_scale));
+  CCMD_RETURN_IF_ERROR(ReadSessionCamera(&r, &info.camera));
+  if (version < 2) {
+    info.max_payload_bytes = 0;  // version 1 recorded neither limit nor verifier
+  } else {
+    CCMD_RETURN_IF_ERROR(ReadLimitAndVerifier(&r, &info.max_payload_bytes, &info.verifier));
+  }
+  if (r.remaining() > 0) {
+    std::uint8_t extension;
+    CCMD_RETURN_IF_ERROR(r.ReadU8(&extension));
+    if (extension != kJournalCameraDistortion) {
+      return Corrupt("journal info: unknown camera extension " + std::to_string(extension) +
+                     " (written by a newer server?)");
+    }
+    CCMD_RETURN_IF_ERROR(ReadDistortion(&r, &info.camera));
+  }
+  CCMD_RETURN_IF_ERROR(r.ExpectEnd());
   Status camera_ok = ValidateSessionCamera(info.camera);
   if (!camera_ok.ok()) return Corrupt("journal info: " + camera_ok.message());
-  if (r.remaining() == 0) {  // written by protocol version 1
-    info.max_payload_bytes = 0;
-    return info;
-  }
-  CCMD_RETURN_IF_ERROR(ReadLimitAndVerifier(&r, &info.max_payload_bytes, &info.verifier));
   return info;
 }
 
@@ -389,6 +394,7 @@ StatusOr<JournalUpdate> ParseJournalUpdate(ByteSpan payload) {
   ByteReader r(payload);
   JournalUpdate update;
   CCMD_RETURN_IF_ERROR(ReadLimitAndVerifier(&r, &update.max_payload_bytes, &update.verifier));
+  CCMD_RETURN_IF_ERROR(r.ExpectEnd());
   return update;
 }
 

@@ -56,9 +56,11 @@ struct JournalAgentInfo {
   IdentityVerifier verifier{};  // all zero: none recorded (protocol version 1)
 };
 
-// Version 2 layout; ParseJournalInfo also reads version 1 (no limit, no verifier).
+// Version 2 layout. `version` is the record's frame version: version 1 info records end
+// after the camera (and its distortion trailer), with no limit and no verifier.
 std::vector<std::uint8_t> SerializeJournalInfo(const JournalAgentInfo& info);
-StatusOr<JournalAgentInfo> ParseJournalInfo(ByteSpan payload);
+StatusOr<JournalAgentInfo> ParseJournalInfo(ByteSpan payload,
+                                            std::uint8_t version = kProtocolVersion);
 
 // An update record: the limit and verifier in force from there on (a zero verifier keeps
 // the previous one).

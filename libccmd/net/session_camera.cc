@@ -11,6 +11,7 @@ SessionCamera SessionFromCamera(const PinholeCamera& c) {
   s.width = static_cast<std::uint32_t>(c.width);
   s.height = static_cast<std::uint32_t>(c.height);
   s.depth_scale = c.depth_map_factor;
+  s.distortion = c.distortion;
   return s;
 }
 
@@ -23,6 +24,7 @@ PinholeCamera CameraFromSession(const SessionCamera& s) {
   c.width = static_cast<int>(s.width);
   c.height = static_cast<int>(s.height);
   if (s.depth_scale > 0) c.depth_map_factor = s.depth_scale;
+  c.distortion = s.distortion;
   return c;
 }
 

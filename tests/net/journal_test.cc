@@ -3,6 +3,8 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <algorithm>
+#include <cstring>
 #include <fstream>
 #include <string>
 #include <vector>
@@ -327,6 +329,67 @@ TEST(JournalTest, RollBackCutsUnsyncedRecords) {
   Replayed r;
   ASSERT_TRUE(Replay(path, &r).ok());
   EXPECT_EQ(r.records.size(), 1u);
+}
+
+// The info record's layout before distortion existed (u16 id, u8 name length, name, 4 x f64,
+// 2 x u32, f64), byte by byte: version 2 appends the limit and the verifier to it, and
+// version 1 journals written then still resume, with no distortion.
+TEST(JournalTest, InfoRecordWithoutDistortionExtendsTheOriginalLayout) {
+  JournalAgentInfo info{AgentId(4), "icl", nettest::TestCamera()};
+  info.camera.fy = -480.0;  // refused before; a valid camera now
+  Bytes old = {4, 0, 3, 'i', 'c', 'l'};
+  for (double v : {info.camera.fx, info.camera.fy, info.camera.cx, info.camera.cy}) {
+    std::uint64_t bits;
+    std::memcpy(&bits, &v, 8);
+    for (int i = 0; i < 8; ++i) old.push_back(static_cast<std::uint8_t>(bits >> (8 * i)));
+  }
+  for (std::uint32_t v : {info.camera.width, info.camera.height}) {
+    for (int i = 0; i < 4; ++i) old.push_back(static_cast<std::uint8_t>(v >> (8 * i)));
+  }
+  std::uint64_t bits;
+  std::memcpy(&bits, &info.camera.depth_scale, 8);
+  for (int i = 0; i < 8; ++i) old.push_back(static_cast<std::uint8_t>(bits >> (8 * i)));
+  const Bytes v2 = SerializeJournalInfo(info);
+  ASSERT_EQ(v2.size(), old.size() + 4 + kIdentitySize);
+  EXPECT_TRUE(std::equal(old.begin(), old.end(), v2.begin()));
+  StatusOr<JournalAgentInfo> parsed = ParseJournalInfo(old, 1);
+  ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+  EXPECT_EQ(parsed->camera, info.camera);
+  EXPECT_EQ(parsed->max_payload_bytes, 0u);
+  EXPECT_FALSE(ParseJournalInfo(old).ok());  // a version 2 record needs the limit
+}
+
+// A version 1 journal of a distorted camera (the trailer right after the camera) resumes.
+TEST(JournalTest, VersionOneInfoRecordWithDistortion) {
+  JournalAgentInfo info{AgentId(2), "fr1", nettest::TestCamera()};
+  info.camera.distortion = {0.262383, -0.953104, -0.005358, 0.002628, 1.163314};
+  Bytes v2 = SerializeJournalInfo(info);
+  // Version 1 had no limit and verifier between the camera and the trailer.
+  const std::size_t camera_end = 2 + 1 + info.name.size() + 48;
+  Bytes v1(v2.begin(), v2.begin() + camera_end);
+  v1.insert(v1.end(), v2.begin() + camera_end + 4 + kIdentitySize, v2.end());
+  StatusOr<JournalAgentInfo> parsed = ParseJournalInfo(v1, 1);
+  ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+  EXPECT_EQ(parsed->camera, info.camera);
+}
+
+TEST(JournalTest, InfoRecordCarriesDistortion) {
+  JournalAgentInfo info{AgentId(2), "fr1", nettest::TestCamera()};
+  info.camera.distortion = {0.262383, -0.953104, -0.005358, 0.002628, 1.163314};
+  Bytes bytes = SerializeJournalInfo(info);
+  JournalAgentInfo plain = info;
+  plain.camera.distortion = {0, 0, 0, 0, 0};
+  EXPECT_EQ(bytes.size(), SerializeJournalInfo(plain).size() + 1 + 40);
+  StatusOr<JournalAgentInfo> parsed = ParseJournalInfo(bytes);
+  ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+  EXPECT_EQ(parsed->camera, info.camera);
+  // What a later format might add is refused clearly, not misread.
+  bytes[SerializeJournalInfo(plain).size()] = 9;
+  const auto unknown = ParseJournalInfo(bytes);
+  ASSERT_FALSE(unknown.ok());
+  EXPECT_NE(unknown.status().message().find("camera extension"), std::string::npos);
+  bytes.resize(SerializeJournalInfo(plain).size() + 1 + 20);  // cut inside the coefficients
+  EXPECT_FALSE(ParseJournalInfo(bytes).ok());
 }
 
 }  // namespace
