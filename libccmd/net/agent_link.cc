@@ -359,8 +359,10 @@ Status AgentLink::Handshake(Wire* wire) {
     hello.next_seq = next_local_ + offset_;
   }
   const int fd = wire->fd;
+  // The proof and the session keys bind these exact bytes: a hello altered on the way fails.
+  const std::vector<std::uint8_t> hello_payload = SerializeHello(hello);
   CCMD_RETURN_IF_ERROR(
-      WriteBlocking(fd, EncodeSessionFrame(SessionType::kHello, SerializeHello(hello)), deadline));
+      WriteBlocking(fd, EncodeSessionFrame(SessionType::kHello, hello_payload), deadline));
   auto refuse = [&](const std::string& text, ByeReason reason) {
     const std::vector<std::uint8_t> bye =
         EncodeSessionFrame(SessionType::kBye, SerializeBye({reason, text}));
@@ -393,10 +395,10 @@ Status AgentLink::Handshake(Wire* wire) {
         ByeReason::kKeyMismatch);
   }
   const SessionKeys keys =
-      DeriveSessionKeys(options_.psk, hello.agent_nonce, challenge.server_nonce, hello.name);
+      DeriveSessionKeys(options_.psk, hello.agent_nonce, challenge.server_nonce, hello_payload);
   AuthMessage auth;
   if (keyed) {
-    auth.proof = AgentProof(options_.psk, challenge.server_nonce, hello.agent_nonce, hello.name);
+    auth.proof = AgentProof(options_.psk, challenge.server_nonce, hello_payload);
   }
   auth.masked_identity = MaskIdentity(identity_, keys.identity_pad);
   CCMD_RETURN_IF_ERROR(

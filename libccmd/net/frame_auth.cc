@@ -20,12 +20,11 @@ ByteSpan AsBytes(std::string_view s) {
   return ByteSpan(reinterpret_cast<const std::uint8_t*>(s.data()), s.size());
 }
 
-// HKDF-Expand's info: label | u8 name length | name.
-std::vector<std::uint8_t> Info(std::string_view label, std::string_view name) {
-  ByteWriter info(label.size() + 1 + name.size());
+// HKDF-Expand's info: label | hello payload.
+std::vector<std::uint8_t> Info(std::string_view label, ByteSpan hello) {
+  ByteWriter info(label.size() + hello.size());
   info.PutBytes(label.data(), label.size());
-  info.PutU8(static_cast<std::uint8_t>(name.size()));
-  info.PutBytes(name.data(), name.size());
+  info.PutBytes(hello.data(), hello.size());
   return info.Take();
 }
 
@@ -65,13 +64,13 @@ std::vector<std::uint8_t> HkdfSha256(ByteSpan salt, ByteSpan ikm, ByteSpan info,
 }
 
 SessionKeys DeriveSessionKeys(std::string_view psk, const Nonce& agent_nonce,
-                              const Nonce& server_nonce, std::string_view name) {
+                              const Nonce& server_nonce, ByteSpan hello) {
   std::array<std::uint8_t, 2 * kNonceSize> salt;
   std::copy(agent_nonce.begin(), agent_nonce.end(), salt.begin());
   std::copy(server_nonce.begin(), server_nonce.end(), salt.begin() + kNonceSize);
   auto derive = [&](std::string_view label, SessionKey* key) {
     const std::vector<std::uint8_t> okm =
-        HkdfSha256(salt, AsBytes(psk), Info(label, name), key->size());
+        HkdfSha256(salt, AsBytes(psk), Info(label, hello), key->size());
     std::copy(okm.begin(), okm.end(), key->begin());
   };
   SessionKeys keys;

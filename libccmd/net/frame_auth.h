@@ -13,7 +13,7 @@
 // keyframe on the server (docs/benchmarks/transport.md). Without a pre-shared key (loopback
 // only) the session is keyless: frames carry no tag and a tagged frame is an error.
 //
-//   SessionKeys keys = DeriveSessionKeys(psk, agent_nonce, server_nonce, name);
+//   SessionKeys keys = DeriveSessionKeys(psk, agent_nonce, server_nonce, hello_payload);
 //   SessionAuth auth(FrameRole::kServer, keys, /*keyed=*/!psk.empty());
 //   auth.AppendFrame(type, payload, &out);            // header, payload, tag
 //   CCMD_RETURN_IF_ERROR(auth.Verify(received_frame)); // kPermissionDenied on a bad tag
@@ -46,10 +46,11 @@ struct SessionKeys {
 };
 
 // PRK = HKDF-Extract(salt = agent_nonce | server_nonce, IKM = psk); each key is
-// HKDF-Expand(PRK, label | u8 name length | name, 32) with its own label. An empty psk
-// (keyless loopback) gives keys anyone can compute: they mask nothing.
+// HKDF-Expand(PRK, label | hello, 32) with its own label, `hello` being the payload of the
+// agent's Hello as sent (so both sides agree on keys only if they saw the same hello). An
+// empty psk (keyless loopback) gives keys anyone can compute: they mask nothing.
 SessionKeys DeriveSessionKeys(std::string_view psk, const Nonce& agent_nonce,
-                              const Nonce& server_nonce, std::string_view name);
+                              const Nonce& server_nonce, ByteSpan hello);
 
 enum class FrameRole { kAgent, kServer };
 

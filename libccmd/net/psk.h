@@ -7,7 +7,7 @@
 // messages"; frame_auth.h).
 //
 //   CCMD_ASSIGN_OR_RETURN(std::string key, ResolvePsk(psk_file));   // "" = no key
-//   Mac proof = AgentProof(key, server_nonce, agent_nonce, name);
+//   Mac proof = AgentProof(key, server_nonce, hello_payload);
 //   if (!ConstantTimeEquals(proof, received)) refuse;
 
 #include <array>
@@ -46,11 +46,12 @@ bool ConstantTimeEquals(ByteSpan a, ByteSpan b);
 // Cryptographically random bytes (OpenSSL RAND_bytes).
 Status RandomNonce(Nonce* nonce);
 
-// What the agent sends to prove the key: HMAC(key, "CCMD agent proof v1" | server_nonce |
-// agent_nonce | u8 name length | name). Binding both nonces prevents replays; the name stops
-// a proof made for one agent from being used for another.
-Mac AgentProof(std::string_view key, const Nonce& server_nonce, const Nonce& agent_nonce,
-               std::string_view name);
+// What the agent sends to prove the key: HMAC(key, "CCMD agent proof v2" | server_nonce |
+// hello), `hello` being the payload of the agent's Hello exactly as sent. Both nonces (the
+// agent's is in the hello) prevent replays; binding the whole hello stops a proof made for
+// one agent from serving another, and a hello altered on the way (camera, resume point,
+// name) from being accepted.
+Mac AgentProof(std::string_view key, const Nonce& server_nonce, ByteSpan hello);
 
 // The server proves the key in turn with the tag of its Welcome, the first frame it tags
 // with the session's keys (frame_auth.h).

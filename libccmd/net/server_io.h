@@ -48,6 +48,7 @@ struct Connection {
   std::uint64_t frame_header = 0;  // decoder's headers_accepted() at frame_started
   std::unique_ptr<FrameDecoder> decoder;
   HelloMessage hello;
+  std::vector<std::uint8_t> hello_payload;  // as received: bound into the proof and keys
   Nonce server_nonce{};
   SessionAuth auth;  // keyed once the agent's Auth is verified
   IdentityVerifier verifier{};

@@ -113,6 +113,7 @@ void ServerIo::HandleHello(Connection* c, const Frame& frame, double now) {
     return;
   }
   c->hello = std::move(*hello);
+  c->hello_payload.assign(frame.payload.begin(), frame.payload.end());
   Status nonce = RandomNonce(&c->server_nonce);
   if (!nonce.ok()) {
     Close(c, ByeReason::kServerError, nonce.message(), now);
@@ -140,8 +141,7 @@ void ServerIo::HandleAuth(Connection* c, const Frame& frame, double now) {
           now);
     return;
   }
-  if (keyed && !ConstantTimeEquals(AgentProof(options_.psk, c->server_nonce,
-                                              c->hello.agent_nonce, c->hello.name),
+  if (keyed && !ConstantTimeEquals(AgentProof(options_.psk, c->server_nonce, c->hello_payload),
                                    *auth->proof)) {
     stats_->Count("refused_wrong_key");
     Close(c, ByeReason::kAuthFailed,
@@ -159,7 +159,7 @@ void ServerIo::HandleAuth(Connection* c, const Frame& frame, double now) {
   // The key is proven: from here on every frame the server sends on this connection (the
   // Welcome, or a Bye refusing the agent) is tagged.
   const SessionKeys keys =
-      DeriveSessionKeys(options_.psk, c->hello.agent_nonce, c->server_nonce, c->hello.name);
+      DeriveSessionKeys(options_.psk, c->hello.agent_nonce, c->server_nonce, c->hello_payload);
   c->verifier = VerifierOf(MaskIdentity(auth->masked_identity, keys.identity_pad));
   c->auth = SessionAuth(FrameRole::kServer, keys, keyed);
   StageItem attach;

@@ -97,8 +97,7 @@ struct SessionCamera {
 Status ValidateSessionCamera(const SessionCamera& camera);
 std::string DescribeCamera(const SessionCamera& camera);
 // The camera's fixed fields (fx fy cx cy, width height, depth scale) as Hello and the journal's
-// info record lay them out; distortion travels separately, only when non-zero, so that an
-// agent without it speaks exactly the protocol older servers know.
+// info record lay them out; distortion travels separately, only when non-zero.
 void PutSessionCamera(const SessionCamera& camera, ByteWriter* w);
 Status ReadSessionCamera(ByteReader* r, SessionCamera* camera);
 void PutDistortion(const SessionCamera& camera, ByteWriter* w);  // 5 x f64

@@ -56,7 +56,8 @@ SessionKeys Keys() {
   Nonce a{}, s{};
   a.fill(1);
   s.fill(2);
-  return DeriveSessionKeys("a benchmark deployment key", a, s, "bench");
+  static constexpr std::uint8_t kHello[] = {'a', ' ', 'h', 'e', 'l', 'l', 'o'};
+  return DeriveSessionKeys("a benchmark deployment key", a, s, ByteSpan(kHello, sizeof(kHello)));
 }
 
 struct Phases {

@@ -31,6 +31,7 @@
 #include <cstdio>
 #include <fstream>
 #include <functional>
+#include <limits>
 #include <map>
 #include <memory>
 #include <string>
@@ -148,7 +149,7 @@ void FramingAttacks(std::uint16_t port, Tally* t) {
   }
 }
 
-// Seventeen kinds of absurd hello.
+// Eighteen kinds of absurd hello (a negative focal length is not one: ICL-NUIM has fy < 0).
 void AbsurdHellos(std::uint16_t port, Tally* t) {
   std::vector<std::function<void(HelloMessage*)>> edits = {
       [](HelloMessage* h) { h->name = std::string(65, 'a'); },
@@ -156,7 +157,8 @@ void AbsurdHellos(std::uint16_t port, Tally* t) {
       [](HelloMessage* h) { h->name = ".hidden"; },
       [](HelloMessage* h) { h->name = "a b"; },
       [](HelloMessage* h) { h->camera.fx = 0; },
-      [](HelloMessage* h) { h->camera.fy = -525; },
+      [](HelloMessage* h) { h->camera.fy = std::numeric_limits<double>::infinity(); },
+      [](HelloMessage* h) { h->camera.distortion[0] = std::nan(""); },
       [](HelloMessage* h) { h->camera.cx = std::nan(""); },
       [](HelloMessage* h) { h->camera.width = 0; },
       [](HelloMessage* h) { h->camera.height = 100000; },
@@ -185,20 +187,23 @@ void AbsurdHellos(std::uint16_t port, Tally* t) {
          ByeReason::kUnsupportedVersion);
 }
 
-// Hello, then an Auth whose proof `prove` makes from the server's nonce (none: no proof);
-// returns the reason of the server's (untagged) Bye.
-std::optional<ByeReason> AuthWith(std::uint16_t port,
-                                  const std::function<std::optional<Mac>(const Nonce&)>& prove) {
+// Hello, then an Auth whose proof `prove` makes from the server's nonce and the hello sent
+// (none: no proof); returns the reason of the server's (untagged) Bye.
+using Prover = std::function<std::optional<Mac>(const Nonce& server_nonce, ByteSpan hello)>;
+std::optional<ByeReason> AuthWith(std::uint16_t port, const Prover& prove) {
   RawClient c;
   HelloMessage h = BaseHello("intruder");
   for (int i = 0; i < 32; ++i) h.agent_nonce[i] = static_cast<std::uint8_t>(i * 5);
-  if (!c.Connect(port) || !c.SendBytes(HelloFrame(h))) return std::nullopt;
+  const Bytes hello = SerializeHello(h);
+  if (!c.Connect(port) || !c.SendBytes(EncodeSessionFrame(SessionType::kHello, hello))) {
+    return std::nullopt;
+  }
   std::optional<Frame> challenge = c.ReadFrame(5);
   if (!challenge) return std::nullopt;
   StatusOr<ChallengeMessage> ch = ParseChallenge(challenge->payload);
   if (!ch.ok()) return std::nullopt;
   AuthMessage auth;
-  auth.proof = prove(ch->server_nonce);
+  auth.proof = prove(ch->server_nonce, hello);
   if (!c.SendBytes(EncodeSessionFrame(SessionType::kAuth, SerializeAuth(auth)))) return std::nullopt;
   std::vector<Frame> frames;
   c.ReadUntilClosed(&frames, 10);
@@ -216,21 +221,21 @@ void AuthenticationAttacks(std::uint16_t port, Tally* t) {
          ByeReason::kProtocolError);
   Expect(t, "ack from a client", Exchange(port, EncodeSessionFrame(SessionType::kAck, Bytes(8, 0))),
          ByeReason::kProtocolError);
-  Nonce agent_nonce;
-  for (int i = 0; i < 32; ++i) agent_nonce[i] = static_cast<std::uint8_t>(i * 5);
-  Expect(t, "wrong key", AuthWith(port, [&](const Nonce& server_nonce) -> std::optional<Mac> {
-           return AgentProof(kOtherKey, server_nonce, agent_nonce, "intruder");
+  Expect(t, "wrong key",
+         AuthWith(port, [&](const Nonce& server_nonce, ByteSpan hello) -> std::optional<Mac> {
+           return AgentProof(kOtherKey, server_nonce, hello);
          }),
          ByeReason::kAuthFailed);
-  Expect(t, "no key", AuthWith(port, [](const Nonce&) -> std::optional<Mac> { return {}; }),
+  Expect(t, "no key",
+         AuthWith(port, [](const Nonce&, ByteSpan) -> std::optional<Mac> { return {}; }),
          ByeReason::kAuthFailed);
   // A proof made for one handshake, replayed in the next: the server's nonce differs.
   std::optional<Mac> recorded;
-  AuthWith(port, [&](const Nonce& server_nonce) -> std::optional<Mac> {
-    recorded = AgentProof(kKey, server_nonce, agent_nonce, "intruder");
+  AuthWith(port, [&](const Nonce& server_nonce, ByteSpan hello) -> std::optional<Mac> {
+    recorded = AgentProof(kKey, server_nonce, hello);
     return Mac{};  // this first attempt fails anyway; what counts is the recorded proof
   });
-  Expect(t, "replayed proof", AuthWith(port, [&](const Nonce&) { return recorded; }),
+  Expect(t, "replayed proof", AuthWith(port, [&](const Nonce&, ByteSpan) { return recorded; }),
          ByeReason::kAuthFailed);
 }
 

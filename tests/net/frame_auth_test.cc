@@ -21,6 +21,16 @@ namespace {
 
 using Bytes = std::vector<std::uint8_t>;
 
+// The payload of a Hello from `name` (what the keys bind).
+Bytes Hello(const std::string& name) {
+  HelloMessage h;
+  h.name = name;
+  h.camera = {525, 525, 319.5, 239.5, 640, 480, 5000};
+  h.first_seq = h.next_seq = 1;
+  h.agent_nonce.fill(7);
+  return SerializeHello(h);
+}
+
 Bytes FromHex(const std::string& hex) {
   Bytes b;
   for (std::size_t i = 0; i + 1 < hex.size(); i += 2) {
@@ -78,21 +88,22 @@ TEST(FrameAuthTest, TagIsGmacUnderSenderAndCounter) {
   EXPECT_NE(tag, SessionAuth::Tag(key, FrameRole::kServer, 0x012B, header, payload));
 }
 
-TEST(FrameAuthTest, KeysDependOnKeyNoncesNameAndDirection) {
+TEST(FrameAuthTest, KeysDependOnKeyNoncesHelloAndDirection) {
   Nonce a{}, s{};
   a[0] = 1;
   s[0] = 2;
-  const SessionKeys k = DeriveSessionKeys("a deployment key of some length", a, s, "robot-1");
+  const Bytes hello = Hello("robot-1"), other = Hello("robot-2");
+  const std::string key = "a deployment key of some length";
+  const SessionKeys k = DeriveSessionKeys(key, a, s, hello);
   EXPECT_NE(k.agent_to_server, k.server_to_agent);
   EXPECT_NE(k.agent_to_server, k.identity_pad);
   EXPECT_NE(k.agent_to_server,
-            DeriveSessionKeys("another deployment key, longer", a, s, "robot-1").agent_to_server);
-  EXPECT_NE(k.agent_to_server, DeriveSessionKeys("a deployment key of some length", s, a,
-                                                 "robot-1")
-                                   .agent_to_server);
-  EXPECT_NE(k.agent_to_server, DeriveSessionKeys("a deployment key of some length", a, s,
-                                                 "robot-2")
-                                   .agent_to_server);
+            DeriveSessionKeys("another deployment key, longer", a, s, hello).agent_to_server);
+  EXPECT_NE(k.agent_to_server, DeriveSessionKeys(key, s, a, hello).agent_to_server);
+  EXPECT_NE(k.agent_to_server, DeriveSessionKeys(key, a, s, other).agent_to_server);
+  Bytes altered = hello;
+  altered.back() ^= 1;  // the last byte of the agent's nonce
+  EXPECT_NE(k.agent_to_server, DeriveSessionKeys(key, a, s, altered).agent_to_server);
 }
 
 // Frames the agent side seals, as the server side receives them.
@@ -109,7 +120,7 @@ class SessionAuthTest : public ::testing::Test {
     Nonce a{}, s{};
     a.fill(3);
     s.fill(4);
-    keys_ = DeriveSessionKeys("a deployment key of some length", a, s, "robot");
+    keys_ = DeriveSessionKeys("a deployment key of some length", a, s, Hello("robot"));
   }
   // Agent-side frames: data 1, a heartbeat, data 2.
   std::vector<Frame> AgentFrames() {

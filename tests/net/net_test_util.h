@@ -268,16 +268,15 @@ inline RawAnswer RawHandshakeWith(RawClient* c, std::uint16_t port, HelloMessage
   RawAnswer answer;
   if (!c->Connect(port)) return answer;
   for (int i = 0; i < 32; ++i) hello.agent_nonce[i] = static_cast<std::uint8_t>(i * 3);
-  if (!c->SendBytes(EncodeSessionFrame(SessionType::kHello, SerializeHello(hello)))) {
-    return answer;
-  }
+  const Bytes hello_payload = SerializeHello(hello);
+  if (!c->SendBytes(EncodeSessionFrame(SessionType::kHello, hello_payload))) return answer;
   std::optional<Frame> challenge = c->ReadFrame(5);
   if (!challenge) return answer;
   StatusOr<ChallengeMessage> ch = ParseChallenge(challenge->payload);
   if (!ch.ok()) return answer;
-  const SessionKeys keys = DeriveSessionKeys(key, hello.agent_nonce, ch->server_nonce, hello.name);
+  const SessionKeys keys = DeriveSessionKeys(key, hello.agent_nonce, ch->server_nonce, hello_payload);
   AuthMessage auth;
-  if (!key.empty()) auth.proof = AgentProof(key, ch->server_nonce, hello.agent_nonce, hello.name);
+  if (!key.empty()) auth.proof = AgentProof(key, ch->server_nonce, hello_payload);
   auth.masked_identity = MaskIdentity(c->identity, keys.identity_pad);
   if (!c->SendBytes(EncodeSessionFrame(SessionType::kAuth, SerializeAuth(auth)))) {
     return answer;

@@ -309,6 +309,36 @@ TEST_F(TrustTest, AForgedAcknowledgementIsDetectedAndNothingIsLost) {
   ExpectExactly("robot", 4, 20);
 }
 
+// 5c. A man in the middle alters the agent's Hello (its camera): the proof and the session
+// keys bind the hello as sent, so the server refuses it as a failed authentication before
+// registering anything, and the agent reports that refusal instead of streaming.
+TEST_F(TrustTest, AnAlteredHelloIsRefusedBeforeAnythingIsRegistered) {
+  StartServer(Options());
+  std::atomic<int> altered{0};
+  nettest::TamperProxy proxy([&](bool from_agent, WireFrame f, std::vector<WireFrame>* forward,
+                                 std::vector<WireFrame>*) {
+    if (from_agent && f.type() == static_cast<std::uint8_t>(SessionType::kHello)) {
+      ++altered;
+      f.payload()[3 + 5 + 6] ^= 0x10;  // fx (after version, flags, length, "robot"): 525 -> 1050
+      f.Reseal();
+    }
+    forward->push_back(std::move(f));
+  });
+  ASSERT_TRUE(proxy.Start(server_->port()));
+  auto link = AgentLink::Create(Link("robot", proxy.port())).value();
+  Send(link.get(), 6, 0, 3);
+  const Status flushed = link->Flush(20);
+  EXPECT_EQ(flushed.code(), StatusCode::kPermissionDenied) << flushed.ToString();
+  EXPECT_EQ(link->stats().acked, 0u);
+  link.reset();
+  proxy.Stop();
+  server_->Stop();
+  EXPECT_GE(altered.load(), 1);
+  EXPECT_EQ(server_->stats().counter("refused_wrong_key"), static_cast<std::uint64_t>(altered.load()));
+  EXPECT_TRUE(consumer_->messages().empty());
+  EXPECT_FALSE(FileExists(dir_.File("journal/" + JournalFileName(AgentId(1)))));
+}
+
 // 5b. A man in the middle injects a keyframe of its own as the agent's message 4.
 TEST_F(TrustTest, AnInjectedKeyframeIsRefusedAndItsConnectionClosed) {
   StartServer(Options());
