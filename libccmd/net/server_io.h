@@ -56,7 +56,7 @@ struct Connection {
   AgentId agent;
   std::vector<std::uint8_t> out;
   std::size_t out_pos = 0;
-  bool done = false;  // to be removed
+  bool done = false;  // dropped: erased from the connection map after this poll round
   std::string Describe() const {
     if (hello.name.empty()) return "connection from " + peer;
     return "agent '" + hello.name + "' (" + peer + ")";
