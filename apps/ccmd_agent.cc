@@ -27,6 +27,9 @@
 
 namespace {
 
+// Exit status when messages were refused or never acknowledged (1: any other error).
+constexpr int kExitMessagesLost = 3;
+
 std::atomic<bool> g_stop{false};
 void OnSignal(int) { g_stop = true; }
 
@@ -104,7 +107,9 @@ ccmd::Status FlushWhileProgressing(ccmd::AgentLink* link, double stall_s) {
 int main(int argc, char** argv) {
   CLI::App app{
       "CCMD agent: ORB RGB-D visual odometry on a robot. Sends compact keyframes to a ccmd_server,\n"
-      "or runs --offline and writes its trajectory (TUM format)."};
+      "or runs --offline and writes its trajectory (TUM format).\n"
+      "Exit status: 0 when the server acknowledged every message, 3 when messages were refused\n"
+      "or never acknowledged (the counts are printed and in --stats), 1 on any other error."};
   std::string source_spec, config_path, segment_spec, trajectory_path, keyframe_trajectory_path,
       stats_path, rate = "max", server, record_dir, name, psk_file, spill_dir, progress_path;
   double flush_timeout = 120.0, budget_kBps = 0, max_queue_s = 0.5, threshold_scale = 1.0;
@@ -123,7 +128,9 @@ int main(int argc, char** argv) {
   app.add_option("--name", name, "This agent's name at the server (default: host name and process id)");
   app.add_option("--psk-file", psk_file, "Pre-shared key file (else $CCMD_PSK; none: loopback servers only)");
   app.add_option("--spill-dir", spill_dir,
-                 "Folder for messages not yet acknowledged beyond the memory limit (default: a folder in /tmp)");
+                 "Folder for messages not yet acknowledged beyond the memory limit, and for this agent's "
+                 "identity file: keep it to reconnect under the same --name after a restart "
+                 "(default: a folder in /tmp)");
   app.add_option("--flush-timeout", flush_timeout,
                  "At the end, wait for the server's acknowledgements as long as they keep coming; give up after "
                  "this many seconds without one")
@@ -294,6 +301,7 @@ int main(int argc, char** argv) {
   }
   (*frontend)->Finish();
   ccmd::Json link_json;
+  int exit_code = 0;
   if (link) {
     // Everything must reach the server before the agent goes away.
     const ccmd::Status flushed = FlushWhileProgressing(link.get(), flush_timeout);
@@ -301,20 +309,29 @@ int main(int argc, char** argv) {
     link_json = sink->StatsJson();
     link_json["acked"] = ls.acked;
     link_json["unacked"] = ls.unacked;
+    link_json["refused"] = ls.refused;
     link_json["resent"] = ls.resent;
     link_json["sessions"] = ls.sessions;
     link_json["spilled"] = ls.spilled;
     link_json["bytes_sent"] = ls.bytes_sent;
+    link_json["auth_failures"] = ls.auth_failures;
+    link_json["link_error"] = link->status().ok() ? "" : link->status().ToString();
     link->Close();
-    if (!flushed.ok()) {
-      std::fprintf(stderr, "ccmd_agent: %llu messages not acknowledged by the server: %s\n",
-                   static_cast<unsigned long long>(ls.unacked), flushed.ToString().c_str());
-    }
     std::printf("sent %llu keyframes (%.1f kB each) and %llu pose updates; %llu acknowledged\n",
                 static_cast<unsigned long long>(link_json["keyframes_sent"].number()),
                 link_json["keyframe_bytes_mean"].number() / 1e3,
                 static_cast<unsigned long long>(link_json["pose_updates_sent"].number()),
                 static_cast<unsigned long long>(ls.acked));
+    if (ls.unacked > 0 || ls.refused > 0 || !flushed.ok()) {
+      // Not everything the agent produced is stored at the server: say so, and fail.
+      std::fprintf(stderr,
+                   "ccmd_agent: %llu messages not acknowledged by the server and %llu refused "
+                   "by the link: %s\n",
+                   static_cast<unsigned long long>(ls.unacked),
+                   static_cast<unsigned long long>(ls.refused),
+                   flushed.ok() ? "(see the log)" : flushed.ToString().c_str());
+      exit_code = kExitMessagesLost;
+    }
   }
   if (recorder) {
     const ccmd::Trajectory gt = (*source)->GroundTruth();
@@ -345,5 +362,5 @@ int main(int argc, char** argv) {
     const ccmd::Status s = ccmd::WriteJsonFile(json, stats_path);
     if (!s.ok()) return Fail(s.ToString());
   }
-  return 0;
+  return exit_code;
 }

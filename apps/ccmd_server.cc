@@ -84,8 +84,14 @@ int main(int argc, char** argv) {
                  "Folder of an earlier run's journals: replay them, then continue there");
   app.add_option("--psk-file", psk_file,
                  "Pre-shared key file (else $CCMD_PSK; without either: loopback only)");
-  app.add_option("--max-agents", options.max_agents, "Agents the server registers")
+  app.add_option("--max-agents", options.max_agents,
+                 "Agents active at once (connected, or gone less than --slot-timeout ago); new "
+                 "names are refused while all are, registered agents are always served")
       ->check(CLI::Range(1, 65535))
+      ->capture_default_str();
+  app.add_option("--slot-timeout", options.slot_timeout_s,
+                 "Seconds a disconnected agent keeps its slot before a new name may take it")
+      ->check(CLI::NonNegativeNumber)
       ->capture_default_str();
   app.add_option("--out", runtime.output_dir,
                  "Results folder: map.ply, trajectory_fused.txt, trajectory_<agent>.txt, "
@@ -107,7 +113,12 @@ int main(int argc, char** argv) {
   app.add_option("--handshake-timeout", options.handshake_timeout_s, "Seconds")
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
-  app.add_option("--idle-timeout", options.idle_timeout_s, "Seconds")
+  app.add_option("--idle-timeout", options.idle_timeout_s,
+                 "Seconds without a complete frame before a session is closed")
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
+  app.add_option("--frame-timeout", options.frame_timeout_s,
+                 "Seconds a frame may take to arrive once its header is in")
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
   app.add_option("--agent-memory", options.per_agent_memory_bytes,

@@ -10,6 +10,9 @@
 namespace ccmd {
 namespace {
 
+// What a payload buffer starts with, whatever the header claims.
+constexpr std::size_t kInitialPayloadReserve = 64 << 10;
+
 std::string Hex32(std::uint32_t v) {
   char text[16];
   std::snprintf(text, sizeof(text), "0x%08X", v);
@@ -59,7 +62,7 @@ StatusOr<FrameHeader> ParseFrameHeader(ByteSpan header, const FrameLimits& limit
   r.ReadU32(&h.payload_size).IgnoreError();
   r.ReadU32(&h.payload_crc).IgnoreError();
   r.ReadU32(&header_crc).IgnoreError();
-  if (h.version != kProtocolVersion) {
+  if (h.version < limits.oldest_version || h.version > kProtocolVersion) {
     return Unsupported("protocol version " + std::to_string(h.version) +
                        " is not supported (this build speaks version " +
                        std::to_string(kProtocolVersion) + ")");
@@ -70,6 +73,7 @@ StatusOr<FrameHeader> ParseFrameHeader(ByteSpan header, const FrameLimits& limit
                    Hex32(computed) + ")");
   }
   if (h.type == 0) return Corrupt("frame has message type 0");
+  if (h.version == 1 && h.tagged()) return Corrupt("version 1 frame with the tag flag");
   if (h.payload_size > limits.max_payload_bytes) {
     return OutOfRange("frame payload of " + std::to_string(h.payload_size) +
                       " bytes exceeds the limit of " + std::to_string(limits.max_payload_bytes));
@@ -93,7 +97,7 @@ Status CheckPayloadCrc(const FrameHeader& h, ByteSpan payload) {
 
 StatusOr<Frame> DecodeFrame(ByteSpan bytes, const FrameLimits& limits) {
   CCMD_ASSIGN_OR_RETURN(const FrameHeader h, ParseFrameHeader(bytes, limits));
-  const std::size_t total = kFrameHeaderSize + static_cast<std::size_t>(h.payload_size);
+  const std::size_t total = kFrameHeaderSize + h.body_size();
   if (bytes.size() < total) {
     return Corrupt("truncated frame: " + std::to_string(bytes.size()) + " of " +
                    std::to_string(total) + " bytes");
@@ -107,6 +111,12 @@ StatusOr<Frame> DecodeFrame(ByteSpan bytes, const FrameLimits& limits) {
   frame.type = h.type;
   frame.flags = h.flags;
   frame.payload.assign(payload.begin(), payload.end());
+  std::copy_n(bytes.begin(), kFrameHeaderSize, frame.header.begin());
+  if (h.tagged()) {
+    frame.tag.emplace();
+    std::copy_n(bytes.begin() + kFrameHeaderSize + h.payload_size, kFrameTagSize,
+                frame.tag->begin());
+  }
   return frame;
 }
 
@@ -114,7 +124,7 @@ Status FrameDecoder::Feed(ByteSpan data, std::vector<Frame>* frames) {
   if (!error_.ok()) return error_;
   std::size_t pos = 0;
   while (pos < data.size()) {
-    if (!in_payload_) {
+    if (!in_body_) {
       const std::size_t take = std::min(kFrameHeaderSize - header_fill_, data.size() - pos);
       std::memcpy(header_bytes_ + header_fill_, data.data() + pos, take);
       header_fill_ += take;
@@ -135,22 +145,12 @@ Status FrameDecoder::Feed(ByteSpan data, std::vector<Frame>* frames) {
         error_ = h.status();
         return error_;
       }
-      header_ = *h;
-      current_ = Frame{};
-      current_.type = header_.type;
-      current_.flags = header_.flags;
-      current_.payload.resize(header_.payload_size);  // checked against the limit above
-      payload_fill_ = 0;
-      in_payload_ = true;
+      StartBody(*h);
     }
-    const std::size_t take = std::min(header_.payload_size - payload_fill_, data.size() - pos);
-    if (take > 0) {
-      std::memcpy(current_.payload.data() + payload_fill_, data.data() + pos, take);
-    }
-    payload_fill_ += take;
-    pos += take;
-    bytes_consumed_ += take;
-    if (payload_fill_ < header_.payload_size) break;
+    const std::size_t took = TakeBody(data.subspan(pos));
+    pos += took;
+    bytes_consumed_ += took;
+    if (!BodyComplete()) break;
     Status crc = CheckPayloadCrc(header_, current_.payload);
     if (!crc.ok()) {
       error_ = crc;
@@ -159,15 +159,55 @@ Status FrameDecoder::Feed(ByteSpan data, std::vector<Frame>* frames) {
     frames->push_back(std::move(current_));
     current_ = Frame{};
     ++frames_decoded_;
-    in_payload_ = false;
+    in_body_ = false;
     header_fill_ = 0;
   }
   return Status::Ok();
 }
 
+void FrameDecoder::StartBody(const FrameHeader& header) {
+  header_ = header;
+  current_ = Frame{};
+  current_.type = header_.type;
+  current_.flags = header_.flags;
+  std::memcpy(current_.header.data(), header_bytes_, kFrameHeaderSize);
+  if (header_.tagged()) current_.tag.emplace();
+  // Start small whatever the header claims: the buffer grows with what arrives.
+  current_.payload.reserve(std::min<std::size_t>(header_.payload_size, kInitialPayloadReserve));
+  tag_fill_ = 0;
+  in_body_ = true;
+}
+
+std::size_t FrameDecoder::TakeBody(ByteSpan data) {
+  std::vector<std::uint8_t>& payload = current_.payload;
+  const std::size_t want = header_.payload_size - payload.size();
+  const std::size_t take = std::min(want, data.size());
+  if (take > 0) {
+    if (payload.capacity() < payload.size() + take) {
+      // Double, but never beyond the claimed size: memory stays within twice what arrived.
+      payload.reserve(std::min<std::size_t>(
+          header_.payload_size, std::max(payload.size() + take, 2 * payload.capacity())));
+    }
+    payload.insert(payload.end(), data.begin(), data.begin() + take);
+  }
+  std::size_t took = take;
+  if (current_.tag && payload.size() == header_.payload_size) {
+    const std::size_t tag_take = std::min(kFrameTagSize - tag_fill_, data.size() - took);
+    std::memcpy(current_.tag->data() + tag_fill_, data.data() + took, tag_take);
+    tag_fill_ += tag_take;
+    took += tag_take;
+  }
+  return took;
+}
+
+bool FrameDecoder::BodyComplete() const {
+  return current_.payload.size() == header_.payload_size &&
+         (!current_.tag || tag_fill_ == kFrameTagSize);
+}
+
 std::size_t FrameDecoder::BytesWanted() const {
-  if (!in_payload_) return kFrameHeaderSize - header_fill_;
-  return header_.payload_size - payload_fill_;
+  if (!in_body_) return kFrameHeaderSize - header_fill_;
+  return header_.body_size() - current_.payload.size() - tag_fill_;
 }
 
 }  // namespace ccmd

@@ -4,6 +4,7 @@
 # folder and runs each for a bounded time, starting from valid seed inputs.
 #
 #   scripts/fuzz.sh [seconds per target]     (default 60)
+#   CCMD_FUZZ_RUNS=10000000 scripts/fuzz.sh   (a number of inputs per target instead of a time)
 #   CCMD_FUZZ_BUILD_DIR=dir scripts/fuzz.sh  (default build-fuzz)
 #   CCMD_FUZZ_TARGETS="depth lz77" scripts/fuzz.sh
 #
@@ -15,7 +16,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 SECONDS_EACH=${1:-60}
 BUILD_DIR=${CCMD_FUZZ_BUILD_DIR:-build-fuzz}
-TARGETS=${CCMD_FUZZ_TARGETS:-frame keyframe depth lz77 session}
+TARGETS=${CCMD_FUZZ_TARGETS:-frame keyframe depth lz77 session auth}
 JOBS=$(( $(nproc) < 2 ? $(nproc) : 2 ))
 
 if ! command -v clang++ >/dev/null; then
@@ -41,8 +42,14 @@ for t in $TARGETS; do
   log="$BUILD_DIR/fuzz_$t.log"
   mkdir -p "$corpus"
   "$BUILD_DIR/tests/fuzz_${t}_driver" --write-seeds "$corpus"
-  echo "== fuzz_$t for ${SECONDS_EACH}s"
-  if "$BUILD_DIR/tests/fuzz_$t" -max_total_time="$SECONDS_EACH" -timeout=10 \
+  if [ -n "${CCMD_FUZZ_RUNS:-}" ]; then
+    budget="-runs=$CCMD_FUZZ_RUNS"
+    echo "== fuzz_$t for $CCMD_FUZZ_RUNS inputs"
+  else
+    budget="-max_total_time=$SECONDS_EACH"
+    echo "== fuzz_$t for ${SECONDS_EACH}s"
+  fi
+  if "$BUILD_DIR/tests/fuzz_$t" "$budget" -timeout=10 \
       -rss_limit_mb=2048 -malloc_limit_mb=512 -print_final_stats=1 \
       -artifact_prefix="$BUILD_DIR/fuzz_${t}_" "$corpus" >"$log" 2>&1; then
     runs=$(grep -o 'stat::number_of_executed_units: *[0-9]*' "$log" | grep -o '[0-9]*$' || echo "?")

@@ -11,6 +11,7 @@
 #include <functional>
 
 #include "libccmd/net/psk.h"
+#include "libccmd/util/file_util.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/random.h"
 #include "libccmd/util/timer.h"
@@ -23,7 +24,8 @@ constexpr std::size_t kReadChunk = 64 << 10;
 // an ack is read between batches.
 constexpr std::size_t kOutputBatch = 256 << 10;
 constexpr double kByeLingerSeconds = 1.0;
-// A server rejecting our frames this many times in a row will not change its mind.
+// A server rejecting our frames this many times in a row (authenticated byes saying
+// "protocol error") will not change its mind.
 constexpr int kMaxProtocolErrorsInARow = 5;
 
 int PollMillis(double seconds) {
@@ -82,15 +84,26 @@ StatusOr<std::unique_ptr<AgentLink>> AgentLink::Create(AgentLinkOptions options)
   if (!options.spill_dir.empty()) {
     CCMD_ASSIGN_OR_RETURN(spill, SpillStore::Open(options.spill_dir, options.spill_limit_bytes));
   }
+  std::string identity_path = options.identity_file;
+  if (identity_path.empty() && !options.spill_dir.empty()) {
+    identity_path = JoinPath(options.spill_dir, "identity");
+  }
+  CCMD_ASSIGN_OR_RETURN(const AgentIdentity identity, identity_path.empty()
+                                                          ? NewIdentity()
+                                                          : LoadOrCreateIdentity(identity_path));
   std::unique_ptr<AgentLink> link(
-      new AgentLink(std::move(options), std::move(address), std::move(spill)));
+      new AgentLink(std::move(options), std::move(address), std::move(spill), identity));
   if (!link->wake_.valid()) return IoError("eventfd: " + std::string(std::strerror(errno)));
   link->thread_ = std::thread([l = link.get()] { l->Run(); });
   return link;
 }
 
-AgentLink::AgentLink(AgentLinkOptions options, HostPort address, std::unique_ptr<SpillStore> spill)
-    : options_(std::move(options)), address_(std::move(address)), spill_(std::move(spill)) {}
+AgentLink::AgentLink(AgentLinkOptions options, HostPort address, std::unique_ptr<SpillStore> spill,
+                     AgentIdentity identity)
+    : options_(std::move(options)),
+      address_(std::move(address)),
+      identity_(identity),
+      spill_(std::move(spill)) {}
 
 AgentLink::~AgentLink() { Close(); }
 
@@ -106,30 +119,36 @@ void AgentLink::Close() {
   if (thread_.joinable()) thread_.join();
 }
 
+StatusOr<std::uint64_t> AgentLink::Refuse(Status why) {
+  ++stats_.refused;
+  return why;
+}
+
 StatusOr<std::uint64_t> AgentLink::Send(std::uint8_t type, std::vector<std::uint8_t> message) {
-  if (!IsDataType(type)) {
-    return InvalidArgument("type " + std::to_string(type) + " is not a data message type");
-  }
   std::uint64_t local;
   {
     std::lock_guard<std::mutex> lock(mutex_);
-    if (!terminal_.ok()) return terminal_;
-    if (stopping_) return Cancelled("the link is closed");
+    if (!IsDataType(type)) {
+      return Refuse(InvalidArgument("type " + std::to_string(type) + " is not a data message type"));
+    }
+    if (!terminal_.ok()) return Refuse(terminal_);
+    if (stopping_) return Refuse(Cancelled("the link is closed"));
     if (message.size() > max_message_bytes_) {
-      return InvalidArgument("message of " + std::to_string(message.size()) +
-                             " bytes exceeds the server's limit of " +
-                             std::to_string(max_message_bytes_));
+      return Refuse(InvalidArgument("message of " + std::to_string(message.size()) +
+                                    " bytes exceeds the server's limit of " +
+                                    std::to_string(max_message_bytes_)));
     }
     local = next_local_;
     const bool fits =
         memory_.empty() || memory_bytes_ + message.size() <= options_.memory_limit_bytes;
     if ((spill_ && !spill_->empty()) || !fits) {
       if (!spill_) {
-        return OutOfRange("resend buffer full: " + std::to_string(memory_bytes_) +
-                          " bytes unacknowledged (memory limit " +
-                          std::to_string(options_.memory_limit_bytes) + ", no spill folder)");
+        return Refuse(OutOfRange("resend buffer full: " + std::to_string(memory_bytes_) +
+                                 " bytes unacknowledged (memory limit " +
+                                 std::to_string(options_.memory_limit_bytes) +
+                                 ", no spill folder)"));
       }
-      CCMD_RETURN_IF_ERROR(spill_->Push(type, local, message));
+      if (Status pushed = spill_->Push(type, local, message); !pushed.ok()) return Refuse(pushed);
       ++stats_.spilled;
     } else {
       memory_bytes_ += message.size();
@@ -215,9 +234,8 @@ void AgentLink::Run() {
       if (stopping_) break;
       ++stats_.failed_attempts;
       stats_.last_error = s.ToString();
-      if (s.code() == StatusCode::kCorrupt) {
-        ++protocol_errors_in_a_row_;
-      }
+      // protocol_errors_in_a_row_ counts the server's authenticated protocol-error byes only:
+      // bytes damaged or injected on the way must not end the link.
       if (IsTerminal(s) || protocol_errors_in_a_row_ >= kMaxProtocolErrorsInARow) {
         terminal_ = s;
         CCMD_LOG(ERROR) << "agent '" << options_.name << "': link to " << options_.server
@@ -266,14 +284,13 @@ Status AgentLink::WriteBlocking(int fd, ByteSpan bytes, double deadline, bool in
   return Status::Ok();
 }
 
-StatusOr<Frame> AgentLink::ReadFrameBlocking(int fd, FrameDecoder* decoder,
-                                             std::deque<Frame>* inbox, double deadline) {
+StatusOr<Frame> AgentLink::ReadFrameBlocking(Wire* wire, double deadline) {
   std::vector<std::uint8_t> buffer(kReadChunk);
   std::vector<Frame> frames;
-  while (inbox->empty()) {
+  while (wire->inbox.empty()) {
     const double left = deadline - MonotonicSeconds();
     if (left <= 0) return Timeout("the server did not answer the handshake in time");
-    pollfd fds[2] = {{fd, POLLIN, 0}, {wake_.fd(), POLLIN, 0}};
+    pollfd fds[2] = {{wire->fd, POLLIN, 0}, {wake_.fd(), POLLIN, 0}};
     if (::poll(fds, 2, PollMillis(left)) < 0 && errno != EINTR) {
       return IoError(std::string("poll: ") + std::strerror(errno));
     }
@@ -283,7 +300,7 @@ StatusOr<Frame> AgentLink::ReadFrameBlocking(int fd, FrameDecoder* decoder,
       if (stopping_) return Cancelled("link closing");
     }
     if (!(fds[0].revents & (POLLIN | POLLHUP | POLLERR))) continue;
-    StatusOr<std::size_t> n = ReadSome(fd, buffer.data(), buffer.size());
+    StatusOr<std::size_t> n = ReadSome(wire->fd, buffer.data(), buffer.size());
     if (!n.ok()) {
       if (n.status().code() == StatusCode::kEndOfStream) {
         return Unavailable("the server closed the connection during the handshake");
@@ -295,12 +312,12 @@ StatusOr<Frame> AgentLink::ReadFrameBlocking(int fd, FrameDecoder* decoder,
       stats_.bytes_received += *n;
     }
     frames.clear();
-    const Status fed = decoder->Feed(ByteSpan(buffer.data(), *n), &frames);
-    for (Frame& f : frames) inbox->push_back(std::move(f));
-    if (!fed.ok() && inbox->empty()) return fed.WithContext("from the server");
+    const Status fed = wire->decoder.Feed(ByteSpan(buffer.data(), *n), &frames);
+    for (Frame& f : frames) wire->inbox.push_back(std::move(f));
+    if (!fed.ok() && wire->inbox.empty()) return fed.WithContext("from the server");
   }
-  Frame f = std::move(inbox->front());
-  inbox->pop_front();
+  Frame f = std::move(wire->inbox.front());
+  wire->inbox.pop_front();
   return f;
 }
 
@@ -316,17 +333,28 @@ Status AgentLink::Session(double* backoff) {
       CCMD_LOG(WARNING) << "cannot pace the connection: " << std::strerror(errno);
     }
   }
-  FrameDecoder decoder(FrameLimits{.max_payload_bytes = kDefaultMaxPayloadBytes});
-  std::deque<Frame> inbox;
-  double idle_timeout_s = 30;
-  CCMD_RETURN_IF_ERROR(Handshake(socket.get(), &decoder, &inbox, &idle_timeout_s));
+  Wire wire;
+  wire.fd = socket.get();
+  CCMD_RETURN_IF_ERROR(Handshake(&wire));
   *backoff = options_.backoff_initial_s;
-  return Stream(socket.get(), &decoder, &inbox, idle_timeout_s);
+  return Stream(&wire);
 }
 
-Status AgentLink::Handshake(int fd, FrameDecoder* decoder, std::deque<Frame>* inbox,
-                            double* idle_timeout_s) {
+Status AgentLink::ServerBye(const ByeMessage& bye, bool authenticated) {
+  if (!authenticated && bye.reason == ByeReason::kRefused) {
+    // A refusal ends the link for good: only an authenticated one is believed.
+    return Corrupt("an unauthenticated refusal from the server (" + bye.text + ")");
+  }
+  if (authenticated && bye.reason == ByeReason::kProtocolError) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    ++protocol_errors_in_a_row_;
+  }
+  return StatusFromBye(bye);
+}
+
+Status AgentLink::Handshake(Wire* wire) {
   const double deadline = MonotonicSeconds() + options_.handshake_timeout_s;
+  const bool keyed = !options_.psk.empty();
   HelloMessage hello;
   hello.name = options_.name;
   hello.camera = options_.camera;
@@ -337,22 +365,11 @@ Status AgentLink::Handshake(int fd, FrameDecoder* decoder, std::deque<Frame>* in
     hello.first_seq = acked_local_ + 1 + offset_;
     hello.next_seq = next_local_ + offset_;
   }
+  const int fd = wire->fd;
+  // The proof and the session keys bind these exact bytes: a hello altered on the way fails.
+  const std::vector<std::uint8_t> hello_payload = SerializeHello(hello);
   CCMD_RETURN_IF_ERROR(
-      WriteBlocking(fd, EncodeSessionFrame(SessionType::kHello, SerializeHello(hello)), deadline));
-
-  auto expect = [&](SessionType type) -> StatusOr<Frame> {
-    CCMD_ASSIGN_OR_RETURN(Frame f, ReadFrameBlocking(fd, decoder, inbox, deadline));
-    if (f.type == static_cast<std::uint8_t>(SessionType::kBye)) {
-      StatusOr<ByeMessage> bye = ParseBye(f.payload);
-      if (!bye.ok()) return bye.status().WithContext("server's bye");
-      return StatusFromBye(*bye);
-    }
-    if (f.type != static_cast<std::uint8_t>(type)) {
-      return Corrupt("the server sent message type " + std::to_string(f.type) +
-                     " during the handshake");
-    }
-    return f;
-  };
+      WriteBlocking(fd, EncodeSessionFrame(SessionType::kHello, hello_payload), deadline));
   auto refuse = [&](const std::string& text, ByeReason reason) {
     const std::vector<std::uint8_t> bye =
         EncodeSessionFrame(SessionType::kBye, SerializeBye({reason, text}));
@@ -360,41 +377,42 @@ Status AgentLink::Handshake(int fd, FrameDecoder* decoder, std::deque<Frame>* in
     return PermissionDenied(text);
   };
 
-  CCMD_ASSIGN_OR_RETURN(const Frame challenge_frame, expect(SessionType::kChallenge));
+  CCMD_ASSIGN_OR_RETURN(const Frame challenge_frame, ReadFrameBlocking(wire, deadline));
+  if (challenge_frame.tag) return Corrupt("a tagged frame from the server before the auth");
+  if (challenge_frame.type == static_cast<std::uint8_t>(SessionType::kBye)) {
+    CCMD_ASSIGN_OR_RETURN(const ByeMessage bye, ParseBye(challenge_frame.payload));
+    return ServerBye(bye, /*authenticated=*/!keyed);
+  }
+  if (challenge_frame.type != static_cast<std::uint8_t>(SessionType::kChallenge)) {
+    return Corrupt("the server sent message type " + std::to_string(challenge_frame.type) +
+                   " instead of a challenge");
+  }
   CCMD_ASSIGN_OR_RETURN(const ChallengeMessage challenge, ParseChallenge(challenge_frame.payload));
-  if (challenge.key_required && options_.psk.empty()) {
+  if (challenge.key_required && !keyed) {
     return refuse(
         "the server requires a pre-shared key and this agent has none: give it the "
         "deployment's key with --psk-file FILE or the environment variable CCMD_PSK",
         ByeReason::kKeyMismatch);
   }
-  if (!challenge.key_required && !options_.psk.empty()) {
+  if (!challenge.key_required && keyed) {
     return refuse(
         "this agent has a pre-shared key but the server runs without one, so it cannot prove "
         "who it is; start the server with the same key (or run both without a key on "
         "loopback)",
         ByeReason::kKeyMismatch);
   }
+  const SessionKeys keys =
+      DeriveSessionKeys(options_.psk, hello.agent_nonce, challenge.server_nonce, hello_payload);
   AuthMessage auth;
-  if (!options_.psk.empty()) {
-    auth.proof = AgentProof(options_.psk, challenge.server_nonce, hello.agent_nonce, hello.name);
+  if (keyed) {
+    auth.proof = AgentProof(options_.psk, challenge.server_nonce, hello_payload);
   }
+  auth.masked_identity = MaskIdentity(identity_, keys.identity_pad);
   CCMD_RETURN_IF_ERROR(
       WriteBlocking(fd, EncodeSessionFrame(SessionType::kAuth, SerializeAuth(auth)), deadline));
-
-  CCMD_ASSIGN_OR_RETURN(const Frame welcome_frame, expect(SessionType::kWelcome));
-  CCMD_ASSIGN_OR_RETURN(const WelcomeMessage welcome, ParseWelcome(welcome_frame.payload));
-  if (!options_.psk.empty()) {
-    const Mac expected = ServerProof(options_.psk, hello.agent_nonce, challenge.server_nonce,
-                                     welcome.agent.value(), welcome.last_stored_seq);
-    if (!welcome.server_proof || !ConstantTimeEquals(expected, *welcome.server_proof)) {
-      return refuse(
-          "the server could not prove it has the pre-shared key (wrong key on the "
-          "server, or not a CCMD server)",
-          ByeReason::kAuthFailed);
-    }
-  }
-  *idle_timeout_s = std::max(0.1, welcome.idle_timeout_ms / 1e3);
+  wire->auth = SessionAuth(FrameRole::kAgent, keys, keyed);
+  CCMD_ASSIGN_OR_RETURN(const WelcomeMessage welcome, AwaitWelcome(wire, deadline));
+  wire->idle_timeout_s = std::max(0.1, welcome.idle_timeout_ms / 1e3);
 
   std::uint64_t released_first = 0, released_last = 0;
   {
@@ -427,8 +445,36 @@ Status AgentLink::Handshake(int fd, FrameDecoder* decoder, std::deque<Frame>* in
   if (released_last > 0 && options_.on_acked) options_.on_acked(released_first, released_last);
   CCMD_LOG(INFO) << "agent '" << options_.name << "' connected to " << options_.server
                  << " as agent " << welcome.agent << "; server stored up to message "
-                 << welcome.last_stored_seq;
+                 << welcome.last_stored_seq
+                 << (keyed ? "" : " (no key: frames not authenticated)");
   return Status::Ok();
+}
+
+StatusOr<WelcomeMessage> AgentLink::AwaitWelcome(Wire* wire, double deadline) {
+  CCMD_ASSIGN_OR_RETURN(const Frame f, ReadFrameBlocking(wire, deadline));
+  const bool keyed = wire->auth.keyed();
+  bool authenticated = !keyed;
+  if (f.tag) {
+    const Status verified = wire->auth.Verify(f);
+    if (!verified.ok()) {
+      std::lock_guard<std::mutex> lock(mutex_);
+      ++stats_.auth_failures;
+      // The server would have refused our proof had its key differed: this is tampering on
+      // the way (or a broken server), not a configuration error, so the link retries.
+      return Unavailable("the server's answer failed authentication: " + verified.message());
+    }
+    authenticated = true;
+  }
+  if (f.type == static_cast<std::uint8_t>(SessionType::kBye)) {
+    CCMD_ASSIGN_OR_RETURN(const ByeMessage bye, ParseBye(f.payload));
+    return ServerBye(bye, authenticated);
+  }
+  if (!authenticated) return Corrupt("the server's welcome carries no authentication tag");
+  if (f.type != static_cast<std::uint8_t>(SessionType::kWelcome)) {
+    return Corrupt("the server sent message type " + std::to_string(f.type) +
+                   " instead of a welcome");
+  }
+  return ParseWelcome(f.payload);
 }
 
 Status AgentLink::HandleServerFrame(const Frame& frame) {
@@ -459,7 +505,7 @@ Status AgentLink::HandleServerFrame(const Frame& frame) {
       break;
     case static_cast<std::uint8_t>(SessionType::kBye): {
       CCMD_ASSIGN_OR_RETURN(const ByeMessage bye, ParseBye(frame.payload));
-      return StatusFromBye(bye);
+      return ServerBye(bye, /*authenticated=*/true);
     }
     default:
       if (IsKnownDataType(frame.type)) {
@@ -473,21 +519,37 @@ Status AgentLink::HandleServerFrame(const Frame& frame) {
   return Status::Ok();
 }
 
-Status AgentLink::Stream(int fd, FrameDecoder* decoder, std::deque<Frame>* inbox,
-                         double idle_timeout_s) {
+Status AgentLink::HandleInbox(Wire* wire) {
+  while (!wire->inbox.empty()) {
+    const Frame f = std::move(wire->inbox.front());
+    wire->inbox.pop_front();
+    // Nothing is acted on before its tag is checked: a forged ack would drop data the
+    // server never stored.
+    const Status verified = wire->auth.Verify(f);
+    if (!verified.ok()) {
+      if (verified.code() != StatusCode::kPermissionDenied) return verified;
+      std::lock_guard<std::mutex> lock(mutex_);
+      ++stats_.auth_failures;
+      return Unavailable("a frame from the server failed authentication (" +
+                         verified.message() + "); reconnecting");
+    }
+    CCMD_RETURN_IF_ERROR(HandleServerFrame(f));
+  }
+  return Status::Ok();
+}
+
+Status AgentLink::Stream(Wire* wire) {
+  const int fd = wire->fd;
+  const double idle_timeout_s = wire->idle_timeout_s;
   const double heartbeat = std::min(options_.heartbeat_interval_s, idle_timeout_s / 3);
   std::vector<std::uint8_t> out;
   std::size_t out_pos = 0;
   std::vector<std::uint8_t> buffer(kReadChunk);
   std::vector<Frame> frames;
-  double last_rx = MonotonicSeconds();
-  double last_tx = last_rx;
+  double last_frame = MonotonicSeconds();  // the last complete frame from the server
+  double last_tx = last_frame;
   while (true) {
-    while (!inbox->empty()) {
-      Frame f = std::move(inbox->front());
-      inbox->pop_front();
-      CCMD_RETURN_IF_ERROR(HandleServerFrame(f));
-    }
+    CCMD_RETURN_IF_ERROR(HandleInbox(wire));
     // Fill the output with the next messages in order.
     if (out_pos == out.size()) {
       out.clear();
@@ -498,8 +560,8 @@ Status AgentLink::Stream(int fd, FrameDecoder* decoder, std::deque<Frame>* inbox
       if (stopping_) {
         lock.unlock();
         // Finish the frame in progress, then say bye, so the server logs an orderly end.
-        AppendFrame(static_cast<std::uint8_t>(SessionType::kBye), 0,
-                    SerializeBye({ByeReason::kNormal, "agent closing"}), &out);
+        wire->auth.AppendFrame(static_cast<std::uint8_t>(SessionType::kBye),
+                               SerializeBye({ByeReason::kNormal, "agent closing"}), &out);
         WriteBlocking(fd, ByteSpan(out).subspan(out_pos), MonotonicSeconds() + kByeLingerSeconds,
                       /*interruptible=*/false)
             .IgnoreError();
@@ -510,7 +572,7 @@ Status AgentLink::Stream(int fd, FrameDecoder* decoder, std::deque<Frame>* inbox
         const std::uint64_t index = next_send_ - memory_.front().local;
         if (index >= memory_.size()) break;
         const Entry& e = memory_[index];
-        AppendDataFrame(e.type, e.local + offset_, *e.message, &out);
+        wire->auth.AppendDataFrame(e.type, e.local + offset_, *e.message, &out);
         if (e.local <= highest_sent_) ++stats_.resent;
         highest_sent_ = std::max(highest_sent_, e.local);
         ++stats_.frames_sent;
@@ -519,10 +581,10 @@ Status AgentLink::Stream(int fd, FrameDecoder* decoder, std::deque<Frame>* inbox
     }
     double now = MonotonicSeconds();
     if (out_pos == out.size() && now - last_tx >= heartbeat) {
-      AppendFrame(static_cast<std::uint8_t>(SessionType::kHeartbeat), 0, {}, &out);
+      wire->auth.AppendFrame(static_cast<std::uint8_t>(SessionType::kHeartbeat), {}, &out);
     }
     const bool writing = out_pos < out.size();
-    const double next_deadline = std::min(last_rx + idle_timeout_s, last_tx + heartbeat);
+    const double next_deadline = std::min(last_frame + idle_timeout_s, last_tx + heartbeat);
     pollfd fds[2] = {{fd, static_cast<short>(POLLIN | (writing ? POLLOUT : 0)), 0},
                      {wake_.fd(), POLLIN, 0}};
     if (::poll(fds, 2, PollMillis(next_deadline - now)) < 0 && errno != EINTR) {
@@ -538,21 +600,18 @@ Status AgentLink::Stream(int fd, FrameDecoder* decoder, std::deque<Frame>* inbox
         return n.status();
       }
       if (*n > 0) {
-        last_rx = MonotonicSeconds();
         {
           std::lock_guard<std::mutex> lock(mutex_);
           stats_.bytes_received += *n;
         }
         frames.clear();
-        const Status fed = decoder->Feed(ByteSpan(buffer.data(), *n), &frames);
-        for (Frame& f : frames) inbox->push_back(std::move(f));
+        const Status fed = wire->decoder.Feed(ByteSpan(buffer.data(), *n), &frames);
+        // Progress is a complete frame: a peer dribbling bytes does not keep us waiting.
+        if (!frames.empty()) last_frame = MonotonicSeconds();
+        for (Frame& f : frames) wire->inbox.push_back(std::move(f));
         if (!fed.ok()) {
           // Handle what arrived intact first (a bye explains more than the bad frame).
-          while (!inbox->empty()) {
-            Frame f = std::move(inbox->front());
-            inbox->pop_front();
-            CCMD_RETURN_IF_ERROR(HandleServerFrame(f));
-          }
+          CCMD_RETURN_IF_ERROR(HandleInbox(wire));
           return fed.WithContext("from the server");
         }
       }
@@ -567,8 +626,9 @@ Status AgentLink::Stream(int fd, FrameDecoder* decoder, std::deque<Frame>* inbox
         stats_.bytes_sent += *n;
       }
     }
-    if (MonotonicSeconds() - last_rx >= idle_timeout_s) {
-      return Timeout("nothing heard from the server for " + std::to_string(idle_timeout_s) + " s");
+    if (MonotonicSeconds() - last_frame >= idle_timeout_s) {
+      return Timeout("no complete frame from the server for " + std::to_string(idle_timeout_s) +
+                     " s");
     }
   }
 }

@@ -20,8 +20,17 @@
 // drop). The link thread connects, authenticates, sends in order, releases acknowledged
 // messages, and on any failure reconnects with exponential backoff (with jitter) and
 // resends everything not yet acknowledged; the server drops what it already has.
+// With a key every frame after the handshake is tagged both ways (frame_auth.h): a frame
+// from the server failing its tag (a forged acknowledgement) is never acted on; the link
+// closes that connection and reconnects.
 // Configuration errors the server reports (wrong key, no key, other protocol version,
-// camera/name conflict) end the link: Send and Flush then return that error.
+// camera/name conflict, another agent's name) end the link: Send and Flush then return
+// that error, and stats() counts the messages Send refused and those never acknowledged.
+//
+// Identity: the link presents an identity secret (agent_identity.h) that the server ties to
+// the name at its first registration. It lives in identity_file, by default in the spill
+// folder; without either it exists only as long as the link, so a later process under the
+// same name is refused.
 
 #include <condition_variable>
 #include <cstdint>
@@ -33,6 +42,8 @@
 #include <thread>
 #include <vector>
 
+#include "libccmd/net/agent_identity.h"
+#include "libccmd/net/frame_auth.h"
 #include "libccmd/net/session_messages.h"
 #include "libccmd/net/socket.h"
 #include "libccmd/net/spill_store.h"
@@ -47,6 +58,9 @@ struct AgentLinkOptions {
   SessionCamera camera;
   std::string psk;        // the deployment's key; "" only with a keyless loopback server
   std::string spill_dir;  // "" = no spilling: Send fails when memory is full
+  // The identity secret's file: "" = <spill_dir>/identity; without a spill folder either,
+  // a new secret held in memory only.
+  std::string identity_file;
   std::size_t memory_limit_bytes = 64u << 20;
   std::uint64_t spill_limit_bytes = 4ull << 30;
   double connect_timeout_s = 5.0;
@@ -80,6 +94,8 @@ struct AgentLinkStats {
   std::uint64_t bytes_received = 0;
   std::uint64_t sessions = 0;         // successful handshakes
   std::uint64_t failed_attempts = 0;  // connections or sessions that failed
+  std::uint64_t refused = 0;          // messages Send did not accept (link ended, full, ...)
+  std::uint64_t auth_failures = 0;    // frames from the server that failed their tag
   std::string last_error;
 };
 
@@ -114,21 +130,38 @@ class AgentLink {
     std::shared_ptr<const std::vector<std::uint8_t>> message;
   };
 
-  AgentLink(AgentLinkOptions options, HostPort address, std::unique_ptr<SpillStore> spill);
+  // One connection's state on the link thread.
+  struct Wire {
+    int fd = -1;
+    FrameDecoder decoder{FrameLimits{.max_payload_bytes = kDefaultMaxPayloadBytes}};
+    std::deque<Frame> inbox;  // decoded, not yet handled (nor verified)
+    SessionAuth auth;         // keyed after the Auth is sent
+    double idle_timeout_s = 30;
+  };
+
+  AgentLink(AgentLinkOptions options, HostPort address, std::unique_ptr<SpillStore> spill,
+            AgentIdentity identity);
+  StatusOr<std::uint64_t> Refuse(Status why);  // counts a refused Send (mutex held)
   void Run();
   Status Session(double* backoff);
-  Status Handshake(int fd, FrameDecoder* decoder, std::deque<Frame>* inbox, double* idle_timeout_s);
-  Status Stream(int fd, FrameDecoder* decoder, std::deque<Frame>* inbox, double idle_timeout_s);
+  Status Handshake(Wire* wire);
+  // The Welcome (or Bye) answering the Auth, verified.
+  StatusOr<WelcomeMessage> AwaitWelcome(Wire* wire, double deadline);
+  Status Stream(Wire* wire);
+  // Verifies and handles the frames in the inbox, in order.
+  Status HandleInbox(Wire* wire);
   Status WriteBlocking(int fd, ByteSpan bytes, double deadline, bool interruptible = true);
-  StatusOr<Frame> ReadFrameBlocking(int fd, FrameDecoder* decoder, std::deque<Frame>* inbox,
-                                    double deadline);
+  StatusOr<Frame> ReadFrameBlocking(Wire* wire, double deadline);
   Status HandleServerFrame(const Frame& frame);
+  // What a Bye from the server means; `authenticated`: tagged and verified (or keyless).
+  Status ServerBye(const ByeMessage& bye, bool authenticated);
   // Releases messages up to link number `last` (mutex held); returns the first released.
   void ReleaseLocked(std::uint64_t last);
   void RefillLocked();
 
   const AgentLinkOptions options_;
   const HostPort address_;
+  const AgentIdentity identity_;
   WakeFd wake_;
   std::thread thread_;
 

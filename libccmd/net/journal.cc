@@ -8,6 +8,7 @@
 #include <cerrno>
 #include <cstdio>
 #include <cstring>
+#include <optional>
 
 #include "proto/crc32c.h"
 #include "proto/frame.h"
@@ -94,79 +95,229 @@ StatusOr<bool> AllZeroFrom(ScanSource* src, std::uint64_t offset) {
   return true;
 }
 
-StatusOr<JournalScan> Scan(ScanSource* src, const std::string& name, const JournalVisitor& visitor,
-                           const JournalScanOptions& options) {
-  JournalScan scan;
-  std::uint64_t pos = 0;
-  const std::uint64_t size = src->size();
-  std::vector<std::uint8_t> payload;
-  auto corrupt = [&](const std::string& what) {
-    return Corrupt(name + ": " + what + " at offset " + std::to_string(pos) + " (record " +
-                   std::to_string(scan.records + (scan.has_info ? 1 : 0)) + ", after sequence " +
-                   std::to_string(scan.last_seq) +
-                   "); records after it would be lost: move the file aside or cut it at this "
-                   "offset to accept that");
-  };
-  auto torn = [&](const std::string& why) {
-    scan.valid_bytes = pos;
-    scan.torn_bytes = size - pos;
-    scan.torn_reason = why;
-    return scan;
-  };
-  while (pos < size) {
-    if (size - pos < kFrameHeaderSize) return torn("incomplete record header");
+// File-system blocks allocated but never written read as zeros. A last record whose file
+// ends in at least one whole such block (at or after `from`) was shown incomplete.
+constexpr std::uint64_t kFileBlock = 4096;
+bool EndsInUnwrittenBlock(const std::vector<std::uint8_t>& payload, std::uint64_t payload_offset) {
+  std::size_t last_nonzero = payload.size();
+  while (last_nonzero > 0 && payload[last_nonzero - 1] == 0) --last_nonzero;
+  const std::uint64_t zeros_from = payload_offset + last_nonzero;
+  const std::uint64_t block = (zeros_from + kFileBlock - 1) / kFileBlock * kFileBlock;
+  return block + kFileBlock <= payload_offset + payload.size();
+}
+
+// A record that passes every frame check (header, length within the file, payload CRC).
+struct IntactRecord {
+  std::uint64_t end = 0;
+  std::uint8_t type = 0;
+  std::uint64_t seq = 0;  // data records only
+};
+
+std::optional<IntactRecord> IntactAt(ScanSource* src, std::uint64_t pos,
+                                     std::vector<std::uint8_t>* payload) {
+  std::uint8_t header_bytes[kFrameHeaderSize];
+  if (src->size() - pos < kFrameHeaderSize) return std::nullopt;
+  if (!src->Read(pos, kFrameHeaderSize, header_bytes).ok()) return std::nullopt;
+  StatusOr<FrameHeader> h =
+      ParseFrameHeader(ByteSpan(header_bytes, kFrameHeaderSize),
+                       FrameLimits{.max_payload_bytes = kMaxJournalPayloadBytes, .oldest_version = 1});
+  if (!h.ok() || h->tagged() || h->payload_size > src->size() - pos - kFrameHeaderSize) {
+    return std::nullopt;
+  }
+  payload->resize(h->payload_size);
+  if (!payload->empty() && !src->Read(pos + kFrameHeaderSize, payload->size(), payload->data()).ok()) {
+    return std::nullopt;
+  }
+  if (Crc32c(*payload) != h->payload_crc) return std::nullopt;
+  IntactRecord r{pos + kFrameHeaderSize + h->payload_size, h->type, 0};
+  if (IsKnownDataType(h->type)) {
+    StatusOr<DataEnvelope> env = ParseDataEnvelope(*payload);
+    if (env.ok()) r.seq = env->seq;
+  }
+  return r;
+}
+
+// After damage at `pos`: the records further on that pass their checks, found by searching
+// for the frame magic. Decides what the error may advise.
+struct IntactAfter {
+  std::uint64_t records = 0;
+  std::uint64_t first_seq = 0, last_seq = 0;
+};
+
+StatusOr<IntactAfter> FindIntactAfter(ScanSource* src, std::uint64_t pos) {
+  IntactAfter found;
+  std::vector<std::uint8_t> chunk(
+      static_cast<std::size_t>(std::min<std::uint64_t>(1 << 20, src->size() - pos))),
+      payload;
+  std::uint64_t at = pos + 1;
+  while (at + kFrameHeaderSize <= src->size()) {
+    const std::size_t n =
+        static_cast<std::size_t>(std::min<std::uint64_t>(chunk.size(), src->size() - at));
+    CCMD_RETURN_IF_ERROR(src->Read(at, n, chunk.data()));
+    std::uint64_t next = at + n - (sizeof(kFrameMagic) - 1);  // magic split across chunks
+    for (std::size_t i = 0; i + sizeof(kFrameMagic) <= n; ++i) {
+      if (std::memcmp(chunk.data() + i, kFrameMagic, sizeof(kFrameMagic)) != 0) continue;
+      std::optional<IntactRecord> r = IntactAt(src, at + i, &payload);
+      if (!r) continue;
+      ++found.records;
+      if (r->seq != 0) {
+        if (found.first_seq == 0) found.first_seq = r->seq;
+        found.last_seq = r->seq;
+      }
+      next = r->end;  // continue after it
+      break;
+    }
+    if (next <= at) next = at + 1;
+    at = next;
+  }
+  return found;
+}
+
+class Scanner {
+ public:
+  Scanner(ScanSource* src, std::string name, const JournalVisitor& visitor,
+          const JournalScanOptions& options)
+      : src_(src), name_(std::move(name)), visitor_(visitor), options_(options) {}
+
+  StatusOr<JournalScan> Run() {
+    while (pos_ < src_->size()) {
+      CCMD_ASSIGN_OR_RETURN(const bool done, Next());
+      if (done) return scan_;
+    }
+    scan_.valid_bytes = pos_;
+    return scan_;
+  }
+
+ private:
+  // Reads the record at pos_; true when the scan ends here (a torn tail).
+  StatusOr<bool> Next() {
+    const std::uint64_t left = src_->size() - pos_;
+    if (left < kFrameHeaderSize) {
+      CCMD_ASSIGN_OR_RETURN(const bool zeros, AllZeroFrom(src_, pos_));
+      return Torn(zeros ? "zero-filled tail" : "incomplete record header");
+    }
     std::uint8_t header_bytes[kFrameHeaderSize];
-    CCMD_RETURN_IF_ERROR(src->Read(pos, kFrameHeaderSize, header_bytes));
+    CCMD_RETURN_IF_ERROR(src_->Read(pos_, kFrameHeaderSize, header_bytes));
     StatusOr<FrameHeader> header =
         ParseFrameHeader(ByteSpan(header_bytes, kFrameHeaderSize),
-                         FrameLimits{.max_payload_bytes = options.max_payload_bytes});
+                         FrameLimits{.max_payload_bytes = kMaxJournalPayloadBytes, .oldest_version = 1});
     if (!header.ok()) {
-      CCMD_ASSIGN_OR_RETURN(const bool zeros, AllZeroFrom(src, pos));
-      if (zeros) return torn("zero-filled tail");
-      return corrupt("bad record header (" + header.status().message() + ")");
+      CCMD_ASSIGN_OR_RETURN(const bool zeros, AllZeroFrom(src_, pos_));
+      if (zeros) return Torn("zero-filled tail");
+      return Damaged("bad record header (" + header.status().message() + ")");
     }
-    const std::uint64_t end = pos + kFrameHeaderSize + header->payload_size;
-    if (end > size) return torn("incomplete record");
-    payload.resize(header->payload_size);
-    if (!payload.empty()) {
-      CCMD_RETURN_IF_ERROR(src->Read(pos + kFrameHeaderSize, payload.size(), payload.data()));
+    if (header->tagged()) return Damaged("record with a tag (journals hold untagged records)");
+    const std::uint32_t limit = Limit(header->type);
+    if (header->payload_size > limit) {
+      return Damaged("record of " + std::to_string(header->payload_size) +
+                     " bytes, above the limit of " + std::to_string(limit) +
+                     " this journal was written with");
     }
-    if (Crc32c(payload) != header->payload_crc) {
-      // Only the last record can be half-persisted by a crash.
-      if (end == size) return torn("last record fails its CRC");
-      return corrupt("record payload CRC mismatch");
+    const std::uint64_t end = pos_ + kFrameHeaderSize + header->payload_size;
+    if (end > src_->size()) {
+      return Torn("incomplete record (the file ends " + std::to_string(left - kFrameHeaderSize) +
+                  " bytes into a payload of " + std::to_string(header->payload_size) + ")");
     }
-    if (!scan.has_info) {
-      if (header->type != kJournalInfoRecord)
-        return corrupt("first record is not a journal info record");
-      StatusOr<JournalAgentInfo> info = ParseJournalInfo(payload);
-      if (!info.ok()) return corrupt(info.status().message());
-      scan.info = std::move(*info);
-      scan.has_info = true;
-      if (visitor.on_info) CCMD_RETURN_IF_ERROR(visitor.on_info(scan.info));
-    } else {
-      if (!IsKnownDataType(header->type)) {
-        return corrupt("record of unknown type " + std::to_string(header->type));
+    payload_.resize(header->payload_size);
+    if (!payload_.empty()) {
+      CCMD_RETURN_IF_ERROR(src_->Read(pos_ + kFrameHeaderSize, payload_.size(), payload_.data()));
+    }
+    if (Crc32c(payload_) != header->payload_crc) {
+      if (end == src_->size() && EndsInUnwrittenBlock(payload_, pos_ + kFrameHeaderSize)) {
+        return Torn("the last record ends in never-written (zero) blocks");
       }
-      StatusOr<DataEnvelope> env = ParseDataEnvelope(payload);
-      if (!env.ok()) return corrupt(env.status().message());
-      if (env->seq <= scan.last_seq) {
-        return corrupt("sequence number " + std::to_string(env->seq) + " does not increase");
-      }
-      if (scan.last_seq != 0 && env->seq != scan.last_seq + 1) ++scan.gaps;
-      if (scan.records == 0) scan.first_seq = env->seq;
-      scan.last_seq = env->seq;
-      ++scan.records;
-      if (visitor.on_record) {
-        JournalRecord record{header->type, env->seq, env->message, pos};
-        CCMD_RETURN_IF_ERROR(visitor.on_record(record));
-      }
+      return Damaged("record payload CRC mismatch");
     }
-    pos = end;
+    CCMD_RETURN_IF_ERROR(Record(header->type, header->version));
+    pos_ = end;
+    return false;
   }
-  scan.valid_bytes = pos;
-  return scan;
-}
+
+  std::uint32_t Limit(std::uint8_t type) const {
+    if (!scan_.has_info || type == kJournalUpdateRecord) return kMaxJournalInfoBytes;
+    const std::uint32_t recorded =
+        scan_.info.max_payload_bytes != 0 ? scan_.info.max_payload_bytes : kMaxJournalPayloadBytes;
+    return std::min(recorded, options_.max_payload_bytes);
+  }
+
+  Status Record(std::uint8_t type, std::uint8_t version) {
+    if (!scan_.has_info) {
+      if (type != kJournalInfoRecord) return Damaged("first record is not a journal info record").status();
+      StatusOr<JournalAgentInfo> info = ParseJournalInfo(payload_, version);
+      if (!info.ok()) return Damaged(info.status().message()).status();
+      scan_.info = std::move(*info);
+      scan_.has_info = true;
+      if (visitor_.on_info) CCMD_RETURN_IF_ERROR(visitor_.on_info(scan_.info));
+      return Status::Ok();
+    }
+    if (type == kJournalUpdateRecord) {
+      StatusOr<JournalUpdate> update = ParseJournalUpdate(payload_);
+      if (!update.ok()) return Damaged(update.status().message()).status();
+      scan_.info.max_payload_bytes = update->max_payload_bytes;
+      if (!IsZero(update->verifier)) scan_.info.verifier = update->verifier;
+      return Status::Ok();
+    }
+    if (!IsKnownDataType(type)) {
+      return Damaged("record of unknown type " + std::to_string(type)).status();
+    }
+    StatusOr<DataEnvelope> env = ParseDataEnvelope(payload_);
+    if (!env.ok()) return Damaged(env.status().message()).status();
+    if (env->seq <= scan_.last_seq) {
+      return Damaged("sequence number " + std::to_string(env->seq) + " does not increase")
+          .status();
+    }
+    if (scan_.last_seq != 0 && env->seq != scan_.last_seq + 1) ++scan_.gaps;
+    if (scan_.records == 0) scan_.first_seq = env->seq;
+    scan_.last_seq = env->seq;
+    ++scan_.records;
+    if (visitor_.on_record) {
+      JournalRecord record{type, env->seq, env->message, pos_};
+      CCMD_RETURN_IF_ERROR(visitor_.on_record(record));
+    }
+    return Status::Ok();
+  }
+
+  bool Torn(const std::string& why) {
+    scan_.valid_bytes = pos_;
+    scan_.torn_bytes = src_->size() - pos_;
+    scan_.torn_reason = why;
+    return true;
+  }
+
+  // Damage at pos_: an error that says what is wrong and what a cut would cost.
+  StatusOr<bool> Damaged(const std::string& what) {
+    std::string text = name_ + ": " + what + " at offset " + std::to_string(pos_) + " (record " +
+                       std::to_string(scan_.records + (scan_.has_info ? 1 : 0)) +
+                       ", after sequence number " + std::to_string(scan_.last_seq) + "); ";
+    StatusOr<IntactAfter> after = FindIntactAfter(src_, pos_);
+    if (!after.ok()) return after.status();
+    if (after->records > 0) {
+      text += std::to_string(after->records) + " intact record(s) follow it";
+      if (after->last_seq != 0) {
+        text += " (sequence numbers " + std::to_string(after->first_seq) + ".." +
+                std::to_string(after->last_seq) + ")";
+      }
+      text +=
+          ", so this is damage inside the journal, not an interrupted write, and cutting the "
+          "file would lose them. Restore the file from a copy, or move it out of the folder "
+          "to start without this agent's journal";
+    } else {
+      text += "nothing after it passes its checks: cutting the file at offset " +
+              std::to_string(pos_) + " (truncate -s " + std::to_string(pos_) +
+              " FILE) drops only bytes that fail them, and nothing that was acknowledged "
+              "unless the disk damaged it";
+    }
+    return Corrupt(text);
+  }
+
+  ScanSource* src_;
+  std::string name_;
+  const JournalVisitor& visitor_;
+  JournalScanOptions options_;
+  JournalScan scan_;
+  std::uint64_t pos_ = 0;
+  std::vector<std::uint8_t> payload_;
+};
 
 }  // namespace
 
@@ -176,8 +327,9 @@ std::vector<std::uint8_t> SerializeJournalInfo(const JournalAgentInfo& info) {
   w.PutU8(static_cast<std::uint8_t>(info.name.size()));
   w.PutBytes(info.name.data(), info.name.size());
   PutSessionCamera(info.camera, &w);
-  // Distortion is appended only when there is some: such journals stay readable by servers
-  // that predate it, and theirs by this one.
+  w.PutU32(info.max_payload_bytes);
+  w.PutBytes(info.verifier.data(), info.verifier.size());
+  // Distortion is appended only when there is some, as in version 1.
   if (info.camera.HasDistortion()) {
     w.PutU8(kJournalCameraDistortion);
     PutDistortion(info.camera, &w);
@@ -185,7 +337,19 @@ std::vector<std::uint8_t> SerializeJournalInfo(const JournalAgentInfo& info) {
   return w.Take();
 }
 
-StatusOr<JournalAgentInfo> ParseJournalInfo(ByteSpan payload) {
+namespace {
+
+Status ReadLimitAndVerifier(ByteReader* r, std::uint32_t* limit, IdentityVerifier* verifier) {
+  CCMD_RETURN_IF_ERROR(r->ReadU32(limit));
+  if (*limit < kFrameHeaderSize || *limit > kMaxJournalPayloadBytes) {
+    return Corrupt("journal: payload limit of " + std::to_string(*limit) + " bytes");
+  }
+  return r->ReadBytes(verifier->size(), verifier->data());
+}
+
+}  // namespace
+
+StatusOr<JournalAgentInfo> ParseJournalInfo(ByteSpan payload, std::uint8_t version) {
   ByteReader r(payload);
   JournalAgentInfo info;
   std::uint16_t id;
@@ -199,6 +363,11 @@ StatusOr<JournalAgentInfo> ParseJournalInfo(ByteSpan payload) {
   Status name_ok = ValidateAgentName(info.name);
   if (!name_ok.ok()) return Corrupt("journal info: " + name_ok.message());
   CCMD_RETURN_IF_ERROR(ReadSessionCamera(&r, &info.camera));
+  if (version < 2) {
+    info.max_payload_bytes = 0;  // version 1 recorded neither limit nor verifier
+  } else {
+    CCMD_RETURN_IF_ERROR(ReadLimitAndVerifier(&r, &info.max_payload_bytes, &info.verifier));
+  }
   if (r.remaining() > 0) {
     std::uint8_t extension;
     CCMD_RETURN_IF_ERROR(r.ReadU8(&extension));
@@ -208,10 +377,25 @@ StatusOr<JournalAgentInfo> ParseJournalInfo(ByteSpan payload) {
     }
     CCMD_RETURN_IF_ERROR(ReadDistortion(&r, &info.camera));
   }
+  CCMD_RETURN_IF_ERROR(r.ExpectEnd());
   Status camera_ok = ValidateSessionCamera(info.camera);
   if (!camera_ok.ok()) return Corrupt("journal info: " + camera_ok.message());
-  CCMD_RETURN_IF_ERROR(r.ExpectEnd());
   return info;
+}
+
+std::vector<std::uint8_t> SerializeJournalUpdate(const JournalUpdate& update) {
+  ByteWriter w(36);
+  w.PutU32(update.max_payload_bytes);
+  w.PutBytes(update.verifier.data(), update.verifier.size());
+  return w.Take();
+}
+
+StatusOr<JournalUpdate> ParseJournalUpdate(ByteSpan payload) {
+  ByteReader r(payload);
+  JournalUpdate update;
+  CCMD_RETURN_IF_ERROR(ReadLimitAndVerifier(&r, &update.max_payload_bytes, &update.verifier));
+  CCMD_RETURN_IF_ERROR(r.ExpectEnd());
+  return update;
 }
 
 std::string JournalFileName(AgentId id) {
@@ -281,6 +465,14 @@ Status JournalWriter::Append(std::uint8_t type, std::uint64_t seq, ByteSpan mess
   return Status::Ok();
 }
 
+Status JournalWriter::AppendUpdate(const JournalUpdate& update) {
+  const std::vector<std::uint8_t> record =
+      EncodeFrame(kJournalUpdateRecord, 0, SerializeJournalUpdate(update));
+  CCMD_RETURN_IF_ERROR(WriteAll(fd_.get(), record.data(), record.size(), path_));
+  size_ += record.size();
+  return Sync();
+}
+
 Status JournalWriter::Sync() {
   if (size_ == synced_size_) return Status::Ok();
   if (::fdatasync(fd_.get()) != 0) return IoError(Errno("syncing journal " + path_));
@@ -303,13 +495,13 @@ StatusOr<JournalScan> ScanJournalFile(const std::string& path, const JournalVisi
   struct stat st {};
   if (::fstat(fd.get(), &st) != 0) return IoError(Errno("stat " + path));
   FileSource src(fd.get(), static_cast<std::uint64_t>(st.st_size), path);
-  return Scan(&src, path, visitor, options);
+  return Scanner(&src, path, visitor, options).Run();
 }
 
 StatusOr<JournalScan> ScanJournalBytes(ByteSpan bytes, const JournalVisitor& visitor,
                                        const JournalScanOptions& options) {
   MemorySource src(bytes);
-  return Scan(&src, "journal", visitor, options);
+  return Scanner(&src, "journal", visitor, options).Run();
 }
 
 }  // namespace ccmd

@@ -5,6 +5,7 @@
 
 #include <algorithm>
 
+#include "libccmd/net/psk.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/timer.h"
@@ -74,6 +75,16 @@ JournalStage::JournalStage(JournalStageOptions options, DeliveryStage* delivery,
       queue_(options_.queue_capacity) {}
 
 namespace {
+
+// Records that from here on the journal may hold payloads up to `limit`, if that is more
+// than it recorded (a resume with a larger --max-frame-bytes): a later replay must accept
+// the larger records. A smaller limit needs nothing: every record fits the recorded one.
+Status RaiseRecordedLimit(JournalAgentInfo* info, JournalWriter* writer, std::uint32_t limit) {
+  if (info->max_payload_bytes >= limit) return Status::Ok();
+  CCMD_RETURN_IF_ERROR(writer->AppendUpdate({limit, {}}));
+  info->max_payload_bytes = limit;
+  return Status::Ok();
+}
 
 // Journal files in `dir`, sorted by agent id.
 StatusOr<std::vector<std::pair<AgentId, std::string>>> ListJournals(const std::string& dir) {
@@ -149,8 +160,8 @@ StatusOr<std::uint64_t> JournalStage::Resume() {
       delivery_->Push(std::move(d));
       return Status::Ok();
     };
-    JournalScanOptions scan_options{.max_payload_bytes = options_.max_payload_bytes};
-    CCMD_ASSIGN_OR_RETURN(const JournalScan scan, ScanJournalFile(path, visitor, scan_options));
+    // Each journal is read with the limits it records, whatever this run's limit is.
+    CCMD_ASSIGN_OR_RETURN(const JournalScan scan, ScanJournalFile(path, visitor));
     if (!scan.has_info) {
       // The server stopped while creating this journal: nothing in it was acknowledged.
       CCMD_LOG(WARNING) << path << ": no complete info record (" << scan.torn_bytes
@@ -168,7 +179,12 @@ StatusOr<std::uint64_t> JournalStage::Resume() {
       CCMD_LOG(WARNING) << path << ": " << scan.gaps << " gap(s) in the sequence numbers";
     }
     CCMD_ASSIGN_OR_RETURN(agent.writer, JournalWriter::OpenForAppend(path, scan.valid_bytes));
+    agent.info = scan.info;  // with its update records applied
+    CCMD_RETURN_IF_ERROR(RaiseRecordedLimit(&agent.info, agent.writer.get(), options_.max_payload_bytes));
     agent.written_seq = agent.durable_seq = scan.last_seq;
+    // Restored agents get a slot time-out's grace to come back before new names take it.
+    agent.last_detach = MonotonicSeconds();
+    next_id_ = std::max<std::uint32_t>(next_id_, file_id.value() + 1u);
     CCMD_LOG(INFO) << "resumed agent " << agent.info.id << " '" << agent.info.name
                    << "': " << scan.records << " messages, last sequence number " << scan.last_seq;
     total += scan.records;
@@ -226,14 +242,9 @@ void JournalStage::ProcessBatch(std::vector<StageItem>* items) {
       case StageItem::Kind::kData:
         Data(&item, &batch);
         break;
-      case StageItem::Kind::kDetach: {
-        DeliveryItem d;
-        d.kind = DeliveryItem::Kind::kDisconnected;
-        d.id = item.agent;
-        d.reason = item.reason;
-        batch.deliveries.push_back(std::move(d));
+      case StageItem::Kind::kDetach:
+        Detach(item, &batch);
         break;
-      }
     }
   }
   // Group commit: one fdatasync per journal written in this batch, before any ack.
@@ -252,12 +263,14 @@ void JournalStage::ProcessBatch(std::vector<StageItem>* items) {
   }
   feedback.attached = std::move(batch.attached);
   feedback.freed_bytes = std::move(batch.freed);
+  feedback.forgotten = std::move(batch.forgotten);
   {
     std::lock_guard<std::mutex> lock(feedback_mutex_);
     for (AttachResult& r : feedback.attached) feedback_.attached.push_back(std::move(r));
     for (const auto& [id, seq] : feedback.stored) feedback_.stored[id] = seq;
     for (const auto& [id, n] : feedback.freed_bytes) feedback_.freed_bytes[id] += n;
     for (auto& f : feedback.failed) feedback_.failed.push_back(std::move(f));
+    for (AgentId id : feedback.forgotten) feedback_.forgotten.push_back(id);
   }
   wake_->Signal();
   // Only now, with the records durable, does the consumer see them.
@@ -289,83 +302,169 @@ void JournalStage::Fail(AgentId id, const Status& status, Batch* batch, StageFee
   feedback->failed.emplace_back(id, status);
 }
 
-void JournalStage::Attach(const StageItem& item, Batch* batch) {
+int JournalStage::ActiveAgents(double now) const {
+  int active = 0;
+  for (const auto& [id, a] : agents_) {
+    active += a.connections > 0 || now - a.last_detach < options_.slot_timeout_s;
+  }
+  return active;
+}
+
+JournalStage::Agent* JournalStage::CheckRegistered(const StageItem& item, AttachResult* refusal) {
   const HelloMessage& hello = item.hello;
+  Agent* agent = &agents_[by_name_.at(hello.name)];
+  if (!IsZero(agent->info.verifier) && !ConstantTimeEquals(agent->info.verifier, item.verifier)) {
+    // Nothing about the registered agent (camera, sequence numbers) goes to this peer.
+    stats_->Count("refused_identity");
+    refusal->reason = ByeReason::kRefused;
+    refusal->status = PermissionDenied(
+        "the name '" + hello.name +
+        "' belongs to an agent registered earlier, and this agent cannot prove it is that one "
+        "(its identity file, kept in its spill folder, is missing or differs); use another "
+        "name");
+    return nullptr;
+  }
+  if (IsZero(agent->info.verifier)) {
+    // A journal of protocol version 1 recorded no identity: the first to connect claims it.
+    const Status s = agent->writer->AppendUpdate({agent->info.max_payload_bytes, item.verifier});
+    if (!s.ok()) {
+      refusal->reason = ByeReason::kServerError;
+      refusal->status = s;
+      return nullptr;
+    }
+    agent->info.verifier = item.verifier;
+    CCMD_LOG(WARNING) << "agent '" << hello.name
+                      << "': its journal (protocol version 1) recorded no identity; adopted "
+                         "the one this connection presented";
+  }
+  if (!(agent->info.camera == hello.camera)) {
+    refusal->reason = ByeReason::kRefused;
+    refusal->status = InvalidArgument("agent '" + hello.name + "' is registered with camera " +
+                                      DescribeCamera(agent->info.camera) + " but announces " +
+                                      DescribeCamera(hello.camera) +
+                                      "; a different camera needs a new agent name");
+    return nullptr;
+  }
+  return agent;
+}
+
+JournalStage::Agent* JournalStage::RegisterProvisionally(const StageItem& item,
+                                                         AttachResult* refusal) {
+  const int active = ActiveAgents(item.received_time);
+  if (active >= options_.max_agents || next_id_ > 0xFFFF) {
+    refusal->reason = ByeReason::kServerFull;
+    refusal->status = OutOfRange(
+        next_id_ > 0xFFFF
+            ? std::string("the server has given out every agent id in this run")
+            : "server full: all " + std::to_string(options_.max_agents) +
+                  " agent slots are in use (--max-agents); a slot frees when its agent has "
+                  "been disconnected for " +
+                  std::to_string(static_cast<int>(options_.slot_timeout_s)) +
+                  " s (--slot-timeout). This agent keeps trying");
+    return nullptr;
+  }
+  const AgentId id(static_cast<std::uint16_t>(next_id_++));
+  Agent a;
+  a.info = JournalAgentInfo{id, item.hello.name, item.hello.camera, options_.max_payload_bytes,
+                            item.verifier};
+  by_name_[item.hello.name] = id;
+  return &(agents_[id] = std::move(a));
+}
+
+Status JournalStage::CheckResumePoint(const HelloMessage& hello, bool journaled, Agent* agent) {
+  if (hello.fresh) return Status::Ok();
+  const std::uint64_t last = agent->written_seq;
+  if (hello.next_seq - 1 < last) {
+    return InvalidArgument("the server holds " + std::to_string(last) + " messages of agent '" +
+                           hello.name + "' but the agent has sent only " +
+                           std::to_string(hello.next_seq - 1));
+  }
+  if (hello.first_seq <= last + 1) return Status::Ok();
+  if (journaled) {
+    // Everything acknowledged was journaled first: a journal that ends earlier is not the
+    // one that acknowledged these messages, and jumping ahead would lose them silently.
+    stats_->Count("refused_resume_point");
+    return InvalidArgument(
+        "agent '" + hello.name + "' says messages up to " + std::to_string(hello.first_seq - 1) +
+        " were acknowledged, but this server's journal of it ends at message " +
+        std::to_string(last) +
+        ": it is not the journal that acknowledged them (an older copy?). Resume the server "
+        "from the journal folder it ran with, or give the agent a new name");
+  }
+  // A name new to this server: its messages up to first_seq - 1 were acknowledged by a
+  // server whose journal is not here (started without its --resume folder).
+  CCMD_LOG(WARNING) << "agent '" << hello.name << "': messages 1.." << hello.first_seq - 1
+                    << " were acknowledged earlier but are not in this server's journal "
+                       "(started without its --resume folder?); continuing after the gap";
+  stats_->Count("sequence_gaps");
+  agent->written_seq = agent->durable_seq = hello.first_seq - 1;
+  return Status::Ok();
+}
+
+void JournalStage::Attach(const StageItem& item, Batch* batch) {
   AttachResult result;
   result.conn = item.conn;
-  auto refuse = [&](ByeReason reason, Status status) {
-    result.status = std::move(status);
-    result.reason = reason;
+  const bool registered = by_name_.count(item.hello.name) > 0;
+  Agent* agent = registered ? CheckRegistered(item, &result) : RegisterProvisionally(item, &result);
+  if (agent == nullptr) {
     batch->attached.push_back(std::move(result));
-  };
-  Agent* agent = nullptr;
-  auto found = by_name_.find(hello.name);
-  if (found != by_name_.end()) {
-    agent = &agents_[found->second];
-    if (!(agent->info.camera == hello.camera)) {
-      return refuse(ByeReason::kRefused,
-                    InvalidArgument("agent '" + hello.name + "' is registered with camera " +
-                                    DescribeCamera(agent->info.camera) + " but announces " +
-                                    DescribeCamera(hello.camera) +
-                                    "; a different camera needs a new agent name"));
-    }
-  } else {
-    if (static_cast<int>(agents_.size()) >= options_.max_agents) {
-      return refuse(ByeReason::kServerFull,
-                    OutOfRange("the server has " + std::to_string(agents_.size()) +
-                               " agents registered, its limit (--max-agents)"));
-    }
-    const AgentId id(agents_.empty() ? 1 : agents_.rbegin()->first.value() + 1);
-    if (id.value() == 0) {
-      return refuse(ByeReason::kServerFull, OutOfRange("agent ids exhausted"));
-    }
-    JournalAgentInfo info{id, hello.name, hello.camera};
-    StatusOr<std::unique_ptr<JournalWriter>> writer =
-        JournalWriter::Create(JoinPath(options_.dir, JournalFileName(id)), info);
-    if (!writer.ok()) {
-      CCMD_LOG(ERROR) << "cannot register agent '" << hello.name
-                      << "': " << writer.status().ToString();
-      return refuse(ByeReason::kServerError, writer.status());
-    }
-    Agent a;
-    a.info = info;
-    a.writer = std::move(*writer);
-    by_name_[hello.name] = id;
-    agent = &(agents_[id] = std::move(a));
-    CCMD_LOG(INFO) << "registered agent " << id << " '" << hello.name << "' ("
-                   << DescribeCamera(hello.camera) << ")";
+    return;
   }
-  std::uint64_t last = agent->written_seq;
-  if (!hello.fresh) {
-    if (hello.next_seq - 1 < last) {
-      return refuse(
-          ByeReason::kRefused,
-          InvalidArgument("the server holds " + std::to_string(last) + " messages of agent '" +
-                          hello.name + "' but the agent has sent only " +
-                          std::to_string(hello.next_seq - 1) +
-                          "; is another agent using the same name?"));
-    }
-    if (hello.first_seq > last + 1) {
-      // The agent no longer holds messages last+1 .. first_seq-1: they were acknowledged by
-      // a server whose journal is not here (started without --resume, or a lost folder).
-      CCMD_LOG(WARNING) << "agent '" << hello.name << "': messages " << last + 1 << ".."
-                        << hello.first_seq - 1
-                        << " were acknowledged earlier but are not in this server's journal "
-                           "(started without its --resume folder?); continuing after the gap";
-      stats_->Count("sequence_gaps");
-      agent->written_seq = agent->durable_seq = hello.first_seq - 1;
-      last = agent->written_seq;
-    }
+  const Status resume = CheckResumePoint(item.hello, agent->writer != nullptr, agent);
+  if (!resume.ok()) {
+    result.reason = ByeReason::kRefused;
+    result.status = resume;
+    batch->attached.push_back(std::move(result));
+    return;
   }
+  ++agent->connections;
+  if (agent->writer) {
+    Announce(agent, /*from_journal=*/false, &batch->deliveries).IgnoreError();
+    DeliveryItem connected;
+    connected.kind = DeliveryItem::Kind::kConnected;
+    connected.id = agent->info.id;
+    connected.value = agent->written_seq;
+    batch->deliveries.push_back(std::move(connected));
+  }
+  result.agent = agent->info.id;
+  result.last_stored = agent->written_seq;
+  batch->attached.push_back(std::move(result));
+}
+
+void JournalStage::Detach(const StageItem& item, Batch* batch) {
+  auto it = agents_.find(item.agent);
+  if (it == agents_.end()) return;
+  Agent& a = it->second;
+  a.connections = std::max(0, a.connections - 1);
+  if (a.connections == 0) a.last_detach = item.received_time;
+  if (a.announced) {
+    DeliveryItem d;
+    d.kind = DeliveryItem::Kind::kDisconnected;
+    d.id = item.agent;
+    d.reason = item.reason;
+    batch->deliveries.push_back(std::move(d));
+  }
+  if (a.connections == 0 && !a.writer) {
+    // Registered in this run and gone without sending anything: nothing to keep.
+    by_name_.erase(a.info.name);
+    agents_.erase(it);
+    batch->forgotten.push_back(item.agent);
+  }
+}
+
+Status JournalStage::Persist(Agent* agent, Batch* batch) {
+  const AgentId id = agent->info.id;
+  CCMD_ASSIGN_OR_RETURN(agent->writer, JournalWriter::Create(
+                                           JoinPath(options_.dir, JournalFileName(id)), agent->info));
+  CCMD_LOG(INFO) << "registered agent " << id << " '" << agent->info.name << "' ("
+                 << DescribeCamera(agent->info.camera) << ")";
   Announce(agent, /*from_journal=*/false, &batch->deliveries).IgnoreError();
   DeliveryItem connected;
   connected.kind = DeliveryItem::Kind::kConnected;
-  connected.id = agent->info.id;
-  connected.value = last;
+  connected.id = id;
+  connected.value = agent->written_seq;
   batch->deliveries.push_back(std::move(connected));
-  result.agent = agent->info.id;
-  result.last_stored = last;
-  batch->attached.push_back(std::move(result));
+  return Status::Ok();
 }
 
 void JournalStage::Data(StageItem* item, Batch* batch) {
@@ -377,6 +476,17 @@ void JournalStage::Data(StageItem* item, Batch* batch) {
     // Left over from a connection whose earlier record failed to store; the agent resends.
     stats_->Count("journal_out_of_sequence_dropped");
     return;
+  }
+  if (!a.writer) {
+    const Status created = Persist(&a, batch);
+    if (!created.ok()) {
+      CCMD_LOG(ERROR) << "cannot create the journal of agent '" << a.info.name
+                      << "': " << created.ToString();
+      stats_->Count("journal_failures");
+      std::lock_guard<std::mutex> lock(feedback_mutex_);
+      feedback_.failed.emplace_back(item->agent, created);
+      return;
+    }
   }
   Status s = a.writer->Append(item->type, item->seq, item->message);
   if (!s.ok()) {

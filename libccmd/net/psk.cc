@@ -85,27 +85,12 @@ Status RandomNonce(Nonce* nonce) {
   return Status::Ok();
 }
 
-Mac AgentProof(std::string_view key, const Nonce& server_nonce, const Nonce& agent_nonce,
-               std::string_view name) {
-  ByteWriter w;
-  static constexpr std::string_view kLabel = "CCMD agent proof v1";
+Mac AgentProof(std::string_view key, const Nonce& server_nonce, ByteSpan hello) {
+  static constexpr std::string_view kLabel = "CCMD agent proof v2";
+  ByteWriter w(kLabel.size() + server_nonce.size() + hello.size());
   w.PutBytes(kLabel.data(), kLabel.size());
   w.PutBytes(server_nonce.data(), server_nonce.size());
-  w.PutBytes(agent_nonce.data(), agent_nonce.size());
-  w.PutU8(static_cast<std::uint8_t>(name.size()));
-  w.PutBytes(name.data(), name.size());
-  return HmacSha256(AsBytes(key), w.bytes());
-}
-
-Mac ServerProof(std::string_view key, const Nonce& agent_nonce, const Nonce& server_nonce,
-                std::uint16_t agent_id, std::uint64_t last_stored_seq) {
-  ByteWriter w;
-  static constexpr std::string_view kLabel = "CCMD server proof v1";
-  w.PutBytes(kLabel.data(), kLabel.size());
-  w.PutBytes(agent_nonce.data(), agent_nonce.size());
-  w.PutBytes(server_nonce.data(), server_nonce.size());
-  w.PutU16(agent_id);
-  w.PutU64(last_stored_seq);
+  w.PutBytes(hello.data(), hello.size());
   return HmacSha256(AsBytes(key), w.bytes());
 }
 

@@ -2,11 +2,12 @@
 
 // Pre-shared key authentication. A deployment has one key, given to the server and every
 // agent as a file (--psk-file) or in the environment (CCMD_PSK). The key never crosses the
-// wire: each side proves it knows the key by an HMAC-SHA256 over both sides' random nonces
-// (challenge-response, in both directions; PROTOCOL.md "Session messages").
+// wire: the agent proves it knows the key by an HMAC-SHA256 over both sides' random nonces,
+// the server by tagging its Welcome with a key derived from it (PROTOCOL.md "Session
+// messages"; frame_auth.h).
 //
 //   CCMD_ASSIGN_OR_RETURN(std::string key, ResolvePsk(psk_file));   // "" = no key
-//   Mac proof = AgentProof(key, server_nonce, agent_nonce, name);
+//   Mac proof = AgentProof(key, server_nonce, hello_payload);
 //   if (!ConstantTimeEquals(proof, received)) refuse;
 
 #include <array>
@@ -45,17 +46,14 @@ bool ConstantTimeEquals(ByteSpan a, ByteSpan b);
 // Cryptographically random bytes (OpenSSL RAND_bytes).
 Status RandomNonce(Nonce* nonce);
 
-// What the agent sends to prove the key: HMAC(key, "CCMD agent proof v1" | server_nonce |
-// agent_nonce | u8 name length | name). Binding both nonces prevents replays; the name stops
-// a proof made for one agent from being used for another.
-Mac AgentProof(std::string_view key, const Nonce& server_nonce, const Nonce& agent_nonce,
-               std::string_view name);
+// What the agent sends to prove the key: HMAC(key, "CCMD agent proof v2" | server_nonce |
+// hello), `hello` being the payload of the agent's Hello exactly as sent. Both nonces (the
+// agent's is in the hello) prevent replays; binding the whole hello stops a proof made for
+// one agent from serving another, and a hello altered on the way (camera, resume point,
+// name) from being accepted.
+Mac AgentProof(std::string_view key, const Nonce& server_nonce, ByteSpan hello);
 
-// What the server sends back to prove the key in turn, binding what it tells the agent:
-// HMAC(key, "CCMD server proof v1" | agent_nonce | server_nonce | u16 agent id |
-// u64 last stored sequence number). The different label means neither proof can be
-// reflected as the other.
-Mac ServerProof(std::string_view key, const Nonce& agent_nonce, const Nonce& server_nonce,
-                std::uint16_t agent_id, std::uint64_t last_stored_seq);
+// The server proves the key in turn with the tag of its Welcome, the first frame it tags
+// with the session's keys (frame_auth.h).
 
 }  // namespace ccmd

@@ -10,12 +10,10 @@
 #include <cerrno>
 #include <cmath>
 #include <cstring>
-#include <deque>
-#include <map>
-#include <optional>
 
 #include "libccmd/net/journal_stage.h"
 #include "libccmd/net/psk.h"
+#include "libccmd/net/server_io.h"
 #include "libccmd/net/session_messages.h"
 #include "libccmd/net/socket.h"
 #include "libccmd/util/file_util.h"
@@ -31,8 +29,9 @@ Status ServerOptions::Validate() const {
   if (max_agents < 1 || max_agents > 65535) return InvalidArgument("max_agents must be 1..65535");
   if (max_handshakes < 1) return InvalidArgument("max_handshakes must be positive");
   if (max_payload_bytes < 1024) return InvalidArgument("max_payload_bytes must be >= 1024");
-  if (!(handshake_timeout_s > 0) || !(idle_timeout_s > 0) || !(heartbeat_interval_s > 0)) {
-    return InvalidArgument("time-outs and the heartbeat interval must be positive");
+  if (!(handshake_timeout_s > 0) || !(idle_timeout_s > 0) || !(heartbeat_interval_s > 0) ||
+      !(frame_timeout_s > 0) || !(slot_timeout_s >= 0) || !(refusal_log_interval_s > 0)) {
+    return InvalidArgument("time-outs, intervals and the heartbeat interval must be positive");
   }
   if (heartbeat_interval_s >= idle_timeout_s) {
     return InvalidArgument("the heartbeat interval must be shorter than the idle time-out");
@@ -57,11 +56,13 @@ constexpr std::size_t kReadBudget = 1 << 20;
 constexpr double kCloseLingerSeconds = 1.0;
 constexpr double kDrainSeconds = 2.0;
 
-enum class ConnState { kAwaitHello, kAwaitAuth, kAwaitAttach, kStreaming, kClosing };
-
-bool InHandshake(ConnState s) {
-  return s == ConnState::kAwaitHello || s == ConnState::kAwaitAuth || s == ConnState::kAwaitAttach;
+// "10.0.0.7:51334" -> "10.0.0.7", "[::1]:7420" -> "[::1]".
+std::string SourceOf(const std::string& peer) {
+  const std::size_t colon = peer.rfind(':');
+  return colon == std::string::npos ? peer : peer.substr(0, colon);
 }
+
+}  // namespace
 
 std::string CounterName(ByeReason reason) {
   std::string name = std::string("closed_") + ByeReasonName(reason);
@@ -82,123 +83,49 @@ ByeReason ReasonFor(const Status& s) {
   }
 }
 
-}  // namespace
+ServerIo::ServerIo(const ServerOptions& options, MessageConsumer* consumer, TrafficStats* stats)
+    : options_(options),
+      stats_(stats),
+      delivery_(consumer, options.delivery_queue, stats),
+      journal_(JournalStageOptions{.dir = options.journal_dir,
+                                   .fsync = options.fsync,
+                                   .max_agents = options.max_agents,
+                                   .slot_timeout_s = options.slot_timeout_s,
+                                   .queue_capacity = options.journal_queue,
+                                   .max_batch = 64,
+                                   .max_payload_bytes = options.max_payload_bytes},
+               &delivery_, &wake_, stats),
+      read_buffer_(kReadChunk),
+      refusals_(RefusalLogOptions{.interval_s = options.refusal_log_interval_s, .sink = {}}) {}
 
-struct Connection {
-  std::uint64_t token = 0;
-  UniqueFd fd;
-  std::string peer;
-  ConnState state = ConnState::kAwaitHello;
-  bool counted_as_handshake = true;
-  double opened = 0, last_rx = 0, last_tx = 0, close_deadline = 0;
-  std::unique_ptr<FrameDecoder> decoder;
-  HelloMessage hello;
-  Nonce server_nonce{};
-  bool attached = false;  // welcomed: has an agent id and a session
-  AgentId agent;
-  std::vector<std::uint8_t> out;
-  std::size_t out_pos = 0;
-  bool done = false;  // to be removed
-  std::string Describe() const {
-    if (hello.name.empty()) return "connection from " + peer;
-    return "agent '" + hello.name + "' (" + peer + ")";
+Status ServerIo::Start(UniqueFd listener) {
+  if (!wake_.valid()) return IoError("eventfd: " + std::string(std::strerror(errno)));
+  listener_ = std::move(listener);
+  delivery_.Start();
+  if (options_.resume) {
+    CCMD_ASSIGN_OR_RETURN(const std::uint64_t replayed, journal_.Resume());
+    DeliveryItem done;
+    done.kind = DeliveryItem::Kind::kReplayFinished;
+    done.value = replayed;
+    delivery_.Push(std::move(done));
+    delivery_.WaitReplayFinished();
+    CCMD_LOG(INFO) << "replayed " << replayed << " journaled messages from "
+                   << options_.journal_dir;
+  } else {
+    CCMD_RETURN_IF_ERROR(journal_.CheckNoJournals());
   }
-};
+  journal_.Start();
+  thread_ = std::thread([this] { Run(); });
+  return Status::Ok();
+}
 
-// The I/O thread and the stages behind it.
-class ServerIo {
- public:
-  ServerIo(const ServerOptions& options, MessageConsumer* consumer, TrafficStats* stats)
-      : options_(options),
-        stats_(stats),
-        delivery_(consumer, options.delivery_queue, stats),
-        journal_(JournalStageOptions{.dir = options.journal_dir,
-                                     .fsync = options.fsync,
-                                     .max_agents = options.max_agents,
-                                     .queue_capacity = options.journal_queue,
-                                     .max_batch = 64,
-                                     .max_payload_bytes = options.max_payload_bytes},
-                 &delivery_, &wake_, stats),
-        read_buffer_(kReadChunk) {}
-  ~ServerIo() { Stop(); }
-
-  Status Start(UniqueFd listener) {
-    if (!wake_.valid()) return IoError("eventfd: " + std::string(std::strerror(errno)));
-    listener_ = std::move(listener);
-    delivery_.Start();
-    if (options_.resume) {
-      CCMD_ASSIGN_OR_RETURN(const std::uint64_t replayed, journal_.Resume());
-      DeliveryItem done;
-      done.kind = DeliveryItem::Kind::kReplayFinished;
-      done.value = replayed;
-      delivery_.Push(std::move(done));
-      delivery_.WaitReplayFinished();
-      CCMD_LOG(INFO) << "replayed " << replayed << " journaled messages from "
-                     << options_.journal_dir;
-    } else {
-      CCMD_RETURN_IF_ERROR(journal_.CheckNoJournals());
-    }
-    journal_.Start();
-    thread_ = std::thread([this] { Run(); });
-    return Status::Ok();
-  }
-
-  void Stop() {
-    stop_.store(true);
-    wake_.Signal();
-    if (thread_.joinable()) thread_.join();
-    journal_.Stop();
-    delivery_.Stop();
-  }
-
- private:
-  void Run();
-  void Accept(double now);
-  void Read(Connection* c, double now);
-  void Write(Connection* c);
-  void Send(Connection* c, SessionType type, ByteSpan payload);
-  void HandleFrame(Connection* c, Frame& frame, double now);
-  void HandleHello(Connection* c, const Frame& frame);
-  void HandleAuth(Connection* c, const Frame& frame);
-  void HandleData(Connection* c, Frame& frame, double now);
-  void HandleFeedback(double now);
-  void CheckTimers(Connection* c, double now);
-  // Says Bye (reason and text), then closes once it is sent (or after a short linger).
-  void Close(Connection* c, ByeReason reason, const std::string& text, double now);
-  // Closes at once, without a Bye (the peer is gone or not reading).
-  void Drop(Connection* c, const std::string& why, bool quiet = false);
-  void Finish(Connection* c);
-  void Enqueue(StageItem item);
-  void FlushPending();
-  bool Paused(const Connection* c) const;
-  double NextDeadline(double now) const;
-
-  struct Slot {              // per agent name
-    std::uint64_t conn = 0;  // current connection, 0 = none
-    AgentId agent;
-    std::uint64_t received_seq = 0;  // highest sequence number passed to the journal stage
-    std::uint64_t inflight_bytes = 0;
-    std::optional<SessionCamera> camera;  // as registered, once known
-  };
-
-  const ServerOptions& options_;
-  TrafficStats* stats_;
-  WakeFd wake_;
-  DeliveryStage delivery_;
-  JournalStage journal_;
-  UniqueFd listener_;
-  std::thread thread_;
-  std::atomic<bool> stop_{false};
-  bool draining_ = false;
-  double drain_deadline_ = 0;
-  std::map<std::uint64_t, std::unique_ptr<Connection>> conns_;
-  std::map<std::string, Slot> slots_;
-  std::map<AgentId, std::string> names_;
-  std::deque<StageItem> pending_;
-  std::uint64_t next_token_ = 1;
-  int handshakes_ = 0;
-  std::vector<std::uint8_t> read_buffer_;
-};
+void ServerIo::Stop() {
+  stop_.store(true);
+  wake_.Signal();
+  if (thread_.joinable()) thread_.join();
+  journal_.Stop();
+  delivery_.Stop();
+}
 
 void ServerIo::Run() {
   std::vector<pollfd> fds;
@@ -269,12 +196,14 @@ void ServerIo::Run() {
     for (auto it = conns_.begin(); it != conns_.end();) {
       it = it->second->done ? conns_.erase(it) : std::next(it);
     }
+    refusals_.Flush(now);
   }
   // Whatever is still connected is cut; whatever was received is stored and delivered.
   for (auto& [token, c] : conns_) {
     if (!c->done) Drop(c.get(), "server stopped");
   }
   conns_.clear();
+  refusals_.Flush(MonotonicSeconds(), /*all=*/true);
   while (!pending_.empty()) {
     journal_.Push(std::move(pending_.front()));
     pending_.pop_front();
@@ -291,8 +220,11 @@ double ServerIo::NextDeadline(double now) const {
         next = std::min(next, c->opened + options_.handshake_timeout_s);
         break;
       case ConnState::kStreaming:
-        next = std::min(next, c->last_rx + options_.idle_timeout_s);
+        next = std::min(next, c->last_frame + options_.idle_timeout_s);
         next = std::min(next, c->last_tx + options_.heartbeat_interval_s);
+        if (c->decoder->InFrame()) {
+          next = std::min(next, c->frame_started + options_.frame_timeout_s);
+        }
         break;
       case ConnState::kClosing:
         next = std::min(next, c->close_deadline);
@@ -307,7 +239,7 @@ double ServerIo::NextDeadline(double now) const {
 
 bool ServerIo::Paused(const Connection* c) const {
   if (!c->attached) return false;
-  auto it = slots_.find(c->hello.name);
+  auto it = slots_.find(c->agent);
   return it != slots_.end() && it->second.inflight_bytes >= options_.per_agent_memory_bytes;
 }
 
@@ -326,7 +258,8 @@ void ServerIo::Accept(double now) {
     c->token = next_token_++;
     c->fd = UniqueFd(fd);
     c->peer = PeerName(fd);
-    c->opened = c->last_rx = c->last_tx = now;
+    c->source = SourceOf(c->peer);
+    c->opened = c->last_frame = c->last_tx = now;
     SetNoDelay(fd);
     if (handshakes_ >= options_.max_handshakes) {
       // Said once, without waiting: a flood of connections must not cost us buffers.
@@ -335,8 +268,8 @@ void ServerIo::Accept(double now) {
           SerializeBye({ByeReason::kServerFull, "too many connections in their handshake"}));
       WriteSome(fd, bye.data(), bye.size()).status().IgnoreError();
       stats_->Count("refused_busy");
-      CCMD_LOG(WARNING) << "refused connection from " << c->peer
-                        << ": too many connections in their handshake";
+      refusals_.Note(c->source, c->peer, ByeReasonName(ByeReason::kServerFull),
+                     "too many connections in their handshake", now);
       continue;
     }
     ++handshakes_;
@@ -370,7 +303,6 @@ void ServerIo::Read(Connection* c, double now) {
     }
     if (*got == 0) return;
     budget -= std::min(budget, *got);
-    c->last_rx = now;
     if (c->attached) {
       stats_->AddReceivedBytes(c->agent, *got);
     } else {
@@ -378,6 +310,7 @@ void ServerIo::Read(Connection* c, double now) {
     }
     frames.clear();
     const Status fed = c->decoder->Feed(ByteSpan(read_buffer_.data(), *got), &frames);
+    NoteProgress(c, !frames.empty(), now);
     for (Frame& f : frames) {
       HandleFrame(c, f, now);
       if (c->done || c->state == ConnState::kClosing) return;
@@ -386,6 +319,17 @@ void ServerIo::Read(Connection* c, double now) {
       Close(c, ReasonFor(fed), "bad frame: " + fed.message(), now);
       return;
     }
+  }
+}
+
+// Progress is a complete frame, not a byte: a peer dribbling one byte a second makes none,
+// and the frame it started must be complete within the frame time-out.
+void ServerIo::NoteProgress(Connection* c, bool completed, double now) {
+  if (completed) c->last_frame = now;
+  const FrameDecoder& d = *c->decoder;
+  if (d.InFrame() && d.headers_accepted() != c->frame_header) {
+    c->frame_started = now;
+    c->frame_header = d.headers_accepted();
   }
 }
 
@@ -417,7 +361,8 @@ void ServerIo::Send(Connection* c, SessionType type, ByteSpan payload) {
     Drop(c, "the peer does not read what the server sends");
     return;
   }
-  AppendFrame(static_cast<std::uint8_t>(type), 0, payload, &c->out);
+  c->auth.AppendFrame(static_cast<std::uint8_t>(type), payload, &c->out);
+  stats_->AddAuthentication(c->auth.TakeCpuSeconds());
   c->last_tx = MonotonicSeconds();
   Write(c);
 }
@@ -428,6 +373,12 @@ void ServerIo::Close(Connection* c, ByeReason reason, const std::string& text, d
                       reason == ByeReason::kReplaced;
   if (normal) {
     CCMD_LOG(INFO) << "closing " << c->Describe() << ": " << text;
+  } else if (!c->attached) {
+    // Refused before a session: summarised per source, so a storm cannot flood the log.
+    refusals_.Note(c->source, c->peer, ByeReasonName(reason),
+                   (c->hello.name.empty() ? "" : "agent '" + c->hello.name + "': ") +
+                       ByeReasonName(reason) + ": " + text,
+                   now);
   } else {
     CCMD_LOG(WARNING) << "closing " << c->Describe() << ": " << ByeReasonName(reason) << ": "
                       << text;
@@ -439,17 +390,7 @@ void ServerIo::Close(Connection* c, ByeReason reason, const std::string& text, d
     c->counted_as_handshake = false;
     --handshakes_;
   }
-  if (c->attached) {
-    StageItem detach;
-    detach.kind = StageItem::Kind::kDetach;
-    detach.agent = c->agent;
-    detach.reason = std::string(ByeReasonName(reason)) + ": " + text;
-    Enqueue(std::move(detach));
-    stats_->AgentDisconnected(c->agent, now);
-    c->attached = false;
-  }
-  auto slot = slots_.find(c->hello.name);
-  if (slot != slots_.end() && slot->second.conn == c->token) slot->second.conn = 0;
+  EndSession(c, std::string(ByeReasonName(reason)) + ": " + text, now);
   c->state = ConnState::kClosing;
   c->close_deadline = now + kCloseLingerSeconds;
   if (c->out_pos == c->out.size()) Finish(c);
@@ -464,18 +405,24 @@ void ServerIo::Drop(Connection* c, const std::string& why, bool quiet) {
       CCMD_LOG(DEBUG) << "lost " << c->Describe() << ": " << why;
     }
   }
+  EndSession(c, why, MonotonicSeconds());
+  Finish(c);
+}
+
+// The journal stage hears that this connection's session (if it had one) is over.
+void ServerIo::EndSession(Connection* c, const std::string& why, double now) {
   if (c->attached) {
     StageItem detach;
     detach.kind = StageItem::Kind::kDetach;
     detach.agent = c->agent;
     detach.reason = why;
+    detach.received_time = now;
     Enqueue(std::move(detach));
-    stats_->AgentDisconnected(c->agent, MonotonicSeconds());
+    stats_->AgentDisconnected(c->agent, now);
     c->attached = false;
+    auto slot = slots_.find(c->agent);
+    if (slot != slots_.end() && slot->second.conn == c->token) slot->second.conn = 0;
   }
-  auto slot = slots_.find(c->hello.name);
-  if (slot != slots_.end() && slot->second.conn == c->token) slot->second.conn = 0;
-  Finish(c);
 }
 
 void ServerIo::Finish(Connection* c) {
@@ -500,21 +447,37 @@ void ServerIo::CheckTimers(Connection* c, double now) {
       }
       break;
     case ConnState::kStreaming:
-      // While we are not reading (back-pressure), silence is ours, not the agent's.
-      if (Paused(c) || !pending_.empty()) c->last_rx = now;
-      if (now - c->last_rx >= options_.idle_timeout_s) {
-        stats_->Count("idle_timeouts");
-        Close(c, ByeReason::kTimeout,
-              "nothing received for " + std::to_string(options_.idle_timeout_s) + " s", now);
-      } else if (now - c->last_tx >= options_.heartbeat_interval_s) {
-        Send(c, SessionType::kHeartbeat, {});
-      }
+      CheckStreamingTimers(c, now);
       break;
     case ConnState::kClosing:
       if (now >= c->close_deadline) Finish(c);
       break;
     case ConnState::kAwaitAttach:
       break;
+  }
+}
+
+void ServerIo::CheckStreamingTimers(Connection* c, double now) {
+  const bool in_frame = c->decoder->InFrame();
+  // While we are not reading (back-pressure), silence is ours, not the agent's.
+  if (Paused(c) || !pending_.empty()) {
+    c->last_frame = now;
+    if (in_frame) c->frame_started = now;
+  }
+  if (in_frame && now - c->frame_started >= options_.frame_timeout_s) {
+    stats_->Count("frame_timeouts");
+    Close(c, ByeReason::kTimeout,
+          "a frame started " + std::to_string(options_.frame_timeout_s) +
+              " s ago is still incomplete (" + std::to_string(c->decoder->BytesWanted()) +
+              " bytes missing)",
+          now);
+  } else if (now - c->last_frame >= options_.idle_timeout_s) {
+    stats_->Count("idle_timeouts");
+    Close(c, ByeReason::kTimeout,
+          "no complete frame received for " + std::to_string(options_.idle_timeout_s) + " s",
+          now);
+  } else if (now - c->last_tx >= options_.heartbeat_interval_s) {
+    Send(c, SessionType::kHeartbeat, {});
   }
 }
 
@@ -525,289 +488,6 @@ void ServerIo::Enqueue(StageItem item) {
 
 void ServerIo::FlushPending() {
   while (!pending_.empty() && journal_.TryPush(pending_.front())) pending_.pop_front();
-}
-
-void ServerIo::HandleFrame(Connection* c, Frame& frame, double now) {
-  const std::uint8_t type = frame.type;
-  if (type == static_cast<std::uint8_t>(SessionType::kBye)) {
-    StatusOr<ByeMessage> bye = ParseBye(frame.payload);
-    if (bye.ok()) {
-      const bool normal = bye->reason == ByeReason::kNormal;
-      const std::string what = c->Describe() + " said bye (" + ByeReasonName(bye->reason) + ")" +
-                               (bye->text.empty() ? "" : ": " + bye->text);
-      if (normal) {
-        CCMD_LOG(INFO) << what;
-      } else {
-        CCMD_LOG(WARNING) << what;
-        stats_->Count("agent_bye_" + CounterName(bye->reason).substr(7));
-      }
-      Drop(c, "the agent said bye", /*quiet=*/true);
-    } else {
-      Close(c, ByeReason::kProtocolError, "malformed bye: " + bye.status().message(), now);
-    }
-    return;
-  }
-  switch (c->state) {
-    case ConnState::kAwaitHello:
-      if (type != static_cast<std::uint8_t>(SessionType::kHello)) {
-        Close(c, ByeReason::kProtocolError,
-              "expected a hello, got a message of type " + std::to_string(type), now);
-        return;
-      }
-      HandleHello(c, frame);
-      return;
-    case ConnState::kAwaitAuth:
-      if (type != static_cast<std::uint8_t>(SessionType::kAuth)) {
-        Close(c, ByeReason::kProtocolError,
-              "expected an auth message, got type " + std::to_string(type), now);
-        return;
-      }
-      HandleAuth(c, frame);
-      return;
-    case ConnState::kStreaming:
-      if (IsDataType(type)) {
-        HandleData(c, frame, now);
-      } else if (type == static_cast<std::uint8_t>(SessionType::kHeartbeat)) {
-        Status s = ParseHeartbeat(frame.payload);
-        if (!s.ok()) Close(c, ByeReason::kProtocolError, s.message(), now);
-      } else if (type <= kLastDefinedSessionType) {
-        Close(c, ByeReason::kProtocolError,
-              "unexpected session message of type " + std::to_string(type) + " in a session", now);
-      } else {
-        Close(c, ByeReason::kProtocolError, "unknown message type " + std::to_string(type), now);
-      }
-      return;
-    case ConnState::kAwaitAttach:
-    case ConnState::kClosing:
-      return;
-  }
-}
-
-void ServerIo::HandleHello(Connection* c, const Frame& frame) {
-  const double now = MonotonicSeconds();
-  StatusOr<HelloMessage> hello = ParseHello(frame.payload);
-  if (!hello.ok()) {
-    Close(c, ReasonFor(hello.status()), "bad hello: " + hello.status().message(), now);
-    return;
-  }
-  c->hello = std::move(*hello);
-  Status nonce = RandomNonce(&c->server_nonce);
-  if (!nonce.ok()) {
-    Close(c, ByeReason::kServerError, nonce.message(), now);
-    return;
-  }
-  ChallengeMessage challenge;
-  challenge.key_required = !options_.psk.empty();
-  challenge.server_nonce = c->server_nonce;
-  c->state = ConnState::kAwaitAuth;
-  Send(c, SessionType::kChallenge, SerializeChallenge(challenge));
-}
-
-void ServerIo::HandleAuth(Connection* c, const Frame& frame) {
-  const double now = MonotonicSeconds();
-  StatusOr<AuthMessage> auth = ParseAuth(frame.payload);
-  if (!auth.ok()) {
-    Close(c, ByeReason::kProtocolError, "bad auth message: " + auth.status().message(), now);
-    return;
-  }
-  if (!options_.psk.empty()) {
-    if (!auth->proof) {
-      stats_->Count("refused_no_key");
-      Close(c, ByeReason::kAuthFailed,
-            "this server requires a pre-shared key and the agent has none (give the agent the "
-            "deployment's key with --psk-file FILE or CCMD_PSK)",
-            now);
-      return;
-    }
-    const Mac expected =
-        AgentProof(options_.psk, c->server_nonce, c->hello.agent_nonce, c->hello.name);
-    if (!ConstantTimeEquals(expected, *auth->proof)) {
-      stats_->Count("refused_wrong_key");
-      Close(c, ByeReason::kAuthFailed,
-            "authentication failed: the agent's pre-shared key is not this server's", now);
-      return;
-    }
-  } else if (auth->proof) {
-    stats_->Count("refused_key_mismatch");
-    Close(c, ByeReason::kKeyMismatch,
-          "this server runs without a pre-shared key but the agent has one; give both the same "
-          "key (or neither, on loopback)",
-          now);
-    return;
-  }
-  Slot& slot = slots_[c->hello.name];
-  // A conflicting camera must not cost the registered agent its connection (the journal
-  // stage refuses it in any case).
-  if (slot.camera && !(*slot.camera == c->hello.camera)) {
-    stats_->Count("refused_refused");
-    Close(c, ByeReason::kRefused,
-          "agent '" + c->hello.name + "' is registered with camera " +
-              DescribeCamera(*slot.camera) + " but announces " + DescribeCamera(c->hello.camera) +
-              "; a different camera needs a new agent name",
-          now);
-    return;
-  }
-  if (slot.conn != 0) {
-    auto old = conns_.find(slot.conn);
-    if (old != conns_.end() && !old->second->done) {
-      Close(old->second.get(), ByeReason::kReplaced,
-            "replaced by a new connection of the same agent from " + c->peer, now);
-    }
-  }
-  slot.conn = c->token;
-  StageItem attach;
-  attach.kind = StageItem::Kind::kAttach;
-  attach.conn = c->token;
-  attach.hello = c->hello;
-  c->state = ConnState::kAwaitAttach;
-  Enqueue(std::move(attach));
-}
-
-void ServerIo::HandleData(Connection* c, Frame& frame, double now) {
-  const std::uint8_t type = frame.type;
-  const std::size_t frame_bytes = kFrameHeaderSize + frame.payload.size();
-  if (!IsKnownDataType(type)) {
-    Close(c, ByeReason::kProtocolError, "unknown message type " + std::to_string(type), now);
-    return;
-  }
-  StatusOr<DataEnvelope> env = ParseDataEnvelope(frame.payload);
-  if (!env.ok()) {
-    Close(c, ByeReason::kProtocolError, env.status().message(), now);
-    return;
-  }
-  Slot& slot = slots_[c->hello.name];
-  if (env->seq <= slot.received_seq) {
-    // Sent again after a reconnect, or pipelined before the agent saw our ack: stored already.
-    stats_->AddDuplicate(c->agent, frame_bytes);
-    return;
-  }
-  if (env->seq != slot.received_seq + 1) {
-    Close(c, ByeReason::kProtocolError,
-          "sequence gap: expected message " + std::to_string(slot.received_seq + 1) + ", got " +
-              std::to_string(env->seq),
-          now);
-    return;
-  }
-  // Validate before storing: a message we acknowledge must be one the back-end can read.
-  KeyframeSizeBreakdown parts;
-  const bool keyframe = type == static_cast<std::uint8_t>(MessageType::kKeyframe);
-  if (keyframe) {
-    StatusOr<KeyframeMessage> kf = ParseKeyframe(env->message);
-    if (!kf.ok()) {
-      Close(
-          c, ReasonFor(kf.status()),
-          "malformed keyframe (message " + std::to_string(env->seq) + "): " + kf.status().message(),
-          now);
-      return;
-    }
-    // The bytes per part, by serializing what arrived again (the format is canonical).
-    StatusOr<std::vector<std::uint8_t>> again = SerializeKeyframe(*kf, &parts);
-    const std::size_t counted = again.ok() ? parts.total() : 0;
-    if (counted < env->message.size()) parts.other += env->message.size() - counted;
-  } else {
-    StatusOr<PoseUpdateMessage> pu = ParsePoseUpdate(env->message);
-    if (!pu.ok()) {
-      Close(c, ReasonFor(pu.status()),
-            "malformed pose update (message " + std::to_string(env->seq) +
-                "): " + pu.status().message(),
-            now);
-      return;
-    }
-  }
-  stats_->AddDataMessage(c->agent, type, env->message.size(), keyframe ? &parts : nullptr, now);
-  slot.received_seq = env->seq;
-  slot.inflight_bytes += env->message.size();
-  StageItem item;
-  item.kind = StageItem::Kind::kData;
-  item.conn = c->token;
-  item.agent = c->agent;
-  item.seq = env->seq;
-  item.type = type;
-  // Drop the 8-byte sequence number in place rather than copying the message.
-  frame.payload.erase(frame.payload.begin(),
-                      frame.payload.begin() + static_cast<std::ptrdiff_t>(kDataEnvelopeBytes));
-  item.message = std::move(frame.payload);
-  item.received_time = now;
-  Enqueue(std::move(item));
-}
-
-void ServerIo::HandleFeedback(double now) {
-  StageFeedback fb;
-  journal_.TakeFeedback(&fb);
-  if (fb.empty()) return;
-  for (const AttachResult& r : fb.attached) {
-    auto it = conns_.find(r.conn);
-    Connection* c = it == conns_.end() ? nullptr : it->second.get();
-    if (c == nullptr || c->done || c->state != ConnState::kAwaitAttach) {
-      if (r.status.ok()) {
-        // Registered, but the connection went away meanwhile: end the session we opened.
-        StageItem detach;
-        detach.kind = StageItem::Kind::kDetach;
-        detach.agent = r.agent;
-        detach.reason = "connection closed during the handshake";
-        Enqueue(std::move(detach));
-      }
-      continue;
-    }
-    if (!r.status.ok()) {
-      stats_->Count("refused_" + CounterName(r.reason).substr(7));
-      Close(c, r.reason, r.status.message(), now);
-      continue;
-    }
-    Slot& slot = slots_[c->hello.name];
-    slot.agent = r.agent;
-    slot.received_seq = r.last_stored;
-    slot.camera = c->hello.camera;
-    names_[r.agent] = c->hello.name;
-    c->agent = r.agent;
-    c->attached = true;
-    if (c->counted_as_handshake) {
-      c->counted_as_handshake = false;
-      --handshakes_;
-    }
-    WelcomeMessage welcome;
-    welcome.agent = r.agent;
-    welcome.last_stored_seq = r.last_stored;
-    welcome.max_payload_bytes = options_.max_payload_bytes;
-    welcome.idle_timeout_ms = static_cast<std::uint32_t>(options_.idle_timeout_s * 1e3);
-    if (!options_.psk.empty()) {
-      welcome.server_proof = ServerProof(options_.psk, c->hello.agent_nonce, c->server_nonce,
-                                         r.agent.value(), r.last_stored);
-    }
-    c->state = ConnState::kStreaming;
-    c->decoder = std::make_unique<FrameDecoder>(
-        FrameLimits{.max_payload_bytes = options_.max_payload_bytes});
-    c->last_rx = now;
-    stats_->AgentConnected(r.agent, c->hello.name, now);
-    stats_->Count("sessions");
-    CCMD_LOG(INFO) << "agent " << r.agent << " '" << c->hello.name << "' connected from " << c->peer
-                   << "; stored up to message " << r.last_stored;
-    Send(c, SessionType::kWelcome, SerializeWelcome(welcome));
-  }
-  for (const auto& [agent, n] : fb.freed_bytes) {
-    auto name = names_.find(agent);
-    if (name == names_.end()) continue;
-    Slot& slot = slots_[name->second];
-    slot.inflight_bytes -= std::min<std::uint64_t>(slot.inflight_bytes, n);
-  }
-  for (const auto& [agent, seq] : fb.stored) {
-    auto name = names_.find(agent);
-    if (name == names_.end()) continue;
-    const Slot& slot = slots_[name->second];
-    auto it = conns_.find(slot.conn);
-    if (it == conns_.end() || it->second->state != ConnState::kStreaming) continue;
-    Send(it->second.get(), SessionType::kAck, SerializeAck({seq}));
-  }
-  for (const auto& [agent, status] : fb.failed) {
-    auto name = names_.find(agent);
-    if (name == names_.end()) continue;
-    Slot& slot = slots_[name->second];
-    auto it = conns_.find(slot.conn);
-    if (it != conns_.end() && !it->second->done) {
-      Close(it->second.get(), ByeReason::kServerError,
-            "the server could not store the data: " + status.message(), now);
-    }
-  }
 }
 
 // ---------------------------------------------------------------- Server

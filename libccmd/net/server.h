@@ -16,8 +16,9 @@
 // Threads (each owned and joined by Stop): the I/O thread multiplexes the listener and all
 // connections with poll() and does the handshakes; the journal stage appends and syncs;
 // the delivery stage calls the consumer (journal_stage.h). Untrusted input never stops the
-// server: a malformed, oversized, truncated, unknown or unexpected frame, a wrong key or a
-// silent peer closes that one connection, with a Bye saying why and a log line.
+// server: a malformed, oversized, truncated, unknown or unexpected frame, a frame failing
+// its tag, a wrong key or identity, a silent or dribbling peer closes that one connection,
+// with a Bye saying why and a log line (refusals before a session: summarised per source).
 
 #include <atomic>
 #include <cstdint>
@@ -37,12 +38,17 @@ struct ServerOptions {
   std::string journal_dir;                // required: one journal per agent
   bool resume = false;                    // replay journal_dir's journals before serving
   std::string psk;          // pre-shared key; empty = no authentication, allowed on loopback only
-  int max_agents = 16;      // agents registered (journals); new names beyond it are refused
+  // Agents active at once (connected, or disconnected less than slot_timeout_s ago); a new
+  // name is refused ("server full") while all are; registered agents are always served.
+  int max_agents = 16;
+  double slot_timeout_s = 300.0;
   int max_handshakes = 32;  // connections not yet through the handshake
   std::uint32_t max_payload_bytes = kDefaultMaxPayloadBytes;  // per frame
   double handshake_timeout_s = 5.0;                           // accept to welcome
-  double idle_timeout_s = 30.0;       // a session silent this long is closed
+  double idle_timeout_s = 30.0;  // a session without a complete frame this long is closed
+  double frame_timeout_s = 20.0;  // a frame must be complete this long after its header
   double heartbeat_interval_s = 5.0;  // the server sends a heartbeat after this much silence
+  double refusal_log_interval_s = 10.0;  // refused connections: one summary per source
   std::size_t per_agent_memory_bytes = 64u << 20;  // received, not yet journaled
   std::size_t max_output_bytes = 8u << 20;         // unsent bytes to an agent not reading
   bool fsync =

@@ -4,12 +4,13 @@
 #include <cmath>
 #include <cstdio>
 
+#include "proto/crc32c.h"
+
 namespace ccmd {
 namespace {
 
 constexpr std::uint8_t kHelloFresh = 1u << 0;
 constexpr std::uint8_t kHelloDistortion = 1u << 1;  // 5 x f64 follow the depth scale
-constexpr std::uint8_t kWelcomeHasProof = 1u << 0;
 constexpr std::uint32_t kMaxImageSide = 16384;
 
 void PutNonce(const std::array<std::uint8_t, 32>& n, ByteWriter* w) {
@@ -58,6 +59,8 @@ const char* ByeReasonName(ByeReason reason) {
       return "server error";
     case ByeReason::kReplaced:
       return "replaced";
+    case ByeReason::kFrameAuthFailed:
+      return "frame authentication failed";
   }
   return "unknown";
 }
@@ -181,7 +184,7 @@ StatusOr<HelloMessage> ParseHello(ByteSpan payload) {
   if (!camera_ok.ok()) return Corrupt("hello: " + camera_ok.message());
   CCMD_RETURN_IF_ERROR(r.ReadU64(&m.first_seq));
   CCMD_RETURN_IF_ERROR(r.ReadU64(&m.next_seq));
-  if (m.first_seq == 0 || m.next_seq < m.first_seq) {
+  if (m.first_seq == 0 || m.next_seq < m.first_seq || m.next_seq > kMaxSequenceNumber) {
     return Corrupt("hello: resume point " + std::to_string(m.first_seq) + ".." +
                    std::to_string(m.next_seq) + " is not a range of sequence numbers >= 1");
   }
@@ -210,30 +213,35 @@ StatusOr<ChallengeMessage> ParseChallenge(ByteSpan payload) {
 }
 
 std::vector<std::uint8_t> SerializeAuth(const AuthMessage& m) {
-  if (!m.proof) return {};
-  return std::vector<std::uint8_t>(m.proof->begin(), m.proof->end());
+  ByteWriter w(kMacSize + kIdentitySize);
+  if (m.proof) w.PutBytes(m.proof->data(), m.proof->size());
+  w.PutBytes(m.masked_identity.data(), m.masked_identity.size());
+  return w.Take();
 }
 
 StatusOr<AuthMessage> ParseAuth(ByteSpan payload) {
   AuthMessage m;
-  if (payload.empty()) return m;
-  if (payload.size() != kMacSize) {
-    return Corrupt("auth: proof of " + std::to_string(payload.size()) + " bytes (expected 0 or " +
-                   std::to_string(kMacSize) + ")");
+  if (payload.size() != kIdentitySize && payload.size() != kMacSize + kIdentitySize) {
+    return Corrupt("auth: " + std::to_string(payload.size()) + " bytes (expected " +
+                   std::to_string(kIdentitySize) + " without a key or " +
+                   std::to_string(kMacSize + kIdentitySize) + " with one)");
   }
-  m.proof.emplace();
-  std::copy(payload.begin(), payload.end(), m.proof->begin());
+  ByteReader r(payload);
+  if (payload.size() > kIdentitySize) {
+    m.proof.emplace();
+    CCMD_RETURN_IF_ERROR(r.ReadBytes(m.proof->size(), m.proof->data()));
+  }
+  CCMD_RETURN_IF_ERROR(r.ReadBytes(m.masked_identity.size(), m.masked_identity.data()));
   return m;
 }
 
 std::vector<std::uint8_t> SerializeWelcome(const WelcomeMessage& m) {
-  ByteWriter w(64);
-  w.PutU8(m.server_proof ? kWelcomeHasProof : 0);
+  ByteWriter w(19);
+  w.PutU8(0);  // flags
   w.PutU16(m.agent.value());
   w.PutU64(m.last_stored_seq);
   w.PutU32(m.max_payload_bytes);
   w.PutU32(m.idle_timeout_ms);
-  if (m.server_proof) w.PutBytes(m.server_proof->data(), m.server_proof->size());
   return w.Take();
 }
 
@@ -241,7 +249,7 @@ StatusOr<WelcomeMessage> ParseWelcome(ByteSpan payload) {
   ByteReader r(payload);
   WelcomeMessage m;
   std::uint8_t flags;
-  CCMD_RETURN_IF_ERROR(ReadFlags(&r, kWelcomeHasProof, "welcome", &flags));
+  CCMD_RETURN_IF_ERROR(ReadFlags(&r, 0, "welcome", &flags));
   std::uint16_t id;
   CCMD_RETURN_IF_ERROR(r.ReadU16(&id));
   m.agent = AgentId(id);
@@ -252,9 +260,9 @@ StatusOr<WelcomeMessage> ParseWelcome(ByteSpan payload) {
     return Corrupt("welcome: maximum payload of " + std::to_string(m.max_payload_bytes) +
                    " bytes leaves no room for a message");
   }
-  if (flags & kWelcomeHasProof) {
-    m.server_proof.emplace();
-    CCMD_RETURN_IF_ERROR(r.ReadBytes(m.server_proof->size(), m.server_proof->data()));
+  if (m.last_stored_seq > kMaxSequenceNumber) {
+    return Corrupt("welcome: last stored message " + std::to_string(m.last_stored_seq) +
+                   " is beyond any sequence number");
   }
   CCMD_RETURN_IF_ERROR(Finish(r, "welcome"));
   return m;
@@ -312,16 +320,27 @@ std::vector<std::uint8_t> EncodeSessionFrame(SessionType type, ByteSpan payload)
 }
 
 void AppendDataFrame(std::uint8_t type, std::uint64_t seq, ByteSpan message,
-                     std::vector<std::uint8_t>* out) {
-  std::vector<std::uint8_t> payload;
-  payload.reserve(kDataEnvelopeBytes + message.size());
-  for (int i = 0; i < 8; ++i) payload.push_back(static_cast<std::uint8_t>(seq >> (8 * i)));
-  payload.insert(payload.end(), message.begin(), message.end());
-  // Grow geometrically: AppendFrame reserves the exact size, which turns appending many
-  // frames to one buffer into quadratic copying.
-  const std::size_t needed = out->size() + kFrameHeaderSize + payload.size();
+                     std::vector<std::uint8_t>* out, std::uint16_t flags) {
+  std::uint8_t seq_bytes[kDataEnvelopeBytes];
+  for (std::size_t i = 0; i < kDataEnvelopeBytes; ++i) {
+    seq_bytes[i] = static_cast<std::uint8_t>(seq >> (8 * i));
+  }
+  // Header and payload written in place (no copy of the message); the buffer grows
+  // geometrically, room left for a tag, so appending many frames stays linear.
+  const std::size_t payload_size = kDataEnvelopeBytes + message.size();
+  const std::size_t needed = out->size() + kFrameHeaderSize + payload_size + kFrameTagSize;
   if (out->capacity() < needed) out->reserve(std::max(needed, 2 * out->capacity()));
-  AppendFrame(type, 0, payload, out);
+  ByteWriter h(kFrameHeaderSize);
+  h.PutBytes(kFrameMagic, sizeof(kFrameMagic));
+  h.PutU8(kProtocolVersion);
+  h.PutU8(type);
+  h.PutU16(flags);
+  h.PutU32(static_cast<std::uint32_t>(payload_size));
+  h.PutU32(Crc32cExtend(Crc32c(seq_bytes, sizeof(seq_bytes)), message.data(), message.size()));
+  h.PutU32(Crc32c(h.data(), 16));
+  out->insert(out->end(), h.data(), h.data() + h.size());
+  out->insert(out->end(), seq_bytes, seq_bytes + sizeof(seq_bytes));
+  out->insert(out->end(), message.begin(), message.end());
 }
 
 StatusOr<DataEnvelope> ParseDataEnvelope(ByteSpan payload) {
@@ -329,6 +348,10 @@ StatusOr<DataEnvelope> ParseDataEnvelope(ByteSpan payload) {
   DataEnvelope e;
   CCMD_RETURN_IF_ERROR(r.ReadU64(&e.seq));
   if (e.seq == 0) return Corrupt("data message with sequence number 0");
+  if (e.seq > kMaxSequenceNumber) {
+    return Corrupt("data message with sequence number " + std::to_string(e.seq) +
+                   " (above 2^62)");
+  }
   e.message = payload.subspan(kDataEnvelopeBytes);
   return e;
 }

@@ -6,17 +6,18 @@
 //   agent                                   server
 //   Hello(name, camera, resume point, nonce) ->
 //                                           <- Challenge(key required?, nonce)
-//   Auth(HMAC proof, or none without a key)  ->
-//                                           <- Welcome(agent id, last stored seq, proof)
-//   Data(seq, Keyframe | PoseUpdate) ...     ->
-//                                           <- Ack(last stored seq)     (after journaling)
-//   Heartbeat                               <-> Heartbeat                (when idle)
-//   Bye(reason, text)                       <-> Bye(reason, text)        (before closing)
+//   Auth(HMAC proof, masked identity)        ->
+//                                           <- Welcome(agent id, last stored seq)   [tagged]
+//   Data(seq, Keyframe | PoseUpdate) ...     ->                                     [tagged]
+//                                           <- Ack(last stored seq)  (after journaling)
+//   Heartbeat                               <-> Heartbeat             (when idle)
+//   Bye(reason, text)                       <-> Bye(reason, text)     (before closing)
 //
-// Within a session every data frame (type >= 16) starts with its u64 sequence number; the
-// message of proto/messages.h follows unchanged. Parsers return kCorrupt (or kUnsupported
-// for another protocol version) on any malformed input and never allocate more than the
-// limits below.
+// With a pre-shared key every frame from the Welcome on (each direction) carries a tag
+// (frame_auth.h). Within a session every data frame (type >= 16) starts with its u64
+// sequence number; the message of proto/messages.h follows unchanged. Parsers return
+// kCorrupt (or kUnsupported for another protocol version) on any malformed input and never
+// allocate more than the limits below.
 
 #include <array>
 #include <cstdint>
@@ -25,6 +26,7 @@
 #include <string_view>
 #include <vector>
 
+#include "libccmd/net/agent_identity.h"
 #include "libccmd/net/psk.h"
 #include "libccmd/util/ids.h"
 #include "libccmd/util/status.h"
@@ -53,13 +55,15 @@ enum class ByeReason : std::uint8_t {
   kKeyMismatch = 4,         // one side has a key, the other none
   kServerFull = 5,          // too many agents or connections
   kTimeout = 6,             // handshake or idle time-out
-  kRefused = 7,             // name/camera conflict with the agent registered under that name
+  kRefused = 7,             // not the agent registered under that name, or its camera or
+                            // resume point contradicts the registration
   kLimitExceeded = 8,       // frame too large, peer not reading
   kShuttingDown = 9,        // server stopping
   kServerError = 10,        // the server could not store the data (journal failure)
   kReplaced = 11,           // a newer connection of the same agent took over
+  kFrameAuthFailed = 12,    // a frame of the session failed its tag check
 };
-constexpr std::uint8_t kLastByeReason = 11;
+constexpr std::uint8_t kLastByeReason = 12;
 const char* ByeReasonName(ByeReason reason);
 
 constexpr std::size_t kMaxAgentNameBytes = 64;
@@ -68,6 +72,9 @@ constexpr std::size_t kMaxByeTextBytes = 1024;
 constexpr std::uint32_t kMaxHandshakePayloadBytes = 1024;
 // Bytes a data frame adds in front of the message: the u64 sequence number.
 constexpr std::size_t kDataEnvelopeBytes = 8;
+// Sequence numbers (and resume points) above this are corrupt: no agent sends 2^62
+// messages, and the bound keeps every sum of them far from overflowing.
+constexpr std::uint64_t kMaxSequenceNumber = 1ull << 62;
 
 // Letters, digits, '.', '_', '-'; 1..64 bytes; not starting with '.'. Names become file
 // names on the server, so nothing else is allowed.
@@ -90,8 +97,7 @@ struct SessionCamera {
 Status ValidateSessionCamera(const SessionCamera& camera);
 std::string DescribeCamera(const SessionCamera& camera);
 // The camera's fixed fields (fx fy cx cy, width height, depth scale) as Hello and the journal's
-// info record lay them out; distortion travels separately, only when non-zero, so that an
-// agent without it speaks exactly the protocol older servers know.
+// info record lay them out; distortion travels separately, only when non-zero.
 void PutSessionCamera(const SessionCamera& camera, ByteWriter* w);
 Status ReadSessionCamera(ByteReader* r, SessionCamera* camera);
 void PutDistortion(const SessionCamera& camera, ByteWriter* w);  // 5 x f64
@@ -116,15 +122,16 @@ struct ChallengeMessage {
 };
 
 struct AuthMessage {
-  std::optional<Mac> proof;  // empty when the server requires no key
+  std::optional<Mac> proof;        // empty when the server requires no key
+  AgentIdentity masked_identity{};  // the agent's identity XOR the session's identity pad
 };
 
+// With a key, the Welcome is the server's first tagged frame: its tag proves the key.
 struct WelcomeMessage {
   AgentId agent;
   std::uint64_t last_stored_seq = 0;  // 0 = nothing stored yet
   std::uint32_t max_payload_bytes = 0;
-  std::uint32_t idle_timeout_ms = 0;  // the server closes a session silent for this long
-  std::optional<Mac> server_proof;    // present when a key is in use
+  std::uint32_t idle_timeout_ms = 0;  // the server closes a session without frames this long
 };
 
 struct AckMessage {
@@ -160,13 +167,15 @@ constexpr bool IsKnownDataType(std::uint8_t type) {
   return type == static_cast<std::uint8_t>(MessageType::kKeyframe) ||
          type == static_cast<std::uint8_t>(MessageType::kPoseUpdate);
 }
+// `flags` only sets the frame header's flags (kFrameTagged: the caller appends the tag).
 void AppendDataFrame(std::uint8_t type, std::uint64_t seq, ByteSpan message,
-                     std::vector<std::uint8_t>* out);
+                     std::vector<std::uint8_t>* out, std::uint16_t flags = 0);
 struct DataEnvelope {
   std::uint64_t seq = 0;
   ByteSpan message;  // a view into the payload
 };
-// kCorrupt if shorter than the sequence number or if seq is 0 (sequence numbers start at 1).
+// kCorrupt if shorter than the sequence number, if seq is 0 (sequence numbers start at 1)
+// or above kMaxSequenceNumber.
 StatusOr<DataEnvelope> ParseDataEnvelope(ByteSpan payload);
 
 }  // namespace ccmd

@@ -1,5 +1,7 @@
 #include "libccmd/net/traffic_stats.h"
 
+#include <sys/resource.h>
+
 #include <cmath>
 
 #include "libccmd/util/timer.h"
@@ -19,8 +21,32 @@ Json KeyframePartsJson(const KeyframeSizeBreakdown& parts) {
   return j;
 }
 
+namespace {
+
+double ProcessCpuSeconds() {
+  rusage u{};
+  ::getrusage(RUSAGE_SELF, &u);
+  auto seconds = [](const timeval& t) { return static_cast<double>(t.tv_sec) + 1e-6 * t.tv_usec; };
+  return seconds(u.ru_utime) + seconds(u.ru_stime);
+}
+
+}  // namespace
+
 TrafficStats::TrafficStats(TrafficOptions options, double start_time)
-    : options_(options), start_(start_time >= 0 ? start_time : MonotonicSeconds()) {}
+    : options_(options),
+      start_(start_time >= 0 ? start_time : MonotonicSeconds()),
+      process_cpu_start_(ProcessCpuSeconds()) {}
+
+void TrafficStats::AddAuthentication(double cpu_seconds) {
+  if (cpu_seconds <= 0) return;
+  std::lock_guard<std::mutex> lock(mutex_);
+  auth_cpu_seconds_ += cpu_seconds;
+}
+
+void TrafficStats::ForgetAgent(AgentId agent) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  agents_.erase(agent);
+}
 
 AgentTraffic& TrafficStats::Agent(AgentId agent) { return agents_[agent]; }
 
@@ -55,13 +81,14 @@ void TrafficStats::AddSentBytes(AgentId agent, std::size_t bytes) {
 }
 
 void TrafficStats::AddDataMessage(AgentId agent, std::uint8_t type, std::size_t message_bytes,
-                                  const KeyframeSizeBreakdown* parts, double now) {
+                                  const KeyframeSizeBreakdown* parts, double now,
+                                  std::size_t tag_bytes) {
   std::lock_guard<std::mutex> lock(mutex_);
   AgentTraffic& a = Agent(agent);
   const double t = now - start_;
   if (a.first_message < 0) a.first_message = t;
   a.last_message = t;
-  a.wire_overhead_bytes += kFrameHeaderSize + 8;
+  a.wire_overhead_bytes += kFrameHeaderSize + 8 + tag_bytes;
   const auto bucket_index = static_cast<std::int64_t>(std::floor(t / options_.bucket_seconds));
   if (!a.buckets.count(bucket_index) && a.buckets.size() >= options_.max_buckets) {
     a.buckets.erase(a.buckets.begin());
@@ -149,6 +176,12 @@ Json TrafficStats::ToJson(double now) const {
   Json counters = Json::MakeObject();
   for (const auto& [name, n] : counters_) counters[name] = n;
   root["counters"] = counters;
+  Json auth = Json::MakeObject();
+  const double process_cpu = ProcessCpuSeconds() - process_cpu_start_;
+  auth["cpu_seconds"] = auth_cpu_seconds_;
+  auth["process_cpu_seconds"] = process_cpu;
+  auth["cpu_share"] = Ratio(auth_cpu_seconds_, process_cpu);
+  root["authentication"] = auth;
   Json agents = Json::MakeArray();
   for (const auto& [id, a] : agents_) {
     Json j = Json::MakeObject();

@@ -75,13 +75,19 @@ class TrafficStats {
   void AddReceivedBytes(AgentId agent, std::size_t bytes);
   void AddSentBytes(AgentId agent, std::size_t bytes);
   // A data message accepted for journaling; parts only for keyframes.
+  // `tag_bytes`: the frame's authentication tag (16 with a key), counted as overhead.
   void AddDataMessage(AgentId agent, std::uint8_t type, std::size_t message_bytes,
-                      const KeyframeSizeBreakdown* parts, double now);
+                      const KeyframeSizeBreakdown* parts, double now, std::size_t tag_bytes = 0);
   void AddSessionMessage(AgentId agent, std::size_t frame_bytes);
   void AddDuplicate(AgentId agent, std::size_t frame_bytes);
   void AddDelivered(AgentId agent, std::uint64_t seq, bool replayed);
   // Server-wide event counters ("connections_accepted", "refused_auth_failed", ...).
   void Count(const std::string& event, std::uint64_t n = 1);
+  // CPU time spent making and checking frame tags; the JSON gives its share of the
+  // process's CPU time since these statistics started ("authentication").
+  void AddAuthentication(double cpu_seconds);
+  // Drops an agent that was registered provisionally and left without sending anything.
+  void ForgetAgent(AgentId agent);
 
   std::uint64_t counter(const std::string& event) const;
   AgentTraffic agent(AgentId agent) const;  // a copy; empty if unknown
@@ -95,6 +101,8 @@ class TrafficStats {
   mutable std::mutex mutex_;
   std::map<AgentId, AgentTraffic> agents_;
   std::map<std::string, std::uint64_t> counters_;
+  double auth_cpu_seconds_ = 0;
+  double process_cpu_start_ = 0;
 };
 
 }  // namespace ccmd

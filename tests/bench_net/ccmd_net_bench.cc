@@ -9,11 +9,15 @@
 //   raw     each agent on its own TCP connection to a minimal in-process receiver that
 //           reads each message and answers 8 bytes (no framing, checks, journal or threads)
 //   nosync  ccmd_server --no-fsync (journaled, acknowledged after write(), no fdatasync)
-// and the results are given as ratios to them.
+// and the results are given as ratios to them. Then the default server twice:
+//   fsync   keyless (loopback): frames carry a CRC only
+//   key     with a pre-shared key: every frame tagged (protocol version 2); the server's
+//           statistics give the CPU time spent on tags and its share of the server's CPU
 //
 //   ccmd_net_bench [--agents 8] [--seconds 30] [--rate 5.5] [--bytes 60000] [--json OUT]
 
 #include <fcntl.h>
+#include <sys/stat.h>
 #include <poll.h>
 #include <signal.h>
 #include <sys/socket.h>
@@ -41,6 +45,7 @@
 #include "libccmd/util/random.h"
 #include "libccmd/util/timer.h"
 #include "proto/messages.h"
+#include "tests/bench_net/bench_keyframe.h"
 
 namespace ccmd {
 namespace {
@@ -64,6 +69,9 @@ struct Result {
   double accounted_bytes_per_s = 0;
   double accounted_keyframe_hz = 0;
   double accounted_keyframe_bytes = 0;
+  // With a key: the server's own measure of its CPU time on frame tags, and its share.
+  double auth_cpu_seconds = 0;
+  double auth_cpu_share = 0;
   double Percentile(double p) const {
     if (latency_ms.empty()) return 0;
     std::vector<double> v = latency_ms;
@@ -73,34 +81,6 @@ struct Result {
     return v[k];
   }
 };
-
-// A keyframe of about `bytes`: 1000 keypoints (half linked to map points) and opaque RGB-D
-// payload for the rest, so the server parses and accounts a realistic message.
-std::vector<std::uint8_t> MakeKeyframe(std::uint64_t seed, std::size_t bytes) {
-  Rng rng(seed);
-  KeyframeMessage m;
-  m.id = KeyframeId(static_cast<std::uint32_t>(seed));
-  for (int i = 0; i < 1000; ++i) {
-    WireKeypoint k;
-    k.u = static_cast<float>(rng.Uniform(0, 640));
-    k.v = static_cast<float>(rng.Uniform(0, 480));
-    k.depth_m = static_cast<float>(rng.Uniform(0.5, 4));
-    for (auto& b : k.descriptor) b = static_cast<std::uint8_t>(rng.Next());
-    if (i % 2 == 0) k.map_point = MapPointId(static_cast<std::uint32_t>(i));
-    m.keypoints.push_back(k);
-  }
-  const std::size_t base = SerializeKeyframe(m).value().size();
-  if (bytes > base + 16) {
-    RgbdPayload p;
-    p.downsample = 2;
-    p.colour_jpeg.resize((bytes - base - 16) * 3 / 4);
-    p.depth.resize(bytes - base - 16 - p.colour_jpeg.size());
-    for (auto& b : p.colour_jpeg) b = static_cast<std::uint8_t>(rng.Next());
-    for (auto& b : p.depth) b = static_cast<std::uint8_t>(rng.Next());
-    m.rgbd = std::move(p);
-  }
-  return SerializeKeyframe(m).value();
-}
 
 struct ProcStats {
   double cpu_seconds = 0;
@@ -180,7 +160,7 @@ void Pace(const Config& config, int agent, SendFn&& send) {
   }
 }
 
-Result RunServer(const Config& config, const std::string& name, bool fsync,
+Result RunServer(const Config& config, const std::string& name, bool fsync, bool keyed,
                  const std::vector<std::vector<std::uint8_t>>& messages, const std::string& tmp) {
   Result r;
   r.name = name;
@@ -194,6 +174,14 @@ Result RunServer(const Config& config, const std::string& name, bool fsync,
   args.push_back("--stats");
   args.push_back(stats_path);
   if (!fsync) args.push_back("--no-fsync");
+  const std::string key = "ccmd-net-bench-key-0123456789abcdef";
+  if (keyed) {
+    const std::string key_path = tmp + "/bench.key";
+    if (!WriteFileAtomic(key_path, key).ok()) std::exit(1);
+    ::chmod(key_path.c_str(), 0600);
+    args.push_back("--psk-file");
+    args.push_back(key_path);
+  }
   if (!StartServer(args, &pid, &port, tmp + "/server_" + name + ".log")) {
     std::fprintf(stderr, "cannot start ccmd_server\n");
     std::exit(1);
@@ -208,6 +196,7 @@ Result RunServer(const Config& config, const std::string& name, bool fsync,
     o.server = "127.0.0.1:" + std::to_string(port);
     o.name = "bench" + std::to_string(a);
     o.camera = {525, 525, 319.5, 239.5, 640, 480, 5000};
+    if (keyed) o.psk = key;
     o.on_acked = [&, a](std::uint64_t first, std::uint64_t last) {
       const double now = MonotonicSeconds();
       std::lock_guard<std::mutex> lock(mutex);
@@ -246,6 +235,11 @@ Result RunServer(const Config& config, const std::string& name, bool fsync,
   r.latency_ms = std::move(latencies);
   r.messages = r.latency_ms.size();
   if (StatusOr<Json> stats = ReadJsonFile(stats_path); stats.ok() && stats->Get("agents")) {
+    if (const Json* auth = stats->Get("authentication")) {
+      r.auth_cpu_seconds = auth->Get("cpu_seconds")->number();
+      const Json* share = auth->Get("cpu_share");
+      r.auth_cpu_share = share && !share->is_null() ? share->number() : 0;
+    }
     const auto& agents = stats->Get("agents")->array();
     for (const Json& a : agents) {
       r.accounted_bytes_per_s += a.Get("average_traffic_bytes_per_s")->number() / agents.size();
@@ -353,15 +347,16 @@ int main(int argc, char** argv) {
   char tmp_template[] = "/tmp/ccmd_net_bench_XXXXXX";
   const std::string tmp = ::mkdtemp(tmp_template);
   std::vector<std::vector<std::uint8_t>> messages;
-  for (int k = 0; k < 16; ++k) messages.push_back(MakeKeyframe(k + 1, config.bytes));
+  for (int k = 0; k < 16; ++k) messages.push_back(bench::MakeKeyframe(k + 1, config.bytes));
   std::printf("%d agents x %.1f keyframes/s x %zu bytes for %.0f s (%.0f kB/s in total)\n",
               config.agents, config.rate, messages[0].size(), config.seconds,
               config.agents * config.rate * messages[0].size() / 1e3);
 
   std::vector<Result> results;
   results.push_back(RunRaw(config, messages));
-  results.push_back(RunServer(config, "nosync", false, messages, tmp));
-  results.push_back(RunServer(config, "fsync", true, messages, tmp));
+  results.push_back(RunServer(config, "nosync", false, false, messages, tmp));
+  results.push_back(RunServer(config, "fsync", true, false, messages, tmp));
+  results.push_back(RunServer(config, "key", true, true, messages, tmp));
   std::system(("rm -rf " + tmp).c_str());
 
   const Result& raw = results[0];
@@ -392,12 +387,15 @@ int main(int argc, char** argv) {
     out[r.name] = j;
   }
   std::printf("\nServer accounting (stats JSON, mean over agents; per agent over its connected "
-              "time):\n| configuration | traffic kB/s | keyframe rate Hz | keyframe bytes |\n"
-              "|---|---|---|---|\n");
+              "time):\n| configuration | traffic kB/s | keyframe rate Hz | keyframe bytes | "
+              "tag CPU s | tag share of server CPU |\n|---|---|---|---|---|---|\n");
   for (const Result& r : results) {
     if (r.name == "raw") continue;
-    std::printf("| %s | %.1f | %.3f | %.0f |\n", r.name.c_str(), r.accounted_bytes_per_s / 1e3,
-                r.accounted_keyframe_hz, r.accounted_keyframe_bytes);
+    std::printf("| %s | %.1f | %.3f | %.0f | %.3f | %.2f %% |\n", r.name.c_str(),
+                r.accounted_bytes_per_s / 1e3, r.accounted_keyframe_hz,
+                r.accounted_keyframe_bytes, r.auth_cpu_seconds, 100 * r.auth_cpu_share);
+    out[r.name]["auth_cpu_seconds"] = r.auth_cpu_seconds;
+    out[r.name]["auth_cpu_share"] = r.auth_cpu_share;
     out[r.name]["accounted_traffic_bytes_per_s"] = r.accounted_bytes_per_s;
     out[r.name]["accounted_keyframe_rate_hz"] = r.accounted_keyframe_hz;
     out[r.name]["accounted_keyframe_bytes"] = r.accounted_keyframe_bytes;

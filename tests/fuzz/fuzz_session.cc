@@ -1,5 +1,6 @@
 // Fuzz target: the transport's session messages (hello, challenge, auth, welcome, ack, bye,
-// heartbeat), the data envelope and the journal scanner, all on the same input.
+// heartbeat), the data envelope, the journal's info and update records and the journal
+// scanner, all on the same input.
 
 #include <cstring>
 
@@ -36,20 +37,26 @@ std::vector<std::vector<std::uint8_t>> FuzzSeeds() {
   welcome.last_stored_seq = 8;
   welcome.max_payload_bytes = 1 << 24;
   welcome.idle_timeout_ms = 30000;
-  welcome.server_proof.emplace();
-  welcome.server_proof->fill(0x5A);
   ChallengeMessage challenge;
   challenge.key_required = true;
-  std::vector<std::uint8_t> journal =
-      EncodeFrame(kJournalInfoRecord, 0, SerializeJournalInfo({AgentId(3), "robot-1", Camera()}));
+  JournalAgentInfo info{AgentId(3), "robot-1", Camera()};
+  info.max_payload_bytes = 4096;
+  info.verifier.fill(0x42);
+  std::vector<std::uint8_t> journal = EncodeFrame(kJournalInfoRecord, 0, SerializeJournalInfo(info));
   AppendDataFrame(16, 1, std::vector<std::uint8_t>(30, 1), &journal);
+  const std::vector<std::uint8_t> update =
+      EncodeFrame(kJournalUpdateRecord, 0, SerializeJournalUpdate({1 << 16, {}}));
+  journal.insert(journal.end(), update.begin(), update.end());
   AppendDataFrame(17, 2, std::vector<std::uint8_t>(5, 2), &journal);
   return {SerializeHello(hello),
           SerializeChallenge(challenge),
           std::vector<std::uint8_t>(32, 0x11),
+          std::vector<std::uint8_t>(64, 0x12),
           SerializeWelcome(welcome),
           SerializeAck({77}),
-          SerializeBye({ByeReason::kAuthFailed, "wrong key"}),
+          SerializeBye({ByeReason::kFrameAuthFailed, "forged"}),
+          SerializeJournalInfo(info),
+          SerializeJournalUpdate({4096, info.verifier}),
           journal};
 }
 
@@ -86,9 +93,21 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   }
   (void)ParseHeartbeat(in);
   if (StatusOr<DataEnvelope> e = ParseDataEnvelope(in); e.ok()) {
-    if (e->seq == 0 || e->message.size() + kDataEnvelopeBytes != size) {
+    if (e->seq == 0 || e->seq > kMaxSequenceNumber ||
+        e->message.size() + kDataEnvelopeBytes != size) {
       fuzz::FuzzFail("data envelope");
     }
+  }
+  if (StatusOr<JournalAgentInfo> info = ParseJournalInfo(in); info.ok()) {
+    // Version 2 records round-trip; version 1 ones (no limit) gain the new fields.
+    const std::vector<std::uint8_t> again = SerializeJournalInfo(*info);
+    if (info->max_payload_bytes != 0 && !same(again)) fuzz::FuzzFail("journal info round trip");
+    if (info->max_payload_bytes == 0 && again.size() != size + 4 + kIdentitySize) {
+      fuzz::FuzzFail("version 1 journal info");
+    }
+  }
+  if (StatusOr<JournalUpdate> u = ParseJournalUpdate(in); u.ok()) {
+    if (!same(SerializeJournalUpdate(*u))) fuzz::FuzzFail("journal update round trip");
   }
   std::uint64_t last = 0;
   JournalVisitor visitor;

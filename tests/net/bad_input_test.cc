@@ -60,6 +60,7 @@ class BadInputTest : public ::testing::Test {
     // A good agent that sends throughout.
     AgentLinkOptions lo = Link("good");
     lo.psk = kKey;
+    lo.identity_file = dir_.File("good.identity");
     good_ = AgentLink::Create(lo).value();
     SendGood(10);
   }
@@ -104,20 +105,10 @@ class BadInputTest : public ::testing::Test {
   }
   // Completes a correct handshake by hand; returns the Welcome.
   WelcomeMessage Handshake(RawClient* c, const std::string& name) {
-    EXPECT_TRUE(c->Connect(server_->port()));
-    Nonce agent_nonce;
-    EXPECT_TRUE(c->SendBytes(HelloFrame(name, &agent_nonce)));
-    std::optional<Frame> challenge = c->ReadFrame(5);
-    EXPECT_TRUE(challenge.has_value());
-    const ChallengeMessage ch = ParseChallenge(challenge->payload).value();
-    EXPECT_TRUE(ch.key_required);
-    AuthMessage auth;
-    auth.proof = AgentProof(kKey, ch.server_nonce, agent_nonce, name);
-    EXPECT_TRUE(c->SendBytes(EncodeSessionFrame(SessionType::kAuth, SerializeAuth(auth))));
-    std::optional<Frame> welcome = c->ReadFrame(5);
+    std::optional<WelcomeMessage> welcome =
+        nettest::RawHandshake(c, server_->port(), name, kKey);
     EXPECT_TRUE(welcome.has_value());
-    EXPECT_EQ(welcome->type, static_cast<std::uint8_t>(SessionType::kWelcome));
-    return ParseWelcome(welcome->payload).value();
+    return welcome.value_or(WelcomeMessage{});
   }
 
   testing::TempDir dir_;
@@ -168,7 +159,7 @@ TEST_F(BadInputTest, WrongCrc) {
 
 TEST_F(BadInputTest, WrongVersion) {
   Bytes frame = HelloFrame("x");
-  frame[4] = 2;
+  frame[4] = 1;  // an agent of protocol version 1
   Reseal(&frame);
   std::optional<ByeMessage> bye = Exchange(frame);
   ASSERT_TRUE(bye.has_value());
@@ -234,7 +225,7 @@ TEST_F(BadInputTest, HandshakeOutOfOrder) {
 TEST_F(BadInputTest, UnknownTypeInASession) {
   RawClient c;
   Handshake(&c, "raw");
-  ASSERT_TRUE(c.SendBytes(EncodeFrame(9, 0, Bytes{1, 2, 3})));
+  ASSERT_TRUE(c.SendSessionFrame(static_cast<SessionType>(9), Bytes{1, 2, 3}));
   std::vector<Frame> frames;
   EXPECT_TRUE(c.ReadUntilClosed(&frames, 10));
   std::optional<ByeMessage> bye = FindBye(frames);
@@ -247,23 +238,20 @@ TEST_F(BadInputTest, DuplicatesDroppedGapsAndMalformedMessagesRefused) {
   RawClient c;
   const WelcomeMessage w = Handshake(&c, "raw");
   EXPECT_EQ(w.last_stored_seq, 0u);
-  Bytes frames;
-  AppendDataFrame(16, 1, nettest::SyntheticKeyframe(5, 1), &frames);
-  AppendDataFrame(16, 1, nettest::SyntheticKeyframe(5, 1), &frames);  // duplicate: dropped
-  AppendDataFrame(16, 2, nettest::SyntheticKeyframe(5, 2), &frames);
-  ASSERT_TRUE(c.SendBytes(frames));
+  ASSERT_TRUE(c.SendData(16, 1, nettest::SyntheticKeyframe(5, 1)));
+  ASSERT_TRUE(c.SendData(16, 1, nettest::SyntheticKeyframe(5, 1)));  // duplicate: dropped
+  ASSERT_TRUE(c.SendData(16, 2, nettest::SyntheticKeyframe(5, 2)));
   // Acks are cumulative: wait for the one covering message 2.
   std::uint64_t acked = 0;
   while (acked < 2) {
     std::optional<Frame> f = c.ReadFrame(5);
     ASSERT_TRUE(f.has_value());
+    ASSERT_TRUE(c.auth.Verify(*f).ok());
     if (f->type == static_cast<std::uint8_t>(SessionType::kAck)) {
       acked = ParseAck(f->payload)->last_stored_seq;
     }
   }
-  Bytes bad;
-  AppendDataFrame(16, 3, Bytes{0xFF, 0xFF}, &bad);  // not a keyframe
-  ASSERT_TRUE(c.SendBytes(bad));
+  ASSERT_TRUE(c.SendData(16, 3, Bytes{0xFF, 0xFF}));  // not a keyframe
   std::vector<Frame> rest;
   EXPECT_TRUE(c.ReadUntilClosed(&rest, 10));
   std::optional<ByeMessage> bye = FindBye(rest);
@@ -272,12 +260,11 @@ TEST_F(BadInputTest, DuplicatesDroppedGapsAndMalformedMessagesRefused) {
   EXPECT_NE(bye->text.find("malformed keyframe"), std::string::npos) << bye->text;
 
   RawClient again;
+  again.identity = c.identity;  // the same agent instance
   const WelcomeMessage w2 = Handshake(&again, "raw");
   EXPECT_EQ(w2.agent, w.agent);  // the same agent id for the same name
   EXPECT_EQ(w2.last_stored_seq, 2u);
-  Bytes gap;
-  AppendDataFrame(16, 5, nettest::SyntheticKeyframe(5, 5), &gap);
-  ASSERT_TRUE(again.SendBytes(gap));
+  ASSERT_TRUE(again.SendData(16, 5, nettest::SyntheticKeyframe(5, 5)));
   std::vector<Frame> after_gap;
   EXPECT_TRUE(again.ReadUntilClosed(&after_gap, 10));
   bye = FindBye(after_gap);
@@ -294,9 +281,7 @@ TEST_F(BadInputTest, DuplicatesDroppedGapsAndMalformedMessagesRefused) {
 TEST_F(BadInputTest, OversizedDataFrame) {
   RawClient c;
   Handshake(&c, "big");
-  Bytes frame;
-  AppendDataFrame(16, 1, Bytes(70 << 10, 0), &frame);  // over the 64 KiB test limit
-  ASSERT_TRUE(c.SendBytes(frame));
+  ASSERT_TRUE(c.SendData(16, 1, Bytes(70 << 10, 0)));  // over the 64 KiB test limit
   std::vector<Frame> frames;
   EXPECT_TRUE(c.ReadUntilClosed(&frames, 10));
   std::optional<ByeMessage> bye = FindBye(frames);
@@ -308,6 +293,7 @@ TEST_F(BadInputTest, DifferentCameraUnderAKnownNameIsRefused) {
   ASSERT_TRUE(good_->Flush(10).ok());  // "good" is registered
   AgentLinkOptions o = Link("good");
   o.psk = kKey;
+  o.identity_file = dir_.File("good.identity");  // the same instance as "good"
   o.camera.fx = 600;
   auto link = AgentLink::Create(o).value();
   // The link may have failed already, in which case Send returns that error.

@@ -12,11 +12,13 @@
 #include <atomic>
 #include <chrono>
 #include <cstdint>
+#include <memory>
 #include <mutex>
 #include <thread>
 #include <vector>
 
 #include "libccmd/net/socket.h"
+#include "tests/net/loopback_proxy.h"
 #include "libccmd/util/random.h"
 
 namespace ccmd::nettest {
@@ -28,75 +30,38 @@ struct FaultProxyOptions {
   double max_delay_s = 0;  // per forwarded chunk of at most 4 KiB
 };
 
-class FaultProxy {
+class FaultProxy : public LoopbackProxy {
  public:
   explicit FaultProxy(FaultProxyOptions options) : options_(options), rng_(options.seed) {}
-  ~FaultProxy() { Stop(); }
-
-  bool Start(std::uint16_t target_port) {
-    target_.store(target_port);
-    bool loopback;
-    StatusOr<UniqueFd> fd = ListenTcp(HostPort{"127.0.0.1", 0}, 64, &loopback);
-    if (!fd.ok()) return false;
-    listener_ = std::move(*fd);
-    port_ = LocalPort(listener_.get()).value();
-    acceptor_ = std::thread([this] { AcceptLoop(); });
-    return true;
-  }
-  void SetTarget(std::uint16_t port) { target_.store(port); }
-  std::uint16_t port() const { return port_; }
+  ~FaultProxy() override { Stop(); }
   int cuts() const { return cuts_.load(); }
-  int connections() const { return connections_.load(); }
 
-  void Stop() {
-    stop_.store(true);
-    wake_.Signal();
-    if (acceptor_.joinable()) acceptor_.join();
-    std::lock_guard<std::mutex> lock(mutex_);
-    for (std::thread& t : pumps_) t.join();
-    pumps_.clear();
+ protected:
+  std::function<void()> NewPump(UniqueFd client, UniqueFd server) override {
+    std::size_t budget = SIZE_MAX;
+    if (options_.max_cut_bytes > 0) {
+      budget = options_.min_cut_bytes +
+               static_cast<std::size_t>(
+                   rng_.Uniform() *
+                   static_cast<double>(options_.max_cut_bytes - options_.min_cut_bytes));
+    }
+    const double delay_seed = rng_.Uniform();
+    auto pair = std::make_shared<std::pair<UniqueFd, UniqueFd>>(std::move(client), std::move(server));
+    return [this, pair, budget, delay_seed] {
+      Pump(std::move(pair->first), std::move(pair->second), budget, delay_seed);
+    };
   }
 
  private:
-  void AcceptLoop() {
-    while (!stop_.load()) {
-      pollfd fds[2] = {{listener_.get(), POLLIN, 0}, {wake_.fd(), POLLIN, 0}};
-      ::poll(fds, 2, -1);
-      if (stop_.load()) return;
-      const int fd = ::accept4(listener_.get(), nullptr, nullptr, SOCK_NONBLOCK | SOCK_CLOEXEC);
-      if (fd < 0) continue;
-      UniqueFd client(fd);
-      StatusOr<UniqueFd> server = ConnectTcp(HostPort{"127.0.0.1", target_.load()}, 2.0);
-      if (!server.ok()) continue;  // target down: the agent sees a closed connection
-      ++connections_;
-      std::size_t budget = SIZE_MAX;
-      double delay_seed;
-      {
-        std::lock_guard<std::mutex> lock(mutex_);
-        if (options_.max_cut_bytes > 0) {
-          budget = options_.min_cut_bytes +
-                   static_cast<std::size_t>(
-                       rng_.Uniform() *
-                       static_cast<double>(options_.max_cut_bytes - options_.min_cut_bytes));
-        }
-        delay_seed = rng_.Uniform();
-        pumps_.emplace_back(
-            [this, c = std::move(client), s = std::move(*server), budget, delay_seed]() mutable {
-              Pump(std::move(c), std::move(s), budget, delay_seed);
-            });
-      }
-    }
-  }
-
   void Pump(UniqueFd client, UniqueFd server, std::size_t budget, double delay_seed) {
     Rng rng(static_cast<std::uint64_t>(delay_seed * 1e15));
     std::vector<std::uint8_t> buffer(4096);
     std::size_t forwarded = 0;
-    while (!stop_.load()) {
+    while (!stopping()) {
       pollfd fds[3] = {
-          {client.get(), POLLIN, 0}, {server.get(), POLLIN, 0}, {wake_.fd(), POLLIN, 0}};
+          {client.get(), POLLIN, 0}, {server.get(), POLLIN, 0}, {wake_fd(), POLLIN, 0}};
       ::poll(fds, 3, -1);
-      if (stop_.load()) return;
+      if (stopping()) return;
       if (fds[0].revents & (POLLIN | POLLHUP | POLLERR)) {
         StatusOr<std::size_t> n = ReadSome(client.get(), buffer.data(), buffer.size());
         if (!n.ok()) return;
@@ -126,32 +91,9 @@ class FaultProxy {
     }
   }
 
-  bool WriteFully(int fd, const std::uint8_t* data, std::size_t size) {
-    while (size > 0 && !stop_.load()) {
-      StatusOr<std::size_t> n = WriteSome(fd, data, size);
-      if (!n.ok()) return false;
-      data += *n;
-      size -= *n;
-      if (size > 0) {
-        pollfd p{fd, POLLOUT, 0};
-        ::poll(&p, 1, 100);
-      }
-    }
-    return size == 0;
-  }
-
   FaultProxyOptions options_;
-  std::mutex mutex_;
-  Rng rng_;
-  UniqueFd listener_;
-  std::uint16_t port_ = 0;
-  std::atomic<std::uint16_t> target_{0};
-  WakeFd wake_;
-  std::atomic<bool> stop_{false};
+  Rng rng_;  // accept thread only
   std::atomic<int> cuts_{0};
-  std::atomic<int> connections_{0};
-  std::thread acceptor_;
-  std::vector<std::thread> pumps_;
 };
 
 }  // namespace ccmd::nettest

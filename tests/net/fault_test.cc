@@ -23,6 +23,7 @@
 #include "libccmd/util/json.h"
 #include "tests/net/fault_proxy.h"
 #include "tests/net/net_test_util.h"
+#include "tests/net/server_process.h"
 #include "tests/support/test_support.h"
 
 namespace ccmd {
@@ -32,6 +33,7 @@ using nettest::Bytes;
 using nettest::FaultProxy;
 using nettest::FaultProxyOptions;
 using nettest::RecordingConsumer;
+using nettest::ServerProcess;
 using nettest::SyntheticKeyframe;
 
 AgentLinkOptions LinkVia(std::uint16_t port, const std::string& name) {
@@ -90,71 +92,6 @@ TEST(FaultTest, ProxyCutsConnectionsMidFrameAndDelaysTraffic) {
     }
   }
 }
-
-// ccmd_server as a child process; its port is read from its first line of output.
-class ServerProcess {
- public:
-  bool Start(const std::vector<std::string>& args, const std::string& log_path) {
-    std::vector<std::string> all = {testing::ProgramPath("ccmd_server")};
-    all.insert(all.end(), args.begin(), args.end());
-    std::vector<char*> argv;
-    for (std::string& s : all) argv.push_back(s.data());
-    argv.push_back(nullptr);
-    int out[2];
-    if (::pipe2(out, O_CLOEXEC) != 0) return false;
-    const int log = ::open(log_path.c_str(), O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC, 0644);
-    pid_ = ::fork();
-    if (pid_ == 0) {
-      ::dup2(out[1], 1);
-      ::dup2(log, 2);
-      ::execv(argv[0], argv.data());
-      ::_exit(127);
-    }
-    ::close(out[1]);
-    ::close(log);
-    UniqueFd read_end(out[0]);
-    std::string line;
-    const double deadline = MonotonicSeconds() + 20;
-    char c;
-    while (MonotonicSeconds() < deadline) {
-      pollfd p{read_end.get(), POLLIN, 0};
-      ::poll(&p, 1, 1000);
-      const ssize_t n = ::read(read_end.get(), &c, 1);
-      if (n == 0) return false;  // exited
-      if (n < 0) continue;
-      if (c != '\n') {
-        line.push_back(c);
-        continue;
-      }
-      const std::size_t colon = line.rfind(':');
-      if (line.find("listening on") != std::string::npos && colon != std::string::npos) {
-        port_ = static_cast<std::uint16_t>(std::stoi(line.substr(colon + 1)));
-        return true;
-      }
-      line.clear();
-    }
-    return false;
-  }
-  void Signal(int sig) { ::kill(pid_, sig); }
-  // Exit code, or 128 + signal.
-  int Wait() {
-    int status = 0;
-    ::waitpid(pid_, &status, 0);
-    pid_ = -1;
-    return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
-  }
-  ~ServerProcess() {
-    if (pid_ > 0) {
-      Signal(SIGKILL);
-      Wait();
-    }
-  }
-  std::uint16_t port() const { return port_; }
-
- private:
-  pid_t pid_ = -1;
-  std::uint16_t port_ = 0;
-};
 
 // Acknowledged link numbers per agent, for waiting without polling.
 class AckCounter {

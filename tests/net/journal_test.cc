@@ -3,6 +3,7 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cstring>
 #include <fstream>
 #include <string>
@@ -11,6 +12,7 @@
 #include <gtest/gtest.h>
 
 #include "libccmd/util/file_util.h"
+#include "proto/crc32c.h"
 #include "tests/net/net_test_util.h"
 #include "tests/support/test_support.h"
 
@@ -126,7 +128,7 @@ TEST(JournalTest, TornLastRecordIsCutAtEveryLength) {
   EXPECT_EQ(r.records[3].second, Message(4));
 }
 
-TEST(JournalTest, ZeroFilledTailAndBadLastCrcAreTorn) {
+TEST(JournalTest, ZeroFilledTailAndNeverWrittenBlocksAreTorn) {
   testing::TempDir dir;
   const std::string path = dir.File("agent_00001.journal");
   const std::vector<std::uint64_t> offsets = WriteJournal(path, 3);
@@ -141,14 +143,125 @@ TEST(JournalTest, ZeroFilledTailAndBadLastCrcAreTorn) {
   EXPECT_EQ(scan->torn_bytes, 4096u);
   EXPECT_EQ(scan->torn_reason, "zero-filled tail");
 
-  bytes.resize(size);
-  bytes[size - 1] ^= 0x40;  // the last record's payload half persisted
+  // A last record spanning blocks whose last whole block was never written: its length is
+  // all there, but its end reads as zeros.
+  auto writer = JournalWriter::OpenForAppend(path, size);
+  ASSERT_TRUE(writer.ok());
+  const std::uint64_t start = (*writer)->size();
+  ASSERT_TRUE((*writer)->Append(TypeFor(4), 4, Bytes(3 * 4096, 0x5A)).ok());
+  writer->reset();
+  bytes = ReadAll(path);
+  const std::size_t block = (start + kFrameHeaderSize + 4096 + 4095) / 4096 * 4096;
+  std::fill(bytes.begin() + static_cast<std::ptrdiff_t>(block), bytes.end(), 0);
+  ASSERT_GE(bytes.size() - block, 4096u);
   WriteAll(path, bytes);
   Replayed r2;
   scan = Replay(path, &r2);
-  ASSERT_TRUE(scan.ok());
-  EXPECT_EQ(r2.records.size(), 2u);
-  EXPECT_EQ(scan->valid_bytes, offsets[2]);
+  ASSERT_TRUE(scan.ok()) << scan.status().ToString();
+  EXPECT_EQ(r2.records.size(), 3u);
+  EXPECT_EQ(scan->valid_bytes, start);
+  EXPECT_GT(start, offsets[2]);
+}
+
+TEST(JournalTest, ACompleteLastRecordFailingItsCrcIsDamageNotATornWrite) {
+  testing::TempDir dir;
+  const std::string path = dir.File("agent_00001.journal");
+  const std::vector<std::uint64_t> offsets = WriteJournal(path, 3);
+  Bytes bytes = ReadAll(path);
+  bytes.back() ^= 0x40;  // one bit of a record that was written in full
+  WriteAll(path, bytes);
+  Replayed r;
+  StatusOr<JournalScan> scan = Replay(path, &r);
+  ASSERT_EQ(scan.status().code(), StatusCode::kCorrupt);
+  const std::string text = scan.status().message();
+  // Nothing after it passes its checks, so the advice is a cut exactly there.
+  EXPECT_NE(text.find("nothing after it passes"), std::string::npos) << text;
+  EXPECT_NE(text.find("truncate -s " + std::to_string(offsets[2])), std::string::npos) << text;
+  EXPECT_EQ(r.records.size(), 2u);
+}
+
+TEST(JournalTest, DamageAdviceNeverCutsAwayIntactRecords) {
+  testing::TempDir dir;
+  const std::string path = dir.File("agent_00001.journal");
+  const std::vector<std::uint64_t> offsets = WriteJournal(path, 5);
+  Bytes bytes = ReadAll(path);
+  bytes[offsets[1] + kFrameHeaderSize + 9] ^= 1;  // inside record 2's message
+  WriteAll(path, bytes);
+  Replayed r;
+  StatusOr<JournalScan> scan = Replay(path, &r);
+  ASSERT_EQ(scan.status().code(), StatusCode::kCorrupt);
+  const std::string text = scan.status().message();
+  EXPECT_NE(text.find("3 intact record(s) follow it (sequence numbers 3..5)"), std::string::npos)
+      << text;
+  EXPECT_EQ(text.find("truncate"), std::string::npos) << text;
+}
+
+// Writes a journal with records of `message_bytes` under a limit of `limit`.
+void WriteLargeRecords(const std::string& path, std::uint32_t limit, std::size_t message_bytes) {
+  JournalAgentInfo info{AgentId(2), "big", nettest::TestCamera()};
+  info.max_payload_bytes = limit;
+  auto writer = JournalWriter::Create(path, info);
+  ASSERT_TRUE(writer.ok()) << writer.status().ToString();
+  for (int i = 1; i <= 3; ++i) {
+    ASSERT_TRUE((*writer)->Append(16, i, Bytes(message_bytes, static_cast<std::uint8_t>(i))).ok());
+  }
+  ASSERT_TRUE((*writer)->Sync().ok());
+}
+
+TEST(JournalTest, RecordsAreReadWithTheLimitTheJournalWasWrittenWith) {
+  testing::TempDir dir;
+  const std::string path = dir.File("agent_00002.journal");
+  WriteLargeRecords(path, 64 << 10, 40 << 10);
+  // Whatever limit the reader runs with now, the journal's own applies.
+  StatusOr<JournalScan> scan = ScanJournalFile(path);
+  ASSERT_TRUE(scan.ok()) << scan.status().ToString();
+  EXPECT_EQ(scan->records, 3u);
+  EXPECT_EQ(scan->info.max_payload_bytes, 64u << 10);
+
+  // Records above the recorded limit cannot have been written by the server: damage.
+  testing::TempDir dir2;
+  const std::string small = dir2.File("agent_00002.journal");
+  WriteLargeRecords(small, 16 << 10, 40 << 10);
+  EXPECT_EQ(ScanJournalFile(small).status().code(), StatusCode::kCorrupt);
+
+  // An update record raises the limit for the records after it.
+  auto writer = JournalWriter::OpenForAppend(path, FileSize(path));
+  ASSERT_TRUE(writer.ok());
+  ASSERT_TRUE((*writer)->AppendUpdate({1 << 20, {}}).ok());
+  ASSERT_TRUE((*writer)->Append(16, 4, Bytes(200 << 10, 4)).ok());
+  ASSERT_TRUE((*writer)->Sync().ok());
+  scan = ScanJournalFile(path);
+  ASSERT_TRUE(scan.ok()) << scan.status().ToString();
+  EXPECT_EQ(scan->records, 4u);
+  EXPECT_EQ(scan->info.max_payload_bytes, 1u << 20);
+}
+
+TEST(JournalTest, JournalsOfProtocolVersion1StayReadable) {
+  // Version 1: frames with version byte 1, an info record without limit and verifier.
+  auto v1 = [](std::uint8_t type, const Bytes& payload) {
+    Bytes frame = EncodeFrame(type, 0, payload);
+    frame[4] = 1;
+    const std::uint32_t crc = Crc32c(frame.data(), 16);
+    for (int i = 0; i < 4; ++i) frame[16 + i] = static_cast<std::uint8_t>(crc >> (8 * i));
+    return frame;
+  };
+  Bytes info = SerializeJournalInfo({AgentId(4), "old", nettest::TestCamera()});
+  info.resize(info.size() - 4 - kIdentitySize);
+  Bytes journal = v1(kJournalInfoRecord, info);
+  for (std::uint64_t seq = 1; seq <= 2; ++seq) {
+    Bytes data(8, 0);
+    data[0] = static_cast<std::uint8_t>(seq);
+    const Bytes m = Message(seq);
+    data.insert(data.end(), m.begin(), m.end());
+    const Bytes frame = v1(16, data);
+    journal.insert(journal.end(), frame.begin(), frame.end());
+  }
+  StatusOr<JournalScan> scan = ScanJournalBytes(journal);
+  ASSERT_TRUE(scan.ok()) << scan.status().ToString();
+  EXPECT_EQ(scan->records, 2u);
+  EXPECT_EQ(scan->info.name, "old");
+  EXPECT_EQ(scan->info.max_payload_bytes, 0u);  // not recorded
+  EXPECT_TRUE(IsZero(scan->info.verifier));
 }
 
 TEST(JournalTest, CorruptionBeforeTheLastRecordIsAnError) {
@@ -219,8 +332,9 @@ TEST(JournalTest, RollBackCutsUnsyncedRecords) {
 }
 
 // The info record's layout before distortion existed (u16 id, u8 name length, name, 4 x f64,
-// 2 x u32, f64), byte by byte: journals written then still resume, with no distortion.
-TEST(JournalTest, InfoRecordWithoutDistortionIsTheOriginalLayout) {
+// 2 x u32, f64), byte by byte: version 2 appends the limit and the verifier to it, and
+// version 1 journals written then still resume, with no distortion.
+TEST(JournalTest, InfoRecordWithoutDistortionExtendsTheOriginalLayout) {
   JournalAgentInfo info{AgentId(4), "icl", nettest::TestCamera()};
   info.camera.fy = -480.0;  // refused before; a valid camera now
   Bytes old = {4, 0, 3, 'i', 'c', 'l'};
@@ -235,8 +349,26 @@ TEST(JournalTest, InfoRecordWithoutDistortionIsTheOriginalLayout) {
   std::uint64_t bits;
   std::memcpy(&bits, &info.camera.depth_scale, 8);
   for (int i = 0; i < 8; ++i) old.push_back(static_cast<std::uint8_t>(bits >> (8 * i)));
-  EXPECT_EQ(SerializeJournalInfo(info), old);
-  StatusOr<JournalAgentInfo> parsed = ParseJournalInfo(old);
+  const Bytes v2 = SerializeJournalInfo(info);
+  ASSERT_EQ(v2.size(), old.size() + 4 + kIdentitySize);
+  EXPECT_TRUE(std::equal(old.begin(), old.end(), v2.begin()));
+  StatusOr<JournalAgentInfo> parsed = ParseJournalInfo(old, 1);
+  ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+  EXPECT_EQ(parsed->camera, info.camera);
+  EXPECT_EQ(parsed->max_payload_bytes, 0u);
+  EXPECT_FALSE(ParseJournalInfo(old).ok());  // a version 2 record needs the limit
+}
+
+// A version 1 journal of a distorted camera (the trailer right after the camera) resumes.
+TEST(JournalTest, VersionOneInfoRecordWithDistortion) {
+  JournalAgentInfo info{AgentId(2), "fr1", nettest::TestCamera()};
+  info.camera.distortion = {0.262383, -0.953104, -0.005358, 0.002628, 1.163314};
+  Bytes v2 = SerializeJournalInfo(info);
+  // Version 1 had no limit and verifier between the camera and the trailer.
+  const std::size_t camera_end = 2 + 1 + info.name.size() + 48;
+  Bytes v1(v2.begin(), v2.begin() + camera_end);
+  v1.insert(v1.end(), v2.begin() + camera_end + 4 + kIdentitySize, v2.end());
+  StatusOr<JournalAgentInfo> parsed = ParseJournalInfo(v1, 1);
   ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
   EXPECT_EQ(parsed->camera, info.camera);
 }

@@ -14,6 +14,8 @@
 #include <string>
 #include <vector>
 
+#include "libccmd/net/agent_identity.h"
+#include "libccmd/net/frame_auth.h"
 #include "libccmd/net/message_consumer.h"
 #include "libccmd/net/psk.h"
 #include "libccmd/net/session_messages.h"
@@ -224,40 +226,83 @@ class RawClient {
   int fd() const { return fd_.get(); }
   void Close() { fd_.Reset(); }
 
+  // After RawHandshake: frames in the session, tagged when it is keyed.
+  bool SendSessionFrame(SessionType type, const Bytes& payload) {
+    Bytes out;
+    auth.AppendFrame(static_cast<std::uint8_t>(type), payload, &out);
+    return SendBytes(out);
+  }
+  bool SendData(std::uint8_t type, std::uint64_t seq, const Bytes& message) {
+    Bytes out;
+    auth.AppendDataFrame(type, seq, message, &out);
+    return SendBytes(out);
+  }
+
+  SessionAuth auth;  // the session's frame authentication (keyless until a keyed welcome)
+  AgentIdentity identity{};
+
  private:
   UniqueFd fd_;
   FrameDecoder decoder_;
   std::vector<Frame> pending_;
 };
 
-// Completes a handshake by hand (key "" for a keyless server); returns the Welcome.
+// A deterministic identity for raw clients: the same `seed`, the same agent instance.
+inline AgentIdentity TestIdentity(int seed) {
+  AgentIdentity id;
+  for (std::size_t i = 0; i < id.size(); ++i) id[i] = static_cast<std::uint8_t>(seed * 131 + i);
+  return id;
+}
+
+// The server's answer to a raw handshake: the Welcome, or the Bye refusing it.
+struct RawAnswer {
+  std::optional<WelcomeMessage> welcome;
+  std::optional<ByeMessage> bye;
+};
+
+// Completes a handshake by hand (key "" for a keyless server) as the agent instance
+// c->identity, announcing `hello` (its nonce is set here). Leaves c->auth ready for the
+// session.
+inline RawAnswer RawHandshakeWith(RawClient* c, std::uint16_t port, HelloMessage hello,
+                                  const std::string& key = "") {
+  RawAnswer answer;
+  if (!c->Connect(port)) return answer;
+  for (int i = 0; i < 32; ++i) hello.agent_nonce[i] = static_cast<std::uint8_t>(i * 3);
+  const Bytes hello_payload = SerializeHello(hello);
+  if (!c->SendBytes(EncodeSessionFrame(SessionType::kHello, hello_payload))) return answer;
+  std::optional<Frame> challenge = c->ReadFrame(5);
+  if (!challenge) return answer;
+  StatusOr<ChallengeMessage> ch = ParseChallenge(challenge->payload);
+  if (!ch.ok()) return answer;
+  const SessionKeys keys = DeriveSessionKeys(key, hello.agent_nonce, ch->server_nonce, hello_payload);
+  AuthMessage auth;
+  if (!key.empty()) auth.proof = AgentProof(key, ch->server_nonce, hello_payload);
+  auth.masked_identity = MaskIdentity(c->identity, keys.identity_pad);
+  if (!c->SendBytes(EncodeSessionFrame(SessionType::kAuth, SerializeAuth(auth)))) {
+    return answer;
+  }
+  c->auth = SessionAuth(FrameRole::kAgent, keys, !key.empty());
+  std::optional<Frame> reply = c->ReadFrame(5);
+  if (!reply || !c->auth.Verify(*reply).ok()) return answer;
+  if (reply->type == static_cast<std::uint8_t>(SessionType::kBye)) {
+    StatusOr<ByeMessage> bye = ParseBye(reply->payload);
+    if (bye.ok()) answer.bye = *bye;
+    return answer;
+  }
+  if (reply->type != static_cast<std::uint8_t>(SessionType::kWelcome)) return answer;
+  StatusOr<WelcomeMessage> w = ParseWelcome(reply->payload);
+  if (w.ok()) answer.welcome = *w;
+  return answer;
+}
+
+// A fresh agent named `name` with the test camera; returns the Welcome.
 inline std::optional<WelcomeMessage> RawHandshake(RawClient* c, std::uint16_t port,
                                                   const std::string& name,
                                                   const std::string& key = "") {
-  if (!c->Connect(port)) return std::nullopt;
   HelloMessage hello;
   hello.name = name;
   hello.camera = TestCamera();
-  for (int i = 0; i < 32; ++i) hello.agent_nonce[i] = static_cast<std::uint8_t>(i * 3);
-  if (!c->SendBytes(EncodeSessionFrame(SessionType::kHello, SerializeHello(hello)))) {
-    return std::nullopt;
-  }
-  std::optional<Frame> challenge = c->ReadFrame(5);
-  if (!challenge) return std::nullopt;
-  StatusOr<ChallengeMessage> ch = ParseChallenge(challenge->payload);
-  if (!ch.ok()) return std::nullopt;
-  AuthMessage auth;
-  if (!key.empty()) auth.proof = AgentProof(key, ch->server_nonce, hello.agent_nonce, name);
-  if (!c->SendBytes(EncodeSessionFrame(SessionType::kAuth, SerializeAuth(auth)))) {
-    return std::nullopt;
-  }
-  std::optional<Frame> welcome = c->ReadFrame(5);
-  if (!welcome || welcome->type != static_cast<std::uint8_t>(SessionType::kWelcome)) {
-    return std::nullopt;
-  }
-  StatusOr<WelcomeMessage> w = ParseWelcome(welcome->payload);
-  if (!w.ok()) return std::nullopt;
-  return *w;
+  return RawHandshakeWith(c, port, hello, key).welcome;
 }
 
 // The Bye in a list of frames, if any.

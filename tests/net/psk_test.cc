@@ -45,19 +45,19 @@ TEST(PskTest, ConstantTimeEqualsComparesWholeSpans) {
   EXPECT_FALSE(ConstantTimeEquals(Span(a), Span(a.substr(0, 15))));
 }
 
-TEST(PskTest, ProofsBindNoncesNameAndDirection) {
+TEST(PskTest, ProofsBindTheServerNonceAndTheWholeHello) {
   const std::string key = "a deployment key of some length";
-  Nonce s{}, a{};
+  Nonce s{}, t{};
   s[0] = 1;
-  a[0] = 2;
-  const Mac p = AgentProof(key, s, a, "robot-1");
-  EXPECT_EQ(p, AgentProof(key, s, a, "robot-1"));
-  EXPECT_NE(p, AgentProof(key, s, a, "robot-2"));
-  EXPECT_NE(p, AgentProof(key, a, s, "robot-1"));  // nonces swapped
-  EXPECT_NE(p, AgentProof("another deployment key", s, a, "robot-1"));
-  // The server's proof over the same nonces is a different value: no reflection.
-  EXPECT_NE(p, ServerProof(key, a, s, 0, 0));
-  EXPECT_NE(ServerProof(key, a, s, 1, 5), ServerProof(key, a, s, 1, 6));
+  t[0] = 2;
+  const std::string hello = "the hello of robot-1, its camera and resume point";
+  std::string altered = hello;
+  altered[30] ^= 1;  // one bit anywhere in the hello (a camera, a resume point)
+  const Mac p = AgentProof(key, s, Span(hello));
+  EXPECT_EQ(p, AgentProof(key, s, Span(hello)));
+  EXPECT_NE(p, AgentProof(key, s, Span(altered)));
+  EXPECT_NE(p, AgentProof(key, t, Span(hello)));  // another handshake's server nonce
+  EXPECT_NE(p, AgentProof("another deployment key", s, Span(hello)));
 }
 
 TEST(PskTest, KeyFileIsTrimmedAndChecked) {

@@ -130,7 +130,9 @@ TEST(ServerTest, ResumeReplaysTheJournalThenContinuesTheSequence) {
     RecordingConsumer consumer;
     Server server(LoopbackOptions(dir.File("journal")), &consumer);
     ASSERT_TRUE(server.Start().ok());
-    auto link = AgentLink::Create(LinkOptions(server.port(), "robot")).value();
+    AgentLinkOptions o = LinkOptions(server.port(), "robot");
+    o.spill_dir = dir.File("robot.spill");  // keeps the agent's identity for its next run
+    auto link = AgentLink::Create(o).value();
     SendAll(link.get(), 1, 0, 30);
     ASSERT_TRUE(link->Flush(10).ok());
     first_id = link->stats().agent;
@@ -162,8 +164,11 @@ TEST(ServerTest, ResumeReplaysTheJournalThenContinuesTheSequence) {
   EXPECT_EQ(consumer.total(), 30u);
   EXPECT_EQ(consumer.known_from_journal(), 1);
   ASSERT_EQ(consumer.events().back(), "replay finished 30");
-  // A new process under the same name continues after message 30 with the same id.
-  auto link = AgentLink::Create(LinkOptions(server.port(), "robot")).value();
+  // A new process of the same agent (its spill folder, so its identity) continues after
+  // message 30 with the same id.
+  AgentLinkOptions o = LinkOptions(server.port(), "robot");
+  o.spill_dir = dir.File("robot.spill");
+  auto link = AgentLink::Create(o).value();
   SendAll(link.get(), 1, 30, 50);
   ASSERT_TRUE(link->Flush(10).ok());
   EXPECT_EQ(link->stats().agent, first_id);
@@ -261,27 +266,25 @@ TEST(ServerTest, AgentsBeyondTheLimitAreRefusedKnownOnesStillServed) {
   Server server(o, &consumer);
   ASSERT_TRUE(server.Start().ok());
   for (const char* name : {"a", "b"}) {
-    auto link = AgentLink::Create(LinkOptions(server.port(), name)).value();
+    AgentLinkOptions lo = LinkOptions(server.port(), name);
+    lo.identity_file = dir.File(std::string(name) + ".identity");
+    auto link = AgentLink::Create(lo).value();
     SendAll(link.get(), 0, 0, 1);
     ASSERT_TRUE(link->Flush(10).ok());
   }
   // A third name: refused with "server full" (a retryable refusal: the link keeps trying).
   nettest::RawClient c;
-  ASSERT_TRUE(c.Connect(server.port()));
   HelloMessage hello;
   hello.name = "c";
   hello.camera = TestCamera();
-  ASSERT_TRUE(c.SendBytes(EncodeSessionFrame(SessionType::kHello, SerializeHello(hello))));
-  std::optional<Frame> challenge = c.ReadFrame(5);
-  ASSERT_TRUE(challenge.has_value());
-  ASSERT_TRUE(c.SendBytes(EncodeSessionFrame(SessionType::kAuth, SerializeAuth({}))));
-  std::vector<Frame> frames;
-  ASSERT_TRUE(c.ReadUntilClosed(&frames, 10));
-  std::optional<ByeMessage> bye = nettest::FindBye(frames);
-  ASSERT_TRUE(bye.has_value());
-  EXPECT_EQ(bye->reason, ByeReason::kServerFull);
+  const nettest::RawAnswer answer = nettest::RawHandshakeWith(&c, server.port(), hello);
+  ASSERT_TRUE(answer.bye.has_value());
+  EXPECT_EQ(answer.bye->reason, ByeReason::kServerFull);
+  EXPECT_NE(answer.bye->text.find("--max-agents"), std::string::npos) << answer.bye->text;
   // A registered agent reconnecting is still welcome.
-  auto again = AgentLink::Create(LinkOptions(server.port(), "a")).value();
+  AgentLinkOptions lo = LinkOptions(server.port(), "a");
+  lo.identity_file = dir.File("a.identity");
+  auto again = AgentLink::Create(lo).value();
   SendAll(again.get(), 0, 1, 2);
   EXPECT_TRUE(again->Flush(10).ok());
   again.reset();

@@ -34,7 +34,7 @@ HelloMessage SampleHello() {
 }
 
 TEST(SessionMessagesTest, HelloLayoutByteByByte) {
-  Bytes expected = {1, 0, 7, 'r', 'o', 'b', 'o', 't', '-', '1'};
+  Bytes expected = {2, 0, 7, 'r', 'o', 'b', 'o', 't', '-', '1'};  // version 2
   for (double v : {517.3, 516.5, 318.6, 255.3}) PutF64(&expected, v);
   PutLe(&expected, 640, 4);
   PutLe(&expected, 480, 4);
@@ -85,7 +85,7 @@ TEST(SessionMessagesTest, HelloCarriesNegativeFocalLengthAndDistortion) {
 TEST(SessionMessagesTest, HelloRejectsBadFields) {
   const Bytes good = SerializeHello(SampleHello());
   Bytes version = good;
-  version[0] = 2;
+  version[0] = 1;
   EXPECT_EQ(ParseHello(version).status().code(), StatusCode::kUnsupported);
   Bytes flags = good;
   flags[1] = 0x80;
@@ -99,6 +99,9 @@ TEST(SessionMessagesTest, HelloRejectsBadFields) {
   HelloMessage bad_range = SampleHello();
   bad_range.next_seq = 2;  // before first_seq
   EXPECT_FALSE(ParseHello(SerializeHello(bad_range)).ok());
+  HelloMessage absurd = SampleHello();
+  absurd.first_seq = absurd.next_seq = (1ull << 62) + 1;
+  EXPECT_EQ(ParseHello(SerializeHello(absurd)).status().code(), StatusCode::kCorrupt);
   HelloMessage bad_camera = SampleHello();
   bad_camera.camera.fx = 0;
   EXPECT_FALSE(ParseHello(SerializeHello(bad_camera)).ok());
@@ -130,31 +133,42 @@ TEST(SessionMessagesTest, ChallengeAuthWelcomeAckByeLayouts) {
   expected_c[0] = 2;
   EXPECT_FALSE(ParseChallenge(expected_c).ok());
 
-  EXPECT_TRUE(SerializeAuth(AuthMessage{}).empty());
-  EXPECT_FALSE(ParseAuth(Bytes{})->proof.has_value());
-  EXPECT_FALSE(ParseAuth(Bytes(31, 0)).ok());
-  EXPECT_TRUE(ParseAuth(Bytes(32, 0))->proof.has_value());
+  // Auth: [32-byte proof, with a key] then the 32-byte masked identity.
+  AuthMessage keyless;
+  keyless.masked_identity.fill(0x11);
+  EXPECT_EQ(SerializeAuth(keyless), Bytes(32, 0x11));
+  AuthMessage keyed = keyless;
+  keyed.proof.emplace();
+  keyed.proof->fill(0x22);
+  Bytes expected_a(32, 0x22);
+  expected_a.insert(expected_a.end(), 32, 0x11);
+  EXPECT_EQ(SerializeAuth(keyed), expected_a);
+  StatusOr<AuthMessage> pa = ParseAuth(expected_a);
+  ASSERT_TRUE(pa.ok());
+  EXPECT_EQ(*pa->proof, *keyed.proof);
+  EXPECT_EQ(pa->masked_identity, keyed.masked_identity);
+  EXPECT_FALSE(ParseAuth(Bytes(32, 0x11))->proof.has_value());
+  for (std::size_t n : {0, 31, 33, 63, 65}) EXPECT_FALSE(ParseAuth(Bytes(n, 0)).ok()) << n;
 
   WelcomeMessage w;
   w.agent = AgentId(0x0203);
   w.last_stored_seq = 0x1122334455667788ull;
   w.max_payload_bytes = 0x01000000;
   w.idle_timeout_ms = 30000;
-  Bytes expected_w = {0, 0x03, 0x02};
-  PutLe(&expected_w, 0x1122334455667788ull, 8);
+  Bytes expected_w;
+  w.last_stored_seq = 0x0122334455667788ull;  // within 2^62
+  expected_w = {0, 0x03, 0x02};
+  PutLe(&expected_w, 0x0122334455667788ull, 8);
   PutLe(&expected_w, 0x01000000, 4);
   PutLe(&expected_w, 30000, 4);
   EXPECT_EQ(SerializeWelcome(w), expected_w);
-  w.server_proof.emplace();
-  w.server_proof->fill(7);
-  const Bytes with_proof = SerializeWelcome(w);
-  EXPECT_EQ(with_proof[0], 1);
-  EXPECT_EQ(with_proof.size(), expected_w.size() + 32);
-  StatusOr<WelcomeMessage> pw = ParseWelcome(with_proof);
+  StatusOr<WelcomeMessage> pw = ParseWelcome(expected_w);
   ASSERT_TRUE(pw.ok());
   EXPECT_EQ(pw->agent, AgentId(0x0203));
-  EXPECT_EQ(pw->last_stored_seq, 0x1122334455667788ull);
-  EXPECT_EQ(*pw->server_proof, *w.server_proof);
+  EXPECT_EQ(pw->last_stored_seq, 0x0122334455667788ull);
+  Bytes flagged = expected_w;
+  flagged[0] = 1;  // version 1's "server proof" flag is gone: the tag proves the key
+  EXPECT_FALSE(ParseWelcome(flagged).ok());
 
   EXPECT_EQ(SerializeAck({0x0102030405060708ull}),
             (Bytes{0x08, 0x07, 0x06, 0x05, 0x04, 0x03, 0x02, 0x01}));
@@ -166,7 +180,8 @@ TEST(SessionMessagesTest, ChallengeAuthWelcomeAckByeLayouts) {
   ASSERT_TRUE(bye.ok());
   EXPECT_EQ(bye->reason, ByeReason::kReplaced);
   EXPECT_EQ(bye->text, "a?z");                        // control characters never reach the logs
-  EXPECT_FALSE(ParseBye(Bytes{12, 0, 0}).ok());       // unknown reason
+  EXPECT_EQ(ParseBye(Bytes{12, 0, 0})->reason, ByeReason::kFrameAuthFailed);
+  EXPECT_FALSE(ParseBye(Bytes{13, 0, 0}).ok());       // unknown reason
   EXPECT_FALSE(ParseBye(Bytes{0, 0xFF, 0xFF}).ok());  // text longer than allowed
   EXPECT_TRUE(ParseHeartbeat(Bytes{}).ok());
   EXPECT_FALSE(ParseHeartbeat(Bytes{0}).ok());
@@ -187,6 +202,8 @@ TEST(SessionMessagesTest, DataEnvelopeCarriesTheSequenceNumberFirst) {
   EXPECT_EQ(Bytes(env->message.begin(), env->message.end()), message);
   EXPECT_FALSE(ParseDataEnvelope(Bytes{0, 0, 0, 0, 0, 0, 0, 0}).ok());  // seq 0
   EXPECT_FALSE(ParseDataEnvelope(Bytes{1, 0, 0}).ok());
+  EXPECT_FALSE(ParseDataEnvelope(Bytes{1, 0, 0, 0, 0, 0, 0, 0x40}).ok());  // 2^62 + 1
+  EXPECT_TRUE(ParseDataEnvelope(Bytes{0, 0, 0, 0, 0, 0, 0, 0x40}).ok());   // 2^62
 }
 
 TEST(SessionMessagesTest, AgentNames) {

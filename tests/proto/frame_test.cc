@@ -42,7 +42,7 @@ TEST(FrameTest, HeaderLayoutByteByByte) {
   const Bytes frame = EncodeFrame(16, 0x0102, payload);
   ASSERT_EQ(frame.size(), 20u + 3u);
   EXPECT_EQ(Bytes(frame.begin(), frame.begin() + 4), Payload("CCMD"));
-  EXPECT_EQ(frame[4], 1);     // version
+  EXPECT_EQ(frame[4], 2);     // version
   EXPECT_EQ(frame[5], 16);    // type
   EXPECT_EQ(frame[6], 0x02);  // flags, little-endian
   EXPECT_EQ(frame[7], 0x01);
@@ -76,10 +76,17 @@ TEST(FrameTest, WrongMagicVersionAndTypeAreClearErrors) {
   EXPECT_NE(s1.status().message().find("magic"), std::string::npos);
 
   Bytes bad_version = frame;
-  bad_version[4] = 2;
+  bad_version[4] = 1;
   auto s2 = DecodeFrame(bad_version);
   EXPECT_EQ(s2.status().code(), StatusCode::kUnsupported);
-  EXPECT_NE(s2.status().message().find("version 2"), std::string::npos);
+  EXPECT_NE(s2.status().message().find("version 1"), std::string::npos);
+  // Readers of old journals accept version 1 explicitly.
+  ResealHeader(&bad_version);
+  EXPECT_TRUE(DecodeFrame(bad_version, {.oldest_version = 1}).ok());
+  bad_version[4] = 3;
+  ResealHeader(&bad_version);
+  EXPECT_EQ(DecodeFrame(bad_version, {.oldest_version = 1}).status().code(),
+            StatusCode::kUnsupported);
 
   Bytes type_zero = frame;
   type_zero[5] = 0;
@@ -198,6 +205,57 @@ TEST(FrameTest, StreamDecoderRejectsACorruptPayload) {
   EXPECT_EQ(s.code(), StatusCode::kCorrupt);
   EXPECT_NE(s.message().find("payload CRC"), std::string::npos);
   EXPECT_TRUE(frames.empty());
+}
+
+TEST(FrameTest, StreamDecoderBufferGrowsWithTheBytesNotTheClaim) {
+  const Bytes payload(6 << 20, 0x33);
+  const Bytes frame = EncodeFrame(16, 0, payload);
+  FrameDecoder decoder({.max_payload_bytes = 16 << 20});
+  std::vector<Frame> frames;
+  // The header claims 6 MiB; 100 bytes arrive.
+  ASSERT_TRUE(decoder.Feed(ByteSpan(frame.data(), kFrameHeaderSize + 100), &frames).ok());
+  EXPECT_TRUE(decoder.InFrame());
+  EXPECT_LE(decoder.buffer_capacity(), 64u << 10);
+  // 1 MiB more: at most twice what arrived.
+  std::size_t fed = kFrameHeaderSize + 100;
+  ASSERT_TRUE(decoder.Feed(ByteSpan(frame.data() + fed, 1 << 20), &frames).ok());
+  fed += 1 << 20;
+  EXPECT_LE(decoder.buffer_capacity(), 2 * (fed - kFrameHeaderSize));
+  ASSERT_TRUE(decoder.Feed(ByteSpan(frame.data() + fed, frame.size() - fed), &frames).ok());
+  ASSERT_EQ(frames.size(), 1u);
+  EXPECT_EQ(frames[0].payload, payload);
+  EXPECT_EQ(frames[0].payload.capacity(), payload.size());  // never beyond the claim
+  EXPECT_FALSE(decoder.InFrame());
+}
+
+TEST(FrameTest, ATaggedFrameCarriesSixteenBytesAfterItsPayload) {
+  Bytes frame = EncodeFrame(16, kFrameTagged, Payload("abc"));
+  for (int i = 0; i < 16; ++i) frame.push_back(static_cast<std::uint8_t>(i));
+  EXPECT_EQ(frame[7], 0x80);  // flags bit 15
+  auto decoded = DecodeFrame(frame);
+  ASSERT_TRUE(decoded.ok()) << decoded.status().ToString();
+  ASSERT_TRUE(decoded->tag.has_value());
+  EXPECT_EQ((*decoded->tag)[15], 15);
+  EXPECT_EQ(decoded->payload, Payload("abc"));
+  EXPECT_EQ(Bytes(decoded->header.begin(), decoded->header.end()),
+            Bytes(frame.begin(), frame.begin() + 20));
+  // Byte by byte through the stream decoder, which waits for the tag too.
+  FrameDecoder decoder;
+  std::vector<Frame> frames;
+  for (std::size_t i = 0; i + 1 < frame.size(); ++i) {
+    ASSERT_TRUE(decoder.Feed(ByteSpan(frame.data() + i, 1), &frames).ok());
+  }
+  EXPECT_TRUE(frames.empty());
+  EXPECT_EQ(decoder.BytesWanted(), 1u);
+  ASSERT_TRUE(decoder.Feed(ByteSpan(&frame.back(), 1), &frames).ok());
+  ASSERT_EQ(frames.size(), 1u);
+  EXPECT_EQ(frames[0].tag, decoded->tag);
+  // Without the tag the frame is truncated; version 1 had no tags at all.
+  EXPECT_EQ(DecodeFrame(ByteSpan(frame.data(), frame.size() - 16)).status().code(),
+            StatusCode::kCorrupt);
+  frame[4] = 1;
+  ResealHeader(&frame);
+  EXPECT_EQ(DecodeFrame(frame, {.oldest_version = 1}).status().code(), StatusCode::kCorrupt);
 }
 
 }  // namespace
