@@ -20,6 +20,7 @@
 #include "libccmd/tracking/frontend.h"
 #include "libccmd/util/json.h"
 #include "libccmd/util/timer.h"
+#include "tests/bench_frontend/extraction_bench.h"
 
 namespace {
 
@@ -74,7 +75,7 @@ Trajectory RgbdOdometryTrajectory(const std::vector<RgbdFrame>& frames, const Pi
 
 int main(int argc, char** argv) {
   CLI::App app{"Front-end benchmark: ATE against ground truth and OpenCV RgbdOdometry, speed, footprint."};
-  std::string source_spec, config_path, json_path, trajectory_path, baseline_path;
+  std::string source_spec, config_path, json_path, trajectory_path, baseline_path, stage = "all";
   int max_frames = 0;
   bool skip_baseline = false, synchronous = false, footprint = false;
   app.add_option("--source", source_spec, "tum:DIR or synth:frames=N,...")->required();
@@ -87,7 +88,13 @@ int main(int argc, char** argv) {
   app.add_flag("--synchronous", synchronous, "Local mapping in the tracking thread");
   app.add_flag("--footprint", footprint,
                "Stream frames (no preloading) and print memory and frame time every 300 frames");
+  app.add_option("--stage", stage,
+                 "What to run: all; frontend (the front-end only, e.g. under callgrind); extract (ORB "
+                 "extraction alone, ours and OpenCV's)")
+      ->check(CLI::IsMember({"all", "frontend", "extract"}))
+      ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
+  if (stage == "frontend") skip_baseline = true;
 
   SourceOptions source_options;
   source_options.camera_config = config_path;
@@ -153,6 +160,14 @@ int main(int argc, char** argv) {
     RgbdFrame frame;
     while ((*source)->Read(&frame).ok() && (max_frames == 0 || static_cast<int>(frames.size()) < max_frames)) {
       frames.push_back(frame);
+    }
+    if (stage != "frontend") {
+      // Alone, three alternating passes; before a whole run, one.
+      const bench::ExtractionSpeed extraction =
+          bench::MeasureExtraction(frames, options.orb, stage == "extract" ? 3 : 1, true);
+      bench::Print(extraction);
+      result["extraction"] = bench::ToJson(extraction);
+      if (stage == "extract") return json_path.empty() || WriteJsonFile(result, json_path).ok() ? 0 : 1;
     }
     const double cpu0 = ProcessCpuSeconds();
     const Stopwatch watch;
