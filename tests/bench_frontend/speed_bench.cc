@@ -1,4 +1,4 @@
-#include "tests/bench_frontend/extraction_bench.h"
+#include "tests/bench_frontend/speed_bench.h"
 
 #include <algorithm>
 #include <cstdio>
@@ -90,6 +90,32 @@ void Print(const ExtractionSpeed& s) {
     std::printf("  OpenCV ORB detect+compute: %.2f ms/frame (CPU %.2f ms), %.0f keypoints; ratio ours/OpenCV %.2f\n",
                 s.opencv_ms, s.opencv_cpu_ms, s.opencv_keypoints, s.ours_ms / s.opencv_ms);
   }
+}
+
+void ReportStages(const FrontendStats& s, Json* result) {
+  const MappingStats& m = s.mapping;
+  const double frames = std::max(1, s.frames), keyframes = std::max(1, m.keyframes);
+  const double runs = std::max(1, m.local_ba_runs);
+  Json& r = *result;
+  r["extract_cpu_ms_mean"] = s.extract_cpu_ms_total / frames;
+  r["track_cpu_ms_mean"] = s.track_cpu_ms_total / frames;
+  r["mapping_cpu_ms_mean"] = m.mapping_cpu_ms_total / keyframes;
+  r["local_ba_cpu_ms_mean"] = m.local_ba_cpu_ms_total / runs;
+  r["mapping_keyframes"] = m.keyframes;
+  r["local_ba_runs"] = m.local_ba_runs;
+  r["local_ba_aborted"] = m.local_ba_aborted;
+  r["local_ba_reduced"] = m.local_ba_reduced;
+  r["local_ba_skipped_waiting"] = m.local_ba_skipped_waiting;
+  r["local_ba_skipped_budget"] = m.local_ba_skipped_budget;
+  r["local_ba_iterations_mean"] = m.local_ba_iterations / runs;
+  std::printf("  CPU per frame: extraction %.2f ms, tracking %.2f ms; per keyframe: mapping %.1f ms "
+              "(local BA %.1f ms per run)\n",
+              r["extract_cpu_ms_mean"].number(), r["track_cpu_ms_mean"].number(), r["mapping_cpu_ms_mean"].number(),
+              r["local_ba_cpu_ms_mean"].number());
+  std::printf("  local BA: %d runs (%.1f iterations each), %d stopped early, %d reduced and %d skipped for the CPU "
+              "budget, %d skipped for a waiting keyframe\n",
+              m.local_ba_runs, r["local_ba_iterations_mean"].number(), m.local_ba_aborted, m.local_ba_reduced,
+              m.local_ba_skipped_budget, m.local_ba_skipped_waiting);
 }
 
 }  // namespace ccmd::bench

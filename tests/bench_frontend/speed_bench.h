@@ -1,13 +1,16 @@
 #pragma once
 
-// ORB extraction speed for ccmd_frontend_bench: our extractor against OpenCV's own ORB
-// (detection and descriptors, the same number of features, levels and scale) on the same
-// frames in the same run, so that the ratio holds on a machine shared with other work.
+// Speed figures of ccmd_frontend_bench, apart from its main() (which others extend with
+// sequences and ablations): ORB extraction against OpenCV's own ORB (detection and
+// descriptors, the same number of features, levels and scale) on the same frames in the
+// same run, so that the ratio holds on a machine shared with other work; the front-end's
+// per-stage wall and CPU times and its mapping counters.
 
 #include <vector>
 
 #include "libccmd/features/orb_extractor.h"
 #include "libccmd/io/rgbd_frame.h"
+#include "libccmd/tracking/frontend.h"
 #include "libccmd/util/json.h"
 
 namespace ccmd::bench {
@@ -26,5 +29,9 @@ ExtractionSpeed MeasureExtraction(const std::vector<RgbdFrame>& frames, const Or
 
 Json ToJson(const ExtractionSpeed& speed);
 void Print(const ExtractionSpeed& speed);
+
+// Adds the per-stage means (wall and CPU milliseconds) and the mapping counters to `result`
+// and prints them.
+void ReportStages(const FrontendStats& stats, Json* result);
 
 }  // namespace ccmd::bench
