@@ -55,7 +55,9 @@ TEST(CpuPacerTest, HoldsTheProcessToItsBudget) {
     pacer.Pace();
     const double cpu = ProcessCpuTimeSeconds() - cpu_start;
     const double wall = MonotonicSeconds() - wall_start;
-    EXPECT_LE(cpu, 0.01 * wall + 1e-4) << round;
+    // Half a millisecond of slack for what runs after Pace() measured (and for any thread a
+    // library left behind in this process); unpaced, the excess would be about 4 ms.
+    EXPECT_LE(cpu, 0.01 * wall + 5e-4) << round;
   }
   EXPECT_GT(pacer.paced_ms(), 0);
   EXPECT_EQ(CpuPacer(0).Pace(), 0);
