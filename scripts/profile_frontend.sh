@@ -47,9 +47,12 @@ if [ -n "$FROM" ]; then
 else
   config_args=()
   [ -n "$CONFIG" ] && config_args=(--config "$CONFIG")
-  echo "== callgrind: $BIN/ccmd_frontend_bench --stage frontend --synchronous --frames $FRAMES --source $SOURCE ${config_args[*]}"
+  # A build from before --stage existed (a baseline) runs the same front-end with --skip-baseline.
+  stage_args=(--stage frontend)
+  "$BIN/ccmd_frontend_bench" --help | grep -q -- --stage || stage_args=(--skip-baseline)
+  echo "== callgrind: $BIN/ccmd_frontend_bench ${stage_args[*]} --synchronous --frames $FRAMES --source $SOURCE ${config_args[*]}"
   valgrind --tool=callgrind --callgrind-out-file="$work/callgrind.out" \
-    "$BIN/ccmd_frontend_bench" --stage frontend --synchronous --frames "$FRAMES" --source "$SOURCE" \
+    "$BIN/ccmd_frontend_bench" "${stage_args[@]}" --synchronous --frames "$FRAMES" --source "$SOURCE" \
     "${config_args[@]}" --json "$work/result.json" >"$work/bench.log" 2>&1 ||
     { cat "$work/bench.log" >&2; exit 1; }
   if [ -n "$KEEP" ]; then
