@@ -43,13 +43,10 @@ struct TrackingOptions {
   // are optimised; keyframes that see their points are held fixed.
   int local_ba_window = 10;
   // Iterations of its robust pass and of its pass without outliers; each stops early when an
-  // iteration lowers the cost by less than `local_ba_function_tolerance` (relative). At 1e-3
-  // a pass stops after 2-3 iterations instead of 5-6: the later ones moved the cost by 1e-4
-  // of itself, and the next keyframe's BA revisits the same keyframes (measured in
-  // docs/benchmarks/frontend.md: 27-29 % less local BA, accuracy within run-to-run variation).
+  // iteration lowers the cost by less than `local_ba_function_tolerance` (relative).
   int local_ba_robust_iterations = 5;
   int local_ba_iterations = 10;
-  double local_ba_function_tolerance = 1e-3;
+  double local_ba_function_tolerance = 1e-6;
   // CPU budget of the agent in cores (0: none). Tracking takes what it needs; local mapping
   // gets the rest of cores / fps per frame and shrinks its local BA (half the window and the
   // iterations) while over, or skips it when far over (cpu_budget.h).
