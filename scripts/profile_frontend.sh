@@ -68,12 +68,16 @@ count() {
 }
 # A number from the bench's JSON.
 field() {
-  grep -E "^  \"$1\":" "$work/result.json" | head -1 | sed -E 's/.*: *([0-9.eE+-]+).*/\1/'
+  { grep -E "^  \"$1\":" "$work/result.json" || true; } | head -1 | sed -E 's/.*: *([0-9.eE+-]+).*/\1/'
 }
 
 frames=$(field frames)
 keyframes=$(field mapping_keyframes)
 ba_runs=$(field local_ba_runs)
+# A build older than these counters: with synchronous mapping every keyframe is mapped and
+# gets its local BA.
+[ -n "$keyframes" ] || keyframes=$(field keyframes)
+[ -n "$ba_runs" ] || ba_runs=$keyframes
 make_frame=$(count "ccmd::MakeFrame(")
 extract=$(count "ccmd::OrbExtractor::Extract(")
 track=$(count "ccmd::Tracker::Track(")
