@@ -20,6 +20,7 @@
 #include "libccmd/sensors/source_factory.h"
 #include "libccmd/system/link_sink.h"
 #include "libccmd/tracking/config.h"
+#include "libccmd/tracking/cpu_budget.h"
 #include "libccmd/tracking/frontend.h"
 #include "libccmd/util/json.h"
 #include "libccmd/util/logging.h"
@@ -52,9 +53,19 @@ ccmd::Json StatsJson(const ccmd::FrontendStats& s, double wall_seconds,
   const double n = std::max(1, s.frames);
   j["extract_ms_mean"] = s.extract_ms_total / n;
   j["track_ms_mean"] = s.track_ms_total / n;
+  j["extract_cpu_ms_mean"] = s.extract_cpu_ms_total / n;
+  j["track_cpu_ms_mean"] = s.track_cpu_ms_total / n;
   const ccmd::MappingStats& m = s.mapping;
   j["local_ba_runs"] = m.local_ba_runs;
   j["local_ba_aborted"] = m.local_ba_aborted;
+  j["local_ba_reduced"] = m.local_ba_reduced;
+  j["local_ba_skipped_waiting"] = m.local_ba_skipped_waiting;
+  j["local_ba_skipped_budget"] = m.local_ba_skipped_budget;
+  j["local_ba_iterations"] = m.local_ba_iterations;
+  j["cpu_budget_balance_ms"] = m.budget_balance_ms;
+  j["cpu_budget_lowest_balance_ms"] = m.budget_lowest_ms;
+  j["mapping_cpu_ms_mean"] = m.keyframes ? m.mapping_cpu_ms_total / m.keyframes : 0.0;
+  j["local_ba_cpu_ms_mean"] = m.local_ba_runs ? m.local_ba_cpu_ms_total / m.local_ba_runs : 0.0;
   j["local_ba_ms_mean"] = m.local_ba_runs ? m.local_ba_ms_total / m.local_ba_runs : 0.0;
   j["mapping_ms_mean"] = m.keyframes ? m.mapping_ms_total / m.keyframes : 0.0;
   j["culled_keyframes"] = m.culled_keyframes;
@@ -115,6 +126,7 @@ int main(int argc, char** argv) {
   double flush_timeout = 120.0, budget_kBps = 0, max_queue_s = 0.5, threshold_scale = 1.0;
   ccmd::RgbdEncodeOptions rgbd;
   bool offline = false, synchronous = false, rgbd_every_keyframe = false;
+  double cpu_budget = 1.0;
   int max_frames = 0, record_compression = 1;
   app.add_option("--source", source_spec,
                  "Frame source: tum:DIR (TUM layout), synth[:frames=N,seed=S,...]")
@@ -174,6 +186,11 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   app.add_flag("--synchronous", synchronous,
                "Run local mapping in the tracking thread (deterministic; slower)");
+  app.add_option("--cpu-budget", cpu_budget,
+                 "CPU cores the agent may use on average (0: no limit; overrides Tracking.cpuBudget). "
+                 "Local mapping shrinks its bundle adjustment when over; a replay is paced to it")
+      ->check(CLI::Range(0.0, 256.0))
+      ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
 
   if (!offline && server.empty()) {
@@ -199,6 +216,7 @@ int main(int argc, char** argv) {
 
   ccmd::TrackingOptions tracking;
   tracking.synchronous_mapping = synchronous;
+  tracking.cpu_budget = cpu_budget;
   if (!config_path.empty()) {
     auto config = ccmd::ConfigFile::Open(config_path);
     if (!config.ok()) return Fail(config.status().ToString());
@@ -206,6 +224,8 @@ int main(int argc, char** argv) {
     if (!options.ok()) return Fail(options.status().ToString());
     tracking = *options;
   }
+  if (app.count("--cpu-budget")) tracking.cpu_budget = cpu_budget;
+  ccmd::UseOpenCvThreadsForBudget(tracking.cpu_budget);
   if (rgbd_every_keyframe) tracking.rgbd_selection.enabled = false;
   if (threshold_scale != 1.0) {
     ccmd::RgbdSelectionOptions& s = tracking.rgbd_selection;
@@ -265,6 +285,9 @@ int main(int argc, char** argv) {
   const int total = (*source)->FrameCount();
   ccmd::app::Progress progress("frames");
   const ccmd::Stopwatch wall;
+  const double cpu_start = ccmd::ProcessCpuTimeSeconds();
+  // A live camera sets the pace itself; a replay is held to the CPU budget.
+  ccmd::CpuPacer pacer((*source)->IsLive() ? 0.0 : tracking.cpu_budget);
   double first_timestamp = -1;
   int frames = 0;
   double last_progress = -1e9;
@@ -284,6 +307,7 @@ int main(int argc, char** argv) {
       const double ahead = due - wall.ElapsedSeconds();
       if (ahead > 0) std::this_thread::sleep_for(std::chrono::duration<double>(ahead));  // pacing
     }
+    pacer.Pace();
     (*frontend)->ProcessFrame(frame);
     ++frames;
     if (total > 0) progress.Update(frames, total);
@@ -342,10 +366,17 @@ int main(int argc, char** argv) {
                 record_dir.c_str(), recorder->frames_dropped());
   }
   const double seconds = wall.ElapsedSeconds();
+  const double cores = (ccmd::ProcessCpuTimeSeconds() - cpu_start) / std::max(seconds, 1e-9);
   const ccmd::FrontendStats stats = (*frontend)->stats();
-  std::printf("%d frames in %.1f s (%.1f fps), %d tracked, %d lost, %d keyframes (%d in map), %zu map points\n",
-              stats.frames, seconds, stats.frames / std::max(seconds, 1e-9), stats.tracked_frames,
+  std::printf("%d frames in %.1f s (%.1f fps, %.2f CPU cores), %d tracked, %d lost, %d keyframes (%d in map), "
+              "%zu map points\n",
+              stats.frames, seconds, stats.frames / std::max(seconds, 1e-9), cores, stats.tracked_frames,
               stats.lost_frames, stats.keyframes, stats.map_keyframes, stats.map_points);
+  const ccmd::MappingStats& m = stats.mapping;
+  if (m.local_ba_reduced + m.local_ba_skipped_budget > 0) {
+    std::printf("CPU budget %.2f cores: %d local BAs reduced and %d skipped to stay within it\n", tracking.cpu_budget,
+                m.local_ba_reduced, m.local_ba_skipped_budget);
+  }
   if (!trajectory_path.empty()) {
     const ccmd::Status s = ccmd::WriteTumTrajectory((*frontend)->FrameTrajectory(), trajectory_path,
                                                     "ccmd_agent frame trajectory (T_world_cam)");
@@ -358,6 +389,9 @@ int main(int argc, char** argv) {
   }
   if (!stats_path.empty()) {
     ccmd::Json json = StatsJson(stats, seconds, (*frontend)->decisions());
+    json["cpu_budget"] = tracking.cpu_budget;
+    json["cpu_cores_used"] = cores;
+    json["paced_ms"] = pacer.paced_ms();
     if (link) json["link"] = link_json;
     const ccmd::Status s = ccmd::WriteJsonFile(json, stats_path);
     if (!s.ok()) return Fail(s.ToString());

@@ -30,6 +30,8 @@ PACKAGES=(
   libopenni2-dev libv4l-dev
   # tests and benchmarks (zstd and lz4 are codec-benchmark peers only)
   libgtest-dev libgmock-dev libbenchmark-dev libzstd-dev liblz4-dev
+  # instruction counts per front-end stage (scripts/profile_frontend.sh)
+  valgrind
   # fuzzing (libFuzzer) and sanitizer runtimes
   clang libclang-rt-14-dev
   # shaped evaluation links (ccmd_replay --link): ip netns, veth, tc tbf

@@ -3,7 +3,9 @@
 // ORB features spread over the image, as the ORB-SLAM front-ends extract them: FAST corners
 // on an image pyramid, a per-level budget, spatial distribution so that textured corners of
 // the image do not take all the features, intensity-centroid orientation, and the rotated
-// BRIEF descriptor (computed by OpenCV's ORB for the keypoints we choose).
+// BRIEF descriptor (computed by OpenCV's ORB on each blurred level for the keypoints we
+// choose). Every step runs once per level, and only where it is needed: the Harris measure
+// that ranks FAST corners is evaluated at the corners, not over the whole image.
 
 #include <string>
 #include <vector>
@@ -46,6 +48,14 @@ class OrbExtractor {
   const std::vector<int>& level_budget() const { return level_budget_; }
 
  private:
+  // FAST corners of one level that the distribution of `count` keypoints may choose
+  // (response: FAST score), in raster order, level coordinates.
+  std::vector<cv::KeyPoint> FindCorners(const cv::Mat& image, int count) const;
+  // FAST corners of one level, ranked and distributed, with orientation; level coordinates.
+  std::vector<cv::KeyPoint> DetectLevel(const cv::Mat& image, int level) const;
+  // Intensity-centroid angle (degrees) of the patch around (x, y).
+  float Orientation(const cv::Mat& image, int x, int y) const;
+
   OrbOptions options_;
   std::vector<float> scale_, sigma2_, inv_sigma2_;
   std::vector<int> level_budget_;

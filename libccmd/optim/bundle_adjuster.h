@@ -55,11 +55,16 @@ struct BaProblem {
   std::vector<BaRelativePose> relative_poses;
 };
 
-enum class BaLinearSolver { kDenseSchur, kSparseSchur };
+enum class BaLinearSolver { kDenseSchur, kSparseSchur, kIterativeSchur };
 
 struct BaOptions {
   int first_iterations = 5;    // robust pass
   int second_iterations = 10;  // after removing outliers
+  // A pass stops early when an iteration lowers the cost by less than this fraction (Ceres'
+  // function tolerance; its default is 1e-6).
+  double function_tolerance = 1e-6;
+  // The second pass starts from the trust region the first one ended with.
+  bool warm_start = true;
   BaLinearSolver solver = BaLinearSolver::kDenseSchur;
   int threads = 1;
   // When set and it becomes true, the solver stops after the current iteration.
@@ -69,6 +74,8 @@ struct BaOptions {
 struct BaSummary {
   bool aborted = false;
   int iterations = 0;
+  int pass_iterations[2] = {0, 0};  // robust pass, then without outliers
+  std::string schur_structure;      // Ceres' block sizes ("3,3,3"; "d,d,d": dynamic)
   double initial_cost = 0, final_cost = 0;
   double seconds = 0;
   std::vector<bool> outlier;  // per observation, after the final classification

@@ -17,6 +17,12 @@ StatusOr<TrackingOptions> ReadTrackingOptions(const ConfigFile& c, TrackingOptio
                         c.GetInt("Tracking.maxFramesBetweenKeyframes", o.max_frames_between_keyframes));
   CCMD_ASSIGN_OR_RETURN(o.keyframe_tracked_ratio, c.GetDouble("Tracking.keyframeTrackedRatio", o.keyframe_tracked_ratio));
   CCMD_ASSIGN_OR_RETURN(o.local_ba_window, c.GetInt("Tracking.localBAWindow", o.local_ba_window));
+  CCMD_ASSIGN_OR_RETURN(o.local_ba_robust_iterations,
+                        c.GetInt("Tracking.localBARobustIterations", o.local_ba_robust_iterations));
+  CCMD_ASSIGN_OR_RETURN(o.local_ba_iterations, c.GetInt("Tracking.localBAIterations", o.local_ba_iterations));
+  CCMD_ASSIGN_OR_RETURN(o.local_ba_function_tolerance,
+                        c.GetDouble("Tracking.localBAFunctionTolerance", o.local_ba_function_tolerance));
+  CCMD_ASSIGN_OR_RETURN(o.cpu_budget, c.GetDouble("Tracking.cpuBudget", o.cpu_budget));
   CCMD_ASSIGN_OR_RETURN(o.depth_alignment_neighbours,
                         c.GetInt("Tracking.depthAlignmentNeighbours", o.depth_alignment_neighbours));
   CCMD_ASSIGN_OR_RETURN(o.depth_alignment_weight, c.GetDouble("Tracking.depthAlignmentWeight", o.depth_alignment_weight));

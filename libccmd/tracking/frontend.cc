@@ -11,6 +11,14 @@ bool TrackingOptions::Check(std::string* why) const {
   if (!(min_depth > 0 && max_depth > min_depth)) return fail("depth range must satisfy 0 < min < max");
   if (!(depth_noise.sigma_0 > 0 && depth_noise.sigma_2 >= 0)) return fail("depth noise sigmas must be positive");
   if (local_ba_window < 1 || local_ba_window > 100) return fail("local BA window must be in [1, 100]");
+  if (local_ba_robust_iterations < 0 || local_ba_iterations < 0 || local_ba_robust_iterations + local_ba_iterations < 1 ||
+      local_ba_robust_iterations > 100 || local_ba_iterations > 100) {
+    return fail("local BA iterations must be in [0, 100], at least one in all");
+  }
+  if (!(local_ba_function_tolerance >= 0 && local_ba_function_tolerance < 1)) {
+    return fail("local BA function tolerance must be in [0, 1)");
+  }
+  if (!(cpu_budget >= 0 && cpu_budget <= 256)) return fail("CPU budget must be in [0, 256] cores (0: none)");
   if (depth_alignment_neighbours < 0 || depth_alignment_neighbours > 20) return fail("depth alignment neighbours must be in [0, 20]");
   if (!(depth_alignment_weight >= 0)) return fail("depth alignment weight must be >= 0");
   if (max_keyframes < local_ba_window + 5) return fail("max keyframes must exceed the local BA window by 5");
@@ -42,6 +50,9 @@ TrackResult Frontend::ProcessFrame(const RgbdFrame& frame) {
   ++stats_.frames;
   stats_.extract_ms_total += result.extract_ms;
   stats_.track_ms_total += result.track_ms;
+  stats_.extract_cpu_ms_total += result.extract_cpu_ms;
+  stats_.track_cpu_ms_total += result.track_cpu_ms;
+  mapper_->AddFrameCpu(result.extract_cpu_ms + result.track_cpu_ms);
   if (result.state == TrackingState::kOk) {
     initialised_ = true;
     ++stats_.tracked_frames;

@@ -27,6 +27,8 @@ struct FrontendStats {
   std::size_t map_points = 0;
   double extract_ms_total = 0;
   double track_ms_total = 0;
+  double extract_cpu_ms_total = 0;  // CPU time: meaningful on a machine shared with other work
+  double track_cpu_ms_total = 0;
   MappingStats mapping;
 };
 

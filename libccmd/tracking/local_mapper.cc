@@ -6,6 +6,7 @@
 
 #include "libccmd/optim/bundle_adjuster.h"
 #include "libccmd/tracking/depth_alignment.h"
+#include "libccmd/tracking/local_ba.h"
 #include "libccmd/tracking/matching.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/timer.h"
@@ -15,7 +16,7 @@ namespace ccmd {
 LocalMapper::LocalMapper(const PinholeCamera& camera, const TrackingOptions& options, LocalMap* map,
                          const OrbExtractor* orb, KeyframeSink* sink)
     : camera_(camera), options_(options), map_(map), orb_(orb), sink_(sink),
-      selector_(options.rgbd_selection) {
+      selector_(options.rgbd_selection), budget_(options.cpu_budget, camera.fps) {
   if (!options_.synchronous_mapping) thread_ = std::thread([this] { Run(); });
 }
 
@@ -96,6 +97,7 @@ std::vector<RgbdDecision> LocalMapper::decisions() const {
 
 void LocalMapper::Process(const KeyframePtr& keyframe_ptr) {
   const Stopwatch watch;
+  const ThreadCpuStopwatch cpu;
   Keyframe* keyframe = keyframe_ptr.get();
   {
     std::lock_guard<std::mutex> lock(map_->mutex());
@@ -111,14 +113,7 @@ void LocalMapper::Process(const KeyframePtr& keyframe_ptr) {
     FuseWithNeighbours(keyframe);
   }
   AlignWithNeighbours(keyframe);
-  abort_ba_ = false;
-  bool more_waiting;
-  {
-    std::lock_guard<std::mutex> lock(queue_mutex_);
-    more_waiting = !queue_.empty();
-  }
-  // ORB-SLAM skips the local BA when the tracker is already waiting with a newer keyframe.
-  if (!more_waiting) LocalBundleAdjustment(keyframe);
+  ScheduleLocalBundleAdjustment(keyframe);
 
   KeyframeSnapshot snapshot;
   std::vector<PoseUpdate> updates;
@@ -137,10 +132,12 @@ void LocalMapper::Process(const KeyframePtr& keyframe_ptr) {
     std::lock_guard<std::mutex> lock(stats_mutex_);
     stats_.keyframes++;
     stats_.mapping_ms_total += watch.ElapsedMillis();
+    stats_.mapping_cpu_ms_total += cpu.ElapsedMillis();
     stats_.pose_updates += static_cast<int>(updates.size());
     stats_.rgbd_transmitted += snapshot.has_rgbd;
     if (emitted) decisions_.push_back(snapshot.decision);
   }
+  budget_.Spend(cpu.ElapsedMillis());
   if (sink_) {
     if (emitted) sink_->OnKeyframe(std::move(snapshot));
     if (!updates.empty()) sink_->OnPoseUpdates(std::move(updates));
@@ -249,63 +246,52 @@ void LocalMapper::AlignWithNeighbours(Keyframe* keyframe) {
   stats_.depth_alignment_ms_total += watch.ElapsedMillis();
 }
 
-void LocalMapper::LocalBundleAdjustment(Keyframe* keyframe) {
+void LocalMapper::ScheduleLocalBundleAdjustment(Keyframe* keyframe) {
+  abort_ba_ = false;
+  bool more_waiting;
+  {
+    std::lock_guard<std::mutex> lock(queue_mutex_);
+    more_waiting = !queue_.empty();
+  }
+  const LocalBaLevel level = budget_.Level();
+  {
+    std::lock_guard<std::mutex> lock(stats_mutex_);
+    // ORB-SLAM skips the local BA when the tracker is already waiting with a newer keyframe.
+    stats_.local_ba_skipped_waiting += more_waiting;
+    stats_.local_ba_skipped_budget += !more_waiting && level == LocalBaLevel::kSkipped;
+    stats_.budget_balance_ms = budget_.balance_ms();
+    stats_.budget_lowest_ms = budget_.lowest_balance_ms();
+  }
+  if (more_waiting || level == LocalBaLevel::kSkipped) return;
+  LocalBundleAdjustment(keyframe, level == LocalBaLevel::kReduced);
+}
+
+void LocalMapper::LocalBundleAdjustment(Keyframe* keyframe, bool reduced) {
   const Stopwatch watch;
-  BaProblem problem;
-  std::vector<KeyframePtr> cameras;
-  std::vector<MapPointPtr> points;
+  const ThreadCpuStopwatch cpu;
+  BaOptions ba_options;
+  ba_options.abort = &abort_ba_;
+  ba_options.first_iterations = options_.local_ba_robust_iterations;
+  ba_options.second_iterations = options_.local_ba_iterations;
+  ba_options.function_tolerance = options_.local_ba_function_tolerance;
+  int window = options_.local_ba_window;
+  if (reduced) {
+    // Over the CPU budget: half the window and half the iterations.
+    window = std::max(1, window / 2);
+    ba_options.first_iterations = (ba_options.first_iterations + 1) / 2;
+    ba_options.second_iterations = (ba_options.second_iterations + 1) / 2;
+  }
+  LocalBaProblem local;
   {
     std::lock_guard<std::mutex> lock(map_->mutex());
     if (keyframe->bad()) return;
-    std::vector<Keyframe*> window = {keyframe};
-    for (Keyframe* n : keyframe->BestCovisible(options_.local_ba_window)) window.push_back(n);
-    std::unordered_map<const Keyframe*, int> camera_index;
-    for (Keyframe* kf : window) {
-      camera_index[kf] = static_cast<int>(cameras.size());
-      cameras.push_back(map_->keyframe(kf->id()));
-      problem.cameras.push_back({kf->T_cam_world(), false});
-    }
-    std::unordered_map<const MapPoint*, int> point_index;
-    for (Keyframe* kf : window) {
-      for (const MapPointPtr& p : kf->points()) {
-        if (!p || p->bad() || point_index.count(p.get())) continue;
-        point_index[p.get()] = static_cast<int>(points.size());
-        points.push_back(p);
-        problem.points.push_back({p->position()});
-      }
-    }
-    // Every keyframe that sees a local point constrains it; those outside the window are fixed.
-    for (std::size_t j = 0; j < points.size(); ++j) {
-      for (const auto& o : points[j]->observations()) {
-        Keyframe* kf = o.keyframe;
-        if (kf->bad()) continue;
-        auto it = camera_index.find(kf);
-        if (it == camera_index.end()) {
-          it = camera_index.emplace(kf, static_cast<int>(cameras.size())).first;
-          cameras.push_back(map_->keyframe(kf->id()));
-          problem.cameras.push_back({kf->T_cam_world(), true});
-        }
-        const cv::KeyPoint& kp = kf->features().keypoints[o.keypoint];
-        const double z = kf->features().depth[o.keypoint];
-        problem.observations.push_back({it->second, static_cast<int>(j), Eigen::Vector2d(kp.pt.x, kp.pt.y),
-                                        z, orb_->inv_sigma2()[kp.octave],
-                                        z > 0 ? options_.depth_noise.Information(z) : 0.0});
-      }
-    }
-    // Gauge: the map's first keyframe never moves; without any fixed keyframe, the oldest
-    // one in the window is held.
-    bool any_fixed = false;
-    int oldest = 0;
-    for (std::size_t c = 0; c < cameras.size(); ++c) {
-      if (cameras[c]->id().value() == 0) problem.cameras[c].fixed = true;
-      any_fixed |= problem.cameras[c].fixed;
-      if (cameras[c]->id() < cameras[oldest]->id()) oldest = static_cast<int>(c);
-    }
-    if (!any_fixed) problem.cameras[oldest].fixed = true;
+    local = BuildLocalBa(keyframe, window, *map_, *orb_, options_.depth_noise);
   }
+  BaProblem& problem = local.problem;
+  if (problem.observations.empty()) return;
   if (!depth_edges_.empty()) {
     std::unordered_map<KeyframeId, int> index;
-    for (std::size_t c = 0; c < cameras.size(); ++c) index[cameras[c]->id()] = static_cast<int>(c);
+    for (std::size_t c = 0; c < local.cameras.size(); ++c) index[local.cameras[c]->id()] = static_cast<int>(c);
     for (const DepthEdge& e : depth_edges_) {
       const auto a = index.find(e.a), b = index.find(e.b);
       if (a != index.end() && b != index.end()) {
@@ -313,38 +299,19 @@ void LocalMapper::LocalBundleAdjustment(Keyframe* keyframe) {
       }
     }
   }
-  if (problem.observations.empty()) return;
-
-  BaOptions ba_options;
-  ba_options.abort = &abort_ba_;
   problem.calibrations = {Intrinsics{camera_.fx, camera_.fy, camera_.cx, camera_.cy}};
   const BaSummary summary = BundleAdjust(&problem, ba_options);
-
   {
     std::lock_guard<std::mutex> lock(map_->mutex());
-    // Outlier observations are removed from the map (ORB-SLAM).
-    for (std::size_t i = 0; i < problem.observations.size(); ++i) {
-      if (!summary.outlier[i]) continue;
-      const BaObservation& o = problem.observations[i];
-      Keyframe* kf = cameras[o.camera].get();
-      MapPoint* p = points[o.point].get();
-      if (!kf->bad() && !p->bad() && p->KeypointIn(kf) >= 0) map_->EraseObservation(p, kf);
-    }
-    for (std::size_t c = 0; c < cameras.size(); ++c) {
-      if (!problem.cameras[c].fixed && !cameras[c]->bad()) {
-        cameras[c]->set_T_world_cam(problem.cameras[c].T_cam_world.inverse());
-      }
-    }
-    for (std::size_t j = 0; j < points.size(); ++j) {
-      if (points[j]->bad()) continue;
-      points[j]->set_position(problem.points[j].position);
-      points[j]->UpdateNormalAndDepth(*orb_);
-    }
+    ApplyLocalBa(local, summary, map_, *orb_);
   }
   std::lock_guard<std::mutex> lock(stats_mutex_);
   stats_.local_ba_runs++;
   stats_.local_ba_aborted += summary.aborted;
+  stats_.local_ba_reduced += reduced;
+  stats_.local_ba_iterations += summary.iterations;
   stats_.local_ba_ms_total += watch.ElapsedMillis();
+  stats_.local_ba_cpu_ms_total += cpu.ElapsedMillis();
 }
 
 void LocalMapper::CullRedundantKeyframes(Keyframe* keyframe) {

@@ -15,6 +15,7 @@
 #include <vector>
 
 #include "libccmd/geometry/camera.h"
+#include "libccmd/tracking/cpu_budget.h"
 #include "libccmd/tracking/keyframe_selector.h"
 #include "libccmd/tracking/keyframe_sink.h"
 #include "libccmd/tracking/map.h"
@@ -26,9 +27,17 @@ namespace ccmd {
 struct MappingStats {
   int keyframes = 0;
   int local_ba_runs = 0;
-  int local_ba_aborted = 0;
+  int local_ba_aborted = 0;          // stopped early by a newer keyframe
+  int local_ba_reduced = 0;          // smaller, to stay within the CPU budget
+  int local_ba_skipped_waiting = 0;  // skipped: a newer keyframe was already waiting
+  int local_ba_skipped_budget = 0;   // skipped: far over the CPU budget
+  int local_ba_iterations = 0;       // in all runs
+  double budget_balance_ms = 0;      // CPU budget account now and at its lowest (0: no budget)
+  double budget_lowest_ms = 0;
   double local_ba_ms_total = 0;
   double mapping_ms_total = 0;
+  double local_ba_cpu_ms_total = 0;  // CPU time of the mapping thread
+  double mapping_cpu_ms_total = 0;
   int culled_keyframes = 0;
   int evicted_keyframes = 0;
   int culled_points = 0;
@@ -53,6 +62,9 @@ class LocalMapper : public MappingQueue {
   bool CanAccept() const override;
   void Insert(const KeyframePtr& keyframe) override;
 
+  // The tracking thread's CPU time for one frame, for the CPU budget.
+  void AddFrameCpu(double ms) { budget_.AddFrame(ms); }
+
   // Synchronous mode: processes every queued keyframe now (call without the map locked).
   void ProcessPending();
   // Processes what is queued and stops the thread. Idempotent.
@@ -68,7 +80,9 @@ class LocalMapper : public MappingQueue {
   void FuseWithNeighbours(Keyframe* keyframe);
   // Aligns the keyframe's depth with its best covisible neighbours' (depth_edges_).
   void AlignWithNeighbours(Keyframe* keyframe);
-  void LocalBundleAdjustment(Keyframe* keyframe);
+  // Decides how much local BA the keyframe gets (waiting keyframes, CPU budget) and runs it.
+  void ScheduleLocalBundleAdjustment(Keyframe* keyframe);
+  void LocalBundleAdjustment(Keyframe* keyframe, bool reduced);
   void CullRedundantKeyframes(Keyframe* keyframe);
   void EvictOldKeyframes(Keyframe* keyframe);
   // Fills the keyframe's snapshot and the pose updates; false if the keyframe is gone.
@@ -80,6 +94,7 @@ class LocalMapper : public MappingQueue {
   const OrbExtractor* orb_;
   KeyframeSink* sink_;
   RgbdSelector selector_;
+  MappingBudget budget_;
 
   static constexpr std::size_t kQueueCapacity = 3;
   mutable std::mutex queue_mutex_;

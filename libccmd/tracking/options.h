@@ -42,6 +42,15 @@ struct TrackingOptions {
   // Local bundle adjustment window: the new keyframe and this many best covisible keyframes
   // are optimised; keyframes that see their points are held fixed.
   int local_ba_window = 10;
+  // Iterations of its robust pass and of its pass without outliers; each stops early when an
+  // iteration lowers the cost by less than `local_ba_function_tolerance` (relative).
+  int local_ba_robust_iterations = 5;
+  int local_ba_iterations = 10;
+  double local_ba_function_tolerance = 1e-6;
+  // CPU budget of the agent in cores (0: none). Tracking takes what it needs; local mapping
+  // gets the rest of cores / fps per frame and shrinks its local BA (half the window and the
+  // iterations) while over, or skips it when far over (cpu_budget.h).
+  double cpu_budget = 0;
   // Dense depth alignment (depth_alignment.h): each new keyframe's depth is aligned with that
   // of this many best covisible keyframes, and the local BA weighs each alignment by its
   // information times `depth_alignment_weight` (0 turns it off).

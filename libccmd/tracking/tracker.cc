@@ -33,9 +33,12 @@ Tracker::Tracker(const PinholeCamera& camera, const TrackingOptions& options, Lo
 TrackResult Tracker::Track(const RgbdFrame& input) {
   TrackResult result;
   Stopwatch watch;
+  ThreadCpuStopwatch cpu;
   current_ = MakeFrame(input, *orb_, camera_, options_.min_depth, options_.max_depth);
   result.extract_ms = watch.ElapsedMillis();
+  result.extract_cpu_ms = cpu.ElapsedMillis();
   watch.Restart();
+  cpu.Restart();
 
   std::lock_guard<std::mutex> lock(map_->mutex());
   bool ok = false;
@@ -83,6 +86,7 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
   }
   result.tracked_points = current_->TrackedPoints();
   result.track_ms = watch.ElapsedMillis();
+  result.track_cpu_ms = cpu.ElapsedMillis();
   last_ = std::move(current_);
   return result;
 }

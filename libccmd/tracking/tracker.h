@@ -26,7 +26,8 @@ struct TrackResult {
   std::optional<Pose> T_world_cam;  // when tracked
   bool new_keyframe = false;
   int tracked_points = 0;
-  double extract_ms = 0, track_ms = 0;
+  double extract_ms = 0, track_ms = 0;          // wall time
+  double extract_cpu_ms = 0, track_cpu_ms = 0;  // CPU time of the calling thread
 };
 
 // What the tracker needs from local mapping.

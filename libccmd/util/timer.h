@@ -1,6 +1,7 @@
 #pragma once
 
 #include <chrono>
+#include <ctime>
 
 namespace ccmd {
 
@@ -15,6 +16,31 @@ inline double WallSeconds() {
   return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch())
       .count();
 }
+
+// CPU time in seconds: of the calling thread, and of the whole process (all threads). They
+// measure work rather than waiting, so they stay meaningful on a machine shared with other
+// work, where wall times are not.
+inline double ThreadCpuTimeSeconds() {
+  timespec t{};
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
+  return static_cast<double>(t.tv_sec) + 1e-9 * static_cast<double>(t.tv_nsec);
+}
+inline double ProcessCpuTimeSeconds() {
+  timespec t{};
+  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &t);
+  return static_cast<double>(t.tv_sec) + 1e-9 * static_cast<double>(t.tv_nsec);
+}
+
+// CPU time of the calling thread since construction (or Restart).
+class ThreadCpuStopwatch {
+ public:
+  ThreadCpuStopwatch() : start_(ThreadCpuTimeSeconds()) {}
+  void Restart() { start_ = ThreadCpuTimeSeconds(); }
+  double ElapsedMillis() const { return (ThreadCpuTimeSeconds() - start_) * 1e3; }
+
+ private:
+  double start_;
+};
 
 class Stopwatch {
  public:

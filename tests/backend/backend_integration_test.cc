@@ -10,6 +10,7 @@
 #include <map>
 #include <mutex>
 #include <thread>
+#include <utility>
 
 #include "libccmd/backend/backend.h"
 #include "libccmd/eval/trajectory_error.h"
@@ -201,14 +202,18 @@ TEST(BackendIntegrationTest, TwoAgentsAreFusedIntoOneAccurateMap) {
   EXPECT_EQ(observer.names.size(), 2u);
   EXPECT_EQ(observer.added.size(), stats.keyframes);
   for (const auto& [id, count] : observer.added) EXPECT_EQ(count, 1);
-  std::map<double, Pose> held;
-  for (const StampedPose& p : fused) held[p.timestamp] = p.T_world_cam;
+  // Keyed by agent and time: the two segments overlap, so both agents may hold a keyframe of
+  // the same frame.
+  std::map<std::pair<int, double>, Pose> held;
+  for (int agent = 1; agent <= 2; ++agent) {
+    for (const StampedPose& p : (*backend)->AgentTrajectory(AgentId(agent))) held[{agent, p.timestamp}] = p.T_world_cam;
+  }
   ASSERT_EQ(held.size(), fused.size());
   for (const auto& [id, pose] : observer.poses) {
-    const double t = sinks[id.agent.value() - 1]->timestamps_.at(id.keyframe);
-    ASSERT_EQ(held.count(t), 1u);
-    EXPECT_LT(TranslationDistance(held.at(t), pose), 1e-9);
-    EXPECT_LT(RotationDistance(held.at(t), pose), 1e-9);
+    const std::pair<int, double> key(id.agent.value(), sinks[id.agent.value() - 1]->timestamps_.at(id.keyframe));
+    ASSERT_EQ(held.count(key), 1u);
+    EXPECT_LT(TranslationDistance(held.at(key), pose), 1e-9);
+    EXPECT_LT(RotationDistance(held.at(key), pose), 1e-9);
     EXPECT_EQ(observer.maps.at(id), *(*backend)->PrimaryMap());
   }
   EXPECT_EQ(observer.fusions, stats.fusions);

@@ -17,9 +17,11 @@
 #include "libccmd/sensors/depth_registration.h"
 #include "libccmd/sensors/source_factory.h"
 #include "libccmd/tracking/config.h"
+#include "libccmd/tracking/cpu_budget.h"
 #include "libccmd/tracking/frontend.h"
 #include "libccmd/util/json.h"
 #include "libccmd/util/timer.h"
+#include "tests/bench_frontend/speed_bench.h"
 
 namespace {
 
@@ -74,9 +76,10 @@ Trajectory RgbdOdometryTrajectory(const std::vector<RgbdFrame>& frames, const Pi
 
 int main(int argc, char** argv) {
   CLI::App app{"Front-end benchmark: ATE against ground truth and OpenCV RgbdOdometry, speed, footprint."};
-  std::string source_spec, config_path, json_path, trajectory_path, baseline_path;
+  std::string source_spec, config_path, json_path, trajectory_path, baseline_path, stage = "all";
   int max_frames = 0;
   bool skip_baseline = false, synchronous = false, footprint = false;
+  double cpu_budget = 0;
   app.add_option("--source", source_spec, "tum:DIR or synth:frames=N,...")->required();
   app.add_option("--config", config_path, "Camera/tracking config");
   app.add_option("--frames", max_frames, "Use at most this many frames");
@@ -87,7 +90,20 @@ int main(int argc, char** argv) {
   app.add_flag("--synchronous", synchronous, "Local mapping in the tracking thread");
   app.add_flag("--footprint", footprint,
                "Stream frames (no preloading) and print memory and frame time every 300 frames");
+  app.add_option("--cpu-budget", cpu_budget,
+                 "CPU cores the front-end may use (as ccmd_agent --cpu-budget; the replay is paced to it)")
+      ->check(CLI::Range(0.0, 256.0))
+      ->capture_default_str();
+  app.add_option("--stage", stage,
+                 "What to run: all; frontend (the front-end only, e.g. under callgrind); extract (ORB "
+                 "extraction alone, ours and OpenCV's)")
+      ->check(CLI::IsMember({"all", "frontend", "extract"}))
+      ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
+  if (stage == "frontend") skip_baseline = true;
+  // OpenCV in the calling thread, as the agent runs it on a budget, so that each stage's CPU
+  // time (and instruction count under callgrind) is all its own.
+  cv::setNumThreads(1);
 
   SourceOptions source_options;
   source_options.camera_config = config_path;
@@ -110,6 +126,7 @@ int main(int argc, char** argv) {
     options = *read;
   }
   options.synchronous_mapping = synchronous;
+  options.cpu_budget = cpu_budget;
   const Trajectory ground_truth = (*source)->GroundTruth();
   auto frontend = Frontend::Create(camera, options, nullptr);
   if (!frontend.ok()) return 1;
@@ -154,9 +171,21 @@ int main(int argc, char** argv) {
     while ((*source)->Read(&frame).ok() && (max_frames == 0 || static_cast<int>(frames.size()) < max_frames)) {
       frames.push_back(frame);
     }
+    if (stage != "frontend") {
+      // Alone, three alternating passes; before a whole run, one.
+      const bench::ExtractionSpeed extraction =
+          bench::MeasureExtraction(frames, options.orb, stage == "extract" ? 3 : 1, true);
+      bench::Print(extraction);
+      result["extraction"] = bench::ToJson(extraction);
+      if (stage == "extract") return json_path.empty() || WriteJsonFile(result, json_path).ok() ? 0 : 1;
+    }
     const double cpu0 = ProcessCpuSeconds();
     const Stopwatch watch;
-    for (const RgbdFrame& f : frames) (*frontend)->ProcessFrame(f);
+    CpuPacer pacer(cpu_budget);
+    for (const RgbdFrame& f : frames) {
+      pacer.Pace();
+      (*frontend)->ProcessFrame(f);
+    }
     (*frontend)->Finish();
     wall = watch.ElapsedSeconds();
     cpu = ProcessCpuSeconds() - cpu0;
@@ -187,6 +216,7 @@ int main(int argc, char** argv) {
   result["depth_alignments_failed"] = stats.mapping.depth_alignments_failed;
   result["depth_alignment_ms_mean"] =
       stats.mapping.keyframes ? stats.mapping.depth_alignment_ms_total / stats.mapping.keyframes : 0.0;
+  bench::ReportStages(stats, &result);
   std::printf("  depth alignment: %d accepted, %d rejected, %.1f ms per keyframe\n", stats.mapping.depth_alignments,
               stats.mapping.depth_alignments_failed, result["depth_alignment_ms_mean"].number());
   if (!trajectory_path.empty()) WriteTumTrajectory(ours, trajectory_path).IgnoreError();

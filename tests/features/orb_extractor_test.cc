@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <opencv2/features2d.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include "libccmd/features/descriptor.h"
@@ -59,6 +60,70 @@ TEST(OrbExtractorTest, BudgetSpreadAndLevels) {
   }
   for (int level = 0; level < 8; ++level) EXPECT_GT(per_level[level], 0) << level;
   EXPECT_EQ(std::count(cells.begin(), cells.end(), 0), 0);  // no empty 80x80 cell
+}
+
+// The selection written the simple way: one FAST pass at the low threshold over each level,
+// cv::cornerHarris over the whole level, the same distribution.
+std::vector<cv::KeyPoint> ReferenceSelection(const cv::Mat& gray, const OrbExtractor& orb) {
+  const OrbOptions& o = orb.options();
+  std::vector<cv::KeyPoint> all;
+  cv::Mat image = gray;
+  for (int level = 0; level < o.levels; ++level) {
+    if (level > 0) {
+      cv::Mat smaller;
+      cv::resize(image, smaller, cv::Size(cvRound(gray.cols / orb.scale()[level]), cvRound(gray.rows / orb.scale()[level])),
+                 0, 0, cv::INTER_LINEAR);
+      image = smaller;
+    }
+    const int e = o.edge;
+    std::vector<cv::KeyPoint> corners, inside;
+    cv::FAST(image(cv::Rect(e - 3, e - 3, image.cols - 2 * e + 6, image.rows - 2 * e + 6)), corners,
+             o.min_fast_threshold, true);
+    cv::Mat harris;
+    cv::cornerHarris(image, harris, 7, 3, 0.04);
+    for (cv::KeyPoint k : corners) {
+      k.pt += cv::Point2f(e - 3, e - 3);
+      if (k.pt.x < e || k.pt.y < e || k.pt.x >= image.cols - e || k.pt.y >= image.rows - e) continue;
+      const bool strong = k.response >= o.fast_threshold;
+      k.response = harris.at<float>(cvRound(k.pt.y), cvRound(k.pt.x)) - (strong ? 0.0f : 1e9f);
+      inside.push_back(k);
+    }
+    for (cv::KeyPoint k : DistributeKeypoints(inside, image.cols, image.rows, orb.level_budget()[level])) {
+      k.octave = level;
+      k.pt = (k.pt + cv::Point2f(0.5f, 0.5f)) * orb.scale()[level] - cv::Point2f(0.5f, 0.5f);
+      all.push_back(k);
+    }
+  }
+  return all;
+}
+
+// A textured rendered room, and an image whose left third is flat and whose right part is
+// noise of growing contrast, so that cells range from no corner at all and weak corners only
+// to many strong ones, and the distribution has to go past the first corner of each cell.
+TEST(OrbExtractorTest, ChoosesTheKeypointsOfASinglePassWithHarrisOverTheWholeImage) {
+  cv::Mat noise(480, 640, CV_32F);
+  cv::RNG rng(7);
+  rng.fill(noise, cv::RNG::NORMAL, 0, 1);
+  cv::GaussianBlur(noise, noise, cv::Size(5, 5), 1.2);
+  cv::Mat ramp(480, 640, CV_8U);
+  for (int y = 0; y < ramp.rows; ++y) {
+    for (int x = 0; x < ramp.cols; ++x) {
+      const double contrast = x < ramp.cols / 3 ? 0.0 : 120.0 * (x - ramp.cols / 3) / ramp.cols;
+      ramp.at<uchar>(y, x) = cv::saturate_cast<uchar>(128 + contrast * noise.at<float>(y, x));
+    }
+  }
+  for (const cv::Mat& gray : {RenderGray(), ramp}) {
+    const OrbExtractor orb;
+    const OrbFeatures f = orb.Extract(gray);
+    const std::vector<cv::KeyPoint> expected = ReferenceSelection(gray, orb);
+    ASSERT_EQ(f.keypoints.size(), expected.size());
+    int same = 0;
+    for (std::size_t i = 0; i < expected.size(); ++i) {
+      same += f.keypoints[i].octave == expected[i].octave && cv::norm(f.keypoints[i].pt - expected[i].pt) < 1e-4;
+    }
+    // Harris values computed in another order may swap two corners of equal rank.
+    EXPECT_GE(same, static_cast<int>(0.995 * expected.size()));
+  }
 }
 
 TEST(OrbExtractorTest, ShiftedImageMatchesAtShiftedPositions) {

@@ -108,6 +108,31 @@ TEST(BundleAdjusterTest, AbortFlagStopsTheSolver) {
   EXPECT_LE(summary.iterations, 2);
 }
 
+// Observations with and without depth (2 or 3 measured values) still give Ceres rows of one
+// size, so it eliminates the points with its compiled 3x3x3 code; the dynamic path is several
+// times slower. The second pass removes the outliers and keeps the problem.
+TEST(BundleAdjusterTest, MixedObservationsUseTheCompiledSchurEliminator) {
+  Rng rng(36);
+  Scene s = MakeScene(0.5, &rng);
+  s.problem.cameras[0].fixed = true;
+  for (std::size_t i = 0; i < s.problem.observations.size(); i += 3) {
+    s.problem.observations[i].depth = 0;
+    s.problem.observations[i].depth_information = 0;
+  }
+  s.problem.observations[5].uv += Eigen::Vector2d(40, 0);
+  s.problem.cameras[2].T_cam_world.translation() += Eigen::Vector3d(0.03, 0, 0);
+  for (BaLinearSolver solver : {BaLinearSolver::kDenseSchur, BaLinearSolver::kSparseSchur}) {
+    Scene copy = s;
+    BaOptions options;
+    options.solver = solver;
+    const BaSummary summary = BundleAdjust(&copy.problem, options);
+    EXPECT_EQ(summary.schur_structure, "3,3,3");
+    EXPECT_GT(summary.pass_iterations[1], 0);
+    EXPECT_TRUE(summary.outlier[5]);
+    EXPECT_LT(TranslationDistance(copy.problem.cameras[2].T_cam_world, s.T_cam_world[2]), 0.005);
+  }
+}
+
 TEST(BundleAdjusterTest, SparseSchurGivesTheSameSolution) {
   Rng rng(34);
   Scene a = MakeScene(0.5, &rng);

@@ -1,5 +1,6 @@
 #include "libccmd/optim/pose_optimizer.h"
 
+#include <ceres/ceres.h>
 #include <gtest/gtest.h>
 
 #include "libccmd/util/random.h"
@@ -64,6 +65,61 @@ TEST(PoseOptimizerTest, RejectsGrossOutliers) {
   }
   EXPECT_LE(wrong_kept, 2);
   EXPECT_LE(right_dropped, 5);
+}
+
+struct FixedPointResidual {
+  ReprojectionResidual residual;
+  Eigen::Vector3d point;
+  template <typename T>
+  bool operator()(const T* q, const T* t, T* r) const {
+    const T p[3] = {T(point.x()), T(point.y()), T(point.z())};
+    return residual(q, t, p, r);
+  }
+};
+
+// The same least-squares problem solved by Ceres (the solver the optimiser replaced).
+Pose CeresLeastSquares(const Pose& start, const std::vector<PoseObservation>& obs) {
+  using Fixed = FixedPointResidual;
+  Eigen::Quaterniond q(start.linear());
+  Eigen::Vector3d t = start.translation();
+  ceres::Problem problem;
+  problem.AddParameterBlock(q.coeffs().data(), 4, new ceres::EigenQuaternionManifold);
+  for (const PoseObservation& o : obs) {
+    const ReprojectionResidual r(kCamera, o.uv, o.depth, std::sqrt(o.information), std::sqrt(o.depth_information));
+    ceres::CostFunction* cost =
+        o.depth > 0 ? static_cast<ceres::CostFunction*>(new ceres::AutoDiffCostFunction<Fixed, 3, 4, 3>(new Fixed{r, o.point_world}))
+                    : new ceres::AutoDiffCostFunction<Fixed, 2, 4, 3>(new Fixed{r, o.point_world});
+    problem.AddResidualBlock(cost, nullptr, q.coeffs().data(), t.data());
+  }
+  ceres::Solver::Options options;
+  options.function_tolerance = 1e-12;
+  options.gradient_tolerance = 1e-14;
+  options.parameter_tolerance = 1e-12;
+  options.max_num_iterations = 100;
+  ceres::Solver::Summary summary;
+  ceres::Solve(options, &problem, &summary);
+  Pose T = Pose::Identity();
+  T.linear() = q.normalized().toRotationMatrix();
+  T.translation() = t;
+  return T;
+}
+
+TEST(PoseOptimizerTest, ReachesTheLeastSquaresOptimumCeresFinds) {
+  Rng rng(23);
+  const Pose truth = MakePose({0.2, 0.1, -0.1}, {-0.1, 0.2, 0.3});
+  const auto obs = Observe(truth, 400, 1.0, &rng);  // noisy, no outliers: all stay inliers
+  const Pose start = truth * MakePose({0.03, -0.02, 0.01}, {0.04, 0.03, -0.05});
+  const PoseOptimizationResult r = OptimizePose(start, obs, kCamera);
+  ASSERT_EQ(r.inliers, static_cast<int>(obs.size()) - static_cast<int>(std::count(r.inlier.begin(), r.inlier.end(), false)));
+  std::vector<PoseObservation> inliers;
+  for (std::size_t i = 0; i < obs.size(); ++i) {
+    if (r.inlier[i]) inliers.push_back(obs[i]);
+  }
+  const Pose reference = CeresLeastSquares(start, inliers);
+  // The noise moves the optimum away from the truth by far more than this.
+  EXPECT_GT(TranslationDistance(reference, truth), 1e-4);
+  EXPECT_LT(TranslationDistance(r.T_cam_world, reference), 2e-6);
+  EXPECT_LT(RotationDistance(r.T_cam_world, reference), 2e-7);
 }
 
 TEST(PoseOptimizerTest, TooFewObservationsAreAllOutliers) {
