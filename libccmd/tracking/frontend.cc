@@ -9,7 +9,10 @@ bool TrackingOptions::Check(std::string* why) const {
   };
   if (!orb.Check(why)) return false;
   if (!(min_depth > 0 && max_depth > min_depth)) return fail("depth range must satisfy 0 < min < max");
-  if (!(depth_noise.sigma_0 > 0 && depth_noise.sigma_2 >= 0)) return fail("depth noise sigmas must be positive");
+  if (const Status s = depth_noise.Validate(); !s.ok()) {
+    if (why) *why = s.message();
+    return false;
+  }
   if (local_ba_window < 1 || local_ba_window > 100) return fail("local BA window must be in [1, 100]");
   if (depth_alignment_neighbours < 0 || depth_alignment_neighbours > 20) return fail("depth alignment neighbours must be in [0, 20]");
   if (!(depth_alignment_weight >= 0)) return fail("depth alignment weight must be >= 0");

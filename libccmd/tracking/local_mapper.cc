@@ -288,7 +288,7 @@ void LocalMapper::LocalBundleAdjustment(Keyframe* keyframe) {
         const double z = kf->features().depth[o.keypoint];
         problem.observations.push_back({it->second, static_cast<int>(j), Eigen::Vector2d(kp.pt.x, kp.pt.y),
                                         z, orb_->inv_sigma2()[kp.octave],
-                                        z > 0 ? options_.depth_noise.Information(z) : 0.0});
+                                        kf->features().DepthInformation(o.keypoint)});
       }
     }
     // Gauge: the map's first keyframe never moves; without any fixed keyframe, the oldest
