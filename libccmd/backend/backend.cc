@@ -4,6 +4,7 @@
 #include <cmath>
 
 #include "libccmd/backend/ingest.h"
+#include "libccmd/backend/map_observer.h"
 #include "libccmd/codec/rgbd_payload.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/timer.h"
@@ -22,9 +23,10 @@ Status BackendOptions::Validate() const {
   return Status::Ok();
 }
 
-StatusOr<std::unique_ptr<Backend>> Backend::Create(const BackendOptions& options) {
+StatusOr<std::unique_ptr<Backend>> Backend::Create(const BackendOptions& options, MapObserver* observer) {
   CCMD_RETURN_IF_ERROR(options.Validate());
   auto backend = std::unique_ptr<Backend>(new Backend(options));
+  backend->observer_ = observer;
   if (options.dense) {
     CCMD_ASSIGN_OR_RETURN(backend->dense_, DenseMap::Create(options.dense_options));
   }
@@ -69,15 +71,17 @@ Status Backend::RegisterAgent(AgentId agent, const std::string& name, const Pinh
   std::lock_guard<std::mutex> lock(cameras_mutex_);
   cameras_[agent] = camera;
   names_[agent] = name;
+  if (observer_) observer_->OnAgent(agent, name);
   return Status::Ok();
 }
 
-Status Backend::SubmitKeyframe(AgentId agent, KeyframeMessage message) {
+Status Backend::SubmitKeyframe(AgentId agent, KeyframeMessage message, double arrived_s) {
   {
     std::lock_guard<std::mutex> lock(work_mutex_);
     ++outstanding_;
   }
-  IngestItem item{agent, std::make_unique<KeyframeMessage>(std::move(message)), nullptr, Now()};
+  IngestItem item{agent, std::make_unique<KeyframeMessage>(std::move(message)), nullptr, Now(),
+                  arrived_s > 0 ? arrived_s : MonotonicSeconds()};
   if (!ingest_queue_.Push(std::move(item))) {
     FinishedWork();
     return Unavailable("the back-end is shutting down");
@@ -85,17 +89,27 @@ Status Backend::SubmitKeyframe(AgentId agent, KeyframeMessage message) {
   return Status::Ok();
 }
 
-Status Backend::SubmitPoseUpdate(AgentId agent, PoseUpdateMessage message) {
+Status Backend::SubmitPoseUpdate(AgentId agent, PoseUpdateMessage message, double arrived_s) {
   {
     std::lock_guard<std::mutex> lock(work_mutex_);
     ++outstanding_;
   }
-  IngestItem item{agent, nullptr, std::make_unique<PoseUpdateMessage>(std::move(message)), Now()};
+  IngestItem item{agent, nullptr, std::make_unique<PoseUpdateMessage>(std::move(message)), Now(),
+                  arrived_s > 0 ? arrived_s : MonotonicSeconds()};
   if (!ingest_queue_.Push(std::move(item))) {
     FinishedWork();
     return Unavailable("the back-end is shutting down");
   }
   return Status::Ok();
+}
+
+void Backend::NotifyPoses(PoseSource source, MapId map, const std::vector<ServerKeyframe*>& moved,
+                          double arrived_s) {
+  if (!observer_ || moved.empty()) return;
+  std::vector<KeyframePose> poses;
+  poses.reserve(moved.size());
+  for (const ServerKeyframe* kf : moved) poses.push_back({kf->id, kf->T_map_cam});
+  observer_->OnPoses(source, map, poses, arrived_s);
 }
 
 void Backend::FinishedWork() {
@@ -124,6 +138,7 @@ void Backend::Ingest(IngestItem item) {
     std::vector<ServerKeyframe*> moved;
     MapManager::Guard guard = maps_.CheckOutAgent(agent);
     moved = ApplyPoseUpdates(guard.get(), agent, *pose_update);
+    NotifyPoses(PoseSource::kAgent, guard->id(), moved, item.arrived);
     QueueDenseUpdates(moved, DenseTask::Kind::kUpdate);
     std::lock_guard<std::mutex> lock(stats_mutex_);
     stats_.pose_updates_received++;
@@ -161,12 +176,14 @@ void Backend::Ingest(IngestItem item) {
       CCMD_LOG(WARNING) << "agent " << agent.value() << ": " << keyframe.status().ToString();
     } else {
       added = true;
+      const bool primary = maps_.primary() && guard->id() == *maps_.primary();
+      if (observer_) observer_->OnKeyframe(id, guard->id(), (*keyframe)->T_map_cam, item.arrived, primary);
       if (rgbd) {
         (*keyframe)->rgbd_bgr = rgbd->bgr;
         (*keyframe)->rgbd_depth_mm = rgbd->depth_mm;
         (*keyframe)->rgbd_downsample = rgbd->downsample;
       }
-      if (maps_.primary() && guard->id() == *maps_.primary()) QueueDenseAdds(guard.get(), {*keyframe});
+      if (primary) QueueDenseAdds(guard.get(), {*keyframe});
     }
   }
   const double intake_ms = (Now() - item.submitted) * 1e3;
@@ -237,6 +254,7 @@ void Backend::DenseLoop() {
         status = dense_->SetAgentMap(task->keyframe.id.agent, task->to);
         if (status.ok()) status = dense_->AddKeyframe(task->keyframe);
         if (status.ok()) {
+          if (observer_) observer_->OnDenseKeyframe(task->keyframe.id);
           std::lock_guard<std::mutex> lock(stats_mutex_);
           stats_.dense_keyframes++;
         }
@@ -382,6 +400,7 @@ void Backend::DetectLoop(const GlobalKeyframeId& id, bool stored) {
     ServerMap* result_map = cmap;
     MapManager::Guard fused_guard;
     std::vector<ServerKeyframe*> entering_primary;
+    std::vector<ServerKeyframe*> moved;  // by the fusion or the pose graph
     const auto primary = maps_.primary();
     if (same_map) {
       // Loop inside one map: a loop edge and a pose graph spread the correction.
@@ -399,6 +418,7 @@ void Backend::DetectLoop(const GlobalKeyframeId& id, bool stored) {
       result_map = fused_guard.get();
       result_map->AddLoopEdge({cand->id, id, cand->T_map_cam.inverse() * query->T_map_cam});
       event.fusion = true;
+      moved = newcomers;
       if (primary_involved && dense_) {
         DenseTask merge;
         merge.kind = DenseTask::Kind::kMergeMaps;
@@ -424,15 +444,18 @@ void Backend::DetectLoop(const GlobalKeyframeId& id, bool stored) {
     }
     result_map->AddCovisibility(query, cand, match->inliers);
     if (same_map) {
-      auto moved = OptimizeMapPoseGraph(result_map, options_.pose_graph);
-      if (moved.ok()) {
-        QueueDenseUpdates(*moved, DenseTask::Kind::kLoopUpdate);
+      auto optimized = OptimizeMapPoseGraph(result_map, options_.pose_graph);
+      if (optimized.ok()) {
+        moved = *optimized;
+        QueueDenseUpdates(moved, DenseTask::Kind::kLoopUpdate);
       } else {
-        CCMD_LOG(WARNING) << "pose graph: " << moved.status().ToString();
+        CCMD_LOG(WARNING) << "pose graph: " << optimized.status().ToString();
       }
     }
     if (!entering_primary.empty()) QueueDenseAdds(result_map, entering_primary);
     event.map = result_map->id();
+    if (observer_) observer_->OnLoop(event);
+    NotifyPoses(event.fusion ? PoseSource::kFusion : PoseSource::kLoop, event.map, moved, MonotonicSeconds());
     loop_cooldown_until_[agent] = KeyframeId(id.keyframe.value() + options_.loop_cooldown_keyframes);
     {
       std::lock_guard<std::mutex> lock(stats_mutex_);
@@ -509,6 +532,7 @@ void Backend::GlobalBaLoop() {
       MapManager::Guard guard = maps_.CheckOut(map_id);
       if (guard) {  // not fused meanwhile
         const std::vector<ServerKeyframe*> moved = ApplyGlobalBa(guard.get(), problem);
+        NotifyPoses(PoseSource::kGlobalBa, map_id, moved, MonotonicSeconds());
         QueueDenseUpdates(moved, DenseTask::Kind::kGlobalUpdate);
         applied = true;
       }

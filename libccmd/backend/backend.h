@@ -21,6 +21,7 @@
 
 #include "libccmd/backend/loop_verification.h"
 #include "libccmd/backend/map_manager.h"
+#include "libccmd/backend/map_observer.h"
 #include "libccmd/backend/map_optimization.h"
 #include "libccmd/backend/place_index.h"
 #include "libccmd/dense/dense_map.h"
@@ -87,7 +88,9 @@ struct BackendTimings {
 
 class Backend {
  public:
-  static StatusOr<std::unique_ptr<Backend>> Create(const BackendOptions& options);
+  // `observer` (optional) is told about every change of the maps; it must outlive the back-end.
+  static StatusOr<std::unique_ptr<Backend>> Create(const BackendOptions& options,
+                                                   MapObserver* observer = nullptr);
   ~Backend();
   Backend(const Backend&) = delete;
   Backend& operator=(const Backend&) = delete;
@@ -95,8 +98,10 @@ class Backend {
   // An agent's camera (from its handshake); needed before its first keyframe.
   Status RegisterAgent(AgentId agent, const std::string& name, const PinholeCamera& camera);
   // Queue work (blocks while the ingest queue is full: back-pressure towards the network).
-  Status SubmitKeyframe(AgentId agent, KeyframeMessage message);
-  Status SubmitPoseUpdate(AgentId agent, PoseUpdateMessage message);
+  // `arrived_s`: MonotonicSeconds() when the message reached the server (0: now); the
+  // observer gets it with the change the message causes.
+  Status SubmitKeyframe(AgentId agent, KeyframeMessage message, double arrived_s = 0);
+  Status SubmitPoseUpdate(AgentId agent, PoseUpdateMessage message, double arrived_s = 0);
 
   // Returns when everything submitted so far has gone through every stage (and a global BA it
   // caused has finished).
@@ -112,6 +117,7 @@ class Backend {
   std::vector<MapId> Maps() const { return maps_.Maps(); }
   std::vector<AgentId> Agents() const { return maps_.Agents(); }
   bool AgentInPrimaryMap(AgentId agent) const;
+  std::optional<MapId> MapOf(AgentId agent) const { return maps_.MapOfAgent(agent); }
 
   DenseMap* dense() { return dense_.get(); }
   Status ExportDenseMap(const std::string& path);
@@ -128,6 +134,7 @@ class Backend {
     std::unique_ptr<KeyframeMessage> keyframe;
     std::unique_ptr<PoseUpdateMessage> pose_update;
     double submitted = 0;
+    double arrived = 0;  // MonotonicSeconds()
   };
   struct DenseTask {
     enum class Kind { kAdd, kUpdate, kLoopUpdate, kGlobalUpdate, kMergeMaps } kind = Kind::kAdd;
@@ -152,8 +159,11 @@ class Backend {
   void QueueDenseUpdates(const std::vector<ServerKeyframe*>& moved, DenseTask::Kind kind);
   void FinishedWork();
   double Now() const;
+  // Tells the observer (if any) that `moved` have new poses in `map`.
+  void NotifyPoses(PoseSource source, MapId map, const std::vector<ServerKeyframe*>& moved, double arrived_s);
 
   const BackendOptions options_;
+  MapObserver* observer_ = nullptr;  // set before the stages start, never changed
   PlaceIndex place_;  // loop stage only
   MapManager maps_;
   std::unique_ptr<DenseMap> dense_;

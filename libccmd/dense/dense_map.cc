@@ -541,6 +541,14 @@ StatusOr<PointCloud> DenseMap::ExtractKeyframe(const GlobalKeyframeId& id) const
   return cloud;
 }
 
+StatusOr<CameraCloud> DenseMap::KeyframeCloud(const GlobalKeyframeId& id) const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  const AgentNode* node = FindAgent(id.agent);
+  const Entry* entry = node ? Find(*node, id.keyframe.value()) : nullptr;
+  if (entry == nullptr) return NotFound(IdText(id) + " is not in the dense map");
+  return entry->cloud;
+}
+
 StatusOr<GlobalKeyframeId> DenseMap::FindLabel(std::uint32_t label) const {
   const GlobalKeyframeId id = DecodeLabel(label);
   std::lock_guard<std::mutex> lock(mutex_);

@@ -175,6 +175,9 @@ class DenseMap {
                    DenseFilter filter = DenseFilter::kGlobal);
   // Every point of one keyframe in the map frame (unfiltered), with colours and labels.
   StatusOr<PointCloud> ExtractKeyframe(const GlobalKeyframeId& id) const;
+  // The keyframe's points in its own camera frame, with colours (what it was added with):
+  // a viewer places them with the keyframe's pose.
+  StatusOr<CameraCloud> KeyframeCloud(const GlobalKeyframeId& id) const;
   // The keyframe a label names, if present.
   StatusOr<GlobalKeyframeId> FindLabel(std::uint32_t label) const;
 
