@@ -84,7 +84,6 @@ void ShowViewAddress(const std::string& line) {
 // Everything a run needs, the same for every run of an ablation.
 struct Setup {
   std::string dataset, camera_config, rate, bin_dir, command;
-  std::string server_config;  // the agents' camera file (config or the dataset's camera.yaml), if any
   int agents = 0;
   double timeout_s = 0;
   std::vector<std::string> agent_args, server_args;
@@ -116,11 +115,6 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
   std::vector<std::string> server_argv = {JoinPath(setup.bin_dir, "ccmd_server"), "--listen", "127.0.0.1:0", "--journal",
                                           JoinPath(out, "journal"), "--out", out,
                                           "--stats-interval", "1"};
-  // The server weighs keyframe depth by the agents' sensor noise, which their config gives.
-  if (!setup.server_config.empty()) {
-    server_argv.push_back("--config");
-    server_argv.push_back(setup.server_config);
-  }
   server_argv.insert(server_argv.end(), setup.server_args.begin(), setup.server_args.end());
   for (const std::string& arg : ViewServerArgs(setup.view)) server_argv.push_back(arg);
   auto server_process = Subprocess::Start(server_argv, "", JoinPath(out, "logs/server.log"), /*pipe_stdout=*/true);
@@ -349,7 +343,6 @@ int main(int argc, char** argv) {
   Setup setup;
   setup.dataset = dataset;
   setup.camera_config = camera_config;
-  if (FileExists(camera_file)) setup.server_config = camera_file;
   setup.rate = rate;
   setup.bin_dir = bin_dir;
   setup.command = command;

@@ -21,8 +21,6 @@
 #include <mutex>
 
 #include "libccmd/features/bow_vocabulary.h"
-#include "libccmd/io/config.h"
-#include "libccmd/optim/reprojection.h"
 #include "libccmd/util/file_util.h"
 
 #include "apps/app_common.h"
@@ -76,7 +74,7 @@ int main(int argc, char** argv) {
   bool no_dense = false, no_gba = false;
   double stats_interval = 5.0;
   bool no_fsync = false;
-  std::string log_level, config_path;
+  std::string log_level;
   ViewFlags view_flags;
   AddViewOptions(&app, &view_flags);
   app.add_option("--listen", options.listen, "HOST:PORT to listen on (0.0.0.0:PORT for a LAN)")
@@ -94,9 +92,6 @@ int main(int argc, char** argv) {
                  "server_stats.json, snapshots/ (default: the journal folder's name + .results)");
   app.add_option("--vocabulary", vocabulary, "Place-recognition vocabulary (ccmd_vocab); missing: trained online")
       ->capture_default_str();
-  app.add_option("--config", config_path,
-                 "The agents' camera config: its DepthNoise.* keys weigh keyframe depth in loop "
-                 "verification and global BA (default: a structured-light sensor's noise)");
   app.add_flag("--no-dense", no_dense, "Do not build the dense map");
   app.add_flag("--no-global-ba", no_gba, "No global bundle adjustment after loops");
   app.add_option("--snapshot-interval", runtime.snapshot_period_s,
@@ -166,16 +161,6 @@ int main(int argc, char** argv) {
   }
   runtime.backend.dense = !no_dense;
   runtime.backend.global_ba = !no_gba;
-  if (!config_path.empty()) {
-    auto config = ccmd::ConfigFile::Open(config_path);
-    auto noise = config.ok() ? ccmd::ReadDepthNoise(*config) : ccmd::StatusOr<ccmd::DepthNoise>(config.status());
-    if (!noise.ok()) {
-      std::fprintf(stderr, "ccmd_server: %s\n", noise.status().ToString().c_str());
-      return 2;
-    }
-    runtime.backend.depth_noise = *noise;
-    runtime.backend.verification.depth_noise = *noise;
-  }
   if (!vocabulary.empty() && ccmd::FileExists(vocabulary)) {
     auto loaded = ccmd::Vocabulary::Load(vocabulary);
     if (!loaded.ok()) {

@@ -59,7 +59,8 @@ double ReprojectionChi2(const Intrinsics& k, const Eigen::Isometry3d& T_cam_worl
 // Depth sensor noise: sigma(z) = sigma_0 + sigma_2 * z^2 (metres). A property of the sensor:
 // the default is a structured-light camera's (Kinect v1, ~2 cm at 3 m); a config gives its
 // own (rendered ICL-NUIM depth: its 1 mm rounding at every range). The agent weighs its
-// keypoints' depth with it, the server its keyframes' depth in loop verification and global BA.
+// keypoints' depth with it; the server keeps the default for its keyframes' depth (it lacks the
+// depth slope under each keypoint that makes an exact sensor's sigma usable).
 struct DepthNoise {
   double sigma_0 = 0.001;
   double sigma_2 = 0.002;
