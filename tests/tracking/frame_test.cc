@@ -42,7 +42,9 @@ TEST(TrackingFrameTest, KeypointsAreUndistortedAfterTheDepthLookupAtTheRecordedP
     // ... its depth is the one at the recorded pixel, and the virtual right coordinate follows
     // the undistorted u.
     EXPECT_EQ(undistorted.depth[i], raw.depth[i]);
-    if (raw.depth[i] > 0) EXPECT_NEAR(undistorted.u_right[i], k.x - plain.bf / raw.depth[i], 1e-3);
+    if (raw.depth[i] > 0) {
+      EXPECT_NEAR(undistorted.u_right[i], k.x - plain.bf / raw.depth[i], 1e-3);
+    }
   }
   EXPECT_GT(largest_shift, 3.0);  // pixels near the corners move
 }
