@@ -152,7 +152,8 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   app.add_option("--jpeg-quality", rgbd.jpeg_quality, "Colour JPEG quality")->check(CLI::Range(1, 100))
       ->capture_default_str();
-  app.add_option("--depth-bound", rgbd.bound_e4, "Depth error bound in 1/10000 of depth (ccmd-bounded)")
+  app.add_option("--depth-bound", rgbd.bound_e4,
+                 "Depth error bound in 1/10000 of depth (ccmd-bounded); default: the config's Link.depthBound, else 50")
       ->check(CLI::Range(1, 1000))
       ->capture_default_str();
   app.add_flag("--rgbd-every-keyframe", rgbd_every_keyframe,
@@ -223,6 +224,14 @@ int main(int argc, char** argv) {
     auto options = ccmd::ReadTrackingOptions(*config, tracking);
     if (!options.ok()) return Fail(options.status().ToString());
     tracking = *options;
+    // The depth codec's error bound belongs to the sensor (about its noise), so a config may
+    // set it; --depth-bound on the command line wins.
+    if (app.count("--depth-bound") == 0) {
+      auto bound = config->GetInt("Link.depthBound", rgbd.bound_e4);
+      if (!bound.ok()) return Fail(bound.status().ToString());
+      if (*bound < 1 || *bound > 1000) return Fail(config_path + ": Link.depthBound must be in 1..1000");
+      rgbd.bound_e4 = *bound;
+    }
   }
   if (app.count("--cpu-budget")) tracking.cpu_budget = cpu_budget;
   ccmd::UseOpenCvThreadsForBudget(tracking.cpu_budget);

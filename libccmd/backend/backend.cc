@@ -18,6 +18,8 @@ Status BackendOptions::Validate() const {
   if (queue_capacity < 1) return InvalidArgument("queue capacity must be >= 1");
   if (global_ba_iterations < 1) return InvalidArgument("global BA iterations must be >= 1");
   if (dense) CCMD_RETURN_IF_ERROR(dense_options.Validate());
+  CCMD_RETURN_IF_ERROR(depth_noise.Validate());
+  CCMD_RETURN_IF_ERROR(verification.depth_noise.Validate());
   return Status::Ok();
 }
 

@@ -1,6 +1,26 @@
 #include "libccmd/optim/reprojection.h"
 
+#include <cmath>
+
 namespace ccmd {
+
+Status DepthNoise::Validate() const {
+  if (!(sigma_0 > 0 && sigma_2 >= 0 && std::isfinite(sigma_0) && std::isfinite(sigma_2))) {
+    return InvalidArgument("depth noise needs sigma0 > 0 and sigma2 >= 0 (finite)");
+  }
+  if (!(keypoint_offset >= 0 && keypoint_offset <= 10)) {
+    return InvalidArgument("depth noise keypoint offset must be in [0, 10] pixel sigmas");
+  }
+  return Status::Ok();
+}
+
+StatusOr<DepthNoise> ReadDepthNoise(const ConfigFile& c, DepthNoise n) {
+  CCMD_ASSIGN_OR_RETURN(n.sigma_0, c.GetDouble("DepthNoise.sigma0", n.sigma_0));
+  CCMD_ASSIGN_OR_RETURN(n.sigma_2, c.GetDouble("DepthNoise.sigma2", n.sigma_2));
+  CCMD_ASSIGN_OR_RETURN(n.keypoint_offset, c.GetDouble("DepthNoise.keypointOffset", n.keypoint_offset));
+  if (const Status s = n.Validate(); !s.ok()) return InvalidArgument(c.path() + ": " + s.message());
+  return n;
+}
 
 double ReprojectionChi2(const Intrinsics& k, const Eigen::Isometry3d& T_cam_world,
                         const Eigen::Vector3d& p_w, const Eigen::Vector2d& uv, double depth,

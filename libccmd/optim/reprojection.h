@@ -10,6 +10,9 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 
+#include "libccmd/io/config.h"
+#include "libccmd/util/status.h"
+
 namespace ccmd {
 
 struct Intrinsics {
@@ -53,15 +56,25 @@ double ReprojectionChi2(const Intrinsics& k, const Eigen::Isometry3d& T_cam_worl
                         const Eigen::Vector3d& p_w, const Eigen::Vector2d& uv, double depth,
                         double info_px, double info_depth);
 
-// Depth sensor noise: sigma(z) = sigma_0 + sigma_2 * z^2 (metres).
+// Depth sensor noise: sigma(z) = sigma_0 + sigma_2 * z^2 (metres). A property of the sensor:
+// the default is a structured-light camera's (Kinect v1, ~2 cm at 3 m); a config gives its
+// own (rendered ICL-NUIM depth: its 1 mm rounding at every range). The agent weighs its
+// keypoints' depth with it; the server keeps the default for its keyframes' depth (it lacks the
+// depth slope under each keypoint that makes an exact sensor's sigma usable).
 struct DepthNoise {
   double sigma_0 = 0.001;
   double sigma_2 = 0.002;
-  double Information(double z) const {
-    const double s = sigma_0 + sigma_2 * z * z;
-    return 1.0 / (s * s);
-  }
+  // How far a keypoint may be from where its depth is read, in its octave's pixel sigmas: the
+  // depth slope there times this distance adds to a keypoint's depth sigma (0: sensor only).
+  double keypoint_offset = 1.0;
+  double Sigma(double z) const { return sigma_0 + sigma_2 * z * z; }
+  double Information(double z) const { return 1.0 / (Sigma(z) * Sigma(z)); }
+  Status Validate() const;
 };
+
+// Reads DepthNoise.sigma0, DepthNoise.sigma2 and DepthNoise.keypointOffset; absent keys keep
+// `defaults`. Invalid values are errors naming the file.
+StatusOr<DepthNoise> ReadDepthNoise(const ConfigFile& config, DepthNoise defaults = {});
 
 // Chi-square thresholds at 95%: 2 and 3 degrees of freedom.
 constexpr double kChi2Mono = 5.991;

@@ -11,8 +11,7 @@ StatusOr<TrackingOptions> ReadTrackingOptions(const ConfigFile& c, TrackingOptio
   CCMD_ASSIGN_OR_RETURN(o.orb.min_fast_threshold, c.GetInt("ORBextractor.minThFAST", o.orb.min_fast_threshold));
   CCMD_ASSIGN_OR_RETURN(o.min_depth, c.GetDouble("Tracking.minDepth", o.min_depth));
   CCMD_ASSIGN_OR_RETURN(o.max_depth, c.GetDouble("Tracking.maxDepth", o.max_depth));
-  CCMD_ASSIGN_OR_RETURN(o.depth_noise.sigma_0, c.GetDouble("DepthNoise.sigma0", o.depth_noise.sigma_0));
-  CCMD_ASSIGN_OR_RETURN(o.depth_noise.sigma_2, c.GetDouble("DepthNoise.sigma2", o.depth_noise.sigma_2));
+  CCMD_ASSIGN_OR_RETURN(o.depth_noise, ReadDepthNoise(c, o.depth_noise));
   CCMD_ASSIGN_OR_RETURN(o.max_frames_between_keyframes,
                         c.GetInt("Tracking.maxFramesBetweenKeyframes", o.max_frames_between_keyframes));
   CCMD_ASSIGN_OR_RETURN(o.keyframe_tracked_ratio, c.GetDouble("Tracking.keyframeTrackedRatio", o.keyframe_tracked_ratio));
@@ -32,6 +31,8 @@ StatusOr<TrackingOptions> ReadTrackingOptions(const ConfigFile& c, TrackingOptio
                         c.GetInt("Link.maxNewPointsPerKeyframe", o.max_new_points_per_keyframe));
   CCMD_ASSIGN_OR_RETURN(const int unlinked, c.GetInt("Link.sendUnlinkedKeypoints", o.send_unlinked_keypoints));
   o.send_unlinked_keypoints = unlinked != 0;
+  CCMD_ASSIGN_OR_RETURN(const int subpixel, c.GetInt("Tracking.subpixelKeypoints", o.subpixel_keypoints));
+  o.subpixel_keypoints = subpixel != 0;
   o.cull_redundant_keyframes = cull != 0;
   RgbdSelectionOptions& r = o.rgbd_selection;
   CCMD_ASSIGN_OR_RETURN(const int enabled, c.GetInt("RgbdSelection.enabled", r.enabled));

@@ -1,6 +1,7 @@
 #include "libccmd/tracking/frame.h"
 
 #include <algorithm>
+#include <cmath>
 #include <opencv2/imgproc.hpp>
 
 namespace ccmd {
@@ -13,20 +14,56 @@ int TrackingFrame::TrackedPoints() const {
   return n;
 }
 
+double KeypointDepthSigma(const cv::Mat& depth_mm, int x, int y, double z, double pixel_sigma,
+                          const DepthNoise& noise) {
+  const auto at = [&](int dx, int dy) { return 1e-3 * depth_mm.at<std::uint16_t>(y + dy, x + dx); };
+  const double gx = 0.25 * (at(2, 0) - at(-2, 0)), gy = 0.25 * (at(0, 2) - at(0, -2));
+  const double sensor = noise.Sigma(z), position = std::hypot(gx, gy) * pixel_sigma;
+  return std::sqrt(sensor * sensor + position * position);
+}
+
+namespace {
+
+// FAST finds corners on the pixel grid; the corner itself lies within half a pixel of it.
+// Refines the finest octave's keypoints (where that half pixel matters most) to where the
+// image gradients around them meet (cv::cornerSubPix); a keypoint that would move by more
+// than a pixel is not a clean corner and stays where it was.
+void RefineKeypoints(const cv::Mat& gray, std::vector<cv::KeyPoint>* keypoints) {
+  std::vector<cv::Point2f> points;
+  std::vector<std::size_t> index;
+  for (std::size_t i = 0; i < keypoints->size(); ++i) {
+    if ((*keypoints)[i].octave != 0) continue;
+    points.push_back((*keypoints)[i].pt);
+    index.push_back(i);
+  }
+  if (points.empty()) return;
+  std::vector<cv::Point2f> refined = points;
+  cv::cornerSubPix(gray, refined, cv::Size(2, 2), cv::Size(-1, -1),
+                   cv::TermCriteria(cv::TermCriteria::COUNT + cv::TermCriteria::EPS, 10, 0.01));
+  for (std::size_t k = 0; k < points.size(); ++k) {
+    const cv::Point2f d = refined[k] - points[k];
+    if (d.x * d.x + d.y * d.y <= 1.0f) (*keypoints)[index[k]].pt = refined[k];
+  }
+}
+
+}  // namespace
+
 FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, const OrbExtractor& orb,
-                              const PinholeCamera& camera, double min_depth, double max_depth) {
+                              const PinholeCamera& camera, const TrackingOptions& options) {
   OrbFeatures orb_features = orb.Extract(gray);
   FrameFeatures f;
   f.keypoints = std::move(orb_features.keypoints);
+  if (options.subpixel_keypoints) RefineKeypoints(gray, &f.keypoints);
   f.descriptors = orb_features.descriptors;
   f.depth.assign(f.keypoints.size(), 0.0f);
+  f.depth_sigma.assign(f.keypoints.size(), 0.0f);
   f.u_right.assign(f.keypoints.size(), -1.0f);
   constexpr int kRadius = 2;
   for (std::size_t i = 0; i < f.keypoints.size(); ++i) {
     const int x = cvRound(f.keypoints[i].pt.x), y = cvRound(f.keypoints[i].pt.y);
     if (x < kRadius || y < kRadius || x >= depth_mm.cols - kRadius || y >= depth_mm.rows - kRadius) continue;
     const double d = depth_mm.at<std::uint16_t>(y, x) * 1e-3;
-    if (d < min_depth || d > max_depth) continue;
+    if (d < options.min_depth || d > options.max_depth) continue;
     // Corners often sit on depth edges, where a pixel of misregistration between colour and
     // depth (or the sensor's edge noise) gives the depth of the other surface. Depth counts
     // only where the 5x5 neighbourhood is valid and continuous.
@@ -41,6 +78,9 @@ FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, cons
     }
     if (lo == 0 || (hi - lo) * 1e-3 > 0.01 + 0.03 * d) continue;
     f.depth[i] = static_cast<float>(d);
+    const DepthNoise& noise = options.depth_noise;
+    const double pixel_sigma = noise.keypoint_offset * orb.scale()[f.keypoints[i].octave];
+    f.depth_sigma[i] = static_cast<float>(KeypointDepthSigma(depth_mm, x, y, d, pixel_sigma, noise));
     f.u_right[i] = static_cast<float>(f.keypoints[i].pt.x - camera.bf / d);
   }
   // As ORB-SLAM does: features are found and depth looked up on the image as recorded (depth
@@ -57,7 +97,7 @@ FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, cons
 }
 
 std::unique_ptr<TrackingFrame> MakeFrame(const RgbdFrame& input, const OrbExtractor& orb,
-                                 const PinholeCamera& camera, double min_depth, double max_depth) {
+                                 const PinholeCamera& camera, const TrackingOptions& options) {
   auto frame = std::make_unique<TrackingFrame>();
   frame->index = input.index;
   frame->timestamp = input.timestamp;
@@ -72,7 +112,7 @@ std::unique_ptr<TrackingFrame> MakeFrame(const RgbdFrame& input, const OrbExtrac
   } else {
     cv::cvtColor(input.bgr, gray, cv::COLOR_BGR2GRAY);
   }
-  frame->features = ComputeFeatures(gray, input.depth_mm, orb, camera, min_depth, max_depth);
+  frame->features = ComputeFeatures(gray, input.depth_mm, orb, camera, options);
   frame->grid = FeatureGrid(frame->features.keypoints, camera.width, camera.height);
   frame->points.assign(frame->features.keypoints.size(), nullptr);
   frame->outlier.assign(frame->features.keypoints.size(), false);

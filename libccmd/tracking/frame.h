@@ -9,7 +9,9 @@
 #include "libccmd/features/orb_extractor.h"
 #include "libccmd/geometry/camera.h"
 #include "libccmd/io/rgbd_frame.h"
+#include "libccmd/optim/reprojection.h"
 #include "libccmd/tracking/map.h"
+#include "libccmd/tracking/options.h"
 
 namespace ccmd {
 
@@ -40,13 +42,24 @@ struct TrackingFrame {
 };
 
 // Detects features in the colour image and attaches depth (metres) from the depth image at
-// each keypoint; depth outside [min_depth, max_depth] counts as missing.
+// each keypoint; depth outside [options.min_depth, options.max_depth] counts as missing. Each
+// depth gets its standard deviation: the sensor's noise (options.depth_noise) at that depth
+// combined with the depth change across the keypoint's own position uncertainty
+// (KeypointDepthSigma). With options.subpixel_keypoints, finest-octave keypoints are first
+// moved to the sub-pixel corner position.
 std::unique_ptr<TrackingFrame> MakeFrame(const RgbdFrame& input, const OrbExtractor& orb,
-                                 const PinholeCamera& camera, double min_depth = 0.1,
-                                 double max_depth = 10.0);
+                                 const PinholeCamera& camera, const TrackingOptions& options);
 
 // The frame's features with depth lookups, for keyframes created directly (tests).
 FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, const OrbExtractor& orb,
-                              const PinholeCamera& camera, double min_depth, double max_depth);
+                              const PinholeCamera& camera, const TrackingOptions& options);
+
+// Standard deviation (metres) of the depth `z` read at pixel (x, y) for a keypoint whose
+// position is uncertain by `pixel_sigma` pixels: the sensor's noise, and the depth slope
+// there (central differences over +-2 pixels) times `pixel_sigma`. On a surface seen at a
+// grazing angle the second term dominates: a corner found one pixel off reads a different
+// depth. (x, y) must be at least 2 pixels inside the image.
+double KeypointDepthSigma(const cv::Mat& depth_mm, int x, int y, double z, double pixel_sigma,
+                          const DepthNoise& noise);
 
 }  // namespace ccmd

@@ -9,7 +9,10 @@ bool TrackingOptions::Check(std::string* why) const {
   };
   if (!orb.Check(why)) return false;
   if (!(min_depth > 0 && max_depth > min_depth)) return fail("depth range must satisfy 0 < min < max");
-  if (!(depth_noise.sigma_0 > 0 && depth_noise.sigma_2 >= 0)) return fail("depth noise sigmas must be positive");
+  if (const Status s = depth_noise.Validate(); !s.ok()) {
+    if (why) *why = s.message();
+    return false;
+  }
   if (local_ba_window < 1 || local_ba_window > 100) return fail("local BA window must be in [1, 100]");
   if (local_ba_robust_iterations < 0 || local_ba_iterations < 0 || local_ba_robust_iterations + local_ba_iterations < 1 ||
       local_ba_robust_iterations > 100 || local_ba_iterations > 100) {

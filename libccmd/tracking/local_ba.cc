@@ -4,8 +4,7 @@
 
 namespace ccmd {
 
-LocalBaProblem BuildLocalBa(Keyframe* keyframe, int window, const LocalMap& map, const OrbExtractor& orb,
-                            const DepthNoise& depth_noise) {
+LocalBaProblem BuildLocalBa(Keyframe* keyframe, int window, const LocalMap& map, const OrbExtractor& orb) {
   LocalBaProblem local;
   BaProblem& problem = local.problem;
   std::vector<Keyframe*> free = {keyframe};
@@ -39,7 +38,7 @@ LocalBaProblem BuildLocalBa(Keyframe* keyframe, int window, const LocalMap& map,
       const cv::KeyPoint& kp = kf->features().keypoints[o.keypoint];
       const double z = kf->features().depth[o.keypoint];
       problem.observations.push_back({it->second, static_cast<int>(j), Eigen::Vector2d(kp.pt.x, kp.pt.y), z,
-                                      orb.inv_sigma2()[kp.octave], z > 0 ? depth_noise.Information(z) : 0.0});
+                                      orb.inv_sigma2()[kp.octave], kf->features().DepthInformation(o.keypoint)});
     }
   }
   // Gauge: the map's first keyframe never moves; without any fixed keyframe, the oldest one in

@@ -20,8 +20,7 @@ struct LocalBaProblem {
 
 // Call with the map locked. `window`: covisible keyframes optimised with the keyframe. The
 // map's first keyframe is always fixed; without any fixed keyframe the oldest is held.
-LocalBaProblem BuildLocalBa(Keyframe* keyframe, int window, const LocalMap& map, const OrbExtractor& orb,
-                            const DepthNoise& depth_noise);
+LocalBaProblem BuildLocalBa(Keyframe* keyframe, int window, const LocalMap& map, const OrbExtractor& orb);
 
 // Call with the map locked: poses and points back into the map, outlier observations removed
 // from it (ORB-SLAM).

@@ -285,7 +285,7 @@ void LocalMapper::LocalBundleAdjustment(Keyframe* keyframe, bool reduced) {
   {
     std::lock_guard<std::mutex> lock(map_->mutex());
     if (keyframe->bad()) return;
-    local = BuildLocalBa(keyframe, window, *map_, *orb_, options_.depth_noise);
+    local = BuildLocalBa(keyframe, window, *map_, *orb_);
   }
   BaProblem& problem = local.problem;
   if (problem.observations.empty()) return;

@@ -86,14 +86,19 @@ class MapPoint {
 
 using MapPointPtr = std::shared_ptr<MapPoint>;
 
-// Keyframe features as extracted: keypoints, descriptors, measured depth and the virtual
-// right coordinate u - bf / depth (negative when there is no depth).
+// Keyframe features as extracted: keypoints, descriptors, measured depth with its standard
+// deviation, and the virtual right coordinate u - bf / depth (negative when there is no depth).
 struct FrameFeatures {
   std::vector<cv::KeyPoint> keypoints;
   cv::Mat descriptors;
-  std::vector<float> depth;    // metres, 0 = none
-  std::vector<float> u_right;  // < 0 = none
+  std::vector<float> depth;        // metres, 0 = none
+  std::vector<float> depth_sigma;  // metres, where there is depth
+  std::vector<float> u_right;      // < 0 = none
   int size() const { return static_cast<int>(keypoints.size()); }
+  // 1 / sigma^2 of keypoint i's depth (0 without depth), for the optimisers' residuals.
+  double DepthInformation(int i) const {
+    return depth[i] > 0 ? 1.0 / (static_cast<double>(depth_sigma[i]) * depth_sigma[i]) : 0.0;
+  }
 };
 
 class Keyframe {

@@ -31,6 +31,8 @@ struct TrackingOptions {
   OrbOptions orb;
   double min_depth = 0.1;   // metres; keypoint depth outside [min, max] counts as missing
   double max_depth = 10.0;
+  // Moves the finest octave's keypoints to their sub-pixel corner position (frame.h).
+  bool subpixel_keypoints = false;
   // Depth sensor noise used to weigh depth in pose optimisation and bundle adjustment.
   DepthNoise depth_noise;
   // Keyframe decision (ORB-SLAM): at most this many frames without a keyframe (0: the fps).

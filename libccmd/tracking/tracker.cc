@@ -34,7 +34,7 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
   TrackResult result;
   Stopwatch watch;
   ThreadCpuStopwatch cpu;
-  current_ = MakeFrame(input, *orb_, camera_, options_.min_depth, options_.max_depth);
+  current_ = MakeFrame(input, *orb_, camera_, options_);
   result.extract_ms = watch.ElapsedMillis();
   result.extract_cpu_ms = cpu.ElapsedMillis();
   watch.Restart();
@@ -131,8 +131,7 @@ int Tracker::OptimizeCurrentPose() {
     const cv::KeyPoint& kp = current_->features.keypoints[i];
     const double z = current_->features.depth[i];
     observations.push_back({p->position(), Eigen::Vector2d(kp.pt.x, kp.pt.y), z,
-                            orb_->inv_sigma2()[kp.octave],
-                            z > 0 ? options_.depth_noise.Information(z) : 0.0});
+                            orb_->inv_sigma2()[kp.octave], current_->features.DepthInformation(i)});
     keypoint_of.push_back(i);
   }
   const Intrinsics k{camera_.fx, camera_.fy, camera_.cx, camera_.cy};

@@ -39,7 +39,7 @@ void MeasureCosts(const RgbdFrame& frame, const PinholeCamera& camera, const Orb
   PinholeCamera plain = camera;
   plain.distortion = {0, 0, 0, 0, 0};
   Stopwatch watch;
-  FrameFeatures features = ComputeFeatures(gray, frame.depth_mm, orb, plain, 0.1, 10.0);
+  FrameFeatures features = ComputeFeatures(gray, frame.depth_mm, orb, plain, TrackingOptions{});
   costs->extract_ms += watch.ElapsedMillis();
   watch = Stopwatch();
   for (cv::KeyPoint& k : features.keypoints) {
