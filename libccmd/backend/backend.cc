@@ -11,9 +11,7 @@
 namespace ccmd {
 
 Status BackendOptions::Validate() const {
-  if (loop_candidates < 1) return InvalidArgument("loop candidates must be >= 1");
-  if (loop_consistency < 1) return InvalidArgument("loop consistency must be >= 1");
-  if (verification.min_inliers < 10) return InvalidArgument("loop min inliers must be >= 10");
+  CCMD_RETURN_IF_ERROR(loops.Validate());
   if (queue_capacity < 1) return InvalidArgument("queue capacity must be >= 1");
   if (global_ba_iterations < 1) return InvalidArgument("global BA iterations must be >= 1");
   if (dense) CCMD_RETURN_IF_ERROR(dense_options.Validate());
@@ -26,17 +24,19 @@ StatusOr<std::unique_ptr<Backend>> Backend::Create(const BackendOptions& options
   if (options.dense) {
     CCMD_ASSIGN_OR_RETURN(backend->dense_, DenseMap::Create(options.dense_options));
   }
-  backend->ingest_thread_ = std::thread([b = backend.get()] { b->IngestLoop(); });
-  backend->loop_thread_ = std::thread([b = backend.get()] { b->LoopDetectionLoop(); });
-  backend->gba_thread_ = std::thread([b = backend.get()] { b->GlobalBaLoop(); });
-  backend->dense_thread_ = std::thread([b = backend.get()] { b->DenseLoop(); });
+  Backend* b = backend.get();
+  b->ingest_stage_.Start([b](IngestItem item) { b->Ingest(std::move(item)); });
+  b->loop_stage_.Start([b](GlobalKeyframeId id) { b->DetectLoops(id); });
+  b->gba_stage_.Start([b](AgentId agent) { b->RunGlobalBa(agent); });
+  b->dense_stage_.Start([b](DenseTask task) { b->UpdateDense(std::move(task)); });
   return backend;
 }
 
 Backend::Backend(const BackendOptions& options)
-    : options_(options), place_(options.place), start_time_(MonotonicSeconds()),
-      ingest_queue_(options.queue_capacity), loop_queue_(options.queue_capacity * 4),
-      dense_queue_(options.queue_capacity * 4) {}
+    : options_(options), start_time_(MonotonicSeconds()),
+      loop_closer_(options.loops, options.place, &maps_, start_time_),
+      ingest_stage_(options.queue_capacity), loop_stage_(options.queue_capacity * 4),
+      gba_stage_(1, Stage<AgentId>::Policy::kLatest), dense_stage_(options.queue_capacity * 4) {}
 
 Backend::~Backend() { Shutdown(); }
 
@@ -45,20 +45,14 @@ double Backend::Now() const { return MonotonicSeconds() - start_time_; }
 void Backend::Shutdown() {
   if (shut_down_) return;
   shut_down_ = true;
-  // Stages drain in pipeline order, so nothing queued is lost.
-  ingest_queue_.Close();
-  if (ingest_thread_.joinable()) ingest_thread_.join();
-  loop_queue_.Close();
-  if (loop_thread_.joinable()) loop_thread_.join();
-  {
-    std::lock_guard<std::mutex> lock(gba_mutex_);
-    gba_stop_ = true;
-  }
+  // Stages drain in pipeline order, so nothing queued is lost; a global BA still waiting or
+  // running is abandoned (its map is written out as it stands).
+  ingest_stage_.Stop();
+  loop_stage_.Stop();
+  stopping_ = true;
   gba_abort_ = true;
-  gba_cv_.notify_all();
-  if (gba_thread_.joinable()) gba_thread_.join();
-  dense_queue_.Close();
-  if (dense_thread_.joinable()) dense_thread_.join();
+  gba_stage_.Stop();
+  dense_stage_.Stop();
 }
 
 Status Backend::RegisterAgent(AgentId agent, const std::string& name, const PinholeCamera& camera) {
@@ -70,51 +64,33 @@ Status Backend::RegisterAgent(AgentId agent, const std::string& name, const Pinh
   return Status::Ok();
 }
 
+PinholeCamera Backend::CameraOf(AgentId agent) const {
+  std::lock_guard<std::mutex> lock(cameras_mutex_);
+  return cameras_.at(agent);
+}
+
 Status Backend::SubmitKeyframe(AgentId agent, KeyframeMessage message) {
-  {
-    std::lock_guard<std::mutex> lock(work_mutex_);
-    ++outstanding_;
-  }
   IngestItem item{agent, std::make_unique<KeyframeMessage>(std::move(message)), nullptr, Now()};
-  if (!ingest_queue_.Push(std::move(item))) {
-    FinishedWork();
-    return Unavailable("the back-end is shutting down");
-  }
+  if (!ingest_stage_.Push(std::move(item))) return Unavailable("the back-end is shutting down");
   return Status::Ok();
 }
 
 Status Backend::SubmitPoseUpdate(AgentId agent, PoseUpdateMessage message) {
-  {
-    std::lock_guard<std::mutex> lock(work_mutex_);
-    ++outstanding_;
-  }
   IngestItem item{agent, nullptr, std::make_unique<PoseUpdateMessage>(std::move(message)), Now()};
-  if (!ingest_queue_.Push(std::move(item))) {
-    FinishedWork();
-    return Unavailable("the back-end is shutting down");
-  }
+  if (!ingest_stage_.Push(std::move(item))) return Unavailable("the back-end is shutting down");
   return Status::Ok();
 }
 
-void Backend::FinishedWork() {
-  std::lock_guard<std::mutex> lock(work_mutex_);
-  --outstanding_;
-  work_cv_.notify_all();
-}
-
 void Backend::WaitIdle() {
-  std::unique_lock<std::mutex> lock(work_mutex_);
-  work_cv_.wait(lock, [&] { return outstanding_ <= 0; });
+  // In pipeline order: a stage counts the work an earlier one gives it before that work
+  // counts as finished there.
+  ingest_stage_.WaitIdle();
+  loop_stage_.WaitIdle();
+  gba_stage_.WaitIdle();
+  dense_stage_.WaitIdle();
 }
 
 // ---------------------------------------------------------------- ingest
-
-void Backend::IngestLoop() {
-  while (auto item = ingest_queue_.Pop()) {
-    Ingest(std::move(*item));
-    FinishedWork();
-  }
-}
 
 void Backend::Ingest(IngestItem item) {
   const AgentId agent = item.agent;
@@ -129,15 +105,12 @@ void Backend::Ingest(IngestItem item) {
   }
   if (!item.keyframe) return;
   KeyframeMessage& message = *item.keyframe;
-  PinholeCamera camera;
   {
     std::lock_guard<std::mutex> lock(cameras_mutex_);
-    const auto it = cameras_.find(agent);
-    if (it == cameras_.end()) {
+    if (!cameras_.count(agent)) {
       CCMD_LOG(ERROR) << "keyframe from agent " << agent.value() << " before its camera: dropped";
       return;
     }
-    camera = it->second;
   }
   // Decoding happens before the map is taken.
   std::optional<DecodedRgbd> rgbd;
@@ -174,13 +147,7 @@ void Backend::Ingest(IngestItem item) {
     timings_.intake_ms.push_back(intake_ms);
     timings_.intake_during_gba.push_back(gba_running_);
   }
-  if (added) {
-    {
-      std::lock_guard<std::mutex> lock(work_mutex_);
-      ++outstanding_;
-    }
-    if (!loop_queue_.Push(id)) FinishedWork();
-  }
+  if (added) loop_stage_.Push(id);
 }
 
 // ---------------------------------------------------------------- dense
@@ -196,19 +163,12 @@ void Backend::QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>&
     task.keyframe.T_world_cam = kf->T_map_cam;
     task.keyframe.depth_mm = kf->rgbd_depth_mm;
     task.keyframe.bgr = kf->rgbd_bgr;
-    {
-      std::lock_guard<std::mutex> lock(cameras_mutex_);
-      task.keyframe.camera = cameras_.at(kf->id.agent).Resized(kf->rgbd_depth_mm.cols, kf->rgbd_depth_mm.rows);
-    }
+    task.keyframe.camera = CameraOf(kf->id.agent).Resized(kf->rgbd_depth_mm.cols, kf->rgbd_depth_mm.rows);
     kf->in_dense = true;
     // The store keeps its own copy of the points: the server does not hold the images twice.
     kf->rgbd_bgr.release();
     kf->rgbd_depth_mm.release();
-    {
-      std::lock_guard<std::mutex> lock(work_mutex_);
-      ++outstanding_;
-    }
-    if (!dense_queue_.Push(std::move(task))) FinishedWork();
+    dense_stage_.Push(std::move(task));
   }
 }
 
@@ -219,46 +179,38 @@ void Backend::QueueDenseUpdates(const std::vector<ServerKeyframe*>& moved, Dense
   for (ServerKeyframe* kf : moved) {
     if (kf->in_dense) task.poses.push_back({kf->id, kf->T_map_cam});
   }
-  if (task.poses.empty()) return;
-  {
-    std::lock_guard<std::mutex> lock(work_mutex_);
-    ++outstanding_;
-  }
-  if (!dense_queue_.Push(std::move(task))) FinishedWork();
+  if (!task.poses.empty()) dense_stage_.Push(std::move(task));
 }
 
-void Backend::DenseLoop() {
-  while (auto task = dense_queue_.Pop()) {
-    Status status;
-    switch (task->kind) {
-      case DenseTask::Kind::kAdd:
-        status = dense_->SetAgentMap(task->keyframe.id.agent, task->to);
-        if (status.ok()) status = dense_->AddKeyframe(task->keyframe);
-        if (status.ok()) {
-          std::lock_guard<std::mutex> lock(stats_mutex_);
-          stats_.dense_keyframes++;
-        }
-        break;
-      case DenseTask::Kind::kUpdate:
-        for (const KeyframePose& p : task->poses) {
-          const Status s = dense_->UpdateKeyframePose(p.id, p.T_world_cam);
-          if (!s.ok()) status = s;
-        }
-        break;
-      case DenseTask::Kind::kLoopUpdate:
-        status = dense_->UpdateLoopPoses(task->poses);
-        break;
-      case DenseTask::Kind::kGlobalUpdate:
-        status = dense_->UpdateGlobalPoses(task->poses).status();
-        break;
-      case DenseTask::Kind::kMergeMaps:
-        status = dense_->MergeMaps(task->from, task->to, Pose::Identity());
-        break;
-    }
-    if (!status.ok()) CCMD_LOG(WARNING) << "dense map: " << status.ToString();
-    if (dense_queue_.size() == 0) dense_->Maintain();  // deferred re-filters when idle
-    FinishedWork();
+void Backend::UpdateDense(DenseTask task) {
+  Status status;
+  switch (task.kind) {
+    case DenseTask::Kind::kAdd:
+      status = dense_->SetAgentMap(task.keyframe.id.agent, task.to);
+      if (status.ok()) status = dense_->AddKeyframe(task.keyframe);
+      if (status.ok()) {
+        std::lock_guard<std::mutex> lock(stats_mutex_);
+        stats_.dense_keyframes++;
+      }
+      break;
+    case DenseTask::Kind::kUpdate:
+      for (const KeyframePose& p : task.poses) {
+        const Status s = dense_->UpdateKeyframePose(p.id, p.T_world_cam);
+        if (!s.ok()) status = s;
+      }
+      break;
+    case DenseTask::Kind::kLoopUpdate:
+      status = dense_->UpdateLoopPoses(task.poses);
+      break;
+    case DenseTask::Kind::kGlobalUpdate:
+      status = dense_->UpdateGlobalPoses(task.poses).status();
+      break;
+    case DenseTask::Kind::kMergeMaps:
+      status = dense_->MergeMaps(task.from, task.to, Pose::Identity());
+      break;
   }
+  if (!status.ok()) CCMD_LOG(WARNING) << "dense map: " << status.ToString();
+  if (dense_stage_.backlog() == 0) dense_->Maintain();  // deferred re-filters when idle
 }
 
 Status Backend::ExportDenseMap(const std::string& path) {
@@ -270,262 +222,95 @@ Status Backend::ExportDenseMap(const std::string& path) {
 
 // ---------------------------------------------------------------- loops
 
-void Backend::LoopDetectionLoop() {
-  while (auto id = loop_queue_.Pop()) {
-    DetectLoop(*id, /*stored=*/false);
-    // Keyframes that arrived before the first vocabulary was trained are queried now, oldest
-    // first, between new arrivals.
-    while (!late_queries_.empty() && loop_queue_.size() == 0) {
-      const GlobalKeyframeId late = late_queries_.front();
-      late_queries_.erase(late_queries_.begin());
-      DetectLoop(late, /*stored=*/true);
+void Backend::DetectLoops(const GlobalKeyframeId& id) {
+  if (auto closure = loop_closer_.Process(id, CameraOf(id.agent), /*stored=*/false)) AfterLoop(std::move(*closure));
+  // Keyframes that arrived before the first vocabulary was trained are queried now, oldest
+  // first, between new arrivals.
+  while (loop_stage_.backlog() == 0) {
+    const auto late = loop_closer_.NextLateQuery();
+    if (!late) break;
+    if (auto closure = loop_closer_.Process(*late, CameraOf(late->agent), /*stored=*/true)) {
+      AfterLoop(std::move(*closure));
     }
-    FinishedWork();
   }
 }
 
-namespace {
-
-std::vector<Descriptor> DescriptorsOf(const ServerKeyframe& kf) { return kf.descriptors; }
-
-}  // namespace
-
-void Backend::DetectLoop(const GlobalKeyframeId& id, bool stored) {
-  const AgentId agent = id.agent;
-  PinholeCamera camera;
+void Backend::AfterLoop(LoopClosure closure) {
+  if (dense_ && closure.primary_before) {
+    DenseTask merge;
+    merge.kind = DenseTask::Kind::kMergeMaps;
+    merge.from = *closure.primary_before;
+    merge.to = closure.event.map;
+    dense_stage_.Push(std::move(merge));
+  }
+  QueueDenseUpdates(closure.moved, DenseTask::Kind::kLoopUpdate);
+  // The other map's keyframes now feed the dense map.
+  QueueDenseAdds(closure.map.get(), closure.joined_primary);
   {
-    std::lock_guard<std::mutex> lock(cameras_mutex_);
-    camera = cameras_.at(agent);
-  }
-  // Candidates, from the query's map under its lock.
-  std::vector<Descriptor> descriptors;
-  std::vector<PlaceHit> candidates;
-  MapId query_map;
-  bool in_cooldown = false;
-  {
-    MapManager::Guard guard = maps_.CheckOutAgent(agent);
-    ServerKeyframe* query = guard->keyframe(id);
-    if (!query) return;
-    query_map = guard->id();
-    descriptors = DescriptorsOf(*query);
-    const auto cooldown = loop_cooldown_until_.find(agent);
-    in_cooldown = cooldown != loop_cooldown_until_.end() && id.keyframe <= cooldown->second;
-    const LoopCandidateRule rule = MakeLoopCandidateRule(place_, id, *query, options_.exclude_recent_keyframes);
-    candidates = QueryLoopCandidates(place_, descriptors, rule, options_.loop_candidates * 3);
-  }
-  // The cool-down after a loop holds back further loops inside the map only: a keyframe that
-  // sees another agent's map can still fuse the two (an agent that closes a loop just before
-  // its segment's overlap with the next one would otherwise never fuse).
-  if (in_cooldown) {
-    candidates.erase(std::remove_if(candidates.begin(), candidates.end(),
-                                    [&](const PlaceHit& c) {
-                                      const auto map = maps_.MapOfAgent(c.keyframe.agent);
-                                      return !map || *map == query_map;
-                                    }),
-                     candidates.end());
-  }
-  if (static_cast<int>(candidates.size()) > options_.loop_candidates) candidates.resize(options_.loop_candidates);
-  if (!stored) {
-    std::vector<GlobalKeyframeId> late = place_.Add(id, descriptors);
-    late_queries_.insert(late_queries_.end(), late.begin(), late.end());
-  }
-  if (candidates.empty()) return;
-
-  for (const PlaceHit& candidate : candidates) {
-    const auto candidate_map_id = maps_.MapOfAgent(candidate.keyframe.agent);
-    if (!candidate_map_id) continue;
-    const bool same_map = *candidate_map_id == query_map;
-    MapManager::Guard query_guard, candidate_guard;
-    if (same_map) {
-      query_guard = maps_.CheckOut(query_map);
+    std::lock_guard<std::mutex> lock(stats_mutex_);
+    loop_events_.push_back(closure.event);
+    if (closure.event.fusion) {
+      stats_.fusions++;
     } else {
-      std::tie(query_guard, candidate_guard) = maps_.CheckOutPair(query_map, *candidate_map_id);
+      stats_.loops++;
     }
-    if (!query_guard || (!same_map && !candidate_guard)) return;  // fused meanwhile: next keyframe
-    ServerMap* qmap = query_guard.get();
-    ServerMap* cmap = same_map ? qmap : candidate_guard.get();
-    ServerKeyframe* query = qmap->keyframe(id);
-    ServerKeyframe* cand = cmap->keyframe(candidate.keyframe);
-    if (!query || !cand) continue;
-    auto match = VerifyLoop(query, camera, cand, *cmap, options_.verification);
-    if (!match) continue;
-
-    // Consistency: consecutive keyframes of the agent must agree on the same map-to-map
-    // transform before the loop is accepted.
-    const Pose T_cmap_qmap = match->T_candidate_map_query * query->T_map_cam.inverse();
-    PendingLoop& pending = pending_loops_[agent];
-    const bool consistent = pending.count > 0 && pending.candidate_map == cmap->id() &&
-                            id.keyframe.value() - pending.last_query.value() <= 3 &&
-                            TranslationDistance(pending.T_candidate_map_query_map, T_cmap_qmap) <
-                                options_.consistency_translation &&
-                            RotationDistance(pending.T_candidate_map_query_map, T_cmap_qmap) <
-                                options_.consistency_rotation_deg * M_PI / 180;
-    pending.count = consistent ? pending.count + 1 : 1;
-    pending.candidate_map = cmap->id();
-    pending.T_candidate_map_query_map = T_cmap_qmap;
-    pending.last_query = id.keyframe;
-    CCMD_LOG(INFO) << "loop candidate: agent " << agent.value() << " keyframe " << id.keyframe.value()
-                   << " ~ agent " << cand->id.agent.value() << " keyframe " << cand->id.keyframe.value()
-                   << " (" << match->inliers << " inliers, " << pending.count << "/" << options_.loop_consistency
-                   << " consistent)";
-    if (pending.count < options_.loop_consistency) return;
-    pending.count = 0;
-
-    LoopEvent event;
-    event.server_time = Now();
-    event.query = id;
-    event.candidate = cand->id;
-    event.inliers = match->inliers;
-    event.T_candidate_query = cand->T_map_cam.inverse() * match->T_candidate_map_query;
-    ServerMap* result_map = cmap;
-    MapManager::Guard fused_guard;
-    std::vector<ServerKeyframe*> entering_primary;
-    const auto primary = maps_.primary();
-    if (same_map) {
-      // Loop inside one map: a loop edge and a pose graph spread the correction.
-      const LoopEdge edge{cand->id, id, cand->T_map_cam.inverse() * match->T_candidate_map_query};
-      qmap->AddLoopEdge(edge);
-    } else {
-      // Two maps: fused in the frame of the primary map if one is primary, else the candidate's.
-      const bool keep_query = primary && qmap->id() == *primary;
-      const MapId old_query = qmap->id(), old_candidate = cmap->id();
-      const bool primary_involved = primary && (old_query == *primary || old_candidate == *primary);
-      std::vector<ServerKeyframe*> newcomers;
-      for (const auto& [kid, kf] : (keep_query ? cmap : qmap)->keyframes()) newcomers.push_back(kf.get());
-      fused_guard = keep_query ? maps_.Fuse(&query_guard, &candidate_guard, T_cmap_qmap.inverse())
-                               : maps_.Fuse(&candidate_guard, &query_guard, T_cmap_qmap);
-      result_map = fused_guard.get();
-      result_map->AddLoopEdge({cand->id, id, cand->T_map_cam.inverse() * query->T_map_cam});
-      event.fusion = true;
-      if (primary_involved && dense_) {
-        DenseTask merge;
-        merge.kind = DenseTask::Kind::kMergeMaps;
-        merge.from = *primary;
-        merge.to = result_map->id();
-        {
-          std::lock_guard<std::mutex> lock(work_mutex_);
-          ++outstanding_;
-        }
-        if (!dense_queue_.Push(std::move(merge))) FinishedWork();
-        entering_primary = newcomers;  // the other map's keyframes now feed the dense map
-      }
-    }
-    // Matched points become one; the two keyframes become covisible.
-    for (const auto& [keypoint, point] : match->matches) {
-      ServerMapPoint* own = query->points[keypoint];
-      if (own == point) continue;
-      if (own) {
-        result_map->MergePoints(own, point);
-      } else {
-        result_map->AddObservation(point, query, keypoint);
-      }
-    }
-    result_map->AddCovisibility(query, cand, match->inliers);
-    if (same_map) {
-      auto moved = OptimizeMapPoseGraph(result_map, options_.pose_graph);
-      if (moved.ok()) {
-        QueueDenseUpdates(*moved, DenseTask::Kind::kLoopUpdate);
-      } else {
-        CCMD_LOG(WARNING) << "pose graph: " << moved.status().ToString();
-      }
-    }
-    if (!entering_primary.empty()) QueueDenseAdds(result_map, entering_primary);
-    event.map = result_map->id();
-    loop_cooldown_until_[agent] = KeyframeId(id.keyframe.value() + options_.loop_cooldown_keyframes);
-    {
-      std::lock_guard<std::mutex> lock(stats_mutex_);
-      loop_events_.push_back(event);
-      if (event.fusion) {
-        stats_.fusions++;
-      } else {
-        stats_.loops++;
-      }
-    }
-    CCMD_LOG(INFO) << (event.fusion ? "maps fused" : "loop closed") << ": agent " << agent.value()
-                   << " keyframe " << id.keyframe.value() << " with agent " << cand->id.agent.value()
-                   << " keyframe " << cand->id.keyframe.value() << ", " << match->inliers << " inliers, map "
-                   << event.map.value();
-    query_guard = MapManager::Guard();
-    candidate_guard = MapManager::Guard();
-    fused_guard = MapManager::Guard();
-    RequestGlobalBa(agent);
-    return;
   }
+  closure.map = MapManager::Guard();
+  RequestGlobalBa(closure.event.query.agent);
 }
 
 // ---------------------------------------------------------------- global BA
 
 void Backend::RequestGlobalBa(AgentId agent) {
   if (!options_.global_ba) return;
-  std::lock_guard<std::mutex> lock(gba_mutex_);
-  if (!gba_request_) {
-    std::lock_guard<std::mutex> work(work_mutex_);
-    ++outstanding_;
-  }
-  gba_request_ = agent;
-  gba_abort_ = true;  // a running GBA is outdated by the new loop
-  gba_cv_.notify_all();
+  gba_abort_ = true;  // a running global BA is outdated by the new loop
+  gba_stage_.Push(agent);
 }
 
-void Backend::GlobalBaLoop() {
-  while (true) {
-    AgentId agent;
-    {
-      std::unique_lock<std::mutex> lock(gba_mutex_);
-      gba_cv_.wait(lock, [&] { return gba_stop_ || gba_request_.has_value(); });
-      if (!gba_request_) return;  // stopping with nothing requested
-      agent = *gba_request_;
-      gba_request_.reset();
-      gba_abort_ = false;
-      if (gba_stop_) {
-        FinishedWork();
-        return;
-      }
-    }
-    std::map<AgentId, PinholeCamera> cameras;
-    {
-      std::lock_guard<std::mutex> lock(cameras_mutex_);
-      cameras = cameras_;
-    }
-    const Stopwatch watch;
-    gba_running_ = true;
-    GlobalBaProblem problem;
-    MapId map_id;
-    {
-      MapManager::Guard guard = maps_.CheckOutAgent(agent);
-      map_id = guard->id();
-      problem = BuildGlobalBa(*guard, cameras, options_.depth_noise);
-    }
-    BaOptions ba;
-    ba.solver = BaLinearSolver::kSparseSchur;
-    ba.first_iterations = options_.global_ba_iterations;
-    ba.second_iterations = options_.global_ba_iterations;
-    ba.abort = &gba_abort_;
-    const BaSummary summary = BundleAdjust(&problem.problem, ba);
-    bool applied = false;
-    if (!summary.aborted) {
-      MapManager::Guard guard = maps_.CheckOut(map_id);
-      if (guard) {  // not fused meanwhile
-        const std::vector<ServerKeyframe*> moved = ApplyGlobalBa(guard.get(), problem);
-        QueueDenseUpdates(moved, DenseTask::Kind::kGlobalUpdate);
-        applied = true;
-      }
-    }
-    gba_running_ = false;
-    const double seconds = watch.ElapsedSeconds();
-    {
-      std::lock_guard<std::mutex> lock(stats_mutex_);
-      stats_.global_ba_runs++;
-      stats_.global_ba_aborted += !applied;
-      stats_.global_ba_seconds += seconds;
-      timings_.global_ba_seconds.push_back(seconds);
-      timings_.global_ba_applied.push_back(applied);
-    }
-    CCMD_LOG(INFO) << "global BA on map " << map_id.value() << ": " << problem.keyframes.size() << " keyframes, "
-                   << problem.points.size() << " points, " << summary.iterations << " iterations, "
-                   << seconds << " s" << (applied ? "" : " (abandoned: newer work)");
-    FinishedWork();
+void Backend::RunGlobalBa(AgentId agent) {
+  if (stopping_) return;
+  gba_abort_ = false;
+  if (stopping_) return;  // Shutdown sets stopping_ before gba_abort_: no abort is lost
+  const std::map<AgentId, PinholeCamera> cameras = [&] {
+    std::lock_guard<std::mutex> lock(cameras_mutex_);
+    return cameras_;
+  }();
+  const Stopwatch watch;
+  gba_running_ = true;
+  GlobalBaProblem problem;
+  MapId map_id;
+  {
+    MapManager::Guard guard = maps_.CheckOutAgent(agent);
+    map_id = guard->id();
+    problem = BuildGlobalBa(*guard, cameras, options_.depth_noise);
   }
+  BaOptions ba;
+  ba.solver = BaLinearSolver::kSparseSchur;
+  ba.first_iterations = options_.global_ba_iterations;
+  ba.second_iterations = options_.global_ba_iterations;
+  ba.abort = &gba_abort_;
+  const BaSummary summary = BundleAdjust(&problem.problem, ba);
+  bool applied = false;
+  if (!summary.aborted) {
+    MapManager::Guard guard = maps_.CheckOut(map_id);
+    if (guard) {  // not fused meanwhile
+      QueueDenseUpdates(ApplyGlobalBa(guard.get(), problem), DenseTask::Kind::kGlobalUpdate);
+      applied = true;
+    }
+  }
+  gba_running_ = false;
+  const double seconds = watch.ElapsedSeconds();
+  {
+    std::lock_guard<std::mutex> lock(stats_mutex_);
+    stats_.global_ba_runs++;
+    stats_.global_ba_aborted += !applied;
+    stats_.global_ba_seconds += seconds;
+    timings_.global_ba_seconds.push_back(seconds);
+    timings_.global_ba_applied.push_back(applied);
+  }
+  CCMD_LOG(INFO) << "global BA on map " << map_id.value() << ": " << problem.keyframes.size() << " keyframes, "
+                 << problem.points.size() << " points, " << summary.iterations << " iterations, " << seconds << " s"
+                 << (applied ? "" : " (abandoned: newer work)");
 }
 
 // ---------------------------------------------------------------- results

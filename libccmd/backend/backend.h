@@ -1,45 +1,38 @@
 #pragma once
 
-// The server's brain. Messages of all agents go through four stages, each one owned thread
-// joined at shutdown, linked by bounded queues:
+// The server's brain. Messages of all agents go through four stages (util/stage.h: a bounded
+// queue and one owned thread each, joined at shutdown; each stage knows when it is idle):
 //   ingest  — keyframes and pose updates into the agents' maps (RGB-D decoded here);
-//   loops   — place recognition for each new keyframe, geometric verification, consistency
-//             over consecutive keyframes, then loop closure (pose graph) inside a map or
-//             fusion of two maps; both schedule a global BA;
-//   global BA — on the whole map, in the background, abandoned when newer loop work arrives;
+//   loops   — the LoopCloser (loop_closer.h) for each new keyframe: place recognition,
+//             verification and consistency, then loop closure inside a map or fusion of two
+//             maps; the back-end passes what moved to the dense map and schedules a global BA;
+//   global BA — on the whole map, in the background, abandoned when newer loop work arrives
+//             (only the newest request waits);
 //   dense   — the dense point store, fed with keyframes of the primary map (the first agent's
 //             map and everything fused into it) and every pose change of those keyframes.
+// The Backend only schedules: the work of each stage is in the functions it calls.
 
 #include <atomic>
-#include <condition_variable>
 #include <map>
 #include <memory>
 #include <mutex>
 #include <string>
-#include <thread>
 #include <vector>
 
-#include "libccmd/backend/loop_verification.h"
+#include "libccmd/backend/loop_closer.h"
 #include "libccmd/backend/map_manager.h"
 #include "libccmd/backend/map_optimization.h"
 #include "libccmd/backend/place_index.h"
 #include "libccmd/dense/dense_map.h"
 #include "libccmd/io/trajectory.h"
-#include "libccmd/util/bounded_queue.h"
 #include "libccmd/util/json.h"
+#include "libccmd/util/stage.h"
 #include "proto/messages.h"
 
 namespace ccmd {
 
 struct BackendOptions {
-  LoopVerificationOptions verification;
-  int loop_candidates = 4;              // verified per query, best score first
-  int loop_consistency = 2;             // consecutive confirming keyframes needed
-  double consistency_translation = 0.05;  // metres between confirming map-to-map transforms
-  double consistency_rotation_deg = 3.0;
-  int exclude_recent_keyframes = 25;    // same-agent neighbours in id that never count as loops
-  int loop_cooldown_keyframes = 10;     // after a loop, the agent's next keyframes seek no loop in their own map
-  MapPoseGraphOptions pose_graph;
+  LoopCloserOptions loops;
   bool global_ba = true;
   int global_ba_iterations = 10;
   DepthNoise depth_noise;
@@ -49,17 +42,6 @@ struct BackendOptions {
   std::size_t queue_capacity = 64;      // per stage
 
   Status Validate() const;
-};
-
-struct LoopEvent {
-  double server_time = 0;  // seconds since the back-end started
-  GlobalKeyframeId query, candidate;
-  int inliers = 0;
-  // What verification measured: the query's camera in the candidate's camera frame (the loop
-  // edge), so that a benchmark can check the transform against ground truth.
-  Pose T_candidate_query = Pose::Identity();
-  bool fusion = false;     // two maps fused (else a loop inside a map)
-  MapId map;               // the map after the event
 };
 
 struct BackendStats {
@@ -137,66 +119,46 @@ class Backend {
   };
 
   explicit Backend(const BackendOptions& options);
-  void IngestLoop();
-  void LoopDetectionLoop();
-  void GlobalBaLoop();
-  void DenseLoop();
-
+  // Stage handlers, each on its stage's thread.
   void Ingest(IngestItem item);
-  // `stored`: the keyframe is already in the place index (a late query after the vocabulary
-  // was trained online), so only the query runs.
-  void DetectLoop(const GlobalKeyframeId& id, bool stored);
+  void DetectLoops(const GlobalKeyframeId& id);
+  void RunGlobalBa(AgentId agent);
+  void UpdateDense(DenseTask task);
+
+  // The dense-map work of an accepted loop (its map still checked out), then a global BA.
+  void AfterLoop(LoopClosure closure);
   void RequestGlobalBa(AgentId agent);
   // Dense work for keyframes that entered the primary map, and pose changes of keyframes in it.
   void QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>& keyframes);
   void QueueDenseUpdates(const std::vector<ServerKeyframe*>& moved, DenseTask::Kind kind);
-  void FinishedWork();
+  PinholeCamera CameraOf(AgentId agent) const;
   double Now() const;
 
   const BackendOptions options_;
-  PlaceIndex place_;  // loop stage only
   MapManager maps_;
   std::unique_ptr<DenseMap> dense_;
   const double start_time_;
+  LoopCloser loop_closer_;  // loop stage only
 
   mutable std::mutex cameras_mutex_;
   std::map<AgentId, PinholeCamera> cameras_;
   std::map<AgentId, std::string> names_;
 
-  BoundedQueue<IngestItem> ingest_queue_;
-  BoundedQueue<GlobalKeyframeId> loop_queue_;
-  std::vector<GlobalKeyframeId> late_queries_;  // loop stage only
-  BoundedQueue<DenseTask> dense_queue_;
-
-  // Work accounting for WaitIdle: every queued item (and a pending global BA) counts once.
-  std::mutex work_mutex_;
-  std::condition_variable work_cv_;
-  long outstanding_ = 0;
-
-  // Global BA requests: the agent whose map should be optimised.
-  std::mutex gba_mutex_;
-  std::condition_variable gba_cv_;
-  std::optional<AgentId> gba_request_;
-  bool gba_stop_ = false;
+  // A newer loop or fusion abandons a running global BA; shutdown abandons it too.
   std::atomic<bool> gba_abort_{false};
   std::atomic<bool> gba_running_{false};
-
-  // Loop detection state (loop thread only).
-  struct PendingLoop {
-    MapId candidate_map;
-    Pose T_candidate_map_query_map;
-    KeyframeId last_query;
-    int count = 0;
-  };
-  std::map<AgentId, PendingLoop> pending_loops_;
-  std::map<AgentId, KeyframeId> loop_cooldown_until_;
+  std::atomic<bool> stopping_{false};
 
   mutable std::mutex stats_mutex_;
   BackendStats stats_;
   BackendTimings timings_;
   std::vector<LoopEvent> loop_events_;
 
-  std::thread ingest_thread_, loop_thread_, gba_thread_, dense_thread_;
+  // Declared last: stopped (joined) before anything their handlers use is destroyed.
+  Stage<IngestItem> ingest_stage_;
+  Stage<GlobalKeyframeId> loop_stage_;
+  Stage<AgentId> gba_stage_;  // the newest request replaces one still waiting
+  Stage<DenseTask> dense_stage_;
   bool shut_down_ = false;
 };
 

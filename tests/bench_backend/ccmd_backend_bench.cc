@@ -208,7 +208,7 @@ int main(int argc, char** argv) {
   app.add_flag("--no-gba", no_gba, "Disable global BA");
   app.add_flag("--no-dense", no_dense, "Disable the dense map");
   BackendOptions options;
-  app.add_option("--loop-min-inliers", options.verification.min_inliers,
+  app.add_option("--loop-min-inliers", options.loops.verification.min_inliers,
                  "Inliers a verified loop needs after refinement")
       ->capture_default_str()
       ->check(CLI::Range(6, 1000));
@@ -235,8 +235,8 @@ int main(int argc, char** argv) {
   }
   std::printf("loop detection: %d candidates verified per query, >= %d inliers after refinement (%d RANSAC, %d "
               "matches), %d consistent keyframes, same-agent neighbours within %d ids excluded\n",
-              options.loop_candidates, options.verification.min_inliers, options.verification.min_ransac_inliers,
-              options.verification.min_matches, options.loop_consistency, options.exclude_recent_keyframes);
+              options.loops.loop_candidates, options.loops.verification.min_inliers, options.loops.verification.min_ransac_inliers,
+              options.loops.verification.min_matches, options.loops.loop_consistency, options.loops.exclude_recent_keyframes);
   auto backend = Backend::Create(options);
   if (!backend.ok()) {
     std::fprintf(stderr, "%s\n", backend.status().ToString().c_str());
