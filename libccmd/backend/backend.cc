@@ -9,11 +9,24 @@
 #include "libccmd/util/timer.h"
 
 namespace ccmd {
+namespace {
+
+// Appends a timing sample, keeping at least the most recent kMaxSamples (at most twice that).
+template <typename T>
+void AppendSample(std::vector<T>* samples, T value) {
+  constexpr std::size_t kMax = BackendTimings::kMaxSamples;
+  if (samples->size() >= 2 * kMax) samples->erase(samples->begin(), samples->begin() + kMax);
+  samples->push_back(value);
+}
+
+}  // namespace
 
 Status BackendOptions::Validate() const {
   CCMD_RETURN_IF_ERROR(loops.Validate());
   if (queue_capacity < 1) return InvalidArgument("queue capacity must be >= 1");
   if (global_ba_iterations < 1) return InvalidArgument("global BA iterations must be >= 1");
+  if (global_ba_max_keyframes < 10) return InvalidArgument("global BA window must be >= 10 keyframes");
+  if (!(global_ba_duty > 0 && global_ba_duty <= 1)) return InvalidArgument("global BA duty must be in (0, 1]");
   if (dense) CCMD_RETURN_IF_ERROR(dense_options.Validate());
   return Status::Ok();
 }
@@ -27,7 +40,7 @@ StatusOr<std::unique_ptr<Backend>> Backend::Create(const BackendOptions& options
   Backend* b = backend.get();
   b->ingest_stage_.Start([b](IngestItem item) { b->Ingest(std::move(item)); });
   b->loop_stage_.Start([b](GlobalKeyframeId id) { b->DetectLoops(id); });
-  b->gba_stage_.Start([b](AgentId agent) { b->RunGlobalBa(agent); });
+  b->gba_stage_.Start([b](GbaRequest request) { b->RunGlobalBa(std::move(request)); });
   b->dense_stage_.Start([b](DenseTask task) { b->UpdateDense(std::move(task)); });
   return backend;
 }
@@ -36,7 +49,7 @@ Backend::Backend(const BackendOptions& options)
     : options_(options), start_time_(MonotonicSeconds()),
       loop_closer_(options.loops, options.place, &maps_, start_time_),
       ingest_stage_(options.queue_capacity), loop_stage_(options.queue_capacity * 4),
-      gba_stage_(1, Stage<AgentId>::Policy::kLatest), dense_stage_(options.queue_capacity * 4) {}
+      gba_stage_(1, Stage<GbaRequest>::Policy::kLatest), dense_stage_(options.queue_capacity * 4) {}
 
 Backend::~Backend() { Shutdown(); }
 
@@ -49,7 +62,11 @@ void Backend::Shutdown() {
   // running is abandoned (its map is written out as it stands).
   ingest_stage_.Stop();
   loop_stage_.Stop();
-  stopping_ = true;
+  {
+    std::lock_guard<std::mutex> lock(gba_turn_mutex_);
+    stopping_ = true;
+  }
+  gba_turn_cv_.notify_all();
   gba_abort_ = true;
   gba_stage_.Stop();
   dense_stage_.Stop();
@@ -69,8 +86,9 @@ PinholeCamera Backend::CameraOf(AgentId agent) const {
   return cameras_.at(agent);
 }
 
-Status Backend::SubmitKeyframe(AgentId agent, KeyframeMessage message) {
-  IngestItem item{agent, std::make_unique<KeyframeMessage>(std::move(message)), nullptr, Now()};
+Status Backend::SubmitKeyframe(AgentId agent, KeyframeMessage message, double received) {
+  IngestItem item{agent, std::make_unique<KeyframeMessage>(std::move(message)), nullptr,
+                  received > 0 ? received - start_time_ : Now()};
   if (!ingest_stage_.Push(std::move(item))) return Unavailable("the back-end is shutting down");
   return Status::Ok();
 }
@@ -112,18 +130,7 @@ void Backend::Ingest(IngestItem item) {
       return;
     }
   }
-  // Decoding happens before the map is taken.
-  std::optional<DecodedRgbd> rgbd;
-  if (message.rgbd) {
-    auto decoded = DecodeRgbdPayload(*message.rgbd);
-    if (decoded.ok()) {
-      rgbd = std::move(decoded).value();
-    } else {
-      CCMD_LOG(WARNING) << "agent " << agent.value() << " keyframe " << message.id.value()
-                        << ": RGB-D payload not decodable (" << decoded.status().ToString() << "), keyframe kept";
-    }
-  }
-  GlobalKeyframeId id{agent, message.id};
+  const GlobalKeyframeId id{agent, message.id};
   bool added = false;
   {
     MapManager::Guard guard = maps_.CheckOutAgent(agent);
@@ -132,42 +139,38 @@ void Backend::Ingest(IngestItem item) {
       CCMD_LOG(WARNING) << "agent " << agent.value() << ": " << keyframe.status().ToString();
     } else {
       added = true;
-      if (rgbd) {
-        (*keyframe)->rgbd_bgr = rgbd->bgr;
-        (*keyframe)->rgbd_depth_mm = rgbd->depth_mm;
-        (*keyframe)->rgbd_downsample = rgbd->downsample;
-      }
-      if (maps_.primary() && guard->id() == *maps_.primary()) QueueDenseAdds(guard.get(), {*keyframe});
+      // The coded images stay coded until the dense stage uses them; without a dense map
+      // they are not kept at all.
+      if (dense_ && message.rgbd) (*keyframe)->rgbd = std::make_shared<const RgbdPayload>(std::move(*message.rgbd));
+      if (maps_.primary() && guard->id() == *maps_.primary()) QueueDenseAdds(guard.get(), {*keyframe}, item.received);
     }
   }
-  const double intake_ms = (Now() - item.submitted) * 1e3;
+  const double now = Now();
   {
     std::lock_guard<std::mutex> lock(stats_mutex_);
     stats_.keyframes_received++;
-    timings_.intake_ms.push_back(intake_ms);
-    timings_.intake_during_gba.push_back(gba_running_);
+    AppendSample(&timings_.intake_ms, (now - item.received) * 1e3);
+    AppendSample(&timings_.intake_at_s, now);
+    AppendSample(&timings_.intake_during_gba, static_cast<char>(gba_running_.load()));
   }
   if (added) loop_stage_.Push(id);
 }
 
 // ---------------------------------------------------------------- dense
 
-void Backend::QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>& keyframes) {
+void Backend::QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>& keyframes, double received) {
   if (!dense_) return;
   for (ServerKeyframe* kf : keyframes) {
-    if (kf->in_dense || kf->rgbd_downsample == 0 || kf->rgbd_depth_mm.empty()) continue;
+    if (kf->in_dense || !kf->rgbd) continue;
     DenseTask task;
     task.kind = DenseTask::Kind::kAdd;
     task.to = map->id();
-    task.keyframe.id = kf->id;
-    task.keyframe.T_world_cam = kf->T_map_cam;
-    task.keyframe.depth_mm = kf->rgbd_depth_mm;
-    task.keyframe.bgr = kf->rgbd_bgr;
-    task.keyframe.camera = CameraOf(kf->id.agent).Resized(kf->rgbd_depth_mm.cols, kf->rgbd_depth_mm.rows);
+    task.keyframe = kf->id;
+    task.T_world_cam = kf->T_map_cam;
+    task.rgbd = std::move(kf->rgbd);  // the dense map keeps its own copy of the points
+    task.camera = CameraOf(kf->id.agent);
+    task.received = received;
     kf->in_dense = true;
-    // The store keeps its own copy of the points: the server does not hold the images twice.
-    kf->rgbd_bgr.release();
-    kf->rgbd_depth_mm.release();
     dense_stage_.Push(std::move(task));
   }
 }
@@ -186,12 +189,7 @@ void Backend::UpdateDense(DenseTask task) {
   Status status;
   switch (task.kind) {
     case DenseTask::Kind::kAdd:
-      status = dense_->SetAgentMap(task.keyframe.id.agent, task.to);
-      if (status.ok()) status = dense_->AddKeyframe(task.keyframe);
-      if (status.ok()) {
-        std::lock_guard<std::mutex> lock(stats_mutex_);
-        stats_.dense_keyframes++;
-      }
+      status = AddToDense(task);
       break;
     case DenseTask::Kind::kUpdate:
       for (const KeyframePose& p : task.poses) {
@@ -213,6 +211,31 @@ void Backend::UpdateDense(DenseTask task) {
   if (dense_stage_.backlog() == 0) dense_->Maintain();  // deferred re-filters when idle
 }
 
+Status Backend::AddToDense(const DenseTask& task) {
+  auto decoded = DecodeRgbdPayload(*task.rgbd);
+  if (!decoded.ok()) {
+    return decoded.status().WithContext("agent " + std::to_string(task.keyframe.agent.value()) + " keyframe " +
+                                        std::to_string(task.keyframe.keyframe.value()) +
+                                        ": RGB-D payload not decodable, keyframe kept without it");
+  }
+  DenseKeyframe keyframe;
+  keyframe.id = task.keyframe;
+  keyframe.T_world_cam = task.T_world_cam;
+  keyframe.depth_mm = decoded->depth_mm;
+  keyframe.bgr = decoded->bgr;
+  keyframe.camera = task.camera.Resized(decoded->depth_mm.cols, decoded->depth_mm.rows);
+  CCMD_RETURN_IF_ERROR(dense_->SetAgentMap(task.keyframe.agent, task.to));
+  CCMD_RETURN_IF_ERROR(dense_->AddKeyframe(keyframe));
+  const double now = Now();
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  stats_.dense_keyframes++;
+  if (task.received >= 0) {
+    AppendSample(&timings_.dense_ms, (now - task.received) * 1e3);
+    AppendSample(&timings_.dense_at_s, now);
+  }
+  return Status::Ok();
+}
+
 Status Backend::ExportDenseMap(const std::string& path) {
   if (!dense_) return Unsupported("the dense map is disabled");
   const auto primary = maps_.primary();
@@ -224,6 +247,8 @@ Status Backend::ExportDenseMap(const std::string& path) {
 
 void Backend::DetectLoops(const GlobalKeyframeId& id) {
   if (auto closure = loop_closer_.Process(id, CameraOf(id.agent), /*stored=*/false)) AfterLoop(std::move(*closure));
+  // Measuring the index visits every word's list: now and then is enough.
+  if (id.keyframe.value() % 32 == 0) place_bytes_ = loop_closer_.place().MemoryBytes();
   // Keyframes that arrived before the first vocabulary was trained are queried now, oldest
   // first, between new arrivals.
   while (loop_stage_.backlog() == 0) {
@@ -248,26 +273,40 @@ void Backend::AfterLoop(LoopClosure closure) {
   QueueDenseAdds(closure.map.get(), closure.joined_primary);
   {
     std::lock_guard<std::mutex> lock(stats_mutex_);
-    loop_events_.push_back(closure.event);
+    AppendSample(&loop_events_, closure.event);
     if (closure.event.fusion) {
       stats_.fusions++;
+    } else if (closure.event.already_closed) {
+      stats_.loops_already_closed++;
     } else {
       stats_.loops++;
     }
   }
   closure.map = MapManager::Guard();
-  RequestGlobalBa(closure.event.query.agent);
+  // A loop the map already agreed with corrected nothing: there is nothing to optimise.
+  if (!closure.event.already_closed) {
+    RequestGlobalBa({closure.event.query.agent, {closure.event.query, closure.event.candidate}, closure.event.fusion});
+  }
 }
 
 // ---------------------------------------------------------------- global BA
 
-void Backend::RequestGlobalBa(AgentId agent) {
+void Backend::RequestGlobalBa(GbaRequest request) {
   if (!options_.global_ba) return;
-  gba_abort_ = true;  // a running global BA is outdated by the new loop
-  gba_stage_.Push(agent);
+  // A running global BA of a whole map is outdated by the new loop; a windowed one stays valid
+  // unless its map is fused away.
+  if (!gba_windowed_ || request.fusion) gba_abort_ = true;
+  gba_stage_.Push(std::move(request));
 }
 
-void Backend::RunGlobalBa(AgentId agent) {
+void Backend::WaitForGbaTurn() {
+  std::unique_lock<std::mutex> lock(gba_turn_mutex_);
+  const double wait_s = gba_next_start_ - Now();
+  if (wait_s <= 0) return;
+  gba_turn_cv_.wait_for(lock, std::chrono::duration<double>(wait_s), [&] { return stopping_.load(); });
+}
+
+void Backend::RunGlobalBa(GbaRequest request) {
   if (stopping_) return;
   gba_abort_ = false;
   if (stopping_) return;  // Shutdown sets stopping_ before gba_abort_: no abort is lost
@@ -275,14 +314,26 @@ void Backend::RunGlobalBa(AgentId agent) {
     std::lock_guard<std::mutex> lock(cameras_mutex_);
     return cameras_;
   }();
+  const bool windowed = [&] {
+    MapManager::Guard guard = maps_.CheckOutAgent(request.agent);
+    return static_cast<int>(guard->keyframes().size()) > options_.global_ba_max_keyframes;
+  }();
+  if (windowed) WaitForGbaTurn();
+  if (stopping_) return;
+  gba_windowed_ = windowed;
   const Stopwatch watch;
   gba_running_ = true;
   GlobalBaProblem problem;
   MapId map_id;
   {
-    MapManager::Guard guard = maps_.CheckOutAgent(agent);
+    MapManager::Guard guard = maps_.CheckOutAgent(request.agent);
     map_id = guard->id();
-    problem = BuildGlobalBa(*guard, cameras, options_.depth_noise);
+    if (windowed) {
+      const std::set<GlobalKeyframeId> window = SelectGlobalBaWindow(*guard, request.around, options_.global_ba_max_keyframes);
+      problem = BuildGlobalBa(*guard, cameras, options_.depth_noise, &window);
+    } else {
+      problem = BuildGlobalBa(*guard, cameras, options_.depth_noise);
+    }
   }
   BaOptions ba;
   ba.solver = BaLinearSolver::kSparseSchur;
@@ -299,18 +350,22 @@ void Backend::RunGlobalBa(AgentId agent) {
     }
   }
   gba_running_ = false;
+  gba_windowed_ = false;
   const double seconds = watch.ElapsedSeconds();
+  // A windowed run is followed by a pause that keeps it to its share of the time.
+  if (windowed) gba_next_start_ = Now() + seconds * (1 / options_.global_ba_duty - 1);
   {
     std::lock_guard<std::mutex> lock(stats_mutex_);
     stats_.global_ba_runs++;
+    stats_.global_ba_windowed += windowed;
     stats_.global_ba_aborted += !applied;
     stats_.global_ba_seconds += seconds;
-    timings_.global_ba_seconds.push_back(seconds);
-    timings_.global_ba_applied.push_back(applied);
+    AppendSample(&timings_.global_ba_seconds, seconds);
+    AppendSample(&timings_.global_ba_applied, static_cast<char>(applied));
   }
-  CCMD_LOG(INFO) << "global BA on map " << map_id.value() << ": " << problem.keyframes.size() << " keyframes, "
-                 << problem.points.size() << " points, " << summary.iterations << " iterations, " << seconds << " s"
-                 << (applied ? "" : " (abandoned: newer work)");
+  CCMD_LOG(INFO) << "global BA on map " << map_id.value() << (windowed ? " (window)" : "") << ": "
+                 << problem.keyframes.size() << " keyframes, " << problem.points.size() << " points, "
+                 << summary.iterations << " iterations, " << seconds << " s" << (applied ? "" : " (abandoned: newer work)");
 }
 
 // ---------------------------------------------------------------- results
@@ -340,93 +395,6 @@ Trajectory Backend::FusedTrajectory() {
   std::stable_sort(trajectory.begin(), trajectory.end(),
                    [](const StampedPose& a, const StampedPose& b) { return a.timestamp < b.timestamp; });
   return trajectory;
-}
-
-namespace {
-
-double Percentile(std::vector<double> v, double q) {
-  if (v.empty()) return 0;
-  const std::size_t k = std::min(v.size() - 1, static_cast<std::size_t>(q * (v.size() - 1) + 0.5));
-  std::nth_element(v.begin(), v.begin() + k, v.end());
-  return v[k];
-}
-
-}  // namespace
-
-BackendStats Backend::stats() {
-  BackendStats s;
-  std::vector<double> intake, during;
-  {
-    std::lock_guard<std::mutex> lock(stats_mutex_);
-    s = stats_;
-    intake = timings_.intake_ms;
-    for (std::size_t i = 0; i < intake.size(); ++i) {
-      if (timings_.intake_during_gba[i]) during.push_back(intake[i]);
-    }
-  }
-  s.intake_ms_median = Percentile(intake, 0.5);
-  s.intake_ms_p99 = Percentile(intake, 0.99);
-  s.intake_ms_max = intake.empty() ? 0 : *std::max_element(intake.begin(), intake.end());
-  s.intake_during_gba_count = during.size();
-  s.intake_during_gba_ms_median = Percentile(during, 0.5);
-  s.intake_during_gba_ms_max = during.empty() ? 0 : *std::max_element(during.begin(), during.end());
-  s.agents = maps_.Agents().size();
-  s.maps = maps_.Maps().size();
-  for (MapId id : maps_.Maps()) {
-    MapManager::Guard guard = maps_.CheckOut(id);
-    if (!guard) continue;
-    s.keyframes += guard->keyframes().size();
-    s.map_points += guard->num_points();
-  }
-  return s;
-}
-
-std::vector<LoopEvent> Backend::loop_events() const {
-  std::lock_guard<std::mutex> lock(stats_mutex_);
-  return loop_events_;
-}
-
-BackendTimings Backend::timings() const {
-  std::lock_guard<std::mutex> lock(stats_mutex_);
-  return timings_;
-}
-
-Json Backend::StatsJson() {
-  const BackendStats s = stats();
-  Json j;
-  j["agents"] = s.agents;
-  j["maps"] = s.maps;
-  j["keyframes"] = s.keyframes;
-  j["map_points"] = s.map_points;
-  j["keyframes_received"] = s.keyframes_received;
-  j["pose_updates_received"] = s.pose_updates_received;
-  j["loops"] = s.loops;
-  j["fusions"] = s.fusions;
-  j["global_ba_runs"] = s.global_ba_runs;
-  j["global_ba_abandoned"] = s.global_ba_aborted;
-  j["global_ba_seconds"] = s.global_ba_seconds;
-  j["dense_keyframes"] = s.dense_keyframes;
-  j["intake_ms_median"] = s.intake_ms_median;
-  j["intake_ms_p99"] = s.intake_ms_p99;
-  j["intake_ms_max"] = s.intake_ms_max;
-  j["intake_during_gba_count"] = s.intake_during_gba_count;
-  j["intake_during_gba_ms_median"] = s.intake_during_gba_ms_median;
-  j["intake_during_gba_ms_max"] = s.intake_during_gba_ms_max;
-  Json events = Json::MakeArray();
-  for (const LoopEvent& e : loop_events()) {
-    Json x;
-    x["time_s"] = e.server_time;
-    x["query_agent"] = e.query.agent.value();
-    x["query_keyframe"] = e.query.keyframe.value();
-    x["candidate_agent"] = e.candidate.agent.value();
-    x["candidate_keyframe"] = e.candidate.keyframe.value();
-    x["inliers"] = e.inliers;
-    x["fusion"] = e.fusion;
-    x["map"] = e.map.value();
-    events.Push(x);
-  }
-  j["loop_events"] = events;
-  return j;
 }
 
 }  // namespace ccmd

@@ -13,6 +13,7 @@
 // The Backend only schedules: the work of each stage is in the functions it calls.
 
 #include <atomic>
+#include <condition_variable>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -21,6 +22,7 @@
 
 #include "libccmd/backend/loop_closer.h"
 #include "libccmd/backend/map_manager.h"
+#include "libccmd/backend/map_memory.h"
 #include "libccmd/backend/map_optimization.h"
 #include "libccmd/backend/place_index.h"
 #include "libccmd/dense/dense_map.h"
@@ -35,6 +37,12 @@ struct BackendOptions {
   LoopCloserOptions loops;
   bool global_ba = true;
   int global_ba_iterations = 10;
+  // A map of more keyframes than this gets a global BA over a window of this many keyframes
+  // around the loop that asked for it (the keyframes observing its points held fixed), so its
+  // cost does not grow with the map; a newer loop no longer abandons it (it stays valid),
+  // and it runs at most `global_ba_duty` of the time.
+  int global_ba_max_keyframes = 150;
+  double global_ba_duty = 0.5;
   DepthNoise depth_noise;
   bool dense = true;
   DenseMapOptions dense_options;
@@ -51,18 +59,32 @@ struct BackendStats {
   int global_ba_runs = 0, global_ba_aborted = 0;
   double global_ba_seconds = 0;
   std::size_t dense_keyframes = 0;
-  // Time from submission to insertion in the map (the intake latency), over all keyframes and
-  // over those that arrived while a global BA was running.
+  int loops_already_closed = 0;  // verified loops that found the map consistent (no correction)
+  int global_ba_windowed = 0;    // runs over a window of a larger map
+  // Intake latency: from receipt (the transport's arrival time, else the submission) to the
+  // keyframe being in its map, over the samples kept (BackendTimings), and over the last
+  // minute; the same to the keyframe being in the dense map (RGB-D keyframes of the primary
+  // map). Also over the keyframes that arrived while a global BA was running.
   double intake_ms_median = 0, intake_ms_p99 = 0, intake_ms_max = 0;
+  double intake_last_minute_ms_median = 0, intake_last_minute_ms_p99 = 0;
+  double dense_intake_ms_median = 0, dense_intake_ms_p99 = 0;
+  double dense_intake_last_minute_ms_median = 0, dense_intake_last_minute_ms_p99 = 0;
   double intake_during_gba_ms_median = 0, intake_during_gba_ms_max = 0;
   std::size_t intake_during_gba_count = 0;
+  // Work waiting in each stage now.
+  std::size_t ingest_backlog = 0, loop_backlog = 0, dense_backlog = 0;
 };
 
 // The samples behind the intake and global BA figures of BackendStats, for benchmarks that
-// need other percentiles or compare intake with and without a global BA running.
+// need other percentiles or compare intake with and without a global BA running. The most
+// recent kMaxSamples of each kind are kept (memory must not grow with the run's length).
 struct BackendTimings {
+  static constexpr std::size_t kMaxSamples = 1 << 17;
   std::vector<double> intake_ms;          // per keyframe, in intake order
+  std::vector<double> intake_at_s;        // when it entered its map (back-end clock)
   std::vector<char> intake_during_gba;    // per intake_ms entry: a global BA was running
+  std::vector<double> dense_ms;           // per RGB-D keyframe: receipt to in the dense map
+  std::vector<double> dense_at_s;
   std::vector<double> global_ba_seconds;  // per global BA run, abandoned ones included
   std::vector<char> global_ba_applied;    // per run: the result was written to the map
 };
@@ -77,7 +99,9 @@ class Backend {
   // An agent's camera (from its handshake); needed before its first keyframe.
   Status RegisterAgent(AgentId agent, const std::string& name, const PinholeCamera& camera);
   // Queue work (blocks while the ingest queue is full: back-pressure towards the network).
-  Status SubmitKeyframe(AgentId agent, KeyframeMessage message);
+  // `received`: MonotonicSeconds() when the message arrived (0: now), the start of its
+  // intake latency.
+  Status SubmitKeyframe(AgentId agent, KeyframeMessage message, double received = 0);
   Status SubmitPoseUpdate(AgentId agent, PoseUpdateMessage message);
 
   // Returns when everything submitted so far has gone through every stage (and a global BA it
@@ -99,9 +123,14 @@ class Backend {
   Status ExportDenseMap(const std::string& path);
 
   BackendStats stats();
+  // The most recent loop events (at least BackendTimings::kMaxSamples of them).
   std::vector<LoopEvent> loop_events() const;
   BackendTimings timings() const;
   Json StatsJson();
+  // Memory of the sparse maps by part (reads every map: for reports, not for every tick) and
+  // of the dense map.
+  SparseMemory SparseMemoryUsage();
+  Json MemoryJson();
 
  private:
   struct IngestItem {
@@ -109,27 +138,42 @@ class Backend {
     // Exactly one is set. Held by pointer: queue moves stay cheap.
     std::unique_ptr<KeyframeMessage> keyframe;
     std::unique_ptr<PoseUpdateMessage> pose_update;
-    double submitted = 0;
+    double received = 0;  // back-end clock
   };
   struct DenseTask {
     enum class Kind { kAdd, kUpdate, kLoopUpdate, kGlobalUpdate, kMergeMaps } kind = Kind::kAdd;
-    DenseKeyframe keyframe;                 // kAdd
+    // kAdd: the keyframe's coded RGB-D, decoded by the dense stage.
+    GlobalKeyframeId keyframe;
+    Pose T_world_cam = Pose::Identity();
+    std::shared_ptr<const RgbdPayload> rgbd;
+    PinholeCamera camera;   // full resolution
+    double received = -1;   // back-end clock; < 0: unknown (a keyframe that joined by fusion)
     std::vector<KeyframePose> poses;        // updates
     MapId from, to;                         // kMergeMaps
+  };
+  // A global BA request: the map of `agent`, around the loop's keyframes.
+  struct GbaRequest {
+    AgentId agent;
+    std::vector<GlobalKeyframeId> around;
+    bool fusion = false;
   };
 
   explicit Backend(const BackendOptions& options);
   // Stage handlers, each on its stage's thread.
   void Ingest(IngestItem item);
   void DetectLoops(const GlobalKeyframeId& id);
-  void RunGlobalBa(AgentId agent);
+  void RunGlobalBa(GbaRequest request);
   void UpdateDense(DenseTask task);
+  Status AddToDense(const DenseTask& task);
 
   // The dense-map work of an accepted loop (its map still checked out), then a global BA.
   void AfterLoop(LoopClosure closure);
-  void RequestGlobalBa(AgentId agent);
+  void RequestGlobalBa(GbaRequest request);
+  // Waits (on the global BA stage) until a windowed run may start: `global_ba_duty`.
+  void WaitForGbaTurn();
   // Dense work for keyframes that entered the primary map, and pose changes of keyframes in it.
-  void QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>& keyframes);
+  // `received`: the back-end clock when the keyframe arrived (< 0: not measured).
+  void QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>& keyframes, double received = -1);
   void QueueDenseUpdates(const std::vector<ServerKeyframe*>& moved, DenseTask::Kind kind);
   PinholeCamera CameraOf(AgentId agent) const;
   double Now() const;
@@ -139,15 +183,21 @@ class Backend {
   std::unique_ptr<DenseMap> dense_;
   const double start_time_;
   LoopCloser loop_closer_;  // loop stage only
+  std::atomic<std::size_t> place_bytes_{0};  // the place index's memory, as the loop stage last saw it
 
   mutable std::mutex cameras_mutex_;
   std::map<AgentId, PinholeCamera> cameras_;
   std::map<AgentId, std::string> names_;
 
-  // A newer loop or fusion abandons a running global BA; shutdown abandons it too.
+  // A newer loop or fusion abandons a running global BA of a whole map, a fusion a windowed
+  // one; shutdown abandons any.
   std::atomic<bool> gba_abort_{false};
+  std::atomic<bool> gba_windowed_{false};
   std::atomic<bool> gba_running_{false};
   std::atomic<bool> stopping_{false};
+  std::mutex gba_turn_mutex_;
+  std::condition_variable gba_turn_cv_;  // woken by shutdown
+  double gba_next_start_ = 0;            // back-end clock; global BA stage only
 
   mutable std::mutex stats_mutex_;
   BackendStats stats_;
@@ -157,7 +207,7 @@ class Backend {
   // Declared last: stopped (joined) before anything their handlers use is destroyed.
   Stage<IngestItem> ingest_stage_;
   Stage<GlobalKeyframeId> loop_stage_;
-  Stage<AgentId> gba_stage_;  // the newest request replaces one still waiting
+  Stage<GbaRequest> gba_stage_;  // the newest request replaces one still waiting
   Stage<DenseTask> dense_stage_;
   bool shut_down_ = false;
 };

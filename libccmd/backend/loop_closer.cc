@@ -19,6 +19,9 @@ Status LoopCloserOptions::Validate() const {
   if (exclude_recent_keyframes < 0 || loop_cooldown_keyframes < 0) {
     return InvalidArgument("loop exclusion and cool-down must be >= 0 keyframes");
   }
+  if (!(min_correction_m >= 0) || !(min_correction_deg >= 0)) {
+    return InvalidArgument("the smallest loop correction must be >= 0");
+  }
   return Status::Ok();
 }
 
@@ -97,6 +100,12 @@ std::vector<ServerKeyframe*> CloseLoopInMap(ServerMap* map, const LoopMatch& mat
     return {};
   }
   return std::move(moved).value();
+}
+
+bool LoopAlreadyClosed(const LoopMatch& match, const LoopCloserOptions& options) {
+  const Pose& T_map_query = match.query->T_map_cam;
+  return TranslationDistance(T_map_query, match.T_candidate_map_query) < options.min_correction_m &&
+         RotationDistance(T_map_query, match.T_candidate_map_query) < options.min_correction_deg * M_PI / 180;
 }
 
 MapFusion FuseMapsByLoop(MapManager* maps, MapManager::Guard* query_map, MapManager::Guard* candidate_map,
@@ -211,7 +220,12 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
   event.candidate = match.candidate->id;
   event.inliers = match.inliers;
   event.T_candidate_query = match.candidate->T_map_cam.inverse() * match.T_candidate_map_query;
-  if (!candidate_guard) {
+  if (!candidate_guard && LoopAlreadyClosed(match, options_)) {
+    event.already_closed = true;
+    (*query_guard)->AddLoopEdge({match.candidate->id, match.query->id, event.T_candidate_query});
+    MergeLoopMatches(query_guard->get(), match);
+    closure.map = std::move(*query_guard);
+  } else if (!candidate_guard) {
     closure.moved = CloseLoopInMap(query_guard->get(), match, options_.pose_graph);
     closure.map = std::move(*query_guard);
   } else {
@@ -223,7 +237,8 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
   }
   event.map = closure.map->id();
   cooldown_.Start(event.query);
-  CCMD_LOG(INFO) << (event.fusion ? "maps fused" : "loop closed") << ": agent " << event.query.agent.value()
+  CCMD_LOG(INFO) << (event.fusion ? "maps fused" : event.already_closed ? "loop already closed" : "loop closed")
+                 << ": agent " << event.query.agent.value()
                  << " keyframe " << event.query.keyframe.value() << " with agent " << event.candidate.agent.value()
                  << " keyframe " << event.candidate.keyframe.value() << ", " << event.inliers << " inliers, map "
                  << event.map.value();

@@ -36,6 +36,12 @@ struct LoopCloserOptions {
   int consistency_max_gap = 3;            // keyframe ids between two confirming queries
   int exclude_recent_keyframes = 25;      // same-agent neighbours in id that never count as loops
   int loop_cooldown_keyframes = 10;       // after a loop, the agent's next keyframes seek no loop in their own map
+  // A loop inside a map whose verified pose of the query differs from the query's pose in the
+  // map by less than this is already closed: its edge and matches are kept, but there is
+  // nothing to correct (no pose graph, no global BA). An agent circling a room finds such
+  // loops on every pass; optimising the whole map for each would grow without bound.
+  double min_correction_m = 0.005;
+  double min_correction_deg = 0.25;
   MapPoseGraphOptions pose_graph;
 
   Status Validate() const;
@@ -49,6 +55,7 @@ struct LoopEvent {
   // edge), so that a benchmark can check the transform against ground truth.
   Pose T_candidate_query = Pose::Identity();
   bool fusion = false;     // two maps fused (else a loop inside a map)
+  bool already_closed = false;  // inside a map that agreed with it already: nothing corrected
   MapId map;               // the map after the event
 };
 
@@ -105,6 +112,8 @@ void MergeLoopMatches(ServerMap* map, const LoopMatch& match);
 // Step 3 inside one map: the loop edge (the verified relative pose), merged matches, then the
 // pose graph. Returns the keyframes the pose graph moved (none if it failed: logged).
 std::vector<ServerKeyframe*> CloseLoopInMap(ServerMap* map, const LoopMatch& match, const MapPoseGraphOptions& options);
+// Whether a verified loop inside a map is already closed (see min_correction_m).
+bool LoopAlreadyClosed(const LoopMatch& match, const LoopCloserOptions& options);
 
 // What a fusion changed, beyond the fused map itself.
 struct MapFusion {

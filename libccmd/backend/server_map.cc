@@ -29,6 +29,16 @@ ServerMapPoint* ServerMap::point(const GlobalMapPointId& id) const {
   return nullptr;
 }
 
+std::size_t ServerMap::PointBytes(std::size_t hash_node) const {
+  std::size_t bytes = (points_.size() + merged_into_.size()) * hash_node +
+                      points_.size() * (sizeof(GlobalMapPointId) + sizeof(std::unique_ptr<ServerMapPoint>)) +
+                      merged_into_.size() * 2 * sizeof(GlobalMapPointId);
+  for (const auto& [id, p] : points_) {
+    bytes += sizeof(ServerMapPoint) + p->observations.capacity() * sizeof(ServerMapPoint::Observation);
+  }
+  return bytes;
+}
+
 ServerKeyframe* ServerMap::AddKeyframe(std::unique_ptr<ServerKeyframe> keyframe) {
   ServerKeyframe* raw = keyframe.get();
   if (!origin_) origin_ = raw->id;

@@ -19,6 +19,7 @@
 #include "libccmd/geometry/camera.h"
 #include "libccmd/geometry/pose.h"
 #include "libccmd/util/ids.h"
+#include "proto/messages.h"
 
 namespace ccmd {
 
@@ -70,9 +71,9 @@ class ServerKeyframe {
     Eigen::Matrix<double, 6, 6> sqrt_information;
   };
   std::vector<DepthLink> depth_links;
-  // Dense data while the keyframe's map is not fused into the primary map.
-  cv::Mat rgbd_bgr, rgbd_depth_mm;
-  int rgbd_downsample = 0;  // 0: no RGB-D was sent
+  // The coded RGB-D as it arrived (colour JPEG and depth bitstream, a few kilobytes), until the
+  // keyframe enters the dense map, whose stage decodes it; never kept without a dense map.
+  std::shared_ptr<const RgbdPayload> rgbd;
   bool in_dense = false;
 
   Eigen::Vector3d camera_center() const { return T_map_cam.translation(); }
@@ -92,6 +93,9 @@ class ServerMap {
   ServerMapPoint* point(const GlobalMapPointId& id) const;  // follows merges
   const std::map<GlobalKeyframeId, std::unique_ptr<ServerKeyframe>>& keyframes() const { return keyframes_; }
   std::size_t num_points() const { return points_.size(); }
+  // Bytes of the map points (objects, observations) and of the point index and merge aliases,
+  // counting `hash_node` per hash table entry.
+  std::size_t PointBytes(std::size_t hash_node) const;
   const std::vector<LoopEdge>& loop_edges() const { return loop_edges_; }
   const std::vector<AgentId>& agents() const { return agents_; }
   // The keyframe whose pose is held fixed in optimisation (the founding agent's first).

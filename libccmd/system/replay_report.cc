@@ -289,6 +289,7 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
     results["server_cpu_seconds"] = p.cpu_seconds;
     results["server_cpu_percent"] = p.wall_seconds > 0 ? 100 * p.cpu_seconds / p.wall_seconds : 0.0;
     results["server_max_rss_mb"] = p.max_rss_mb;
+    results["server_peak_rss_mb"] = p.max_rss_mb;  // the name ccmd_load reports it under
   }
   const double k = std::max(1.0, keyframes_total);
   Json kinds = Json::MakeArray();

@@ -119,11 +119,47 @@ TEST(GlobalBaTest, APerturbedKeyframeReturnsAndLateKeyframesFollowTheirNeighbour
   const Pose seven_before = map.keyframe(Kf(7))->T_map_cam;
 
   const std::vector<ServerKeyframe*> moved = ApplyGlobalBa(&map, problem);
-  EXPECT_EQ(moved.size(), 9u);  // the eight optimised and the late one
+  EXPECT_EQ(moved.size(), 8u);  // the seven optimised (not the fixed origin) and the late one
   EXPECT_LT(TranslationDistance(five->T_map_cam, CirclePose(5, kSteps)), 0.003);
   EXPECT_LT(RotationDistance(five->T_map_cam, CirclePose(5, kSteps)), 0.1 * kDegree);
   const Pose correction = map.keyframe(Kf(7))->T_map_cam * seven_before.inverse();
   EXPECT_LT(TranslationDistance(late->T_map_cam, correction * late_before), 1e-9);
+}
+
+TEST(GlobalBaTest, AWindowAroundALoopOptimisesOnlyItsKeyframes) {
+  Rng rng(24);
+  const GeneratedWorld world = MakeRingWorld(4000, &rng);
+  constexpr int kSteps = 60;
+  ServerMap map(MapId(1));
+  for (int i = 0; i < 30; ++i) AddGeneratedKeyframe(&map, world, AgentId(1), i, CirclePose(i, kSteps), CirclePose(i, kSteps), &rng);
+  const std::set<GlobalKeyframeId> window = SelectGlobalBaWindow(map, {Kf(15), Kf(16)}, 8);
+  ASSERT_EQ(window.size(), 8u);
+  EXPECT_TRUE(window.count(Kf(15)) && window.count(Kf(16)));
+  for (const GlobalKeyframeId& id : window) EXPECT_LE(std::abs(static_cast<int>(id.keyframe.value()) - 15), 6);
+  EXPECT_FALSE(window.count(Kf(0)));  // the origin is far away
+
+  Pose error = Pose::Identity();
+  error.translation() = Eigen::Vector3d(0.02, 0.01, -0.02);
+  map.keyframe(Kf(15))->T_map_cam = CirclePose(15, kSteps) * error;
+  std::map<AgentId, PinholeCamera> cameras = {{AgentId(1), testing::TestCamera()}};
+  GlobalBaProblem problem = BuildGlobalBa(map, cameras, DepthNoise(), &window);
+  int free = 0, fixed = 0;
+  for (const BaCamera& c : problem.problem.cameras) (c.fixed ? fixed : free)++;
+  EXPECT_EQ(free, 8);
+  EXPECT_GT(fixed, 0);  // the neighbours that see the window's points hold the gauge
+  BaOptions ba;
+  ba.solver = BaLinearSolver::kSparseSchur;
+  ba.first_iterations = ba.second_iterations = 10;
+  BundleAdjust(&problem.problem, ba);
+  std::map<GlobalKeyframeId, Pose> before;
+  for (const auto& [id, kf] : map.keyframes()) before[id] = kf->T_map_cam;
+  const std::vector<ServerKeyframe*> moved = ApplyGlobalBa(&map, problem);
+  EXPECT_EQ(moved.size(), 8u);
+  EXPECT_LT(TranslationDistance(map.keyframe(Kf(15))->T_map_cam, CirclePose(15, kSteps)), 0.003);
+  for (const auto& [id, kf] : map.keyframes()) {
+    if (window.count(id)) continue;
+    EXPECT_EQ(kf->T_map_cam.matrix(), before[id].matrix()) << id.keyframe.value();
+  }
 }
 
 }  // namespace

@@ -22,6 +22,7 @@
 #include "libccmd/util/json.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/file_util.h"
+#include "libccmd/util/percentile.h"
 #include "libccmd/util/timer.h"
 #include "tests/bench_backend/loop_eval.h"
 
@@ -57,14 +58,6 @@ cv::Mat SmallDepthMetres(const cv::Mat& depth_mm) {
              0, 0, cv::INTER_NEAREST);
   small.convertTo(metres, CV_32F, 1e-3);
   return metres;
-}
-
-// Nearest-rank percentile, as BackendStats computes its own.
-double Percentile(std::vector<double> v, double q) {
-  if (v.empty()) return 0;
-  const std::size_t k = std::min(v.size() - 1, static_cast<std::size_t>(q * (v.size() - 1) + 0.5));
-  std::nth_element(v.begin(), v.begin() + k, v.end());
-  return v[k];
 }
 
 struct LatencySummary {
