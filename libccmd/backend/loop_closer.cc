@@ -155,7 +155,7 @@ std::optional<LoopCloser::Query> LoopCloser::FindCandidates(const GlobalKeyframe
     const ServerKeyframe* keyframe = guard->keyframe(id);
     if (!keyframe) return std::nullopt;
     query.map = guard->id();
-    descriptors = keyframe->descriptors;
+    descriptors = keyframe->Descriptors();
     const LoopCandidateRule rule = MakeLoopCandidateRule(place_, id, *keyframe, options_.exclude_recent_keyframes);
     hits = QueryLoopCandidates(place_, descriptors, rule, options_.loop_candidates * 3);
   }

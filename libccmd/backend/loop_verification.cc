@@ -69,13 +69,14 @@ std::vector<ServerMapPoint*> WindowPoints(const ServerKeyframe* query, ServerKey
 CCMD_POPCNT_CLONES std::vector<int> MatchKeypoints(const ServerKeyframe& query,
                                                    const std::vector<ServerMapPoint*>& points,
                                                    const LoopVerificationOptions& options) {
+  const std::vector<Descriptor> descriptors = query.Descriptors();
   std::vector<int> point_of(query.keypoints.size(), -1);
   std::vector<int> best_distance_of_point(points.size(), std::numeric_limits<int>::max());
   std::vector<int> keypoint_of_point(points.size(), -1);
   for (std::size_t i = 0; i < query.keypoints.size(); ++i) {
     int best = std::numeric_limits<int>::max(), second = best, best_j = -1;
     for (std::size_t j = 0; j < points.size(); ++j) {
-      const int d = HammingDistance(query.descriptors[i], points[j]->descriptor);
+      const int d = HammingDistance(descriptors[i], points[j]->descriptor);
       if (d < best) {
         second = best;
         best = d;

@@ -60,7 +60,7 @@ SparseMemory MeasureSparseMemory(const ServerMap& map) {
     ++m.keyframes;
     m.keyframe_bytes += sizeof(ServerKeyframe) + kTreeNode + sizeof(id) + sizeof(kf);
     m.keypoint_bytes += Capacity(kf->keypoints);
-    m.descriptor_bytes += Capacity(kf->descriptors);
+    m.descriptor_bytes += Capacity(kf->own_descriptors);
     m.point_link_bytes += Capacity(kf->points);
     m.covisibility_bytes += kf->covisibility.size() * (kTreeNode + sizeof(GlobalKeyframeId) + sizeof(int));
     m.depth_link_bytes += Capacity(kf->depth_links);

@@ -45,10 +45,10 @@ class ServerMapPoint {
   std::vector<Observation> observations;
 };
 
+// What the server uses of a keypoint (its orientation is not used: matching is by descriptor).
 struct ServerKeypoint {
   cv::Point2f pt;
   std::uint8_t octave = 0;
-  float angle = 0;
   float depth = 0;  // metres, 0 = none
 };
 
@@ -60,8 +60,20 @@ class ServerKeyframe {
   Pose T_agent_cam = Pose::Identity();  // as its agent last reported it (agent's own frame)
   std::optional<KeyframeId> parent;     // spanning tree, same agent
   std::vector<ServerKeypoint> keypoints;
-  std::vector<Descriptor> descriptors;      // per keypoint (linked ones: the point's)
   std::vector<ServerMapPoint*> points;      // per keypoint, may be null
+  // A keypoint's descriptor is its map point's (as the agent sends it); only keypoints without
+  // a map point keep one of their own, sorted by keypoint (most keypoints are linked: this
+  // saves about 15 kB a keyframe).
+  std::vector<std::pair<std::uint32_t, Descriptor>> own_descriptors;
+
+  // The descriptor of keypoint i.
+  const Descriptor& descriptor(std::size_t i) const;
+  // Every keypoint's, in keypoint order.
+  std::vector<Descriptor> Descriptors() const;
+  // Appends a keypoint without a map point (tests and tools build keyframes with it).
+  void AppendKeypoint(const ServerKeypoint& keypoint, const Descriptor& descriptor);
+  // Keeps `descriptor` for keypoint i, which is losing its map point.
+  void KeepOwnDescriptor(std::size_t i, const Descriptor& descriptor);
   std::map<GlobalKeyframeId, int> covisibility;  // weights, symmetric
   // Dense depth alignments its agent measured with earlier keyframes of its own (the global BA
   // weighs them as the agent's local BA does).

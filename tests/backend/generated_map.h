@@ -94,13 +94,12 @@ inline ServerKeyframe* AddGeneratedKeyframe(ServerMap* map, const GeneratedWorld
     if (pc.z() < 0.5) continue;
     const Eigen::Vector2d uv = camera.Project(pc);
     if (!camera.InImage(uv, 8)) continue;
-    kf->keypoints.push_back({cv::Point2f(static_cast<float>(uv.x() + 0.3 * rng->Normal()),
-                                         static_cast<float>(uv.y() + 0.3 * rng->Normal())),
-                             0, 0, static_cast<float>(pc.z() + 0.002 * rng->Normal())});
-    kf->descriptors.push_back(FlipBits(world.descriptors[j], 6, rng));
+    kf->AppendKeypoint({cv::Point2f(static_cast<float>(uv.x() + 0.3 * rng->Normal()),
+                                    static_cast<float>(uv.y() + 0.3 * rng->Normal())),
+                        0, static_cast<float>(pc.z() + 0.002 * rng->Normal())},
+                       FlipBits(world.descriptors[j], 6, rng));
     seen.push_back(static_cast<int>(j));
   }
-  kf->points.assign(seen.size(), nullptr);
   ServerKeyframe* raw = map->AddKeyframe(std::move(kf));
   for (std::size_t k = 0; k < seen.size(); ++k) {
     const auto j = static_cast<std::uint32_t>(seen[k]);

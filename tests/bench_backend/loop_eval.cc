@@ -226,7 +226,7 @@ class OfflineDetector {
     LoopCandidateRule rule;
     if (ready) {
       rule = MakeLoopCandidateRule(place_, id, *query, options_.loops.exclude_recent_keyframes);
-      hits = QueryLoopCandidates(place_, query->descriptors, rule, options_.loops.loop_candidates * 3);
+      hits = QueryLoopCandidates(place_, query->Descriptors(), rule, options_.loops.loop_candidates * 3);
     }
     // What the index held when the query ran: the allowed candidates, and among them revisits.
     bool revisit = false;
@@ -239,7 +239,7 @@ class OfflineDetector {
       }
     }
     if (!stored) {
-      const std::vector<GlobalKeyframeId> late = place_.Add(id, query->descriptors);
+      const std::vector<GlobalKeyframeId> late = place_.Add(id, query->Descriptors());
       late_.insert(late_.end(), late.begin(), late.end());
       indexed_.push_back(id);
     }
