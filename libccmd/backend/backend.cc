@@ -6,6 +6,7 @@
 #include "libccmd/backend/ingest.h"
 #include "libccmd/codec/rgbd_payload.h"
 #include "libccmd/util/logging.h"
+#include "libccmd/util/process_usage.h"
 #include "libccmd/util/timer.h"
 
 namespace ccmd {
@@ -26,6 +27,7 @@ Status BackendOptions::Validate() const {
   if (queue_capacity < 1) return InvalidArgument("queue capacity must be >= 1");
   if (global_ba_iterations < 1) return InvalidArgument("global BA iterations must be >= 1");
   if (global_ba_max_keyframes < 10) return InvalidArgument("global BA window must be >= 10 keyframes");
+  if (global_ba_max_observations < 1000) return InvalidArgument("global BA window must allow >= 1000 observations");
   if (!(global_ba_duty > 0 && global_ba_duty <= 1)) return InvalidArgument("global BA duty must be in (0, 1]");
   if (dense) CCMD_RETURN_IF_ERROR(dense_options.Validate());
   return Status::Ok();
@@ -208,7 +210,14 @@ void Backend::UpdateDense(DenseTask task) {
       break;
   }
   if (!status.ok()) CCMD_LOG(WARNING) << "dense map: " << status.ToString();
-  if (dense_stage_.backlog() == 0) dense_->Maintain();  // deferred re-filters when idle
+  if (dense_stage_.backlog() == 0) {
+    dense_->Maintain();  // deferred re-filters when idle
+    // Keyframes that left the window freed their full clouds: give the pages back now and then.
+    if (Now() - dense_trimmed_ > 10) {
+      dense_trimmed_ = Now();
+      ReleaseFreeMemory();
+    }
+  }
 }
 
 Status Backend::AddToDense(const DenseTask& task) {
@@ -329,7 +338,8 @@ void Backend::RunGlobalBa(GbaRequest request) {
     MapManager::Guard guard = maps_.CheckOutAgent(request.agent);
     map_id = guard->id();
     if (windowed) {
-      const std::set<GlobalKeyframeId> window = SelectGlobalBaWindow(*guard, request.around, options_.global_ba_max_keyframes);
+      const std::set<GlobalKeyframeId> window = SelectGlobalBaWindow(
+          *guard, request.around, options_.global_ba_max_keyframes, options_.global_ba_max_observations);
       problem = BuildGlobalBa(*guard, cameras, options_.depth_noise, &window);
     } else {
       problem = BuildGlobalBa(*guard, cameras, options_.depth_noise);
@@ -363,8 +373,10 @@ void Backend::RunGlobalBa(GbaRequest request) {
     AppendSample(&timings_.global_ba_seconds, seconds);
     AppendSample(&timings_.global_ba_applied, static_cast<char>(applied));
   }
+  ReleaseFreeMemory();  // the solver's workspace
   CCMD_LOG(INFO) << "global BA on map " << map_id.value() << (windowed ? " (window)" : "") << ": "
                  << problem.keyframes.size() << " keyframes, " << problem.points.size() << " points, "
+                 << problem.problem.observations.size() << " observations, "
                  << summary.iterations << " iterations, " << seconds << " s" << (applied ? "" : " (abandoned: newer work)");
 }
 

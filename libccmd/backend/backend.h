@@ -37,11 +37,13 @@ struct BackendOptions {
   LoopCloserOptions loops;
   bool global_ba = true;
   int global_ba_iterations = 10;
-  // A map of more keyframes than this gets a global BA over a window of this many keyframes
-  // around the loop that asked for it (the keyframes observing its points held fixed), so its
-  // cost does not grow with the map; a newer loop no longer abandons it (it stays valid),
-  // and it runs at most `global_ba_duty` of the time.
-  int global_ba_max_keyframes = 150;
+  // A map of more keyframes than this gets a global BA over a window of at most this many
+  // keyframes (and observations) around the loop that asked for it, up to half as many of the
+  // keyframes that see its points most held fixed, so that its time and memory do not grow
+  // with the map or with passes over a place; a newer loop no longer abandons it (it stays
+  // valid), and it runs at most `global_ba_duty` of the time.
+  int global_ba_max_keyframes = 100;
+  std::size_t global_ba_max_observations = 30000;  // of the window's keyframes
   double global_ba_duty = 0.5;
   DepthNoise depth_noise;
   bool dense = true;
@@ -198,6 +200,7 @@ class Backend {
   std::mutex gba_turn_mutex_;
   std::condition_variable gba_turn_cv_;  // woken by shutdown
   double gba_next_start_ = 0;            // back-end clock; global BA stage only
+  double dense_trimmed_ = 0;             // back-end clock; dense stage only
 
   mutable std::mutex stats_mutex_;
   BackendStats stats_;

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <unordered_map>
+#include <unordered_set>
 
 namespace ccmd {
 
@@ -86,16 +87,16 @@ class GlobalBaBuilder {
     return index;
   }
 
-  // A point seen at least twice, with every observation; observers not in the problem join it
-  // as fixed cameras when `observers_fixed`, else their observations are left out.
-  void Point(const ServerMapPoint* p, bool observers_fixed) {
+  // A point seen at least twice, with its observations by the problem's cameras and by the
+  // keyframes in `fixed` (they join as fixed cameras).
+  void Point(const ServerMapPoint* p, const std::set<const ServerKeyframe*>* fixed = nullptr) {
     if (!p || point_index_.count(p) || p->observations.size() < 2) return;
     const int index = static_cast<int>(g_->points.size());
     point_index_[p] = index;
     g_->points.push_back(p->id);
     g_->problem.points.push_back({p->World()});
     for (const auto& o : p->observations) {
-      const int c = observers_fixed ? Camera(o.keyframe, /*fixed=*/true) : Known(o.keyframe);
+      const int c = fixed && fixed->count(o.keyframe) ? Camera(o.keyframe, /*fixed=*/true) : Known(o.keyframe);
       if (c < 0) continue;
       const ServerKeypoint& kp = o.keyframe->keypoints[o.keypoint];
       g_->problem.observations.push_back({c, index, Eigen::Vector2d(kp.pt.x, kp.pt.y), kp.depth,
@@ -132,6 +133,37 @@ class GlobalBaBuilder {
 
 }  // namespace
 
+namespace {
+
+// The keyframes outside a window that see its points most often, at most half as many as the
+// window holds: they hold the window in place (the gauge) without the problem growing with
+// every pass over the place.
+std::set<const ServerKeyframe*> FixedNeighbours(const ServerMap& map, const std::set<GlobalKeyframeId>& window) {
+  std::map<const ServerKeyframe*, int> seen;
+  std::unordered_set<const ServerMapPoint*> visited;
+  for (const GlobalKeyframeId& id : window) {
+    const ServerKeyframe* kf = map.keyframe(id);
+    if (!kf) continue;
+    for (const ServerMapPoint* p : kf->points) {
+      if (!p || p->observations.size() < 2 || !visited.insert(p).second) continue;
+      for (const auto& o : p->observations) {
+        if (!window.count(o.keyframe->id)) seen[o.keyframe]++;
+      }
+    }
+  }
+  std::vector<std::pair<int, const ServerKeyframe*>> ranked;
+  for (const auto& [kf, count] : seen) ranked.emplace_back(count, kf);
+  std::sort(ranked.begin(), ranked.end(), [](const auto& a, const auto& b) {
+    return a.first != b.first ? a.first > b.first : a.second->id < b.second->id;
+  });
+  std::set<const ServerKeyframe*> fixed;
+  const std::size_t budget = std::max<std::size_t>(10, window.size() / 2);
+  for (std::size_t i = 0; i < ranked.size() && i < budget; ++i) fixed.insert(ranked[i].second);
+  return fixed;
+}
+
+}  // namespace
+
 GlobalBaProblem BuildGlobalBa(const ServerMap& map, const std::map<AgentId, PinholeCamera>& cameras,
                               const DepthNoise& depth_noise, const std::set<GlobalKeyframeId>* window) {
   GlobalBaProblem g;
@@ -139,10 +171,12 @@ GlobalBaProblem BuildGlobalBa(const ServerMap& map, const std::map<AgentId, Pinh
   for (const auto& [id, kf] : map.keyframes()) {
     if (!window || window->count(id)) builder.Camera(kf.get(), /*fixed=*/false);
   }
+  std::set<const ServerKeyframe*> fixed;
+  if (window) fixed = FixedNeighbours(map, *window);
   // Points: collected through the keyframes (each once), kept if seen at least twice.
   for (const auto& [id, kf] : map.keyframes()) {
     if (window && !window->count(id)) continue;
-    for (const ServerMapPoint* p : kf->points) builder.Point(p, /*observers_fixed=*/window != nullptr);
+    for (const ServerMapPoint* p : kf->points) builder.Point(p, window ? &fixed : nullptr);
   }
   builder.DepthLinks();
   const bool gauge = std::any_of(g.problem.cameras.begin(), g.problem.cameras.end(), [](const auto& c) { return c.fixed; });
@@ -151,14 +185,26 @@ GlobalBaProblem BuildGlobalBa(const ServerMap& map, const std::map<AgentId, Pinh
 }
 
 std::set<GlobalKeyframeId> SelectGlobalBaWindow(const ServerMap& map, const std::vector<GlobalKeyframeId>& seeds,
-                                                int max_keyframes) {
+                                                int max_keyframes, std::size_t max_observations) {
   std::set<GlobalKeyframeId> window;
+  std::size_t observations = 0;
+  // Adds a keyframe if both bounds allow it.
+  const auto admit = [&](const ServerKeyframe* kf) {
+    std::size_t own = 0;
+    for (const ServerMapPoint* p : kf->points) own += p && p->observations.size() >= 2;
+    if (static_cast<int>(window.size()) >= max_keyframes || (!window.empty() && observations + own > max_observations)) {
+      return false;
+    }
+    observations += own;
+    return window.insert(kf->id).second;
+  };
   std::vector<const ServerKeyframe*> frontier;
   for (const GlobalKeyframeId& id : seeds) {
     const ServerKeyframe* kf = map.keyframe(id);
-    if (kf && static_cast<int>(window.size()) < max_keyframes && window.insert(id).second) frontier.push_back(kf);
+    if (kf && !window.count(id) && admit(kf)) frontier.push_back(kf);
   }
-  while (!frontier.empty() && static_cast<int>(window.size()) < max_keyframes) {
+  bool full = false;
+  while (!frontier.empty() && !full) {
     std::vector<std::pair<int, const ServerKeyframe*>> next;  // (link weight, keyframe)
     for (const ServerKeyframe* kf : frontier) {
       for (const auto& [other, weight] : kf->covisibility) {
@@ -171,8 +217,12 @@ std::set<GlobalKeyframeId> SelectGlobalBaWindow(const ServerMap& map, const std:
     });
     frontier.clear();
     for (const auto& [weight, kf] : next) {
-      if (static_cast<int>(window.size()) >= max_keyframes) break;
-      if (window.insert(kf->id).second) frontier.push_back(kf);
+      if (window.count(kf->id)) continue;
+      if (!admit(kf)) {
+        full = true;
+        break;
+      }
+      frontier.push_back(kf);
     }
   }
   return window;

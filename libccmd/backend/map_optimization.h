@@ -4,6 +4,7 @@
 // adjustment. Both report which keyframes moved, for the dense map.
 
 #include <atomic>
+#include <cstdint>
 #include <map>
 #include <set>
 #include <vector>
@@ -44,10 +45,13 @@ struct GlobalBaProblem {
 // the first of the window if none does, to fix the gauge).
 GlobalBaProblem BuildGlobalBa(const ServerMap& map, const std::map<AgentId, PinholeCamera>& cameras,
                               const DepthNoise& depth_noise, const std::set<GlobalKeyframeId>* window = nullptr);
-// The `max_keyframes` keyframes closest to `seeds` in the covisibility graph (breadth first,
-// strongest links first): the window of a global BA around a loop in a large map.
+// The keyframes closest to `seeds` in the covisibility graph (breadth first, strongest links
+// first), at most `max_keyframes` and no more than make `max_observations` observations of
+// points seen twice: the window of a global BA around a loop in a large map. A place seen on
+// many passes has points with many observations; the second bound keeps the problem (its
+// time and memory) the same size there.
 std::set<GlobalKeyframeId> SelectGlobalBaWindow(const ServerMap& map, const std::vector<GlobalKeyframeId>& seeds,
-                                                int max_keyframes);
+                                                int max_keyframes, std::size_t max_observations = SIZE_MAX);
 // Writes the result back: optimised keyframes get their new poses; keyframes added since the
 // problem was built move with the correction of the nearest optimised keyframe of their agent
 // (keyframes left out of a window stay); optimised points get their new positions. Returns the

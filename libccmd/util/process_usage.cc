@@ -1,5 +1,6 @@
 #include "libccmd/util/process_usage.h"
 
+#include <malloc.h>
 #include <sys/resource.h>
 
 #include <cstdio>
@@ -26,5 +27,7 @@ ProcessUsage CurrentProcessUsage() {
   }
   return usage;
 }
+
+void ReleaseFreeMemory() { malloc_trim(0); }
 
 }  // namespace ccmd

@@ -13,4 +13,9 @@ struct ProcessUsage {
 // From /proc/self/status and getrusage; zeros where the system does not tell.
 ProcessUsage CurrentProcessUsage();
 
+// Gives memory the allocator holds free back to the system (glibc's malloc_trim): after a
+// large transient allocation (an optimisation, decoded images) the freed pages would otherwise
+// stay resident. Costs about a millisecond; call it after such work, not per item.
+void ReleaseFreeMemory();
+
 }  // namespace ccmd
