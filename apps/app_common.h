@@ -28,6 +28,13 @@ inline std::string DefaultVocabularyPath() {
 #endif
 }
 
+// Folder of the live map view's page and three.js: $CCMD_WEB_DIR, else the build's
+// share/ccmd/web (libccmd/view/CMakeLists.txt copies them there).
+inline std::string WebDir() {
+  if (const char* env = std::getenv("CCMD_WEB_DIR")) return env;
+  return CCMD_WEB_DIR;
+}
+
 // One-line progress on a terminal ("\r" updates), a line per 10% otherwise.
 class Progress {
  public:

@@ -1,1 +1,1 @@
-ccmd_add_executable(ccmd_agent SOURCES ccmd_agent.cc DEPS ccmd_system ccmd_tracking ccmd_sources ccmd_app_common)
+ccmd_add_executable(ccmd_agent SOURCES ccmd_agent.cc DEPS ccmd_agent_runtime ccmd_tracking ccmd_sources ccmd_app_common)

@@ -3,17 +3,21 @@
 //   rpe    relative pose error
 //   recon  reconstruction error between two PLY clouds
 //   split  split-replay segments of a sequence
+//   map-pictures  top and perspective pictures of a dense map (what ccmd_replay's report shows)
 
 #include <CLI/CLI.hpp>
 #include <cstdio>
 
 #include "apps/app_common.h"
+#include "libccmd/eval/map_picture.h"
+#include "libccmd/eval/plot.h"
 #include "libccmd/eval/reconstruction_error.h"
 #include "libccmd/eval/trajectory_error.h"
 #include "libccmd/io/ply.h"
 #include "libccmd/io/split.h"
 #include "libccmd/io/tum_dataset.h"
 #include "libccmd/sensors/source_factory.h"
+#include "libccmd/util/file_util.h"
 #include "libccmd/util/json.h"
 
 namespace {
@@ -172,6 +176,35 @@ int RunSplit(int frames, const std::string& dataset, const std::string& config, 
   return 0;
 }
 
+// Agents named in a server's statistics ("agent_ids": {name: id}) get the report's colours,
+// in name order.
+int RunMapPictures(const std::string& map_path, const std::string& cameras_path, const std::string& stats_path,
+                   const std::string& out) {
+  auto map = ccmd::ReadPly(map_path);
+  if (!map.ok()) return Fail(map.status());
+  ccmd::Trajectory cameras;
+  if (!cameras_path.empty()) {
+    auto read = ccmd::ReadTumTrajectory(cameras_path);
+    if (!read.ok()) return Fail(read.status());
+    cameras = *read;
+  }
+  ccmd::MapPictureOptions options;
+  if (!stats_path.empty()) {
+    auto stats = ccmd::ReadJsonFile(stats_path);
+    if (!stats.ok()) return Fail(stats.status());
+    int index = 0;
+    if (const ccmd::Json* ids = stats->Get("agent_ids")) {
+      for (const auto& [name, id] : ids->object()) {
+        options.agents[static_cast<int>(id.number())] = {name, ccmd::SeriesColor(index++)};
+      }
+    }
+  }
+  if (ccmd::Status s = ccmd::MakeDirectories(out); !s.ok()) return Fail(s);
+  if (ccmd::Status s = ccmd::WriteMapPictures(*map, cameras, options, out); !s.ok()) return Fail(s);
+  std::printf("%s/map_top.png\n%s/map_view.png\n", out.c_str(), out.c_str());
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -222,7 +255,17 @@ int main(int argc, char** argv) {
   split->add_option("--overlap", overlap, "Overlap as a fraction of the segment length")
       ->capture_default_str();
 
+  std::string map_path, cameras_path, stats_path, pictures_out;
+  auto* pictures = app.add_subcommand("map-pictures",
+                                      "Top and perspective pictures of a dense map: DIR/map_top.png, DIR/map_view.png");
+  pictures->add_option("--map", map_path, "Dense map (map.ply of ccmd_server)")->required();
+  pictures->add_option("--cameras", cameras_path,
+                       "Keyframe trajectory in the map's frame (trajectory_fused.txt): where up is, what is ceiling");
+  pictures->add_option("--server-stats", stats_path, "server_stats.json: agents' names for the agent colours");
+  pictures->add_option("--out", pictures_out, "Folder for the pictures")->required();
+
   CLI11_PARSE(app, argc, argv);
+  if (*pictures) return RunMapPictures(map_path, cameras_path, stats_path, pictures_out);
   if (*ate) return RunAte(gt, est, json, max_diff, scale, aligned_out);
   if (*rpe) return RunRpe(gt, est, json, max_diff, delta);
   if (*recon) {

@@ -63,6 +63,24 @@ struct Tracked {
   std::vector<std::pair<double, double>> cpu_percent;
 };
 
+// --view: the server serves the live map view on loopback (docs/view.md).
+struct ViewSetup {
+  bool enabled = false;
+  int port = 0;  // 0: a free port
+};
+
+std::vector<std::string> ViewServerArgs(const ViewSetup& view) {
+  if (!view.enabled) return {};
+  return {"--http", "127.0.0.1:" + std::to_string(view.port)};
+}
+
+// The server's "map view: URL" line, shown to the user as soon as the server prints it.
+void ShowViewAddress(const std::string& line) {
+  if (line.rfind("map view: ", 0) != 0) return;
+  std::printf("%s  (open it in a browser to watch the map being built)\n", line.c_str());
+  std::fflush(stdout);
+}
+
 // Everything a run needs, the same for every run of an ablation.
 struct Setup {
   std::string dataset, camera_config, rate, bin_dir, command;
@@ -72,6 +90,7 @@ struct Setup {
   const TumSequence* sequence = nullptr;
   std::vector<FrameRange> segments;
   ReferenceOptions reference;
+  ViewSetup view;
 };
 
 // One split replay into `out`: server and agents, progress, evaluation. `failures` counts the
@@ -97,6 +116,7 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
                                           JoinPath(out, "journal"), "--out", out,
                                           "--stats-interval", "1"};
   server_argv.insert(server_argv.end(), setup.server_args.begin(), setup.server_args.end());
+  for (const std::string& arg : ViewServerArgs(setup.view)) server_argv.push_back(arg);
   auto server_process = Subprocess::Start(server_argv, "", JoinPath(out, "logs/server.log"), /*pipe_stdout=*/true);
   if (!server_process.ok()) return Unavailable("cannot start ccmd_server: " + server_process.status().ToString());
   Tracked server{"server", std::move(server_process).value(), 0};
@@ -107,6 +127,7 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
       return Unavailable("ccmd_server did not start (" + line.status().ToString() + "); its log:\n" +
                          Tail(JoinPath(out, "logs/server.log"), 20));
     }
+    ShowViewAddress(*line);
     const auto at = line->find("listening on ");
     if (at != std::string::npos) port = line->substr(line->find_last_of(':') + 1);
   }
@@ -136,6 +157,7 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
   // Progress, once a second, until every agent is done.
   const bool tty = ::isatty(1);
   int& failed = *failures;
+  std::vector<std::array<double, 3>> server_memory;  // ReplayRunInfo::server_memory
   auto sample_cpu = [&](Tracked* t) {
     const double now = wall.ElapsedSeconds();
     const double cpu = t->process.CpuSecondsSoFar();
@@ -186,6 +208,11 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
                     static_cast<int>(b->Get("fusions") ? b->Get("fusions")->number() : 0),
                     static_cast<int>(b->Get("maps") ? b->Get("maps")->number() : 0));
       line += part;
+      const Json* process = s->Get("process");
+      if (process && process->Get("rss_mb") && b->Get("keyframes")) {
+        server_memory.push_back(
+            {wall.ElapsedSeconds(), b->Get("keyframes")->number(), process->Get("rss_mb")->number()});
+      }
     }
     if (tty) {
       std::printf("\r%-150s", line.c_str());
@@ -226,6 +253,7 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
   info.rate = setup.rate;
   info.wall_seconds = wall.ElapsedSeconds();
   info.segments = setup.segments;
+  info.server_memory = std::move(server_memory);
   for (Tracked* t : [&] {
          std::vector<Tracked*> all;
          for (Tracked& a : agent_processes) all.push_back(&a);
@@ -258,6 +286,7 @@ int main(int argc, char** argv) {
   double timeout_s = 3600;
   bool ablation = false;
   std::vector<std::string> agent_args, server_args;
+  ViewSetup setup_view;
   app.add_option("--dataset", dataset, "TUM-layout folder (TUM RGB-D, ICL-NUIM, 7-Scenes converted, ccmd_synth)")
       ->required();
   app.add_option("--agents", agents, "Number of agents K (segments)")->check(CLI::Range(1, 32))->capture_default_str();
@@ -273,6 +302,12 @@ int main(int argc, char** argv) {
   app.add_option("--server-arg", server_args, "Extra argument for ccmd_server (repeatable)");
   app.add_option("--bin-dir", bin_dir, "Folder of ccmd_server and ccmd_agent (default: next to this program)");
   app.add_option("--timeout", timeout_s, "Stop a run (each run of --ablation) after this many seconds")->capture_default_str();
+  CLI::Option* view_flag = app.add_flag("--view", setup_view.enabled,
+                                        "Serve the live map view while the run goes on (its address is printed)");
+  app.add_option("--view-port", setup_view.port, "Port of the map view on 127.0.0.1 (0: a free one)")
+      ->check(CLI::Range(0, 65535))
+      ->needs(view_flag)
+      ->capture_default_str();
   app.add_flag("--ablation", ablation,
                "Also run r = 1, 0.5, 0.25 with and without the RGB-D keyframe selection (six runs in all, "
                "in DIR/ablation/) and add the RGB-D bytes and map points table to the report");
@@ -326,6 +361,7 @@ int main(int argc, char** argv) {
   setup.segments = *segments;
   setup.reference.reference_ply = reference;
   setup.reference.registration = registration;
+  setup.view = setup_view;
   std::printf("replaying %s: %zu frames, %d agents\n", dataset.c_str(), sequence->size(), agents);
   for (int i = 0; i < agents; ++i) {
     std::printf("  agent%d: frames %d-%d\n", i + 1, (*segments)[i].first, (*segments)[i].last);
@@ -371,6 +407,14 @@ int main(int argc, char** argv) {
   auto num = [&](const char* key) { return r.Get(key) ? r.Get(key)->number() : -1.0; };
   std::printf("\nmaps after fusion: %.0f   fused ATE RMSE: %.4f m   reconstruction mean %.4f m, Hausdorff %.4f m\n",
               num("maps_after_fusion"), num("ate_rmse_m"), num("recon_mean_m"), num("recon_hausdorff_m"));
+  if (num("maps_after_fusion") > 1) {
+    std::string members;
+    if (const Json* names = r.Get("primary_map_agents")) {
+      for (const Json& n : names->array()) members += (members.empty() ? "" : ", ") + n.string();
+    }
+    std::printf("not every map fused: the figures above are the primary map's (%s); see report.md for the others\n",
+                members.empty() ? "no agent" : members.c_str());
+  }
   std::printf("per agent: %.1f kB/s, %.1f kB per keyframe, %.2f keyframes/s\n", num("atps_kBps"), num("akfs_kB"),
               num("akfr_hz"));
   std::printf("report: %s\nmap:    %s\n", JoinPath(out, "report.md").c_str(), JoinPath(out, "map.ply").c_str());

@@ -5,9 +5,11 @@
 //   ccmd_server --listen 0.0.0.0:7420 --journal run/journal --out run/results --psk-file ccmd.key
 //   ccmd_server --resume run/journal --out run/results --psk-file ccmd.key   # after a crash
 //
-// Prints "ccmd_server: listening on HOST:PORT" on stdout once it serves. SIGINT/SIGTERM stop
-// it cleanly: agents get a bye, everything received is journaled and delivered, the back-end
-// finishes, the map, trajectories and statistics are written, exit code 0.
+// Prints "ccmd_server: listening on HOST:PORT" on stdout once it serves; with --http, the line
+// before it is "map view: http://HOST:PORT/..." (the live map view, docs/view.md).
+// SIGINT/SIGTERM stop it cleanly: agents get a bye, everything received is journaled and
+// delivered, the back-end finishes, the map, trajectories and statistics are written, exit
+// code 0.
 
 #include <signal.h>
 
@@ -35,6 +37,31 @@ ccmd::Status WriteStats(const ccmd::Json& json, const std::string& path) {
   return ccmd::WriteJsonFile(json, path);
 }
 
+// The live map view's options (off unless --http is given).
+struct ViewFlags {
+  std::string http, token;
+};
+
+void AddViewOptions(CLI::App* app, ViewFlags* flags) {
+  app->add_option("--http", flags->http,
+                  "Serve the live map view (a web page) on HOST:PORT, e.g. 127.0.0.1:8080; a host other than "
+                  "loopback needs a token (one is made up and printed if --http-token is not given)");
+  app->add_option("--http-token", flags->token,
+                  "Access token of the map view (letters, digits, - _ .); the URL printed at start-up carries it");
+}
+
+ccmd::Status ApplyViewOptions(const ViewFlags& flags, ccmd::ServerRuntimeOptions* runtime) {
+  if (flags.http.empty()) {
+    return flags.token.empty() ? ccmd::Status::Ok() : ccmd::InvalidArgument("--http-token needs --http HOST:PORT");
+  }
+  ccmd::ViewServerOptions view;
+  view.listen = flags.http;
+  view.token = flags.token;
+  view.web_dir = ccmd::app::WebDir();
+  runtime->view = view;
+  return view.Validate();
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -48,6 +75,8 @@ int main(int argc, char** argv) {
   double stats_interval = 5.0;
   bool no_fsync = false;
   std::string log_level;
+  ViewFlags view_flags;
+  AddViewOptions(&app, &view_flags);
   app.add_option("--listen", options.listen, "HOST:PORT to listen on (0.0.0.0:PORT for a LAN)")
       ->capture_default_str();
   app.add_option("--journal", journal, "Folder for the per-agent journals (new run)");
@@ -126,6 +155,10 @@ int main(int argc, char** argv) {
     runtime.output_dir = base + ".results";
   }
   runtime.stats_period_s = stats_interval;
+  if (ccmd::Status s = ApplyViewOptions(view_flags, &runtime); !s.ok()) {
+    std::fprintf(stderr, "ccmd_server: %s\n", s.ToString().c_str());
+    return 2;
+  }
   runtime.backend.dense = !no_dense;
   runtime.backend.global_ba = !no_gba;
   if (!vocabulary.empty() && ccmd::FileExists(vocabulary)) {
@@ -160,6 +193,7 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "ccmd_server: %s\n", s.ToString().c_str());
     return 1;
   }
+  if (const ccmd::ViewServer* view = (*server)->view()) std::printf("map view: %s\n", view->url().c_str());
   const std::size_t colon = options.listen.rfind(':');
   std::printf("ccmd_server: listening on %s:%u\n", options.listen.substr(0, colon).c_str(),
               unsigned{(*server)->port()});

@@ -5,17 +5,24 @@
 #include <cstdio>
 
 #include "apps/app_common.h"
+#include "libccmd/io/config.h"
 #include "libccmd/synth/sequence.h"
 #include "libccmd/util/logging.h"
 
 int main(int argc, char** argv) {
   CLI::App app{
       "Render a synthetic RGB-D sequence (TUM layout) of a textured room with exact ground truth.\n"
-      "Writes rgb/, depth/, rgb.txt, depth.txt, groundtruth.txt, camera.yaml and surface.ply."};
+      "Writes rgb/, depth/, rgb.txt, depth.txt, groundtruth.txt, camera.yaml and surface.ply.\n"
+      "With --config the images are those the config's camera would record: its size, focal lengths\n"
+      "(a negative fy flips the rows, as in ICL-NUIM), lens distortion, frame rate, depth scale,\n"
+      "colour order, and depth from the Depth block's imager when there is one."};
   ccmd::SyntheticSequenceOptions options;
-  std::string out;
+  std::string out, config;
   bool no_noise = false;
   app.add_option("--out", out, "Output folder (created if missing)")->required();
+  app.add_option("--config", config,
+                 "Camera config (ORB-SLAM YAML, e.g. configs/tum_fr1.yaml) to render through; "
+                 "sets the image size and frame rate");
   app.add_option("--frames", options.frames, "Number of frames")->check(CLI::Range(1, 1000000))
       ->capture_default_str();
   app.add_option("--seed", options.seed, "Scene and noise seed")->capture_default_str();
@@ -35,6 +42,27 @@ int main(int argc, char** argv) {
   app.add_option("--threads", options.threads, "Render threads (0 = all cores)")->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   if (no_noise || options.noise_scale == 0.0) options.noise = false;
+  if (!config.empty()) {
+    for (const char* fixed : {"--width", "--height", "--fps"}) {
+      if (app.count(fixed) > 0) {
+        std::fprintf(stderr, "ccmd_synth: %s comes from the camera config; leave it out with --config\n", fixed);
+        return 1;
+      }
+    }
+    auto camera = ccmd::LoadCameraConfig(config);
+    auto depth = camera.ok() ? ccmd::LoadDepthToColorCalibration(config) : camera.status();
+    if (!depth.ok()) {
+      std::fprintf(stderr, "ccmd_synth: %s\n", depth.status().ToString().c_str());
+      return 1;
+    }
+    options.camera = *camera;
+    options.depth_camera = *depth;
+    options.width = camera->width;
+    options.height = camera->height;
+    options.fps = camera->fps;
+    std::fprintf(stderr, "camera from %s: %s%s\n", config.c_str(), camera->ToString().c_str(),
+                 *depth ? ", depth from the Depth block's imager" : "");
+  }
 
   std::fprintf(stderr, "rendering %d frames %dx%d (seed %llu) into %s\n", options.frames,
                options.width, options.height, static_cast<unsigned long long>(options.seed),

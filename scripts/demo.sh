@@ -32,5 +32,5 @@ echo "== split replay: 3 agents and a server over TCP"
 echo
 echo "report:      $RUN/report.md"
 echo "results:     $RUN/results.json"
-echo "dense map:   $RUN/map.ply (open with CloudCompare, MeshLab or Open3D)"
+echo "dense map:   $RUN/map.ply (pictures in the report: $RUN/plots/map_top.png, map_view.png)"
 echo "trajectories $RUN/trajectory_fused.txt, trajectory_agent1..3.txt (TUM format)"

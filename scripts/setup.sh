@@ -32,6 +32,9 @@ PACKAGES=(
   libgtest-dev libgmock-dev libbenchmark-dev libzstd-dev liblz4-dev
   # fuzzing (libFuzzer) and sanitizer runtimes
   clang libclang-rt-14-dev
+  # the server's live map view: HTTP server, three.js served to the browser, and the headless
+  # browser its test and benchmark drive
+  libcpp-httplib-dev libjs-three chromium
 )
 
 missing=()

@@ -4,6 +4,7 @@
 #include <cmath>
 
 #include "libccmd/backend/ingest.h"
+#include "libccmd/backend/map_observer.h"
 #include "libccmd/codec/rgbd_payload.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/process_usage.h"
@@ -33,9 +34,10 @@ Status BackendOptions::Validate() const {
   return Status::Ok();
 }
 
-StatusOr<std::unique_ptr<Backend>> Backend::Create(const BackendOptions& options) {
+StatusOr<std::unique_ptr<Backend>> Backend::Create(const BackendOptions& options, MapObserver* observer) {
   CCMD_RETURN_IF_ERROR(options.Validate());
   auto backend = std::unique_ptr<Backend>(new Backend(options));
+  backend->observer_ = observer;
   if (options.dense) {
     CCMD_ASSIGN_OR_RETURN(backend->dense_, DenseMap::Create(options.dense_options));
   }
@@ -80,6 +82,7 @@ Status Backend::RegisterAgent(AgentId agent, const std::string& name, const Pinh
   std::lock_guard<std::mutex> lock(cameras_mutex_);
   cameras_[agent] = camera;
   names_[agent] = name;
+  if (observer_) observer_->OnAgent(agent, name);
   return Status::Ok();
 }
 
@@ -88,17 +91,27 @@ PinholeCamera Backend::CameraOf(AgentId agent) const {
   return cameras_.at(agent);
 }
 
-Status Backend::SubmitKeyframe(AgentId agent, KeyframeMessage message, double received) {
+Status Backend::SubmitKeyframe(AgentId agent, KeyframeMessage message, double arrived_s) {
   IngestItem item{agent, std::make_unique<KeyframeMessage>(std::move(message)), nullptr,
-                  received > 0 ? received - start_time_ : Now()};
+                  arrived_s > 0 ? arrived_s : MonotonicSeconds()};
   if (!ingest_stage_.Push(std::move(item))) return Unavailable("the back-end is shutting down");
   return Status::Ok();
 }
 
-Status Backend::SubmitPoseUpdate(AgentId agent, PoseUpdateMessage message) {
-  IngestItem item{agent, nullptr, std::make_unique<PoseUpdateMessage>(std::move(message)), Now()};
+Status Backend::SubmitPoseUpdate(AgentId agent, PoseUpdateMessage message, double arrived_s) {
+  IngestItem item{agent, nullptr, std::make_unique<PoseUpdateMessage>(std::move(message)),
+                  arrived_s > 0 ? arrived_s : MonotonicSeconds()};
   if (!ingest_stage_.Push(std::move(item))) return Unavailable("the back-end is shutting down");
   return Status::Ok();
+}
+
+void Backend::NotifyPoses(PoseSource source, MapId map, const std::vector<ServerKeyframe*>& moved,
+                          double arrived_s) {
+  if (!observer_ || moved.empty()) return;
+  std::vector<KeyframePose> poses;
+  poses.reserve(moved.size());
+  for (const ServerKeyframe* kf : moved) poses.push_back({kf->id, kf->T_map_cam});
+  observer_->OnPoses(source, map, poses, arrived_s);
 }
 
 void Backend::WaitIdle() {
@@ -118,6 +131,7 @@ void Backend::Ingest(IngestItem item) {
     std::vector<ServerKeyframe*> moved;
     MapManager::Guard guard = maps_.CheckOutAgent(agent);
     moved = ApplyPoseUpdates(guard.get(), agent, *pose_update);
+    NotifyPoses(PoseSource::kAgent, guard->id(), moved, item.arrived);
     QueueDenseUpdates(moved, DenseTask::Kind::kUpdate);
     std::lock_guard<std::mutex> lock(stats_mutex_);
     stats_.pose_updates_received++;
@@ -144,14 +158,16 @@ void Backend::Ingest(IngestItem item) {
       // The coded images stay coded until the dense stage uses them; without a dense map
       // they are not kept at all.
       if (dense_ && message.rgbd) (*keyframe)->rgbd = std::make_shared<const RgbdPayload>(std::move(*message.rgbd));
-      if (maps_.primary() && guard->id() == *maps_.primary()) QueueDenseAdds(guard.get(), {*keyframe}, item.received);
+      const bool primary = maps_.primary() && guard->id() == *maps_.primary();
+      if (observer_) observer_->OnKeyframe(id, guard->id(), (*keyframe)->T_map_cam, item.arrived, primary);
+      if (primary) QueueDenseAdds(guard.get(), {*keyframe}, item.arrived - start_time_);
     }
   }
   const double now = Now();
   {
     std::lock_guard<std::mutex> lock(stats_mutex_);
     stats_.keyframes_received++;
-    AppendSample(&timings_.intake_ms, (now - item.received) * 1e3);
+    AppendSample(&timings_.intake_ms, (now - (item.arrived - start_time_)) * 1e3);
     AppendSample(&timings_.intake_at_s, now);
     AppendSample(&timings_.intake_during_gba, static_cast<char>(gba_running_.load()));
   }
@@ -235,6 +251,7 @@ Status Backend::AddToDense(const DenseTask& task) {
   keyframe.camera = task.camera.Resized(decoded->depth_mm.cols, decoded->depth_mm.rows);
   CCMD_RETURN_IF_ERROR(dense_->SetAgentMap(task.keyframe.agent, task.to));
   CCMD_RETURN_IF_ERROR(dense_->AddKeyframe(keyframe));
+  if (observer_) observer_->OnDenseKeyframe(keyframe.id);
   const double now = Now();
   std::lock_guard<std::mutex> lock(stats_mutex_);
   stats_.dense_keyframes++;
@@ -280,6 +297,9 @@ void Backend::AfterLoop(LoopClosure closure) {
   QueueDenseUpdates(closure.moved, DenseTask::Kind::kLoopUpdate);
   // The other map's keyframes now feed the dense map.
   QueueDenseAdds(closure.map.get(), closure.joined_primary);
+  if (observer_) observer_->OnLoop(closure.event);
+  NotifyPoses(closure.event.fusion ? PoseSource::kFusion : PoseSource::kLoop, closure.event.map, closure.moved,
+              MonotonicSeconds());
   {
     std::lock_guard<std::mutex> lock(stats_mutex_);
     AppendSample(&loop_events_, closure.event);
@@ -355,7 +375,9 @@ void Backend::RunGlobalBa(GbaRequest request) {
   if (!summary.aborted) {
     MapManager::Guard guard = maps_.CheckOut(map_id);
     if (guard) {  // not fused meanwhile
-      QueueDenseUpdates(ApplyGlobalBa(guard.get(), problem), DenseTask::Kind::kGlobalUpdate);
+      const std::vector<ServerKeyframe*> moved = ApplyGlobalBa(guard.get(), problem);
+      NotifyPoses(PoseSource::kGlobalBa, map_id, moved, MonotonicSeconds());
+      QueueDenseUpdates(moved, DenseTask::Kind::kGlobalUpdate);
       applied = true;
     }
   }

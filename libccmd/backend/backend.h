@@ -23,6 +23,7 @@
 #include "libccmd/backend/loop_closer.h"
 #include "libccmd/backend/map_manager.h"
 #include "libccmd/backend/map_memory.h"
+#include "libccmd/backend/map_observer.h"
 #include "libccmd/backend/map_optimization.h"
 #include "libccmd/backend/place_index.h"
 #include "libccmd/dense/dense_map.h"
@@ -93,7 +94,9 @@ struct BackendTimings {
 
 class Backend {
  public:
-  static StatusOr<std::unique_ptr<Backend>> Create(const BackendOptions& options);
+  // `observer` (optional) is told about every change of the maps; it must outlive the back-end.
+  static StatusOr<std::unique_ptr<Backend>> Create(const BackendOptions& options,
+                                                   MapObserver* observer = nullptr);
   ~Backend();
   Backend(const Backend&) = delete;
   Backend& operator=(const Backend&) = delete;
@@ -101,10 +104,10 @@ class Backend {
   // An agent's camera (from its handshake); needed before its first keyframe.
   Status RegisterAgent(AgentId agent, const std::string& name, const PinholeCamera& camera);
   // Queue work (blocks while the ingest queue is full: back-pressure towards the network).
-  // `received`: MonotonicSeconds() when the message arrived (0: now), the start of its
-  // intake latency.
-  Status SubmitKeyframe(AgentId agent, KeyframeMessage message, double received = 0);
-  Status SubmitPoseUpdate(AgentId agent, PoseUpdateMessage message);
+  // `arrived_s`: MonotonicSeconds() when the message reached the server (0: now); the
+  // observer gets it with the change the message causes.
+  Status SubmitKeyframe(AgentId agent, KeyframeMessage message, double arrived_s = 0);
+  Status SubmitPoseUpdate(AgentId agent, PoseUpdateMessage message, double arrived_s = 0);
 
   // Returns when everything submitted so far has gone through every stage (and a global BA it
   // caused has finished).
@@ -120,6 +123,7 @@ class Backend {
   std::vector<MapId> Maps() const { return maps_.Maps(); }
   std::vector<AgentId> Agents() const { return maps_.Agents(); }
   bool AgentInPrimaryMap(AgentId agent) const;
+  std::optional<MapId> MapOf(AgentId agent) const { return maps_.MapOfAgent(agent); }
 
   DenseMap* dense() { return dense_.get(); }
   Status ExportDenseMap(const std::string& path);
@@ -140,7 +144,7 @@ class Backend {
     // Exactly one is set. Held by pointer: queue moves stay cheap.
     std::unique_ptr<KeyframeMessage> keyframe;
     std::unique_ptr<PoseUpdateMessage> pose_update;
-    double received = 0;  // back-end clock
+    double arrived = 0;  // MonotonicSeconds() when the message reached the server
   };
   struct DenseTask {
     enum class Kind { kAdd, kUpdate, kLoopUpdate, kGlobalUpdate, kMergeMaps } kind = Kind::kAdd;
@@ -179,8 +183,11 @@ class Backend {
   void QueueDenseUpdates(const std::vector<ServerKeyframe*>& moved, DenseTask::Kind kind);
   PinholeCamera CameraOf(AgentId agent) const;
   double Now() const;
+  // Tells the observer (if any) that `moved` have new poses in `map`.
+  void NotifyPoses(PoseSource source, MapId map, const std::vector<ServerKeyframe*>& moved, double arrived_s);
 
   const BackendOptions options_;
+  MapObserver* observer_ = nullptr;  // set before the stages start, never changed
   MapManager maps_;
   std::unique_ptr<DenseMap> dense_;
   const double start_time_;

@@ -1,14 +1,10 @@
 #include "libccmd/backend/ingest.h"
 
+#include "libccmd/codec/wire_pose.h"
 #include "libccmd/optim/bundle_adjuster.h"
 #include "libccmd/util/logging.h"
 
 namespace ccmd {
-
-Pose PoseFromWire(const WirePose& w) {
-  return PoseFromTranslationQuaternion(Eigen::Vector3d(w.t[0], w.t[1], w.t[2]),
-                                       Eigen::Quaterniond(w.q_xyzw[3], w.q_xyzw[0], w.q_xyzw[1], w.q_xyzw[2]));
-}
 
 StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent, const KeyframeMessage& m,
                                              const Pose& T_map_agent) {

@@ -10,8 +10,6 @@
 
 namespace ccmd {
 
-Pose PoseFromWire(const WirePose& pose);
-
 // Adds a keyframe message of `agent` to `map`. Its server pose follows the agent's relative
 // motion from the keyframe it is placed against (its parent, else the agent's latest keyframe
 // in the map), so corrections the server applied to earlier keyframes carry over; the agent's

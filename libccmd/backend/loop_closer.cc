@@ -115,12 +115,13 @@ MapFusion FuseMapsByLoop(MapManager* maps, MapManager::Guard* query_map, MapMana
   const MapId old_query = (*query_map)->id(), old_candidate = (*candidate_map)->id();
   const bool keep_query = primary && old_query == *primary;
   MapFusion fusion;
+  // The map that is not kept enters the other's frame (the primary map's, if it is one).
+  for (const auto& [kid, kf] : (keep_query ? *candidate_map : *query_map)->keyframes()) {
+    fusion.moved.push_back(kf.get());
+  }
   if (primary && (old_query == *primary || old_candidate == *primary)) {
     fusion.primary_before = *primary;
-    // The map that is not kept enters the primary map's frame.
-    for (const auto& [kid, kf] : (keep_query ? *candidate_map : *query_map)->keyframes()) {
-      fusion.joined_primary.push_back(kf.get());
-    }
+    fusion.joined_primary = fusion.moved;
   }
   fusion.map = keep_query ? maps->Fuse(query_map, candidate_map, T_cmap_qmap.inverse())
                           : maps->Fuse(candidate_map, query_map, T_cmap_qmap);
@@ -232,6 +233,7 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
     MapFusion fusion = FuseMapsByLoop(maps_, query_guard, candidate_guard, match);
     event.fusion = true;
     closure.map = std::move(fusion.map);
+    closure.moved = std::move(fusion.moved);
     closure.joined_primary = std::move(fusion.joined_primary);
     closure.primary_before = fusion.primary_before;
   }

@@ -118,6 +118,7 @@ bool LoopAlreadyClosed(const LoopMatch& match, const LoopCloserOptions& options)
 // What a fusion changed, beyond the fused map itself.
 struct MapFusion {
   MapManager::Guard map;                          // the fused map, still checked out
+  std::vector<ServerKeyframe*> moved;             // keyframes that entered the other map's frame
   std::vector<ServerKeyframe*> joined_primary;    // keyframes that entered the primary map
   std::optional<MapId> primary_before;            // the primary map, if it took part
 };
@@ -132,7 +133,8 @@ MapFusion FuseMapsByLoop(MapManager* maps, MapManager::Guard* query_map, MapMana
 struct LoopClosure {
   LoopEvent event;
   MapManager::Guard map;                        // the map after the correction, still checked out
-  std::vector<ServerKeyframe*> moved;           // keyframes the pose graph moved
+  // Keyframes the pose graph moved, or a fusion brought into the other map's frame.
+  std::vector<ServerKeyframe*> moved;
   std::vector<ServerKeyframe*> joined_primary;  // keyframes a fusion brought into the primary map
   std::optional<MapId> primary_before;          // the primary map, when a fusion absorbed it
 };

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <optional>
 
 #include <opencv2/core.hpp>
 
@@ -64,12 +65,17 @@ StatusOr<CameraCloud> BackProjectKeyframe(const cv::Mat& depth_mm, const cv::Mat
   const auto hi = static_cast<std::uint16_t>(hi_mm);
   const int width = camera.width, height = camera.height;
 
-  std::vector<float> x_of_u(width), y_of_v(height);
+  // The ray (x, y, 1) of each pixel: separable without distortion, a table with it (the
+  // undistorted ray of every pixel as recorded).
+  std::vector<float> x_of_u(width), y_of_v(height), y_fill(width);
   for (int u = 0; u < width; ++u) x_of_u[u] = static_cast<float>((u - camera.cx) / camera.fx);
   for (int v = 0; v < height; ++v) y_of_v[v] = static_cast<float>((v - camera.cy) / camera.fy);
-  const auto camera_point = [&](int u, int v, std::uint16_t d) {
-    const float z = d * 0.001f;
-    return Eigen::Vector3f(x_of_u[u] * z, y_of_v[v] * z, z);
+  std::optional<PixelRays> rays;
+  if (camera.HasDistortion()) rays.emplace(camera);
+  const auto ray_rows = [&](int v) -> std::pair<const float*, const float*> {
+    if (rays) return {rays->x_row(v), rays->y_row(v)};
+    std::fill(y_fill.begin(), y_fill.end(), y_of_v[v]);
+    return {x_of_u.data(), y_fill.data()};
   };
   const auto usable = [&](std::uint16_t d) {
     return static_cast<std::uint16_t>(d - lo) <= static_cast<std::uint16_t>(hi - lo);
@@ -94,7 +100,7 @@ StatusOr<CameraCloud> BackProjectKeyframe(const cv::Mat& depth_mm, const cv::Mat
     const std::uint16_t* down = v + 1 < height ? depth_mm.ptr<std::uint16_t>(v + 1) : zeros.data();
     const std::uint16_t* row = centre.data();
     std::uint8_t* row_use = use.data() + static_cast<std::size_t>(v) * width;
-    const float y = y_of_v[v];
+    const auto [xs, ys] = ray_rows(v);
     for (int u = 0; u < width; ++u) {
       const int c = row[u + 1];
       const auto step = [&](int other) {
@@ -109,7 +115,9 @@ StatusOr<CameraCloud> BackProjectKeyframe(const cv::Mat& depth_mm, const cv::Mat
       // For X = z (x, y, 1) with x = (u - cx) / fx, y = (v - cy) / fy, the normal
       // dX/du x dX/dv is parallel to n = (-gu, -gv, gu x + gv y + z) with gu = fx dz/du and
       // gv = fy dz/dv, and n . (x, y, 1) = z: cos(incidence) = z / (|n| |(x, y, 1)|).
-      const float x = x_of_u[u], z = static_cast<float>(c);
+      // With distortion (x, y) is the pixel's undistorted ray and fx, fy stand for the local
+      // scale, which distortion changes by a few percent: good enough for a 75 degree cut.
+      const float x = xs[u], y = ys[u], z = static_cast<float>(c);
       const float gu = fx * static_cast<float>(du), gv = fy * static_cast<float>(dv);
       const float nz = gu * x + gv * y + z;
       const float n2 = gu * gu + gv * gv + nz * nz;
@@ -128,9 +136,11 @@ StatusOr<CameraCloud> BackProjectKeyframe(const cv::Mat& depth_mm, const cv::Mat
     const auto* d = depth_mm.ptr<std::uint16_t>(v);
     const auto* c = bgr.ptr<std::uint8_t>(v);
     const std::uint8_t* row_use = use.data() + static_cast<std::size_t>(v) * width;
+    const auto [xs, ys] = ray_rows(v);
     for (int u = 0; u < width; ++u) {
       if (!row_use[u]) continue;
-      cloud.points[i] = camera_point(u, v, d[u]);
+      const float z = d[u] * 0.001f;
+      cloud.points[i] = Eigen::Vector3f(xs[u] * z, ys[u] * z, z);
       cloud.colors[i] = {c[3 * u + 2], c[3 * u + 1], c[3 * u]};
       ++i;
     }

@@ -1,7 +1,8 @@
 #pragma once
 
 // Back-projection of an RGB-D keyframe into a coloured point cloud in the keyframe's own
-// camera frame (the paper's eq. 8: X = Z (u - cx) / fx, Y = Z (v - cy) / fy, Z = d).
+// camera frame (the paper's eq. 8: X = Z (u - cx) / fx, Y = Z (v - cy) / fy, Z = d, with
+// (u, v) undistorted when the camera has lens distortion).
 
 #include <array>
 #include <cstdint>
@@ -46,7 +47,8 @@ struct CameraCloud {
 // (PinholeCamera::Scaled(rate) of the full-resolution camera).
 Status CheckRgbdImages(const cv::Mat& depth_mm, const cv::Mat& bgr, const PinholeCamera& camera);
 
-// Depth 0 is invalid. Uses the pinhole model without distortion (as camera.h explains).
+// Depth 0 is invalid. Pixels are those of the image as recorded: with lens distortion each is
+// back-projected along its undistorted ray (PixelRays, computed for the call).
 StatusOr<CameraCloud> BackProjectKeyframe(const cv::Mat& depth_mm, const cv::Mat& bgr,
                                           const PinholeCamera& camera,
                                           const BackProjectionOptions& options = {});

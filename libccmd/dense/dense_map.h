@@ -198,10 +198,11 @@ class DenseMap {
                    DenseFilter filter = DenseFilter::kGlobal);
   // Every stored point of one keyframe in the map frame (unfiltered), with colours and labels.
   StatusOr<PointCloud> ExtractKeyframe(const GlobalKeyframeId& id) const;
-  // The points of one keyframe in its own camera frame, with colours: with kWindow (or
-  // kGlobal) those the map uses (the window filter's, or what a compacted keyframe keeps),
-  // with kNone every stored point. The pose that places them is KeyframePoseOf.
-  StatusOr<CameraCloud> KeyframeCloud(const GlobalKeyframeId& id, DenseFilter filter = DenseFilter::kWindow) const;
+  // The points of one keyframe in its own camera frame, with colours, for a viewer that places
+  // them with the keyframe's pose (KeyframePoseOf): with kNone every stored point (what it was
+  // added with while in the filter window, what it keeps once compacted), with kWindow (or
+  // kGlobal) those the map uses.
+  StatusOr<CameraCloud> KeyframeCloud(const GlobalKeyframeId& id, DenseFilter filter = DenseFilter::kNone) const;
   // The keyframe a label names, if present.
   StatusOr<GlobalKeyframeId> FindLabel(std::uint32_t label) const;
 

@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cmath>
 
+#include <Eigen/Eigenvalues>
+
 #include "libccmd/io/tum_dataset.h"
 
 namespace ccmd {
@@ -38,14 +40,28 @@ std::vector<std::pair<std::size_t, std::size_t>> MatchByTime(const Trajectory& g
   return AssociateTimestamps(te, tg, max_difference);  // (estimate index, gt index)
 }
 
+// Standard deviation of the points along their second principal direction.
+double SecondSpread(const std::vector<Eigen::Vector3d>& points) {
+  Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+  for (const auto& p : points) mean += p;
+  mean /= static_cast<double>(points.size());
+  Eigen::Matrix3d covariance = Eigen::Matrix3d::Zero();
+  for (const auto& p : points) covariance += (p - mean) * (p - mean).transpose();
+  covariance /= static_cast<double>(points.size());
+  const Eigen::Vector3d eigenvalues = Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(covariance).eigenvalues();
+  return std::sqrt(std::max(0.0, eigenvalues(1)));  // ascending: (1) is the middle one
+}
+
 }  // namespace
 
 StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& estimate,
                                const AteOptions& options) {
   const auto matches = MatchByTime(groundtruth, estimate, options.max_time_difference);
-  if (matches.size() < 3) {
+  const bool may_use_poses = options.align && options.pose_alignment_below_spread_m > 0;
+  const std::size_t needed = options.align && !may_use_poses ? 3 : 1;
+  if (matches.size() < needed) {
     return InvalidArgument("only " + std::to_string(matches.size()) +
-                           " poses match the ground truth in time (need 3)");
+                           " poses match the ground truth in time (need " + std::to_string(needed) + ")");
   }
   std::vector<Eigen::Vector3d> est, gt;
   AteResult result;
@@ -55,7 +71,17 @@ StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& 
     result.timestamps.push_back(estimate[ie].timestamp);
   }
   if (options.align) {
-    auto alignment = AlignPoints(est, gt, options.correct_scale);
+    result.aligned_by_poses = may_use_poses && (est.size() < 3 || SecondSpread(est) < options.pose_alignment_below_spread_m);
+    std::vector<Eigen::Vector3d> est_fit = est, gt_fit = gt;
+    if (result.aligned_by_poses) {
+      for (const auto& [ie, ig] : matches) {
+        for (int axis = 0; axis < 3; ++axis) {
+          est_fit.push_back(estimate[ie].T_world_cam * (0.1 * Eigen::Vector3d::Unit(axis)));
+          gt_fit.push_back(groundtruth[ig].T_world_cam * (0.1 * Eigen::Vector3d::Unit(axis)));
+        }
+      }
+    }
+    auto alignment = AlignPoints(est_fit, gt_fit, options.correct_scale);
     if (!alignment.ok()) return alignment.status().WithContext("aligning the trajectories");
     result.alignment = *alignment;
   }

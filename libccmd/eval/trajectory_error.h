@@ -22,6 +22,12 @@ struct AteOptions {
   double max_time_difference = 0.01;  // evo's default
   bool align = true;                  // rigid alignment (-a)
   bool correct_scale = false;         // similarity alignment (-as), for monocular systems
+  // Alignment fitted to whole poses instead of positions when the positions cannot fix it:
+  // fewer than three, or spread less than this (metres, standard deviation across their main
+  // direction: points that close to a line leave the rotation about it to the noise). The fit
+  // uses each pose's centre and the points 10 cm along its three axes, so one pose is enough;
+  // the errors are still those of the centres. 0: positions only (evo's behaviour).
+  double pose_alignment_below_spread_m = 0;
 };
 
 struct AteResult {
@@ -30,6 +36,7 @@ struct AteResult {
   Similarity3 alignment;               // maps the estimate into the ground-truth frame
   std::vector<double> timestamps;      // matched estimate timestamps
   std::vector<double> errors;          // per matched pose, metres
+  bool aligned_by_poses = false;       // see AteOptions::pose_alignment_below_spread_m
 };
 
 StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& estimate,

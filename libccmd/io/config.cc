@@ -1,5 +1,6 @@
 #include "libccmd/io/config.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <opencv2/core.hpp>
@@ -59,6 +60,23 @@ StatusOr<std::string> ConfigFile::GetString(const std::string& key,
   return static_cast<std::string>(node);
 }
 
+StatusOr<std::optional<std::vector<double>>> ConfigFile::GetNumbers(const std::string& key,
+                                                                    std::size_t count) const {
+  const cv::FileNode node = (*storage_)[key];
+  if (node.empty() || node.isNone()) return std::optional<std::vector<double>>();
+  const std::string what = path_ + ": " + key;
+  if (!node.isSeq() || node.size() != count) {
+    return InvalidArgument(what + " must be a list of " + std::to_string(count) + " numbers");
+  }
+  std::vector<double> values;
+  for (const cv::FileNode& item : node) {
+    if (!item.isReal() && !item.isInt()) return InvalidArgument(what + " must hold numbers");
+    values.push_back(item.real());
+    if (!std::isfinite(values.back())) return InvalidArgument(what + " must hold finite numbers");
+  }
+  return std::optional<std::vector<double>>(std::move(values));
+}
+
 namespace {
 
 // ORB-SLAM2 uses "Camera.fx", ORB-SLAM3's newer files "Camera1.fx".
@@ -72,30 +90,51 @@ StatusOr<double> GetCameraValue(const ConfigFile& config, const std::string& nam
 
 StatusOr<PinholeCamera> ReadCamera(const ConfigFile& config) {
   PinholeCamera camera;
+  const std::string& path = config.path();
   for (const char* key : {"fx", "fy", "cx", "cy"}) {
     if (!config.Has(std::string("Camera.") + key) && !config.Has(std::string("Camera1.") + key)) {
-      return InvalidArgument(config.path() + ": Camera." + key + " is missing");
+      return InvalidArgument(path + ": Camera." + key + " is missing");
     }
   }
-  CCMD_ASSIGN_OR_RETURN(camera.fx, GetCameraValue(config, "fx", 0));
-  CCMD_ASSIGN_OR_RETURN(camera.fy, GetCameraValue(config, "fy", 0));
-  CCMD_ASSIGN_OR_RETURN(camera.cx, GetCameraValue(config, "cx", 0));
-  CCMD_ASSIGN_OR_RETURN(camera.cy, GetCameraValue(config, "cy", 0));
+  // Each value is checked where it is read, so that the message names the key.
+  auto finite = [&](const char* key, double value, bool non_zero) -> Status {
+    if (!std::isfinite(value)) return InvalidArgument(path + ": " + key + " must be a finite number");
+    if (non_zero && value == 0) return InvalidArgument(path + ": " + key + " must not be zero");
+    return Status::Ok();
+  };
+  const char* keys[4] = {"fx", "fy", "cx", "cy"};
+  double* values[4] = {&camera.fx, &camera.fy, &camera.cx, &camera.cy};
+  for (int i = 0; i < 4; ++i) {
+    CCMD_ASSIGN_OR_RETURN(*values[i], GetCameraValue(config, keys[i], 0));
+    CCMD_RETURN_IF_ERROR(finite((std::string("Camera.") + keys[i]).c_str(), *values[i], i < 2));
+  }
   CCMD_ASSIGN_OR_RETURN(camera.width, config.GetInt("Camera.width", 640));
   CCMD_ASSIGN_OR_RETURN(camera.height, config.GetInt("Camera.height", 480));
   CCMD_ASSIGN_OR_RETURN(camera.fps, config.GetDouble("Camera.fps", 30.0));
   CCMD_ASSIGN_OR_RETURN(camera.depth_map_factor, config.GetDouble("DepthMapFactor", 5000.0));
+  if (!(camera.depth_map_factor > 0) || !std::isfinite(camera.depth_map_factor)) {
+    return InvalidArgument(path + ": DepthMapFactor must be a positive finite number (units per metre)");
+  }
   const char* distortion_keys[5] = {"k1", "k2", "p1", "p2", "k3"};
   for (int i = 0; i < 5; ++i) {
     CCMD_ASSIGN_OR_RETURN(camera.distortion[i], GetCameraValue(config, distortion_keys[i], 0.0));
+    CCMD_RETURN_IF_ERROR(finite((std::string("Camera.") + distortion_keys[i]).c_str(), camera.distortion[i], false));
   }
+  CCMD_ASSIGN_OR_RETURN(const int rgb, config.GetInt("Camera.RGB", 1));
+  if (rgb != 0 && rgb != 1) return InvalidArgument(path + ": Camera.RGB must be 0 (BGR files) or 1 (RGB files)");
+  camera.rgb = rgb == 1;
   // ORB-SLAM: close points are those with depth < ThDepth * bf / fx (bf = baseline * fx).
   CCMD_ASSIGN_OR_RETURN(const double th_depth, config.GetDouble("ThDepth", 40.0));
   CCMD_ASSIGN_OR_RETURN(camera.bf, config.GetDouble("Camera.bf", 40.0));
-  if (!(camera.bf > 0)) return InvalidArgument(config.path() + ": Camera.bf must be positive");
+  if (!(camera.bf > 0) || !std::isfinite(camera.bf)) {
+    return InvalidArgument(path + ": Camera.bf must be a positive finite number");
+  }
+  if (!(th_depth > 0) || !std::isfinite(th_depth)) {
+    return InvalidArgument(path + ": ThDepth must be a positive finite number");
+  }
   camera.far_depth_m = th_depth * camera.bf / std::fabs(camera.fx);
   std::string why;
-  if (!camera.IsValid(&why)) return InvalidArgument(config.path() + ": " + why);
+  if (!camera.IsUsable(&why)) return InvalidArgument(path + ": " + why);
   return camera;
 }
 
@@ -104,7 +143,63 @@ StatusOr<PinholeCamera> LoadCameraConfig(const std::string& path) {
   return ReadCamera(config);
 }
 
-Status WriteCameraConfig(const PinholeCamera& camera, const std::string& path) {
+StatusOr<std::optional<DepthToColorCalibration>> ReadDepthToColor(const ConfigFile& config) {
+  const std::string& path = config.path();
+  if (!config.Has("Depth.fx")) return std::optional<DepthToColorCalibration>();
+  DepthToColorCalibration calibration;
+  PinholeCamera& depth = calibration.depth;
+  const char* keys[6] = {"Depth.fx", "Depth.fy", "Depth.cx", "Depth.cy", "Depth.width", "Depth.height"};
+  double values[6];
+  for (int i = 0; i < 6; ++i) {
+    if (!config.Has(keys[i])) return InvalidArgument(path + ": " + keys[i] + " is missing");
+    CCMD_ASSIGN_OR_RETURN(values[i], config.GetDouble(keys[i], 0));
+    if (!std::isfinite(values[i])) return InvalidArgument(path + ": " + keys[i] + " must be a finite number");
+  }
+  depth.fx = values[0];
+  depth.fy = values[1];
+  depth.cx = values[2];
+  depth.cy = values[3];
+  if (values[4] != std::floor(values[4]) || values[5] != std::floor(values[5])) {
+    return InvalidArgument(path + ": Depth.width and Depth.height must be whole numbers");
+  }
+  depth.width = static_cast<int>(std::clamp(values[4], -1.0, 1e6));
+  depth.height = static_cast<int>(std::clamp(values[5], -1.0, 1e6));
+  depth.depth_map_factor = 1000.0;  // registration works on millimetres
+  std::string why;
+  if (!depth.IsValid(&why)) return InvalidArgument(path + ": Depth block: " + why);
+
+  Eigen::Matrix3d R = Eigen::Matrix3d::Identity();
+  Eigen::Vector3d t = Eigen::Vector3d::Zero();
+  CCMD_ASSIGN_OR_RETURN(const auto r, config.GetNumbers("Depth.R_color_depth", 9));
+  if (r) {
+    for (int i = 0; i < 9; ++i) R(i / 3, i % 3) = (*r)[i];
+    // A calibration printed with a few decimals is only nearly orthonormal; a matrix far
+    // from a rotation is a typo (or a transposed/garbled copy).
+    if ((R * R.transpose() - Eigen::Matrix3d::Identity()).norm() > 1e-2 || R.determinant() < 0) {
+      return InvalidArgument(path + ": Depth.R_color_depth is not a rotation");
+    }
+  }
+  CCMD_ASSIGN_OR_RETURN(const auto v, config.GetNumbers("Depth.t_color_depth", 3));
+  if (v) {
+    t = Eigen::Vector3d((*v)[0], (*v)[1], (*v)[2]);
+    if (t.norm() > 1.0) {
+      return InvalidArgument(path + ": Depth.t_color_depth is " + std::to_string(t.norm()) +
+                             " m long; it is in metres");
+    }
+  }
+  calibration.T_color_depth.linear() = R;
+  calibration.T_color_depth.translation() = t;
+  calibration.T_color_depth = Orthonormalized(calibration.T_color_depth);
+  return std::optional<DepthToColorCalibration>(calibration);
+}
+
+StatusOr<std::optional<DepthToColorCalibration>> LoadDepthToColorCalibration(const std::string& path) {
+  CCMD_ASSIGN_OR_RETURN(const ConfigFile config, ConfigFile::Open(path));
+  return ReadDepthToColor(config);
+}
+
+Status WriteCameraConfig(const PinholeCamera& camera, const std::string& path,
+                         const std::optional<DepthToColorCalibration>& depth) {
   char text[1024];
   // ThDepth chosen so that ThDepth * bf / fx reproduces far_depth_m.
   std::snprintf(text, sizeof(text),
@@ -114,13 +209,27 @@ Status WriteCameraConfig(const PinholeCamera& camera, const std::string& path) {
                 "Camera.k1: %.6f\nCamera.k2: %.6f\nCamera.p1: %.6f\nCamera.p2: %.6f\n"
                 "Camera.k3: %.6f\n"
                 "Camera.width: %d\nCamera.height: %d\nCamera.fps: %.3f\n"
-                "Camera.bf: %.6f\nThDepth: %.6f\nDepthMapFactor: %.3f\nCamera.RGB: 1\n",
+                "Camera.bf: %.6f\nThDepth: %.6f\nDepthMapFactor: %.3f\nCamera.RGB: %d\n",
                 camera.fx, camera.fy, camera.cx, camera.cy, camera.distortion[0],
                 camera.distortion[1], camera.distortion[2], camera.distortion[3],
                 camera.distortion[4], camera.width, camera.height, camera.fps,
                 camera.bf, camera.far_depth_m * std::fabs(camera.fx) / camera.bf,
-                camera.depth_map_factor);
-  return WriteFileAtomic(path, text);
+                camera.depth_map_factor, camera.rgb ? 1 : 0);
+  std::string out = text;
+  if (depth) {
+    const PinholeCamera& d = depth->depth;
+    const Eigen::Matrix3d R = depth->T_color_depth.linear();
+    const Eigen::Vector3d t = depth->T_color_depth.translation();
+    std::snprintf(text, sizeof(text),
+                  "Depth.fx: %.6f\nDepth.fy: %.6f\nDepth.cx: %.6f\nDepth.cy: %.6f\n"
+                  "Depth.width: %d\nDepth.height: %d\n"
+                  "Depth.R_color_depth: [%.9f, %.9f, %.9f, %.9f, %.9f, %.9f, %.9f, %.9f, %.9f]\n"
+                  "Depth.t_color_depth: [%.9f, %.9f, %.9f]\n",
+                  d.fx, d.fy, d.cx, d.cy, d.width, d.height, R(0, 0), R(0, 1), R(0, 2), R(1, 0), R(1, 1),
+                  R(1, 2), R(2, 0), R(2, 1), R(2, 2), t.x(), t.y(), t.z());
+    out += text;
+  }
+  return WriteFileAtomic(path, out);
 }
 
 }  // namespace ccmd

@@ -6,7 +6,11 @@
 #include <memory>
 #include <string>
 
+#include <optional>
+#include <vector>
+
 #include "libccmd/geometry/camera.h"
+#include "libccmd/geometry/pose.h"
 #include "libccmd/util/status.h"
 
 namespace cv {
@@ -31,6 +35,8 @@ class ConfigFile {
   StatusOr<double> GetDouble(const std::string& key, double fallback) const;
   StatusOr<int> GetInt(const std::string& key, int fallback) const;
   StatusOr<std::string> GetString(const std::string& key, const std::string& fallback) const;
+  // A list of exactly `count` numbers at `key`, nullopt when absent.
+  StatusOr<std::optional<std::vector<double>>> GetNumbers(const std::string& key, std::size_t count) const;
 
  private:
   ConfigFile() = default;
@@ -38,13 +44,33 @@ class ConfigFile {
   std::unique_ptr<cv::FileStorage> storage_;
 };
 
-// Reads the camera block: Camera.fx/fy/cx/cy (or ORB-SLAM3's Camera1.*), Camera.width,
-// Camera.height, Camera.fps, DepthMapFactor, Camera.k1..k3/p1/p2 (kept, not applied),
-// and the far-point threshold ThDepth * Camera.bf / fx (ORB-SLAM's definition).
+// Reads the camera block: Camera.fx/fy/cx/cy (or ORB-SLAM3's Camera1.*; either focal length
+// may be negative), Camera.width, Camera.height, Camera.fps, DepthMapFactor, the distortion
+// Camera.k1 k2 p1 p2 k3, the colour order Camera.RGB, and the far-point threshold
+// ThDepth * Camera.bf / |fx| (ORB-SLAM's definition). Zero, NaN or infinite values where a
+// number must be usable are errors naming the key.
 StatusOr<PinholeCamera> ReadCamera(const ConfigFile& config);
 StatusOr<PinholeCamera> LoadCameraConfig(const std::string& path);
 
-// Writes a camera as an ORB-SLAM style YAML file (used by ccmd_synth and --record).
-Status WriteCameraConfig(const PinholeCamera& camera, const std::string& path);
+// Cameras whose depth comes from another imager than colour: the depth camera and where it
+// sits relative to the colour camera (Camera.*). Depth is registered into the colour image
+// as it is read (sensors/depth_registration.h).
+struct DepthToColorCalibration {
+  PinholeCamera depth;                    // intrinsics of the depth image, at its calibrated size
+  Pose T_color_depth = Pose::Identity();  // maps depth-camera points into the colour frame
+};
+
+// Reads the optional depth block of a camera config (the colour camera being Camera.*):
+//   Depth.fx, Depth.fy, Depth.cx, Depth.cy, Depth.width, Depth.height
+//   Depth.R_color_depth: [9 numbers, row-major]   (default identity)
+//   Depth.t_color_depth: [tx, ty, tz] in metres    (default zero)
+// Returns nullopt if the file has no Depth.fx (no registration wanted).
+StatusOr<std::optional<DepthToColorCalibration>> ReadDepthToColor(const ConfigFile& config);
+StatusOr<std::optional<DepthToColorCalibration>> LoadDepthToColorCalibration(const std::string& path);
+
+// Writes a camera (and its depth block, if given) as an ORB-SLAM style YAML file that
+// ReadCamera and ReadDepthToColor read back unchanged (used by ccmd_synth and --record).
+Status WriteCameraConfig(const PinholeCamera& camera, const std::string& path,
+                         const std::optional<DepthToColorCalibration>& depth = std::nullopt);
 
 }  // namespace ccmd

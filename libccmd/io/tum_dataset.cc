@@ -183,6 +183,14 @@ cv::Mat DepthToMillimetres(const cv::Mat& raw, double depth_map_factor) {
   return mm;
 }
 
+cv::Mat SwapRedBlue(const cv::Mat& image) {
+  if (image.channels() != 3) return image;
+  cv::Mat swapped(image.size(), image.type());
+  const int from_to[] = {0, 2, 1, 1, 2, 0};
+  cv::mixChannels(&image, 1, &swapped, 1, from_to, 3);
+  return swapped;
+}
+
 StatusOr<RgbdFrame> TumSequence::LoadFrame(std::size_t i) const {
   if (i >= frames_.size()) return OutOfRange("frame " + std::to_string(i) + " beyond the sequence");
   const TumFrameInfo& info = frames_[i];
@@ -198,6 +206,7 @@ StatusOr<RgbdFrame> TumSequence::LoadFrame(std::size_t i) const {
       return Unsupported(info.depth_path + " is not a 16-bit single-channel image");
     }
     frame.depth_mm = DepthToMillimetres(raw_depth, depth_map_factor_);
+    if (!camera_.rgb) frame.bgr = SwapRedBlue(frame.bgr);
   } catch (const cv::Exception& e) {
     return Corrupt("cannot decode frame " + std::to_string(i) + ": " + e.msg);
   }

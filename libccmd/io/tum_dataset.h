@@ -85,6 +85,10 @@ class TumSequence {
 // Converts a depth image in file units (depth_map_factor per metre) to uint16 millimetres.
 cv::Mat DepthToMillimetres(const cv::Mat& raw, double depth_map_factor);
 
+// A 3-channel image with its first and third channels exchanged (a new image): how colour
+// files of a camera with Camera.RGB: 0 are read, and how ccmd_synth writes them.
+cv::Mat SwapRedBlue(const cv::Mat& image);
+
 // Name of the shipped config that matches a dataset folder name ("rgbd_dataset_freiburg1_desk"
 // -> "tum_fr1.yaml"), or "" when the name says nothing.
 std::string GuessCameraConfigName(const std::string& folder);

@@ -50,7 +50,11 @@ StatusOr<std::unique_ptr<TumRecorder>> TumRecorder::Create(const std::string& fo
   }
   CCMD_RETURN_IF_ERROR(MakeDirectories(JoinPath(folder, "rgb")));
   CCMD_RETURN_IF_ERROR(MakeDirectories(JoinPath(folder, "depth")));
-  CCMD_RETURN_IF_ERROR(WriteCameraConfig(camera, JoinPath(folder, "camera.yaml")));
+  // Frames are recorded as the program sees them: colour in the usual channel order and
+  // depth already registered to colour, so the file says so whatever the source's config.
+  PinholeCamera written = camera;
+  written.rgb = true;
+  CCMD_RETURN_IF_ERROR(WriteCameraConfig(written, JoinPath(folder, "camera.yaml")));
 
   std::unique_ptr<TumRecorder> recorder(new TumRecorder());
   recorder->folder_ = folder;

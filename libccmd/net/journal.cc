@@ -15,6 +15,9 @@
 namespace ccmd {
 namespace {
 
+// Optional trailer of the info record: this byte, then the camera's 5 distortion coefficients.
+constexpr std::uint8_t kJournalCameraDistortion = 1;
+
 std::string Errno(const std::string& what) { return what + ": " + std::strerror(errno); }
 
 Status WriteAll(int fd, const std::uint8_t* data, std::size_t size, const std::string& path) {
@@ -172,13 +175,13 @@ std::vector<std::uint8_t> SerializeJournalInfo(const JournalAgentInfo& info) {
   w.PutU16(info.id.value());
   w.PutU8(static_cast<std::uint8_t>(info.name.size()));
   w.PutBytes(info.name.data(), info.name.size());
-  w.PutF64(info.camera.fx);
-  w.PutF64(info.camera.fy);
-  w.PutF64(info.camera.cx);
-  w.PutF64(info.camera.cy);
-  w.PutU32(info.camera.width);
-  w.PutU32(info.camera.height);
-  w.PutF64(info.camera.depth_scale);
+  PutSessionCamera(info.camera, &w);
+  // Distortion is appended only when there is some: such journals stay readable by servers
+  // that predate it, and theirs by this one.
+  if (info.camera.HasDistortion()) {
+    w.PutU8(kJournalCameraDistortion);
+    PutDistortion(info.camera, &w);
+  }
   return w.Take();
 }
 
@@ -195,13 +198,16 @@ StatusOr<JournalAgentInfo> ParseJournalInfo(ByteSpan payload) {
   info.name.assign(name.begin(), name.end());
   Status name_ok = ValidateAgentName(info.name);
   if (!name_ok.ok()) return Corrupt("journal info: " + name_ok.message());
-  CCMD_RETURN_IF_ERROR(r.ReadF64(&info.camera.fx));
-  CCMD_RETURN_IF_ERROR(r.ReadF64(&info.camera.fy));
-  CCMD_RETURN_IF_ERROR(r.ReadF64(&info.camera.cx));
-  CCMD_RETURN_IF_ERROR(r.ReadF64(&info.camera.cy));
-  CCMD_RETURN_IF_ERROR(r.ReadU32(&info.camera.width));
-  CCMD_RETURN_IF_ERROR(r.ReadU32(&info.camera.height));
-  CCMD_RETURN_IF_ERROR(r.ReadF64(&info.camera.depth_scale));
+  CCMD_RETURN_IF_ERROR(ReadSessionCamera(&r, &info.camera));
+  if (r.remaining() > 0) {
+    std::uint8_t extension;
+    CCMD_RETURN_IF_ERROR(r.ReadU8(&extension));
+    if (extension != kJournalCameraDistortion) {
+      return Corrupt("journal info: unknown camera extension " + std::to_string(extension) +
+                     " (written by a newer server?)");
+    }
+    CCMD_RETURN_IF_ERROR(ReadDistortion(&r, &info.camera));
+  }
   Status camera_ok = ValidateSessionCamera(info.camera);
   if (!camera_ok.ok()) return Corrupt("journal info: " + camera_ok.message());
   CCMD_RETURN_IF_ERROR(r.ExpectEnd());

@@ -8,6 +8,7 @@ namespace ccmd {
 namespace {
 
 constexpr std::uint8_t kHelloFresh = 1u << 0;
+constexpr std::uint8_t kHelloDistortion = 1u << 1;  // 5 x f64 follow the depth scale
 constexpr std::uint8_t kWelcomeHasProof = 1u << 0;
 constexpr std::uint32_t kMaxImageSide = 16384;
 
@@ -77,11 +78,20 @@ Status ValidateAgentName(std::string_view name) {
   return Status::Ok();
 }
 
+bool SessionCamera::HasDistortion() const {
+  return std::any_of(distortion.begin(), distortion.end(), [](double k) { return k != 0; });
+}
+
 Status ValidateSessionCamera(const SessionCamera& c) {
+  // A negative focal length is a convention (ICL-NUIM), not an error; zero or non-finite is.
   const bool finite = std::isfinite(c.fx) && std::isfinite(c.fy) && std::isfinite(c.cx) &&
                       std::isfinite(c.cy) && std::isfinite(c.depth_scale);
-  if (!finite || c.fx <= 0 || c.fy <= 0 || c.depth_scale <= 0) {
-    return InvalidArgument("camera needs finite fx, fy, depth scale > 0 and finite cx, cy");
+  if (!finite || c.fx == 0 || c.fy == 0 || c.depth_scale <= 0) {
+    return InvalidArgument("camera needs finite, non-zero fx and fy (either sign), finite cx, cy and a depth scale > 0 (" +
+                           DescribeCamera(c) + ")");
+  }
+  for (const double k : c.distortion) {
+    if (!std::isfinite(k)) return InvalidArgument("camera distortion coefficients must be finite");
   }
   if (c.width == 0 || c.height == 0 || c.width > kMaxImageSide || c.height > kMaxImageSide) {
     return InvalidArgument("camera image size must be 1.." + std::to_string(kMaxImageSide) +
@@ -94,22 +104,53 @@ std::string DescribeCamera(const SessionCamera& c) {
   char text[160];
   std::snprintf(text, sizeof(text), "fx %.3f fy %.3f cx %.3f cy %.3f %ux%u depth scale %.1f", c.fx,
                 c.fy, c.cx, c.cy, c.width, c.height, c.depth_scale);
-  return text;
+  std::string out = text;
+  if (c.HasDistortion()) {
+    std::snprintf(text, sizeof(text), " distortion %.6f %.6f %.6f %.6f %.6f", c.distortion[0], c.distortion[1],
+                  c.distortion[2], c.distortion[3], c.distortion[4]);
+    out += text;
+  }
+  return out;
+}
+
+void PutSessionCamera(const SessionCamera& c, ByteWriter* w) {
+  w->PutF64(c.fx);
+  w->PutF64(c.fy);
+  w->PutF64(c.cx);
+  w->PutF64(c.cy);
+  w->PutU32(c.width);
+  w->PutU32(c.height);
+  w->PutF64(c.depth_scale);
+}
+
+Status ReadSessionCamera(ByteReader* r, SessionCamera* c) {
+  CCMD_RETURN_IF_ERROR(r->ReadF64(&c->fx));
+  CCMD_RETURN_IF_ERROR(r->ReadF64(&c->fy));
+  CCMD_RETURN_IF_ERROR(r->ReadF64(&c->cx));
+  CCMD_RETURN_IF_ERROR(r->ReadF64(&c->cy));
+  CCMD_RETURN_IF_ERROR(r->ReadU32(&c->width));
+  CCMD_RETURN_IF_ERROR(r->ReadU32(&c->height));
+  return r->ReadF64(&c->depth_scale);
+}
+
+void PutDistortion(const SessionCamera& c, ByteWriter* w) {
+  for (const double k : c.distortion) w->PutF64(k);
+}
+
+Status ReadDistortion(ByteReader* r, SessionCamera* c) {
+  for (double& k : c->distortion) CCMD_RETURN_IF_ERROR(r->ReadF64(&k));
+  return Status::Ok();
 }
 
 std::vector<std::uint8_t> SerializeHello(const HelloMessage& m) {
   ByteWriter w(128);
   w.PutU8(m.version);
-  w.PutU8(m.fresh ? kHelloFresh : 0);
+  const bool distortion = m.camera.HasDistortion();
+  w.PutU8((m.fresh ? kHelloFresh : 0) | (distortion ? kHelloDistortion : 0));
   w.PutU8(static_cast<std::uint8_t>(m.name.size()));
   w.PutBytes(m.name.data(), m.name.size());
-  w.PutF64(m.camera.fx);
-  w.PutF64(m.camera.fy);
-  w.PutF64(m.camera.cx);
-  w.PutF64(m.camera.cy);
-  w.PutU32(m.camera.width);
-  w.PutU32(m.camera.height);
-  w.PutF64(m.camera.depth_scale);
+  PutSessionCamera(m.camera, &w);
+  if (distortion) PutDistortion(m.camera, &w);
   w.PutU64(m.first_seq);
   w.PutU64(m.next_seq);
   PutNonce(m.agent_nonce, &w);
@@ -125,7 +166,7 @@ StatusOr<HelloMessage> ParseHello(ByteSpan payload) {
                        ", this server version " + std::to_string(kProtocolVersion));
   }
   std::uint8_t flags;
-  CCMD_RETURN_IF_ERROR(ReadFlags(&r, kHelloFresh, "hello", &flags));
+  CCMD_RETURN_IF_ERROR(ReadFlags(&r, kHelloFresh | kHelloDistortion, "hello", &flags));
   m.fresh = (flags & kHelloFresh) != 0;
   std::uint8_t name_size;
   CCMD_RETURN_IF_ERROR(r.ReadU8(&name_size));
@@ -134,13 +175,8 @@ StatusOr<HelloMessage> ParseHello(ByteSpan payload) {
   m.name.assign(name.begin(), name.end());
   Status name_ok = ValidateAgentName(m.name);
   if (!name_ok.ok()) return Corrupt("hello: " + name_ok.message());
-  CCMD_RETURN_IF_ERROR(r.ReadF64(&m.camera.fx));
-  CCMD_RETURN_IF_ERROR(r.ReadF64(&m.camera.fy));
-  CCMD_RETURN_IF_ERROR(r.ReadF64(&m.camera.cx));
-  CCMD_RETURN_IF_ERROR(r.ReadF64(&m.camera.cy));
-  CCMD_RETURN_IF_ERROR(r.ReadU32(&m.camera.width));
-  CCMD_RETURN_IF_ERROR(r.ReadU32(&m.camera.height));
-  CCMD_RETURN_IF_ERROR(r.ReadF64(&m.camera.depth_scale));
+  CCMD_RETURN_IF_ERROR(ReadSessionCamera(&r, &m.camera));
+  if (flags & kHelloDistortion) CCMD_RETURN_IF_ERROR(ReadDistortion(&r, &m.camera));
   Status camera_ok = ValidateSessionCamera(m.camera);
   if (!camera_ok.ok()) return Corrupt("hello: " + camera_ok.message());
   CCMD_RETURN_IF_ERROR(r.ReadU64(&m.first_seq));

@@ -18,6 +18,7 @@
 // for another protocol version) on any malformed input and never allocate more than the
 // limits below.
 
+#include <array>
 #include <cstdint>
 #include <optional>
 #include <string>
@@ -72,16 +73,29 @@ constexpr std::size_t kDataEnvelopeBytes = 8;
 // names on the server, so nothing else is allowed.
 Status ValidateAgentName(std::string_view name);
 
-// The agent's camera as announced in Hello: pinhole intrinsics of the images it sends, and
-// the depth scale of its sensor (raw depth units per metre, e.g. 5000 for TUM files).
+// The agent's camera as announced in Hello: pinhole intrinsics of the images it sends (either
+// focal length may be negative: ICL-NUIM's rows run opposite to the camera's y axis), their
+// lens distortion k1 k2 p1 p2 k3 (keypoints arrive undistorted; the server needs it for the
+// RGB-D images, which are sent as recorded), and the depth scale of its sensor (raw depth
+// units per metre, e.g. 5000 for TUM files).
 struct SessionCamera {
   double fx = 0, fy = 0, cx = 0, cy = 0;
   std::uint32_t width = 0, height = 0;
   double depth_scale = 0;
+  std::array<double, 5> distortion{0, 0, 0, 0, 0};
   bool operator==(const SessionCamera&) const = default;
+  bool HasDistortion() const;
 };
+// Refuses zero focal lengths, a depth scale <= 0, non-finite values and sizes beyond limits.
 Status ValidateSessionCamera(const SessionCamera& camera);
 std::string DescribeCamera(const SessionCamera& camera);
+// The camera's fixed fields (fx fy cx cy, width height, depth scale) as Hello and the journal's
+// info record lay them out; distortion travels separately, only when non-zero, so that an
+// agent without it speaks exactly the protocol older servers know.
+void PutSessionCamera(const SessionCamera& camera, ByteWriter* w);
+Status ReadSessionCamera(ByteReader* r, SessionCamera* camera);
+void PutDistortion(const SessionCamera& camera, ByteWriter* w);  // 5 x f64
+Status ReadDistortion(ByteReader* r, SessionCamera* camera);
 
 struct HelloMessage {
   std::uint8_t version = kProtocolVersion;

@@ -5,91 +5,7 @@
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "libccmd/util/file_util.h"
-
 namespace ccmd {
-namespace {
-
-StatusOr<std::vector<double>> ReadNumbers(const cv::FileNode& node, std::size_t count,
-                                          const std::string& what) {
-  if (!node.isSeq() || node.size() != count) {
-    return InvalidArgument(what + " must be a list of " + std::to_string(count) + " numbers");
-  }
-  std::vector<double> values;
-  for (const cv::FileNode& item : node) {
-    if (!item.isReal() && !item.isInt()) return InvalidArgument(what + " must hold numbers");
-    values.push_back(item.real());
-  }
-  return values;
-}
-
-StatusOr<double> ReadNumber(const cv::FileStorage& file, const std::string& key,
-                            const std::optional<double>& fallback, const std::string& path) {
-  const cv::FileNode node = file[key];
-  if (node.empty() || node.isNone()) {
-    if (fallback) return *fallback;
-    return InvalidArgument(path + ": " + key + " is missing");
-  }
-  if (!node.isReal() && !node.isInt())
-    return InvalidArgument(path + ": " + key + " must be a number");
-  return node.real();
-}
-
-}  // namespace
-
-StatusOr<std::optional<DepthToColorCalibration>> LoadDepthToColorCalibration(
-    const std::string& path) {
-  if (!FileExists(path)) return NotFound("config file " + path + " does not exist");
-  cv::FileStorage file;
-  try {
-    if (!file.open(path, cv::FileStorage::READ | cv::FileStorage::FORMAT_YAML)) {
-      return Corrupt("cannot parse config file " + path);
-    }
-  } catch (const cv::Exception& e) {
-    return Corrupt("cannot parse config file " + path + ": " + e.msg);
-  }
-  if (file["Depth.fx"].empty()) return std::optional<DepthToColorCalibration>();
-
-  DepthToColorCalibration calibration;
-  PinholeCamera& depth = calibration.depth;
-  CCMD_ASSIGN_OR_RETURN(depth.fx, ReadNumber(file, "Depth.fx", std::nullopt, path));
-  CCMD_ASSIGN_OR_RETURN(depth.fy, ReadNumber(file, "Depth.fy", std::nullopt, path));
-  CCMD_ASSIGN_OR_RETURN(depth.cx, ReadNumber(file, "Depth.cx", std::nullopt, path));
-  CCMD_ASSIGN_OR_RETURN(depth.cy, ReadNumber(file, "Depth.cy", std::nullopt, path));
-  CCMD_ASSIGN_OR_RETURN(const double width, ReadNumber(file, "Depth.width", std::nullopt, path));
-  CCMD_ASSIGN_OR_RETURN(const double height, ReadNumber(file, "Depth.height", std::nullopt, path));
-  depth.width = static_cast<int>(width);
-  depth.height = static_cast<int>(height);
-  depth.depth_map_factor = 1000.0;
-  std::string why;
-  if (!depth.IsValid(&why)) return InvalidArgument(path + ": Depth block: " + why);
-
-  Eigen::Matrix3d R = Eigen::Matrix3d::Identity();
-  Eigen::Vector3d t = Eigen::Vector3d::Zero();
-  if (!file["Depth.R_color_depth"].empty()) {
-    CCMD_ASSIGN_OR_RETURN(
-        const auto r, ReadNumbers(file["Depth.R_color_depth"], 9, path + ": Depth.R_color_depth"));
-    for (int i = 0; i < 9; ++i) R(i / 3, i % 3) = r[i];
-    // A calibration printed with a few decimals is only nearly orthonormal; a matrix far
-    // from a rotation is a typo (or a transposed/garbled copy).
-    if ((R * R.transpose() - Eigen::Matrix3d::Identity()).norm() > 1e-2 || R.determinant() < 0) {
-      return InvalidArgument(path + ": Depth.R_color_depth is not a rotation");
-    }
-  }
-  if (!file["Depth.t_color_depth"].empty()) {
-    CCMD_ASSIGN_OR_RETURN(
-        const auto v, ReadNumbers(file["Depth.t_color_depth"], 3, path + ": Depth.t_color_depth"));
-    t = Eigen::Vector3d(v[0], v[1], v[2]);
-    if (t.norm() > 1.0) {
-      return InvalidArgument(path + ": Depth.t_color_depth is " + std::to_string(t.norm()) +
-                             " m long; it is in metres");
-    }
-  }
-  calibration.T_color_depth.linear() = R;
-  calibration.T_color_depth.translation() = t;
-  calibration.T_color_depth = Orthonormalized(calibration.T_color_depth);
-  return std::optional<DepthToColorCalibration>(calibration);
-}
 
 StatusOr<cv::Mat> RegisterDepth(const cv::Mat& depth_mm, const DepthToColorCalibration& calibration,
                                 const PinholeCamera& color_camera) {
@@ -114,9 +30,11 @@ cv::Mat RegisterDepthToColor(const cv::Mat& depth_mm, const PinholeCamera& depth
   // per-pixel work is a few multiply-adds: R z (ray +- half) + t.
   const Eigen::Vector3d half = R * Eigen::Vector3d(0.5 / depth_camera.fx, 0.5 / depth_camera.fy, 0);
   const Eigen::Vector3d column_step = R * Eigen::Vector3d(1.0 / depth_camera.fx, 0, 0);
+  const bool distorted = color_camera.HasDistortion();
   auto project = [&](const Eigen::Vector3d& p) {
-    return Eigen::Vector2d(color_camera.fx * p.x() / p.z() + color_camera.cx,
-                           color_camera.fy * p.y() / p.z() + color_camera.cy);
+    const Eigen::Vector2d ideal(color_camera.fx * p.x() / p.z() + color_camera.cx,
+                                color_camera.fy * p.y() / p.z() + color_camera.cy);
+    return distorted ? color_camera.DistortPixel(ideal) : ideal;
   };
   for (int v = 0; v < depth_mm.rows; ++v) {
     const std::uint16_t* row = depth_mm.ptr<std::uint16_t>(v);

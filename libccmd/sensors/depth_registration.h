@@ -18,25 +18,15 @@
 
 #include "libccmd/geometry/camera.h"
 #include "libccmd/geometry/pose.h"
+#include "libccmd/io/config.h"  // DepthToColorCalibration and its loader
 #include "libccmd/util/status.h"
 
 namespace ccmd {
 
-struct DepthToColorCalibration {
-  PinholeCamera depth;                    // intrinsics of the depth image, at its calibrated size
-  Pose T_color_depth = Pose::Identity();  // maps depth-camera points into the colour frame
-};
-
-// Reads the optional depth block of a camera config (the colour camera being Camera.*):
-//   Depth.fx, Depth.fy, Depth.cx, Depth.cy, Depth.width, Depth.height
-//   Depth.R_color_depth: [9 numbers, row-major]   (default identity)
-//   Depth.t_color_depth: [tx, ty, tz] in metres    (default zero)
-// Returns nullopt if the file has no Depth.fx (no registration wanted).
-StatusOr<std::optional<DepthToColorCalibration>> LoadDepthToColorCalibration(
-    const std::string& path);
-
 // Depth (uint16 mm) seen from `color` (intrinsics at the output size). Depth pixels whose
 // footprint would cover more than `max_footprint` pixels (grazing surfaces) are skipped.
+// The output is the colour image as recorded: with colour distortion, depth lands on the
+// raw (distorted) colour pixel, where features are detected and depth is looked up.
 cv::Mat RegisterDepthToColor(const cv::Mat& depth_mm, const PinholeCamera& depth_camera,
                              const PinholeCamera& color_camera, const Pose& T_color_depth,
                              int max_footprint = 8);

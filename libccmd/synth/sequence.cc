@@ -10,6 +10,7 @@
 #include <thread>
 
 #include "libccmd/io/config.h"
+#include "libccmd/io/tum_dataset.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/random.h"
 #include "libccmd/util/timer.h"
@@ -52,6 +53,10 @@ PinholeCamera SyntheticCamera(int width, int height) {
   return base.Resized(width, height);
 }
 
+PinholeCamera SequenceCamera(const SyntheticSequenceOptions& options) {
+  return options.camera ? *options.camera : SyntheticCamera(options.width, options.height);
+}
+
 RenderOptions FrameRenderOptions(const SyntheticSequenceOptions& options, int index) {
   RenderOptions render;
   render.noise = options.noise;
@@ -78,7 +83,35 @@ std::string DescribeOptions(const SyntheticSequenceOptions& o) {
     << o.noise_scale << "\nsurface_spacing " << o.surface_spacing << "\nroom " << o.room.size_x
     << " x " << o.room.size_y << " x " << o.room.height << "\nloop_period_s "
     << o.path.loop_period_s << "\n";
+  if (o.camera) s << "camera " << o.camera->ToString() << "\n";
+  if (o.depth_camera) {
+    const Eigen::Vector3d t = o.depth_camera->T_color_depth.translation();
+    s << "depth_camera " << o.depth_camera->depth.ToString() << " at (" << t.x() << ", " << t.y() << ", "
+      << t.z() << ") m in the colour frame\n";
+  }
   return s.str();
+}
+
+// One frame as the camera records it: colour in the file's channel order, depth from the
+// depth imager when there is one, in file units.
+struct RecordedFrame {
+  cv::Mat colour, depth;
+};
+
+RecordedFrame RenderRecordedFrame(const SyntheticScene& scene, const SyntheticSequenceOptions& options,
+                                  const PinholeCamera& camera, const Pose& T_world_cam, int index,
+                                  VisibilityMarks* marks) {
+  const RenderOptions render = FrameRenderOptions(options, index);
+  const RenderedFrame frame = RenderFrame(scene, camera, T_world_cam, render, marks);
+  RecordedFrame out;
+  out.colour = camera.rgb ? frame.bgr : SwapRedBlue(frame.bgr);
+  cv::Mat depth_mm = frame.depth_mm;
+  if (options.depth_camera) {
+    const Pose T_world_depth = T_world_cam * options.depth_camera->T_color_depth;
+    depth_mm = RenderFrame(scene, options.depth_camera->depth, T_world_depth, render).depth_mm;
+  }
+  depth_mm.convertTo(out.depth, CV_16U, camera.depth_map_factor / 1000.0);
+  return out;
 }
 
 }  // namespace
@@ -87,10 +120,18 @@ StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
     const std::string& folder, const SyntheticSequenceOptions& options,
     const std::function<void(int, int)>& progress) {
   if (options.frames < 1) return InvalidArgument("frames must be at least 1");
-  if (options.width < 32 || options.height < 24 || options.width > 4096 || options.height > 4096) {
+  std::string why;
+  if (options.camera && !options.camera->IsUsable(&why)) return InvalidArgument("camera: " + why);
+  if (options.depth_camera && !options.depth_camera->depth.IsValid(&why)) {
+    return InvalidArgument("depth camera: " + why);
+  }
+  if (!options.camera &&
+      (options.width < 32 || options.height < 24 || options.width > 4096 || options.height > 4096)) {
     return InvalidArgument("image size must be between 32x24 and 4096x4096");
   }
-  if (!(options.fps > 0)) return InvalidArgument("fps must be positive");
+  const PinholeCamera camera = SequenceCamera(options);
+  const double fps = options.camera ? camera.fps : options.fps;
+  if (!(fps > 0)) return InvalidArgument("fps must be positive");
   if (!(options.surface_spacing >= 0.002)) return InvalidArgument("surface spacing below 2 mm");
   const Stopwatch total;
   CCMD_RETURN_IF_ERROR(MakeDirectories(JoinPath(folder, "rgb")));
@@ -99,8 +140,7 @@ StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
   RoomSceneOptions room = options.room;
   room.seed = options.seed;
   const SyntheticScene scene = SyntheticScene::MakeRoom(room);
-  const PinholeCamera camera = SyntheticCamera(options.width, options.height);
-  const Trajectory path = MakeLoopPath(options.frames, options.fps, options.path);
+  const Trajectory path = MakeLoopPath(options.frames, fps, options.path);
 
   const int threads = options.threads > 0
                           ? options.threads
@@ -116,18 +156,15 @@ StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
       const int i = next++;
       if (i >= options.frames) break;
       const Stopwatch watch;
-      const RenderedFrame frame =
-          RenderFrame(scene, camera, path[i].T_world_cam, FrameRenderOptions(options, i), &marks[id]);
+      const RecordedFrame frame = RenderRecordedFrame(scene, options, camera, path[i].T_world_cam, i, &marks[id]);
       double expected = render_seconds.load();
       while (!render_seconds.compare_exchange_weak(expected, expected + watch.ElapsedSeconds())) {
       }
       const std::string name = FormatTimestamp(path[i].timestamp) + ".png";
-      cv::Mat depth_file;
-      frame.depth_mm.convertTo(depth_file, CV_16U, camera.depth_map_factor / 1000.0);
       bool ok = false;
       try {
-        ok = cv::imwrite(JoinPath(folder, "rgb/" + name), frame.bgr) &&
-             cv::imwrite(JoinPath(folder, "depth/" + name), depth_file);
+        ok = cv::imwrite(JoinPath(folder, "rgb/" + name), frame.colour) &&
+             cv::imwrite(JoinPath(folder, "depth/" + name), frame.depth);
       } catch (const cv::Exception&) {
         ok = false;
       }
@@ -160,7 +197,7 @@ StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
   CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "depth.txt"), depth_list));
   CCMD_RETURN_IF_ERROR(WriteTumTrajectory(path, JoinPath(folder, "groundtruth.txt"),
                                           "ground truth of the colour camera, T_world_cam"));
-  CCMD_RETURN_IF_ERROR(WriteCameraConfig(camera, JoinPath(folder, "camera.yaml")));
+  CCMD_RETURN_IF_ERROR(WriteCameraConfig(camera, JoinPath(folder, "camera.yaml"), options.depth_camera));
   CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "sequence.txt"), DescribeOptions(options)));
 
   VisibilityMarks seen = marks[0];

@@ -5,9 +5,11 @@
 
 #include <cstdint>
 #include <functional>
+#include <optional>
 #include <string>
 
 #include "libccmd/geometry/camera.h"
+#include "libccmd/io/config.h"
 #include "libccmd/io/trajectory.h"
 #include "libccmd/synth/renderer.h"
 #include "libccmd/synth/scene.h"
@@ -42,6 +44,13 @@ struct SyntheticSequenceOptions {
   int width = 640;
   int height = 480;
   double fps = 30.0;
+  // Render through this camera instead of SyntheticCamera(width, height): its size, focal
+  // lengths (either sign), distortion, frame rate, depth scale and colour order, as that
+  // camera would record (width, height and fps above are then ignored).
+  std::optional<PinholeCamera> camera;
+  // A separate depth imager (a config's Depth block): depth images are rendered from it, at
+  // its size and pose relative to the colour camera, and readers register them to colour.
+  std::optional<DepthToColorCalibration> depth_camera;
   std::uint64_t seed = 1;
   bool noise = true;
   double noise_scale = 1.0;       // multiplies depth sigma and colour noise
@@ -58,9 +67,13 @@ struct SyntheticSequenceSummary {
   double render_ms_per_frame = 0;
 };
 
-// Writes rgb/ and depth/ (16-bit PNG, 5000 per metre), rgb.txt, depth.txt, groundtruth.txt,
-// camera.yaml, surface.ply (the ground-truth surface seen by the sequence, with normals) and
-// sequence.txt (the options used). `progress(done, total)` is called from the writer thread.
+// The camera a sequence with these options is rendered through.
+PinholeCamera SequenceCamera(const SyntheticSequenceOptions& options);
+
+// Writes rgb/ and depth/ (16-bit PNG at the camera's DepthMapFactor, 5000 per metre by
+// default), rgb.txt, depth.txt, groundtruth.txt (the colour camera's poses), camera.yaml,
+// surface.ply (the ground-truth surface seen by the sequence, with normals) and sequence.txt
+// (the options used). `progress(done, total)` is called from the writer thread.
 StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
     const std::string& folder, const SyntheticSequenceOptions& options,
     const std::function<void(int, int)>& progress = nullptr);

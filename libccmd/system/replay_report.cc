@@ -4,10 +4,13 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <limits>
+#include <map>
 #include <opencv2/imgproc.hpp>
 #include <sstream>
 
 #include "libccmd/dense/dense_map.h"
+#include "libccmd/eval/map_picture.h"
 #include "libccmd/eval/plot.h"
 #include "libccmd/eval/reconstruction_error.h"
 #include "libccmd/eval/trajectory_error.h"
@@ -148,6 +151,76 @@ PlotSeries Projected(const Trajectory& t, const Eigen::Matrix<double, 2, 3>& P, 
   return s;
 }
 
+// Which map each agent's keyframes ended in, from server_stats.json ("agent_maps"; runs
+// written before it only say how many maps there were).
+struct MapMembership {
+  int primary = -1;
+  std::map<std::string, int> map_of;
+
+  bool InPrimary(const std::string& agent) const {
+    const auto it = map_of.find(agent);
+    return it != map_of.end() && it->second == primary;
+  }
+  std::vector<std::string> PrimaryAgents() const {
+    std::vector<std::string> names;
+    for (const auto& [name, map] : map_of) {
+      if (map == primary) names.push_back(name);
+    }
+    return names;
+  }
+};
+
+MapMembership ReadMembership(const Json& stats, int agents) {
+  MapMembership m;
+  m.primary = static_cast<int>(Num(&stats, "primary_map", -1));
+  if (const Json* maps = stats.Get("agent_maps")) {
+    for (int i = 1; i <= agents; ++i) {
+      const std::string name = "agent" + std::to_string(i);
+      if (maps->Has(name)) m.map_of[name] = static_cast<int>(Num(maps, name));
+    }
+  } else if (Num(stats.Get("backend"), "maps", -1) == 1) {
+    for (int i = 1; i <= agents; ++i) m.map_of["agent" + std::to_string(i)] = m.primary;
+  }
+  return m;
+}
+
+// The ATE of one map's keyframes (in that map's frame), aligned by positions as evo does. Maps
+// of one or two keyframes, or of keyframes within a centimetre of a line (agents that did not
+// fuse often have such maps), are aligned by the keyframes' whole poses instead: positions
+// cannot fix the rotation there, and the dense map would be tilted with it.
+std::optional<AteResult> MapAte(const Trajectory& gt, const Trajectory& keyframes) {
+  if (gt.empty() || keyframes.empty()) return std::nullopt;
+  AteOptions options;
+  options.pose_alignment_below_spread_m = 0.01;
+  auto ate = ComputeAte(gt, keyframes, options);
+  if (!ate.ok()) return std::nullopt;
+  return *ate;
+}
+
+std::string JoinNames(const std::vector<std::string>& names) {
+  std::string out;
+  for (const std::string& n : names) out += (out.empty() ? "" : ", ") + n;
+  return out.empty() ? "none" : out;
+}
+
+// plots/map_top.png and plots/map_view.png, drawn from the server's map.ply (in its own world
+// frame, up from its keyframes); agents coloured as in the other plots. False without a map.
+bool WriteMapPlots(const std::string& server_dir, const std::string& plots_dir, const Json& server_stats,
+                   int agents) {
+  auto map = ReadPly(JoinPath(server_dir, "map.ply"));
+  if (!map.ok() || map->size() == 0) return false;
+  auto cameras = ReadTumTrajectory(JoinPath(server_dir, "trajectory_fused.txt"));
+  MapPictureOptions options;
+  const Json* ids = server_stats.Get("agent_ids");
+  for (int i = 1; i <= agents; ++i) {
+    const std::string name = "agent" + std::to_string(i);
+    if (ids && ids->Get(name)) options.agents[static_cast<int>(ids->Get(name)->number())] = {name, SeriesColor(i - 1)};
+  }
+  const Status s = WriteMapPictures(*map, cameras.ok() ? *cameras : Trajectory{}, options, plots_dir);
+  if (!s.ok()) CCMD_LOG(WARNING) << "map pictures: " << s.ToString();
+  return s.ok();
+}
+
 }  // namespace
 
 StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dataset, const ReplayRunInfo& info,
@@ -168,21 +241,32 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   results["fusions"] = Num(backend, "fusions");
   results["global_ba_runs"] = Num(backend, "global_ba_runs");
 
-  // Trajectories.
+  // Trajectories: the agents' own odometry, then the primary map's keyframes (every agent's
+  // when all fused; otherwise those of the agents in it, named in the results).
+  const MapMembership membership = ReadMembership(server_stats, info.agents);
+  const std::vector<std::string> primary_agents = membership.PrimaryAgents();
+  Json primary_names = Json::MakeArray();
+  for (const std::string& n : primary_agents) primary_names.Push(n);
+  results["primary_map_agents"] = primary_names;
+  results["all_maps_fused"] = results["maps_after_fusion"].number() == 1;
   std::optional<AteResult> fused_ate;
-  Trajectory fused;
-  if (!gt.empty()) {
-    auto read = ReadTumTrajectory(JoinPath(server_dir, "trajectory_fused.txt"));
-    if (read.ok()) {
-      fused = *read;
-      auto ate = ComputeAte(gt, fused);
-      if (ate.ok()) {
-        fused_ate = *ate;
-        results["ate_rmse_m"] = ate->error.rmse;
-        results["ate_mean_m"] = ate->error.mean;
-        results["ate_max_m"] = ate->error.max;
-        results["fused_keyframes"] = ate->matched;
-      }
+  auto read_fused = ReadTumTrajectory(JoinPath(server_dir, "trajectory_fused.txt"));
+  // The dense map is put in the ground truth's frame by the alignment fitted to the keyframes'
+  // whole poses: on a short or nearly straight path, positions leave the rotation to the
+  // noise (a degree tilts the map by 3-5 cm at the room's walls); on a long one both agree.
+  std::optional<Similarity3> map_alignment;
+  if (read_fused.ok()) {
+    AteOptions by_poses;
+    by_poses.pose_alignment_below_spread_m = std::numeric_limits<double>::infinity();
+    auto posed = ComputeAte(gt, *read_fused, by_poses);
+    if (posed.ok()) map_alignment = posed->alignment;
+    fused_ate = MapAte(gt, *read_fused);
+    if (fused_ate) {
+      results["ate_rmse_m"] = fused_ate->error.rmse;
+      results["ate_mean_m"] = fused_ate->error.mean;
+      results["ate_max_m"] = fused_ate->error.max;
+      results["fused_keyframes"] = fused_ate->matched;
+      results["ate_aligned_by"] = fused_ate->aligned_by_poses ? "poses" : "positions";
     }
   }
   Json agents = Json::MakeArray();
@@ -202,9 +286,10 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
     }
     auto t = ReadTumTrajectory(JoinPath(server_dir, "trajectory_" + name + ".txt"));
     agent_trajectories.push_back(t.ok() ? *t : Trajectory{});
-    if (t.ok() && !gt.empty()) {
-      auto ate = ComputeAte(gt, *t);
-      if (ate.ok()) a["ate_rmse_m"] = ate->error.rmse;
+    a["in_primary_map"] = membership.InPrimary(name);
+    if (t.ok()) {
+      const auto ate = MapAte(gt, *t);
+      if (ate) a["ate_rmse_m"] = ate->error.rmse;
     }
     auto frames = ReadTumTrajectory(JoinPath(run_dir, "agents/" + name + "_frames.txt"));
     if (frames.ok() && !gt.empty()) {
@@ -291,6 +376,15 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
     results["server_max_rss_mb"] = p.max_rss_mb;
     results["server_peak_rss_mb"] = p.max_rss_mb;  // the name ccmd_load reports it under
   }
+  Json memory = Json::MakeArray();
+  for (const auto& [t, keyframes, rss_mb] : info.server_memory) {
+    Json sample;
+    sample["t_s"] = t;
+    sample["keyframes"] = keyframes;
+    sample["rss_mb"] = rss_mb;
+    memory.Push(sample);
+  }
+  results["server_memory"] = memory;
   const double k = std::max(1.0, keyframes_total);
   Json kinds = Json::MakeArray();
   const std::vector<std::tuple<std::string, double, double>> per_kind = {
@@ -317,12 +411,17 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
 
   // Reconstruction error of the dense map, in the ground truth's frame.
   const std::string map_path = JoinPath(server_dir, "map.ply");
-  if (FileExists(map_path) && fused_ate) {
+  if (FileExists(map_path) && map_alignment) {
     std::string source;
     auto ref = LoadOrBuildReference(dataset, reference, &source);
     auto rec = ReadPly(map_path);
+    // A reference built here is kept, so that the map can be compared again (ccmd_eval recon).
+    if (ref.ok() && reference.reference_ply.empty() && !FileExists(JoinPath(dataset.folder(), "surface.ply"))) {
+      const Status kept = WritePly(*ref, JoinPath(run_dir, "reference.ply"));
+      if (!kept.ok()) CCMD_LOG(WARNING) << kept.ToString();
+    }
     if (ref.ok() && rec.ok() && rec->size() > 0) {
-      for (auto& p : rec->points) p = (fused_ate->alignment * p.cast<double>()).cast<float>();
+      for (auto& p : rec->points) p = (*map_alignment * p.cast<double>()).cast<float>();
       auto error = ComputeReconstructionError(*ref, *rec);
       if (error.ok()) {
         results["recon_mean_m"] = error->mean;
@@ -342,6 +441,7 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   }
 
   // Plots.
+  const bool map_plots = WriteMapPlots(server_dir, plots_dir, server_stats, info.agents);
   if (!gt.empty()) {
     const auto P = ViewPlane(gt);
     std::vector<PlotSeries> series = {Projected(gt, P, "ground truth", cv::Scalar(160, 160, 160), 4)};
@@ -409,6 +509,20 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
     o.y_label = "% of one core";
     WritePng(PlotLines(series, o), JoinPath(plots_dir, "cpu.png")).IgnoreError();
   }
+  if (!info.server_memory.empty()) {
+    PlotSeries s;
+    s.label = "server";
+    s.color = cv::Scalar(0, 0, 0);
+    for (const auto& [t, keyframes, rss_mb] : info.server_memory) {
+      s.x.push_back(keyframes);
+      s.y.push_back(rss_mb);
+    }
+    PlotOptions o;
+    o.title = "Server resident memory";
+    o.x_label = "keyframes in the server's maps";
+    o.y_label = "MB";
+    WritePng(PlotLines({s}, o), JoinPath(plots_dir, "server_memory.png")).IgnoreError();
+  }
 
   // report.md
   std::ostringstream md;
@@ -420,17 +534,35 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   md << "\n## Maps and trajectories\n\n";
   md << "Maps left after fusion: " << results["maps_after_fusion"].number() << " (loops " << results["loops"].number()
      << ", fusions " << results["fusions"].number() << ", global BA runs " << results["global_ba_runs"].number() << ")\n\n";
-  md << "| agent | frames | server keyframes | ATE RMSE (server, m) | ATE RMSE (agent odometry, m) | lost frames |\n|---|---|---|---|---|---|\n";
+  if (results["maps_after_fusion"].number() > 1) {
+    std::vector<std::string> others;
+    for (int i = 1; i <= info.agents; ++i) {
+      if (!membership.InPrimary("agent" + std::to_string(i))) others.push_back("agent" + std::to_string(i));
+    }
+    md << "**Not every map fused.** The fused trajectory and the dense map below are the primary map's, which holds "
+       << JoinNames(primary_agents) << "; " << JoinNames(others)
+       << " kept their own maps: their server ATE in the table is in their own map's frame.\n\n";
+  }
+  md << "| agent | frames | map | server keyframes | ATE RMSE (server, m) | ATE RMSE (agent odometry, m) | lost frames |\n"
+        "|---|---|---|---|---|---|---|\n";
   for (const Json& a : agents.array()) {
     md << "| " << a.Get("name")->string() << " | " << Num(&a, "first_frame") << "-" << Num(&a, "last_frame") << " | "
+       << (a.Get("in_primary_map")->boolean() ? "primary" : "own") << " | "
        << Num(&a, "keyframes") << " | " << (a.Has("ate_rmse_m") ? Fmt("%.4f", Num(&a, "ate_rmse_m")) : "-") << " | "
        << (a.Has("agent_frames_ate_rmse_m") ? Fmt("%.4f", Num(&a, "agent_frames_ate_rmse_m")) : "-") << " | "
        << Num(&a, "lost_frames") << " |\n";
   }
   if (results.Has("ate_rmse_m")) {
-    md << "\nFused trajectory (every keyframe of the primary map): ATE RMSE **" << Fmt("%.4f", results["ate_rmse_m"].number())
-       << " m** over " << results["fused_keyframes"].number() << " keyframes (max " << Fmt("%.4f", results["ate_max_m"].number())
-       << " m).\n";
+    md << "\nFused trajectory (every keyframe of the primary map: " << JoinNames(primary_agents) << "): ATE RMSE **"
+       << Fmt("%.4f", results["ate_rmse_m"].number()) << " m** over " << results["fused_keyframes"].number()
+       << " keyframes (max " << Fmt("%.4f", results["ate_max_m"].number()) << " m)"
+       << (results["ate_aligned_by"].string() == "poses"
+               ? ", aligned by whole keyframe poses: too few keyframes, or all within a centimetre of a line, to "
+                 "align by positions"
+               : "")
+       << ".\n";
+  } else {
+    md << "\nNo fused ATE: the primary map has no keyframe matching the ground truth.\n";
   }
   md << "\n![trajectories](plots/trajectories.png)\n\n## Dense map\n\n";
   if (results.Has("recon_mean_m")) {
@@ -439,10 +571,13 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
        << Fmt("%.4f", results["recon_median_m"].number()) << " | " << Fmt("%.4f", results["recon_p95_m"].number()) << " | "
        << Fmt("%.4f", results["recon_hausdorff_m"].number()) << " | "
        << Fmt("%.1f%%", 100 * results["recon_completeness"].number()) << " |\n\n";
-    md << "Reference: " << results["reference"].string() << " (" << results["reference_points"].number() << " points).\n";
+    md << "Reference: " << results["reference"].string() << " (" << results["reference_points"].number()
+       << " points). The map is aligned to it by the fit of the primary map's keyframe poses (centres and "
+          "orientations) to the ground truth.\n";
   } else {
     md << "No dense map or no reference to compare with.\n";
   }
+  if (map_plots) md << "\n![dense map, top view](plots/map_top.png)\n\n![dense map, perspective](plots/map_view.png)\n";
   md << "\n## Bandwidth\n\n| agent | ATPS (kB/s) | AKFS (kB) | AKFR (Hz) | keyframes with RGB-D | bytes |\n|---|---|---|---|---|---|\n";
   for (const Json& a : agents.array()) {
     md << "| " << a.Get("name")->string() << " | " << Fmt("%.1f", Num(&a, "atps_kBps")) << " | " << Fmt("%.1f", Num(&a, "akfs_kB"))

@@ -1,7 +1,9 @@
 #include "libccmd/system/server_runtime.h"
 
 #include <algorithm>
+#include <cmath>
 
+#include "libccmd/net/session_camera.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/process_usage.h"
@@ -9,34 +11,11 @@
 
 namespace ccmd {
 
-PinholeCamera CameraFromSession(const SessionCamera& s) {
-  PinholeCamera c;
-  c.fx = s.fx;
-  c.fy = s.fy;
-  c.cx = s.cx;
-  c.cy = s.cy;
-  c.width = static_cast<int>(s.width);
-  c.height = static_cast<int>(s.height);
-  if (s.depth_scale > 0) c.depth_map_factor = s.depth_scale;
-  return c;
-}
-
-SessionCamera SessionFromCamera(const PinholeCamera& c) {
-  SessionCamera s;
-  s.fx = c.fx;
-  s.fy = c.fy;
-  s.cx = c.cx;
-  s.cy = c.cy;
-  s.width = static_cast<std::uint32_t>(c.width);
-  s.height = static_cast<std::uint32_t>(c.height);
-  s.depth_scale = c.depth_map_factor;
-  return s;
-}
-
 StatusOr<std::unique_ptr<ServerRuntime>> ServerRuntime::Create(const ServerRuntimeOptions& options) {
   if (options.output_dir.empty()) return InvalidArgument("the server needs an output folder");
   CCMD_RETURN_IF_ERROR(options.net.Validate());
   CCMD_RETURN_IF_ERROR(options.backend.Validate());
+  if (options.view) CCMD_RETURN_IF_ERROR(options.view->Validate());
   CCMD_RETURN_IF_ERROR(MakeDirectories(options.output_dir));
   return std::unique_ptr<ServerRuntime>(new ServerRuntime(options));
 }
@@ -44,13 +23,15 @@ StatusOr<std::unique_ptr<ServerRuntime>> ServerRuntime::Create(const ServerRunti
 ServerRuntime::~ServerRuntime() { Stop().IgnoreError(); }
 
 Status ServerRuntime::Start() {
-  CCMD_ASSIGN_OR_RETURN(backend_, Backend::Create(options_.backend));
+  if (options_.view) view_model_ = std::make_unique<ViewModel>();
+  CCMD_ASSIGN_OR_RETURN(backend_, Backend::Create(options_.backend, view_model_.get()));
   if (backend_->dense()) {
     SnapshotOptions snapshot;
     snapshot.folder = JoinPath(options_.output_dir, "snapshots");
     snapshot.period_s = options_.snapshot_period_s;
     snapshots_ = std::make_unique<DenseSnapshotWriter>(backend_->dense(), snapshot);
   }
+  CCMD_RETURN_IF_ERROR(StartView());
   server_ = std::make_unique<Server>(options_.net, this);
   return server_->Start();
 }
@@ -84,7 +65,7 @@ void ServerRuntime::OnMessage(DeliveredMessage m) {
   } else if (m.type == static_cast<std::uint8_t>(MessageType::kPoseUpdate)) {
     auto update = ParsePoseUpdate(m.payload);
     if (update.ok()) {
-      backend_->SubmitPoseUpdate(m.agent, std::move(update).value()).IgnoreError();
+      backend_->SubmitPoseUpdate(m.agent, std::move(update).value(), m.received_time).IgnoreError();
       return;
     }
     CCMD_LOG(WARNING) << "agent " << m.agent << " message " << m.seq << ": " << update.status().ToString();
@@ -102,16 +83,20 @@ Json ServerRuntime::StatsJson() {
   Json j;
   if (server_) j["transport"] = server_->StatsJson();
   if (backend_) j["backend"] = backend_->StatsJson();
-  Json agents;
+  Json agents, agent_maps;
   {
     std::lock_guard<std::mutex> lock(names_mutex_);
     for (const auto& [id, name] : names_) {
       agents[name] = Json(static_cast<int>(id.value()));
+      // Which map each agent's keyframes are in: the evaluation names the primary map's agents.
+      const auto map = backend_ ? backend_->MapOf(id) : std::nullopt;
+      if (map) agent_maps[name] = Json(static_cast<int>(map->value()));
     }
   }
   j["agent_ids"] = agents;
+  j["agent_maps"] = agent_maps;
   if (backend_ && backend_->PrimaryMap()) j["primary_map"] = static_cast<int>(backend_->PrimaryMap()->value());
-  j["malformed_messages"] = malformed_messages_;
+  j["malformed_messages"] = malformed_messages_.load();
   const ProcessUsage usage = CurrentProcessUsage();
   Json process;
   process["rss_mb"] = usage.rss_mb;
@@ -177,11 +162,93 @@ Status ServerRuntime::Stop() {
   if (stopped_) return Status::Ok();
   stopped_ = true;
   if (server_) server_->Stop();  // everything received is delivered to the back-end
-  if (!backend_) return Status::Ok();
+  if (!backend_) {
+    if (view_) view_->Stop();
+    return Status::Ok();
+  }
   backend_->WaitIdle();
   const Status results = WriteResults();
+  if (view_) view_->Stop();  // browsers see the final map, then "server gone"
   backend_->Shutdown();
   return results;
+}
+
+// ---------------------------------------------------------------- live map view
+
+Status ServerRuntime::StartView() {
+  if (!options_.view) return Status::Ok();
+  auto view = ViewServer::Start(*options_.view, view_model_.get(), backend_->dense(),
+                                [this] { return CollectViewStats(); });
+  if (!view.ok()) return view.status();
+  view_ = std::move(view).value();
+  return Status::Ok();
+}
+
+namespace {
+
+// One agent's traffic from the transport's statistics (TrafficStats::ToJson).
+void FillTraffic(const Json& agent, double uptime_s, double bucket_s, ViewAgentStats* stats) {
+  auto num = [](const Json* j, const char* key) { return j && j->Get(key) ? j->Get(key)->number() : 0.0; };
+  const Json* messages = agent.Get("messages");
+  stats->bytes = static_cast<std::uint64_t>(num(messages ? messages->Get("keyframe") : nullptr, "bytes") +
+                                            num(messages ? messages->Get("pose_update") : nullptr, "bytes"));
+  stats->rate_kBps = num(&agent, "average_traffic_bytes_per_s") / 1e3;
+  stats->connected = agent.Get("connected") && agent.Get("connected")->boolean();
+  stats->bucket_s = bucket_s;
+  // The last two minutes, one value per bucket (buckets without traffic are absent).
+  constexpr int kShown = 120;
+  const long last = static_cast<long>(uptime_s / bucket_s);
+  stats->traffic_kBps.assign(kShown, 0.0);
+  if (const Json* buckets = agent.Get("per_bucket")) {
+    for (const Json& b : buckets->array()) {
+      const long index = std::lround(num(&b, "t") / bucket_s) - (last - kShown + 1);
+      if (index >= 0 && index < kShown) stats->traffic_kBps[index] = num(&b, "bytes") / 1e3 / bucket_s;
+    }
+  }
+}
+
+}  // namespace
+
+ViewStats ServerRuntime::CollectViewStats() {
+  ViewStats view;
+  const BackendStats backend = backend_->stats();
+  view.keyframes = backend.keyframes;
+  if (DenseMap* dense = backend_->dense()) view.points = dense->Stats().kept_points;
+  const auto primary = backend_->PrimaryMap();
+  std::map<MapId, ViewMapStats> maps;
+  for (MapId id : backend_->Maps()) maps[id] = {id, 0, primary && *primary == id, {}};
+  const Json transport = server_ ? server_->StatsJson() : Json();
+  std::map<std::string, const Json*> traffic;
+  if (const Json* agents = transport.Get("agents")) {
+    for (const Json& a : agents->array()) traffic[a.Get("name") ? a.Get("name")->string() : ""] = &a;
+  }
+  std::map<AgentId, std::string> names;
+  {
+    std::lock_guard<std::mutex> lock(names_mutex_);
+    names = names_;
+  }
+  const std::vector<AgentId> mapped = backend_->Agents();
+  for (const auto& [id, name] : names) {
+    ViewAgentStats a;
+    a.id = id;
+    a.name = name;
+    // Only agents the back-end has a map for: asking about another would create its map.
+    if (std::find(mapped.begin(), mapped.end(), id) != mapped.end()) {
+      a.keyframes = backend_->AgentTrajectory(id).size();
+      a.map = backend_->MapOf(id);
+      if (a.map && maps.count(*a.map)) {
+        maps[*a.map].keyframes += a.keyframes;
+        maps[*a.map].agents.push_back(id);
+      }
+    }
+    if (const auto it = traffic.find(name); it != traffic.end()) {
+      FillTraffic(*it->second, transport.Get("uptime_s") ? transport.Get("uptime_s")->number() : 0,
+                  transport.Get("bucket_seconds") ? transport.Get("bucket_seconds")->number() : 1.0, &a);
+    }
+    view.agents.push_back(std::move(a));
+  }
+  for (auto& [id, m] : maps) view.maps.push_back(std::move(m));
+  return view;
 }
 
 }  // namespace ccmd

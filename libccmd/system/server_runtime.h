@@ -4,15 +4,18 @@
 // to the back-end (libccmd/backend); results (dense map, trajectories, statistics) are written
 // to an output folder, periodically and at the end. ccmd_server is a thin shell around it.
 
+#include <atomic>
 #include <map>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <string>
 
 #include "libccmd/backend/backend.h"
 #include "libccmd/dense/snapshot.h"
 #include "libccmd/net/message_consumer.h"
 #include "libccmd/net/server.h"
+#include "libccmd/view/view_server.h"
 
 namespace ccmd {
 
@@ -23,6 +26,7 @@ struct ServerRuntimeOptions {
   double stats_period_s = 5.0;     // server_stats.json rewritten this often
   double snapshot_period_s = 30.0; // dense map snapshot (<= 0: only at the end)
   double memory_period_s = 30.0;   // memory by part in server_stats.json (it reads every map)
+  std::optional<ViewServerOptions> view;  // set: serve the live map view (docs/view.md)
 };
 
 class ServerRuntime : public MessageConsumer {
@@ -40,6 +44,10 @@ class ServerRuntime : public MessageConsumer {
   Status Stop();
 
   Backend* backend() { return backend_.get(); }
+  // The live map view, when the options ask for one (after Start).
+  const ViewServer* view() const { return view_.get(); }
+  // What the view's panel shows, from the back-end and the transport (any thread).
+  ViewStats CollectViewStats();
   Json StatsJson();
   Json TransportStatsJson() const { return server_ ? server_->StatsJson() : Json(); }
   // Results written by Stop (and WriteResults): map.ply, trajectory_fused.txt,
@@ -54,22 +62,22 @@ class ServerRuntime : public MessageConsumer {
 
  private:
   explicit ServerRuntime(const ServerRuntimeOptions& options) : options_(options) {}
+  Status StartView();
 
   ServerRuntimeOptions options_;
+  std::unique_ptr<ViewModel> view_model_;  // the back-end's observer: outlives it
   std::unique_ptr<Backend> backend_;
+  std::unique_ptr<ViewServer> view_;
   std::unique_ptr<Server> server_;
   std::unique_ptr<DenseSnapshotWriter> snapshots_;
   std::mutex names_mutex_;
   std::map<AgentId, std::string> names_;
-  std::uint64_t malformed_messages_ = 0;
+  // Counted on the delivery thread, read by StatsJson on the caller's thread.
+  std::atomic<std::uint64_t> malformed_messages_{0};
   double last_stats_ = -1e9;
   double last_memory_ = -1e9;
   Json memory_;  // the last memory by part
   bool stopped_ = false;
 };
-
-// The camera an agent announced in its handshake.
-PinholeCamera CameraFromSession(const SessionCamera& camera);
-SessionCamera SessionFromCamera(const PinholeCamera& camera);
 
 }  // namespace ccmd

@@ -15,10 +15,7 @@ DepthModel DepthModel::FromDepth(const cv::Mat& depth_mm, const PinholeCamera& c
   m.step_ = step;
   m.width_ = depth_mm.cols / step;
   m.height_ = depth_mm.rows / step;
-  m.fx_ = camera.fx;
-  m.fy_ = camera.fy;
-  m.cx_ = camera.cx;
-  m.cy_ = camera.cy;
+  m.camera_ = camera;
   const Eigen::Vector3f none = Eigen::Vector3f::Zero();
   m.vertex_.assign(static_cast<std::size_t>(m.width_) * m.height_, none);
   m.normal_.assign(m.vertex_.size(), none);
@@ -37,8 +34,9 @@ DepthModel DepthModel::FromDepth(const cv::Mat& depth_mm, const PinholeCamera& c
       }
       const double z = 1e-3 * sum / (step * step);
       if (lo == 0 || z < min_depth || z > max_depth || (hi - lo) * 1e-3 > 0.005 + 0.02 * z) continue;
-      const double u = x * step + 0.5 * (step - 1), v = y * step + 0.5 * (step - 1);
-      m.vertex_[y * m.width_ + x] = camera.BackProject(u, v, z).cast<float>();
+      // The block centre as recorded; with distortion, its ray is that of the ideal pixel.
+      const Eigen::Vector2d uv = camera.UndistortPixel({x * step + 0.5 * (step - 1), y * step + 0.5 * (step - 1)});
+      m.vertex_[y * m.width_ + x] = camera.BackProject(uv.x(), uv.y(), z).cast<float>();
     }
   }
   for (int y = 1; y + 1 < m.height_; ++y) {
@@ -62,7 +60,8 @@ DepthModel DepthModel::FromDepth(const cv::Mat& depth_mm, const PinholeCamera& c
 
 std::optional<std::pair<int, int>> DepthModel::Cell(const Eigen::Vector3d& p) const {
   if (p.z() <= 0) return std::nullopt;
-  const double u = fx_ * p.x() / p.z() + cx_, v = fy_ * p.y() / p.z() + cy_;
+  const Eigen::Vector2d uv = camera_.ProjectToImage(p);
+  const double u = uv.x(), v = uv.y();
   const int x = static_cast<int>(std::floor(u / step_)), y = static_cast<int>(std::floor(v / step_));
   if (x < 0 || y < 0 || x >= width_ || y >= height_) return std::nullopt;
   return std::make_pair(x, y);

@@ -41,7 +41,7 @@ class DepthModel {
 
  private:
   int width_ = 0, height_ = 0, step_ = 1, valid_ = 0;
-  double fx_ = 1, fy_ = 1, cx_ = 0, cy_ = 0;
+  PinholeCamera camera_;
   std::vector<Eigen::Vector3f> vertex_, normal_;
 };
 

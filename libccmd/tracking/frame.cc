@@ -43,6 +43,16 @@ FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, cons
     f.depth[i] = static_cast<float>(d);
     f.u_right[i] = static_cast<float>(f.keypoints[i].pt.x - camera.bf / d);
   }
+  // As ORB-SLAM does: features are found and depth looked up on the image as recorded (depth
+  // is registered to it); from here on every keypoint is the pixel of the ideal pinhole camera.
+  if (camera.HasDistortion()) {
+    for (std::size_t i = 0; i < f.keypoints.size(); ++i) {
+      cv::Point2f& pt = f.keypoints[i].pt;
+      const Eigen::Vector2d ideal = camera.UndistortPixel(Eigen::Vector2d(pt.x, pt.y));
+      if (f.depth[i] > 0) f.u_right[i] += static_cast<float>(ideal.x() - pt.x);
+      pt = cv::Point2f(static_cast<float>(ideal.x()), static_cast<float>(ideal.y()));
+    }
+  }
   return f;
 }
 

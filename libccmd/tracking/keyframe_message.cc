@@ -4,24 +4,11 @@
 
 namespace ccmd {
 
-WirePose ToWirePose(const Pose& T) {
-  const Eigen::Quaterniond q = QuaternionOf(T);
-  WirePose w;
-  w.q_xyzw = {q.x(), q.y(), q.z(), q.w()};
-  w.t = {T.translation().x(), T.translation().y(), T.translation().z()};
-  return w;
-}
-
-Pose FromWirePose(const WirePose& w) {
-  return PoseFromTranslationQuaternion(Eigen::Vector3d(w.t[0], w.t[1], w.t[2]),
-                                       Eigen::Quaterniond(w.q_xyzw[3], w.q_xyzw[0], w.q_xyzw[1], w.q_xyzw[2]));
-}
-
 StatusOr<KeyframeMessage> ToKeyframeMessage(const KeyframeSnapshot& s, const RgbdEncodeOptions& rgbd_options) {
   KeyframeMessage m;
   m.id = s.id;
   m.timestamp = s.timestamp;
-  m.T_world_cam = ToWirePose(s.T_world_cam);
+  m.T_world_cam = PoseToWire(s.T_world_cam);
   m.parent = s.parent;
   m.keypoints.resize(s.keypoints.size());
   for (std::size_t i = 0; i < s.keypoints.size(); ++i) {
@@ -46,7 +33,7 @@ StatusOr<KeyframeMessage> ToKeyframeMessage(const KeyframeSnapshot& s, const Rgb
   for (const KeyframeSnapshot::DepthLink& l : s.depth_links) {
     DepthLink link;
     link.keyframe = l.other;
-    link.T_this_other = ToWirePose(l.T_this_other);
+    link.T_this_other = PoseToWire(l.T_this_other);
     int k = 0;
     for (int r = 0; r < 6; ++r) {
       for (int c = r; c < 6; ++c) link.information[k++] = static_cast<float>(l.information(r, c));
@@ -68,7 +55,7 @@ StatusOr<KeyframeMessage> ToKeyframeMessage(const KeyframeSnapshot& s, const Rgb
 
 PoseUpdateMessage ToPoseUpdateMessage(const std::vector<PoseUpdate>& updates) {
   PoseUpdateMessage m;
-  for (const PoseUpdate& u : updates) m.entries.push_back({u.id, ToWirePose(u.T_world_cam)});
+  for (const PoseUpdate& u : updates) m.entries.push_back({u.id, PoseToWire(u.T_world_cam)});
   return m;
 }
 

@@ -8,13 +8,11 @@
 #include <vector>
 
 #include "libccmd/codec/rgbd_payload.h"
+#include "libccmd/codec/wire_pose.h"
 #include "libccmd/tracking/keyframe_sink.h"
 #include "proto/messages.h"
 
 namespace ccmd {
-
-WirePose ToWirePose(const Pose& T);
-Pose FromWirePose(const WirePose& pose);
 
 StatusOr<KeyframeMessage> ToKeyframeMessage(const KeyframeSnapshot& snapshot,
                                             const RgbdEncodeOptions& rgbd_options);

@@ -1,13 +1,14 @@
 // Two agents on the halves (10% overlap) of a synthetic sequence feed the back-end through the
 // wire format: their maps must be fused through the overlap, the fused keyframe trajectory
 // must match the ground truth, every accepted loop must measure the true relative pose, and
-// the dense map must fill.
+// the dense map must fill, and an observer must hear of every keyframe and every pose change.
 
 #include <gtest/gtest.h>
 
 #include <algorithm>
 #include <cmath>
 #include <map>
+#include <mutex>
 #include <thread>
 
 #include "libccmd/backend/backend.h"
@@ -48,6 +49,59 @@ class WireSink : public KeyframeSink {
   Backend* backend_;
 };
 
+// Keeps what the back-end reported: the last pose and map of each keyframe.
+class RecordingObserver : public MapObserver {
+ public:
+  void OnAgent(AgentId agent, const std::string& name) override {
+    std::lock_guard<std::mutex> lock(mutex_);
+    names[agent] = name;
+  }
+  void OnKeyframe(const GlobalKeyframeId& id, MapId map, const Pose& T_map_cam, double arrived_s,
+                  bool /*primary*/) override {
+    std::lock_guard<std::mutex> lock(mutex_);
+    added[id]++;
+    poses[id] = T_map_cam;
+    maps[id] = map;
+    EXPECT_GT(arrived_s, 0);
+  }
+  void OnPoses(PoseSource source, MapId map, const std::vector<KeyframePose>& moved, double) override {
+    std::lock_guard<std::mutex> lock(mutex_);
+    sources[source]++;
+    for (const KeyframePose& p : moved) {
+      EXPECT_EQ(added.count(p.id), 1u) << "a pose for a keyframe never added";
+      poses[p.id] = p.T_world_cam;
+      maps[p.id] = map;
+    }
+  }
+  void OnLoop(const LoopEvent& event) override {
+    std::lock_guard<std::mutex> lock(mutex_);
+    fusions += event.fusion;
+    // A fusion moves every keyframe of both maps to the new one.
+    if (event.fusion) {
+      const MapId a = maps[event.query], b = maps[event.candidate];
+      for (auto& [id, map] : maps) {
+        if (map == a || map == b) map = event.map;
+      }
+    }
+  }
+  void OnDenseKeyframe(const GlobalKeyframeId& id) override {
+    std::lock_guard<std::mutex> lock(mutex_);
+    dense.push_back(id);
+  }
+
+  // Read after the back-end is idle.
+  std::map<AgentId, std::string> names;
+  std::map<GlobalKeyframeId, int> added;
+  std::map<GlobalKeyframeId, Pose> poses;
+  std::map<GlobalKeyframeId, MapId> maps;
+  std::map<PoseSource, int> sources;
+  std::vector<GlobalKeyframeId> dense;
+  int fusions = 0;
+
+ private:
+  std::mutex mutex_;
+};
+
 // The ground-truth pose at a keyframe's timestamp (keyframes are frames of the path).
 Pose TruePose(const Trajectory& ground_truth, double timestamp) {
   const auto it = std::min_element(ground_truth.begin(), ground_truth.end(), [&](const auto& a, const auto& b) {
@@ -59,7 +113,8 @@ Pose TruePose(const Trajectory& ground_truth, double timestamp) {
 
 TEST(BackendIntegrationTest, TwoAgentsAreFusedIntoOneAccurateMap) {
   BackendOptions options;
-  auto backend = Backend::Create(options);
+  RecordingObserver observer;
+  auto backend = Backend::Create(options, &observer);
   ASSERT_TRUE(backend.ok()) << backend.status().ToString();
   SyntheticSequenceOptions synth;
   synth.frames = 200;
@@ -123,6 +178,29 @@ TEST(BackendIntegrationTest, TwoAgentsAreFusedIntoOneAccurateMap) {
   ASSERT_TRUE(cloud.ok());
   EXPECT_GT(cloud->size(), 10000u);
   EXPECT_EQ((*backend)->dense()->Agents().size(), 2u);
+
+  // The observer heard of each keyframe once, and the last pose it was told is the pose the
+  // back-end holds (a missed local BA, pose graph, fusion or global BA update would differ).
+  EXPECT_EQ(observer.names.size(), 2u);
+  EXPECT_EQ(observer.added.size(), stats.keyframes);
+  for (const auto& [id, count] : observer.added) EXPECT_EQ(count, 1);
+  std::map<double, Pose> held;
+  for (const StampedPose& p : fused) held[p.timestamp] = p.T_world_cam;
+  ASSERT_EQ(held.size(), fused.size());
+  for (const auto& [id, pose] : observer.poses) {
+    const double t = sinks[id.agent.value() - 1]->timestamps_.at(id.keyframe);
+    ASSERT_EQ(held.count(t), 1u);
+    EXPECT_LT(TranslationDistance(held.at(t), pose), 1e-9);
+    EXPECT_LT(RotationDistance(held.at(t), pose), 1e-9);
+    EXPECT_EQ(observer.maps.at(id), *(*backend)->PrimaryMap());
+  }
+  EXPECT_EQ(observer.fusions, stats.fusions);
+  EXPECT_GT(observer.sources[PoseSource::kAgent], 0);
+  EXPECT_GT(observer.sources[PoseSource::kFusion], 0);
+  // An applied global BA that moved nothing tells nothing: at most one report per applied run.
+  EXPECT_LE(observer.sources[PoseSource::kGlobalBa], stats.global_ba_runs - stats.global_ba_aborted);
+  EXPECT_EQ(observer.dense.size(), stats.dense_keyframes);
+  for (const GlobalKeyframeId& id : observer.dense) EXPECT_TRUE((*backend)->dense()->KeyframeCloud(id).ok());
   (*backend)->Shutdown();
 }
 

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include "libccmd/util/random.h"
+#include "tests/support/test_cameras.h"
 
 namespace ccmd {
 namespace {
@@ -29,9 +30,8 @@ PinholeCamera Camera() {
   return c;
 }
 
-TEST(LoopVerificationTest, RecoversTheQueryPoseDespiteOutliers) {
+void ExpectQueryPoseRecovered(const PinholeCamera& camera) {
   Rng rng(41);
-  const PinholeCamera camera = Camera();
   ServerMap map(MapId(1));
   // Candidate keyframe at the origin observing 400 points on a wall 2-4 m away.
   auto candidate = std::make_unique<ServerKeyframe>();
@@ -82,6 +82,12 @@ TEST(LoopVerificationTest, RecoversTheQueryPoseDespiteOutliers) {
     EXPECT_EQ(point->id.point.value(), static_cast<std::uint32_t>(keypoint));  // keypoint j saw point j
   }
 }
+
+TEST(LoopVerificationTest, RecoversTheQueryPoseDespiteOutliers) { ExpectQueryPoseRecovered(Camera()); }
+
+// The PnP RANSAC and the refinement take the signed focal length: a camera with fy < 0 finds
+// the same pose, not its mirror image.
+TEST(LoopVerificationTest, NegativeFocalLengthGivesTheSamePose) { ExpectQueryPoseRecovered(testing::IclNuimCamera()); }
 
 TEST(LoopVerificationTest, UnrelatedViewsAreRejected) {
   Rng rng(42);

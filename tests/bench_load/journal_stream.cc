@@ -5,7 +5,7 @@
 #include <algorithm>
 #include <cmath>
 
-#include "libccmd/backend/ingest.h"
+#include "libccmd/codec/wire_pose.h"
 #include "libccmd/net/journal.h"
 #include "libccmd/tracking/keyframe_message.h"
 
@@ -59,7 +59,7 @@ StatusOr<JournalStream> ReadStream(const std::string& path) {
   return stream;
 }
 
-WirePose Moved(const Pose& T_offset, const WirePose& pose) { return ToWirePose(T_offset * PoseFromWire(pose)); }
+WirePose Moved(const Pose& T_offset, const WirePose& pose) { return PoseToWire(T_offset * PoseFromWire(pose)); }
 
 }  // namespace
 

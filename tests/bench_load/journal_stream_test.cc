@@ -9,7 +9,7 @@
 
 #include <cmath>
 
-#include "libccmd/backend/ingest.h"
+#include "libccmd/codec/wire_pose.h"
 #include "libccmd/net/journal.h"
 #include "libccmd/tracking/keyframe_message.h"
 #include "libccmd/util/file_util.h"
@@ -32,7 +32,7 @@ KeyframeMessage RecordedKeyframe(std::uint32_t i, Rng* rng) {
   m.timestamp = 1.0 + i;
   Pose T = Pose::Identity();
   T.translation() = Eigen::Vector3d(0.1 * i, 0, 0);
-  m.T_world_cam = ToWirePose(T);
+  m.T_world_cam = PoseToWire(T);
   if (i > 0) {
     m.parent = KeyframeId(i - 1);
     m.covisibility.push_back({KeyframeId(i - 1), 20});
@@ -79,7 +79,7 @@ void WriteJournal(const std::string& folder, int keyframes) {
       PoseUpdateMessage update;
       Pose T = Pose::Identity();
       T.translation() = Eigen::Vector3d(0.1 * i + 0.01, 0, 0);
-      update.entries.push_back({KeyframeId(static_cast<std::uint32_t>(i)), ToWirePose(T)});
+      update.entries.push_back({KeyframeId(static_cast<std::uint32_t>(i)), PoseToWire(T)});
       auto u = SerializePoseUpdate(update);
       ASSERT_TRUE(u.ok());
       ASSERT_TRUE((*writer)->Append(static_cast<std::uint8_t>(MessageType::kPoseUpdate), ++seq, *u).ok());

@@ -4,10 +4,12 @@
 
 #include <cmath>
 #include <set>
+#include <vector>
 
 #include <opencv2/core.hpp>
 
 #include "libccmd/dense/label.h"
+#include "tests/support/test_cameras.h"
 
 namespace ccmd {
 namespace {
@@ -43,6 +45,38 @@ TEST(BackProjectionTest, PixelsFollowThePinholeModelWithColoursAsRgb) {
   EXPECT_NEAR(cloud->points[1].z(), 0.5, 1e-6);
   EXPECT_EQ(cloud->colors[0], (std::array<std::uint8_t, 3>{30, 20, 10}));
   EXPECT_EQ(cloud->colors[1], (std::array<std::uint8_t, 3>{3, 2, 1}));
+}
+
+// With lens distortion a pixel of the image as recorded is back-projected along its
+// undistorted ray: the point lands back on that pixel through the lens model (TUM fr1, whose
+// corners move by 9 pixels), and a negative fy (ICL-NUIM) puts rows below the centre at y < 0.
+TEST(BackProjectionTest, RecordedPixelsGoAlongTheirUndistortedRays) {
+  const PinholeCamera camera = testing::TumFr1Camera();
+  const cv::Mat depth(480, 640, CV_16UC1, cv::Scalar(2000));
+  const cv::Mat bgr(480, 640, CV_8UC3, cv::Scalar(0, 0, 0));
+  BackProjectionOptions options;
+  options.max_incidence_deg = 90;
+  auto cloud = BackProjectKeyframe(depth, bgr, camera, options);
+  ASSERT_TRUE(cloud.ok()) << cloud.status().ToString();
+  ASSERT_EQ(cloud->size(), 640u * 480u);
+  for (const auto& [u, v] : std::vector<std::pair<int, int>>{{0, 0}, {639, 0}, {320, 240}, {17, 401}, {639, 479}}) {
+    const Eigen::Vector3f& p = cloud->points[static_cast<std::size_t>(v) * 640 + u];
+    EXPECT_FLOAT_EQ(p.z(), 2.0f);
+    const Eigen::Vector2d uv = camera.ProjectToImage(p.cast<double>());
+    EXPECT_NEAR(uv.x(), u, 0.02) << u << "," << v;
+    EXPECT_NEAR(uv.y(), v, 0.02) << u << "," << v;
+  }
+  // The pinhole model would put the corner pixel's point 3 cm away.
+  EXPECT_GT((cloud->points[0].cast<double>() - camera.BackProject(0, 0, 2.0)).norm(), 0.03);
+
+  PinholeCamera flipped = SmallCamera();
+  flipped.fy = -flipped.fy;
+  cv::Mat small(3, 4, CV_16UC1, cv::Scalar(0));
+  small.at<std::uint16_t>(2, 1) = 1000;  // the row below the centre row (cy = 1)
+  auto below = BackProjectKeyframe(small, cv::Mat(3, 4, CV_8UC3, cv::Scalar(0, 0, 0)), flipped);
+  ASSERT_TRUE(below.ok());
+  ASSERT_EQ(below->size(), 1u);
+  EXPECT_NEAR(below->points[0].y(), 1.0 * (2 - 1.0) / -200.0, 1e-6);
 }
 
 TEST(BackProjectionTest, DepthRangeLimitsAreInclusiveAndZeroIsInvalid) {

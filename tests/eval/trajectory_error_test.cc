@@ -31,6 +31,39 @@ TEST(AteTest, RigidlyMovedCopyHasZeroError) {
   EXPECT_LT((ate->alignment.R - T.linear().transpose()).norm(), 1e-9);
 }
 
+// One or two poses (an agent's map that never fused) cannot be aligned by positions; their
+// whole poses can. A trajectory with spread is aligned by positions as before.
+TEST(AteTest, PoseAlignmentForTrajectoriesTooShortForPositions) {
+  const Trajectory gt = Circle(200);
+  Pose T = Pose::Identity();
+  T.linear() = Eigen::AngleAxisd(0.7, Eigen::Vector3d(-1, 2, 0.5).normalized()).toRotationMatrix();
+  T.translation() = Eigen::Vector3d(1, 2, -3);
+  Trajectory est;
+  for (int i : {10, 11}) est.push_back({gt[i].timestamp, T * gt[i].T_world_cam});
+  EXPECT_FALSE(ComputeAte(gt, est).ok());
+  AteOptions options;
+  options.pose_alignment_below_spread_m = 0.1;
+  auto ate = ComputeAte(gt, est, options);
+  ASSERT_TRUE(ate.ok()) << ate.status().ToString();
+  EXPECT_TRUE(ate->aligned_by_poses);
+  EXPECT_LT(ate->error.rmse, 1e-9);
+  EXPECT_LT((ate->alignment.R - T.linear().transpose()).norm(), 1e-9);
+  // An error of the second pose shows (half of it, split by the fit between the two).
+  est[1].T_world_cam.translation() += Eigen::Vector3d(0, 0, 0.01);
+  ate = ComputeAte(gt, est, options);
+  ASSERT_TRUE(ate.ok());
+  EXPECT_GT(ate->error.max, 0.003);
+
+  Trajectory whole = gt;
+  for (auto& p : whole) p.T_world_cam = T * p.T_world_cam;
+  whole[5].T_world_cam.translation().x() += 0.05;
+  auto by_positions = ComputeAte(gt, whole);
+  auto with_option = ComputeAte(gt, whole, options);
+  ASSERT_TRUE(by_positions.ok() && with_option.ok());
+  EXPECT_FALSE(with_option->aligned_by_poses);
+  EXPECT_EQ(with_option->error.rmse, by_positions->error.rmse);
+}
+
 TEST(AteTest, KnownPerturbationGivesItsMagnitude) {
   // Alternating +-d along z: zero mean, uncorrelated with the circle, so alignment cannot
   // remove it; every error is d, so RMSE = mean = max = d.

@@ -3,6 +3,7 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <cstring>
 #include <fstream>
 #include <string>
 #include <vector>
@@ -215,6 +216,48 @@ TEST(JournalTest, RollBackCutsUnsyncedRecords) {
   Replayed r;
   ASSERT_TRUE(Replay(path, &r).ok());
   EXPECT_EQ(r.records.size(), 1u);
+}
+
+// The info record's layout before distortion existed (u16 id, u8 name length, name, 4 x f64,
+// 2 x u32, f64), byte by byte: journals written then still resume, with no distortion.
+TEST(JournalTest, InfoRecordWithoutDistortionIsTheOriginalLayout) {
+  JournalAgentInfo info{AgentId(4), "icl", nettest::TestCamera()};
+  info.camera.fy = -480.0;  // refused before; a valid camera now
+  Bytes old = {4, 0, 3, 'i', 'c', 'l'};
+  for (double v : {info.camera.fx, info.camera.fy, info.camera.cx, info.camera.cy}) {
+    std::uint64_t bits;
+    std::memcpy(&bits, &v, 8);
+    for (int i = 0; i < 8; ++i) old.push_back(static_cast<std::uint8_t>(bits >> (8 * i)));
+  }
+  for (std::uint32_t v : {info.camera.width, info.camera.height}) {
+    for (int i = 0; i < 4; ++i) old.push_back(static_cast<std::uint8_t>(v >> (8 * i)));
+  }
+  std::uint64_t bits;
+  std::memcpy(&bits, &info.camera.depth_scale, 8);
+  for (int i = 0; i < 8; ++i) old.push_back(static_cast<std::uint8_t>(bits >> (8 * i)));
+  EXPECT_EQ(SerializeJournalInfo(info), old);
+  StatusOr<JournalAgentInfo> parsed = ParseJournalInfo(old);
+  ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+  EXPECT_EQ(parsed->camera, info.camera);
+}
+
+TEST(JournalTest, InfoRecordCarriesDistortion) {
+  JournalAgentInfo info{AgentId(2), "fr1", nettest::TestCamera()};
+  info.camera.distortion = {0.262383, -0.953104, -0.005358, 0.002628, 1.163314};
+  Bytes bytes = SerializeJournalInfo(info);
+  JournalAgentInfo plain = info;
+  plain.camera.distortion = {0, 0, 0, 0, 0};
+  EXPECT_EQ(bytes.size(), SerializeJournalInfo(plain).size() + 1 + 40);
+  StatusOr<JournalAgentInfo> parsed = ParseJournalInfo(bytes);
+  ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+  EXPECT_EQ(parsed->camera, info.camera);
+  // What a later format might add is refused clearly, not misread.
+  bytes[SerializeJournalInfo(plain).size()] = 9;
+  const auto unknown = ParseJournalInfo(bytes);
+  ASSERT_FALSE(unknown.ok());
+  EXPECT_NE(unknown.status().message().find("camera extension"), std::string::npos);
+  bytes.resize(SerializeJournalInfo(plain).size() + 1 + 20);  // cut inside the coefficients
+  EXPECT_FALSE(ParseJournalInfo(bytes).ok());
 }
 
 }  // namespace

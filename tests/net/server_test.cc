@@ -183,6 +183,40 @@ TEST(ServerTest, ResumeReplaysTheJournalThenContinuesTheSequence) {
   EXPECT_EQ(scan->torn_bytes, 0u);
 }
 
+// An ICL-NUIM-like camera (fy < 0) with TUM fr1's distortion: the server takes it as
+// announced, journals it, and restores it on --resume, where the agent is known again.
+TEST(ServerTest, NegativeFocalLengthAndDistortionSurviveTheHandshakeAndResume) {
+  testing::TempDir dir;
+  SessionCamera camera = TestCamera();
+  camera.fy = -480.0;
+  camera.distortion = {0.262383, -0.953104, -0.005358, 0.002628, 1.163314};
+  AgentLinkOptions link_options = LinkOptions(0, "icl");
+  link_options.camera = camera;
+  {
+    RecordingConsumer consumer;
+    Server server(LoopbackOptions(dir.File("journal")), &consumer);
+    ASSERT_TRUE(server.Start().ok());
+    link_options.server = "127.0.0.1:" + std::to_string(server.port());
+    auto link = AgentLink::Create(link_options);
+    ASSERT_TRUE(link.ok()) << link.status().ToString();
+    SendAll(link->get(), 1, 0, 3);
+    ASSERT_TRUE((*link)->Flush(10).ok());
+    link->reset();
+    server.Stop();
+    ASSERT_EQ(consumer.known().count("icl"), 1u);
+    EXPECT_EQ(consumer.known().at("icl").camera, camera);
+  }
+  RecordingConsumer consumer;
+  ServerOptions options = LoopbackOptions(dir.File("journal"));
+  options.resume = true;
+  Server server(options, &consumer);
+  ASSERT_TRUE(server.Start().ok());
+  ASSERT_EQ(consumer.known().count("icl"), 1u);
+  EXPECT_EQ(consumer.known().at("icl").camera, camera);
+  EXPECT_EQ(consumer.total(), 3u);
+  server.Stop();
+}
+
 TEST(ServerTest, LinkSpillsToDiskWhileTheServerIsAwayAndDeliversInOrder) {
   testing::TempDir dir;
   // A free port for a server that starts later.

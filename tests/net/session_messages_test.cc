@@ -1,5 +1,7 @@
 #include "libccmd/net/session_messages.h"
 
+#include <algorithm>
+#include <cmath>
 #include <cstring>
 #include <string>
 #include <vector>
@@ -53,6 +55,33 @@ TEST(SessionMessagesTest, HelloLayoutByteByByte) {
   EXPECT_EQ(parsed->agent_nonce, SampleHello().agent_nonce);
 }
 
+// ICL-NUIM's convention (fy < 0) is not an error, and lens distortion travels with a flag
+// bit: 5 x f64 after the depth scale. Without distortion the layout is the one above.
+TEST(SessionMessagesTest, HelloCarriesNegativeFocalLengthAndDistortion) {
+  HelloMessage h = SampleHello();
+  h.camera.fy = -480.0;
+  StatusOr<HelloMessage> parsed = ParseHello(SerializeHello(h));
+  ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+  EXPECT_EQ(parsed->camera.fy, -480.0);
+  EXPECT_FALSE(parsed->camera.HasDistortion());
+
+  h.camera.distortion = {0.262383, -0.953104, -0.005358, 0.002628, 1.163314};
+  const Bytes with = SerializeHello(h);
+  ASSERT_EQ(with.size(), SerializeHello(SampleHello()).size() + 40);
+  EXPECT_EQ(with[1], 0x02);  // not fresh, distortion present
+  Bytes expected(with.begin(), with.begin() + 10 + 48);
+  for (double k : h.camera.distortion) PutF64(&expected, k);
+  EXPECT_TRUE(std::equal(expected.begin(), expected.end(), with.begin()));
+  parsed = ParseHello(with);
+  ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+  EXPECT_EQ(parsed->camera, h.camera);
+  EXPECT_EQ(parsed->first_seq, 3u);
+  // The flag without the coefficients is truncated, not misread.
+  Bytes flag_only = SerializeHello(SampleHello());
+  flag_only[1] |= 0x02;
+  EXPECT_EQ(ParseHello(flag_only).status().code(), StatusCode::kCorrupt);
+}
+
 TEST(SessionMessagesTest, HelloRejectsBadFields) {
   const Bytes good = SerializeHello(SampleHello());
   Bytes version = good;
@@ -71,7 +100,16 @@ TEST(SessionMessagesTest, HelloRejectsBadFields) {
   bad_range.next_seq = 2;  // before first_seq
   EXPECT_FALSE(ParseHello(SerializeHello(bad_range)).ok());
   HelloMessage bad_camera = SampleHello();
-  bad_camera.camera.fx = -1;
+  bad_camera.camera.fx = 0;
+  EXPECT_FALSE(ParseHello(SerializeHello(bad_camera)).ok());
+  bad_camera = SampleHello();
+  bad_camera.camera.fy = std::nan("");
+  EXPECT_FALSE(ParseHello(SerializeHello(bad_camera)).ok());
+  bad_camera = SampleHello();
+  bad_camera.camera.distortion[4] = HUGE_VAL;
+  EXPECT_FALSE(ParseHello(SerializeHello(bad_camera)).ok());
+  bad_camera = SampleHello();
+  bad_camera.camera.depth_scale = -5000;
   EXPECT_FALSE(ParseHello(SerializeHello(bad_camera)).ok());
   Bytes trailing = good;
   trailing.push_back(0);

@@ -3,10 +3,12 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <opencv2/calib3d.hpp>
 #include <opencv2/features2d.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include "libccmd/synth/sequence.h"
+#include "tests/support/test_cameras.h"
 
 namespace ccmd {
 namespace {
@@ -152,6 +154,83 @@ TEST(RendererTest, RoomTextureGivesManyWellSpreadOrbFeatures) {
     // Valid depth on most of the image.
     EXPECT_GT(cv::countNonZero(frame.depth_mm), 0.85 * 640 * 480) << "frame " << i;
   }
+}
+
+// The depth of a distorted camera's pixel is the plane's depth along the pixel's undistorted
+// ray, here found with OpenCV's undistortPoints (an implementation independent of ours).
+TEST(RendererTest, DistortedCameraSeesAlongEachRawPixelsRay) {
+  const Eigen::Vector3d point(0.1, -0.05, 2.0);
+  const Eigen::Vector3d n = Eigen::Vector3d(0.3, -0.2, -1.0).normalized();
+  const SyntheticScene scene = SyntheticScene::FromPolygons({Quad(point, n, 5.0, Eigen::Vector3d::Zero())});
+  const PinholeCamera camera = testing::TumFr1Camera();
+  const RenderedFrame frame = RenderFrame(scene, camera, Pose::Identity(), Exact());
+  const cv::Mat K = (cv::Mat_<double>(3, 3) << camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1);
+  const cv::Mat dist(camera.distortion, true);
+  std::vector<cv::Point2d> raw = {{2, 3}, {319, 239}, {630, 20}, {40, 470}, {600, 450}};
+  std::vector<cv::Point2d> normalised;
+  cv::undistortPoints(raw, normalised, K, dist.reshape(1, 1), cv::noArray(), cv::noArray(),
+                      cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 100, 1e-14));
+  for (std::size_t i = 0; i < raw.size(); ++i) {
+    const Eigen::Vector3d r(normalised[i].x, normalised[i].y, 1.0);
+    const double z = n.dot(point) / n.dot(r);
+    const int u = static_cast<int>(raw[i].x), v = static_cast<int>(raw[i].y);
+    EXPECT_NEAR(frame.depth_true.at<float>(v, u), z, 2e-6 * z) << u << "," << v;
+    // Without distortion the same pixel would look elsewhere: at the corners by centimetres.
+    const Eigen::Vector3d pinhole((u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1.0);
+    if (i != 1) EXPECT_GT(std::abs(n.dot(point) / n.dot(pinhole) - z), 2e-3) << u << "," << v;
+  }
+}
+
+// A small square in front of a wall lands where OpenCV's projection (with distortion) puts it.
+TEST(RendererTest, DistortedCameraImagesObjectsWhereTheLensPutsThem) {
+  const Eigen::Vector3d centre(-0.62, -0.45, 1.5);  // near the top-left corner: ~9 px of distortion
+  const SyntheticScene scene = SyntheticScene::FromPolygons(
+      {Quad({0, 0, 3}, -Eigen::Vector3d::UnitZ(), 5, Eigen::Vector3d::Zero()),
+       Quad(centre, -Eigen::Vector3d::UnitZ(), 0.03, Eigen::Vector3d::Zero())});
+  const PinholeCamera camera = testing::TumFr1Camera();
+  const RenderedFrame frame = RenderFrame(scene, camera, Pose::Identity(), Exact());
+  double su = 0, sv = 0;
+  int count = 0;
+  for (int v = 0; v < frame.polygon.rows; ++v) {
+    for (int u = 0; u < frame.polygon.cols; ++u) {
+      if (frame.polygon.at<int>(v, u) != 1) continue;
+      su += u;
+      sv += v;
+      ++count;
+    }
+  }
+  ASSERT_GT(count, 50);
+  const cv::Mat K = (cv::Mat_<double>(3, 3) << camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1);
+  std::vector<cv::Point2d> projected;
+  cv::projectPoints(std::vector<cv::Point3d>{{centre.x(), centre.y(), centre.z()}}, cv::Vec3d(0, 0, 0),
+                    cv::Vec3d(0, 0, 0), K, cv::Mat(camera.distortion, true).reshape(1, 1), projected);
+  EXPECT_NEAR(su / count, projected[0].x, 0.5);
+  EXPECT_NEAR(sv / count, projected[0].y, 0.5);
+  const Eigen::Vector2d pinhole = camera.Project(centre);
+  EXPECT_GT(std::hypot(pinhole.x() - projected[0].x, pinhole.y() - projected[0].y), 5.0);
+}
+
+// ICL-NUIM's convention: with fy < 0 the image rows run opposite to the camera's y axis, so
+// the image is the other one upside down (cy mirrored as well).
+TEST(RendererTest, NegativeFyFlipsTheRows) {
+  RoomSceneOptions room;
+  room.shapes_per_m2 = 60;
+  const SyntheticScene scene = SyntheticScene::MakeRoom(room);
+  const Trajectory path = MakeLoopPath(10, 30.0);
+  PinholeCamera up = SyntheticCamera(320, 240);
+  up.cy = 100.25;  // off-centre, to see that cy flips too
+  PinholeCamera down = up;
+  down.fy = -up.fy;
+  down.cy = up.height - 1 - up.cy;
+  const RenderedFrame a = RenderFrame(scene, up, path[4].T_world_cam, Exact());
+  const RenderedFrame b = RenderFrame(scene, down, path[4].T_world_cam, Exact());
+  cv::Mat flipped;
+  cv::flip(b.depth_true, flipped, 0);
+  cv::Mat difference = cv::abs(a.depth_true - flipped);
+  // Equal up to rounding, except along polygon edges where a pixel may change sides.
+  EXPECT_GT(cv::countNonZero(difference < 1e-4f), 0.99 * up.width * up.height);
+  cv::flip(b.bgr, flipped, 0);
+  EXPECT_LT(cv::norm(a.bgr, flipped, cv::NORM_L1) / (3.0 * up.width * up.height), 1.0);
 }
 
 }  // namespace

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <opencv2/core.hpp>
+#include <opencv2/imgcodecs.hpp>
 
 #include "libccmd/io/ply.h"
 #include "libccmd/io/tum_dataset.h"
@@ -49,6 +50,49 @@ TEST(SequenceTest, WrittenSequenceReadsBackWithExactGroundTruth) {
     EXPECT_EQ(cv::norm(live.depth_mm, stored->depth_mm, cv::NORM_INF), 0) << i;
     EXPECT_EQ(cv::norm(live.bgr, stored->bgr, cv::NORM_INF), 0) << i;
   }
+}
+
+// Rendered through a config's camera: its size, frame rate, depth scale, focal lengths (a
+// negative fy) and colour order are those of the files, and camera.yaml describes them.
+TEST(SequenceTest, ConfigCameraRecordsAsThatCameraWould) {
+  testing::TempDir dir;
+  SyntheticSequenceOptions options = SmallOptions();
+  PinholeCamera camera = SyntheticCamera(200, 150);
+  camera.fy = -camera.fy;
+  camera.fps = 15;
+  camera.depth_map_factor = 1000;
+  camera.rgb = false;
+  options.camera = camera;
+  ASSERT_TRUE(WriteSyntheticSequence(dir.File("bgr"), options).ok());
+  auto seq = TumSequence::Open(dir.File("bgr"), std::nullopt);
+  ASSERT_TRUE(seq.ok()) << seq.status().ToString();
+  EXPECT_EQ(seq->camera().width, 200);
+  EXPECT_NEAR(seq->camera().fy, camera.fy, 1e-6);
+  EXPECT_EQ(seq->camera().depth_map_factor, 1000);
+  EXPECT_FALSE(seq->camera().rgb);
+  EXPECT_NEAR(seq->frame(1).timestamp - seq->frame(0).timestamp, 1.0 / 15, 1e-6);
+
+  // The same camera with the usual colour order: the files differ by the swap of red and blue,
+  // and both read back to the same image.
+  options.camera->rgb = true;
+  ASSERT_TRUE(WriteSyntheticSequence(dir.File("rgb"), options).ok());
+  auto usual = TumSequence::Open(dir.File("rgb"), std::nullopt);
+  ASSERT_TRUE(usual.ok());
+  const cv::Mat swapped_file = cv::imread(seq->frame(0).rgb_path, cv::IMREAD_COLOR);
+  const cv::Mat usual_file = cv::imread(usual->frame(0).rgb_path, cv::IMREAD_COLOR);
+  std::vector<cv::Mat> a, b;
+  cv::split(swapped_file, a);
+  cv::split(usual_file, b);
+  EXPECT_EQ(cv::norm(a[0], b[2], cv::NORM_INF), 0);
+  EXPECT_EQ(cv::norm(a[2], b[0], cv::NORM_INF), 0);
+  EXPECT_GT(cv::norm(a[0], b[0], cv::NORM_L1), 0);
+  auto read_swapped = seq->LoadFrame(0), read_usual = usual->LoadFrame(0);
+  ASSERT_TRUE(read_swapped.ok() && read_usual.ok());
+  EXPECT_EQ(cv::norm(read_swapped->bgr, read_usual->bgr, cv::NORM_INF), 0);
+  // Depth files in millimetres (DepthMapFactor 1000), read back as the same millimetres.
+  const cv::Mat depth_file = cv::imread(usual->frame(0).depth_path, cv::IMREAD_UNCHANGED);
+  EXPECT_EQ(cv::norm(depth_file, read_usual->depth_mm, cv::NORM_INF), 0);
+  EXPECT_GT(cv::countNonZero(depth_file), 100);
 }
 
 TEST(SequenceTest, SurfaceSamplesLieOnTheScenePolygons) {

@@ -1,0 +1,210 @@
+// The map view in a real browser: headless Chromium opens the page of a ccmd_server while two
+// ccmd_agent processes replay the halves of a synthetic sequence. From the page's own state
+// (window.ccmdView) the test checks that every keyframe the server holds is there with the
+// server's pose, that every cloud is drawn, that keyframes that moved are drawn where the
+// server says, that the agents' panel shows the server's counts, and that the page says so
+// when the server is gone. Every wait is on the page's or the server's state.
+//
+// CCMD_VIEW_SCREENSHOT=path.png keeps the screenshot (docs/view.md uses one).
+
+#include <gtest/gtest.h>
+
+#include <signal.h>
+
+#include <cstdlib>
+#include <map>
+#include <opencv2/imgcodecs.hpp>
+
+#include "libccmd/io/trajectory.h"
+#include "libccmd/synth/sequence.h"
+#include "libccmd/util/file_util.h"
+#include "libccmd/util/timer.h"
+#include "libccmd/view/view_cloud.h"
+#include "tests/support/headless_browser.h"
+#include "tests/support/server_with_view.h"
+#include "tests/support/test_support.h"
+
+// After Eigen (through the headers above): see view_server.cc.
+#include <httplib.h>
+
+namespace ccmd {
+namespace {
+
+Json Get(std::uint16_t port, const std::string& path) {
+  httplib::Client client("127.0.0.1", port);
+  client.set_read_timeout(60, 0);
+  auto r = client.Get(path.c_str());
+  EXPECT_TRUE(r && r->status == 200) << path;
+  if (!r || r->status != 200) return Json();
+  auto j = Json::Parse(r->body);
+  EXPECT_TRUE(j.ok()) << path;
+  return j.ok() ? *j : Json();
+}
+
+std::string Key(const Json& kf) {
+  return std::to_string(static_cast<int>(kf.Get("a")->number())) + ":" +
+         std::to_string(static_cast<long>(kf.Get("k")->number()));
+}
+
+TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
+  testing::TempDir dir;
+  SyntheticSequenceOptions synth;
+  synth.frames = 200;
+  synth.width = 320;
+  synth.height = 240;
+  synth.threads = 2;
+  ASSERT_TRUE(WriteSyntheticSequence(dir.File("seq"), synth).ok());
+
+  auto server = testing::StartServerWithView(testing::ProgramPath("ccmd_server"), dir.path());
+  ASSERT_TRUE(server.ok()) << server.status().ToString();
+  testing::BrowserOptions browser_options;
+  browser_options.log_path = dir.File("chromium.log");
+  auto browser = testing::HeadlessBrowser::Launch(browser_options);
+  ASSERT_TRUE(browser.ok()) << browser.status().ToString();
+  testing::HeadlessBrowser& page = **browser;
+  ASSERT_TRUE(page.Open(server->url).ok()) << page.PageLog();
+  auto script = [&](const std::string& js, double timeout_s = 120) {
+    auto r = page.Evaluate(js, timeout_s);
+    EXPECT_TRUE(r.ok()) << js << ": " << r.status().ToString() << "\n" << page.PageLog();
+    return r.ok() ? *r : Json();
+  };
+  // Before any agent: connected, and it says there is no map yet.
+  const Json waiting = script("ccmdView.whenConnection('live').then(() => ccmdView.state())");
+  ASSERT_TRUE(waiting.Get("status"));
+  EXPECT_NE(waiting.Get("status")->string().find("No map yet"), std::string::npos)
+      << waiting.Dump();
+
+  std::vector<Subprocess> agents;
+  for (int i = 1; i <= 2; ++i) {
+    auto agent = Subprocess::Start(
+        {testing::ProgramPath("ccmd_agent"), "--source", "tum:" + dir.File("seq"), "--segment",
+         std::to_string(i) + "/2", "--server", "127.0.0.1:" + std::to_string(server->port),
+         "--name", "agent" + std::to_string(i), "--rgbd-every-keyframe"},  // more clouds to check
+        dir.File("agent" + std::to_string(i) + ".out"),
+        dir.File("agent" + std::to_string(i) + ".log"));
+    ASSERT_TRUE(agent.ok());
+    agents.push_back(std::move(agent).value());
+  }
+  for (Subprocess& a : agents) EXPECT_EQ(a.Wait().exit_code, 0);
+
+  // Once the server stops changing, the page holds the same state: the server's event number
+  // is the same before and after the page has applied it and drawn every cloud.
+  const std::uint16_t view = server->view_port;
+  Json state, shown;
+  const double deadline = MonotonicSeconds() + 240;
+  while (true) {
+    state = Get(view, "/api/state");
+    const long seq = static_cast<long>(state.Get("seq")->number());
+    shown = script("ccmdView.whenSettled(" + std::to_string(seq) + ").then(() => ccmdView.state())",
+                   240);
+    if (static_cast<long>(Get(view, "/api/state").Get("seq")->number()) == seq &&
+        static_cast<long>(shown.Get("seq")->number()) == seq) {
+      break;
+    }
+    ASSERT_LT(MonotonicSeconds(), deadline) << "the server never stopped changing";
+  }
+
+  // Every keyframe of the server, where the server has it, every cloud drawn.
+  std::map<std::string, const Json*> on_page;
+  for (const Json& kf : shown.Get("keyframes")->array()) on_page[Key(kf)] = &kf;
+  ASSERT_EQ(on_page.size(), state.Get("keyframes")->size());
+  ASSERT_GT(on_page.size(), 10u);
+  int clouds = 0;
+  std::vector<const Json*> moved;
+  for (const Json& kf : state.Get("keyframes")->array()) {
+    ASSERT_EQ(on_page.count(Key(kf)), 1u) << Key(kf);
+    const Json& p = *on_page[Key(kf)];
+    EXPECT_EQ(p.Get("m")->number(), kf.Get("m")->number()) << Key(kf);
+    for (int i = 0; i < 12; ++i)
+      EXPECT_NEAR(p.Get("T")->at(i).number(), kf.Get("T")->at(i).number(), 1e-9);
+    if (kf.Get("cloud")->boolean()) {
+      ++clouds;
+      EXPECT_TRUE(p.Get("drawn")->boolean()) << Key(kf);
+      if (kf.Get("moves")->number() > 0) moved.push_back(&kf);
+    }
+  }
+  EXPECT_GE(clouds, 8);
+  EXPECT_EQ(shown.Get("cloudErrors")->number(), 0);
+
+  // Keyframes that moved after they were drawn first are drawn where the server says now:
+  // their points go through the pose the page holds for them on the GPU.
+  ASSERT_FALSE(moved.empty())
+      << "no keyframe with a cloud moved: nothing shows that updates reach the page";
+  for (std::size_t i = 0; i < moved.size() && i < 8; ++i) {
+    const Json& kf = *moved[i];
+    httplib::Client client("127.0.0.1", view);
+    auto r = client.Get(("/api/clouds?ids=" + Key(kf)).c_str());
+    ASSERT_TRUE(r && r->status == 200);
+    auto cloud = ParseViewClouds(r->body);
+    ASSERT_TRUE(cloud.ok() && cloud->size() == 1 && !cloud->front().points_mm.empty());
+    Eigen::Matrix<double, 3, 4> T;
+    for (int j = 0; j < 12; ++j) T(j / 4, j % 4) = kf.Get("T")->at(j).number();
+    for (std::size_t j : {std::size_t{0}, cloud->front().points_mm.size() - 1}) {
+      const auto& mm = cloud->front().points_mm[j];
+      const Eigen::Vector3d expected =
+          T * Eigen::Vector4d(mm[0] * 1e-3, mm[1] * 1e-3, mm[2] * 1e-3, 1);
+      const Json drawn =
+          script("ccmdView.worldPoint(" + std::to_string(static_cast<int>(kf.Get("a")->number())) +
+                 ", " + std::to_string(static_cast<long>(kf.Get("k")->number())) + ", " +
+                 std::to_string(j) + ")");
+      ASSERT_EQ(drawn.size(), 3u) << Key(kf);
+      for (int a = 0; a < 3; ++a) EXPECT_NEAR(drawn.at(a).number(), expected(a), 1e-3) << Key(kf);
+    }
+  }
+
+  // The agents' panel shows the server's counts (statistics come once a second).
+  const Json summary = Get(view, "/api/summary");
+  EXPECT_EQ(summary.Get("keyframes")->number(), static_cast<double>(on_page.size()));
+  std::map<std::string, double> counts;
+  for (const Json& a : summary.Get("agents")->array())
+    counts[a.Get("name")->string()] = a.Get("keyframes")->number();
+  ASSERT_EQ(counts.size(), 2u);
+  Json panel_state = shown;
+  while (true) {
+    std::map<std::string, double> panel;
+    for (const Json& row : panel_state.Get("panel")->array()) {
+      panel[row.Get("name")->string()] = row.Get("keyframes")->number();
+    }
+    if (panel == counts) break;
+    ASSERT_LT(MonotonicSeconds(), deadline) << "the panel never showed the server's counts";
+    panel_state =
+        script("ccmdView.whenStats(" +
+               std::to_string(static_cast<long>(panel_state.Get("statsVersion")->number())) +
+               ").then(() => ccmdView.state())");
+  }
+
+  // A picture of it: the 3D view (left of the panel) is not empty.
+  script("ccmdView.whenRested()");
+  auto png = page.Screenshot();
+  ASSERT_TRUE(png.ok());
+  const cv::Mat image =
+      cv::imdecode(std::vector<uchar>(png->begin(), png->end()), cv::IMREAD_COLOR);
+  ASSERT_EQ(image.cols, browser_options.width);
+  int drawn_pixels = 0;
+  for (int v = 0; v < image.rows; ++v) {
+    for (int u = 0; u < image.cols - 380; ++u) {
+      const cv::Vec3b c = image.at<cv::Vec3b>(v, u);
+      drawn_pixels += std::abs(c[0] - 29) + std::abs(c[1] - 24) + std::abs(c[2] - 21) > 30;
+    }
+  }
+  EXPECT_GT(drawn_pixels, image.rows * (image.cols - 380) / 20);
+  if (const char* keep = std::getenv("CCMD_VIEW_SCREENSHOT")) {
+    EXPECT_TRUE(WriteFileAtomic(keep, *png).ok());
+  }
+
+  // The server stops: it writes what the page showed, and the page says it is gone.
+  ASSERT_TRUE(server->process.Signal(SIGINT).ok());
+  EXPECT_EQ(server->process.Wait().exit_code, 0);
+  for (const auto& [name, n] : counts) {
+    auto trajectory = ReadTumTrajectory(dir.File("results/trajectory_" + name + ".txt"));
+    ASSERT_TRUE(trajectory.ok());
+    EXPECT_EQ(static_cast<double>(trajectory->size()), n) << name;
+  }
+  const Json gone = script("ccmdView.whenConnection('gone').then(() => ccmdView.state())");
+  EXPECT_NE(gone.Get("status")->string().find("Server gone"), std::string::npos)
+      << gone.Get("status")->string();
+  EXPECT_EQ(gone.Get("keyframes")->size(), on_page.size());  // the last map stays on screen
+}
+
+}  // namespace
+}  // namespace ccmd

@@ -1,0 +1,144 @@
+// The live view's model: what the back-end reports becomes the state a browser reads once and
+// the numbered events it follows; the event log is bounded and tells a browser that fell too
+// far behind to reload.
+
+#include <gtest/gtest.h>
+
+#include <thread>
+
+#include "libccmd/view/view_model.h"
+
+namespace ccmd {
+namespace {
+
+GlobalKeyframeId Id(int agent, int keyframe) {
+  return {AgentId(static_cast<std::uint16_t>(agent)),
+          KeyframeId(static_cast<std::uint32_t>(keyframe))};
+}
+
+Pose Moved(double x, double yaw) {
+  Pose T = Pose::Identity();
+  T.linear() = Eigen::AngleAxisd(yaw, Eigen::Vector3d::UnitY()).toRotationMatrix();
+  T.translation() = Eigen::Vector3d(x, 0.1, -0.2);
+  return T;
+}
+
+const Json* FindKeyframe(const Json& state, int agent, int keyframe) {
+  for (const Json& kf : state.Get("keyframes")->array()) {
+    if (kf.Get("a")->number() == agent && kf.Get("k")->number() == keyframe) return &kf;
+  }
+  return nullptr;
+}
+
+void ExpectPose(const Json& numbers, const Pose& T) {
+  ASSERT_EQ(numbers.size(), 12u);
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 4; ++c) EXPECT_NEAR(numbers.at(4 * r + c).number(), T.matrix()(r, c), 1e-9);
+  }
+}
+
+TEST(ViewModelTest, TheStateFollowsKeyframesPoseUpdatesAndAFusion) {
+  ViewModel model;
+  model.OnAgent(AgentId(1), "alpha");
+  model.OnAgent(AgentId(2), "beta");
+  for (int k = 0; k < 3; ++k) model.OnKeyframe(Id(1, k), MapId(1), Moved(k, 0), 1.0, true);
+  for (int k = 0; k < 2; ++k) model.OnKeyframe(Id(2, k), MapId(2), Moved(-k, 0), 1.0, false);
+  model.OnPoses(PoseSource::kAgent, MapId(1), {{Id(1, 1), Moved(5, 0.1)}}, 2.0);
+  LoopEvent fusion;
+  fusion.query = Id(2, 1);
+  fusion.candidate = Id(1, 2);
+  fusion.fusion = true;
+  fusion.map = MapId(1000);
+  model.OnLoop(fusion);
+  model.OnPoses(PoseSource::kFusion, MapId(1000),
+                {{Id(2, 0), Moved(7, 0.2)}, {Id(2, 1), Moved(8, 0.3)}}, 3.0);
+  model.OnDenseKeyframe(Id(1, 0));
+
+  const Json state = model.StateJson();
+  EXPECT_EQ(state.Get("seq")->number(), 2 + 5 + 1 + 1 + 1 + 1);
+  ASSERT_EQ(state.Get("keyframes")->size(), 5u);
+  ASSERT_EQ(state.Get("agents")->size(), 2u);
+  EXPECT_EQ(state.Get("agents")->at(1).Get("name")->string(), "beta");
+  // Both maps are one now; poses are the last reported ones.
+  for (const Json& kf : state.Get("keyframes")->array()) EXPECT_EQ(kf.Get("m")->number(), 1000);
+  ExpectPose(*FindKeyframe(state, 1, 1)->Get("T"), Moved(5, 0.1));
+  ExpectPose(*FindKeyframe(state, 1, 2)->Get("T"), Moved(2, 0));
+  ExpectPose(*FindKeyframe(state, 2, 1)->Get("T"), Moved(8, 0.3));
+  EXPECT_EQ(FindKeyframe(state, 1, 1)->Get("moves")->number(), 1);
+  EXPECT_EQ(FindKeyframe(state, 1, 2)->Get("moves")->number(), 0);
+  EXPECT_TRUE(FindKeyframe(state, 1, 0)->Get("cloud")->boolean());
+  EXPECT_FALSE(FindKeyframe(state, 1, 1)->Get("cloud")->boolean());
+  ASSERT_EQ(state.Get("loops")->size(), 1u);
+  EXPECT_TRUE(state.Get("loops")->at(0).Get("fusion")->boolean());
+
+  // The same story as events, in order.
+  const EventBatch batch = model.WaitEvents(0, 0, 1.0);
+  ASSERT_EQ(batch.kind, EventBatch::Kind::kEvents);
+  std::vector<std::string> types;
+  for (const auto& [seq, text] : batch.events) {
+    EXPECT_EQ(seq, types.size() + 1);
+    auto e = Json::Parse(text);
+    ASSERT_TRUE(e.ok());
+    types.push_back(e->Get("type")->string());
+  }
+  EXPECT_EQ(types, (std::vector<std::string>{"agent", "agent", "kf", "kf", "kf", "kf", "kf",
+                                             "poses", "loop", "poses", "cloud"}));
+  auto loop = Json::Parse(batch.events[8].second);
+  ASSERT_TRUE(loop.ok());
+  ASSERT_EQ(loop->Get("from")->size(), 2u);  // the two maps that became map 1000
+  auto first = Json::Parse(batch.events[2].second);
+  EXPECT_TRUE(first->Get("primary")->boolean());
+  EXPECT_GT(first->Get("t")->number(), 1e12);  // milliseconds since 1970
+}
+
+TEST(ViewModelTest, PosesOfUnknownKeyframesAreNotEvents) {
+  ViewModel model;
+  model.OnPoses(PoseSource::kGlobalBa, MapId(1), {{Id(1, 9), Pose::Identity()}}, 1.0);
+  model.OnDenseKeyframe(Id(1, 9));
+  EXPECT_EQ(model.last_seq(), 0u);
+  EXPECT_EQ(model.WaitEvents(0, 0, 0.01).kind, EventBatch::Kind::kTimeout);
+}
+
+TEST(ViewModelTest, TheLogIsBoundedAndABrowserTooFarBehindReloads) {
+  ViewModelOptions options;
+  options.max_events = 16;
+  ASSERT_TRUE(options.Validate().ok());
+  ViewModel model(options);
+  for (int k = 0; k < 40; ++k) model.OnKeyframe(Id(1, k), MapId(1), Pose::Identity(), 1.0, true);
+  EXPECT_EQ(model.last_seq(), 40u);
+  EXPECT_EQ(model.WaitEvents(5, 0, 1.0).kind, EventBatch::Kind::kReset);
+  EXPECT_EQ(model.WaitEvents(41, 0, 1.0).kind,
+            EventBatch::Kind::kReset);  // a number from another run
+  const EventBatch recent = model.WaitEvents(37, 0, 1.0);
+  ASSERT_EQ(recent.kind, EventBatch::Kind::kEvents);
+  ASSERT_EQ(recent.events.size(), 3u);
+  EXPECT_EQ(recent.events.front().first, 38u);
+  EXPECT_EQ(model.WaitEvents(24, 0, 1.0).events.size(), 16u);  // the oldest one kept
+  EXPECT_EQ(model.WaitEvents(23, 0, 1.0).kind, EventBatch::Kind::kReset);
+  EXPECT_EQ(model.WaitEvents(40, 0, 0.01).kind, EventBatch::Kind::kTimeout);
+  // The state still has everything.
+  EXPECT_EQ(model.StateJson().Get("keyframes")->size(), 40u);
+
+  // Statistics come with the next wait when newer than the caller's.
+  Json stats;
+  stats["keyframes"] = 40;
+  model.PublishStats(stats);
+  const EventBatch with_stats = model.WaitEvents(40, 0, 1.0);
+  ASSERT_EQ(with_stats.kind, EventBatch::Kind::kEvents);
+  EXPECT_TRUE(with_stats.events.empty());
+  EXPECT_EQ(with_stats.stats, stats.Dump(-1));
+  EXPECT_EQ(model.WaitEvents(40, with_stats.stats_version, 0.01).kind, EventBatch::Kind::kTimeout);
+}
+
+TEST(ViewModelTest, CloseWakesAWaitingStream) {
+  ViewModel model;
+  EventBatch seen;
+  std::thread waiter([&] { seen = model.WaitEvents(0, 0, 600); });
+  model.Close();
+  waiter.join();
+  EXPECT_EQ(seen.kind, EventBatch::Kind::kClosed);
+  EXPECT_EQ(model.WaitEvents(0, 0, 600).kind, EventBatch::Kind::kClosed);
+}
+
+}  // namespace
+}  // namespace ccmd
