@@ -258,10 +258,11 @@ Json LoadResultJson(const LoadResult& r) {
   const Json* process = r.server_final.Get("process");
   const Json* peak = process ? process->Get("peak_rss_mb") : nullptr;
   j["server_peak_rss_mb"] = peak ? *peak : Json();
+  // From the first sample that has the server's CPU (the first ones may precede its file).
   double cpu = -1;
-  if (!r.series.empty() && r.series.front().cpu_seconds >= 0 && r.end_of_sending.cpu_seconds >= 0) {
-    cpu = 100 * (r.end_of_sending.cpu_seconds - r.series.front().cpu_seconds) /
-          std::max(1e-9, r.end_of_sending.time_s - r.series.front().time_s);
+  const auto first = std::find_if(r.series.begin(), r.series.end(), [](const LoadSample& s) { return s.cpu_seconds >= 0; });
+  if (first != r.series.end() && r.end_of_sending.cpu_seconds >= 0 && r.end_of_sending.time_s > first->time_s) {
+    cpu = 100 * (r.end_of_sending.cpu_seconds - first->cpu_seconds) / (r.end_of_sending.time_s - first->time_s);
   }
   j["server_cpu_percent"] = optional(cpu);
   if (const Json* backend = r.server_final.Get("backend")) j["server_backend"] = *backend;
