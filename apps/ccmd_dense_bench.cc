@@ -2,17 +2,20 @@
 // same run, and how accurate a dense map built with ground-truth poses is.
 //
 //   ccmd_dense_bench [--json OUT] [--quick]
-//       Stores of 50 k, 500 k and 5 M points filled with rendered keyframes of the synthetic
-//       room (160x120, i.e. rate 0.25 of 640x480; and 320x240, rate 0.5). Per size: one
-//       keyframe pose update (local BA), the window re-filter it leaves for Maintain(), a
-//       naive rebuild (every keyframe cloud transformed, everything voxel-filtered), adding a
-//       keyframe (back-projection + window filter), an export, and memory per point.
+//       Stores of 50 k, 500 k and 5 M stored points filled with rendered keyframes of the
+//       synthetic room, a room after another (160x120, i.e. rate 0.25 of 640x480; and 320x240,
+//       rate 0.5). Per size: one keyframe pose update (local BA), the window re-filter it leaves
+//       for Maintain(), a naive rebuild (every keyframe cloud transformed, everything
+//       voxel-filtered), adding a keyframe (back-projection + window filter), an export, and
+//       memory per stored point.
 //   ccmd_dense_bench recon [--sequence DIR] [--every 10] [--rate 0.5] [--voxels 0.01,...]
 //                          [--max-depths 3,...] [--max-incidences 75,...]
 //                          [--downsample median|nearest|topleft]
-//                          [--out MAP.ply] [--json OUT]
+//                          [--out MAP.ply] [--json OUT] [--passes N [--drift-deg D]]
 //       Dense map of a synthetic sequence (generated, 600 frames, unless --sequence) from every
-//       Nth frame at its ground-truth pose, downsampled by the rate, against surface.ply.
+//       Nth frame at its ground-truth pose, downsampled by the rate, against surface.ply. With
+//       --passes: the keyframes added N times (memory over revisits), and with --drift-deg a
+//       loop that drifted by D degrees corrected, against from-scratch builds.
 
 #include <unistd.h>
 
@@ -26,6 +29,7 @@
 #include <numeric>
 #include <opencv2/imgproc.hpp>
 
+#include "apps/dense_bench_revisits.h"
 #include "libccmd/dense/dense_map.h"
 #include "libccmd/dense/label.h"
 #include "libccmd/eval/reconstruction_error.h"
@@ -82,8 +86,9 @@ double Max(const std::vector<double>& v) {
 // ---- store costs -----------------------------------------------------------------------------
 
 // Keyframes along the synthetic camera path, one every 10 frames (48 per 16 s loop); each
-// further loop shrinks and raises the ellipse a little so that a long run keeps seeing new
-// views rather than repeating the first loop.
+// further loop shrinks and raises the ellipse a little and maps another room of a building of
+// identical rooms (the same room, placed 12 m further along x), so that the mapped space, and
+// with it the points the store keeps, grows with the keyframes.
 class KeyframeSource {
  public:
   KeyframeSource(int width, int height)
@@ -102,6 +107,13 @@ class KeyframeSource {
       it = loops_.emplace(loop, ccmd::MakeLoopPath(480, 30.0, o)).first;
     }
     return it->second[(i % 48) * 10].T_world_cam;
+  }
+
+  // Where keyframe i is in the map: its room's place in the building.
+  Pose MapPoseOf(int i) {
+    Pose T = PoseOf(i);
+    T.translation().x() += 12.0 * (i / 48);
+    return T;
   }
 
   ccmd::RenderedFrame Render(int i) {
@@ -161,7 +173,8 @@ Pose Nudged(const Pose& pose, std::uint64_t seed) {
 struct StoreRow {
   int width = 0, height = 0;
   ccmd::DenseMapStats stats;
-  std::vector<double> update_ms, update_cpu_ms, update_cold_ms, refilter_ms, add_ms, add_cpu_ms;
+  std::size_t added_points = 0;  // back-projected, before the store's filtering
+  std::vector<double> update_ms, update_cpu_ms, update_cold_ms, update_cold_cpu_ms, refilter_ms, add_ms, add_cpu_ms;
   double load = 0;
   double rebuild_ms = 0;
   std::size_t rebuild_points = 0;
@@ -194,7 +207,7 @@ ccmd::Status UpdateTrial(Bench* b, int t, std::vector<char>* evict) {
   const double cpu = ThreadCpuMillis();
   CCMD_RETURN_IF_ERROR(b->store->UpdateKeyframePose(k.id, k.pose));
   (cold ? b->row.update_cold_ms : b->row.update_ms).push_back(watch.ElapsedMillis());
-  if (!cold) b->row.update_cpu_ms.push_back(ThreadCpuMillis() - cpu);
+  (cold ? b->row.update_cold_cpu_ms : b->row.update_cpu_ms).push_back(ThreadCpuMillis() - cpu);
   watch.Restart();
   b->store->Maintain();
   b->row.refilter_ms.push_back(watch.ElapsedMillis());
@@ -249,21 +262,24 @@ ccmd::Status RunStoreSizes(int width, int height, const std::vector<std::size_t>
     benches[i].row.height = height;
   }
   const ccmd::BackProjectionOptions projection = benches[0].store->options().projection;
+  // Each store is filled until it stores its target number of points.
   int next = 0;
-  std::size_t points = 0;
-  while (points < targets.back()) {
+  std::vector<char> full(benches.size(), 0);
+  while (std::count(full.begin(), full.end(), 0) > 0) {
     const ccmd::RenderedFrame frame = source.Render(next);
     StoredKeyframe k;
     k.id = {AgentId(1), KeyframeId(static_cast<std::uint32_t>(next))};
-    k.pose = source.PoseOf(next);
+    k.pose = source.MapPoseOf(next);
     CCMD_ASSIGN_OR_RETURN(
         k.cloud, ccmd::BackProjectKeyframe(frame.depth_mm, frame.bgr, source.camera(), projection));
-    for (Bench& b : benches) {
-      if (points >= b.target) continue;
+    for (std::size_t i = 0; i < benches.size(); ++i) {
+      Bench& b = benches[i];
+      if (full[i]) continue;
       CCMD_RETURN_IF_ERROR(b.store->AddKeyframeCloud(k.id, k.pose, k.cloud));
+      b.row.added_points += k.cloud.size();
       b.keyframes.push_back(k);
+      full[i] = b.store->Stats().points >= b.target;
     }
-    points += k.cloud.size();
     ++next;
   }
   std::fprintf(stderr, "  measuring...\n");
@@ -279,7 +295,7 @@ ccmd::Status RunStoreSizes(int width, int height, const std::vector<std::size_t>
       const ccmd::RenderedFrame frame = source.Render(index);
       ccmd::DenseKeyframe k;
       k.id = {AgentId(1), KeyframeId(static_cast<std::uint32_t>(index))};
-      k.T_world_cam = source.PoseOf(index);
+      k.T_world_cam = source.MapPoseOf(index);
       k.depth_mm = frame.depth_mm;
       k.bgr = frame.bgr;
       k.camera = source.camera();
@@ -309,32 +325,38 @@ int RunStoreBench(const std::string& json_path, bool quick) {
   if (!s.ok()) return Fail(s);
 
   std::printf(
-      "| keyframe | points | kept | keyframes | update ms (cpu) | update cold ms | rebuild ms | "
-      "rebuild / update | refilter ms | add keyframe ms (cpu) | extract ms | export ms | "
-      "bytes/point | load |\n"
-      "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+      "| keyframe | points stored | points added | kept | keyframes (compacted) | update ms (cpu) | "
+      "update cold ms (cpu) | rebuild ms | rebuild / update | refilter ms | add keyframe ms (cpu) | extract ms | "
+      "export ms | bytes/stored point | load |\n"
+      "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
   ccmd::Json json = ccmd::Json::MakeArray();
   for (const StoreRow& r : rows) {
     const double update = Median(r.update_ms);
     const double bytes_per_point = static_cast<double>(r.stats.memory_bytes) / r.stats.points;
     std::printf(
-        "| %dx%d | %zu | %zu | %zu | %.3f (%.3f) | %.3f | %.1f | %.0f | %.2f | %.2f (%.2f) | "
+        "| %dx%d | %zu | %zu | %zu | %zu (%zu) | %.3f (%.3f) | %.3f (%.3f) | %.1f | %.0f | %.2f | %.2f (%.2f) | "
         "%.1f | %.1f | %.1f | %.1f |\n",
-        r.width, r.height, r.stats.points, r.stats.kept_points, r.stats.keyframes, update,
-        Median(r.update_cpu_ms), Median(r.update_cold_ms), r.rebuild_ms, r.rebuild_ms / update,
+        r.width, r.height, r.stats.points, r.added_points, r.stats.kept_points, r.stats.keyframes,
+        r.stats.compact_keyframes, update,
+        Median(r.update_cpu_ms), Median(r.update_cold_ms), Median(r.update_cold_cpu_ms), r.rebuild_ms, r.rebuild_ms / update,
         Median(r.refilter_ms), Median(r.add_ms), Median(r.add_cpu_ms), r.extract_ms, r.export_ms,
         bytes_per_point, r.load);
     ccmd::Json j;
     j["keyframe_width"] = r.width;
     j["keyframe_height"] = r.height;
     j["points"] = r.stats.points;
+    j["added_points"] = r.added_points;
     j["kept_points"] = r.stats.kept_points;
     j["keyframes"] = r.stats.keyframes;
+    j["compact_keyframes"] = r.stats.compact_keyframes;
+    j["compact_points"] = r.stats.compact_points;
+    j["held_bytes"] = r.stats.held_bytes;
     j["points_per_keyframe"] = static_cast<double>(r.stats.points) / r.stats.keyframes;
     j["update_ms"] = update;
     j["update_ms_max"] = Max(r.update_ms);
     j["update_cpu_ms"] = Median(r.update_cpu_ms);
     j["update_cold_ms"] = Median(r.update_cold_ms);
+    j["update_cold_cpu_ms"] = Median(r.update_cold_cpu_ms);
     j["refilter_ms"] = Median(r.refilter_ms);
     j["rebuild_ms"] = r.rebuild_ms;
     j["rebuild_points"] = r.rebuild_points;
@@ -403,6 +425,8 @@ struct ReconConfig {
   std::string downsample = "median";
   std::string out_ply;
   std::string json_path;
+  int passes = 0;         // > 0: revisits instead of the voxel table
+  double drift_deg = 0;   // with passes: also a loop that drifted this much, then corrected
 };
 
 int RunRecon(const ReconConfig& config) {
@@ -442,6 +466,16 @@ int RunRecon(const ReconConfig& config) {
     keyframes.push_back(std::move(k));
   }
 
+  if (config.passes > 0) {
+    auto revisits = ccmd::dense_bench::RunRevisits(keyframes, *surface, config.voxels.front(), config.passes,
+                                                   config.drift_deg);
+    if (!revisits.ok()) return Fail(revisits.status());
+    if (!config.json_path.empty()) {
+      const ccmd::Status s = ccmd::WriteJsonFile(*revisits, config.json_path);
+      if (!s.ok()) return Fail(s);
+    }
+    return 0;
+  }
   ccmd::Json json = ccmd::Json::MakeArray();
   std::printf(
       "| voxel m | max depth m | max incidence deg | keyframes | points | mean mm | median mm | "
@@ -528,6 +562,12 @@ int main(int argc, char** argv) {
       ->check(CLI::IsMember({"median", "nearest", "topleft"}))
       ->capture_default_str();
   recon->add_option("--out", config.out_ply, "Write the (last) dense map as PLY");
+  recon->add_option("--passes", config.passes,
+                    "Revisits: the keyframes added this many times, compacted and not (first voxel size)")
+      ->check(CLI::Range(1, 100));
+  recon->add_option("--drift-deg", config.drift_deg,
+                    "With --passes: also a loop drifted by this many degrees, then corrected")
+      ->check(CLI::Range(0.0, 90.0));
   recon->add_option("--json", config.json_path, "Write the rows as a JSON list");
   CLI11_PARSE(app, argc, argv);
   if (recon->parsed()) return RunRecon(config);

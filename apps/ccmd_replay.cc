@@ -214,6 +214,7 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
   // Progress, once a second, until every agent is done.
   const bool tty = ::isatty(1);
   int& failed = *failures;
+  std::vector<std::array<double, 3>> server_memory;  // ReplayRunInfo::server_memory
   auto sample_cpu = [&](Tracked* t) {
     const double now = wall.ElapsedSeconds();
     const double cpu = t->process.CpuSecondsSoFar();
@@ -264,6 +265,11 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
                     static_cast<int>(b->Get("fusions") ? b->Get("fusions")->number() : 0),
                     static_cast<int>(b->Get("maps") ? b->Get("maps")->number() : 0));
       line += part;
+      const Json* process = s->Get("process");
+      if (process && process->Get("rss_mb") && b->Get("keyframes")) {
+        server_memory.push_back(
+            {wall.ElapsedSeconds(), b->Get("keyframes")->number(), process->Get("rss_mb")->number()});
+      }
     }
     if (tty) {
       std::printf("\r%-150s", line.c_str());
@@ -316,6 +322,7 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
     const Status closed = network.link->Close();
     if (!closed.ok()) std::fprintf(stderr, "ccmd_replay: removing the link: %s\n", closed.ToString().c_str());
   }
+  info.server_memory = std::move(server_memory);
   for (Tracked* t : [&] {
          std::vector<Tracked*> all;
          for (Tracked& a : agent_processes) all.push_back(&a);

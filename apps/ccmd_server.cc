@@ -71,7 +71,7 @@ int main(int argc, char** argv) {
   ccmd::ServerRuntimeOptions runtime;
   ccmd::ServerOptions& options = runtime.net;
   std::string journal, resume, psk_file, stats_path, vocabulary = ccmd::app::DefaultVocabularyPath();
-  bool no_dense = false, no_gba = false;
+  bool no_dense = false, no_gba = false, dense_every_point = false;
   double stats_interval = 5.0;
   bool no_fsync = false;
   std::string log_level;
@@ -99,6 +99,9 @@ int main(int argc, char** argv) {
   app.add_option("--vocabulary", vocabulary, "Place-recognition vocabulary (ccmd_vocab); missing: trained online")
       ->capture_default_str();
   app.add_flag("--no-dense", no_dense, "Do not build the dense map");
+  app.add_flag("--dense-every-point", dense_every_point,
+               "Keep every back-projected point of every keyframe (no compaction after the filter window: "
+               "about 30 bytes a point for the whole run)");
   app.add_flag("--no-global-ba", no_gba, "No global bundle adjustment after loops");
   app.add_option("--snapshot-interval", runtime.snapshot_period_s,
                  "Seconds between dense-map snapshots (0: only at the end)")
@@ -171,6 +174,7 @@ int main(int argc, char** argv) {
     return 2;
   }
   runtime.backend.dense = !no_dense;
+  runtime.backend.dense_options.compact_keyframes = !dense_every_point;
   runtime.backend.global_ba = !no_gba;
   if (!vocabulary.empty() && ccmd::FileExists(vocabulary)) {
     auto loaded = ccmd::Vocabulary::Load(vocabulary);

@@ -1,14 +1,16 @@
 #pragma once
 
-// The server's brain. Messages of all agents go through four stages, each one owned thread
-// joined at shutdown, linked by bounded queues:
+// The server's brain. Messages of all agents go through four stages (util/stage.h: a bounded
+// queue and one owned thread each, joined at shutdown; each stage knows when it is idle):
 //   ingest  — keyframes and pose updates into the agents' maps (RGB-D decoded here);
-//   loops   — place recognition for each new keyframe, geometric verification, consistency
-//             over consecutive keyframes, then loop closure (pose graph) inside a map or
-//             fusion of two maps; both schedule a global BA;
-//   global BA — on the whole map, in the background, abandoned when newer loop work arrives;
+//   loops   — the LoopCloser (loop_closer.h) for each new keyframe: place recognition,
+//             verification and consistency, then loop closure inside a map or fusion of two
+//             maps; the back-end passes what moved to the dense map and schedules a global BA;
+//   global BA — on the whole map, in the background, abandoned when newer loop work arrives
+//             (only the newest request waits);
 //   dense   — the dense point store, fed with keyframes of the primary map (the first agent's
 //             map and everything fused into it) and every pose change of those keyframes.
+// The Backend only schedules: the work of each stage is in the functions it calls.
 
 #include <atomic>
 #include <condition_variable>
@@ -16,33 +18,34 @@
 #include <memory>
 #include <mutex>
 #include <string>
-#include <thread>
 #include <vector>
 
-#include "libccmd/backend/loop_verification.h"
+#include "libccmd/backend/loop_closer.h"
 #include "libccmd/backend/map_manager.h"
+#include "libccmd/backend/map_memory.h"
 #include "libccmd/backend/map_observer.h"
 #include "libccmd/backend/map_optimization.h"
 #include "libccmd/backend/place_index.h"
 #include "libccmd/dense/dense_map.h"
 #include "libccmd/io/trajectory.h"
-#include "libccmd/util/bounded_queue.h"
 #include "libccmd/util/json.h"
+#include "libccmd/util/stage.h"
 #include "proto/messages.h"
 
 namespace ccmd {
 
 struct BackendOptions {
-  LoopVerificationOptions verification;
-  int loop_candidates = 4;              // verified per query, best score first
-  int loop_consistency = 2;             // consecutive confirming keyframes needed
-  double consistency_translation = 0.05;  // metres between confirming map-to-map transforms
-  double consistency_rotation_deg = 3.0;
-  int exclude_recent_keyframes = 25;    // same-agent neighbours in id that never count as loops
-  int loop_cooldown_keyframes = 10;     // after a loop, the agent's next keyframes seek no loop in their own map
-  MapPoseGraphOptions pose_graph;
+  LoopCloserOptions loops;
   bool global_ba = true;
   int global_ba_iterations = 10;
+  // A map of more keyframes than this gets a global BA over a window of at most this many
+  // keyframes (and observations) around the loop that asked for it, up to half as many of the
+  // keyframes that see its points most held fixed, so that its time and memory do not grow
+  // with the map or with passes over a place; a newer loop no longer abandons it (it stays
+  // valid), and it runs at most `global_ba_duty` of the time.
+  int global_ba_max_keyframes = 100;
+  std::size_t global_ba_max_observations = 30000;  // of the window's keyframes
+  double global_ba_duty = 0.5;
   DepthNoise depth_noise;
   bool dense = true;
   DenseMapOptions dense_options;
@@ -52,17 +55,6 @@ struct BackendOptions {
   Status Validate() const;
 };
 
-struct LoopEvent {
-  double server_time = 0;  // seconds since the back-end started
-  GlobalKeyframeId query, candidate;
-  int inliers = 0;
-  // What verification measured: the query's camera in the candidate's camera frame (the loop
-  // edge), so that a benchmark can check the transform against ground truth.
-  Pose T_candidate_query = Pose::Identity();
-  bool fusion = false;     // two maps fused (else a loop inside a map)
-  MapId map;               // the map after the event
-};
-
 struct BackendStats {
   std::size_t agents = 0, maps = 0, keyframes = 0, map_points = 0;
   std::size_t keyframes_received = 0, pose_updates_received = 0;
@@ -70,18 +62,32 @@ struct BackendStats {
   int global_ba_runs = 0, global_ba_aborted = 0;
   double global_ba_seconds = 0;
   std::size_t dense_keyframes = 0;
-  // Time from submission to insertion in the map (the intake latency), over all keyframes and
-  // over those that arrived while a global BA was running.
+  int loops_already_closed = 0;  // verified loops that found the map consistent (no correction)
+  int global_ba_windowed = 0;    // runs over a window of a larger map
+  // Intake latency: from receipt (the transport's arrival time, else the submission) to the
+  // keyframe being in its map, over the samples kept (BackendTimings), and over the last
+  // minute; the same to the keyframe being in the dense map (RGB-D keyframes of the primary
+  // map). Also over the keyframes that arrived while a global BA was running.
   double intake_ms_median = 0, intake_ms_p99 = 0, intake_ms_max = 0;
+  double intake_last_minute_ms_median = 0, intake_last_minute_ms_p99 = 0;
+  double dense_intake_ms_median = 0, dense_intake_ms_p99 = 0;
+  double dense_intake_last_minute_ms_median = 0, dense_intake_last_minute_ms_p99 = 0;
   double intake_during_gba_ms_median = 0, intake_during_gba_ms_max = 0;
   std::size_t intake_during_gba_count = 0;
+  // Work waiting in each stage now.
+  std::size_t ingest_backlog = 0, loop_backlog = 0, dense_backlog = 0;
 };
 
 // The samples behind the intake and global BA figures of BackendStats, for benchmarks that
-// need other percentiles or compare intake with and without a global BA running.
+// need other percentiles or compare intake with and without a global BA running. The most
+// recent kMaxSamples of each kind are kept (memory must not grow with the run's length).
 struct BackendTimings {
+  static constexpr std::size_t kMaxSamples = 1 << 17;
   std::vector<double> intake_ms;          // per keyframe, in intake order
+  std::vector<double> intake_at_s;        // when it entered its map (back-end clock)
   std::vector<char> intake_during_gba;    // per intake_ms entry: a global BA was running
+  std::vector<double> dense_ms;           // per RGB-D keyframe: receipt to in the dense map
+  std::vector<double> dense_at_s;
   std::vector<double> global_ba_seconds;  // per global BA run, abandoned ones included
   std::vector<char> global_ba_applied;    // per run: the result was written to the map
 };
@@ -134,11 +140,16 @@ class Backend {
   Status ExportDenseMap(const std::string& path);
 
   BackendStats stats();
+  // The most recent loop events (at least BackendTimings::kMaxSamples of them).
   std::vector<LoopEvent> loop_events() const;
   BackendTimings timings() const;
   // The first arrivals of the run (bounded; see RecordArrival).
   std::vector<KeyframeArrival> keyframe_arrivals() const;
   Json StatsJson();
+  // Memory of the sparse maps by part (reads every map: for reports, not for every tick) and
+  // of the dense map.
+  SparseMemory SparseMemoryUsage();
+  Json MemoryJson();
 
  private:
   struct IngestItem {
@@ -146,74 +157,70 @@ class Backend {
     // Exactly one is set. Held by pointer: queue moves stay cheap.
     std::unique_ptr<KeyframeMessage> keyframe;
     std::unique_ptr<PoseUpdateMessage> pose_update;
-    double submitted = 0;
-    double arrived = 0;  // MonotonicSeconds()
+    double arrived = 0;  // MonotonicSeconds() when the message reached the server
   };
   struct DenseTask {
     enum class Kind { kAdd, kUpdate, kLoopUpdate, kGlobalUpdate, kMergeMaps } kind = Kind::kAdd;
-    DenseKeyframe keyframe;                 // kAdd
+    // kAdd: the keyframe's coded RGB-D, decoded by the dense stage.
+    GlobalKeyframeId keyframe;
+    Pose T_world_cam = Pose::Identity();
+    std::shared_ptr<const RgbdPayload> rgbd;
+    PinholeCamera camera;   // full resolution
+    double received = -1;   // back-end clock; < 0: unknown (a keyframe that joined by fusion)
     std::vector<KeyframePose> poses;        // updates
     MapId from, to;                         // kMergeMaps
-    bool after_fusion = false;              // kAdd: the keyframe's map was just fused
+  };
+  // A global BA request: the map of `agent`, around the loop's keyframes.
+  struct GbaRequest {
+    AgentId agent;
+    std::vector<GlobalKeyframeId> around;
+    bool fusion = false;
   };
 
   explicit Backend(const BackendOptions& options);
-  void IngestLoop();
-  void LoopDetectionLoop();
-  void GlobalBaLoop();
-  void DenseLoop();
-
+  // Stage handlers, each on its stage's thread.
   void Ingest(IngestItem item);
-  // `stored`: the keyframe is already in the place index (a late query after the vocabulary
-  // was trained online), so only the query runs.
-  void DetectLoop(const GlobalKeyframeId& id, bool stored);
-  void RequestGlobalBa(AgentId agent);
+  void DetectLoops(const GlobalKeyframeId& id);
+  void RunGlobalBa(GbaRequest request);
+  void UpdateDense(DenseTask task);
+  Status AddToDense(const DenseTask& task);
+
+  // The dense-map work of an accepted loop (its map still checked out), then a global BA.
+  void AfterLoop(LoopClosure closure);
+  void RequestGlobalBa(GbaRequest request);
+  // Waits (on the global BA stage) until a windowed run may start: `global_ba_duty`.
+  void WaitForGbaTurn();
   // Dense work for keyframes that entered the primary map, and pose changes of keyframes in it.
-  void QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>& keyframes, bool after_fusion = false);
+  // `received`: the back-end clock when the keyframe arrived (< 0: not measured).
+  void QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>& keyframes, double received = -1);
   void QueueDenseUpdates(const std::vector<ServerKeyframe*>& moved, DenseTask::Kind kind);
-  void FinishedWork();
+  PinholeCamera CameraOf(AgentId agent) const;
   double Now() const;
   // Tells the observer (if any) that `moved` have new poses in `map`.
   void NotifyPoses(PoseSource source, MapId map, const std::vector<ServerKeyframe*>& moved, double arrived_s);
 
   const BackendOptions options_;
   MapObserver* observer_ = nullptr;  // set before the stages start, never changed
-  PlaceIndex place_;  // loop stage only
   MapManager maps_;
   std::unique_ptr<DenseMap> dense_;
   const double start_time_;
+  LoopCloser loop_closer_;  // loop stage only
+  std::atomic<std::size_t> place_bytes_{0};  // the place index's memory, as the loop stage last saw it
 
   mutable std::mutex cameras_mutex_;
   std::map<AgentId, PinholeCamera> cameras_;
   std::map<AgentId, std::string> names_;
 
-  BoundedQueue<IngestItem> ingest_queue_;
-  BoundedQueue<GlobalKeyframeId> loop_queue_;
-  std::vector<GlobalKeyframeId> late_queries_;  // loop stage only
-  BoundedQueue<DenseTask> dense_queue_;
-
-  // Work accounting for WaitIdle: every queued item (and a pending global BA) counts once.
-  std::mutex work_mutex_;
-  std::condition_variable work_cv_;
-  long outstanding_ = 0;
-
-  // Global BA requests: the agent whose map should be optimised.
-  std::mutex gba_mutex_;
-  std::condition_variable gba_cv_;
-  std::optional<AgentId> gba_request_;
-  bool gba_stop_ = false;
+  // A newer loop or fusion abandons a running global BA of a whole map, a fusion a windowed
+  // one; shutdown abandons any.
   std::atomic<bool> gba_abort_{false};
+  std::atomic<bool> gba_windowed_{false};
   std::atomic<bool> gba_running_{false};
-
-  // Loop detection state (loop thread only).
-  struct PendingLoop {
-    MapId candidate_map;
-    Pose T_candidate_map_query_map;
-    KeyframeId last_query;
-    int count = 0;
-  };
-  std::map<AgentId, PendingLoop> pending_loops_;
-  std::map<AgentId, KeyframeId> loop_cooldown_until_;
+  std::atomic<bool> stopping_{false};
+  std::mutex gba_turn_mutex_;
+  std::condition_variable gba_turn_cv_;  // woken by shutdown
+  double gba_next_start_ = 0;            // back-end clock; global BA stage only
+  double dense_trimmed_ = 0;             // back-end clock; dense stage only
 
   mutable std::mutex stats_mutex_;
   BackendStats stats_;
@@ -224,7 +231,11 @@ class Backend {
   static constexpr std::size_t kMaxArrivals = 400000;
   void RecordArrival(const KeyframeArrival& arrival);  // stats_mutex_ held
 
-  std::thread ingest_thread_, loop_thread_, gba_thread_, dense_thread_;
+  // Declared last: stopped (joined) before anything their handlers use is destroyed.
+  Stage<IngestItem> ingest_stage_;
+  Stage<GlobalKeyframeId> loop_stage_;
+  Stage<GbaRequest> gba_stage_;  // the newest request replaces one still waiting
+  Stage<DenseTask> dense_stage_;
   bool shut_down_ = false;
 };
 

@@ -27,12 +27,10 @@ StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent, cons
 
   const std::size_t n = m.keypoints.size();
   kf->keypoints.resize(n);
-  kf->descriptors.resize(n);
   kf->points.assign(n, nullptr);
   for (std::size_t i = 0; i < n; ++i) {
     const WireKeypoint& w = m.keypoints[i];
-    kf->keypoints[i] = {cv::Point2f(w.u, w.v), w.octave, w.angle_deg, w.depth_m > 0 ? w.depth_m : 0.0f};
-    kf->descriptors[i] = w.descriptor;
+    kf->keypoints[i] = {cv::Point2f(w.u, w.v), w.octave, w.depth_m > 0 ? w.depth_m : 0.0f};
   }
   ServerKeyframe* raw = map->AddKeyframe(std::move(kf));
 
@@ -57,9 +55,13 @@ StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent, cons
       ++unknown_links;
       continue;
     }
-    raw->descriptors[i] = point->descriptor;  // linked keypoints travel without descriptors
-    map->AddObservation(point, raw, static_cast<int>(i));
+    map->AddObservation(point, raw, static_cast<int>(i));  // its descriptor is the point's
   }
+  // Keypoints without a map point (none, or one the server never received) keep their own.
+  for (std::size_t i = 0; i < n; ++i) {
+    if (!raw->points[i]) raw->own_descriptors.emplace_back(static_cast<std::uint32_t>(i), m.keypoints[i].descriptor);
+  }
+  raw->own_descriptors.shrink_to_fit();
   if (unknown_links > 0) {
     CCMD_LOG(WARNING) << "keyframe " << m.id.value() << " of agent " << agent.value() << " links "
                       << unknown_links << " map points the server never received";

@@ -40,17 +40,18 @@ std::vector<PlaceHit> QueryLoopCandidates(const PlaceIndex& place, const std::ve
   return hits;
 }
 
-CCMD_POPCNT_CLONES std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& camera,
-                                    ServerKeyframe* candidate, const ServerMap& candidate_map,
-                                    const LoopVerificationOptions& options) {
-  // Map points around the candidate.
+namespace {
+
+// The map points of the candidate and of its strongest covisible neighbours, each once.
+std::vector<ServerMapPoint*> WindowPoints(const ServerKeyframe* query, ServerKeyframe* candidate,
+                                          const ServerMap& candidate_map, int window_keyframes) {
   std::vector<ServerKeyframe*> window = {candidate};
   std::vector<std::pair<GlobalKeyframeId, int>> neighbours(candidate->covisibility.begin(),
                                                            candidate->covisibility.end());
   std::sort(neighbours.begin(), neighbours.end(),
             [](const auto& a, const auto& b) { return a.second != b.second ? a.second > b.second : a.first < b.first; });
   for (const auto& [id, weight] : neighbours) {
-    if (static_cast<int>(window.size()) > options.window_keyframes) break;
+    if (static_cast<int>(window.size()) > window_keyframes) break;
     if (ServerKeyframe* kf = candidate_map.keyframe(id); kf && kf != query) window.push_back(kf);
   }
   std::vector<ServerMapPoint*> points;
@@ -60,16 +61,22 @@ CCMD_POPCNT_CLONES std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, co
       if (p && seen.insert(p).second) points.push_back(p);
     }
   }
-  if (static_cast<int>(points.size()) < options.min_matches) return std::nullopt;
+  return points;
+}
 
-  // Each query keypoint to its best map point (ratio test), one keypoint per point.
-  std::vector<int> point_of(query->keypoints.size(), -1);
+// Each query keypoint to its best map point (ratio test), one keypoint per point: the index
+// into `points` per keypoint, -1 for none.
+CCMD_POPCNT_CLONES std::vector<int> MatchKeypoints(const ServerKeyframe& query,
+                                                   const std::vector<ServerMapPoint*>& points,
+                                                   const LoopVerificationOptions& options) {
+  const std::vector<Descriptor> descriptors = query.Descriptors();
+  std::vector<int> point_of(query.keypoints.size(), -1);
   std::vector<int> best_distance_of_point(points.size(), std::numeric_limits<int>::max());
   std::vector<int> keypoint_of_point(points.size(), -1);
-  for (std::size_t i = 0; i < query->keypoints.size(); ++i) {
+  for (std::size_t i = 0; i < query.keypoints.size(); ++i) {
     int best = std::numeric_limits<int>::max(), second = best, best_j = -1;
     for (std::size_t j = 0; j < points.size(); ++j) {
-      const int d = HammingDistance(query->descriptors[i], points[j]->descriptor);
+      const int d = HammingDistance(descriptors[i], points[j]->descriptor);
       if (d < best) {
         second = best;
         best = d;
@@ -85,18 +92,12 @@ CCMD_POPCNT_CLONES std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, co
     keypoint_of_point[best_j] = static_cast<int>(i);
     point_of[i] = best_j;
   }
-  std::vector<cv::Point3f> object;
-  std::vector<cv::Point2f> image;
-  std::vector<int> keypoint_index;
-  for (std::size_t i = 0; i < point_of.size(); ++i) {
-    if (point_of[i] < 0) continue;
-    const Eigen::Vector3d p = points[point_of[i]]->World();
-    object.emplace_back(static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z()));
-    image.push_back(query->keypoints[i].pt);
-    keypoint_index.push_back(static_cast<int>(i));
-  }
-  if (static_cast<int>(object.size()) < options.min_matches) return std::nullopt;
+  return point_of;
+}
 
+// PnP RANSAC of the matches: the query camera's pose in the candidate's map, if enough agree.
+std::optional<Pose> SolvePnpRansac(const std::vector<cv::Point3f>& object, const std::vector<cv::Point2f>& image,
+                                   const PinholeCamera& camera, const LoopVerificationOptions& options) {
   const cv::Mat K = (cv::Mat_<double>(3, 3) << camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1);
   cv::Mat rvec, tvec;
   std::vector<int> ransac_inliers;
@@ -112,6 +113,29 @@ CCMD_POPCNT_CLONES std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, co
   Pose T_cam_map = Pose::Identity();
   T_cam_map.linear() = Re;
   T_cam_map.translation() = Eigen::Vector3d(tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2));
+  return T_cam_map;
+}
+
+}  // namespace
+
+std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& camera, ServerKeyframe* candidate,
+                                    const ServerMap& candidate_map, const LoopVerificationOptions& options) {
+  const std::vector<ServerMapPoint*> points = WindowPoints(query, candidate, candidate_map, options.window_keyframes);
+  if (static_cast<int>(points.size()) < options.min_matches) return std::nullopt;
+  const std::vector<int> point_of = MatchKeypoints(*query, points, options);
+  std::vector<cv::Point3f> object;
+  std::vector<cv::Point2f> image;
+  std::vector<int> keypoint_index;
+  for (std::size_t i = 0; i < point_of.size(); ++i) {
+    if (point_of[i] < 0) continue;
+    const Eigen::Vector3d p = points[point_of[i]]->World();
+    object.emplace_back(static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z()));
+    image.push_back(query->keypoints[i].pt);
+    keypoint_index.push_back(static_cast<int>(i));
+  }
+  if (static_cast<int>(object.size()) < options.min_matches) return std::nullopt;
+  const std::optional<Pose> T_cam_map = SolvePnpRansac(object, image, camera, options);
+  if (!T_cam_map) return std::nullopt;
 
   // Refine with every match (outliers are re-classified) and the measured depths.
   std::vector<PoseObservation> observations;
@@ -122,7 +146,7 @@ CCMD_POPCNT_CLONES std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, co
                             kp.depth, inv_sigma2, kp.depth > 0 ? options.depth_noise.Information(kp.depth) : 0.0});
   }
   const Intrinsics intrinsics{camera.fx, camera.fy, camera.cx, camera.cy};
-  const PoseOptimizationResult refined = OptimizePose(T_cam_map, observations, intrinsics);
+  const PoseOptimizationResult refined = OptimizePose(*T_cam_map, observations, intrinsics);
   if (refined.inliers < options.min_inliers) return std::nullopt;
 
   LoopMatch match;

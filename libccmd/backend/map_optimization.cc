@@ -1,6 +1,8 @@
 #include "libccmd/backend/map_optimization.h"
 
+#include <algorithm>
 #include <unordered_map>
+#include <unordered_set>
 
 namespace ccmd {
 
@@ -52,51 +54,178 @@ StatusOr<std::vector<ServerKeyframe*>> OptimizeMapPoseGraph(ServerMap* map, cons
   return moved;
 }
 
-GlobalBaProblem BuildGlobalBa(const ServerMap& map, const std::map<AgentId, PinholeCamera>& cameras,
-                              const DepthNoise& depth_noise) {
-  GlobalBaProblem g;
-  std::map<AgentId, int> calibration;
-  for (const auto& [agent, camera] : cameras) {
-    calibration[agent] = static_cast<int>(g.problem.calibrations.size());
-    g.problem.calibrations.push_back({camera.fx, camera.fy, camera.cx, camera.cy});
-  }
-  std::unordered_map<const ServerKeyframe*, int> camera_index;
-  for (const auto& [id, kf] : map.keyframes()) {
-    const auto c = calibration.find(id.agent);
-    if (c == calibration.end()) continue;  // no camera known for that agent (cannot happen in a session)
-    camera_index[kf.get()] = static_cast<int>(g.keyframes.size());
-    g.keyframes.push_back(id);
-    g.T_map_cam_before[id] = kf->T_map_cam;
-    g.problem.cameras.push_back({kf->T_map_cam.inverse(), map.origin() && id == *map.origin(), c->second});
-  }
-  // The agents' dense depth alignments between keyframes both in this map.
-  for (const auto& [id, kf] : map.keyframes()) {
-    const auto b = camera_index.find(kf.get());
-    if (b == camera_index.end()) continue;
-    for (const ServerKeyframe::DepthLink& link : kf->depth_links) {
-      const auto a = camera_index.find(map.keyframe(link.other));
-      if (a != camera_index.end()) g.problem.relative_poses.push_back({a->second, b->second, link.T_this_other, link.sqrt_information});
+namespace {
+
+// Fills a GlobalBaProblem: cameras (keyframes) and points, each added once.
+class GlobalBaBuilder {
+ public:
+  GlobalBaBuilder(const ServerMap& map, const std::map<AgentId, PinholeCamera>& cameras, const DepthNoise& depth_noise,
+                  GlobalBaProblem* g)
+      : map_(map), depth_noise_(depth_noise), g_(g) {
+    for (const auto& [agent, camera] : cameras) {
+      calibration_[agent] = static_cast<int>(g_->problem.calibrations.size());
+      g_->problem.calibrations.push_back({camera.fx, camera.fy, camera.cx, camera.cy});
+    }
+    for (const auto& [id, kf] : map.keyframes()) {
+      KeyframeId& last = g_->last_keyframe[id.agent];
+      last = std::max(last, id.keyframe);
     }
   }
-  // Points: collected through the keyframes (each once), kept if seen at least twice.
-  std::unordered_map<const ServerMapPoint*, int> point_index;
-  for (const auto& [id, kf] : map.keyframes()) {
-    for (const ServerMapPoint* p : kf->points) {
-      if (!p || point_index.count(p) || p->observations.size() < 2) continue;
-      point_index[p] = static_cast<int>(g.points.size());
-      g.points.push_back(p->id);
-      g.problem.points.push_back({p->World()});
-      for (const auto& o : p->observations) {
-        const auto c = camera_index.find(o.keyframe);
-        if (c == camera_index.end()) continue;
-        const ServerKeypoint& kp = o.keyframe->keypoints[o.keypoint];
-        g.problem.observations.push_back({c->second, point_index[p], Eigen::Vector2d(kp.pt.x, kp.pt.y), kp.depth,
+
+  // The keyframe's camera index, added (fixed or not) the first time; -1 without a camera.
+  int Camera(const ServerKeyframe* kf, bool fixed) {
+    const auto known = camera_index_.find(kf);
+    if (known != camera_index_.end()) return known->second;
+    const auto c = calibration_.find(kf->id.agent);
+    if (c == calibration_.end()) return -1;  // no camera known for that agent (cannot happen in a session)
+    const int index = static_cast<int>(g_->keyframes.size());
+    camera_index_[kf] = index;
+    g_->keyframes.push_back(kf->id);
+    g_->T_map_cam_before[kf->id] = kf->T_map_cam;
+    const bool origin = map_.origin() && kf->id == *map_.origin();
+    g_->problem.cameras.push_back({kf->T_map_cam.inverse(), fixed || origin, c->second});
+    return index;
+  }
+
+  // A point seen at least twice, with its observations by the problem's cameras and by the
+  // keyframes in `fixed` (they join as fixed cameras).
+  void Point(const ServerMapPoint* p, const std::set<const ServerKeyframe*>* fixed = nullptr) {
+    if (!p || point_index_.count(p) || p->observations.size() < 2) return;
+    const int index = static_cast<int>(g_->points.size());
+    point_index_[p] = index;
+    g_->points.push_back(p->id);
+    g_->problem.points.push_back({p->World()});
+    for (const auto& o : p->observations) {
+      const int c = fixed && fixed->count(o.keyframe) ? Camera(o.keyframe, /*fixed=*/true) : Known(o.keyframe);
+      if (c < 0) continue;
+      const ServerKeypoint& kp = o.keyframe->keypoints[o.keypoint];
+      g_->problem.observations.push_back({c, index, Eigen::Vector2d(kp.pt.x, kp.pt.y), kp.depth,
                                           std::pow(1.2, -2.0 * kp.octave),
-                                          kp.depth > 0 ? depth_noise.Information(kp.depth) : 0.0});
+                                          kp.depth > 0 ? depth_noise_.Information(kp.depth) : 0.0});
+    }
+  }
+
+  // The agents' dense depth alignments between keyframes both in the problem.
+  void DepthLinks() {
+    for (std::size_t b = 0; b < g_->keyframes.size(); ++b) {
+      for (const ServerKeyframe::DepthLink& link : map_.keyframe(g_->keyframes[b])->depth_links) {
+        const int a = Known(map_.keyframe(link.other));
+        if (a >= 0) {
+          g_->problem.relative_poses.push_back({a, static_cast<int>(b), link.T_this_other, link.sqrt_information});
+        }
       }
     }
   }
+
+ private:
+  int Known(const ServerKeyframe* kf) const {
+    const auto it = camera_index_.find(kf);
+    return it == camera_index_.end() ? -1 : it->second;
+  }
+
+  const ServerMap& map_;
+  const DepthNoise& depth_noise_;
+  GlobalBaProblem* g_;
+  std::map<AgentId, int> calibration_;
+  std::unordered_map<const ServerKeyframe*, int> camera_index_;
+  std::unordered_map<const ServerMapPoint*, int> point_index_;
+};
+
+}  // namespace
+
+namespace {
+
+// The keyframes outside a window that see its points most often, at most half as many as the
+// window holds: they hold the window in place (the gauge) without the problem growing with
+// every pass over the place.
+std::set<const ServerKeyframe*> FixedNeighbours(const ServerMap& map, const std::set<GlobalKeyframeId>& window) {
+  std::map<const ServerKeyframe*, int> seen;
+  std::unordered_set<const ServerMapPoint*> visited;
+  for (const GlobalKeyframeId& id : window) {
+    const ServerKeyframe* kf = map.keyframe(id);
+    if (!kf) continue;
+    for (const ServerMapPoint* p : kf->points) {
+      if (!p || p->observations.size() < 2 || !visited.insert(p).second) continue;
+      for (const auto& o : p->observations) {
+        if (!window.count(o.keyframe->id)) seen[o.keyframe]++;
+      }
+    }
+  }
+  std::vector<std::pair<int, const ServerKeyframe*>> ranked;
+  for (const auto& [kf, count] : seen) ranked.emplace_back(count, kf);
+  std::sort(ranked.begin(), ranked.end(), [](const auto& a, const auto& b) {
+    return a.first != b.first ? a.first > b.first : a.second->id < b.second->id;
+  });
+  std::set<const ServerKeyframe*> fixed;
+  const std::size_t budget = std::max<std::size_t>(10, window.size() / 2);
+  for (std::size_t i = 0; i < ranked.size() && i < budget; ++i) fixed.insert(ranked[i].second);
+  return fixed;
+}
+
+}  // namespace
+
+GlobalBaProblem BuildGlobalBa(const ServerMap& map, const std::map<AgentId, PinholeCamera>& cameras,
+                              const DepthNoise& depth_noise, const std::set<GlobalKeyframeId>* window) {
+  GlobalBaProblem g;
+  GlobalBaBuilder builder(map, cameras, depth_noise, &g);
+  for (const auto& [id, kf] : map.keyframes()) {
+    if (!window || window->count(id)) builder.Camera(kf.get(), /*fixed=*/false);
+  }
+  std::set<const ServerKeyframe*> fixed;
+  if (window) fixed = FixedNeighbours(map, *window);
+  // Points: collected through the keyframes (each once), kept if seen at least twice.
+  for (const auto& [id, kf] : map.keyframes()) {
+    if (window && !window->count(id)) continue;
+    for (const ServerMapPoint* p : kf->points) builder.Point(p, window ? &fixed : nullptr);
+  }
+  builder.DepthLinks();
+  const bool gauge = std::any_of(g.problem.cameras.begin(), g.problem.cameras.end(), [](const auto& c) { return c.fixed; });
+  if (!gauge && !g.problem.cameras.empty()) g.problem.cameras[0].fixed = true;
   return g;
+}
+
+std::set<GlobalKeyframeId> SelectGlobalBaWindow(const ServerMap& map, const std::vector<GlobalKeyframeId>& seeds,
+                                                int max_keyframes, std::size_t max_observations) {
+  std::set<GlobalKeyframeId> window;
+  std::size_t observations = 0;
+  // Adds a keyframe if both bounds allow it.
+  const auto admit = [&](const ServerKeyframe* kf) {
+    std::size_t own = 0;
+    for (const ServerMapPoint* p : kf->points) own += p && p->observations.size() >= 2;
+    if (static_cast<int>(window.size()) >= max_keyframes || (!window.empty() && observations + own > max_observations)) {
+      return false;
+    }
+    observations += own;
+    return window.insert(kf->id).second;
+  };
+  std::vector<const ServerKeyframe*> frontier;
+  for (const GlobalKeyframeId& id : seeds) {
+    const ServerKeyframe* kf = map.keyframe(id);
+    if (kf && !window.count(id) && admit(kf)) frontier.push_back(kf);
+  }
+  bool full = false;
+  while (!frontier.empty() && !full) {
+    std::vector<std::pair<int, const ServerKeyframe*>> next;  // (link weight, keyframe)
+    for (const ServerKeyframe* kf : frontier) {
+      for (const auto& [other, weight] : kf->covisibility) {
+        const ServerKeyframe* o = map.keyframe(other);
+        if (o && !window.count(other)) next.emplace_back(weight, o);
+      }
+    }
+    std::sort(next.begin(), next.end(), [](const auto& a, const auto& b) {
+      return a.first != b.first ? a.first > b.first : a.second->id < b.second->id;
+    });
+    frontier.clear();
+    for (const auto& [weight, kf] : next) {
+      if (window.count(kf->id)) continue;
+      if (!admit(kf)) {
+        full = true;
+        break;
+      }
+      frontier.push_back(kf);
+    }
+  }
+  return window;
 }
 
 std::vector<ServerKeyframe*> ApplyGlobalBa(ServerMap* map, const GlobalBaProblem& g) {
@@ -108,14 +237,17 @@ std::vector<ServerKeyframe*> ApplyGlobalBa(ServerMap* map, const GlobalBaProblem
     if (!kf) continue;
     const Pose before = g.T_map_cam_before.at(g.keyframes[c]);
     const Pose after = g.problem.cameras[c].T_cam_world.inverse();
+    corrections[kf->id.agent][kf->id.keyframe] = after * before.inverse();
+    if (g.problem.cameras[c].fixed) continue;
     // Pose updates from the agent may have arrived during the solve: keep them on top.
     const Pose since = before.inverse() * kf->T_map_cam;
     kf->T_map_cam = Orthonormalized(after * since);
-    corrections[kf->id.agent][kf->id.keyframe] = after * before.inverse();
     moved.push_back(kf);
   }
   for (const auto& [id, kf] : map->keyframes()) {
-    if (g.T_map_cam_before.count(id)) continue;
+    // Only keyframes that arrived after the problem was built (others were left out on purpose).
+    const auto last = g.last_keyframe.find(id.agent);
+    if (g.T_map_cam_before.count(id) || (last != g.last_keyframe.end() && id.keyframe <= last->second)) continue;
     const auto agent = corrections.find(id.agent);
     if (agent == corrections.end() || agent->second.empty()) continue;
     // Nearest optimised keyframe of the same agent at or before this one (else the first).

@@ -4,7 +4,9 @@
 // adjustment. Both report which keyframes moved, for the dense map.
 
 #include <atomic>
+#include <cstdint>
 #include <map>
+#include <set>
 #include <vector>
 
 #include "libccmd/backend/server_map.h"
@@ -35,13 +37,25 @@ struct GlobalBaProblem {
   std::vector<GlobalKeyframeId> keyframes;  // per camera
   std::vector<GlobalMapPointId> points;     // per point
   std::map<GlobalKeyframeId, Pose> T_map_cam_before;
+  std::map<AgentId, KeyframeId> last_keyframe;  // each agent's newest keyframe when built
 };
-// Every keyframe and every point with at least two observations; the origin is fixed.
+// Every keyframe and every point with at least two observations; the origin is fixed. With a
+// `window`, only its keyframes are optimised: the points they observe (at least twice in the
+// map) with every observation, keyframes outside the window that observe them held fixed (and
+// the first of the window if none does, to fix the gauge).
 GlobalBaProblem BuildGlobalBa(const ServerMap& map, const std::map<AgentId, PinholeCamera>& cameras,
-                              const DepthNoise& depth_noise);
+                              const DepthNoise& depth_noise, const std::set<GlobalKeyframeId>* window = nullptr);
+// The keyframes closest to `seeds` in the covisibility graph (breadth first, strongest links
+// first), at most `max_keyframes` and no more than make `max_observations` observations of
+// points seen twice: the window of a global BA around a loop in a large map. A place seen on
+// many passes has points with many observations; the second bound keeps the problem (its
+// time and memory) the same size there.
+std::set<GlobalKeyframeId> SelectGlobalBaWindow(const ServerMap& map, const std::vector<GlobalKeyframeId>& seeds,
+                                                int max_keyframes, std::size_t max_observations = SIZE_MAX);
 // Writes the result back: optimised keyframes get their new poses; keyframes added since the
-// problem was built move with the correction of the nearest optimised keyframe of their agent;
-// optimised points get their new positions. Returns the keyframes that moved.
+// problem was built move with the correction of the nearest optimised keyframe of their agent
+// (keyframes left out of a window stay); optimised points get their new positions. Returns the
+// keyframes that moved.
 std::vector<ServerKeyframe*> ApplyGlobalBa(ServerMap* map, const GlobalBaProblem& result);
 
 }  // namespace ccmd

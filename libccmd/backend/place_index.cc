@@ -1,5 +1,6 @@
 #include "libccmd/backend/place_index.h"
 
+#include <algorithm>
 #include <cstring>
 
 #include "libccmd/util/logging.h"
@@ -22,20 +23,35 @@ PlaceIndex::PlaceIndex(const PlaceIndexOptions& options)
 
 std::vector<GlobalKeyframeId> PlaceIndex::Add(const GlobalKeyframeId& id, const std::vector<Descriptor>& descriptors) {
   const cv::Mat mat = ToMat(descriptors);
-  descriptors_[id] = mat;
   const bool had_vocabulary = vocabulary_ != nullptr;
   if (builder_) {
+    descriptors_[id] = mat;
     builder_->Add(mat).IgnoreError();
     if (builder_->TrainingDue()) Retrain();  // adds every stored keyframe, this one included
+    if (builder_->next_training() < 0) {
+      // The schedule has ended: nothing is ever transformed again.
+      builder_.reset();
+      descriptors_.clear();
+    }
   }
   if (vocabulary_ && !database_.Contains(id)) database_.Add(id, MapId(0), vocabulary_->Transform(mat)).IgnoreError();
   std::vector<GlobalKeyframeId> late;
   if (!had_vocabulary && vocabulary_) {
-    for (const auto& [stored, m] : descriptors_) {
+    for (const GlobalKeyframeId& stored : before_training_) {
       if (stored != id) late.push_back(stored);
     }
+    before_training_.clear();
+    std::sort(late.begin(), late.end());  // oldest first, agent by agent
+  } else if (!vocabulary_ && builder_) {
+    before_training_.push_back(id);
   }
   return late;
+}
+
+std::size_t PlaceIndex::MemoryBytes() const {
+  std::size_t bytes = database_.MemoryBytes() + before_training_.capacity() * sizeof(GlobalKeyframeId);
+  for (const auto& [id, m] : descriptors_) bytes += m.total() * m.elemSize() + sizeof(cv::Mat) + 48;
+  return bytes;
 }
 
 void PlaceIndex::Retrain() {

@@ -45,6 +45,8 @@ class PlaceIndex {
 
   bool ready() const { return vocabulary_ != nullptr; }
   int trainings() const { return trainings_; }
+  // Bytes held: the database, and the descriptors kept for retraining.
+  std::size_t MemoryBytes() const;
 
  private:
   void Retrain();
@@ -53,7 +55,10 @@ class PlaceIndex {
   std::shared_ptr<const Vocabulary> vocabulary_;
   std::unique_ptr<VocabularyBuilder> builder_;
   BowDatabase database_;
-  std::map<GlobalKeyframeId, cv::Mat> descriptors_;  // to transform again after a retraining
+  // To transform again after a retraining: kept only while online training may still retrain
+  // (with a given vocabulary, or once the training schedule has ended, never).
+  std::map<GlobalKeyframeId, cv::Mat> descriptors_;
+  std::vector<GlobalKeyframeId> before_training_;  // added before the first vocabulary existed
   int trainings_ = 0;
 };
 

@@ -6,6 +6,41 @@
 
 namespace ccmd {
 
+namespace {
+
+const Descriptor kNoDescriptor{};
+
+}  // namespace
+
+const Descriptor& ServerKeyframe::descriptor(std::size_t i) const {
+  if (points[i]) return points[i]->descriptor;
+  const auto it = std::lower_bound(own_descriptors.begin(), own_descriptors.end(), i,
+                                   [](const auto& entry, std::size_t k) { return entry.first < k; });
+  return it != own_descriptors.end() && it->first == i ? it->second : kNoDescriptor;
+}
+
+std::vector<Descriptor> ServerKeyframe::Descriptors() const {
+  std::vector<Descriptor> all(keypoints.size());
+  for (std::size_t i = 0; i < all.size(); ++i) all[i] = descriptor(i);
+  return all;
+}
+
+void ServerKeyframe::AppendKeypoint(const ServerKeypoint& keypoint, const Descriptor& d) {
+  own_descriptors.emplace_back(static_cast<std::uint32_t>(keypoints.size()), d);
+  keypoints.push_back(keypoint);
+  points.push_back(nullptr);
+}
+
+void ServerKeyframe::KeepOwnDescriptor(std::size_t i, const Descriptor& d) {
+  const auto it = std::lower_bound(own_descriptors.begin(), own_descriptors.end(), i,
+                                   [](const auto& entry, std::size_t k) { return entry.first < k; });
+  if (it != own_descriptors.end() && it->first == i) {
+    it->second = d;
+  } else {
+    own_descriptors.insert(it, {static_cast<std::uint32_t>(i), d});
+  }
+}
+
 Eigen::Vector3d ServerMapPoint::World() const { return anchor->T_map_cam * p_anchor; }
 
 void ServerMapPoint::SetWorld(const Eigen::Vector3d& p_world) {
@@ -27,6 +62,16 @@ ServerMapPoint* ServerMap::point(const GlobalMapPointId& id) const {
     current = alias->second;
   }
   return nullptr;
+}
+
+std::size_t ServerMap::PointBytes(std::size_t hash_node) const {
+  std::size_t bytes = (points_.size() + merged_into_.size()) * hash_node +
+                      points_.size() * (sizeof(GlobalMapPointId) + sizeof(std::unique_ptr<ServerMapPoint>)) +
+                      merged_into_.size() * 2 * sizeof(GlobalMapPointId);
+  for (const auto& [id, p] : points_) {
+    bytes += sizeof(ServerMapPoint) + p->observations.capacity() * sizeof(ServerMapPoint::Observation);
+  }
+  return bytes;
 }
 
 ServerKeyframe* ServerMap::AddKeyframe(std::unique_ptr<ServerKeyframe> keyframe) {
@@ -58,6 +103,7 @@ void ServerMap::MergePoints(ServerMapPoint* from, ServerMapPoint* into) {
     const bool seen = std::any_of(into->observations.begin(), into->observations.end(),
                                   [&](const auto& x) { return x.keyframe == o.keyframe; });
     if (seen) {
+      o.keyframe->KeepOwnDescriptor(o.keypoint, from->descriptor);
       o.keyframe->points[o.keypoint] = nullptr;
     } else {
       o.keyframe->points[o.keypoint] = into;

@@ -19,6 +19,7 @@
 #include "libccmd/geometry/camera.h"
 #include "libccmd/geometry/pose.h"
 #include "libccmd/util/ids.h"
+#include "proto/messages.h"
 
 namespace ccmd {
 
@@ -44,10 +45,10 @@ class ServerMapPoint {
   std::vector<Observation> observations;
 };
 
+// What the server uses of a keypoint (its orientation is not used: matching is by descriptor).
 struct ServerKeypoint {
   cv::Point2f pt;
   std::uint8_t octave = 0;
-  float angle = 0;
   float depth = 0;  // metres, 0 = none
 };
 
@@ -59,8 +60,20 @@ class ServerKeyframe {
   Pose T_agent_cam = Pose::Identity();  // as its agent last reported it (agent's own frame)
   std::optional<KeyframeId> parent;     // spanning tree, same agent
   std::vector<ServerKeypoint> keypoints;
-  std::vector<Descriptor> descriptors;      // per keypoint (linked ones: the point's)
   std::vector<ServerMapPoint*> points;      // per keypoint, may be null
+  // A keypoint's descriptor is its map point's (as the agent sends it); only keypoints without
+  // a map point keep one of their own, sorted by keypoint (most keypoints are linked: this
+  // saves about 15 kB a keyframe).
+  std::vector<std::pair<std::uint32_t, Descriptor>> own_descriptors;
+
+  // The descriptor of keypoint i.
+  const Descriptor& descriptor(std::size_t i) const;
+  // Every keypoint's, in keypoint order.
+  std::vector<Descriptor> Descriptors() const;
+  // Appends a keypoint without a map point (tests and tools build keyframes with it).
+  void AppendKeypoint(const ServerKeypoint& keypoint, const Descriptor& descriptor);
+  // Keeps `descriptor` for keypoint i, which is losing its map point.
+  void KeepOwnDescriptor(std::size_t i, const Descriptor& descriptor);
   std::map<GlobalKeyframeId, int> covisibility;  // weights, symmetric
   // Dense depth alignments its agent measured with earlier keyframes of its own (the global BA
   // weighs them as the agent's local BA does).
@@ -70,9 +83,9 @@ class ServerKeyframe {
     Eigen::Matrix<double, 6, 6> sqrt_information;
   };
   std::vector<DepthLink> depth_links;
-  // Dense data while the keyframe's map is not fused into the primary map.
-  cv::Mat rgbd_bgr, rgbd_depth_mm;
-  int rgbd_downsample = 0;  // 0: no RGB-D was sent
+  // The coded RGB-D as it arrived (colour JPEG and depth bitstream, a few kilobytes), until the
+  // keyframe enters the dense map, whose stage decodes it; never kept without a dense map.
+  std::shared_ptr<const RgbdPayload> rgbd;
   bool in_dense = false;
 
   Eigen::Vector3d camera_center() const { return T_map_cam.translation(); }
@@ -92,6 +105,9 @@ class ServerMap {
   ServerMapPoint* point(const GlobalMapPointId& id) const;  // follows merges
   const std::map<GlobalKeyframeId, std::unique_ptr<ServerKeyframe>>& keyframes() const { return keyframes_; }
   std::size_t num_points() const { return points_.size(); }
+  // Bytes of the map points (objects, observations) and of the point index and merge aliases,
+  // counting `hash_node` per hash table entry.
+  std::size_t PointBytes(std::size_t hash_node) const;
   const std::vector<LoopEdge>& loop_edges() const { return loop_edges_; }
   const std::vector<AgentId>& agents() const { return agents_; }
   // The keyframe whose pose is held fixed in optimisation (the founding agent's first).

@@ -8,11 +8,25 @@
 //  * agent: every keyframe cloud of one agent, in its map's frame.
 //  * segment: a block of kSegmentKeyframes consecutive keyframe ids of one agent; finding a
 //    keyframe (or its label's) is two small steps, and empty blocks cost nothing.
-//  * keyframe cloud: the back-projected points in the keyframe's own camera frame (kept for
-//    the whole run), their colours, the keyframe's current pose T_world_cam, the points in the
-//    map frame derived from that pose, and which points the voxel filter keeps.
+//  * keyframe cloud: the back-projected points in the keyframe's own camera frame, their
+//    colours, the keyframe's current pose T_world_cam, the points in the map frame derived from
+//    that pose, and which points the voxel filter keeps.
 // Every point carries the label N of its keyframe (label.h). A pose update re-transforms that
 // keyframe's points and nothing else.
+//
+// Memory follows the mapped space, not the run's length (compact_keyframes): once a keyframe
+// has W successors it has left the filter window, and it keeps only what the map needs, in a
+// CompactCloud (16-bit coordinates in its own camera frame and colours, 9 bytes a point): the
+// points the window filter keeps, without those whose voxel an earlier compacted keyframe of
+// the same map already holds. Which voxels are held is one bit per voxel per map. A pose update
+// of a compacted keyframe only stores the pose (its points follow exactly when read); the bits
+// it holds are moved by Maintain(). After loop, global BA and fusion updates the held voxels
+// are rebuilt, oldest keyframe first, dropping points that now share a voxel with an older
+// one: surfaces that drift had doubled and a correction brought together are stored once again.
+// What is given up: a compacted keyframe's filter is final (a later relative move of it and a
+// neighbour cannot bring back a point the filter or the held voxels dropped), so the map equals
+// a from-scratch build with the final poses within the voxel size rather than exactly
+// (docs/benchmarks/dense.md measures it after a large loop correction).
 //
 // Voxel filter over a sliding window of keyframe indices. Within an agent, a point of
 // keyframe k is kept iff it is the first point of k in its voxel and none of the next W stored
@@ -26,9 +40,10 @@
 // further apart than W (revisits, other agents) are removed by the export's global filter.
 //
 // Update paths:
-//  * local BA, UpdateKeyframePose: re-transform one keyframe now (cost: its points); the window
-//    re-filter is deferred to Maintain(), which the owner calls when idle and every export
-//    calls first, so frequent small updates do not pay for filtering each time;
+//  * local BA, UpdateKeyframePose: re-transform one keyframe now (cost: its points; a compacted
+//    keyframe only stores its pose); the window re-filter is deferred to Maintain(), which the
+//    owner calls when idle and every export and every added keyframe call first, so frequent
+//    small updates do not pay for filtering each time;
 //  * pose graph after a loop, UpdateLoopPoses: the keyframes of the loop interval, then the
 //    windows around them are re-filtered at once;
 //  * global BA, UpdateGlobalPoses: only keyframes whose pose changed are touched, agent by agent,
@@ -54,6 +69,7 @@
 #include <opencv2/core/mat.hpp>
 
 #include "libccmd/dense/backprojection.h"
+#include "libccmd/dense/compact_cloud.h"
 #include "libccmd/dense/voxel_grid.h"
 #include "libccmd/geometry/camera.h"
 #include "libccmd/geometry/pose.h"
@@ -74,6 +90,10 @@ struct DenseMapOptions {
   // On the synthetic room at 320x240 (a keyframe every 10 frames), W = 4 keeps 28% of the
   // points, W = 8 about as many (27.6%), W = 1 37%; the cost of an add grows with W.
   int window_keyframes = 4;
+  // Keyframes that have left the window keep only what the map needs (see above). Off: every
+  // back-projected point is kept for the run, and the store equals a from-scratch build with
+  // the final poses exactly (about 30 bytes a point).
+  bool compact_keyframes = true;
   BackProjectionOptions projection;
 
   Status Validate() const;
@@ -119,9 +139,12 @@ struct DenseMapStats {
   std::size_t agents = 0;
   std::size_t segments = 0;
   std::size_t keyframes = 0;
-  std::size_t points = 0;             // stored (back-projected) points
-  std::size_t kept_points = 0;        // kept by the sliding-window filter
+  std::size_t points = 0;             // stored points (all of a keyframe in the window)
+  std::size_t kept_points = 0;        // kept by the sliding-window filter (all compacted ones)
+  std::size_t compact_keyframes = 0;  // keyframes that have left the window
+  std::size_t compact_points = 0;     // points they store
   std::size_t pending_keyframes = 0;  // pose updates awaiting their window re-filter
+  std::size_t held_bytes = 0;         // the maps' held-voxel sets
   std::size_t memory_bytes = 0;       // everything the store allocates, scratch included
 };
 
@@ -173,11 +196,13 @@ class DenseMap {
   // Extract, written as binary PLY (x y z red green blue label) atomically.
   Status ExportPly(const std::string& path, const DenseSelection& selection,
                    DenseFilter filter = DenseFilter::kGlobal);
-  // Every point of one keyframe in the map frame (unfiltered), with colours and labels.
+  // Every stored point of one keyframe in the map frame (unfiltered), with colours and labels.
   StatusOr<PointCloud> ExtractKeyframe(const GlobalKeyframeId& id) const;
-  // The keyframe's points in its own camera frame, with colours (what it was added with):
-  // a viewer places them with the keyframe's pose.
-  StatusOr<CameraCloud> KeyframeCloud(const GlobalKeyframeId& id) const;
+  // The points of one keyframe in its own camera frame, with colours, for a viewer that places
+  // them with the keyframe's pose (KeyframePoseOf): with kNone every stored point (what it was
+  // added with while in the filter window, what it keeps once compacted), with kWindow (or
+  // kGlobal) those the map uses.
+  StatusOr<CameraCloud> KeyframeCloud(const GlobalKeyframeId& id, DenseFilter filter = DenseFilter::kNone) const;
   // The keyframe a label names, if present.
   StatusOr<GlobalKeyframeId> FindLabel(std::uint32_t label) const;
 
@@ -194,12 +219,18 @@ class DenseMap {
     GlobalKeyframeId id;
     std::uint32_t label = 0;
     Pose T_world_cam = Pose::Identity();
+    // In the window: every back-projected point.
     CameraCloud cloud;                   // camera frame, never changes
     std::vector<Eigen::Vector3f> world;  // cloud.points under T_world_cam
     // Indices of the points the window filter keeps, ascending. A list rather than a flag
     // per point: a filter pass then visits only kept points, and with about a quarter of the
     // points kept it takes about the same memory.
     std::vector<std::uint32_t> kept;
+    // Left the window (compact_keyframes): the points the map needs, and the pose with which
+    // their voxels were marked in the map's held set.
+    bool compact = false;
+    CompactCloud stored;
+    Pose T_held = Pose::Identity();
   };
   struct Segment {
     std::array<std::unique_ptr<Entry>, kSegmentKeyframes> slots;
@@ -209,7 +240,11 @@ class DenseMap {
     std::map<std::uint32_t, Segment> segments;  // keyed by keyframe id / kSegmentKeyframes
     std::size_t keyframes = 0;
   };
-  using MapNode = std::map<AgentId, AgentNode>;
+  struct MapNode {
+    std::map<AgentId, AgentNode> agents;
+    VoxelSet held;              // voxels holding a point of a compacted keyframe
+    bool rebuild_held = false;  // compacted keyframes moved relative to each other
+  };
 
   explicit DenseMap(const DenseMapOptions& options);
 
@@ -224,13 +259,27 @@ class DenseMap {
   // The id W keyframes before `id` (or the first one), `id` itself if it has no predecessor.
   std::uint32_t WindowStart(const AgentNode& agent, std::uint32_t id) const;
 
+  MapNode& MapNodeOf(AgentId agent);
+  // The entry's points in the map frame: its cached ones, or a compacted keyframe's decoded
+  // into `scratch`.
+  const std::vector<Eigen::Vector3f>& WorldPoints(const Entry& entry, std::vector<Eigen::Vector3f>* scratch) const;
+  // A pose change: re-transforms a window keyframe, and marks it for Maintain().
+  void SetPose(Entry* entry, const Pose& T_world_cam);
   void Transform(Entry* entry) const;
-  // Recomputes the filter of every keyframe with id in [first, last] from its own points and
-  // its W successors'. Returns how many keyframes it recomputed.
+  // Recomputes the filter of every window keyframe with id in [first, last] from its own
+  // points and its W successors'. Returns how many keyframes it recomputed.
   std::size_t RefilterRange(const AgentNode& agent, std::uint32_t first, std::uint32_t last);
   // Adds the newest keyframe of an agent: its own filter, then its points removed from the
   // kept points of its W predecessors.
   void FilterAppended(const AgentNode& agent, Entry* entry);
+  // Compacts every window keyframe of the agent with id in [first, last] that has W successors.
+  void CompactSettled(AgentId agent, std::uint32_t first, std::uint32_t last);
+  void Compact(MapNode* map, Entry* entry);
+  // Moves a compacted keyframe's held voxels from T_held to its pose.
+  void MoveHeld(MapNode* map, Entry* entry);
+  // Marks every compacted keyframe of the map again, oldest first, dropping points whose voxel
+  // an older one holds.
+  void RebuildHeld(MapNode* map);
   std::size_t MaintainLocked();
   void MarkPending(const Entry& entry);
   Status InsertLocked(std::unique_ptr<Entry> entry);
@@ -247,6 +296,7 @@ class DenseMap {
   VoxelBricks<std::uint16_t> nearest_;  // guarded by mutex_; scratch of RefilterRange
   std::vector<VoxelIndex> voxels_;      // guarded by mutex_; scratch: voxels of one keyframe
   std::vector<std::uint32_t> indices_;  // guarded by mutex_; scratch: a kept list being built
+  mutable std::vector<Eigen::Vector3f> decoded_;  // guarded by mutex_; scratch: compacted points
 };
 
 }  // namespace ccmd

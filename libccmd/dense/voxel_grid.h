@@ -137,6 +137,12 @@ class VoxelSet {
     return w >= 0 && (words_[w] >> Local(v)) & 1u;
   }
 
+  // Removes the voxel (nothing happens if it is absent). Its word stays allocated.
+  void Erase(const VoxelIndex& v) {
+    const std::int32_t w = Word(v, /*create=*/false);
+    if (w >= 0) words_[w] &= ~(1ull << Local(v));
+  }
+
   std::size_t MemoryBytes() const {
     return table_.MemoryBytes() + words_.capacity() * sizeof(std::uint64_t) + sizeof(cache_);
   }

@@ -84,6 +84,8 @@ class BowDatabase {
   // Postings in the inverted index (one per keyframe per word it holds); for statistics
   // and consistency tests.
   std::size_t PostingCount() const;
+  // Bytes the database holds: entries, their vectors, the inverted index.
+  std::size_t MemoryBytes() const;
 
  private:
   struct Posting {

@@ -357,7 +357,17 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
     results["server_cpu_seconds"] = p.cpu_seconds;
     results["server_cpu_percent"] = p.wall_seconds > 0 ? 100 * p.cpu_seconds / p.wall_seconds : 0.0;
     results["server_max_rss_mb"] = p.max_rss_mb;
+    results["server_peak_rss_mb"] = p.max_rss_mb;  // the name ccmd_load reports it under
   }
+  Json memory = Json::MakeArray();
+  for (const auto& [t, keyframes, rss_mb] : info.server_memory) {
+    Json sample;
+    sample["t_s"] = t;
+    sample["keyframes"] = keyframes;
+    sample["rss_mb"] = rss_mb;
+    memory.Push(sample);
+  }
+  results["server_memory"] = memory;
   const double k = std::max(1.0, keyframes_total);
   Json kinds = Json::MakeArray();
   const std::vector<std::tuple<std::string, double, double>> per_kind = {
@@ -481,6 +491,20 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
     o.x_label = "seconds";
     o.y_label = "% of one core";
     WritePng(PlotLines(series, o), JoinPath(plots_dir, "cpu.png")).IgnoreError();
+  }
+  if (!info.server_memory.empty()) {
+    PlotSeries s;
+    s.label = "server";
+    s.color = cv::Scalar(0, 0, 0);
+    for (const auto& [t, keyframes, rss_mb] : info.server_memory) {
+      s.x.push_back(keyframes);
+      s.y.push_back(rss_mb);
+    }
+    PlotOptions o;
+    o.title = "Server resident memory";
+    o.x_label = "keyframes in the server's maps";
+    o.y_label = "MB";
+    WritePng(PlotLines({s}, o), JoinPath(plots_dir, "server_memory.png")).IgnoreError();
   }
 
   // report.md

@@ -4,6 +4,7 @@
 // map and statistics, the agents' statistics, and the processes' CPU use. Produces
 // results.json, report.md and PNG plots in the run folder.
 
+#include <array>
 #include <string>
 #include <vector>
 
@@ -35,6 +36,9 @@ struct ReplayRunInfo {
   std::vector<ReplayProcess> processes;
   std::string link;  // the shaped link's spec ("" = loopback)
   Json link_stats;   // its counters (null on loopback)
+  // The server's memory as its statistics file said once a second: (seconds since start,
+  // keyframes in its maps, resident MB).
+  std::vector<std::array<double, 3>> server_memory;
 };
 
 struct ReferenceOptions {

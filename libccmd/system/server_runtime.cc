@@ -7,6 +7,7 @@
 #include "libccmd/net/session_camera.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/logging.h"
+#include "libccmd/util/process_usage.h"
 #include "libccmd/util/timer.h"
 
 namespace ccmd {
@@ -57,7 +58,8 @@ void ServerRuntime::OnMessage(DeliveredMessage m) {
   if (m.type == static_cast<std::uint8_t>(MessageType::kKeyframe)) {
     auto keyframe = ParseKeyframe(m.payload);
     if (keyframe.ok()) {
-      backend_->SubmitKeyframe(m.agent, std::move(keyframe).value(), m.received_time).IgnoreError();
+      backend_->SubmitKeyframe(m.agent, std::move(keyframe).value(), m.replayed ? 0.0 : m.received_time)
+          .IgnoreError();
       return;
     }
     CCMD_LOG(WARNING) << "agent " << m.agent << " message " << m.seq << ": " << keyframe.status().ToString();
@@ -96,11 +98,23 @@ Json ServerRuntime::StatsJson() {
   j["agent_maps"] = agent_maps;
   if (backend_ && backend_->PrimaryMap()) j["primary_map"] = static_cast<int>(backend_->PrimaryMap()->value());
   j["malformed_messages"] = malformed_messages_.load();
+  const ProcessUsage usage = CurrentProcessUsage();
+  Json process;
+  process["rss_mb"] = usage.rss_mb;
+  process["peak_rss_mb"] = usage.peak_rss_mb;
+  process["cpu_seconds"] = usage.cpu_seconds;
+  process["time_s"] = MonotonicSeconds();
+  j["process"] = process;
+  if (!memory_.is_null()) j["memory"] = memory_;
   return j;
 }
 
 void ServerRuntime::Tick() {
   const double now = MonotonicSeconds();
+  if (backend_ && now - last_memory_ >= options_.memory_period_s) {
+    last_memory_ = now;
+    memory_ = backend_->MemoryJson();
+  }
   if (now - last_stats_ >= options_.stats_period_s) {
     last_stats_ = now;
     const Status s = WriteJsonFile(StatsJson(), JoinPath(options_.output_dir, "server_stats.json"));
@@ -141,6 +155,7 @@ Status ServerRuntime::WriteResults() {
     }
   }
   keep(WriteKeyframeArrivals(names));
+  memory_ = backend_->MemoryJson();
   keep(WriteJsonFile(StatsJson(), JoinPath(options_.output_dir, "server_stats.json")));
   return first;
 }

@@ -25,6 +25,7 @@ struct ServerRuntimeOptions {
   std::string output_dir;          // results; created if missing
   double stats_period_s = 5.0;     // server_stats.json rewritten this often
   double snapshot_period_s = 30.0; // dense map snapshot (<= 0: only at the end)
+  double memory_period_s = 30.0;   // memory by part in server_stats.json (it reads every map)
   std::optional<ViewServerOptions> view;  // set: serve the live map view (docs/view.md)
 };
 
@@ -76,6 +77,8 @@ class ServerRuntime : public MessageConsumer {
   // Counted on the delivery thread, read by StatsJson on the caller's thread.
   std::atomic<std::uint64_t> malformed_messages_{0};
   double last_stats_ = -1e9;
+  double last_memory_ = -1e9;
+  Json memory_;  // the last memory by part
   bool stopped_ = false;
 };
 

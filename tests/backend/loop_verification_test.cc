@@ -42,10 +42,9 @@ void ExpectQueryPoseRecovered(const PinholeCamera& camera) {
     world.emplace_back(rng.Uniform(-1.5, 1.5), rng.Uniform(-1, 1), rng.Uniform(2, 4));
     descriptors.push_back(RandomDescriptor(&rng));
     const Eigen::Vector2d uv = camera.Project(world.back());
-    candidate->keypoints.push_back({cv::Point2f(uv.x(), uv.y()), 0, 0, static_cast<float>(world.back().z())});
-    candidate->descriptors.push_back(descriptors.back());
+    candidate->AppendKeypoint({cv::Point2f(uv.x(), uv.y()), 0, static_cast<float>(world.back().z())},
+                              descriptors.back());
   }
-  candidate->points.assign(400, nullptr);
   ServerKeyframe* cand = map.AddKeyframe(std::move(candidate));
   for (int j = 0; j < 400; ++j) {
     ServerMapPoint* p = map.AddPoint(std::make_unique<ServerMapPoint>(GlobalMapPointId{AgentId(1), MapPointId(j)}, cand,
@@ -64,16 +63,15 @@ void ExpectQueryPoseRecovered(const PinholeCamera& camera) {
     const Eigen::Vector3d pc = T_map_query.inverse() * world[j];
     const Eigen::Vector2d uv = camera.Project(pc);
     if (!camera.InImage(uv) || j % 3 == 0) {
-      query.keypoints.push_back({cv::Point2f(rng.Uniform(0, 640), rng.Uniform(0, 480)), 0, 0, static_cast<float>(rng.Uniform(1, 4))});
-      query.descriptors.push_back(RandomDescriptor(&rng));
+      query.AppendKeypoint({cv::Point2f(rng.Uniform(0, 640), rng.Uniform(0, 480)), 0, static_cast<float>(rng.Uniform(1, 4))},
+                           RandomDescriptor(&rng));
       continue;
     }
-    query.keypoints.push_back({cv::Point2f(uv.x() + 0.5 * rng.Normal(), uv.y() + 0.5 * rng.Normal()), 0, 0,
-                               static_cast<float>(pc.z() + 0.004 * rng.Normal())});
-    query.descriptors.push_back(FlipBits(descriptors[j], 10, &rng));
+    query.AppendKeypoint({cv::Point2f(uv.x() + 0.5 * rng.Normal(), uv.y() + 0.5 * rng.Normal()), 0,
+                          static_cast<float>(pc.z() + 0.004 * rng.Normal())},
+                         FlipBits(descriptors[j], 10, &rng));
     ++true_matches;
   }
-  query.points.assign(query.keypoints.size(), nullptr);
   auto match = VerifyLoop(&query, camera, cand, map);
   ASSERT_TRUE(match.has_value());
   EXPECT_LT(TranslationDistance(match->T_candidate_map_query, T_map_query), 0.01);
@@ -98,24 +96,20 @@ TEST(LoopVerificationTest, UnrelatedViewsAreRejected) {
   auto candidate = std::make_unique<ServerKeyframe>();
   candidate->id = {AgentId(1), KeyframeId(0)};
   for (int j = 0; j < 300; ++j) {
-    candidate->keypoints.push_back({cv::Point2f(rng.Uniform(0, 640), rng.Uniform(0, 480)), 0, 0, 2.0f});
-    candidate->descriptors.push_back(RandomDescriptor(&rng));
+    candidate->AppendKeypoint({cv::Point2f(rng.Uniform(0, 640), rng.Uniform(0, 480)), 0, 2.0f}, RandomDescriptor(&rng));
   }
-  candidate->points.assign(300, nullptr);
   ServerKeyframe* cand = map.AddKeyframe(std::move(candidate));
   for (int j = 0; j < 300; ++j) {
     const cv::Point2f& pt = cand->keypoints[j].pt;
     ServerMapPoint* p = map.AddPoint(std::make_unique<ServerMapPoint>(GlobalMapPointId{AgentId(1), MapPointId(j)}, cand,
-                                                                      camera.BackProject(pt.x, pt.y, 2.0), cand->descriptors[j]));
+                                                                      camera.BackProject(pt.x, pt.y, 2.0), cand->descriptor(j)));
     map.AddObservation(p, cand, j);
   }
   ServerKeyframe query;
   query.id = {AgentId(2), KeyframeId(1)};
   for (int j = 0; j < 300; ++j) {
-    query.keypoints.push_back({cv::Point2f(rng.Uniform(0, 640), rng.Uniform(0, 480)), 0, 0, 2.0f});
-    query.descriptors.push_back(RandomDescriptor(&rng));
+    query.AppendKeypoint({cv::Point2f(rng.Uniform(0, 640), rng.Uniform(0, 480)), 0, 2.0f}, RandomDescriptor(&rng));
   }
-  query.points.assign(300, nullptr);
   EXPECT_FALSE(VerifyLoop(&query, camera, cand, map).has_value());
 }
 

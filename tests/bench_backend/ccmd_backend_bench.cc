@@ -22,6 +22,7 @@
 #include "libccmd/util/json.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/file_util.h"
+#include "libccmd/util/percentile.h"
 #include "libccmd/util/timer.h"
 #include "tests/bench_backend/loop_eval.h"
 
@@ -57,14 +58,6 @@ cv::Mat SmallDepthMetres(const cv::Mat& depth_mm) {
              0, 0, cv::INTER_NEAREST);
   small.convertTo(metres, CV_32F, 1e-3);
   return metres;
-}
-
-// Nearest-rank percentile, as BackendStats computes its own.
-double Percentile(std::vector<double> v, double q) {
-  if (v.empty()) return 0;
-  const std::size_t k = std::min(v.size() - 1, static_cast<std::size_t>(q * (v.size() - 1) + 0.5));
-  std::nth_element(v.begin(), v.begin() + k, v.end());
-  return v[k];
 }
 
 struct LatencySummary {
@@ -208,7 +201,7 @@ int main(int argc, char** argv) {
   app.add_flag("--no-gba", no_gba, "Disable global BA");
   app.add_flag("--no-dense", no_dense, "Disable the dense map");
   BackendOptions options;
-  app.add_option("--loop-min-inliers", options.verification.min_inliers,
+  app.add_option("--loop-min-inliers", options.loops.verification.min_inliers,
                  "Inliers a verified loop needs after refinement")
       ->capture_default_str()
       ->check(CLI::Range(6, 1000));
@@ -235,8 +228,8 @@ int main(int argc, char** argv) {
   }
   std::printf("loop detection: %d candidates verified per query, >= %d inliers after refinement (%d RANSAC, %d "
               "matches), %d consistent keyframes, same-agent neighbours within %d ids excluded\n",
-              options.loop_candidates, options.verification.min_inliers, options.verification.min_ransac_inliers,
-              options.verification.min_matches, options.loop_consistency, options.exclude_recent_keyframes);
+              options.loops.loop_candidates, options.loops.verification.min_inliers, options.loops.verification.min_ransac_inliers,
+              options.loops.verification.min_matches, options.loops.loop_consistency, options.loops.exclude_recent_keyframes);
   auto backend = Backend::Create(options);
   if (!backend.ok()) {
     std::fprintf(stderr, "%s\n", backend.status().ToString().c_str());

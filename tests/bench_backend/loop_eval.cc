@@ -201,7 +201,8 @@ class OfflineDetector {
  public:
   OfflineDetector(const std::map<AgentId, PinholeCamera>& cameras, const BackendOptions& options,
                   const PlaceGroundTruth& truth, DetectorEvaluation* out)
-      : cameras_(cameras), options_(options), truth_(truth), place_(options.place), out_(out) {}
+      : cameras_(cameras), options_(options), truth_(truth), place_(options.place), consistency_(options.loops),
+        out_(out) {}
 
   void Receive(const RecordedMessage& m) {
     if (!maps_.Apply(m)) return;
@@ -215,16 +216,7 @@ class OfflineDetector {
   }
 
  private:
-  struct Pending {
-    AgentId candidate_agent;
-    Pose T_candidate_map_query_map;
-    KeyframeId last_query;
-    int count = 0;
-  };
-
-
-
-  // The steps of Backend::DetectLoop up to acceptance, on per-agent maps.
+  // The steps of LoopCloser::Process up to acceptance, on per-agent maps.
   void Detect(const GlobalKeyframeId& id, bool stored) {
     ServerMap* qmap = maps_.Of(id.agent);
     ServerKeyframe* query = qmap->keyframe(id);
@@ -233,8 +225,8 @@ class OfflineDetector {
     std::vector<PlaceHit> hits;
     LoopCandidateRule rule;
     if (ready) {
-      rule = MakeLoopCandidateRule(place_, id, *query, options_.exclude_recent_keyframes);
-      hits = QueryLoopCandidates(place_, query->descriptors, rule, options_.loop_candidates * 3);
+      rule = MakeLoopCandidateRule(place_, id, *query, options_.loops.exclude_recent_keyframes);
+      hits = QueryLoopCandidates(place_, query->Descriptors(), rule, options_.loops.loop_candidates * 3);
     }
     // What the index held when the query ran: the allowed candidates, and among them revisits.
     bool revisit = false;
@@ -247,7 +239,7 @@ class OfflineDetector {
       }
     }
     if (!stored) {
-      const std::vector<GlobalKeyframeId> late = place_.Add(id, query->descriptors);
+      const std::vector<GlobalKeyframeId> late = place_.Add(id, query->Descriptors());
       late_.insert(late_.end(), late.begin(), late.end());
       indexed_.push_back(id);
     }
@@ -255,7 +247,10 @@ class OfflineDetector {
 
     ++out_->queries;
     out_->revisit_queries += revisit;
-    if (static_cast<int>(hits.size()) > options_.loop_candidates) hits.resize(options_.loop_candidates);
+    // No cool-down here: every keyframe is a query.
+    hits = SelectLoopCandidates(std::move(hits), /*cooling_down=*/false, MapId(id.agent.value()),
+                                [](AgentId agent) { return std::optional<MapId>(MapId(agent.value())); },
+                                options_.loops.loop_candidates);
     bool topn_related = false;
     for (std::size_t k = 0; k < hits.size(); ++k) {
       const bool related = truth_.Relate(id, hits[k].keyframe).related;
@@ -271,7 +266,7 @@ class OfflineDetector {
       ServerMap* cmap = maps_.Of(hit.keyframe.agent);
       ServerKeyframe* candidate = cmap->keyframe(hit.keyframe);
       if (!candidate) continue;
-      const auto match = VerifyLoop(query, cameras_.at(id.agent), candidate, *cmap, options_.verification);
+      const auto match = VerifyLoop(query, cameras_.at(id.agent), candidate, *cmap, options_.loops.verification);
       if (!match) continue;
       LoopCheck check;
       check.query = id;
@@ -292,33 +287,20 @@ class OfflineDetector {
     }
   }
 
-  // Backend::DetectLoop's rule: consecutive keyframes of an agent (at most 3 ids apart) must
-  // agree on the transform between the two maps.
+  // The back-end's consistency rule, with one map per agent.
   void Consistency(ServerKeyframe* query, AgentId candidate_agent, const Pose& T_candidate_map_query,
                    const LoopCheck& check) {
     const Pose T_cmap_qmap = T_candidate_map_query * query->T_map_cam.inverse();
-    Pending& pending = pending_[query->id.agent];
-    const bool consistent =
-        pending.count > 0 && pending.candidate_agent == candidate_agent &&
-        query->id.keyframe.value() - pending.last_query.value() <= 3 &&
-        TranslationDistance(pending.T_candidate_map_query_map, T_cmap_qmap) < options_.consistency_translation &&
-        RotationDistance(pending.T_candidate_map_query_map, T_cmap_qmap) < options_.consistency_rotation_deg * kDegree;
-    pending.count = consistent ? pending.count + 1 : 1;
-    pending.candidate_agent = candidate_agent;
-    pending.T_candidate_map_query_map = T_cmap_qmap;
-    pending.last_query = query->id.keyframe;
-    if (pending.count < options_.loop_consistency) return;
-    pending.count = 0;
-    out_->consistent.push_back(check);
+    if (consistency_.Confirm(query->id, MapId(candidate_agent.value()), T_cmap_qmap)) out_->consistent.push_back(check);
   }
 
   const std::map<AgentId, PinholeCamera>& cameras_;
   const BackendOptions& options_;
   const PlaceGroundTruth& truth_;
   PlaceIndex place_;
+  LoopConsistency consistency_;
   DetectorEvaluation* out_;
   AgentMaps maps_;
-  std::map<AgentId, Pending> pending_;
   std::vector<GlobalKeyframeId> late_;
   std::vector<GlobalKeyframeId> indexed_;
 };

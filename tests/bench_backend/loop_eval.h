@@ -9,7 +9,7 @@
 //     and how far a measured relative transform is from the true one;
 //   - EvaluateDetector replays the messages into one server map per agent and runs the loop
 //     detector's steps on every keyframe, with the back-end's code and options (PlaceIndex,
-//     the candidate filter of Backend::DetectLoop, VerifyLoop, the consistency rule), counting
+//     the candidate steps of LoopCloser, VerifyLoop, LoopConsistency), counting
 //     what each step gets right and wrong.
 
 #include <map>
@@ -133,7 +133,7 @@ struct DetectorEvaluation {
 };
 
 // Replays `messages` (keyframes and pose updates in the order the back-end received them)
-// into one server map per agent; each keyframe is queried on arrival as Backend::DetectLoop
+// into one server map per agent; each keyframe is queried on arrival as LoopCloser::Process
 // does it (keyframes that arrive before an online vocabulary exists are queried after the
 // first training, like the back-end's late queries). Every proposed candidate is verified
 // (the back-end stops at the first that verifies: that one feeds the consistency rule here

@@ -67,10 +67,13 @@ inline DenseKeyframe PlaneKeyframe(AgentId agent, std::uint32_t id, const Pose& 
   return k;
 }
 
+// Keyframes are kept whole (no compaction), so that the store follows the window filter's
+// definition exactly; dense_compact_test.cc tests what compaction changes.
 inline DenseMapOptions TestOptions(int window = 3) {
   DenseMapOptions o;
   o.voxel_size_m = 0.05;
   o.window_keyframes = window;
+  o.compact_keyframes = false;
   o.projection.min_depth_m = 0.3;
   o.projection.max_depth_m = 5.0;
   return o;

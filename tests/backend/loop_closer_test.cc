@@ -1,0 +1,319 @@
+// The loop closer's steps on generated data: the consistency rule, the cool-down, the choice
+// of candidates, the correction inside a map and the fusion of two maps, and the whole
+// LoopCloser on a generated revisit.
+
+#include "libccmd/backend/loop_closer.h"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+
+#include "libccmd/features/bow_vocabulary.h"
+#include "tests/backend/generated_map.h"
+
+namespace ccmd {
+namespace {
+
+using testing::AddGeneratedKeyframe;
+using testing::CirclePose;
+using testing::GeneratedWorld;
+using testing::MakeRingWorld;
+
+constexpr double kDegree = M_PI / 180;
+
+Pose Offset(double metres, double degrees) {
+  Pose T = Pose::Identity();
+  T.linear() = Eigen::AngleAxisd(degrees * kDegree, Eigen::Vector3d(0.3, 1, 0.2).normalized()).toRotationMatrix();
+  T.translation() = Eigen::Vector3d(metres, 0, 0);
+  return T;
+}
+
+GlobalKeyframeId Kf(int agent, int keyframe) {
+  return {AgentId(static_cast<std::uint16_t>(agent)), KeyframeId(static_cast<std::uint32_t>(keyframe))};
+}
+
+TEST(LoopConsistencyTest, TwoAgreeingKeyframesCloseALoopAndTheCountStartsAgain) {
+  LoopConsistency rule{LoopCloserOptions()};
+  const Pose T = Offset(0.8, 20);
+  int count = 0;
+  EXPECT_FALSE(rule.Confirm(Kf(1, 10), MapId(2), T, &count));
+  EXPECT_EQ(count, 1);
+  // 3 ids later, 4 cm and 2 degrees apart: within 5 cm and 3 degrees.
+  EXPECT_TRUE(rule.Confirm(Kf(1, 13), MapId(2), T * Offset(0.04, 2), &count));
+  EXPECT_EQ(count, 2);
+  // Accepted: the next one starts a new count.
+  EXPECT_FALSE(rule.Confirm(Kf(1, 14), MapId(2), T, &count));
+  EXPECT_EQ(count, 1);
+  EXPECT_TRUE(rule.Confirm(Kf(1, 15), MapId(2), T));
+}
+
+TEST(LoopConsistencyTest, DisagreeingGappedOrOtherMapLoopsDoNotConfirm) {
+  const Pose T = Offset(0.8, 20);
+  struct Case {
+    const char* what;
+    GlobalKeyframeId second;
+    MapId map;
+    Pose T_second;
+  };
+  const Case cases[] = {
+      {"6 cm apart", Kf(1, 11), MapId(2), T * Offset(0.06, 0)},
+      {"4 degrees apart", Kf(1, 11), MapId(2), T * Offset(0, 4)},
+      {"4 ids later", Kf(1, 14), MapId(2), T},
+      {"another candidate map", Kf(1, 11), MapId(3), T},
+      {"an older keyframe (late query)", Kf(1, 9), MapId(2), T},
+  };
+  for (const Case& c : cases) {
+    LoopConsistency rule{LoopCloserOptions()};
+    int count = 0;
+    EXPECT_FALSE(rule.Confirm(Kf(1, 10), MapId(2), T));
+    EXPECT_FALSE(rule.Confirm(c.second, c.map, c.T_second, &count)) << c.what;
+    EXPECT_EQ(count, 1) << c.what;
+    // The disagreeing loop is the new reference: one that agrees with it confirms.
+    EXPECT_TRUE(rule.Confirm({AgentId(1), KeyframeId(c.second.keyframe.value() + 1)}, c.map, c.T_second)) << c.what;
+  }
+}
+
+TEST(LoopConsistencyTest, AgentsAreCountedApartAndTheRequiredCountIsAnOption) {
+  LoopCloserOptions options;
+  options.loop_consistency = 3;
+  LoopConsistency rule(options);
+  const Pose T = Offset(0.5, 10);
+  EXPECT_FALSE(rule.Confirm(Kf(1, 10), MapId(5), T));
+  EXPECT_FALSE(rule.Confirm(Kf(2, 40), MapId(5), Offset(2, 50)));  // another agent: no effect on agent 1
+  EXPECT_FALSE(rule.Confirm(Kf(1, 11), MapId(5), T));
+  EXPECT_TRUE(rule.Confirm(Kf(1, 12), MapId(5), T));
+}
+
+TEST(LoopCooldownTest, HoldsTheAgentsNextKeyframesOnly) {
+  LoopCooldown cooldown(10);
+  EXPECT_FALSE(cooldown.Active(Kf(1, 5)));
+  cooldown.Start(Kf(1, 20));
+  EXPECT_TRUE(cooldown.Active(Kf(1, 21)));
+  EXPECT_TRUE(cooldown.Active(Kf(1, 30)));
+  EXPECT_FALSE(cooldown.Active(Kf(1, 31)));
+  EXPECT_FALSE(cooldown.Active(Kf(2, 21)));  // other agents are free
+  cooldown.Start(Kf(1, 40));
+  EXPECT_TRUE(cooldown.Active(Kf(1, 50)));
+}
+
+TEST(SelectLoopCandidatesTest, CoolingDownDropsOnlyTheQuerysOwnMap) {
+  // Agents 1 and 2 share map 7 (the query's), agent 3 is in map 8, agent 4 in no map.
+  const auto map_of = [](AgentId agent) -> std::optional<MapId> {
+    if (agent.value() == 4) return std::nullopt;
+    return MapId(agent.value() == 3 ? 8 : 7);
+  };
+  const std::vector<PlaceHit> hits = {{Kf(1, 3), 0.9}, {Kf(3, 8), 0.8}, {Kf(2, 1), 0.7},
+                                      {Kf(4, 2), 0.6}, {Kf(3, 9), 0.5}, {Kf(3, 10), 0.4}};
+  const std::vector<PlaceHit> free = SelectLoopCandidates(hits, false, MapId(7), map_of, 4);
+  ASSERT_EQ(free.size(), 4u);
+  EXPECT_EQ(free[0].keyframe, Kf(1, 3));
+  EXPECT_EQ(free[3].keyframe, Kf(4, 2));
+  const std::vector<PlaceHit> cooling = SelectLoopCandidates(hits, true, MapId(7), map_of, 2);
+  ASSERT_EQ(cooling.size(), 2u);
+  EXPECT_EQ(cooling[0].keyframe, Kf(3, 8));
+  EXPECT_EQ(cooling[1].keyframe, Kf(3, 9));
+}
+
+// A drifting agent: keyframe i at the true pose of step i of the circle, rotated by a drift
+// that grows 0.15 degrees and 4 mm per keyframe.
+Pose Drifted(int i, int steps) {
+  Pose drift = Pose::Identity();
+  drift.linear() = Eigen::AngleAxisd(0.15 * kDegree * i, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  drift.translation() = Eigen::Vector3d(0.004 * i, 0.002 * i, 0);
+  return drift * CirclePose(i, steps);
+}
+
+// The matches verification would find between a revisit keyframe and the candidate: every
+// keypoint whose wall point the candidate also observes.
+LoopMatch TrueMatch(ServerKeyframe* query, ServerKeyframe* candidate, const Pose& T_candidate_query_true) {
+  LoopMatch match;
+  match.query = query;
+  match.candidate = candidate;
+  match.T_candidate_map_query = candidate->T_map_cam * T_candidate_query_true;
+  std::map<std::uint32_t, ServerMapPoint*> candidate_points;
+  for (ServerMapPoint* p : candidate->points) candidate_points[p->id.point.value() % testing::kRevisitPointIds] = p;
+  for (std::size_t k = 0; k < query->points.size(); ++k) {
+    const auto it = candidate_points.find(query->points[k]->id.point.value() % testing::kRevisitPointIds);
+    if (it != candidate_points.end()) match.matches.emplace_back(static_cast<int>(k), it->second);
+  }
+  match.inliers = static_cast<int>(match.matches.size());
+  return match;
+}
+
+TEST(LoopCorrectionTest, ALoopInsideAMapRemovesTheDriftAndMergesTheMatches) {
+  Rng rng(7);
+  const GeneratedWorld world = MakeRingWorld(3000, &rng);
+  constexpr int kSteps = 36;
+  ServerMap map(MapId(1));
+  for (int i = 0; i < kSteps; ++i) {
+    AddGeneratedKeyframe(&map, world, AgentId(1), i, CirclePose(i, kSteps), Drifted(i, kSteps), &rng);
+  }
+  // Back at the start: keyframe 36 sees what keyframe 0 saw, as new points.
+  ServerKeyframe* query = AddGeneratedKeyframe(&map, world, AgentId(1), kSteps, CirclePose(0, kSteps),
+                                               Drifted(kSteps, kSteps), &rng, /*local_window=*/kSteps - 5);
+  ServerKeyframe* candidate = map.keyframe(Kf(1, 0));
+  const double drift_before = TranslationDistance(query->T_map_cam, CirclePose(0, kSteps));
+  ASSERT_GT(drift_before, 0.1);
+  const LoopMatch match = TrueMatch(query, candidate, Pose::Identity());
+  ASSERT_GT(match.inliers, 50);
+  const std::size_t points_before = map.num_points();
+  std::size_t own_copies = 0;  // points the query made again, to be merged into the candidate's
+  for (const auto& [keypoint, point] : match.matches) own_copies += query->points[keypoint] != point;
+  ASSERT_GT(own_copies, 50u);
+
+  const std::vector<ServerKeyframe*> moved = CloseLoopInMap(&map, match, MapPoseGraphOptions());
+  ASSERT_EQ(map.loop_edges().size(), 1u);
+  EXPECT_EQ(map.loop_edges()[0].a, candidate->id);
+  EXPECT_EQ(map.num_points(), points_before - own_copies);
+  for (const auto& [keypoint, point] : match.matches) EXPECT_EQ(query->points[keypoint], point);
+  EXPECT_EQ(query->covisibility.at(candidate->id), match.inliers);
+  // The query moved most of the way back to keyframe 0 (map_optimization_test.cc: the pose
+  // graph leaves part of a large correction to the global BA); the origin stays; the second
+  // half moved.
+  EXPECT_LT(TranslationDistance(query->T_map_cam, CirclePose(0, kSteps)), 0.6 * drift_before);
+  EXPECT_EQ(std::count(moved.begin(), moved.end(), candidate), 0);
+  EXPECT_EQ(std::count(moved.begin(), moved.end(), query), 1);
+  EXPECT_GE(moved.size(), static_cast<std::size_t>(kSteps / 2));
+  // Halfway round, the correction is about half the drift: the error is spread.
+  const double halfway = TranslationDistance(map.keyframe(Kf(1, kSteps / 2))->T_map_cam, CirclePose(kSteps / 2, kSteps));
+  EXPECT_LT(halfway, TranslationDistance(Drifted(kSteps / 2, kSteps), CirclePose(kSteps / 2, kSteps)));
+}
+
+TEST(LoopCorrectionTest, FusionBringsTheOtherMapIntoThePrimaryMapsFrame) {
+  Rng rng(8);
+  const GeneratedWorld world = MakeRingWorld(2000, &rng);
+  constexpr int kSteps = 24;
+  MapManager maps;
+  {
+    MapManager::Guard first = maps.CheckOutAgent(AgentId(1));  // the primary map, world frame
+    for (int i = 0; i < 8; ++i) AddGeneratedKeyframe(first.get(), world, AgentId(1), i, CirclePose(i, kSteps), CirclePose(i, kSteps), &rng);
+  }
+  const Pose T_map2_world = Offset(2.0, 70);  // agent 2 starts its own map elsewhere
+  {
+    MapManager::Guard second = maps.CheckOutAgent(AgentId(2));
+    for (int i = 0; i < 5; ++i) {
+      AddGeneratedKeyframe(second.get(), world, AgentId(2), i, CirclePose(4 + i, kSteps),
+                           T_map2_world * CirclePose(4 + i, kSteps), &rng);
+    }
+  }
+  auto [query_guard, candidate_guard] = maps.CheckOutPair(MapId(2), MapId(1));
+  ServerKeyframe* query = query_guard->keyframe(Kf(2, 2));  // step 6
+  ServerKeyframe* candidate = candidate_guard->keyframe(Kf(1, 6));
+  const LoopMatch match = TrueMatch(query, candidate, Pose::Identity());
+  MapFusion fusion = FuseMapsByLoop(&maps, &query_guard, &candidate_guard, match);
+
+  ASSERT_TRUE(fusion.map);
+  EXPECT_FALSE(query_guard);
+  EXPECT_FALSE(candidate_guard);
+  EXPECT_EQ(maps.primary(), fusion.map->id());
+  EXPECT_EQ(maps.MapOfAgent(AgentId(2)), fusion.map->id());
+  ASSERT_TRUE(fusion.primary_before.has_value());
+  EXPECT_EQ(*fusion.primary_before, MapId(1));
+  EXPECT_EQ(fusion.joined_primary.size(), 5u);
+  for (ServerKeyframe* kf : fusion.joined_primary) {
+    EXPECT_EQ(kf->id.agent, AgentId(2));
+    EXPECT_LT(TranslationDistance(kf->T_map_cam, CirclePose(4 + kf->id.keyframe.value(), kSteps)), 1e-6);
+  }
+  EXPECT_EQ(fusion.map->keyframes().size(), 13u);
+  EXPECT_EQ(fusion.map->loop_edges().size(), 1u);
+  EXPECT_EQ(query->points[match.matches[0].first], match.matches[0].second);
+}
+
+TEST(LoopCorrectionTest, FusingTwoMapsThatAreNotPrimaryKeepsTheCandidatesFrame) {
+  Rng rng(9);
+  const GeneratedWorld world = MakeRingWorld(2000, &rng);
+  MapManager maps;
+  maps.CheckOutAgent(AgentId(1));  // primary, empty
+  const Pose T_map3 = Offset(1.0, 30), T_map2 = Offset(-1.5, -40);
+  {
+    MapManager::Guard a = maps.CheckOutAgent(AgentId(2));
+    for (int i = 0; i < 4; ++i) AddGeneratedKeyframe(a.get(), world, AgentId(2), i, CirclePose(i, 24), T_map2 * CirclePose(i, 24), &rng);
+  }
+  {
+    MapManager::Guard b = maps.CheckOutAgent(AgentId(3));
+    for (int i = 0; i < 4; ++i) AddGeneratedKeyframe(b.get(), world, AgentId(3), i, CirclePose(i, 24), T_map3 * CirclePose(i, 24), &rng);
+  }
+  auto [query_guard, candidate_guard] = maps.CheckOutPair(MapId(3), MapId(2));
+  ServerKeyframe* query = query_guard->keyframe(Kf(3, 1));
+  ServerKeyframe* candidate = candidate_guard->keyframe(Kf(2, 1));
+  MapFusion fusion = FuseMapsByLoop(&maps, &query_guard, &candidate_guard, TrueMatch(query, candidate, Pose::Identity()));
+  EXPECT_FALSE(fusion.primary_before.has_value());
+  EXPECT_TRUE(fusion.joined_primary.empty());
+  EXPECT_EQ(maps.primary(), MapId(1));
+  EXPECT_LT(TranslationDistance(query->T_map_cam, T_map2 * CirclePose(1, 24)), 1e-6);  // candidate's frame
+}
+
+// What LoopCloser::Process closed for one keyframe (the closure's map guard released at once).
+struct ProcessResult {
+  bool closed = false;
+  LoopEvent event;
+  std::size_t moved = 0;
+};
+
+// The whole loop stage on generated data: a vocabulary trained on the wall's descriptors, an
+// agent walking the circle and on past its start (new map points: it does not know it has
+// been there). Returns what each keyframe closed.
+std::vector<ProcessResult> WalkPastTheStart(int cooldown_keyframes) {
+  Rng rng(11);
+  const GeneratedWorld world = MakeRingWorld(4000, &rng);
+  // Training images: the wall in 40 parts (one image would give every word a zero weight).
+  std::vector<cv::Mat> images(40, cv::Mat(0, 32, CV_8U));
+  for (std::size_t j = 0; j < world.descriptors.size(); ++j) {
+    images[j % 40].push_back(cv::Mat(1, 32, CV_8U, const_cast<std::uint8_t*>(world.descriptors[j].data())));
+  }
+  VocabularyOptions vocabulary_options;
+  vocabulary_options.depth = 3;
+  auto vocabulary = Vocabulary::Train(images, vocabulary_options);
+  EXPECT_TRUE(vocabulary.ok());
+  PlaceIndexOptions place;
+  place.vocabulary = std::make_shared<const Vocabulary>(std::move(vocabulary).value());
+  place.online_training = false;
+  LoopCloserOptions options;
+  options.loop_cooldown_keyframes = cooldown_keyframes;
+
+  MapManager maps;
+  LoopCloser closer(options, place, &maps, 0.0);
+  constexpr int kSteps = 36;
+  std::vector<ProcessResult> results;
+  for (int id = 0; id < kSteps + 8; ++id) {
+    {
+      MapManager::Guard guard = maps.CheckOutAgent(AgentId(1));
+      AddGeneratedKeyframe(guard.get(), world, AgentId(1), id, CirclePose(id % kSteps, kSteps), Drifted(id, kSteps),
+                           &rng, id < kSteps ? std::nullopt : std::optional<std::uint32_t>(id - 5));
+    }
+    std::optional<LoopClosure> closure = closer.Process(Kf(1, id), testing::TestCamera(), /*stored=*/false);
+    ProcessResult r;
+    if (closure) r = {true, closure->event, closure->moved.size()};
+    results.push_back(r);
+  }
+  return results;
+}
+
+TEST(LoopCloserTest, ARevisitIsConfirmedAndClosedThenTheAgentCoolsDown) {
+  const std::vector<ProcessResult> results = WalkPastTheStart(10);
+  std::vector<int> closed;
+  for (std::size_t id = 0; id < results.size(); ++id) {
+    if (results[id].closed) closed.push_back(static_cast<int>(id));
+  }
+  // One loop, towards the end of the circle, with a keyframe of its start; then the next ten
+  // keyframes seek no loop in their map.
+  ASSERT_EQ(closed.size(), 1u);
+  const ProcessResult& loop = results[closed[0]];
+  EXPECT_GT(closed[0], 25);
+  EXPECT_EQ(loop.event.query, Kf(1, closed[0]));
+  EXPECT_GT(loop.event.query.keyframe.value() - loop.event.candidate.keyframe.value(), 25u);
+  EXPECT_FALSE(loop.event.fusion);
+  EXPECT_EQ(loop.event.map, MapId(1));
+  EXPECT_GT(loop.moved, 0u);
+  EXPECT_GE(static_cast<int>(results.size()), closed[0] + 11);
+
+  // Without the cool-down the same keyframes close loops again: the rule is what held them.
+  const std::vector<ProcessResult> eager = WalkPastTheStart(0);
+  int eager_loops = 0;
+  for (const ProcessResult& r : eager) eager_loops += r.closed;
+  EXPECT_TRUE(eager[closed[0]].closed);
+  EXPECT_GE(eager_loops, 2);
+}
+
+}  // namespace
+}  // namespace ccmd
