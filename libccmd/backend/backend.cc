@@ -32,7 +32,6 @@ Status BackendOptions::Validate() const {
   if (!(global_ba_duty > 0 && global_ba_duty <= 1)) return InvalidArgument("global BA duty must be in (0, 1]");
   if (dense) CCMD_RETURN_IF_ERROR(dense_options.Validate());
   CCMD_RETURN_IF_ERROR(depth_noise.Validate());
-  CCMD_RETURN_IF_ERROR(verification.depth_noise.Validate());
   return Status::Ok();
 }
 

@@ -107,6 +107,20 @@ Json LoopEventsJson(const std::vector<LoopEvent>& loop_events) {
 
 }  // namespace
 
+void Backend::RecordArrival(const KeyframeArrival& arrival) {
+  // Bounded: a server running for days must not grow with its keyframe count here.
+  if (arrivals_.size() < kMaxArrivals) {
+    arrivals_.push_back(arrival);
+  } else {
+    ++arrivals_not_recorded_;
+  }
+}
+
+std::vector<KeyframeArrival> Backend::keyframe_arrivals() const {
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  return arrivals_;
+}
+
 Json Backend::StatsJson() {
   const BackendStats s = stats();
   Json j;

@@ -22,7 +22,7 @@ Status LoopCloserOptions::Validate() const {
   if (!(min_correction_m >= 0) || !(min_correction_deg >= 0)) {
     return InvalidArgument("the smallest loop correction must be >= 0");
   }
-  return Status::Ok();
+  return verification.depth_noise.Validate();
 }
 
 // ---------------------------------------------------------------- step 1: candidates
