@@ -327,12 +327,6 @@ Status AgentLink::Session(double* backoff) {
                           std::lock_guard<std::mutex> lock(mutex_);
                           return stopping_;
                         }));
-  if (options_.max_send_bytes_per_s > 0) {
-    const unsigned rate = static_cast<unsigned>(std::min(options_.max_send_bytes_per_s, 4e9));
-    if (::setsockopt(socket.get(), SOL_SOCKET, SO_MAX_PACING_RATE, &rate, sizeof(rate)) != 0) {
-      CCMD_LOG(WARNING) << "cannot pace the connection: " << std::strerror(errno);
-    }
-  }
   Wire wire;
   wire.fd = socket.get();
   CCMD_RETURN_IF_ERROR(Handshake(&wire));
@@ -548,6 +542,13 @@ Status AgentLink::Stream(Wire* wire) {
   std::vector<Frame> frames;
   double last_frame = MonotonicSeconds();  // the last complete frame from the server
   double last_tx = last_frame;
+  // Pacing under a rate limit, in user space: the kernel's SO_MAX_PACING_RATE does not hold on
+  // loopback or with large offloaded segments. Writes of at most `pace_chunk` bytes each, the
+  // next one not before `pace_ready`.
+  const double rate = options_.max_send_bytes_per_s;
+  const std::size_t pace_chunk =
+      rate > 0 ? static_cast<std::size_t>(std::clamp(rate * 0.02, 1024.0, 65536.0)) : 0;
+  double pace_ready = last_frame;
   while (true) {
     CCMD_RETURN_IF_ERROR(HandleInbox(wire));
     // Fill the output with the next messages in order.
@@ -583,8 +584,10 @@ Status AgentLink::Stream(Wire* wire) {
     if (out_pos == out.size() && now - last_tx >= heartbeat) {
       wire->auth.AppendFrame(static_cast<std::uint8_t>(SessionType::kHeartbeat), {}, &out);
     }
-    const bool writing = out_pos < out.size();
-    const double next_deadline = std::min(last_frame + idle_timeout_s, last_tx + heartbeat);
+    const bool pending = out_pos < out.size();
+    const bool writing = pending && (rate <= 0 || now >= pace_ready);
+    double next_deadline = std::min(last_frame + idle_timeout_s, last_tx + heartbeat);
+    if (pending && !writing) next_deadline = std::min(next_deadline, pace_ready);
     pollfd fds[2] = {{fd, static_cast<short>(POLLIN | (writing ? POLLOUT : 0)), 0},
                      {wake_.fd(), POLLIN, 0}};
     if (::poll(fds, 2, PollMillis(next_deadline - now)) < 0 && errno != EINTR) {
@@ -617,11 +620,14 @@ Status AgentLink::Stream(Wire* wire) {
       }
     }
     if (writing && (fds[0].revents & POLLOUT)) {
-      StatusOr<std::size_t> n = WriteSome(fd, out.data() + out_pos, out.size() - out_pos);
+      const std::size_t want = out.size() - out_pos;
+      StatusOr<std::size_t> n =
+          WriteSome(fd, out.data() + out_pos, rate > 0 ? std::min(want, pace_chunk) : want);
       if (!n.ok()) return n.status();
       out_pos += *n;
       if (*n > 0) {
         last_tx = MonotonicSeconds();
+        if (rate > 0) pace_ready = std::max(pace_ready, last_tx - 0.05) + *n / rate;
         std::lock_guard<std::mutex> lock(mutex_);
         stats_.bytes_sent += *n;
       }

@@ -69,8 +69,8 @@ struct AgentLinkOptions {
   double backoff_max_s = 5.0;
   double heartbeat_interval_s = 2.0;  // also at most a third of the server's idle time-out
   std::uint64_t jitter_seed = 0;      // mixed with the name: backoff jitter is reproducible
-  // > 0: the kernel paces the connection at this many bytes per second (TCP/IP headers
-  // included), so a bandwidth budget holds second by second instead of in bursts.
+  // > 0: the link writes at most this many bytes per second to its socket (bursts of at most
+  // 50 ms), so a bandwidth budget holds second by second instead of in bursts.
   double max_send_bytes_per_s = 0;
   // Called on the link thread when messages first..last (link numbers, as returned by Send)
   // have been acknowledged. Must not call back into the link.

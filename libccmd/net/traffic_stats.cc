@@ -86,7 +86,10 @@ void TrafficStats::AddDataMessage(AgentId agent, std::uint8_t type, std::size_t 
   std::lock_guard<std::mutex> lock(mutex_);
   AgentTraffic& a = Agent(agent);
   const double t = now - start_;
-  if (a.first_message < 0) a.first_message = t;
+  if (a.first_message < 0) {
+    a.first_message = t;
+    a.first_message_bytes = message_bytes;
+  }
   a.last_message = t;
   a.wire_overhead_bytes += kFrameHeaderSize + 8 + tag_bytes;
   const auto bucket_index = static_cast<std::int64_t>(std::floor(t / options_.bucket_seconds));
@@ -209,6 +212,7 @@ Json TrafficStats::ToJson(double now) const {
     j["keyframe_rate_hz"] = Ratio(static_cast<double>(a.keyframes.count), connected);
     j["first_message_s"] = a.first_message >= 0 ? Json(a.first_message) : Json(nullptr);
     j["last_message_s"] = a.last_message >= 0 ? Json(a.last_message) : Json(nullptr);
+    j["first_message_bytes"] = a.first_message_bytes;
     Json delivered = Json::MakeObject();
     delivered["count"] = a.delivered;
     delivered["replayed"] = a.replayed;

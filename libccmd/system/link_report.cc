@@ -54,8 +54,9 @@ double AgentRateBytesPerSecond(const Json* traffic) {
   const Json* messages = traffic->Get("messages");
   const double bytes = Num(messages ? messages->Get("keyframe") : nullptr, "bytes") +
                        Num(messages ? messages->Get("pose_update") : nullptr, "bytes");
+  // The first message's bytes went out before its arrival opened the span.
   const double span = Num(traffic, "last_message_s") - Num(traffic, "first_message_s");
-  if (span >= 1.0) return bytes / span;
+  if (span >= 1.0) return (bytes - Num(traffic, "first_message_bytes")) / span;
   return Num(traffic, "average_traffic_bytes_per_s");
 }
 
