@@ -190,16 +190,21 @@ int main(int argc, char** argv) {
     auto created = ccmd::AgentLink::Create(link_options);
     if (!created.ok()) return Fail(created.status().ToString());
     link = std::move(created).value();
-    if (const std::string why = rgbd.Check(); !why.empty()) return Fail(why);
+    if (ccmd::Status s = rgbd.Validate(); !s.ok()) return Fail(s.message());
     sink = std::make_unique<ccmd::LinkSink>(link.get(), rgbd);
     ccmd::SetLogTag(link_options.name);
     CCMD_LOG(INFO) << "sending to " << server << " as '" << link_options.name << "'";
+    ccmd::LogOptions("link", link_options);
+    ccmd::LogOptions("rgbd", rgbd);
   }
   auto frontend = ccmd::Frontend::Create(camera, tracking, sink.get());
   if (!frontend.ok()) return Fail(frontend.status().ToString());
 
   CCMD_LOG(INFO) << "source: " << (*source)->Describe();
   CCMD_LOG(INFO) << "camera: " << camera.ToString();
+  ccmd::LogOptions("source", source_options);
+  ccmd::LogOptions("camera", camera);
+  ccmd::LogOptions("tracking", tracking);
   const int total = (*source)->FrameCount();
   ccmd::app::Progress progress("frames");
   const ccmd::Stopwatch wall;

@@ -64,8 +64,7 @@ void Backend::Shutdown() {
 }
 
 Status Backend::RegisterAgent(AgentId agent, const std::string& name, const PinholeCamera& camera) {
-  std::string why;
-  if (!camera.IsValid(&why)) return InvalidArgument("agent " + name + ": " + why);
+  CCMD_RETURN_IF_ERROR(camera.Validate().WithContext("agent " + name));
   std::lock_guard<std::mutex> lock(cameras_mutex_);
   cameras_[agent] = camera;
   names_[agent] = name;

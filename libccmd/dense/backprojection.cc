@@ -29,8 +29,7 @@ std::string SizeText(int width, int height) {
 }  // namespace
 
 Status CheckRgbdImages(const cv::Mat& depth_mm, const cv::Mat& bgr, const PinholeCamera& camera) {
-  std::string why;
-  if (!camera.IsValid(&why)) return InvalidArgument("camera: " + why);
+  CCMD_RETURN_IF_ERROR(camera.Validate().WithContext("camera"));
   if (depth_mm.empty()) return InvalidArgument("depth image is empty");
   if (depth_mm.dims != 2 || depth_mm.type() != CV_16UC1) {
     return InvalidArgument("depth image must be CV_16UC1 millimetres (type " +

@@ -10,6 +10,9 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 
+#include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
+
 namespace ccmd {
 
 struct Intrinsics {
@@ -61,6 +64,8 @@ struct DepthNoise {
     const double s = sigma_0 + sigma_2 * z * z;
     return 1.0 / (s * s);
   }
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 // Chi-square thresholds at 95%: 2 and 3 degrees of freedom.
