@@ -268,13 +268,13 @@ int main(int argc, char** argv) {
     link_options.psk = *psk;
     link_options.spill_dir = spill_dir.empty() ? "/tmp/ccmd_agent_spill_" + link_options.name : spill_dir;
     link_options.max_send_bytes_per_s = budget_kBps * 1e3;
-    if (const std::string why = rgbd.Check(); !why.empty()) return Fail(why);
     std::unique_ptr<ccmd::BandwidthBudget> budget;
     if (budget_kBps > 0) {
       ccmd::BandwidthBudgetOptions budget_options;
       budget_options.budget_bytes_per_s = budget_kBps * 1e3;
       budget_options.max_queue_s = max_queue_s;
       if (const ccmd::Status s = budget_options.Validate(); !s.ok()) return Fail(s.ToString());
+      ccmd::LogOptions("budget", budget_options);
       int default_level = 0;
       auto ladder = ccmd::DefaultBudgetLadder(rgbd, &default_level);
       budget = std::make_unique<ccmd::BandwidthBudget>(budget_options, std::move(ladder), default_level);
@@ -282,15 +282,21 @@ int main(int argc, char** argv) {
     auto created = ccmd::AgentLink::Create(link_options);
     if (!created.ok()) return Fail(created.status().ToString());
     link = std::move(created).value();
+    if (ccmd::Status s = rgbd.Validate(); !s.ok()) return Fail(s.message());
     sink = std::make_unique<ccmd::LinkSink>(link.get(), rgbd, std::move(budget));
     ccmd::SetLogTag(link_options.name);
     CCMD_LOG(INFO) << "sending to " << server << " as '" << link_options.name << "'";
+    ccmd::LogOptions("link", link_options);
+    ccmd::LogOptions("rgbd", rgbd);
   }
   auto frontend = ccmd::Frontend::Create(camera, tracking, sink.get());
   if (!frontend.ok()) return Fail(frontend.status().ToString());
 
   CCMD_LOG(INFO) << "source: " << (*source)->Describe();
   CCMD_LOG(INFO) << "camera: " << camera.ToString();
+  ccmd::LogOptions("source", source_options);
+  ccmd::LogOptions("camera", camera);
+  ccmd::LogOptions("tracking", tracking);
   const int total = (*source)->FrameCount();
   ccmd::app::Progress progress("frames");
   const ccmd::Stopwatch wall;

@@ -29,6 +29,7 @@
 #include "libccmd/sensors/v4l2_device.h"
 #endif
 #include "libccmd/util/timer.h"
+#include "libccmd/util/options_writer.h"
 
 namespace {
 
@@ -286,6 +287,8 @@ int main(int argc, char** argv) {
   const ccmd::PinholeCamera& camera = source->camera();
   std::printf("source: %s\n", source->Describe().c_str());
   std::printf("camera: %s\n", camera.ToString().c_str());
+  ccmd::LogOptions("source", options);
+  ccmd::LogOptions("camera", camera);
 
   std::unique_ptr<ccmd::TumRecorder> recorder;
   if (!record.empty()) {
@@ -293,6 +296,7 @@ int main(int argc, char** argv) {
     recorder_options.png_compression = png_compression;
     recorder_options.queue_frames = 16;  // PNG encoding off the capture loop
     recorder_options.writer_threads = 2;
+    ccmd::LogOptions("record", recorder_options);
     auto created = ccmd::TumRecorder::Create(record, camera, recorder_options);
     if (!created.ok()) {
       std::fprintf(stderr, "ccmd_camera: %s\n", created.status().ToString().c_str());

@@ -19,6 +19,7 @@
 #include "libccmd/sensors/source_factory.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/json.h"
+#include "libccmd/util/options_writer.h"
 
 namespace {
 
@@ -47,6 +48,7 @@ int RunAte(const std::string& gt_path, const std::string& est_path, const std::s
   ccmd::AteOptions options;
   options.max_time_difference = max_diff;
   options.correct_scale = scale;
+  ccmd::LogOptions("ate", options);
   auto ate = ccmd::ComputeAte(*gt, *est, options);
   if (!ate.ok()) return Fail(ate.status());
   std::printf("ATE  matched %zu of %zu poses\n", ate->matched, est->size());
@@ -84,6 +86,7 @@ int RunRpe(const std::string& gt_path, const std::string& est_path, const std::s
   ccmd::RpeOptions options;
   options.max_time_difference = max_diff;
   options.delta_frames = delta;
+  ccmd::LogOptions("rpe", options);
   auto rpe = ccmd::ComputeRpe(*gt, *est, options);
   if (!rpe.ok()) return Fail(rpe.status());
   std::printf("RPE  %zu pairs, delta %d frames\n", rpe->pairs, delta);
@@ -128,6 +131,7 @@ int RunRecon(const std::string& ref_path, const std::string& rec_path, const std
   ccmd::ReconstructionOptions options;
   options.point_to_plane = !point_to_point;
   options.completeness_threshold = completeness_threshold;
+  ccmd::LogOptions("reconstruction", options);
   auto error = ccmd::ComputeReconstructionError(*ref, *rec, options);
   if (!error.ok()) return Fail(error.status());
   std::printf("reconstruction %zu points vs reference %zu points (%s)\n", error->reconstructed_points,
@@ -200,6 +204,7 @@ int RunMapPictures(const std::string& map_path, const std::string& cameras_path,
     }
   }
   if (ccmd::Status s = ccmd::MakeDirectories(out); !s.ok()) return Fail(s);
+  ccmd::LogOptions("pictures", options);
   if (ccmd::Status s = ccmd::WriteMapPictures(*map, cameras, options, out); !s.ok()) return Fail(s);
   std::printf("%s/map_top.png\n%s/map_view.png\n", out.c_str(), out.c_str());
   return 0;

@@ -29,6 +29,7 @@
 #include "libccmd/util/string_util.h"
 #include "libccmd/util/subprocess.h"
 #include "libccmd/util/timer.h"
+#include "libccmd/util/options_writer.h"
 
 namespace {
 
@@ -340,6 +341,7 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
   }
   std::printf("evaluating...\n");
   std::fflush(stdout);
+  LogOptions("reference", setup.reference);
   return EvaluateReplay(out, *setup.sequence, info, setup.reference);
 }
 

@@ -29,6 +29,7 @@
 #include "libccmd/util/json.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/timer.h"
+#include "libccmd/util/options_writer.h"
 
 namespace {
 
@@ -199,6 +200,11 @@ int main(int argc, char** argv) {
   sigaddset(&signals, SIGTERM);
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
 
+  if (const ccmd::Status valid = runtime.Validate(); !valid.ok()) {
+    std::fprintf(stderr, "ccmd_server: %s\n", valid.ToString().c_str());
+    return 2;
+  }
+  ccmd::LogOptions("server", runtime);
   auto server = ccmd::ServerRuntime::Create(runtime);
   if (!server.ok()) {
     std::fprintf(stderr, "ccmd_server: %s\n", server.status().ToString().c_str());

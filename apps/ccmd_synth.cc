@@ -8,6 +8,7 @@
 #include "libccmd/io/config.h"
 #include "libccmd/synth/sequence.h"
 #include "libccmd/util/logging.h"
+#include "libccmd/util/options_writer.h"
 
 int main(int argc, char** argv) {
   CLI::App app{
@@ -67,6 +68,11 @@ int main(int argc, char** argv) {
   std::fprintf(stderr, "rendering %d frames %dx%d (seed %llu) into %s\n", options.frames,
                options.width, options.height, static_cast<unsigned long long>(options.seed),
                out.c_str());
+  if (ccmd::Status valid = options.Validate(); !valid.ok()) {
+    std::fprintf(stderr, "ccmd_synth: %s\n", valid.ToString().c_str());
+    return 1;
+  }
+  ccmd::LogOptions("synth", options);
   ccmd::app::Progress progress("frames");
   auto summary = ccmd::WriteSyntheticSequence(
       out, options, [&](int done, int total) { progress.Update(done, total); });

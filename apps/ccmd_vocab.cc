@@ -12,6 +12,7 @@
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/json.h"
 #include "libccmd/util/timer.h"
+#include "libccmd/util/options_writer.h"
 
 namespace {
 
@@ -100,6 +101,8 @@ int main(int argc, char** argv) {
     for (cv::Mat& m : result->descriptors) images.push_back(std::move(m));
     return ccmd::Status::Ok();
   };
+  ccmd::LogOptions("images", images_options);
+  ccmd::LogOptions("vocabulary", vocabulary_options);
   for (const auto& folder : image_folders) {
     if (auto s = take("images " + folder, ccmd::DescriptorsFromImageFolder(folder, images_options));
         !s.ok())

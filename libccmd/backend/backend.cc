@@ -31,8 +31,22 @@ Status BackendOptions::Validate() const {
   if (global_ba_max_observations < 1000) return InvalidArgument("global BA window must allow >= 1000 observations");
   if (!(global_ba_duty > 0 && global_ba_duty <= 1)) return InvalidArgument("global BA duty must be in (0, 1]");
   if (dense) CCMD_RETURN_IF_ERROR(dense_options.Validate());
-  CCMD_RETURN_IF_ERROR(depth_noise.Validate());
-  return Status::Ok();
+  CCMD_RETURN_IF_ERROR(place.Validate());
+  return depth_noise.Validate();
+}
+
+void BackendOptions::Describe(OptionsWriter* out) const {
+  out->Nested("loops", loops);
+  out->Add("global_ba", global_ba);
+  out->Add("global_ba_iterations", global_ba_iterations);
+  out->Add("global_ba_max_keyframes", global_ba_max_keyframes);
+  out->Add("global_ba_max_observations", global_ba_max_observations);
+  out->Add("global_ba_duty", global_ba_duty);
+  out->Nested("depth_noise", depth_noise);
+  out->Add("dense", dense);
+  out->Nested("dense_options", dense_options);
+  out->Nested("place", place);
+  out->Add("queue_capacity", queue_capacity);
 }
 
 StatusOr<std::unique_ptr<Backend>> Backend::Create(const BackendOptions& options, MapObserver* observer) {
@@ -78,8 +92,7 @@ void Backend::Shutdown() {
 }
 
 Status Backend::RegisterAgent(AgentId agent, const std::string& name, const PinholeCamera& camera) {
-  std::string why;
-  if (!camera.IsValid(&why)) return InvalidArgument("agent " + name + ": " + why);
+  CCMD_RETURN_IF_ERROR(camera.Validate().WithContext("agent " + name));
   std::lock_guard<std::mutex> lock(cameras_mutex_);
   cameras_[agent] = camera;
   names_[agent] = name;

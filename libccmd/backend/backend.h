@@ -31,6 +31,7 @@
 #include "libccmd/util/json.h"
 #include "libccmd/util/stage.h"
 #include "proto/messages.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -53,6 +54,7 @@ struct BackendOptions {
   std::size_t queue_capacity = 64;      // per stage
 
   Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct BackendStats {

@@ -22,7 +22,22 @@ Status LoopCloserOptions::Validate() const {
   if (!(min_correction_m >= 0) || !(min_correction_deg >= 0)) {
     return InvalidArgument("the smallest loop correction must be >= 0");
   }
-  return verification.depth_noise.Validate();
+  CCMD_RETURN_IF_ERROR(verification.Validate());
+  return pose_graph.Validate();
+}
+
+void LoopCloserOptions::Describe(OptionsWriter* out) const {
+  out->Nested("verification", verification);
+  out->Add("loop_candidates", loop_candidates);
+  out->Add("loop_consistency", loop_consistency);
+  out->Add("consistency_translation", consistency_translation);
+  out->Add("consistency_rotation_deg", consistency_rotation_deg);
+  out->Add("consistency_max_gap", consistency_max_gap);
+  out->Add("exclude_recent_keyframes", exclude_recent_keyframes);
+  out->Add("loop_cooldown_keyframes", loop_cooldown_keyframes);
+  out->Add("min_correction_m", min_correction_m);
+  out->Add("min_correction_deg", min_correction_deg);
+  out->Nested("pose_graph", pose_graph);
 }
 
 // ---------------------------------------------------------------- step 1: candidates

@@ -24,6 +24,7 @@
 #include "libccmd/backend/place_index.h"
 #include "libccmd/geometry/camera.h"
 #include "libccmd/util/status.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -45,6 +46,7 @@ struct LoopCloserOptions {
   MapPoseGraphOptions pose_graph;
 
   Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct LoopEvent {

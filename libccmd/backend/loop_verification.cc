@@ -11,6 +11,28 @@
 
 namespace ccmd {
 
+Status LoopVerificationOptions::Validate() const {
+  if (window_keyframes < 0) return InvalidArgument("loop verification window must be >= 0");
+  if (max_hamming < 1 || max_hamming > 256) return InvalidArgument("loop max Hamming distance must be 1..256");
+  if (!(ratio > 0 && ratio <= 1)) return InvalidArgument("loop match ratio must be in (0, 1]");
+  if (min_matches < 4 || min_ransac_inliers < 4 || min_inliers < 10) {
+    return InvalidArgument("loop verification needs at least 4 matches and inliers, 10 after refinement");
+  }
+  if (!(ransac_reprojection_px > 0)) return InvalidArgument("loop RANSAC threshold must be positive");
+  return depth_noise.Validate();
+}
+
+void LoopVerificationOptions::Describe(OptionsWriter* out) const {
+  out->Add("window_keyframes", window_keyframes);
+  out->Add("max_hamming", max_hamming);
+  out->Add("ratio", ratio);
+  out->Add("min_matches", min_matches);
+  out->Add("min_ransac_inliers", min_ransac_inliers);
+  out->Add("min_inliers", min_inliers);
+  out->Add("ransac_reprojection_px", ransac_reprojection_px);
+  out->Nested("depth_noise", depth_noise);
+}
+
 bool LoopCandidateRule::Allowed(const GlobalKeyframeId& c) const {
   if (c == query || connected.count(c)) return false;
   return c.agent != query.agent ||

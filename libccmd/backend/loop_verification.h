@@ -11,6 +11,8 @@
 #include "libccmd/backend/server_map.h"
 #include "libccmd/geometry/camera.h"
 #include "libccmd/optim/reprojection.h"
+#include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 
@@ -40,6 +42,9 @@ struct LoopVerificationOptions {
   int min_inliers = 40;            // after refinement: the loop's acceptance threshold
   double ransac_reprojection_px = 4.0;
   DepthNoise depth_noise;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct LoopMatch {

@@ -6,6 +6,25 @@
 
 namespace ccmd {
 
+Status MapPoseGraphOptions::Validate() const {
+  if (min_covisibility_weight < 1) return InvalidArgument("pose graph covisibility weight must be >= 1");
+  for (const double s : {odometry_sigma_rotation, odometry_sigma_translation, loop_sigma_rotation,
+                         loop_sigma_translation}) {
+    if (!(s > 0) || !std::isfinite(s)) return InvalidArgument("pose graph sigmas must be positive");
+  }
+  if (max_iterations < 1) return InvalidArgument("pose graph iterations must be >= 1");
+  return Status::Ok();
+}
+
+void MapPoseGraphOptions::Describe(OptionsWriter* out) const {
+  out->Add("min_covisibility_weight", min_covisibility_weight);
+  out->Add("odometry_sigma_rotation", odometry_sigma_rotation);
+  out->Add("odometry_sigma_translation", odometry_sigma_translation);
+  out->Add("loop_sigma_rotation", loop_sigma_rotation);
+  out->Add("loop_sigma_translation", loop_sigma_translation);
+  out->Add("max_iterations", max_iterations);
+}
+
 StatusOr<std::vector<ServerKeyframe*>> OptimizeMapPoseGraph(ServerMap* map, const MapPoseGraphOptions& options) {
   std::vector<ServerKeyframe*> keyframes;
   std::map<GlobalKeyframeId, int> index;

@@ -14,6 +14,8 @@
 #include "libccmd/optim/bundle_adjuster.h"
 #include "libccmd/optim/pose_graph.h"
 #include "libccmd/optim/reprojection.h"
+#include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 
@@ -24,6 +26,9 @@ struct MapPoseGraphOptions {
   double loop_sigma_rotation = 0.005;
   double loop_sigma_translation = 0.005;
   int max_iterations = 50;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 // Nodes: every keyframe; edges: consecutive keyframes of each agent and covisibility links

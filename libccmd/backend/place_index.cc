@@ -6,6 +6,17 @@
 #include "libccmd/util/logging.h"
 
 namespace ccmd {
+
+Status PlaceIndexOptions::Validate() const {
+  if (online_training) CCMD_RETURN_IF_ERROR(online.Validate().WithContext("online vocabulary"));
+  return Status::Ok();
+}
+
+void PlaceIndexOptions::Describe(OptionsWriter* out) const {
+  out->Add("vocabulary", vocabulary ? "given" : "none");
+  out->Add("online_training", online_training);
+  out->Nested("online", online);
+}
 namespace {
 
 cv::Mat ToMat(const std::vector<Descriptor>& descriptors) {

@@ -18,6 +18,8 @@
 #include "libccmd/features/descriptor.h"
 #include "libccmd/features/vocabulary_builder.h"
 #include "libccmd/util/ids.h"
+#include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 
@@ -25,6 +27,9 @@ struct PlaceIndexOptions {
   std::shared_ptr<const Vocabulary> vocabulary;  // null: train online
   bool online_training = true;                   // (re)train from received keyframes
   VocabularyBuilderOptions online;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct PlaceHit {

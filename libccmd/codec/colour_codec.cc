@@ -20,11 +20,25 @@ std::string TurboJpegError(tjhandle handle) { return std::string(tjGetErrorStr2(
 
 }  // namespace
 
-std::string ColourEncodeOptions::Check() const {
-  if (quality < 1 || quality > 100) return "JPEG quality must be in 1..100";
-  if (downsample != 1 && downsample != 2 && downsample != 4) return "downsample must be 1, 2 or 4";
-  return "";
+Status ColourEncodeOptions::Validate() const {
+  if (quality < 1 || quality > 100) return InvalidArgument("JPEG quality must be in 1..100");
+  if (downsample != 1 && downsample != 2 && downsample != 4) {
+    return InvalidArgument("downsample must be 1, 2 or 4");
+  }
+  return Status::Ok();
 }
+
+void ColourEncodeOptions::Describe(OptionsWriter* out) const {
+  out->Add("quality", quality);
+  out->Add("downsample", downsample);
+}
+
+Status ColourDecodeOptions::Validate() const {
+  if (max_pixels == 0) return InvalidArgument("max_pixels must be positive");
+  return Status::Ok();
+}
+
+void ColourDecodeOptions::Describe(OptionsWriter* out) const { out->Add("max_pixels", max_pixels); }
 
 StatusOr<cv::Mat> PrepareColour(const cv::Mat& bgr, cv::Size depth_size, int downsample) {
   if (bgr.type() != CV_8UC3 || bgr.empty()) return InvalidArgument("colour must be CV_8UC3 BGR");
@@ -47,7 +61,7 @@ StatusOr<cv::Mat> PrepareColour(const cv::Mat& bgr, cv::Size depth_size, int dow
 
 StatusOr<std::vector<std::uint8_t>> EncodeColour(const cv::Mat& bgr, cv::Size depth_size,
                                                  const ColourEncodeOptions& options) {
-  if (const std::string why = options.Check(); !why.empty()) return InvalidArgument(why);
+  CCMD_RETURN_IF_ERROR(options.Validate());
   CCMD_ASSIGN_OR_RETURN(const cv::Mat image, PrepareColour(bgr, depth_size, options.downsample));
   Handle handle(tjInitCompress());
   if (!handle) return Internal("cannot create a TurboJPEG compressor");

@@ -15,6 +15,7 @@
 
 #include <opencv2/core/mat.hpp>
 
+#include "libccmd/util/options_writer.h"
 #include "libccmd/util/status.h"
 
 namespace ccmd {
@@ -23,11 +24,15 @@ struct ColourEncodeOptions {
   int quality = 75;    // JPEG quality, 1..100
   int downsample = 1;  // 1, 2 or 4, applied after matching the depth size
 
-  std::string Check() const;  // empty if valid
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct ColourDecodeOptions {
   std::uint32_t max_pixels = 4096u * 4096u;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 // bgr: CV_8UC3. depth_size: the depth image's full size (empty: keep the colour size).

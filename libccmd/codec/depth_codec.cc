@@ -115,13 +115,32 @@ bool DepthModeIsLossless(DepthMode mode) {
   return i >= 0 && i < kNumDepthModes && kModes[i].lossless;
 }
 
-std::string DepthEncodeOptions::Check() const {
-  if (static_cast<int>(mode) >= kNumDepthModes) return "unknown depth mode";
-  if (downsample != 1 && downsample != 2 && downsample != 4) return "downsample must be 1, 2 or 4";
-  if (bound_e4 < 1 || bound_e4 > 2000) return "bound_e4 must be in 1..2000 (0.01 % .. 20 %)";
-  if (lz77_chain < 1 || lz77_chain > 4096) return "lz77_chain must be in 1..4096";
-  return "";
+Status DepthEncodeOptions::Validate() const {
+  if (static_cast<int>(mode) >= kNumDepthModes) return InvalidArgument("unknown depth mode");
+  if (downsample != 1 && downsample != 2 && downsample != 4) {
+    return InvalidArgument("downsample must be 1, 2 or 4");
+  }
+  if (bound_e4 < 1 || bound_e4 > 2000) {
+    return InvalidArgument("bound_e4 must be in 1..2000 (0.01 % .. 20 %)");
+  }
+  if (lz77_chain < 1 || lz77_chain > 4096) return InvalidArgument("lz77_chain must be in 1..4096");
+  return Status::Ok();
 }
+
+void DepthEncodeOptions::Describe(OptionsWriter* out) const {
+  out->Add("mode", DepthModeName(mode));
+  out->Add("downsample", downsample);
+  out->Add("downsample_method", DownsampleMethodName(downsample_method));
+  out->Add("bound_e4", bound_e4);
+  out->Add("lz77_chain", lz77_chain);
+}
+
+Status DepthDecodeOptions::Validate() const {
+  if (max_pixels == 0) return InvalidArgument("max_pixels must be positive");
+  return Status::Ok();
+}
+
+void DepthDecodeOptions::Describe(OptionsWriter* out) const { out->Add("max_pixels", max_pixels); }
 
 double DepthModeErrorBound(DepthMode mode, int bound_e4, std::uint16_t depth_mm) {
   if (DepthModeIsLossless(mode)) return 0.0;
@@ -135,7 +154,7 @@ double DepthModeErrorBound(DepthMode mode, int bound_e4, std::uint16_t depth_mm)
 
 StatusOr<std::vector<std::uint8_t>> EncodeDepth(const cv::Mat& depth_mm,
                                                 const DepthEncodeOptions& options) {
-  if (const std::string why = options.Check(); !why.empty()) return InvalidArgument(why);
+  CCMD_RETURN_IF_ERROR(options.Validate());
   if (depth_mm.type() != CV_16UC1) return InvalidArgument("depth must be CV_16UC1 millimetres");
   if (depth_mm.empty()) return InvalidArgument("empty depth image");
   cv::Mat image = depth_mm;  // at r = 1 the input itself, not a copy

@@ -40,6 +40,7 @@
 #include <opencv2/core/mat.hpp>
 
 #include "libccmd/codec/depth_downsample.h"
+#include "libccmd/util/options_writer.h"
 #include "libccmd/util/status.h"
 
 namespace ccmd {
@@ -70,11 +71,15 @@ struct DepthEncodeOptions {
   int lz77_chain = 64;             // LZ77 match search effort
 
   // Empty if valid, else the first problem.
-  std::string Check() const;
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct DepthDecodeOptions {
   std::uint32_t max_pixels = 4096u * 4096u;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct DepthHeader {

@@ -2,16 +2,34 @@
 
 namespace ccmd {
 
-std::string RgbdEncodeOptions::Check() const {
-  if (downsample != 1 && downsample != 2 && downsample != 4) return "downsample must be 1, 2 or 4";
-  if (static_cast<int>(depth_mode) >= kNumDepthModes) return "unknown depth mode";
-  if (bound_e4 < 1 || bound_e4 > 2000) return "bound_e4 must be in 1..2000";
-  if (jpeg_quality < 1 || jpeg_quality > 100) return "JPEG quality must be in 1..100";
-  return "";
+Status RgbdEncodeOptions::Validate() const {
+  if (downsample != 1 && downsample != 2 && downsample != 4) {
+    return InvalidArgument("downsample must be 1, 2 or 4");
+  }
+  if (static_cast<int>(depth_mode) >= kNumDepthModes) return InvalidArgument("unknown depth mode");
+  if (bound_e4 < 1 || bound_e4 > 2000) return InvalidArgument("bound_e4 must be in 1..2000");
+  if (jpeg_quality < 1 || jpeg_quality > 100) {
+    return InvalidArgument("JPEG quality must be in 1..100");
+  }
+  return Status::Ok();
 }
 
+void RgbdEncodeOptions::Describe(OptionsWriter* out) const {
+  out->Add("downsample", downsample);
+  out->Add("depth_mode", DepthModeName(depth_mode));
+  out->Add("bound_e4", bound_e4);
+  out->Add("jpeg_quality", jpeg_quality);
+}
+
+Status RgbdDecodeOptions::Validate() const {
+  if (max_pixels == 0) return InvalidArgument("max_pixels must be positive");
+  return Status::Ok();
+}
+
+void RgbdDecodeOptions::Describe(OptionsWriter* out) const { out->Add("max_pixels", max_pixels); }
+
 StatusOr<RgbdPayload> EncodeRgbdPayload(const RgbdFrame& frame, const RgbdEncodeOptions& options) {
-  if (const std::string why = options.Check(); !why.empty()) return InvalidArgument(why);
+  CCMD_RETURN_IF_ERROR(options.Validate());
   DepthEncodeOptions depth;
   depth.mode = options.depth_mode;
   depth.downsample = options.downsample;

@@ -24,11 +24,15 @@ struct RgbdEncodeOptions {
   DepthMode depth_mode = DepthMode::kBounded;
   int bound_e4 = 50;  // ccmd-bounded: 0.5 % of depth
   int jpeg_quality = 75;
-  std::string Check() const;  // empty if valid
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct RgbdDecodeOptions {
   std::uint32_t max_pixels = 4096u * 4096u;  // per image
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 // frame.depth_mm must be CV_16UC1 and frame.bgr CV_8UC3 (any size; resized to the depth's).

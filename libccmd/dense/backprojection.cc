@@ -20,6 +20,12 @@ Status BackProjectionOptions::Validate() const {
   return Status::Ok();
 }
 
+void BackProjectionOptions::Describe(OptionsWriter* out) const {
+  out->Add("min_depth_m", min_depth_m);
+  out->Add("max_depth_m", max_depth_m);
+  out->Add("max_incidence_deg", max_incidence_deg);
+}
+
 namespace {
 
 std::string SizeText(int width, int height) {
@@ -29,8 +35,7 @@ std::string SizeText(int width, int height) {
 }  // namespace
 
 Status CheckRgbdImages(const cv::Mat& depth_mm, const cv::Mat& bgr, const PinholeCamera& camera) {
-  std::string why;
-  if (!camera.IsValid(&why)) return InvalidArgument("camera: " + why);
+  CCMD_RETURN_IF_ERROR(camera.Validate().WithContext("camera"));
   if (depth_mm.empty()) return InvalidArgument("depth image is empty");
   if (depth_mm.dims != 2 || depth_mm.type() != CV_16UC1) {
     return InvalidArgument("depth image must be CV_16UC1 millimetres (type " +

@@ -14,6 +14,7 @@
 
 #include "libccmd/geometry/camera.h"
 #include "libccmd/util/status.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -32,6 +33,7 @@ struct BackProjectionOptions {
   double max_incidence_deg = 75.0;
 
   Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 // A keyframe's points in its camera frame (x right, y down, z forward; metres) with colours

@@ -38,6 +38,13 @@ Status DenseMapOptions::Validate() const {
   return projection.Validate();
 }
 
+void DenseMapOptions::Describe(OptionsWriter* out) const {
+  out->Add("voxel_size_m", voxel_size_m);
+  out->Add("window_keyframes", window_keyframes);
+  out->Add("compact_keyframes", compact_keyframes);
+  out->Nested("projection", projection);
+}
+
 std::string DenseMapOptions::ToString() const {
   std::ostringstream s;
   s << "voxel " << voxel_size_m << " m, window " << window_keyframes << " keyframes, depth "

@@ -76,6 +76,7 @@
 #include "libccmd/io/ply.h"
 #include "libccmd/util/ids.h"
 #include "libccmd/util/status.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -97,6 +98,7 @@ struct DenseMapOptions {
   BackProjectionOptions projection;
 
   Status Validate() const;
+  void Describe(OptionsWriter* out) const;
   std::string ToString() const;
 };
 

@@ -6,6 +6,20 @@
 
 namespace ccmd {
 
+Status SnapshotOptions::Validate() const {
+  if (folder.empty()) return InvalidArgument("snapshots need a folder");
+  if (!std::isfinite(period_s)) return InvalidArgument("snapshot period must be finite");
+  return Status::Ok();
+}
+
+void SnapshotOptions::Describe(OptionsWriter* out) const {
+  out->Add("folder", folder);
+  out->Add("period_s", period_s);
+  out->Add("per_map", per_map);
+  out->Add("per_agent", per_agent);
+  out->Add("filter", filter == DenseFilter::kGlobal ? "global" : "other");
+}
+
 DenseSnapshotWriter::DenseSnapshotWriter(DenseMap* map, SnapshotOptions options)
     : map_(map), options_(std::move(options)) {}
 

@@ -12,6 +12,7 @@
 
 #include "libccmd/dense/dense_map.h"
 #include "libccmd/util/status.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -21,6 +22,9 @@ struct SnapshotOptions {
   bool per_map = false;
   bool per_agent = false;
   DenseFilter filter = DenseFilter::kGlobal;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 // Not thread-safe itself (it keeps the time of the last snapshot): use it from one thread.

@@ -103,6 +103,20 @@ Status MapPictureOptions::Validate() const {
   return Status::Ok();
 }
 
+void MapPictureOptions::Describe(OptionsWriter* out) const {
+  out->Add("panel_width", panel_width);
+  out->Add("panel_height", panel_height);
+  out->Add("point_size_m", point_size_m);
+  out->Add("ceiling_margin_m", ceiling_margin_m);
+  out->Add("elevation_deg", elevation_deg);
+  out->Add("cutaway_fraction", cutaway_fraction);
+  out->Add("field_of_view_deg", field_of_view_deg);
+  out->Add("background", std::vector<double>{background[0], background[1], background[2]});
+  std::vector<std::string> agents_text;
+  for (const auto& [id, name_colour] : agents) agents_text.push_back(std::to_string(id) + ":" + name_colour.first);
+  out->Add("agents", agents_text);
+}
+
 MapViewFrame EstimateMapViewFrame(const Trajectory& cameras, double ceiling_margin_m) {
   MapViewFrame frame;
   if (cameras.empty()) return frame;
@@ -251,6 +265,7 @@ void DrawLegend(cv::Mat* panel, const MapPictureOptions& o) {
 
 Status WriteMapPictures(const PointCloud& map, const Trajectory& cameras,
                         const MapPictureOptions& o, const std::string& folder) {
+  CCMD_RETURN_IF_ERROR(o.Validate());
   const MapViewFrame frame = EstimateMapViewFrame(cameras, o.ceiling_margin_m);
   const bool by_agent = map.labels.size() == map.size();
   using Renderer = StatusOr<cv::Mat> (*)(const PointCloud&, const MapViewFrame&, MapColouring,

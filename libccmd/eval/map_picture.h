@@ -20,6 +20,7 @@
 
 #include "libccmd/io/ply.h"
 #include "libccmd/io/trajectory.h"
+#include "libccmd/util/options_writer.h"
 #include "libccmd/util/status.h"
 
 namespace ccmd {
@@ -41,6 +42,7 @@ struct MapPictureOptions {
   std::map<int, std::pair<std::string, cv::Scalar>> agents;
 
   Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 // The frame the pictures use: up from the cameras (or -y of the map frame without any), and

@@ -9,6 +9,22 @@
 #include "libccmd/util/file_util.h"
 
 namespace ccmd {
+
+Status PlotOptions::Validate() const {
+  if (width < 64 || height < 64 || width > 8192 || height > 8192) {
+    return InvalidArgument("plots must be 64 to 8192 pixels wide and high");
+  }
+  return Status::Ok();
+}
+
+void PlotOptions::Describe(OptionsWriter* out) const {
+  out->Add("title", title);
+  out->Add("x_label", x_label);
+  out->Add("y_label", y_label);
+  out->Add("width", width);
+  out->Add("height", height);
+  out->Add("equal_aspect", equal_aspect);
+}
 namespace {
 
 constexpr int kLeft = 90, kRight = 30, kTop = 50, kBottom = 70;

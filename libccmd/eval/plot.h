@@ -9,6 +9,7 @@
 #include <opencv2/core.hpp>
 
 #include "libccmd/util/status.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -24,6 +25,9 @@ struct PlotOptions {
   std::string title, x_label, y_label;
   int width = 900, height = 600;
   bool equal_aspect = false;  // same scale on both axes (top views of trajectories)
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 cv::Mat PlotLines(const std::vector<PlotSeries>& series, const PlotOptions& options);

@@ -9,6 +9,20 @@
 #include "libccmd/util/random.h"
 
 namespace ccmd {
+
+Status ReconstructionOptions::Validate() const {
+  if (!(completeness_threshold > 0) || !std::isfinite(completeness_threshold)) {
+    return InvalidArgument("completeness threshold must be positive");
+  }
+  if (threads < 0) return InvalidArgument("threads must be >= 0 (0: all cores)");
+  return Status::Ok();
+}
+
+void ReconstructionOptions::Describe(OptionsWriter* out) const {
+  out->Add("point_to_plane", point_to_plane);
+  out->Add("completeness_threshold", completeness_threshold);
+  out->Add("threads", threads);
+}
 namespace {
 
 int ThreadCount(int requested) {
@@ -59,6 +73,7 @@ std::vector<double> NearestDistances(const PointCloud& from, const PointCloud& t
 StatusOr<ReconstructionError> ComputeReconstructionError(const PointCloud& reference,
                                                          const PointCloud& reconstruction,
                                                          const ReconstructionOptions& options) {
+  CCMD_RETURN_IF_ERROR(options.Validate());
   if (reference.size() == 0) return InvalidArgument("the reference cloud is empty");
   if (reconstruction.size() == 0) return InvalidArgument("the reconstructed cloud is empty");
   const int threads = ThreadCount(options.threads);

@@ -11,6 +11,7 @@
 
 #include "libccmd/io/ply.h"
 #include "libccmd/util/status.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -18,6 +19,9 @@ struct ReconstructionOptions {
   bool point_to_plane = true;        // use reference normals when present
   double completeness_threshold = 0.02;  // metres: reference points "covered" within this
   int threads = 0;                   // 0: all cores
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct ReconstructionError {

@@ -9,6 +9,36 @@
 
 namespace ccmd {
 
+Status AteOptions::Validate() const {
+  if (!(max_time_difference >= 0) || !std::isfinite(max_time_difference)) {
+    return InvalidArgument("max time difference must be >= 0");
+  }
+  if (!(pose_alignment_below_spread_m >= 0)) {
+    return InvalidArgument("pose alignment spread must be >= 0");
+  }
+  return Status::Ok();
+}
+
+void AteOptions::Describe(OptionsWriter* out) const {
+  out->Add("max_time_difference", max_time_difference);
+  out->Add("align", align);
+  out->Add("correct_scale", correct_scale);
+  out->Add("pose_alignment_below_spread_m", pose_alignment_below_spread_m);
+}
+
+Status RpeOptions::Validate() const {
+  if (!(max_time_difference >= 0) || !std::isfinite(max_time_difference)) {
+    return InvalidArgument("max time difference must be >= 0");
+  }
+  if (delta_frames < 1) return InvalidArgument("RPE delta must be at least 1 frame");
+  return Status::Ok();
+}
+
+void RpeOptions::Describe(OptionsWriter* out) const {
+  out->Add("max_time_difference", max_time_difference);
+  out->Add("delta_frames", delta_frames);
+}
+
 ErrorStatistics ComputeStatistics(std::vector<double> errors) {
   ErrorStatistics s;
   if (errors.empty()) return s;
@@ -56,6 +86,7 @@ double SecondSpread(const std::vector<Eigen::Vector3d>& points) {
 
 StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& estimate,
                                const AteOptions& options) {
+  CCMD_RETURN_IF_ERROR(options.Validate());
   const auto matches = MatchByTime(groundtruth, estimate, options.max_time_difference);
   const bool may_use_poses = options.align && options.pose_alignment_below_spread_m > 0;
   const std::size_t needed = options.align && !may_use_poses ? 3 : 1;
@@ -95,7 +126,7 @@ StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& 
 
 StatusOr<RpeResult> ComputeRpe(const Trajectory& groundtruth, const Trajectory& estimate,
                                const RpeOptions& options) {
-  if (options.delta_frames < 1) return InvalidArgument("RPE delta must be at least 1 frame");
+  CCMD_RETURN_IF_ERROR(options.Validate());
   const auto matches = MatchByTime(groundtruth, estimate, options.max_time_difference);
   if (matches.size() <= static_cast<std::size_t>(options.delta_frames)) {
     return InvalidArgument("too few matched poses for RPE");

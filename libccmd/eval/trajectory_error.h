@@ -10,6 +10,7 @@
 #include "libccmd/geometry/alignment.h"
 #include "libccmd/io/trajectory.h"
 #include "libccmd/util/status.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -28,6 +29,9 @@ struct AteOptions {
   // uses each pose's centre and the points 10 cm along its three axes, so one pose is enough;
   // the errors are still those of the centres. 0: positions only (evo's behaviour).
   double pose_alignment_below_spread_m = 0;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct AteResult {
@@ -45,6 +49,9 @@ StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& 
 struct RpeOptions {
   double max_time_difference = 0.01;
   int delta_frames = 1;  // compare poses this many matched frames apart
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct RpeResult {

@@ -230,24 +230,31 @@ void ParallelFor(int count, int threads, Fn&& fn) {
 
 }  // namespace
 
-std::string VocabularyOptions::Check() const {
+Status VocabularyOptions::Validate() const {
   if (branching < 2 || branching > Vocabulary::kMaxBranching) {
-    return "branching must be in [2, " + std::to_string(Vocabulary::kMaxBranching) + "]";
+    return InvalidArgument("branching must be in [2, " + std::to_string(Vocabulary::kMaxBranching) +
+                           "]");
   }
   if (depth < 1 || depth > Vocabulary::kMaxDepth) {
-    return "depth must be in [1, " + std::to_string(Vocabulary::kMaxDepth) + "]";
+    return InvalidArgument("depth must be in [1, " + std::to_string(Vocabulary::kMaxDepth) + "]");
   }
-  if (max_iterations < 1) return "max_iterations must be at least 1";
-  if (threads < 0) return "threads must be >= 0 (0: all cores)";
-  return "";
+  if (max_iterations < 1) return InvalidArgument("max_iterations must be at least 1");
+  if (threads < 0) return InvalidArgument("threads must be >= 0 (0: all cores)");
+  return Status::Ok();
+}
+
+void VocabularyOptions::Describe(OptionsWriter* out) const {
+  out->Add("branching", branching);
+  out->Add("depth", depth);
+  out->Add("max_iterations", max_iterations);
+  out->Add("seed", seed);
+  out->Add("threads", threads);
 }
 
 StatusOr<Vocabulary> Vocabulary::Train(std::span<const cv::Mat> images,
                                        const VocabularyOptions& options, VocabularyStats* stats) {
   const Stopwatch watch;
-  if (const std::string why = options.Check(); !why.empty()) {
-    return InvalidArgument("vocabulary options: " + why);
-  }
+  CCMD_RETURN_IF_ERROR(options.Validate().WithContext("vocabulary options"));
   std::vector<Descriptor> all;
   for (std::size_t i = 0; i < images.size(); ++i) {
     CCMD_RETURN_IF_ERROR(CheckDescriptorMatrix(images[i], i));

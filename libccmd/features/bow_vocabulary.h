@@ -27,6 +27,7 @@
 
 #include "libccmd/features/bow_vector.h"
 #include "libccmd/features/descriptor.h"
+#include "libccmd/util/options_writer.h"
 #include "libccmd/util/status.h"
 
 namespace ccmd {
@@ -41,7 +42,8 @@ struct VocabularyOptions {
   int threads = 1;          // nodes of one level are clustered in parallel (same result)
 
   // Empty string when valid, else the reason.
-  std::string Check() const;
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct VocabularyStats {

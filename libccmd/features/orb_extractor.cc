@@ -17,24 +17,31 @@ constexpr double kHarrisK = 0.04;
 
 }  // namespace
 
-bool OrbOptions::Check(std::string* why) const {
-  auto fail = [&](const char* reason) {
-    if (why) *why = reason;
-    return false;
-  };
-  if (features < 50 || features > 20000) return fail("ORB features must be in [50, 20000]");
-  if (!(scale_factor > 1.0f && scale_factor < 2.0f)) return fail("ORB scale factor must be in (1, 2)");
-  if (levels < 1 || levels > 16) return fail("ORB levels must be in [1, 16]");
-  if (min_fast_threshold < 1 || fast_threshold < min_fast_threshold) {
-    return fail("FAST thresholds must satisfy 1 <= min <= preferred");
+Status OrbOptions::Validate() const {
+  if (features < 50 || features > 20000) return InvalidArgument("ORB features must be in [50, 20000]");
+  if (!(scale_factor > 1.0f && scale_factor < 2.0f)) {
+    return InvalidArgument("ORB scale factor must be in (1, 2)");
   }
-  if (edge < 16) return fail("edge must be at least 16 pixels for the 31-pixel patch");
-  return true;
+  if (levels < 1 || levels > 16) return InvalidArgument("ORB levels must be in [1, 16]");
+  if (min_fast_threshold < 1 || fast_threshold < min_fast_threshold) {
+    return InvalidArgument("FAST thresholds must satisfy 1 <= min <= preferred");
+  }
+  if (edge < 16) return InvalidArgument("edge must be at least 16 pixels for the 31-pixel patch");
+  return Status::Ok();
+}
+
+void OrbOptions::Describe(OptionsWriter* out) const {
+  out->Add("features", features);
+  out->Add("scale_factor", scale_factor);
+  out->Add("levels", levels);
+  out->Add("fast_threshold", fast_threshold);
+  out->Add("min_fast_threshold", min_fast_threshold);
+  out->Add("edge", edge);
 }
 
 OrbExtractor::OrbExtractor(const OrbOptions& options) : options_(options) {
-  std::string why;
-  CCMD_CHECK(options_.Check(&why)) << why;
+  const Status valid = options_.Validate();
+  CCMD_CHECK(valid.ok()) << valid.message();
   const int L = options_.levels;
   scale_.resize(L);
   sigma2_.resize(L);

@@ -12,6 +12,9 @@
 
 #include <opencv2/core.hpp>
 
+#include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
+
 namespace ccmd {
 
 struct OrbOptions {
@@ -22,7 +25,8 @@ struct OrbOptions {
   int min_fast_threshold = 7;   // accepted where nothing stronger exists
   int edge = 19;                // keypoints keep this far from each level's border (pixels)
 
-  bool Check(std::string* why) const;
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct OrbFeatures {

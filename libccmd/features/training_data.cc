@@ -17,6 +17,22 @@
 #include "libccmd/util/string_util.h"
 
 namespace ccmd {
+
+Status TrainingImageOptions::Validate() const {
+  CCMD_RETURN_IF_ERROR(orb.Validate().WithContext("ORB options"));
+  if (step < 1) return InvalidArgument("step must be at least 1");
+  if (max_images < 0) return InvalidArgument("max_images must be >= 0 (0: no limit)");
+  if (threads < 0) return InvalidArgument("threads must be >= 0 (0: all cores)");
+  return Status::Ok();
+}
+
+void TrainingImageOptions::Describe(OptionsWriter* out) const {
+  out->Nested("orb", orb);
+  out->Add("step", step);
+  out->Add("max_images", max_images);
+  out->Add("threads", threads);
+}
+
 namespace {
 
 // Picks every step-th of `count` items, at most max_images of them.
@@ -34,8 +50,7 @@ std::vector<int> Selected(int count, const TrainingImageOptions& options) {
 StatusOr<TrainingImages> Describe(const std::vector<int>& items,
                                   const TrainingImageOptions& options,
                                   const std::function<StatusOr<cv::Mat>(int)>& gray_of) {
-  std::string why;
-  if (!options.orb.Check(&why)) return InvalidArgument("ORB options: " + why);
+  CCMD_RETURN_IF_ERROR(options.Validate());
   const OrbExtractor orb(options.orb);
   const int n = static_cast<int>(items.size());
   std::vector<cv::Mat> descriptors(n);

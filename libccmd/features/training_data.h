@@ -21,6 +21,9 @@ struct TrainingImageOptions {
   int step = 1;        // every step-th image
   int max_images = 0;  // after the step; 0 = no limit
   int threads = 1;     // images decoded/rendered and described in parallel (same result)
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct TrainingImages {

@@ -5,14 +5,28 @@
 
 namespace ccmd {
 
-std::string VocabularyBuilderOptions::Check() const {
-  if (std::string why = vocabulary.Check(); !why.empty()) return why;
-  if (first_training < 2) return "first_training must be at least 2 keyframes";
-  if (!(growth > 1.0)) return "growth must be greater than 1";
-  if (last_training < first_training) return "last_training must be >= first_training";
-  if (max_images < 2) return "max_images must be at least 2";
-  if (max_descriptors_per_image < 1) return "max_descriptors_per_image must be positive";
-  return "";
+Status VocabularyBuilderOptions::Validate() const {
+  CCMD_RETURN_IF_ERROR(vocabulary.Validate());
+  if (first_training < 2) return InvalidArgument("first_training must be at least 2 keyframes");
+  if (!(growth > 1.0)) return InvalidArgument("growth must be greater than 1");
+  if (last_training < first_training) {
+    return InvalidArgument("last_training must be >= first_training");
+  }
+  if (max_images < 2) return InvalidArgument("max_images must be at least 2");
+  if (max_descriptors_per_image < 1) {
+    return InvalidArgument("max_descriptors_per_image must be positive");
+  }
+  return Status::Ok();
+}
+
+void VocabularyBuilderOptions::Describe(OptionsWriter* out) const {
+  out->Nested("vocabulary", vocabulary);
+  out->Add("first_training", first_training);
+  out->Add("growth", growth);
+  out->Add("last_training", last_training);
+  out->Add("max_images", max_images);
+  out->Add("max_descriptors_per_image", max_descriptors_per_image);
+  out->Add("seed", seed);
 }
 
 VocabularyBuilder::VocabularyBuilder(const VocabularyBuilderOptions& options)

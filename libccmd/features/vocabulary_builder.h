@@ -43,7 +43,8 @@ struct VocabularyBuilderOptions {
   int max_descriptors_per_image = 1000;  // rows kept per keyframe (evenly spaced)
   std::uint64_t seed = 1;                // reservoir sampling
 
-  std::string Check() const;  // empty when valid
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 class VocabularyBuilder {

@@ -6,6 +6,21 @@
 #include <cstdio>
 
 namespace ccmd {
+
+void PinholeCamera::Describe(OptionsWriter* out) const {
+  out->Add("width", width);
+  out->Add("height", height);
+  out->Add("fx", fx);
+  out->Add("fy", fy);
+  out->Add("cx", cx);
+  out->Add("cy", cy);
+  out->Add("fps", fps);
+  out->Add("depth_map_factor", depth_map_factor);
+  out->Add("bf", bf);
+  out->Add("far_depth_m", far_depth_m);
+  out->Add("distortion", std::vector<double>(distortion.begin(), distortion.end()));
+  out->Add("rgb", rgb);
+}
 namespace {
 
 // The distortion model and its Jacobian at normalised coordinates (x, y).
@@ -47,11 +62,8 @@ bool SolveUndistort(const std::array<double, 5>& d, const Eigen::Vector2d& targe
 
 }  // namespace
 
-bool PinholeCamera::IsValid(std::string* why) const {
-  auto fail = [&](const char* reason) {
-    if (why) *why = reason;
-    return false;
-  };
+Status PinholeCamera::Validate() const {
+  auto fail = [](const char* reason) { return InvalidArgument(reason); };
   if (width <= 0 || height <= 0) return fail("image size must be positive");
   if (width > 16384 || height > 16384) return fail("image size above 16384");
   // fy may be negative: ICL-NUIM's TUM-format release flips the y axis that way.
@@ -66,12 +78,12 @@ bool PinholeCamera::IsValid(std::string* why) const {
     return fail("DepthMapFactor must be positive and finite");
   }
   if (!(fps > 0) || !std::isfinite(fps)) return fail("fps must be positive and finite");
-  return true;
+  return Status::Ok();
 }
 
-bool PinholeCamera::IsUsable(std::string* why) const {
-  if (!IsValid(why)) return false;
-  if (!HasDistortion()) return true;
+Status PinholeCamera::ValidateInvertible() const {
+  CCMD_RETURN_IF_ERROR(Validate());
+  if (!HasDistortion()) return Status::Ok();
   // Every pixel on a 16-pixel grid (borders included) must undistort, and the model must
   // keep its orientation there: a fold inside the image would make two rays share a pixel.
   for (int v = 0;; v = std::min(v + 16, height - 1)) {
@@ -80,17 +92,15 @@ bool PinholeCamera::IsUsable(std::string* why) const {
       Eigen::Vector2d xy = distorted;
       if (!SolveUndistort(distortion, distorted, &xy) ||
           !(EvaluateDistortion(distortion, xy).jacobian.determinant() > 0)) {
-        if (why) {
-          *why = "distortion coefficients cannot be inverted at pixel (" + std::to_string(u) + ", " +
-                 std::to_string(v) + "): the model folds inside the image";
-        }
-        return false;
+        return InvalidArgument("distortion coefficients cannot be inverted at pixel (" +
+                               std::to_string(u) + ", " + std::to_string(v) +
+                               "): the model folds inside the image");
       }
       if (u == width - 1) break;
     }
     if (v == height - 1) break;
   }
-  return true;
+  return Status::Ok();
 }
 
 Eigen::Vector2d PinholeCamera::Distort(const Eigen::Vector2d& xy) const {
@@ -100,7 +110,7 @@ Eigen::Vector2d PinholeCamera::Distort(const Eigen::Vector2d& xy) const {
 Eigen::Vector2d PinholeCamera::Undistort(const Eigen::Vector2d& xy_distorted) const {
   Eigen::Vector2d xy = xy_distorted;
   if (!HasDistortion()) return xy;
-  // Outside the invertible region (IsUsable) there is no right answer: keep the input.
+  // Outside the invertible region (ValidateInvertible) there is no right answer: keep the input.
   if (!SolveUndistort(distortion, xy_distorted, &xy)) return xy_distorted;
   return xy;
 }

@@ -20,6 +20,9 @@
 
 #include <Eigen/Core>
 
+#include "libccmd/util/status.h"
+#include "libccmd/util/options_writer.h"
+
 namespace ccmd {
 
 struct PinholeCamera {
@@ -45,13 +48,14 @@ struct PinholeCamera {
   // wrote BGR bytes as RGB). Readers swap them back, so colour in memory is always BGR.
   bool rgb = true;
 
-  // True if sizes, focal lengths, principal point, distortion and depth scale are usable
-  // (finite, non-zero focal lengths of either sign). `why` gets the first problem found.
-  bool IsValid(std::string* why = nullptr) const;
-  // IsValid, and the distortion can be inverted over the whole image (the model does not
+  // Ok if sizes, focal lengths, principal point, distortion and depth scale are usable
+  // (finite, non-zero focal lengths of either sign); otherwise the first problem found.
+  Status Validate() const;
+  // Validate, and the distortion can be inverted over the whole image (the model does not
   // fold back on itself inside it). Costs a few thousand evaluations: for loading a config
   // or registering an agent, not per frame.
-  bool IsUsable(std::string* why = nullptr) const;
+  Status ValidateInvertible() const;
+  void Describe(OptionsWriter* out) const;
 
   bool HasDistortion() const {
     return distortion[0] != 0 || distortion[1] != 0 || distortion[2] != 0 || distortion[3] != 0 ||

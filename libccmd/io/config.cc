@@ -133,8 +133,7 @@ StatusOr<PinholeCamera> ReadCamera(const ConfigFile& config) {
     return InvalidArgument(path + ": ThDepth must be a positive finite number");
   }
   camera.far_depth_m = th_depth * camera.bf / std::fabs(camera.fx);
-  std::string why;
-  if (!camera.IsUsable(&why)) return InvalidArgument(path + ": " + why);
+  CCMD_RETURN_IF_ERROR(camera.ValidateInvertible().WithContext(path));
   return camera;
 }
 
@@ -165,8 +164,7 @@ StatusOr<std::optional<DepthToColorCalibration>> ReadDepthToColor(const ConfigFi
   depth.width = static_cast<int>(std::clamp(values[4], -1.0, 1e6));
   depth.height = static_cast<int>(std::clamp(values[5], -1.0, 1e6));
   depth.depth_map_factor = 1000.0;  // registration works on millimetres
-  std::string why;
-  if (!depth.IsValid(&why)) return InvalidArgument(path + ": Depth block: " + why);
+  CCMD_RETURN_IF_ERROR(depth.Validate().WithContext(path + ": Depth block"));
 
   Eigen::Matrix3d R = Eigen::Matrix3d::Identity();
   Eigen::Vector3d t = Eigen::Vector3d::Zero();

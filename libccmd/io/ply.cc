@@ -11,6 +11,16 @@
 
 namespace ccmd {
 
+Status PlyReadOptions::Validate() const {
+  if (max_vertices == 0) return InvalidArgument("max_vertices must be positive");
+  return Status::Ok();
+}
+
+void PlyReadOptions::Describe(OptionsWriter* out) const {
+  out->Add("max_vertices", max_vertices);
+  out->Add("max_faces", max_faces);
+}
+
 bool PointCloud::IsConsistent() const {
   const std::size_t n = points.size();
   if (!colors.empty() && colors.size() != n) return false;

@@ -13,6 +13,7 @@
 #include <Eigen/Core>
 
 #include "libccmd/util/status.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -35,6 +36,9 @@ struct PointCloud {
 struct PlyReadOptions {
   std::uint64_t max_vertices = 200'000'000;  // refuse larger files before allocating
   std::uint64_t max_faces = 200'000'000;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 Status WritePly(const PointCloud& cloud, const std::string& path);

@@ -11,6 +11,25 @@
 
 namespace ccmd {
 
+Status TumOptions::Validate() const {
+  if (!(max_time_difference > 0) || !std::isfinite(max_time_difference)) {
+    return InvalidArgument("colour-depth association needs a positive time difference");
+  }
+  if (!(groundtruth_max_gap > 0) || !std::isfinite(groundtruth_max_gap)) {
+    return InvalidArgument("ground-truth gap must be positive");
+  }
+  if (!(depth_map_factor >= 0) || !std::isfinite(depth_map_factor)) {
+    return InvalidArgument("depth map factor must be >= 0 (0: from the camera)");
+  }
+  return Status::Ok();
+}
+
+void TumOptions::Describe(OptionsWriter* out) const {
+  out->Add("max_time_difference", max_time_difference);
+  out->Add("groundtruth_max_gap", groundtruth_max_gap);
+  out->Add("depth_map_factor", depth_map_factor);
+}
+
 StatusOr<std::vector<TimedFile>> ReadTimedFileList(const std::string& path) {
   CCMD_ASSIGN_OR_RETURN(const std::string text, ReadFileToString(path, 1ull << 30));
   std::vector<TimedFile> files;

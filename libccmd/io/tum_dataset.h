@@ -21,6 +21,7 @@
 #include "libccmd/io/rgbd_frame.h"
 #include "libccmd/io/trajectory.h"
 #include "libccmd/util/status.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -51,6 +52,9 @@ struct TumOptions {
   double groundtruth_max_gap = 0.05;  // seconds between the gt samples around a frame
   // Depth file units per metre; 0 = take it from the camera (config or camera.yaml).
   double depth_map_factor = 0.0;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 class TumSequence {

@@ -10,6 +10,21 @@
 
 namespace ccmd {
 
+Status TumRecorderOptions::Validate() const {
+  if (png_compression < 0 || png_compression > 9) return InvalidArgument("PNG compression must be 0..9");
+  if (queue_frames < 0) return InvalidArgument("queue frames must be >= 0");
+  if (writer_threads < 1) return InvalidArgument("writer threads must be at least 1");
+  return Status::Ok();
+}
+
+void TumRecorderOptions::Describe(OptionsWriter* out) const {
+  out->Add("png_compression", png_compression);
+  out->Add("overwrite", overwrite);
+  out->Add("queue_frames", queue_frames);
+  out->Add("writer_threads", writer_threads);
+  out->Add("drop_when_full", drop_when_full);
+}
+
 std::string TumTimestampName(double timestamp) {
   char name[64];
   std::snprintf(name, sizeof(name), "%.6f", timestamp);
@@ -35,8 +50,8 @@ std::FILE* OpenList(const std::string& path, const char* what, Status* status) {
 StatusOr<std::unique_ptr<TumRecorder>> TumRecorder::Create(const std::string& folder,
                                                            const PinholeCamera& camera,
                                                            const TumRecorderOptions& options) {
-  std::string why;
-  if (!camera.IsValid(&why)) return InvalidArgument("recording camera: " + why);
+  CCMD_RETURN_IF_ERROR(camera.Validate().WithContext("recording camera"));
+  CCMD_RETURN_IF_ERROR(options.Validate());
   if (!(camera.depth_map_factor > 0) || camera.depth_map_factor > 65535) {
     return InvalidArgument("recording camera: DepthMapFactor " +
                            std::to_string(camera.depth_map_factor) + " out of range");

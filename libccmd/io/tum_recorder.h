@@ -30,6 +30,7 @@
 #include "libccmd/io/trajectory.h"
 #include "libccmd/util/bounded_queue.h"
 #include "libccmd/util/status.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -39,6 +40,9 @@ struct TumRecorderOptions {
   int queue_frames = 0;         // 0: write in Write(); N > 0: writer threads behind N frames
   int writer_threads = 1;       // with a queue
   bool drop_when_full = false;  // with a queue: drop (and count) rather than wait when full
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 class TumRecorder {

@@ -77,6 +77,30 @@ Status AgentLinkOptions::Validate() const {
   return Status::Ok();
 }
 
+void AgentLinkOptions::Describe(OptionsWriter* out) const {
+  out->Add("server", server);
+  out->Add("name", name);
+  out->Add("camera.fx", camera.fx);
+  out->Add("camera.fy", camera.fy);
+  out->Add("camera.cx", camera.cx);
+  out->Add("camera.cy", camera.cy);
+  out->Add("camera.width", camera.width);
+  out->Add("camera.height", camera.height);
+  out->Add("camera.depth_scale", camera.depth_scale);
+  out->Add("camera.distortion", std::vector<double>(camera.distortion.begin(), camera.distortion.end()));
+  out->Add("psk", psk.empty() ? "none" : "set");
+  out->Add("spill_dir", spill_dir);
+  out->Add("memory_limit_bytes", memory_limit_bytes);
+  out->Add("spill_limit_bytes", spill_limit_bytes);
+  out->Add("connect_timeout_s", connect_timeout_s);
+  out->Add("handshake_timeout_s", handshake_timeout_s);
+  out->Add("backoff_initial_s", backoff_initial_s);
+  out->Add("backoff_max_s", backoff_max_s);
+  out->Add("heartbeat_interval_s", heartbeat_interval_s);
+  out->Add("jitter_seed", jitter_seed);
+  out->Add("max_send_bytes_per_s", max_send_bytes_per_s);
+}
+
 StatusOr<std::unique_ptr<AgentLink>> AgentLink::Create(AgentLinkOptions options) {
   CCMD_RETURN_IF_ERROR(options.Validate());
   CCMD_ASSIGN_OR_RETURN(HostPort address, ParseHostPort(options.server));

@@ -47,6 +47,7 @@
 #include "libccmd/net/session_messages.h"
 #include "libccmd/net/socket.h"
 #include "libccmd/net/spill_store.h"
+#include "libccmd/util/options_writer.h"
 #include "libccmd/util/status.h"
 #include "proto/frame.h"
 
@@ -77,6 +78,7 @@ struct AgentLinkOptions {
   std::function<void(std::uint64_t first, std::uint64_t last)> on_acked;
 
   Status Validate() const;
+  void Describe(OptionsWriter* out) const;  // the key is shown as set or not, never its bytes
 };
 
 struct AgentLinkStats {

@@ -504,4 +504,13 @@ StatusOr<JournalScan> ScanJournalBytes(ByteSpan bytes, const JournalVisitor& vis
   return Scanner(&src, "journal", visitor, options).Run();
 }
 
+Status JournalScanOptions::Validate() const {
+  if (max_payload_bytes == 0) return InvalidArgument("max_payload_bytes must be positive");
+  return Status::Ok();
+}
+
+void JournalScanOptions::Describe(OptionsWriter* out) const {
+  out->Add("max_payload_bytes", max_payload_bytes);
+}
+
 }  // namespace ccmd

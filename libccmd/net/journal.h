@@ -34,6 +34,7 @@
 #include "libccmd/net/session_messages.h"
 #include "libccmd/net/socket.h"
 #include "libccmd/util/ids.h"
+#include "libccmd/util/options_writer.h"
 #include "libccmd/util/status.h"
 #include "proto/byte_io.h"
 
@@ -133,6 +134,9 @@ struct JournalScan {
 struct JournalScanOptions {
   // An upper bound on top of the journal's own limit (fuzzing uses a small one).
   std::uint32_t max_payload_bytes = kMaxJournalPayloadBytes;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 // Called during a scan: on_info once with the info record, then on_record for each data

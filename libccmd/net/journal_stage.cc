@@ -508,4 +508,22 @@ void JournalStage::Data(StageItem* item, Batch* batch) {
   batch->deliveries.push_back(std::move(d));
 }
 
+Status JournalStageOptions::Validate() const {
+  if (dir.empty()) return InvalidArgument("the journal stage needs a folder");
+  if (max_agents < 1) return InvalidArgument("max_agents must be positive");
+  if (queue_capacity == 0 || max_batch == 0) return InvalidArgument("queues need capacity");
+  if (max_payload_bytes == 0) return InvalidArgument("max_payload_bytes must be positive");
+  return Status::Ok();
+}
+
+void JournalStageOptions::Describe(OptionsWriter* out) const {
+  out->Add("dir", dir);
+  out->Add("fsync", fsync);
+  out->Add("max_agents", max_agents);
+  out->Add("slot_timeout_s", slot_timeout_s);
+  out->Add("queue_capacity", queue_capacity);
+  out->Add("max_batch", max_batch);
+  out->Add("max_payload_bytes", max_payload_bytes);
+}
+
 }  // namespace ccmd

@@ -112,6 +112,9 @@ struct JournalStageOptions {
   std::size_t queue_capacity = 256;
   std::size_t max_batch = 64;
   std::uint32_t max_payload_bytes = kDefaultMaxPayloadBytes;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 class JournalStage {

@@ -5,6 +5,17 @@
 #include "libccmd/util/logging.h"
 
 namespace ccmd {
+
+Status RefusalLogOptions::Validate() const {
+  if (!(interval_s > 0)) return InvalidArgument("refusal log interval must be positive");
+  if (max_sources == 0) return InvalidArgument("refusal log needs room for one source");
+  return Status::Ok();
+}
+
+void RefusalLogOptions::Describe(OptionsWriter* out) const {
+  out->Add("interval_s", interval_s);
+  out->Add("max_sources", max_sources);
+}
 namespace {
 
 constexpr const char* kOtherSources = "other sources";

@@ -17,6 +17,9 @@
 #include <map>
 #include <string>
 
+#include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
+
 namespace ccmd {
 
 struct RefusalLogOptions {
@@ -24,6 +27,9 @@ struct RefusalLogOptions {
   std::size_t max_sources = 256;
   // Where lines go (default: CCMD_LOG(WARNING)); tests collect them.
   std::function<void(const std::string&)> sink;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 class RefusalLog {

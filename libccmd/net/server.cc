@@ -40,12 +40,34 @@ Status ServerOptions::Validate() const {
     return InvalidArgument("per_agent_memory_bytes must hold at least one maximal frame");
   }
   if (journal_queue == 0 || delivery_queue == 0) return InvalidArgument("queues need capacity");
-  if (!(traffic.bucket_seconds > 0)) return InvalidArgument("bucket_seconds must be positive");
+  CCMD_RETURN_IF_ERROR(traffic.Validate());
   if (!psk.empty() && psk.size() < kMinPskBytes) {
     return InvalidArgument("the pre-shared key needs at least " + std::to_string(kMinPskBytes) +
                            " bytes");
   }
   return Status::Ok();
+}
+
+void ServerOptions::Describe(OptionsWriter* out) const {
+  out->Add("listen", listen);
+  out->Add("journal_dir", journal_dir);
+  out->Add("resume", resume);
+  out->Add("psk", psk.empty() ? "none" : "set");
+  out->Add("max_agents", max_agents);
+  out->Add("slot_timeout_s", slot_timeout_s);
+  out->Add("max_handshakes", max_handshakes);
+  out->Add("max_payload_bytes", max_payload_bytes);
+  out->Add("handshake_timeout_s", handshake_timeout_s);
+  out->Add("idle_timeout_s", idle_timeout_s);
+  out->Add("frame_timeout_s", frame_timeout_s);
+  out->Add("heartbeat_interval_s", heartbeat_interval_s);
+  out->Add("refusal_log_interval_s", refusal_log_interval_s);
+  out->Add("per_agent_memory_bytes", per_agent_memory_bytes);
+  out->Add("max_output_bytes", max_output_bytes);
+  out->Add("fsync", fsync);
+  out->Add("journal_queue", journal_queue);
+  out->Add("delivery_queue", delivery_queue);
+  out->Nested("traffic", traffic);
 }
 
 namespace {

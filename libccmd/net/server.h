@@ -58,6 +58,7 @@ struct ServerOptions {
   TrafficOptions traffic;
 
   Status Validate() const;
+  void Describe(OptionsWriter* out) const;  // the key is shown as set or not, never its bytes
 };
 
 class ServerIo;

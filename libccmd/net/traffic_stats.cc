@@ -235,4 +235,17 @@ Json TrafficStats::ToJson(double now) const {
   return root;
 }
 
+Status TrafficOptions::Validate() const {
+  if (!(bucket_seconds > 0) || !std::isfinite(bucket_seconds)) {
+    return InvalidArgument("bucket_seconds must be positive");
+  }
+  if (max_buckets == 0) return InvalidArgument("max_buckets must be positive");
+  return Status::Ok();
+}
+
+void TrafficOptions::Describe(OptionsWriter* out) const {
+  out->Add("bucket_seconds", bucket_seconds);
+  out->Add("max_buckets", max_buckets);
+}
+
 }  // namespace ccmd

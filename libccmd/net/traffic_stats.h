@@ -24,6 +24,8 @@
 
 #include "libccmd/util/ids.h"
 #include "libccmd/util/json.h"
+#include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 #include "proto/messages.h"
 
 namespace ccmd {
@@ -37,6 +39,9 @@ struct TrafficOptions {
   // Per agent; beyond this the oldest buckets are dropped (the totals keep everything), so
   // the JSON stays small on long runs: one hour of 1 s buckets.
   std::size_t max_buckets = 3600;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct KindCounter {

@@ -4,6 +4,24 @@
 
 namespace ccmd {
 
+Status DelayLineOptions::Validate() const {
+  if (!(delay_s >= 0) || !(jitter_s >= 0) || !std::isfinite(delay_s) || !std::isfinite(jitter_s)) {
+    return InvalidArgument("delay and jitter must be >= 0");
+  }
+  if (!(loss >= 0 && loss < 1)) return InvalidArgument("loss must be in [0, 1)");
+  if (max_packets == 0 || max_bytes == 0) return InvalidArgument("the delay line needs room");
+  return Status::Ok();
+}
+
+void DelayLineOptions::Describe(OptionsWriter* out) const {
+  out->Add("delay_s", delay_s);
+  out->Add("jitter_s", jitter_s);
+  out->Add("loss", loss);
+  out->Add("seed", seed);
+  out->Add("max_packets", max_packets);
+  out->Add("max_bytes", max_bytes);
+}
+
 bool DelayLine::Push(double now, std::vector<std::uint8_t> packet) {
   ++stats_.arrived;
   stats_.arrived_bytes += packet.size();

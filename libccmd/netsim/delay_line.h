@@ -13,6 +13,8 @@
 #include <vector>
 
 #include "libccmd/util/random.h"
+#include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 
@@ -23,6 +25,9 @@ struct DelayLineOptions {
   std::uint64_t seed = 1;
   std::size_t max_packets = 20000;
   std::size_t max_bytes = 32u << 20;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct DelayLineStats {

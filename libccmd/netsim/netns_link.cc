@@ -25,6 +25,14 @@
 #include "libccmd/util/timer.h"
 
 namespace ccmd {
+
+Status NetnsLinkOptions::Validate() const { return Status::Ok(); }  // any program path may be tried
+
+void NetnsLinkOptions::Describe(OptionsWriter* out) const {
+  out->Add("ip_program", ip_program);
+  out->Add("tc_program", tc_program);
+  out->Add("watchdog", watchdog);
+}
 namespace {
 
 constexpr int kAttempts = 5;  // run ids tried before giving up on name collisions

@@ -27,6 +27,7 @@
 #include "libccmd/netsim/packet_forwarder.h"
 #include "libccmd/util/json.h"
 #include "libccmd/util/status.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -34,6 +35,9 @@ struct NetnsLinkOptions {
   std::string ip_program;  // iproute2's ip and tc; "" = looked up in /usr/sbin, /sbin, /usr/bin, /bin
   std::string tc_program;
   bool watchdog = true;  // tests that kill nothing may turn it off
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 class NetnsLink {

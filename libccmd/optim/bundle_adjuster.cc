@@ -263,4 +263,22 @@ BaSummary BundleAdjust(BaProblem* problem, const BaOptions& options) {
   return summary;
 }
 
+Status BaOptions::Validate() const {
+  if (first_iterations < 0 || second_iterations < 0) {
+    return InvalidArgument("bundle adjustment iterations must be >= 0");
+  }
+  if (first_iterations + second_iterations < 1) {
+    return InvalidArgument("bundle adjustment needs at least one iteration");
+  }
+  if (threads < 1) return InvalidArgument("bundle adjustment threads must be at least 1");
+  return Status::Ok();
+}
+
+void BaOptions::Describe(OptionsWriter* out) const {
+  out->Add("first_iterations", first_iterations);
+  out->Add("second_iterations", second_iterations);
+  out->Add("solver", solver == BaLinearSolver::kDenseSchur ? "dense_schur" : "sparse_schur");
+  out->Add("threads", threads);
+}
+
 }  // namespace ccmd

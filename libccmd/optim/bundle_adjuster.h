@@ -69,6 +69,9 @@ struct BaOptions {
   int threads = 1;
   // When set and it becomes true, the solver stops after the current iteration.
   const std::atomic<bool>* abort = nullptr;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct BaSummary {

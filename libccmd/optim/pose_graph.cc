@@ -1,5 +1,7 @@
 #include "libccmd/optim/pose_graph.h"
 
+#include <cmath>
+
 #include <ceres/ceres.h>
 
 #include "libccmd/util/timer.h"
@@ -89,6 +91,19 @@ StatusOr<PoseGraphSummary> OptimizePoseGraph(std::vector<PoseGraphNode>* nodes,
   summary.final_cost = ceres_summary.final_cost;
   summary.seconds = watch.ElapsedSeconds();
   return summary;
+}
+
+Status PoseGraphOptions::Validate() const {
+  if (max_iterations < 1) return InvalidArgument("pose graph max_iterations must be at least 1");
+  if (!(huber_delta >= 0) || !std::isfinite(huber_delta)) {
+    return InvalidArgument("pose graph huber_delta must be >= 0 (0: none)");
+  }
+  return Status::Ok();
+}
+
+void PoseGraphOptions::Describe(OptionsWriter* out) const {
+  out->Add("max_iterations", max_iterations);
+  out->Add("huber_delta", huber_delta);
 }
 
 }  // namespace ccmd

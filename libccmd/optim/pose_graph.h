@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "libccmd/geometry/pose.h"
+#include "libccmd/util/options_writer.h"
 #include "libccmd/util/status.h"
 
 namespace ccmd {
@@ -28,6 +29,9 @@ struct PoseGraphEdge {
 struct PoseGraphOptions {
   int max_iterations = 50;
   double huber_delta = 0.0;  // 0: no robust kernel
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct PoseGraphSummary {

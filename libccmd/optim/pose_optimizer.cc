@@ -172,4 +172,16 @@ PoseOptimizationResult OptimizePose(const Pose& T_cam_world_initial,
   return result;
 }
 
+Status PoseOptimizationOptions::Validate() const {
+  if (rounds < 1 || iterations_per_round < 1) {
+    return InvalidArgument("pose optimisation needs at least one round and one iteration");
+  }
+  return Status::Ok();
+}
+
+void PoseOptimizationOptions::Describe(OptionsWriter* out) const {
+  out->Add("rounds", rounds);
+  out->Add("iterations_per_round", iterations_per_round);
+}
+
 }  // namespace ccmd

@@ -22,6 +22,9 @@ struct PoseObservation {
 struct PoseOptimizationOptions {
   int rounds = 4;
   int iterations_per_round = 10;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct PoseOptimizationResult {

@@ -34,4 +34,10 @@ double ReprojectionChi2(const Intrinsics& k, const Eigen::Isometry3d& T_cam_worl
   return chi2;
 }
 
+void DepthNoise::Describe(OptionsWriter* out) const {
+  out->Add("sigma_0", sigma_0);
+  out->Add("sigma_2", sigma_2);
+  out->Add("keypoint_offset", keypoint_offset);
+}
+
 }  // namespace ccmd

@@ -11,6 +11,7 @@
 #include <Eigen/Geometry>
 
 #include "libccmd/io/config.h"
+#include "libccmd/util/options_writer.h"
 #include "libccmd/util/status.h"
 
 namespace ccmd {
@@ -70,6 +71,7 @@ struct DepthNoise {
   double Sigma(double z) const { return sigma_0 + sigma_2 * z * z; }
   double Information(double z) const { return 1.0 / (Sigma(z) * Sigma(z)); }
   Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 // Reads DepthNoise.sigma0, DepthNoise.sigma2 and DepthNoise.keypointOffset; absent keys keep

@@ -10,16 +10,22 @@
 
 namespace ccmd {
 
-bool RetryOptions::IsValid(std::string* why) const {
-  auto fail = [&](const char* message) {
-    if (why) *why = message;
-    return false;
-  };
-  if (!(initial_delay_s >= 0)) return fail("initial_delay_s must be >= 0");
-  if (!(max_delay_s >= initial_delay_s)) return fail("max_delay_s must be >= initial_delay_s");
-  if (!(multiplier >= 1)) return fail("multiplier must be >= 1");
-  if (max_attempts < 0) return fail("max_attempts must be >= 0");
-  return true;
+Status RetryOptions::Validate() const {
+  if (!(initial_delay_s >= 0)) return InvalidArgument("initial_delay_s must be >= 0");
+  if (!(max_delay_s >= initial_delay_s)) {
+    return InvalidArgument("max_delay_s must be >= initial_delay_s");
+  }
+  if (!(multiplier >= 1)) return InvalidArgument("multiplier must be >= 1");
+  if (max_attempts < 0) return InvalidArgument("max_attempts must be >= 0");
+  return Status::Ok();
+}
+
+void RetryOptions::Describe(OptionsWriter* out) const {
+  out->Add("initial_delay_s", initial_delay_s);
+  out->Add("max_delay_s", max_delay_s);
+  out->Add("multiplier", multiplier);
+  out->Add("max_attempts", max_attempts);
+  out->Add("wait_for_first_open", wait_for_first_open);
 }
 
 double BackoffDelay(const RetryOptions& options, int attempt) {
@@ -68,8 +74,7 @@ RetryingSource::RetryingSource(Opener opener, const RetryOptions& options, Retry
 StatusOr<std::unique_ptr<RetryingSource>> RetryingSource::Open(Opener opener,
                                                                const RetryOptions& options,
                                                                RetryHooks hooks) {
-  std::string why;
-  if (!options.IsValid(&why)) return InvalidArgument("retry options: " + why);
+  CCMD_RETURN_IF_ERROR(options.Validate().WithContext("retry options"));
   if (!opener) return InvalidArgument("retry: no opener");
   std::unique_ptr<RetryingSource> source(
       new RetryingSource(std::move(opener), options, std::move(hooks)));

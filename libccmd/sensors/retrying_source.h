@@ -17,6 +17,8 @@
 #include <string>
 
 #include "libccmd/sensors/rgbd_source.h"
+#include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 
@@ -30,7 +32,8 @@ struct RetryOptions {
   // returning the error.
   bool wait_for_first_open = false;
 
-  bool IsValid(std::string* why) const;
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 // Delay before reopen attempt `attempt` (0-based): min(initial * multiplier^attempt, max).

@@ -15,6 +15,25 @@
 #include "libccmd/util/string_util.h"
 
 namespace ccmd {
+
+Status SourceOptions::Validate() const {
+  if (segment && (segment->second < 1 || segment->first < 1 || segment->first > segment->second)) {
+    return InvalidArgument("segment must be i/k with 1 <= i <= k");
+  }
+  if (!(segment_overlap >= 0 && segment_overlap < 1)) {
+    return InvalidArgument("segment overlap must be in [0, 1)");
+  }
+  return Status::Ok();
+}
+
+void SourceOptions::Describe(OptionsWriter* out) const {
+  out->Add("camera_config", camera_config);
+  out->Add("segment", segment ? std::to_string(segment->first) + "/" + std::to_string(segment->second)
+                              : std::string("all"));
+  out->Add("segment_overlap", segment_overlap);
+  out->Add("configs_dir", configs_dir);
+  out->Add("register_depth", register_depth);
+}
 namespace {
 
 // A recorded sequence whose depth is not registered to its colour (7-Scenes, a raw Kinect
@@ -110,6 +129,7 @@ StatusOr<std::unique_ptr<RgbdSource>> OpenSourceWithRetry(const std::string& spe
 
 StatusOr<std::unique_ptr<RgbdSource>> OpenSource(const std::string& spec,
                                                  const SourceOptions& options) {
+  CCMD_RETURN_IF_ERROR(options.Validate());
   const auto colon = spec.find(':');
   const std::string kind = spec.substr(0, colon);
   const std::string argument = colon == std::string::npos ? "" : spec.substr(colon + 1);

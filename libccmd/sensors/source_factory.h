@@ -22,6 +22,7 @@
 #include "libccmd/io/split.h"
 #include "libccmd/sensors/retrying_source.h"
 #include "libccmd/sensors/rgbd_source.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -33,6 +34,9 @@ struct SourceOptions {
   // Recorded sequences: register depth to colour when the camera config has a Depth block.
   // false gives the frames as recorded (the benchmark's reference runs on them too).
   bool register_depth = true;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 StatusOr<std::unique_ptr<RgbdSource>> OpenSource(const std::string& spec,

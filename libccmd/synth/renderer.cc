@@ -11,6 +11,37 @@
 
 namespace ccmd {
 
+void DepthSensorModel::Describe(OptionsWriter* out) const {
+  out->Add("sigma_0", sigma_0);
+  out->Add("sigma_2", sigma_2);
+  out->Add("min_range", min_range);
+  out->Add("max_range", max_range);
+  out->Add("grazing_cos_invalid", grazing_cos_invalid);
+  out->Add("grazing_cos_valid", grazing_cos_valid);
+  out->Add("edge_dropout", edge_dropout);
+  out->Add("edge_jump", edge_jump);
+  out->Add("random_dropout", random_dropout);
+  out->Add("quantum_m", quantum_m);
+}
+
+Status RenderOptions::Validate() const {
+  if (!(depth.min_range > 0 && depth.max_range > depth.min_range)) {
+    return InvalidArgument("depth range must satisfy 0 < min < max");
+  }
+  if (!(color_sigma >= 0) || !(blur_sigma >= 0)) return InvalidArgument("noise sigmas must be >= 0");
+  if (threads < 1) return InvalidArgument("render threads must be at least 1");
+  return Status::Ok();
+}
+
+void RenderOptions::Describe(OptionsWriter* out) const {
+  out->Add("noise", noise);
+  out->Nested("depth", depth);
+  out->Add("color_sigma", color_sigma);
+  out->Add("blur_sigma", blur_sigma);
+  out->Add("seed", seed);
+  out->Add("threads", threads);
+}
+
 void VisibilityMarks::Init(const SyntheticScene& scene, double cell_spacing) {
   spacing = cell_spacing;
   cells.assign(scene.polygons().size(), {});

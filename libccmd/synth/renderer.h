@@ -14,6 +14,7 @@
 #include "libccmd/geometry/camera.h"
 #include "libccmd/geometry/pose.h"
 #include "libccmd/synth/scene.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -30,6 +31,8 @@ struct DepthSensorModel {
   double edge_jump = 0.05;            // relative depth jump that counts as a discontinuity
   double random_dropout = 0.003;
   double quantum_m = 0.001;           // sensor output resolution (1 mm)
+
+  void Describe(OptionsWriter* out) const;
 };
 
 struct RenderOptions {
@@ -39,6 +42,9 @@ struct RenderOptions {
   double blur_sigma = 0.5;      // pixels; 0 disables
   std::uint64_t seed = 0;       // noise seed (mix in the frame index)
   int threads = 1;              // bands of rows rendered in parallel (same image for any count)
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct RenderedFrame {

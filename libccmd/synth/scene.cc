@@ -9,6 +9,24 @@
 
 namespace ccmd {
 
+Status RoomSceneOptions::Validate() const {
+  if (!(size_x > 1 && size_y > 1 && height > 1)) return InvalidArgument("room must be over 1 m each way");
+  if (!(texel_m > 0) || !(shapes_per_m2 > 0)) return InvalidArgument("texture must have size and density");
+  if (!(free_radius_x > 0 && free_radius_y > 0)) return InvalidArgument("free radii must be positive");
+  return Status::Ok();
+}
+
+void RoomSceneOptions::Describe(OptionsWriter* out) const {
+  out->Add("seed", seed);
+  out->Add("size_x", size_x);
+  out->Add("size_y", size_y);
+  out->Add("height", height);
+  out->Add("texel_m", texel_m);
+  out->Add("shapes_per_m2", shapes_per_m2);
+  out->Add("free_radius_x", free_radius_x);
+  out->Add("free_radius_y", free_radius_y);
+}
+
 bool ScenePolygon::ContainsSt(const Eigen::Vector2d& st, double margin) const {
   const std::size_t n = vertices_st.size();
   for (std::size_t i = 0; i < n; ++i) {

@@ -13,6 +13,7 @@
 #include <opencv2/core/mat.hpp>
 
 #include "libccmd/io/ply.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -57,6 +58,9 @@ struct RoomSceneOptions {
   // Objects keep out of this ellipse around the room centre, where cameras move.
   double free_radius_x = 1.75;
   double free_radius_y = 1.5;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 class SyntheticScene {

@@ -17,6 +17,69 @@
 
 namespace ccmd {
 
+Status LoopPathOptions::Validate() const {
+  for (const double v : {radius_x, radius_y, height, height_amplitude, loop_period_s, yaw_ahead_deg,
+                         pitch_deg, pitch_amplitude_deg, roll_amplitude_deg, start_time}) {
+    if (!std::isfinite(v)) return InvalidArgument("path values must be finite");
+  }
+  if (!(radius_x > 0 && radius_y > 0)) return InvalidArgument("path radii must be positive");
+  if (!(loop_period_s > 0)) return InvalidArgument("loop period must be positive");
+  return Status::Ok();
+}
+
+void LoopPathOptions::Describe(OptionsWriter* out) const {
+  out->Add("radius_x", radius_x);
+  out->Add("radius_y", radius_y);
+  out->Add("height", height);
+  out->Add("height_amplitude", height_amplitude);
+  out->Add("loop_period_s", loop_period_s);
+  out->Add("yaw_ahead_deg", yaw_ahead_deg);
+  out->Add("pitch_deg", pitch_deg);
+  out->Add("pitch_amplitude_deg", pitch_amplitude_deg);
+  out->Add("roll_amplitude_deg", roll_amplitude_deg);
+  out->Add("start_time", start_time);
+}
+
+Status SyntheticSequenceOptions::Validate() const {
+  if (frames < 1) return InvalidArgument("frames must be at least 1");
+  if (camera) CCMD_RETURN_IF_ERROR(camera->ValidateInvertible().WithContext("camera"));
+  if (depth_camera) {
+    CCMD_RETURN_IF_ERROR(depth_camera->depth.Validate().WithContext("depth camera"));
+  }
+  if (!camera && (width < 32 || height < 24 || width > 4096 || height > 4096)) {
+    return InvalidArgument("image size must be between 32x24 and 4096x4096");
+  }
+  if (!((camera ? camera->fps : fps) > 0)) return InvalidArgument("fps must be positive");
+  if (!(surface_spacing >= 0.002)) return InvalidArgument("surface spacing below 2 mm");
+  if (!(noise_scale >= 0) || !std::isfinite(noise_scale)) {
+    return InvalidArgument("noise scale must be >= 0");
+  }
+  if (threads < 0) return InvalidArgument("threads must be >= 0 (0: all cores)");
+  CCMD_RETURN_IF_ERROR(room.Validate().WithContext("room"));
+  return path.Validate().WithContext("path");
+}
+
+void SyntheticSequenceOptions::Describe(OptionsWriter* out) const {
+  out->Add("frames", frames);
+  out->Add("width", width);
+  out->Add("height", height);
+  out->Add("fps", fps);
+  if (camera) out->Nested("camera", *camera);
+  if (depth_camera) {
+    out->Nested("depth_camera", depth_camera->depth);
+    const Eigen::Matrix4d T = depth_camera->T_color_depth.matrix();
+    out->Add("depth_camera.T_color_depth",
+             std::vector<double>(T.data(), T.data() + 12));  // column-major, top three rows
+  }
+  out->Add("seed", seed);
+  out->Add("noise", noise);
+  out->Add("noise_scale", noise_scale);
+  out->Add("surface_spacing", surface_spacing);
+  out->Add("threads", threads);
+  out->Nested("room", room);
+  out->Nested("path", path);
+}
+
 Trajectory MakeLoopPath(int num_frames, double fps, const LoopPathOptions& o) {
   Trajectory trajectory;
   const double deg = M_PI / 180.0;
@@ -119,20 +182,9 @@ RecordedFrame RenderRecordedFrame(const SyntheticScene& scene, const SyntheticSe
 StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
     const std::string& folder, const SyntheticSequenceOptions& options,
     const std::function<void(int, int)>& progress) {
-  if (options.frames < 1) return InvalidArgument("frames must be at least 1");
-  std::string why;
-  if (options.camera && !options.camera->IsUsable(&why)) return InvalidArgument("camera: " + why);
-  if (options.depth_camera && !options.depth_camera->depth.IsValid(&why)) {
-    return InvalidArgument("depth camera: " + why);
-  }
-  if (!options.camera &&
-      (options.width < 32 || options.height < 24 || options.width > 4096 || options.height > 4096)) {
-    return InvalidArgument("image size must be between 32x24 and 4096x4096");
-  }
+  CCMD_RETURN_IF_ERROR(options.Validate());
   const PinholeCamera camera = SequenceCamera(options);
   const double fps = options.camera ? camera.fps : options.fps;
-  if (!(fps > 0)) return InvalidArgument("fps must be positive");
-  if (!(options.surface_spacing >= 0.002)) return InvalidArgument("surface spacing below 2 mm");
   const Stopwatch total;
   CCMD_RETURN_IF_ERROR(MakeDirectories(JoinPath(folder, "rgb")));
   CCMD_RETURN_IF_ERROR(MakeDirectories(JoinPath(folder, "depth")));

@@ -14,6 +14,7 @@
 #include "libccmd/synth/renderer.h"
 #include "libccmd/synth/scene.h"
 #include "libccmd/util/status.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -32,6 +33,9 @@ struct LoopPathOptions {
   double pitch_amplitude_deg = 8.0;
   double roll_amplitude_deg = 4.0;
   double start_time = 1.0;         // timestamp of frame 0
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 Trajectory MakeLoopPath(int num_frames, double fps, const LoopPathOptions& options = {});
@@ -58,6 +62,9 @@ struct SyntheticSequenceOptions {
   int threads = 0;                // 0: all cores
   RoomSceneOptions room;          // room.seed is overridden by seed
   LoopPathOptions path;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct SyntheticSequenceSummary {

@@ -67,6 +67,15 @@ Status BandwidthBudgetOptions::Validate() const {
   return Status::Ok();
 }
 
+void BandwidthBudgetOptions::Describe(OptionsWriter* out) const {
+  out->Add("budget_bytes_per_s", budget_bytes_per_s);
+  out->Add("max_queue_s", max_queue_s);
+  out->Add("band_s", band_s);
+  out->Add("max_credit_s", max_credit_s);
+  out->Add("window_s", window_s);
+  out->Add("payload_share", payload_share);
+}
+
 BandwidthBudget::BandwidthBudget(const BandwidthBudgetOptions& options, std::vector<RgbdLevel> ladder, int start_level)
     : options_(options),
       ladder_(std::move(ladder)),

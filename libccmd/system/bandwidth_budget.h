@@ -32,6 +32,7 @@
 #include "libccmd/util/ids.h"
 #include "libccmd/util/json.h"
 #include "libccmd/util/status.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -63,6 +64,7 @@ struct BandwidthBudgetOptions {
   // Message bytes aim at this share of the budget: the pacing counts whole TCP/IP packets.
   double payload_share = 0.96;
   Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 // What the agent's link reports (AgentLink::stats and the bytes handed to it).

@@ -46,8 +46,25 @@ PointCloud SampleMesh(const PointCloud& mesh, double spacing) {
   return out;
 }
 
+Status ReferenceOptions::Validate() const {
+  if (stride < 1) return InvalidArgument("reference stride must be at least 1");
+  if (downsample < 1 || downsample > 16) return InvalidArgument("reference downsample must be 1..16");
+  if (!(voxel_m > 0)) return InvalidArgument("reference voxel must be positive");
+  if (registration) CCMD_RETURN_IF_ERROR(registration->depth.Validate().WithContext("Depth block"));
+  return Status::Ok();
+}
+
+void ReferenceOptions::Describe(OptionsWriter* out) const {
+  out->Add("reference_ply", reference_ply);
+  out->Add("stride", stride);
+  out->Add("downsample", downsample);
+  out->Add("voxel_m", voxel_m);
+  out->Add("registration", registration ? "Depth block" : "none");
+}
+
 StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset, const ReferenceOptions& options,
                                           std::string* source) {
+  CCMD_RETURN_IF_ERROR(options.Validate());
   std::string path = options.reference_ply;
   if (path.empty() && FileExists(JoinPath(dataset.folder(), "surface.ply"))) path = JoinPath(dataset.folder(), "surface.ply");
   if (!path.empty()) {

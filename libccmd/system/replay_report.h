@@ -13,6 +13,7 @@
 #include "libccmd/io/tum_dataset.h"
 #include "libccmd/sensors/depth_registration.h"
 #include "libccmd/util/json.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -49,6 +50,9 @@ struct ReferenceOptions {
   // Set when the camera config registers depth to colour (a Depth block): the reference's
   // depth goes through the same registration as the agents' frames.
   std::optional<DepthToColorCalibration> registration;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 // The reference surface for reconstruction error: a given PLY (meshes are sampled), the

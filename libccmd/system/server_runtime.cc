@@ -12,6 +12,24 @@
 
 namespace ccmd {
 
+Status ServerRuntimeOptions::Validate() const {
+  CCMD_RETURN_IF_ERROR(net.Validate());
+  CCMD_RETURN_IF_ERROR(backend.Validate());
+  if (output_dir.empty()) return InvalidArgument("the server needs an output folder");
+  if (!(stats_period_s > 0)) return InvalidArgument("the statistics period must be positive");
+  if (view) CCMD_RETURN_IF_ERROR(view->Validate());
+  return Status::Ok();
+}
+
+void ServerRuntimeOptions::Describe(OptionsWriter* out) const {
+  out->Nested("net", net);
+  out->Nested("backend", backend);
+  out->Add("output_dir", output_dir);
+  out->Add("stats_period_s", stats_period_s);
+  out->Add("snapshot_period_s", snapshot_period_s);
+  if (view) out->Nested("view", *view);
+}
+
 StatusOr<std::unique_ptr<ServerRuntime>> ServerRuntime::Create(const ServerRuntimeOptions& options) {
   if (options.output_dir.empty()) return InvalidArgument("the server needs an output folder");
   CCMD_RETURN_IF_ERROR(options.net.Validate());

@@ -16,6 +16,8 @@
 #include "libccmd/net/message_consumer.h"
 #include "libccmd/net/server.h"
 #include "libccmd/view/view_server.h"
+#include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 
@@ -27,6 +29,9 @@ struct ServerRuntimeOptions {
   double snapshot_period_s = 30.0; // dense map snapshot (<= 0: only at the end)
   double memory_period_s = 30.0;   // memory by part in server_stats.json (it reads every map)
   std::optional<ViewServerOptions> view;  // set: serve the live map view (docs/view.md)
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 class ServerRuntime : public MessageConsumer {

@@ -42,8 +42,7 @@ StatusOr<TrackingOptions> ReadTrackingOptions(const ConfigFile& c, TrackingOptio
   CCMD_ASSIGN_OR_RETURN(r.decrement_ratio, c.GetDouble("RgbdSelection.decrementRatio", r.decrement_ratio));
   CCMD_ASSIGN_OR_RETURN(r.min_threshold, c.GetInt("RgbdSelection.minThreshold", r.min_threshold));
   CCMD_ASSIGN_OR_RETURN(r.required_covering, c.GetInt("RgbdSelection.requiredCovering", r.required_covering));
-  std::string why;
-  if (!o.Check(&why)) return InvalidArgument(c.path() + ": " + why);
+  CCMD_RETURN_IF_ERROR(o.Validate().WithContext(c.path()));
   return o;
 }
 

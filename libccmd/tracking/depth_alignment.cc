@@ -67,6 +67,29 @@ std::optional<std::pair<int, int>> DepthModel::Cell(const Eigen::Vector3d& p) co
   return std::make_pair(x, y);
 }
 
+Status DepthAlignmentOptions::Validate() const {
+  if (iterations < 1) return InvalidArgument("depth alignment iterations must be at least 1");
+  if (source_stride < 1) return InvalidArgument("depth alignment source stride must be at least 1");
+  if (!(max_distance > 0) || !std::isfinite(max_distance)) {
+    return InvalidArgument("depth alignment max distance must be positive");
+  }
+  if (!(min_normal_dot >= -1 && min_normal_dot <= 1)) {
+    return InvalidArgument("depth alignment min normal dot must be in [-1, 1]");
+  }
+  if (!(min_inlier_fraction >= 0 && min_inlier_fraction <= 1)) {
+    return InvalidArgument("depth alignment min inlier fraction must be in [0, 1]");
+  }
+  return Status::Ok();
+}
+
+void DepthAlignmentOptions::Describe(OptionsWriter* out) const {
+  out->Add("iterations", iterations);
+  out->Add("source_stride", source_stride);
+  out->Add("max_distance", max_distance);
+  out->Add("min_normal_dot", min_normal_dot);
+  out->Add("min_inlier_fraction", min_inlier_fraction);
+}
+
 std::optional<DepthAlignment> AlignDepth(const DepthModel& source, const DepthModel& target,
                                          const Pose& T_target_source, const DepthNoise& noise,
                                          const DepthAlignmentOptions& options) {

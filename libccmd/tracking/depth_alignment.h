@@ -51,6 +51,9 @@ struct DepthAlignmentOptions {
   double max_distance = 0.05;        // metres, first iterations; halved for the last ones
   double min_normal_dot = 0.8;       // cosine between matched normals
   double min_inlier_fraction = 0.3;  // of the source's valid cells
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct DepthAlignment {

@@ -2,17 +2,11 @@
 
 namespace ccmd {
 
-bool TrackingOptions::Check(std::string* why) const {
-  auto fail = [&](const char* reason) {
-    if (why) *why = reason;
-    return false;
-  };
-  if (!orb.Check(why)) return false;
+Status TrackingOptions::Validate() const {
+  auto fail = [](const char* reason) { return InvalidArgument(reason); };
+  CCMD_RETURN_IF_ERROR(orb.Validate());
   if (!(min_depth > 0 && max_depth > min_depth)) return fail("depth range must satisfy 0 < min < max");
-  if (const Status s = depth_noise.Validate(); !s.ok()) {
-    if (why) *why = s.message();
-    return false;
-  }
+  CCMD_RETURN_IF_ERROR(depth_noise.Validate());
   if (local_ba_window < 1 || local_ba_window > 100) return fail("local BA window must be in [1, 100]");
   if (local_ba_robust_iterations < 0 || local_ba_iterations < 0 || local_ba_robust_iterations + local_ba_iterations < 1 ||
       local_ba_robust_iterations > 100 || local_ba_iterations > 100) {
@@ -28,14 +22,38 @@ bool TrackingOptions::Check(std::string* why) const {
   if (max_frames_between_keyframes < 0) return fail("max frames between keyframes must be >= 0");
   if (max_new_points_per_keyframe < 0) return fail("max new points per keyframe must be >= 0 (0: all)");
   if (!(keyframe_tracked_ratio > 0 && keyframe_tracked_ratio < 1)) return fail("keyframe tracked ratio must be in (0, 1)");
-  return rgbd_selection.Check(why);
+  return rgbd_selection.Validate();
+}
+
+void TrackingOptions::Describe(OptionsWriter* out) const {
+  out->Nested("orb", orb);
+  out->Add("min_depth", min_depth);
+  out->Add("max_depth", max_depth);
+  out->Add("subpixel_keypoints", subpixel_keypoints);
+  out->Nested("depth_noise", depth_noise);
+  out->Add("max_frames_between_keyframes", max_frames_between_keyframes);
+  out->Add("keyframe_tracked_ratio", keyframe_tracked_ratio);
+  out->Add("local_ba_window", local_ba_window);
+  out->Add("local_ba_robust_iterations", local_ba_robust_iterations);
+  out->Add("local_ba_iterations", local_ba_iterations);
+  out->Add("local_ba_function_tolerance", local_ba_function_tolerance);
+  out->Add("cpu_budget", cpu_budget);
+  out->Add("depth_alignment_neighbours", depth_alignment_neighbours);
+  out->Add("depth_alignment_weight", depth_alignment_weight);
+  out->Add("max_keyframes", max_keyframes);
+  out->Add("cull_redundant_keyframes", cull_redundant_keyframes);
+  out->Add("synchronous_mapping", synchronous_mapping);
+  out->Add("max_new_points_per_keyframe", max_new_points_per_keyframe);
+  out->Add("send_unlinked_keypoints", send_unlinked_keypoints);
+  out->Add("pose_update_min_translation", pose_update_min_translation);
+  out->Add("pose_update_min_rotation", pose_update_min_rotation);
+  out->Nested("rgbd_selection", rgbd_selection);
 }
 
 StatusOr<std::unique_ptr<Frontend>> Frontend::Create(const PinholeCamera& camera,
                                                      const TrackingOptions& options, KeyframeSink* sink) {
-  std::string why;
-  if (!camera.IsValid(&why)) return InvalidArgument("camera: " + why);
-  if (!options.Check(&why)) return InvalidArgument("tracking options: " + why);
+  CCMD_RETURN_IF_ERROR(camera.Validate().WithContext("camera"));
+  CCMD_RETURN_IF_ERROR(options.Validate().WithContext("tracking options"));
   return std::unique_ptr<Frontend>(new Frontend(camera, options, sink));
 }
 

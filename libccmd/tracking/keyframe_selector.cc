@@ -5,16 +5,22 @@
 
 namespace ccmd {
 
-bool RgbdSelectionOptions::Check(std::string* why) const {
-  auto fail = [&](const char* reason) {
-    if (why) *why = reason;
-    return false;
-  };
+Status RgbdSelectionOptions::Validate() const {
+  auto fail = [](const char* reason) { return InvalidArgument(reason); };
   if (!(threshold_ratio >= 0 && threshold_ratio <= 1)) return fail("RGB-D threshold ratio must be in [0, 1]");
   if (threshold_min_points < 0 || min_threshold < 0) return fail("RGB-D thresholds must be >= 0");
   if (!(decrement_ratio >= 0 && decrement_ratio <= 1)) return fail("RGB-D decrement ratio must be in [0, 1]");
   if (required_covering < 1) return fail("RGB-D required covering keyframes must be >= 1");
-  return true;
+  return Status::Ok();
+}
+
+void RgbdSelectionOptions::Describe(OptionsWriter* out) const {
+  out->Add("enabled", enabled);
+  out->Add("threshold_ratio", threshold_ratio);
+  out->Add("threshold_min_points", threshold_min_points);
+  out->Add("decrement_ratio", decrement_ratio);
+  out->Add("min_threshold", min_threshold);
+  out->Add("required_covering", required_covering);
 }
 
 RgbdDecision RgbdSelector::Decide(KeyframeId keyframe, int tracked_points,

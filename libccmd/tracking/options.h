@@ -4,6 +4,8 @@
 
 #include "libccmd/features/orb_extractor.h"
 #include "libccmd/optim/reprojection.h"
+#include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 
@@ -24,7 +26,9 @@ struct RgbdSelectionOptions {
   double decrement_ratio = 0.1;  // of the keyframe's tracked points, per covering keyframe
   int min_threshold = 30;
   int required_covering = 1;
-  bool Check(std::string* why) const;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct TrackingOptions {
@@ -73,7 +77,8 @@ struct TrackingOptions {
   double pose_update_min_rotation = 0.0002;     // radians
   RgbdSelectionOptions rgbd_selection;
 
-  bool Check(std::string* why) const;
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 }  // namespace ccmd

@@ -63,6 +63,11 @@ Status ViewCloudOptions::Validate() const {
   return Status::Ok();
 }
 
+void ViewCloudOptions::Describe(OptionsWriter* out) const {
+  out->Add("voxel_m", voxel_m);
+  out->Add("max_points", max_points);
+}
+
 void AppendViewCloud(const GlobalKeyframeId& id, const CameraCloud* cloud,
                      const ViewCloudOptions& options, std::string* out) {
   const std::vector<std::uint32_t> order =

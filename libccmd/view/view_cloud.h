@@ -21,6 +21,7 @@
 
 #include "libccmd/dense/backprojection.h"
 #include "libccmd/util/ids.h"
+#include "libccmd/util/options_writer.h"
 #include "libccmd/util/status.h"
 
 namespace ccmd {
@@ -32,6 +33,7 @@ struct ViewCloudOptions {
   std::size_t max_points = 30000;
 
   Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 inline constexpr std::size_t kViewCloudHeaderBytes = 12;

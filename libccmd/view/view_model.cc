@@ -14,6 +14,11 @@ Status ViewModelOptions::Validate() const {
   return Status::Ok();
 }
 
+void ViewModelOptions::Describe(OptionsWriter* out) const {
+  out->Add("max_events", max_events);
+  out->Add("max_event_bytes", max_event_bytes);
+}
+
 ViewModel::ViewModel(const ViewModelOptions& options) : options_(options) {}
 
 Json ViewModel::PoseJson(const Pose& T) {

@@ -32,6 +32,7 @@
 #include "libccmd/backend/backend.h"
 #include "libccmd/backend/map_observer.h"
 #include "libccmd/util/json.h"
+#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -40,6 +41,7 @@ struct ViewModelOptions {
   std::size_t max_event_bytes = 32u << 20;  // and their text, at most
 
   Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 struct ViewKeyframe {

@@ -112,6 +112,19 @@ Status ViewServerOptions::Validate() const {
   return cloud.Validate();
 }
 
+void ViewServerOptions::Describe(OptionsWriter* out) const {
+  out->Add("listen", listen);
+  out->Add("token", token.empty() ? "none" : "set");
+  out->Add("web_dir", web_dir);
+  out->Add("max_event_streams", max_event_streams);
+  out->Add("extra_workers", extra_workers);
+  out->Add("stats_period_s", stats_period_s);
+  out->Add("keepalive_s", keepalive_s);
+  out->Add("max_clouds_per_request", max_clouds_per_request);
+  out->Add("max_inline_clouds", max_inline_clouds);
+  out->Nested("cloud", cloud);
+}
+
 Json ViewStats::ToJson() const {
   Json j;
   j["maps"] = maps.size();

@@ -33,6 +33,7 @@
 
 #include "libccmd/dense/dense_map.h"
 #include "libccmd/util/json.h"
+#include "libccmd/util/options_writer.h"
 #include "libccmd/util/status.h"
 #include "libccmd/view/view_cloud.h"
 #include "libccmd/view/view_model.h"
@@ -59,6 +60,7 @@ struct ViewServerOptions {
   ViewCloudOptions cloud;
 
   Status Validate() const;
+  void Describe(OptionsWriter* out) const;
 };
 
 // What the page's panel shows; the program that runs the view fills it from its back-end and

@@ -90,8 +90,8 @@ TEST(VocabularyBuilderTest, RejectsBadInput) {
   EXPECT_EQ(builder.keyframes_seen(), 0);
   VocabularyBuilderOptions bad;
   bad.growth = 1.0;
-  EXPECT_FALSE(bad.Check().empty());
-  EXPECT_TRUE(VocabularyBuilderOptions().Check().empty());
+  EXPECT_FALSE(bad.Validate().ok());
+  EXPECT_TRUE(VocabularyBuilderOptions().Validate().ok());
 }
 
 }  // namespace

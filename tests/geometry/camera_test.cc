@@ -38,13 +38,11 @@ TEST(CameraTest, HalvingKeepsPixelCentresConsistent) {
 
 TEST(CameraTest, ValidityChecksExplainTheProblem) {
   PinholeCamera c;
-  std::string why;
-  EXPECT_TRUE(c.IsValid(&why));
+  EXPECT_TRUE(c.Validate().ok());
   c.fy = -480;  // ICL-NUIM's TUM release: allowed
-  EXPECT_TRUE(c.IsValid(&why));
+  EXPECT_TRUE(c.Validate().ok());
   c.fx = 0;
-  EXPECT_FALSE(c.IsValid(&why));
-  EXPECT_NE(why.find("focal"), std::string::npos);
+  EXPECT_NE(c.Validate().message().find("focal"), std::string::npos);
 }
 
 TEST(CameraTest, DistortionFollowsTheBrownConradyFormula) {
@@ -83,7 +81,7 @@ TEST(CameraTest, UndistortInvertsDistortOverTheImage) {
                             n.fy = -n.fy;  // the model works on signed normalised coordinates
                             return n;
                           }()}) {
-    ASSERT_TRUE(c.IsUsable());
+    ASSERT_TRUE(c.ValidateInvertible().ok());
     double worst = 0;
     for (int v = 0; v < c.height; v += 7) {
       for (int u = 0; u < c.width; u += 7) {
@@ -131,28 +129,27 @@ TEST(CameraTest, PixelRaysAreTheUndistortedRays) {
 TEST(CameraTest, UnusableValuesAreRefusedWithAReason) {
   const double nan = std::numeric_limits<double>::quiet_NaN();
   const double inf = std::numeric_limits<double>::infinity();
-  std::string why;
   PinholeCamera c = testing::TumFr1Camera();
-  EXPECT_TRUE(c.IsUsable(&why)) << why;
+  EXPECT_TRUE(c.ValidateInvertible().ok()) << c.ValidateInvertible().message();
   c.distortion[1] = nan;
-  EXPECT_FALSE(c.IsValid(&why));
-  EXPECT_NE(why.find("distortion"), std::string::npos);
+  EXPECT_NE(c.Validate().message().find("distortion"), std::string::npos);
   c = testing::TumFr1Camera();
   c.cx = inf;
-  EXPECT_FALSE(c.IsValid(&why));
+  EXPECT_FALSE(c.Validate().ok());
   c = testing::TumFr1Camera();
   c.fy = nan;
-  EXPECT_FALSE(c.IsValid(&why));
+  EXPECT_FALSE(c.Validate().ok());
   c = testing::TumFr1Camera();
   c.depth_map_factor = 0;
-  EXPECT_FALSE(c.IsValid(&why));
+  EXPECT_FALSE(c.Validate().ok());
   // x (1 - r^2) turns back at r = 1/sqrt(3) = 0.58, inside a 640-wide image with fx 300.
   c = PinholeCamera();
   c.fx = c.fy = 300;
   c.distortion = {-1.0, 0, 0, 0, 0};
-  EXPECT_TRUE(c.IsValid(&why));
-  EXPECT_FALSE(c.IsUsable(&why));
-  EXPECT_NE(why.find("folds"), std::string::npos) << why;
+  EXPECT_TRUE(c.Validate().ok());
+  const Status invertible = c.ValidateInvertible();
+  EXPECT_FALSE(invertible.ok());
+  EXPECT_NE(invertible.message().find("folds"), std::string::npos) << invertible.message();
 }
 
 TEST(CameraTest, ResizingKeepsTheDistortionOfNormalisedCoordinates) {

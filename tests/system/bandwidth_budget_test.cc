@@ -84,7 +84,7 @@ TEST(BandwidthBudgetTest, LadderRunsFromRichToGeometryOnly) {
   EXPECT_TRUE(ladder.front().request.every_keyframe);
   EXPECT_FALSE(ladder.back().request.allow);
   // Every rung is codable.
-  for (const RgbdLevel& l : ladder) EXPECT_EQ(l.encode.Check(), "") << l.name;
+  for (const RgbdLevel& l : ladder) EXPECT_TRUE(l.encode.Validate().ok()) << l.name;
 }
 
 TEST(BandwidthBudgetTest, AverageStaysWithinTenPercentOfTheBudget) {
