@@ -429,6 +429,7 @@ TEST(TrustStormTest, RefusedConnectionsDoNotFloodTheLog) {
   std::ifstream in(log);
   int lines = 0, refusal_lines = 0;
   for (std::string line; std::getline(in, line);) {
+    if (line.find("options_writer.h") != std::string::npos) continue;  // the start-up record
     ++lines;
     refusal_lines += line.find("refused") != std::string::npos;
   }
