@@ -12,8 +12,8 @@
 
 #include "apps/app_common.h"
 #include "libccmd/io/config.h"
-#include "libccmd/io/tum_recorder.h"
 #include "libccmd/io/split.h"
+#include "libccmd/io/tum_recorder.h"
 #include "libccmd/net/agent_link.h"
 #include "libccmd/net/psk.h"
 #include "libccmd/net/session_camera.h"
@@ -86,7 +86,8 @@ ccmd::Json StatsJson(const ccmd::FrontendStats& s, double wall_seconds,
     e["threshold_scale"] = d.request.threshold_scale;
     e["allowed"] = d.request.allow;
     ccmd::Json considered = ccmd::Json::MakeArray();
-    for (const auto& [id, w] : d.considered) considered.Push(ccmd::Json(ccmd::Json::Array{id.value(), w}));
+    for (const auto& [id, w] : d.considered)
+      considered.Push(ccmd::Json(ccmd::Json::Array{id.value(), w}));
     e["considered"] = considered;
     list.Push(e);
   }
@@ -117,7 +118,8 @@ ccmd::Status FlushWhileProgressing(ccmd::AgentLink* link, double stall_s) {
 
 int main(int argc, char** argv) {
   CLI::App app{
-      "CCMD agent: ORB RGB-D visual odometry on a robot. Sends compact keyframes to a ccmd_server,\n"
+      "CCMD agent: ORB RGB-D visual odometry on a robot. Sends compact keyframes to a "
+      "ccmd_server,\n"
       "or runs --offline and writes its trajectory (TUM format).\n"
       "Exit status: 0 when the server acknowledged every message, 3 when messages were refused\n"
       "or never acknowledged (the counts are printed and in --stats), 1 on any other error."};
@@ -137,59 +139,73 @@ int main(int argc, char** argv) {
   app.add_option("--segment", segment_spec, "Replay only segment i of k (split replay), e.g. 2/3");
   app.add_flag("--offline", offline, "Run without a server");
   app.add_option("--server", server, "Server address HOST:PORT");
-  app.add_option("--name", name, "This agent's name at the server (default: host name and process id)");
-  app.add_option("--psk-file", psk_file, "Pre-shared key file (else $CCMD_PSK; none: loopback servers only)");
-  app.add_option("--spill-dir", spill_dir,
-                 "Folder for messages not yet acknowledged beyond the memory limit, and for this agent's "
-                 "identity file: keep it to reconnect under the same --name after a restart "
-                 "(default: a folder in /tmp)");
+  app.add_option("--name", name,
+                 "This agent's name at the server (default: host name and process id)");
+  app.add_option("--psk-file", psk_file,
+                 "Pre-shared key file (else $CCMD_PSK; none: loopback servers only)");
+  app.add_option(
+      "--spill-dir", spill_dir,
+      "Folder for messages not yet acknowledged beyond the memory limit, and for this agent's "
+      "identity file: keep it to reconnect under the same --name after a restart "
+      "(default: a folder in /tmp)");
   app.add_option("--flush-timeout", flush_timeout,
-                 "At the end, wait for the server's acknowledgements as long as they keep coming; give up after "
+                 "At the end, wait for the server's acknowledgements as long as they keep coming; "
+                 "give up after "
                  "this many seconds without one")
       ->capture_default_str();
-  app.add_option("--rgbd-downsample", rgbd.downsample, "RGB-D sampling: 1, 2 or 4 (r = 1, 0.5, 0.25)")
+  app.add_option("--rgbd-downsample", rgbd.downsample,
+                 "RGB-D sampling: 1, 2 or 4 (r = 1, 0.5, 0.25)")
       ->check(CLI::IsMember({1, 2, 4}))
       ->capture_default_str();
-  app.add_option("--jpeg-quality", rgbd.jpeg_quality, "Colour JPEG quality")->check(CLI::Range(1, 100))
+  app.add_option("--jpeg-quality", rgbd.jpeg_quality, "Colour JPEG quality")
+      ->check(CLI::Range(1, 100))
       ->capture_default_str();
   app.add_option("--depth-bound", rgbd.bound_e4,
-                 "Depth error bound in 1/10000 of depth (ccmd-bounded); default: the config's Link.depthBound, else 50")
+                 "Depth error bound in 1/10000 of depth (ccmd-bounded); default: the config's "
+                 "Link.depthBound, else 50")
       ->check(CLI::Range(1, 1000))
       ->capture_default_str();
   app.add_flag("--rgbd-every-keyframe", rgbd_every_keyframe,
                "Send RGB-D data with every keyframe (covisibility selection off; for comparisons)");
-  app.add_option("--rgbd-threshold-scale", threshold_scale,
-                 "Multiply the RGB-D selection's thresholds (S_min): below 1 fewer keyframes send RGB-D")
+  app.add_option(
+         "--rgbd-threshold-scale", threshold_scale,
+         "Multiply the RGB-D selection's thresholds (S_min): below 1 fewer keyframes send RGB-D")
       ->check(CLI::Range(0.05, 20.0))
       ->capture_default_str();
-  app.add_option("--bandwidth-budget", budget_kBps,
-                 "Keep to KB_PER_S kilobytes (1000 bytes) per second: keyframe geometry always goes, the RGB-D "
-                 "selection and coding adapt to the budget and to what the link acknowledges, and the "
-                 "connection is paced at the budget (0: no budget)")
+  app.add_option(
+         "--bandwidth-budget", budget_kBps,
+         "Keep to KB_PER_S kilobytes (1000 bytes) per second: keyframe geometry always goes, the "
+         "RGB-D "
+         "selection and coding adapt to the budget and to what the link acknowledges, and the "
+         "connection is paced at the budget (0: no budget)")
       ->check(CLI::NonNegativeNumber);
-  app.add_option("--max-queue", max_queue_s,
-                 "With a budget: seconds of unacknowledged data beyond which keyframes go without RGB-D")
+  app.add_option(
+         "--max-queue", max_queue_s,
+         "With a budget: seconds of unacknowledged data beyond which keyframes go without RGB-D")
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
   app.add_option("--progress", progress_path, "Rewrite a small progress JSON about once a second");
   app.add_option("--trajectory", trajectory_path, "Write every tracked frame's pose (TUM format)");
-  app.add_option("--keyframe-trajectory", keyframe_trajectory_path, "Write keyframe poses (TUM format)");
+  app.add_option("--keyframe-trajectory", keyframe_trajectory_path,
+                 "Write keyframe poses (TUM format)");
   app.add_option("--stats", stats_path, "Write run statistics as JSON");
   app.add_option("--rate", rate, "Replay pace: realtime (the dataset's timestamps) or max")
       ->check(CLI::IsMember({"realtime", "max"}))
       ->capture_default_str();
   app.add_option("--max-frames", max_frames, "Stop after this many frames (0: all)");
-  app.add_option("--record", record_dir,
-                 "Also write the frames to DIR in the TUM layout (rgb/, depth/, rgb.txt, depth.txt, "
-                 "camera.yaml), to replay and evaluate the run later");
+  app.add_option(
+      "--record", record_dir,
+      "Also write the frames to DIR in the TUM layout (rgb/, depth/, rgb.txt, depth.txt, "
+      "camera.yaml), to replay and evaluate the run later");
   app.add_option("--record-png-compression", record_compression, "PNG level for --record (0-9)")
       ->check(CLI::Range(0, 9))
       ->capture_default_str();
   app.add_flag("--synchronous", synchronous,
                "Run local mapping in the tracking thread (deterministic; slower)");
-  app.add_option("--cpu-budget", cpu_budget,
-                 "CPU cores the agent may use on average (0: no limit; overrides Tracking.cpuBudget). "
-                 "Local mapping shrinks its bundle adjustment when over; a replay is paced to it")
+  app.add_option(
+         "--cpu-budget", cpu_budget,
+         "CPU cores the agent may use on average (0: no limit; overrides Tracking.cpuBudget). "
+         "Local mapping shrinks its bundle adjustment when over; a replay is paced to it")
       ->check(CLI::Range(0.0, 256.0))
       ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
@@ -229,7 +245,8 @@ int main(int argc, char** argv) {
     if (app.count("--depth-bound") == 0) {
       auto bound = config->GetInt("Link.depthBound", rgbd.bound_e4);
       if (!bound.ok()) return Fail(bound.status().ToString());
-      if (*bound < 1 || *bound > 1000) return Fail(config_path + ": Link.depthBound must be in 1..1000");
+      if (*bound < 1 || *bound > 1000)
+        return Fail(config_path + ": Link.depthBound must be in 1..1000");
       rgbd.bound_e4 = *bound;
     }
   }
@@ -239,7 +256,8 @@ int main(int argc, char** argv) {
   if (threshold_scale != 1.0) {
     ccmd::RgbdSelectionOptions& s = tracking.rgbd_selection;
     s.threshold_ratio = std::min(1.0, s.threshold_ratio * threshold_scale);
-    s.threshold_min_points = static_cast<int>(std::lround(s.threshold_min_points * threshold_scale));
+    s.threshold_min_points =
+        static_cast<int>(std::lround(s.threshold_min_points * threshold_scale));
     s.min_threshold = static_cast<int>(std::lround(s.min_threshold * threshold_scale));
   }
   if (budget_kBps > 0 && offline) return Fail("--bandwidth-budget needs a server (not --offline)");
@@ -266,7 +284,8 @@ int main(int argc, char** argv) {
     auto psk = ccmd::ResolvePsk(psk_file);
     if (!psk.ok()) return Fail(psk.status().ToString());
     link_options.psk = *psk;
-    link_options.spill_dir = spill_dir.empty() ? "/tmp/ccmd_agent_spill_" + link_options.name : spill_dir;
+    link_options.spill_dir =
+        spill_dir.empty() ? "/tmp/ccmd_agent_spill_" + link_options.name : spill_dir;
     link_options.max_send_bytes_per_s = budget_kBps * 1e3;
     std::unique_ptr<ccmd::BandwidthBudget> budget;
     if (budget_kBps > 0) {
@@ -277,7 +296,8 @@ int main(int argc, char** argv) {
       ccmd::LogOptions("budget", budget_options);
       int default_level = 0;
       auto ladder = ccmd::DefaultBudgetLadder(rgbd, &default_level);
-      budget = std::make_unique<ccmd::BandwidthBudget>(budget_options, std::move(ladder), default_level);
+      budget =
+          std::make_unique<ccmd::BandwidthBudget>(budget_options, std::move(ladder), default_level);
     }
     auto created = ccmd::AgentLink::Create(link_options);
     if (!created.ok()) return Fail(created.status().ToString());
@@ -383,14 +403,16 @@ int main(int argc, char** argv) {
   const double seconds = wall.ElapsedSeconds();
   const double cores = (ccmd::ProcessCpuTimeSeconds() - cpu_start) / std::max(seconds, 1e-9);
   const ccmd::FrontendStats stats = (*frontend)->stats();
-  std::printf("%d frames in %.1f s (%.1f fps, %.2f CPU cores), %d tracked, %d lost, %d keyframes (%d in map), "
-              "%zu map points\n",
-              stats.frames, seconds, stats.frames / std::max(seconds, 1e-9), cores, stats.tracked_frames,
-              stats.lost_frames, stats.keyframes, stats.map_keyframes, stats.map_points);
+  std::printf(
+      "%d frames in %.1f s (%.1f fps, %.2f CPU cores), %d tracked, %d lost, %d keyframes (%d in "
+      "map), "
+      "%zu map points\n",
+      stats.frames, seconds, stats.frames / std::max(seconds, 1e-9), cores, stats.tracked_frames,
+      stats.lost_frames, stats.keyframes, stats.map_keyframes, stats.map_points);
   const ccmd::MappingStats& m = stats.mapping;
   if (m.local_ba_reduced + m.local_ba_skipped_budget > 0) {
-    std::printf("CPU budget %.2f cores: %d local BAs reduced and %d skipped to stay within it\n", tracking.cpu_budget,
-                m.local_ba_reduced, m.local_ba_skipped_budget);
+    std::printf("CPU budget %.2f cores: %d local BAs reduced and %d skipped to stay within it\n",
+                tracking.cpu_budget, m.local_ba_reduced, m.local_ba_skipped_budget);
   }
   if (!trajectory_path.empty()) {
     const ccmd::Status s = ccmd::WriteTumTrajectory((*frontend)->FrameTrajectory(), trajectory_path,
@@ -398,8 +420,8 @@ int main(int argc, char** argv) {
     if (!s.ok()) return Fail(s.ToString());
   }
   if (!keyframe_trajectory_path.empty()) {
-    const ccmd::Status s = ccmd::WriteTumTrajectory((*frontend)->KeyframeTrajectory(),
-                                                    keyframe_trajectory_path, "ccmd_agent keyframes");
+    const ccmd::Status s = ccmd::WriteTumTrajectory(
+        (*frontend)->KeyframeTrajectory(), keyframe_trajectory_path, "ccmd_agent keyframes");
     if (!s.ok()) return Fail(s.ToString());
   }
   if (!stats_path.empty()) {

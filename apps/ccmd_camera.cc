@@ -28,8 +28,8 @@
 #ifdef CCMD_HAVE_V4L2
 #include "libccmd/sensors/v4l2_device.h"
 #endif
-#include "libccmd/util/timer.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/timer.h"
 
 namespace {
 
@@ -161,7 +161,8 @@ class StopWatcher {
 int CheckRegistration(const std::string& spec, const std::string& config, int frames) {
   auto calibration = ccmd::LoadDepthToColorCalibration(config);
   if (!calibration.ok() || !calibration->has_value()) {
-    std::fprintf(stderr, "ccmd_camera: --check-registration needs a --config with a Depth block (%s)\n",
+    std::fprintf(stderr,
+                 "ccmd_camera: --check-registration needs a --config with a Depth block (%s)\n",
                  calibration.ok() ? "none found" : calibration.status().ToString().c_str());
     return 2;
   }
@@ -190,8 +191,9 @@ int CheckRegistration(const std::string& spec, const std::string& config, int fr
   const ccmd::DepthToColorCalibration& c = **calibration;
   const ccmd::PinholeCamera& color = source->camera();
   const Eigen::Vector3d t = c.T_color_depth.translation();
-  std::printf("registration check on %zu frames: mean colour gradient at depth edges (higher is better)\n",
-              samples.size());
+  std::printf(
+      "registration check on %zu frames: mean colour gradient at depth edges (higher is better)\n",
+      samples.size());
   double best_score = -1, best_dx = 0;
   for (int dx_mm = -50; dx_mm <= 50; dx_mm += 10) {
     ccmd::Pose T = c.T_color_depth;

@@ -174,7 +174,8 @@ struct StoreRow {
   int width = 0, height = 0;
   ccmd::DenseMapStats stats;
   std::size_t added_points = 0;  // back-projected, before the store's filtering
-  std::vector<double> update_ms, update_cpu_ms, update_cold_ms, update_cold_cpu_ms, refilter_ms, add_ms, add_cpu_ms;
+  std::vector<double> update_ms, update_cpu_ms, update_cold_ms, update_cold_cpu_ms, refilter_ms,
+      add_ms, add_cpu_ms;
   double load = 0;
   double rebuild_ms = 0;
   std::size_t rebuild_points = 0;
@@ -325,8 +326,10 @@ int RunStoreBench(const std::string& json_path, bool quick) {
   if (!s.ok()) return Fail(s);
 
   std::printf(
-      "| keyframe | points stored | points added | kept | keyframes (compacted) | update ms (cpu) | "
-      "update cold ms (cpu) | rebuild ms | rebuild / update | refilter ms | add keyframe ms (cpu) | extract ms | "
+      "| keyframe | points stored | points added | kept | keyframes (compacted) | update ms (cpu) "
+      "| "
+      "update cold ms (cpu) | rebuild ms | rebuild / update | refilter ms | add keyframe ms (cpu) "
+      "| extract ms | "
       "export ms | bytes/stored point | load |\n"
       "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
   ccmd::Json json = ccmd::Json::MakeArray();
@@ -334,13 +337,13 @@ int RunStoreBench(const std::string& json_path, bool quick) {
     const double update = Median(r.update_ms);
     const double bytes_per_point = static_cast<double>(r.stats.memory_bytes) / r.stats.points;
     std::printf(
-        "| %dx%d | %zu | %zu | %zu | %zu (%zu) | %.3f (%.3f) | %.3f (%.3f) | %.1f | %.0f | %.2f | %.2f (%.2f) | "
+        "| %dx%d | %zu | %zu | %zu | %zu (%zu) | %.3f (%.3f) | %.3f (%.3f) | %.1f | %.0f | %.2f | "
+        "%.2f (%.2f) | "
         "%.1f | %.1f | %.1f | %.1f |\n",
         r.width, r.height, r.stats.points, r.added_points, r.stats.kept_points, r.stats.keyframes,
-        r.stats.compact_keyframes, update,
-        Median(r.update_cpu_ms), Median(r.update_cold_ms), Median(r.update_cold_cpu_ms), r.rebuild_ms, r.rebuild_ms / update,
-        Median(r.refilter_ms), Median(r.add_ms), Median(r.add_cpu_ms), r.extract_ms, r.export_ms,
-        bytes_per_point, r.load);
+        r.stats.compact_keyframes, update, Median(r.update_cpu_ms), Median(r.update_cold_ms),
+        Median(r.update_cold_cpu_ms), r.rebuild_ms, r.rebuild_ms / update, Median(r.refilter_ms),
+        Median(r.add_ms), Median(r.add_cpu_ms), r.extract_ms, r.export_ms, bytes_per_point, r.load);
     ccmd::Json j;
     j["keyframe_width"] = r.width;
     j["keyframe_height"] = r.height;
@@ -425,8 +428,8 @@ struct ReconConfig {
   std::string downsample = "median";
   std::string out_ply;
   std::string json_path;
-  int passes = 0;         // > 0: revisits instead of the voxel table
-  double drift_deg = 0;   // with passes: also a loop that drifted this much, then corrected
+  int passes = 0;        // > 0: revisits instead of the voxel table
+  double drift_deg = 0;  // with passes: also a loop that drifted this much, then corrected
 };
 
 int RunRecon(const ReconConfig& config) {
@@ -467,8 +470,8 @@ int RunRecon(const ReconConfig& config) {
   }
 
   if (config.passes > 0) {
-    auto revisits = ccmd::dense_bench::RunRevisits(keyframes, *surface, config.voxels.front(), config.passes,
-                                                   config.drift_deg);
+    auto revisits = ccmd::dense_bench::RunRevisits(keyframes, *surface, config.voxels.front(),
+                                                   config.passes, config.drift_deg);
     if (!revisits.ok()) return Fail(revisits.status());
     if (!config.json_path.empty()) {
       const ccmd::Status s = ccmd::WriteJsonFile(*revisits, config.json_path);
@@ -562,11 +565,14 @@ int main(int argc, char** argv) {
       ->check(CLI::IsMember({"median", "nearest", "topleft"}))
       ->capture_default_str();
   recon->add_option("--out", config.out_ply, "Write the (last) dense map as PLY");
-  recon->add_option("--passes", config.passes,
-                    "Revisits: the keyframes added this many times, compacted and not (first voxel size)")
+  recon
+      ->add_option(
+          "--passes", config.passes,
+          "Revisits: the keyframes added this many times, compacted and not (first voxel size)")
       ->check(CLI::Range(1, 100));
-  recon->add_option("--drift-deg", config.drift_deg,
-                    "With --passes: also a loop drifted by this many degrees, then corrected")
+  recon
+      ->add_option("--drift-deg", config.drift_deg,
+                   "With --passes: also a loop drifted by this many degrees, then corrected")
       ->check(CLI::Range(0.0, 90.0));
   recon->add_option("--json", config.json_path, "Write the rows as a JSON list");
   CLI11_PARSE(app, argc, argv);

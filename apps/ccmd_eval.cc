@@ -70,8 +70,8 @@ int RunAte(const std::string& gt_path, const std::string& est_path, const std::s
     if (!s.ok()) return Fail(s);
   }
   if (!aligned_out.empty()) {
-    const ccmd::Status s = ccmd::WriteTumTrajectory(
-        ccmd::TransformTrajectory(*est, ate->alignment), aligned_out, "aligned to " + gt_path);
+    const ccmd::Status s = ccmd::WriteTumTrajectory(ccmd::TransformTrajectory(*est, ate->alignment),
+                                                    aligned_out, "aligned to " + gt_path);
     if (!s.ok()) return Fail(s);
   }
   return 0;
@@ -126,7 +126,8 @@ int RunRecon(const std::string& ref_path, const std::string& rec_path, const std
     auto ate = ccmd::ComputeAte(*gt, *est);
     if (!ate.ok()) return Fail(ate.status());
     for (auto& p : rec->points) p = (ate->alignment * p.cast<double>()).cast<float>();
-    std::printf("aligned the reconstruction with the trajectory (ATE rmse %.4f m)\n", ate->error.rmse);
+    std::printf("aligned the reconstruction with the trajectory (ATE rmse %.4f m)\n",
+                ate->error.rmse);
   }
   ccmd::ReconstructionOptions options;
   options.point_to_plane = !point_to_point;
@@ -134,8 +135,9 @@ int RunRecon(const std::string& ref_path, const std::string& rec_path, const std
   ccmd::LogOptions("reconstruction", options);
   auto error = ccmd::ComputeReconstructionError(*ref, *rec, options);
   if (!error.ok()) return Fail(error.status());
-  std::printf("reconstruction %zu points vs reference %zu points (%s)\n", error->reconstructed_points,
-              error->reference_points, error->point_to_plane ? "point-to-plane" : "point-to-point");
+  std::printf("reconstruction %zu points vs reference %zu points (%s)\n",
+              error->reconstructed_points, error->reference_points,
+              error->point_to_plane ? "point-to-plane" : "point-to-point");
   std::printf("  rec->ref mean %.4f m  median %.4f m  p95 %.4f m  max %.4f m\n", error->mean,
               error->median, error->p95, error->max);
   std::printf("  ref->rec mean %.4f m  max %.4f m  completeness %.1f%% within %.3f m\n",
@@ -182,8 +184,8 @@ int RunSplit(int frames, const std::string& dataset, const std::string& config, 
 
 // Agents named in a server's statistics ("agent_ids": {name: id}) get the report's colours,
 // in name order.
-int RunMapPictures(const std::string& map_path, const std::string& cameras_path, const std::string& stats_path,
-                   const std::string& out) {
+int RunMapPictures(const std::string& map_path, const std::string& cameras_path,
+                   const std::string& stats_path, const std::string& out) {
   auto map = ccmd::ReadPly(map_path);
   if (!map.ok()) return Fail(map.status());
   ccmd::Trajectory cameras;
@@ -219,11 +221,13 @@ int main(int argc, char** argv) {
   std::string gt, est, json, aligned_out;
   double max_diff = 0.01;
   bool scale = false;
-  auto* ate = app.add_subcommand("ate", "Absolute trajectory error after rigid alignment (evo_ape tum -a)");
+  auto* ate =
+      app.add_subcommand("ate", "Absolute trajectory error after rigid alignment (evo_ape tum -a)");
   ate->add_option("--gt", gt, "Ground-truth trajectory (TUM format)")->required();
   ate->add_option("--est", est, "Estimated trajectory (TUM format)")->required();
   ate->add_option("--json", json, "Write the figures as JSON");
-  ate->add_option("--max-diff", max_diff, "Timestamp matching tolerance (s)")->capture_default_str();
+  ate->add_option("--max-diff", max_diff, "Timestamp matching tolerance (s)")
+      ->capture_default_str();
   ate->add_flag("--correct-scale", scale, "Similarity alignment (monocular)");
   ate->add_option("--aligned-out", aligned_out, "Write the aligned estimate (TUM format)");
 
@@ -232,7 +236,8 @@ int main(int argc, char** argv) {
   rpe->add_option("--gt", gt, "Ground-truth trajectory")->required();
   rpe->add_option("--est", est, "Estimated trajectory")->required();
   rpe->add_option("--json", json, "Write the figures as JSON");
-  rpe->add_option("--max-diff", max_diff, "Timestamp matching tolerance (s)")->capture_default_str();
+  rpe->add_option("--max-diff", max_diff, "Timestamp matching tolerance (s)")
+      ->capture_default_str();
   rpe->add_option("--delta", delta, "Frames between compared poses")->capture_default_str();
 
   std::string ref, rec, gt_traj, est_traj;
@@ -245,14 +250,16 @@ int main(int argc, char** argv) {
   recon->add_option("--gt-traj", gt_traj, "Ground-truth trajectory, to align the map first");
   recon->add_option("--est-traj", est_traj, "Estimated trajectory the map was built with");
   recon->add_flag("--point-to-point", point_to_point, "Ignore reference normals");
-  recon->add_option("--completeness-threshold", completeness_threshold,
-                    "Distance (m) within which a reference point counts as covered")
+  recon
+      ->add_option("--completeness-threshold", completeness_threshold,
+                   "Distance (m) within which a reference point counts as covered")
       ->capture_default_str();
 
   int frames = 0, agents = 2;
   double overlap = 0.1;
   std::string dataset, config;
-  auto* split = app.add_subcommand("split", "Print split-replay segments: one 'first last' line each (0-based, inclusive)");
+  auto* split = app.add_subcommand(
+      "split", "Print split-replay segments: one 'first last' line each (0-based, inclusive)");
   split->add_option("--frames", frames, "Number of frames");
   split->add_option("--dataset", dataset, "Count the frames of this TUM-layout folder");
   split->add_option("--config", config, "Camera config for --dataset");
@@ -261,12 +268,15 @@ int main(int argc, char** argv) {
       ->capture_default_str();
 
   std::string map_path, cameras_path, stats_path, pictures_out;
-  auto* pictures = app.add_subcommand("map-pictures",
-                                      "Top and perspective pictures of a dense map: DIR/map_top.png, DIR/map_view.png");
+  auto* pictures = app.add_subcommand(
+      "map-pictures",
+      "Top and perspective pictures of a dense map: DIR/map_top.png, DIR/map_view.png");
   pictures->add_option("--map", map_path, "Dense map (map.ply of ccmd_server)")->required();
   pictures->add_option("--cameras", cameras_path,
-                       "Keyframe trajectory in the map's frame (trajectory_fused.txt): where up is, what is ceiling");
-  pictures->add_option("--server-stats", stats_path, "server_stats.json: agents' names for the agent colours");
+                       "Keyframe trajectory in the map's frame (trajectory_fused.txt): where up "
+                       "is, what is ceiling");
+  pictures->add_option("--server-stats", stats_path,
+                       "server_stats.json: agents' names for the agent colours");
   pictures->add_option("--out", pictures_out, "Folder for the pictures")->required();
 
   CLI11_PARSE(app, argc, argv);

@@ -10,8 +10,8 @@
 
 #include <CLI/CLI.hpp>
 #include <atomic>
-#include <csignal>
 #include <chrono>
+#include <csignal>
 #include <cstdio>
 #include <fstream>
 #include <thread>
@@ -26,10 +26,10 @@
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/json.h"
 #include "libccmd/util/logging.h"
+#include "libccmd/util/options_writer.h"
 #include "libccmd/util/string_util.h"
 #include "libccmd/util/subprocess.h"
 #include "libccmd/util/timer.h"
-#include "libccmd/util/options_writer.h"
 
 namespace {
 
@@ -58,7 +58,8 @@ std::string Tail(const std::string& path, int lines) {
   if (!text.ok()) return "";
   const std::vector<std::string> all = Split(*text, '\n');
   std::string out;
-  for (std::size_t i = all.size() > static_cast<std::size_t>(lines) ? all.size() - lines : 0; i < all.size(); ++i) {
+  for (std::size_t i = all.size() > static_cast<std::size_t>(lines) ? all.size() - lines : 0;
+       i < all.size(); ++i) {
     out += "    " + all[i] + "\n";
   }
   return out;
@@ -122,7 +123,8 @@ struct RunNetwork {
     n.server_host = n.link->address(NetnsLink::Side::kServer);
     std::ifstream urandom("/dev/urandom", std::ios::binary);
     char random[32];
-    if (!urandom.read(random, sizeof(random))) return IoError("cannot read /dev/urandom for the run's key");
+    if (!urandom.read(random, sizeof(random)))
+      return IoError("cannot read /dev/urandom for the run's key");
     std::string key;
     for (const char c : random) {
       key += "0123456789abcdef"[(static_cast<unsigned char>(c) >> 4) & 15];
@@ -142,8 +144,8 @@ struct RunNetwork {
 
 // One split replay into `out`: server and agents, progress, evaluation. `failures` counts the
 // processes that failed (the run is still evaluated, from what they left).
-StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::vector<std::string>& extra_agent_args,
-                       int* failures) {
+StatusOr<Json> RunOnce(const Setup& setup, const std::string& out,
+                       const std::vector<std::string>& extra_agent_args, int* failures) {
   for (const char* sub : {"agents", "logs", "plots"}) {
     const Status s = MakeDirectories(JoinPath(out, sub));
     if (!s.ok()) return s;
@@ -168,21 +170,28 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
   }
   // Server on a free port; it prints the port once it serves.
   const Stopwatch wall;
-  std::vector<std::string> server_argv = {JoinPath(setup.bin_dir, "ccmd_server"), "--listen", network.server_host + ":0",
-                                          "--journal", JoinPath(out, "journal"), "--out", out,
-                                          "--stats-interval", "1"};
+  std::vector<std::string> server_argv = {JoinPath(setup.bin_dir, "ccmd_server"),
+                                          "--listen",
+                                          network.server_host + ":0",
+                                          "--journal",
+                                          JoinPath(out, "journal"),
+                                          "--out",
+                                          out,
+                                          "--stats-interval",
+                                          "1"};
   server_argv.insert(server_argv.end(), setup.server_args.begin(), setup.server_args.end());
   for (const std::string& arg : ViewServerArgs(setup.view)) server_argv.push_back(arg);
   auto server_process = Subprocess::Start(network.In(NetnsLink::Side::kServer, server_argv), "",
                                           JoinPath(out, "logs/server.log"), /*pipe_stdout=*/true);
-  if (!server_process.ok()) return Unavailable("cannot start ccmd_server: " + server_process.status().ToString());
+  if (!server_process.ok())
+    return Unavailable("cannot start ccmd_server: " + server_process.status().ToString());
   Tracked server{"server", std::move(server_process).value(), 0};
   std::string port;
   while (port.empty()) {
     auto line = server.process.ReadLine(120);
     if (!line.ok()) {
-      return Unavailable("ccmd_server did not start (" + line.status().ToString() + "); its log:\n" +
-                         Tail(JoinPath(out, "logs/server.log"), 20));
+      return Unavailable("ccmd_server did not start (" + line.status().ToString() +
+                         "); its log:\n" + Tail(JoinPath(out, "logs/server.log"), 20));
     }
     ShowViewAddress(*line);
     const auto at = line->find("listening on ");
@@ -194,19 +203,33 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
   std::vector<Tracked> agent_processes;
   for (int i = 1; i <= setup.agents; ++i) {
     const std::string name = "agent" + std::to_string(i);
-    std::vector<std::string> a = {JoinPath(setup.bin_dir, "ccmd_agent"), "--source", "tum:" + setup.dataset, "--segment",
-                                  std::to_string(i) + "/" + std::to_string(setup.agents), "--server", address, "--name", name,
-                                  "--stats", JoinPath(out, "agents/" + name + "_stats.json"), "--trajectory",
-                                  JoinPath(out, "agents/" + name + "_frames.txt"), "--progress",
-                                  JoinPath(out, "agents/" + name + "_progress.json"), "--rate", setup.rate,
-                                  "--spill-dir", JoinPath(out, "agents/" + name + "_spill")};
+    std::vector<std::string> a = {JoinPath(setup.bin_dir, "ccmd_agent"),
+                                  "--source",
+                                  "tum:" + setup.dataset,
+                                  "--segment",
+                                  std::to_string(i) + "/" + std::to_string(setup.agents),
+                                  "--server",
+                                  address,
+                                  "--name",
+                                  name,
+                                  "--stats",
+                                  JoinPath(out, "agents/" + name + "_stats.json"),
+                                  "--trajectory",
+                                  JoinPath(out, "agents/" + name + "_frames.txt"),
+                                  "--progress",
+                                  JoinPath(out, "agents/" + name + "_progress.json"),
+                                  "--rate",
+                                  setup.rate,
+                                  "--spill-dir",
+                                  JoinPath(out, "agents/" + name + "_spill")};
     if (!setup.camera_config.empty()) {
       a.push_back("--config");
       a.push_back(setup.camera_config);
     }
     a.insert(a.end(), setup.agent_args.begin(), setup.agent_args.end());
     a.insert(a.end(), extra_agent_args.begin(), extra_agent_args.end());
-    auto p = Subprocess::Start(network.In(NetnsLink::Side::kAgents, a), JoinPath(out, "logs/" + name + ".out"),
+    auto p = Subprocess::Start(network.In(NetnsLink::Side::kAgents, a),
+                               JoinPath(out, "logs/" + name + ".out"),
                                JoinPath(out, "logs/" + name + ".log"));
     if (!p.ok()) return Unavailable("cannot start ccmd_agent: " + p.status().ToString());
     agent_processes.emplace_back(name, std::move(p).value(), wall.ElapsedSeconds());
@@ -219,7 +242,8 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
   auto sample_cpu = [&](Tracked* t) {
     const double now = wall.ElapsedSeconds();
     const double cpu = t->process.CpuSecondsSoFar();
-    if (now > t->last_time) t->cpu_percent.emplace_back(now, 100 * (cpu - t->last_cpu) / (now - t->last_time));
+    if (now > t->last_time)
+      t->cpu_percent.emplace_back(now, 100 * (cpu - t->last_cpu) / (now - t->last_time));
     t->last_cpu = cpu;
     t->last_time = now;
   };
@@ -232,8 +256,9 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
         a.ended = wall.ElapsedSeconds();
         if (a.result.exit_code != 0) {
           ++failed;
-          std::fprintf(stderr, "\n%s failed (exit %d, signal %d); its log ends:\n%s", a.name.c_str(), a.result.exit_code,
-                       a.result.signal, Tail(JoinPath(out, "logs/" + a.name + ".log"), 15).c_str());
+          std::fprintf(stderr, "\n%s failed (exit %d, signal %d); its log ends:\n%s",
+                       a.name.c_str(), a.result.exit_code, a.result.signal,
+                       Tail(JoinPath(out, "logs/" + a.name + ".log"), 15).c_str());
         }
       } else {
         ++running;
@@ -246,11 +271,14 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
       char part[160];
       if (p.ok()) {
         const Json* link = p->Get("link");
-        std::snprintf(part, sizeof(part), "%s %d/%d fr %d kf %.0f kB | ", a.name.c_str(),
-                      static_cast<int>(p->Get("frames") ? p->Get("frames")->number() : 0),
-                      static_cast<int>(p->Get("total_frames") ? p->Get("total_frames")->number() : 0),
-                      static_cast<int>(link && link->Get("keyframes_sent") ? link->Get("keyframes_sent")->number() : 0),
-                      link && link->Get("keyframe_bytes") ? link->Get("keyframe_bytes")->number() / 1e3 : 0.0);
+        std::snprintf(
+            part, sizeof(part), "%s %d/%d fr %d kf %.0f kB | ", a.name.c_str(),
+            static_cast<int>(p->Get("frames") ? p->Get("frames")->number() : 0),
+            static_cast<int>(p->Get("total_frames") ? p->Get("total_frames")->number() : 0),
+            static_cast<int>(
+                link && link->Get("keyframes_sent") ? link->Get("keyframes_sent")->number() : 0),
+            link && link->Get("keyframe_bytes") ? link->Get("keyframe_bytes")->number() / 1e3
+                                                : 0.0);
       } else {
         std::snprintf(part, sizeof(part), "%s starting | ", a.name.c_str());
       }
@@ -268,8 +296,8 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
       line += part;
       const Json* process = s->Get("process");
       if (process && process->Get("rss_mb") && b->Get("keyframes")) {
-        server_memory.push_back(
-            {wall.ElapsedSeconds(), b->Get("keyframes")->number(), process->Get("rss_mb")->number()});
+        server_memory.push_back({wall.ElapsedSeconds(), b->Get("keyframes")->number(),
+                                 process->Get("rss_mb")->number()});
       }
     }
     if (tty) {
@@ -280,7 +308,8 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
     std::fflush(stdout);
     if (running == 0) break;
     if (g_interrupted) {
-      std::fprintf(stderr, "\nccmd_replay: interrupted; stopping the processes and removing the link\n");
+      std::fprintf(stderr,
+                   "\nccmd_replay: interrupted; stopping the processes and removing the link\n");
       for (Tracked& a : agent_processes) a.process.Signal(SIGINT).IgnoreError();
       server.process.Signal(SIGINT).IgnoreError();
       return Cancelled("interrupted");
@@ -297,16 +326,19 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
   if (tty) std::printf("\n");
 
   // The server writes its results when told to stop.
-  std::printf("agents done after %.1f s; stopping the server (it finishes optimisation and writes the map)\n",
-              wall.ElapsedSeconds());
+  std::printf(
+      "agents done after %.1f s; stopping the server (it finishes optimisation and writes the "
+      "map)\n",
+      wall.ElapsedSeconds());
   std::fflush(stdout);
   server.process.Signal(SIGINT).IgnoreError();
   server.result = server.process.Wait();
   server.ended = wall.ElapsedSeconds();
   if (server.result.exit_code != 0) {
     ++failed;
-    std::fprintf(stderr, "ccmd_server failed (exit %d, signal %d); its log ends:\n%s", server.result.exit_code,
-                 server.result.signal, Tail(JoinPath(out, "logs/server.log"), 20).c_str());
+    std::fprintf(stderr, "ccmd_server failed (exit %d, signal %d); its log ends:\n%s",
+                 server.result.exit_code, server.result.signal,
+                 Tail(JoinPath(out, "logs/server.log"), 20).c_str());
   }
 
   ReplayRunInfo info;
@@ -321,7 +353,8 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
     info.link = setup.link_text;
     info.link_stats = network.link->ToJson();
     const Status closed = network.link->Close();
-    if (!closed.ok()) std::fprintf(stderr, "ccmd_replay: removing the link: %s\n", closed.ToString().c_str());
+    if (!closed.ok())
+      std::fprintf(stderr, "ccmd_replay: removing the link: %s\n", closed.ToString().c_str());
   }
   info.server_memory = std::move(server_memory);
   for (Tracked* t : [&] {
@@ -347,8 +380,8 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out, const std::ve
 
 // --budgets: the same replay once per budget, every agent under it, in DIR/budget/<B>kBps;
 // the main run is the unbudgeted reference.
-Status RunBudgetSweep(const Setup& setup, const std::string& out, const std::vector<double>& budgets,
-                      const Json& main_results, int* failed) {
+Status RunBudgetSweep(const Setup& setup, const std::string& out,
+                      const std::vector<double>& budgets, const Json& main_results, int* failed) {
   std::vector<BudgetRow> rows;
   BudgetRow reference;
   reference.run_dir = ".";
@@ -375,7 +408,8 @@ Status RunBudgetSweep(const Setup& setup, const std::string& out, const std::vec
 
 // --knob-costs: one run per RGB-D setting, each changed alone from the agents' defaults (the
 // main run), in DIR/knobs/; the measurement behind the order of the budget's ladder.
-Status RunKnobCosts(const Setup& setup, const std::string& out, const Json& main_results, int* failed) {
+Status RunKnobCosts(const Setup& setup, const std::string& out, const Json& main_results,
+                    int* failed) {
   const std::vector<std::pair<std::string, std::vector<std::string>>> variants = {
       {"JPEG quality 50", {"--jpeg-quality", "50"}},
       {"JPEG quality 35", {"--jpeg-quality", "35"}},
@@ -405,9 +439,11 @@ Status RunKnobCosts(const Setup& setup, const std::string& out, const Json& main
 
 int main(int argc, char** argv) {
   CLI::App app{
-      "Split-replay evaluation: a ccmd_server and K ccmd_agent processes over TCP on loopback (or a\n"
+      "Split-replay evaluation: a ccmd_server and K ccmd_agent processes over TCP on loopback (or "
+      "a\n"
       "shaped link with --link), each agent replaying one segment (10% overlap) of a TUM-layout\n"
-      "sequence; then ATE, reconstruction error, bandwidth, map latency and CPU in DIR/report.md and\n"
+      "sequence; then ATE, reconstruction error, bandwidth, map latency and CPU in DIR/report.md "
+      "and\n"
       "DIR/results.json."};
   std::string dataset, out, config, rate = "max", reference, bin_dir;
   int agents = 3;
@@ -416,40 +452,57 @@ int main(int argc, char** argv) {
   std::string link_text, budgets_text;
   std::vector<std::string> agent_args, server_args;
   ViewSetup setup_view;
-  app.add_option("--dataset", dataset, "TUM-layout folder (TUM RGB-D, ICL-NUIM, 7-Scenes converted, ccmd_synth)")
+  app.add_option("--dataset", dataset,
+                 "TUM-layout folder (TUM RGB-D, ICL-NUIM, 7-Scenes converted, ccmd_synth)")
       ->required();
-  app.add_option("--agents", agents, "Number of agents K (segments)")->check(CLI::Range(1, 32))->capture_default_str();
+  app.add_option("--agents", agents, "Number of agents K (segments)")
+      ->check(CLI::Range(1, 32))
+      ->capture_default_str();
   app.add_option("--out", out, "Results folder (created)")->required();
-  app.add_option("--config", config, "Camera/tracking config (default: the dataset's camera.yaml or a guess)");
+  app.add_option("--config", config,
+                 "Camera/tracking config (default: the dataset's camera.yaml or a guess)");
   app.add_option("--rate", rate, "realtime (the dataset's timestamps) or max")
       ->check(CLI::IsMember({"realtime", "max"}))
       ->capture_default_str();
-  app.add_option("--reference", reference,
-                 "Reference surface (PLY, points or mesh) for reconstruction error; default: the dataset's "
-                 "surface.ply, else a cloud built from ground-truth poses and depth");
+  app.add_option(
+      "--reference", reference,
+      "Reference surface (PLY, points or mesh) for reconstruction error; default: the dataset's "
+      "surface.ply, else a cloud built from ground-truth poses and depth");
   app.add_option("--agent-arg", agent_args, "Extra argument for every ccmd_agent (repeatable)");
   app.add_option("--server-arg", server_args, "Extra argument for ccmd_server (repeatable)");
-  app.add_option("--bin-dir", bin_dir, "Folder of ccmd_server and ccmd_agent (default: next to this program)");
-  app.add_option("--timeout", timeout_s, "Stop a run (each run of --ablation) after this many seconds")->capture_default_str();
-  CLI::Option* view_flag = app.add_flag("--view", setup_view.enabled,
-                                        "Serve the live map view while the run goes on (its address is printed)");
-  app.add_option("--view-port", setup_view.port, "Port of the map view on 127.0.0.1 (0: a free one)")
+  app.add_option("--bin-dir", bin_dir,
+                 "Folder of ccmd_server and ccmd_agent (default: next to this program)");
+  app.add_option("--timeout", timeout_s,
+                 "Stop a run (each run of --ablation) after this many seconds")
+      ->capture_default_str();
+  CLI::Option* view_flag =
+      app.add_flag("--view", setup_view.enabled,
+                   "Serve the live map view while the run goes on (its address is printed)");
+  app.add_option("--view-port", setup_view.port,
+                 "Port of the map view on 127.0.0.1 (0: a free one)")
       ->check(CLI::Range(0, 65535))
       ->needs(view_flag)
       ->capture_default_str();
-  app.add_flag("--ablation", ablation,
-               "Also run r = 1, 0.5, 0.25 with and without the RGB-D keyframe selection (six runs in all, "
-               "in DIR/ablation/) and add the RGB-D bytes and map points table to the report");
+  app.add_flag(
+      "--ablation", ablation,
+      "Also run r = 1, 0.5, 0.25 with and without the RGB-D keyframe selection (six runs in all, "
+      "in DIR/ablation/) and add the RGB-D bytes and map points table to the report");
   app.add_option("--link", link_text,
-                 "Run over a shaped link instead of loopback, e.g. rate=2.4mbit,delay=50ms,jitter=10ms,loss=0.02 "
-                 "(keys: rate, delay, jitter, loss, queue, seed; docs/benchmarks/link.md). The server and the agents "
+                 "Run over a shaped link instead of loopback, e.g. "
+                 "rate=2.4mbit,delay=50ms,jitter=10ms,loss=0.02 "
+                 "(keys: rate, delay, jitter, loss, queue, seed; docs/benchmarks/link.md). The "
+                 "server and the agents "
                  "run in network namespaces made for the run and removed after it. Needs root");
   app.add_option("--budgets", budgets_text,
-                 "Also run with every agent under each of these bandwidth budgets (kB/s, comma-separated, e.g. "
-                 "25,50,100,200; runs in DIR/budget/) and add the reconstruction-against-budget table and plot");
-  app.add_flag("--knob-costs", knob_costs,
-               "Also run with each RGB-D setting (JPEG quality, depth bound, r, S_min, every keyframe) changed alone "
-               "(eleven runs in DIR/knobs/) and add what each saves and costs the map to the report");
+                 "Also run with every agent under each of these bandwidth budgets (kB/s, "
+                 "comma-separated, e.g. "
+                 "25,50,100,200; runs in DIR/budget/) and add the reconstruction-against-budget "
+                 "table and plot");
+  app.add_flag(
+      "--knob-costs", knob_costs,
+      "Also run with each RGB-D setting (JPEG quality, depth bound, r, S_min, every keyframe) "
+      "changed alone "
+      "(eleven runs in DIR/knobs/) and add what each saves and costs the map to the report");
   CLI11_PARSE(app, argc, argv);
   std::optional<LinkSpec> link;
   if (!link_text.empty()) {
@@ -457,7 +510,8 @@ int main(int argc, char** argv) {
     if (!parsed.ok()) return Fail("--link: " + parsed.status().message());
     // The view serves on the server's loopback, which inside its namespace no browser reaches.
     if (setup_view.enabled) {
-      return Fail("--view cannot be combined with --link: the server runs in its own network namespace");
+      return Fail(
+          "--view cannot be combined with --link: the server runs in its own network namespace");
     }
     const Status available = CheckNetnsLinkAvailable();
     if (!available.ok()) return Fail("--link: " + available.message());
@@ -469,9 +523,12 @@ int main(int argc, char** argv) {
   }
   if (knob_costs) {
     for (const std::string& a : agent_args) {
-      for (const char* knob : {"--jpeg-quality", "--depth-bound", "--rgbd-downsample", "--rgbd-threshold-scale",
-                               "--rgbd-every-keyframe", "--bandwidth-budget"}) {
-        if (a.rfind(knob, 0) == 0) return Fail(std::string("--knob-costs sets ") + knob + " itself; leave it out of --agent-arg");
+      for (const char* knob :
+           {"--jpeg-quality", "--depth-bound", "--rgbd-downsample", "--rgbd-threshold-scale",
+            "--rgbd-every-keyframe", "--bandwidth-budget"}) {
+        if (a.rfind(knob, 0) == 0)
+          return Fail(std::string("--knob-costs sets ") + knob +
+                      " itself; leave it out of --agent-arg");
       }
     }
   }
@@ -479,11 +536,13 @@ int main(int argc, char** argv) {
   if (!budgets_text.empty()) {
     for (const std::string& part : Split(budgets_text, ',')) {
       auto b = ParseDouble(Trim(part));
-      if (!b.ok() || !(*b >= 1)) return Fail("--budgets: '" + part + "' is not a budget in kB/s (>= 1)");
+      if (!b.ok() || !(*b >= 1))
+        return Fail("--budgets: '" + part + "' is not a budget in kB/s (>= 1)");
       budgets.push_back(*b);
     }
     for (const std::string& a : agent_args) {
-      if (a.rfind("--bandwidth-budget", 0) == 0) return Fail("--budgets sets --bandwidth-budget itself; leave it out of --agent-arg");
+      if (a.rfind("--bandwidth-budget", 0) == 0)
+        return Fail("--budgets sets --bandwidth-budget itself; leave it out of --agent-arg");
     }
   }
   if (ablation) {
@@ -510,7 +569,8 @@ int main(int argc, char** argv) {
     camera = *loaded;
   }
   std::optional<DepthToColorCalibration> registration;
-  const std::string camera_file = !camera_config.empty() ? camera_config : JoinPath(dataset, "camera.yaml");
+  const std::string camera_file =
+      !camera_config.empty() ? camera_config : JoinPath(dataset, "camera.yaml");
   if (FileExists(camera_file)) {
     auto loaded = LoadDepthToColorCalibration(camera_file);
     if (!loaded.ok()) return Fail(loaded.status().ToString());
@@ -562,14 +622,16 @@ int main(int argc, char** argv) {
           rows.push_back(row);
           continue;
         }
-        row.run_dir = "ablation/r" + std::to_string(downsample) + (selection ? "_selected" : "_every_keyframe");
+        row.run_dir = "ablation/r" + std::to_string(downsample) +
+                      (selection ? "_selected" : "_every_keyframe");
         std::printf("\nablation run %d of 5: r = 1/%d, %s\n", ++variant_index, downsample,
                     selection ? "RGB-D selection on" : "RGB-D with every keyframe");
         std::fflush(stdout);
         std::vector<std::string> extra = {"--rgbd-downsample", std::to_string(downsample)};
         if (!selection) extra.push_back("--rgbd-every-keyframe");
         auto variant = RunOnce(setup, JoinPath(out, row.run_dir), extra, &failed);
-        if (!variant.ok()) return Fail("ablation " + row.run_dir + ": " + variant.status().ToString());
+        if (!variant.ok())
+          return Fail("ablation " + row.run_dir + ": " + variant.status().ToString());
         row.results = *variant;
         rows.push_back(row);
       }
@@ -580,33 +642,42 @@ int main(int argc, char** argv) {
     if (!results.ok()) return Fail(results.status().ToString());
   }
   if (knob_costs) {
-    if (const Status s = RunKnobCosts(setup, out, *results, &failed); !s.ok()) return Fail(s.ToString());
+    if (const Status s = RunKnobCosts(setup, out, *results, &failed); !s.ok())
+      return Fail(s.ToString());
     results = ReadJsonFile(JoinPath(out, "results.json"));
     if (!results.ok()) return Fail(results.status().ToString());
   }
   if (!budgets.empty()) {
-    if (const Status s = RunBudgetSweep(setup, out, budgets, *results, &failed); !s.ok()) return Fail(s.ToString());
+    if (const Status s = RunBudgetSweep(setup, out, budgets, *results, &failed); !s.ok())
+      return Fail(s.ToString());
     results = ReadJsonFile(JoinPath(out, "results.json"));
     if (!results.ok()) return Fail(results.status().ToString());
   }
   const Json& r = *results;
   auto num = [&](const char* key) { return r.Get(key) ? r.Get(key)->number() : -1.0; };
-  std::printf("\nmaps after fusion: %.0f   fused ATE RMSE: %.4f m   reconstruction mean %.4f m, Hausdorff %.4f m\n",
-              num("maps_after_fusion"), num("ate_rmse_m"), num("recon_mean_m"), num("recon_hausdorff_m"));
+  std::printf(
+      "\nmaps after fusion: %.0f   fused ATE RMSE: %.4f m   reconstruction mean %.4f m, Hausdorff "
+      "%.4f m\n",
+      num("maps_after_fusion"), num("ate_rmse_m"), num("recon_mean_m"), num("recon_hausdorff_m"));
   if (num("maps_after_fusion") > 1) {
     std::string members;
     if (const Json* names = r.Get("primary_map_agents")) {
       for (const Json& n : names->array()) members += (members.empty() ? "" : ", ") + n.string();
     }
-    std::printf("not every map fused: the figures above are the primary map's (%s); see report.md for the others\n",
-                members.empty() ? "no agent" : members.c_str());
+    std::printf(
+        "not every map fused: the figures above are the primary map's (%s); see report.md for the "
+        "others\n",
+        members.empty() ? "no agent" : members.c_str());
   }
-  std::printf("per agent: %.1f kB/s, %.1f kB per keyframe, %.2f keyframes/s\n", num("atps_kBps"), num("akfs_kB"),
-              num("akfr_hz"));
+  std::printf("per agent: %.1f kB/s, %.1f kB per keyframe, %.2f keyframes/s\n", num("atps_kBps"),
+              num("akfs_kB"), num("akfr_hz"));
   std::printf("link: %s   map latency p50 %.2f s, p95 %.2f s   every keyframe once: %s\n",
-              r.Get("link") ? r.Get("link")->string().c_str() : "loopback", num("map_latency_p50_s"),
-              num("map_latency_p95_s"),
-              r.Get("keyframes_delivered_once") && r.Get("keyframes_delivered_once")->boolean() ? "yes" : "NO");
-  std::printf("report: %s\nmap:    %s\n", JoinPath(out, "report.md").c_str(), JoinPath(out, "map.ply").c_str());
+              r.Get("link") ? r.Get("link")->string().c_str() : "loopback",
+              num("map_latency_p50_s"), num("map_latency_p95_s"),
+              r.Get("keyframes_delivered_once") && r.Get("keyframes_delivered_once")->boolean()
+                  ? "yes"
+                  : "NO");
+  std::printf("report: %s\nmap:    %s\n", JoinPath(out, "report.md").c_str(),
+              JoinPath(out, "map.ply").c_str());
   return failed ? 1 : 0;
 }

@@ -28,8 +28,8 @@
 #include "libccmd/system/server_runtime.h"
 #include "libccmd/util/json.h"
 #include "libccmd/util/logging.h"
-#include "libccmd/util/timer.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/timer.h"
 
 namespace {
 
@@ -44,16 +44,19 @@ struct ViewFlags {
 };
 
 void AddViewOptions(CLI::App* app, ViewFlags* flags) {
-  app->add_option("--http", flags->http,
-                  "Serve the live map view (a web page) on HOST:PORT, e.g. 127.0.0.1:8080; a host other than "
-                  "loopback needs a token (one is made up and printed if --http-token is not given)");
+  app->add_option(
+      "--http", flags->http,
+      "Serve the live map view (a web page) on HOST:PORT, e.g. 127.0.0.1:8080; a host other than "
+      "loopback needs a token (one is made up and printed if --http-token is not given)");
   app->add_option("--http-token", flags->token,
-                  "Access token of the map view (letters, digits, - _ .); the URL printed at start-up carries it");
+                  "Access token of the map view (letters, digits, - _ .); the URL printed at "
+                  "start-up carries it");
 }
 
 ccmd::Status ApplyViewOptions(const ViewFlags& flags, ccmd::ServerRuntimeOptions* runtime) {
   if (flags.http.empty()) {
-    return flags.token.empty() ? ccmd::Status::Ok() : ccmd::InvalidArgument("--http-token needs --http HOST:PORT");
+    return flags.token.empty() ? ccmd::Status::Ok()
+                               : ccmd::InvalidArgument("--http-token needs --http HOST:PORT");
   }
   ccmd::ViewServerOptions view;
   view.listen = flags.http;
@@ -71,7 +74,8 @@ int main(int argc, char** argv) {
       "hands them to the back-end. Without a key it listens on loopback only."};
   ccmd::ServerRuntimeOptions runtime;
   ccmd::ServerOptions& options = runtime.net;
-  std::string journal, resume, psk_file, stats_path, vocabulary = ccmd::app::DefaultVocabularyPath();
+  std::string journal, resume, psk_file, stats_path,
+      vocabulary = ccmd::app::DefaultVocabularyPath();
   bool no_dense = false, no_gba = false, dense_every_point = false;
   double stats_interval = 5.0;
   bool no_fsync = false;
@@ -97,12 +101,14 @@ int main(int argc, char** argv) {
   app.add_option("--out", runtime.output_dir,
                  "Results folder: map.ply, trajectory_fused.txt, trajectory_<agent>.txt, "
                  "server_stats.json, snapshots/ (default: the journal folder's name + .results)");
-  app.add_option("--vocabulary", vocabulary, "Place-recognition vocabulary (ccmd_vocab); missing: trained online")
+  app.add_option("--vocabulary", vocabulary,
+                 "Place-recognition vocabulary (ccmd_vocab); missing: trained online")
       ->capture_default_str();
   app.add_flag("--no-dense", no_dense, "Do not build the dense map");
-  app.add_flag("--dense-every-point", dense_every_point,
-               "Keep every back-projected point of every keyframe (no compaction after the filter window: "
-               "about 30 bytes a point for the whole run)");
+  app.add_flag(
+      "--dense-every-point", dense_every_point,
+      "Keep every back-projected point of every keyframe (no compaction after the filter window: "
+      "about 30 bytes a point for the whole run)");
   app.add_flag("--no-global-ba", no_gba, "No global bundle adjustment after loops");
   app.add_option("--snapshot-interval", runtime.snapshot_period_s,
                  "Seconds between dense-map snapshots (0: only at the end)")
@@ -183,8 +189,10 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "ccmd_server: %s\n", loaded.status().ToString().c_str());
       return 2;
     }
-    runtime.backend.place.vocabulary = std::make_shared<const ccmd::Vocabulary>(std::move(loaded).value());
-    CCMD_LOG(INFO) << "vocabulary " << vocabulary << ": " << runtime.backend.place.vocabulary->word_count() << " words";
+    runtime.backend.place.vocabulary =
+        std::make_shared<const ccmd::Vocabulary>(std::move(loaded).value());
+    CCMD_LOG(INFO) << "vocabulary " << vocabulary << ": "
+                   << runtime.backend.place.vocabulary->word_count() << " words";
   } else {
     CCMD_LOG(WARNING) << "no vocabulary at '" << vocabulary
                       << "': place recognition trains one online from the first keyframes";
@@ -214,7 +222,8 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "ccmd_server: %s\n", s.ToString().c_str());
     return 1;
   }
-  if (const ccmd::ViewServer* view = (*server)->view()) std::printf("map view: %s\n", view->url().c_str());
+  if (const ccmd::ViewServer* view = (*server)->view())
+    std::printf("map view: %s\n", view->url().c_str());
   const std::size_t colon = options.listen.rfind(':');
   std::printf("ccmd_server: listening on %s:%u\n", options.listen.substr(0, colon).c_str(),
               unsigned{(*server)->port()});

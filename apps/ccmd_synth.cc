@@ -14,7 +14,8 @@ int main(int argc, char** argv) {
   CLI::App app{
       "Render a synthetic RGB-D sequence (TUM layout) of a textured room with exact ground truth.\n"
       "Writes rgb/, depth/, rgb.txt, depth.txt, groundtruth.txt, camera.yaml and surface.ply.\n"
-      "With --config the images are those the config's camera would record: its size, focal lengths\n"
+      "With --config the images are those the config's camera would record: its size, focal "
+      "lengths\n"
       "(a negative fy flips the rows, as in ICL-NUIM), lens distortion, frame rate, depth scale,\n"
       "colour order, and depth from the Depth block's imager when there is one."};
   ccmd::SyntheticSequenceOptions options;
@@ -24,29 +25,40 @@ int main(int argc, char** argv) {
   app.add_option("--config", config,
                  "Camera config (ORB-SLAM YAML, e.g. configs/tum_fr1.yaml) to render through; "
                  "sets the image size and frame rate");
-  app.add_option("--frames", options.frames, "Number of frames")->check(CLI::Range(1, 1000000))
+  app.add_option("--frames", options.frames, "Number of frames")
+      ->check(CLI::Range(1, 1000000))
       ->capture_default_str();
   app.add_option("--seed", options.seed, "Scene and noise seed")->capture_default_str();
-  app.add_option("--width", options.width, "Image width")->check(CLI::Range(32, 4096))
+  app.add_option("--width", options.width, "Image width")
+      ->check(CLI::Range(32, 4096))
       ->capture_default_str();
-  app.add_option("--height", options.height, "Image height")->check(CLI::Range(24, 4096))
+  app.add_option("--height", options.height, "Image height")
+      ->check(CLI::Range(24, 4096))
       ->capture_default_str();
-  app.add_option("--fps", options.fps, "Frame rate")->check(CLI::PositiveNumber)->capture_default_str();
+  app.add_option("--fps", options.fps, "Frame rate")
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
   app.add_option("--noise", options.noise_scale, "Noise scale (1 = default sensor model)")
-      ->check(CLI::NonNegativeNumber)->capture_default_str();
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
   app.add_flag("--no-noise", no_noise, "Exact depth and colour");
   app.add_option("--surface-spacing", options.surface_spacing,
-                 "Ground-truth surface sampling in metres")->check(CLI::Range(0.002, 1.0))
+                 "Ground-truth surface sampling in metres")
+      ->check(CLI::Range(0.002, 1.0))
       ->capture_default_str();
-  app.add_option("--loop-period", options.path.loop_period_s,
-                 "Seconds per loop of the camera path")->check(CLI::PositiveNumber)->capture_default_str();
-  app.add_option("--threads", options.threads, "Render threads (0 = all cores)")->capture_default_str();
+  app.add_option("--loop-period", options.path.loop_period_s, "Seconds per loop of the camera path")
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
+  app.add_option("--threads", options.threads, "Render threads (0 = all cores)")
+      ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   if (no_noise || options.noise_scale == 0.0) options.noise = false;
   if (!config.empty()) {
     for (const char* fixed : {"--width", "--height", "--fps"}) {
       if (app.count(fixed) > 0) {
-        std::fprintf(stderr, "ccmd_synth: %s comes from the camera config; leave it out with --config\n", fixed);
+        std::fprintf(stderr,
+                     "ccmd_synth: %s comes from the camera config; leave it out with --config\n",
+                     fixed);
         return 1;
       }
     }
@@ -80,8 +92,9 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "ccmd_synth: %s\n", summary.status().ToString().c_str());
     return 1;
   }
-  std::printf("wrote %d frames to %s in %.1f s (render %.1f ms/frame), surface.ply with %zu points\n",
-              summary->frames, out.c_str(), summary->seconds, summary->render_ms_per_frame,
-              summary->surface_points);
+  std::printf(
+      "wrote %d frames to %s in %.1f s (render %.1f ms/frame), surface.ply with %zu points\n",
+      summary->frames, out.c_str(), summary->seconds, summary->render_ms_per_frame,
+      summary->surface_points);
   return 0;
 }

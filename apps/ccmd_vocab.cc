@@ -11,8 +11,8 @@
 #include "libccmd/features/training_data.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/json.h"
-#include "libccmd/util/timer.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/timer.h"
 
 namespace {
 

@@ -36,10 +36,12 @@ struct MapFigures {
   std::size_t points = 0, stored = 0;
   double memory_mb = 0;
   ReconstructionError surface;  // against the sequence's surface
-  ReconstructionError scratch;  // against the exact from-scratch build (completeness: within a voxel)
+  ReconstructionError
+      scratch;  // against the exact from-scratch build (completeness: within a voxel)
 };
 
-StatusOr<MapFigures> Measure(DenseMap* store, const PointCloud& surface, const PointCloud* scratch, double voxel) {
+StatusOr<MapFigures> Measure(DenseMap* store, const PointCloud& surface, const PointCloud* scratch,
+                             double voxel) {
   MapFigures f;
   CCMD_ASSIGN_OR_RETURN(const PointCloud map, store->Extract(DenseSelection::Global()));
   const DenseMapStats stats = store->Stats();
@@ -72,9 +74,11 @@ Json FiguresJson(const MapFigures& f) {
 }
 
 void PrintRow(const std::string& what, const MapFigures& f) {
-  std::printf("| %s | %zu | %zu | %.1f | %.2f | %.2f | %.3f | %s |\n", what.c_str(), f.points, f.stored, f.memory_mb,
-              f.surface.mean * 1e3, f.surface.median * 1e3, f.surface.completeness,
-              f.scratch.reference_points > 0 ? std::to_string(f.scratch.completeness).substr(0, 5).c_str() : "-");
+  std::printf(
+      "| %s | %zu | %zu | %.1f | %.2f | %.2f | %.3f | %s |\n", what.c_str(), f.points, f.stored,
+      f.memory_mb, f.surface.mean * 1e3, f.surface.median * 1e3, f.surface.completeness,
+      f.scratch.reference_points > 0 ? std::to_string(f.scratch.completeness).substr(0, 5).c_str()
+                                     : "-");
 }
 
 // The poses of a loop that drifted: keyframe i of n turned about the vertical through the
@@ -84,7 +88,8 @@ std::vector<Pose> Drifted(const std::vector<DenseKeyframe>& keyframes, double dr
   for (std::size_t i = 0; i < keyframes.size(); ++i) {
     const double f = static_cast<double>(i) / keyframes.size();
     Pose drift = Pose::Identity();
-    drift.linear() = Eigen::AngleAxisd(drift_deg * f * M_PI / 180, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+    drift.linear() =
+        Eigen::AngleAxisd(drift_deg * f * M_PI / 180, Eigen::Vector3d::UnitZ()).toRotationMatrix();
     drift.translation() = Eigen::Vector3d(0.015 * drift_deg * f, -0.01 * drift_deg * f, 0);
     poses.push_back(drift * keyframes[i].T_world_cam);
   }
@@ -93,11 +98,13 @@ std::vector<Pose> Drifted(const std::vector<DenseKeyframe>& keyframes, double dr
 
 }  // namespace
 
-StatusOr<Json> RunRevisits(const std::vector<DenseKeyframe>& keyframes, const PointCloud& surface, double voxel,
-                           int passes, double drift_deg) {
+StatusOr<Json> RunRevisits(const std::vector<DenseKeyframe>& keyframes, const PointCloud& surface,
+                           double voxel, int passes, double drift_deg) {
   Json json;
-  std::printf("| store | map points | stored points | memory MB | mean mm | median mm | completeness 2 cm | "
-              "covers the exact build within a voxel |\n|---|---|---|---|---|---|---|---|\n");
+  std::printf(
+      "| store | map points | stored points | memory MB | mean mm | median mm | completeness 2 cm "
+      "| "
+      "covers the exact build within a voxel |\n|---|---|---|---|---|---|---|---|\n");
   // The reference: every point kept, true poses.
   auto exact = MakeStore(voxel, false);
   CCMD_RETURN_IF_ERROR(AddPass(exact.get(), keyframes, 0));
@@ -125,16 +132,22 @@ StatusOr<Json> RunRevisits(const std::vector<DenseKeyframe>& keyframes, const Po
     auto corrected = MakeStore(voxel, true);
     const std::vector<Pose> drifted = Drifted(keyframes, drift_deg);
     CCMD_RETURN_IF_ERROR(AddPass(corrected.get(), keyframes, 0, &drifted));
-    CCMD_ASSIGN_OR_RETURN(const MapFigures before, Measure(corrected.get(), surface, &scratch, voxel));
+    CCMD_ASSIGN_OR_RETURN(const MapFigures before,
+                          Measure(corrected.get(), surface, &scratch, voxel));
     std::vector<KeyframePose> loop;
     for (std::size_t i = 0; i < keyframes.size(); ++i) {
-      loop.push_back({{keyframes[i].id.agent, KeyframeId(static_cast<std::uint32_t>(i))}, keyframes[i].T_world_cam});
+      loop.push_back({{keyframes[i].id.agent, KeyframeId(static_cast<std::uint32_t>(i))},
+                      keyframes[i].T_world_cam});
     }
     CCMD_RETURN_IF_ERROR(corrected->UpdateLoopPoses(loop));
     corrected->Maintain();
-    CCMD_ASSIGN_OR_RETURN(const MapFigures after, Measure(corrected.get(), surface, &scratch, voxel));
-    CCMD_ASSIGN_OR_RETURN(const MapFigures reference, Measure(exact.get(), surface, &scratch, voxel));
-    PrintRow("drifted " + std::to_string(drift_deg).substr(0, 4) + " deg, compacted, before the correction", before);
+    CCMD_ASSIGN_OR_RETURN(const MapFigures after,
+                          Measure(corrected.get(), surface, &scratch, voxel));
+    CCMD_ASSIGN_OR_RETURN(const MapFigures reference,
+                          Measure(exact.get(), surface, &scratch, voxel));
+    PrintRow("drifted " + std::to_string(drift_deg).substr(0, 4) +
+                 " deg, compacted, before the correction",
+             before);
     PrintRow("after the loop correction, compacted", after);
     PrintRow("from scratch with the final poses, every point", reference);
     Json loop_json;

@@ -13,7 +13,7 @@ namespace ccmd::dense_bench {
 
 // `keyframes` at their true poses; `surface` the sequence's ground-truth surface. Prints the
 // tables and returns the figures.
-StatusOr<Json> RunRevisits(const std::vector<DenseKeyframe>& keyframes, const PointCloud& surface, double voxel,
-                           int passes, double drift_deg);
+StatusOr<Json> RunRevisits(const std::vector<DenseKeyframe>& keyframes, const PointCloud& surface,
+                           double voxel, int passes, double drift_deg);
 
 }  // namespace ccmd::dense_bench

@@ -350,7 +350,8 @@ StatusOr<KeyframeMessage> ParseKeyframe(ByteSpan payload, const MessageLimits& l
   }
 
   if (flags & kHasDepthLinks) {
-    CCMD_RETURN_IF_ERROR(ReadCount(&r, limits.max_depth_links, kDepthLinkBytes, "depth link count", &n));
+    CCMD_RETURN_IF_ERROR(
+        ReadCount(&r, limits.max_depth_links, kDepthLinkBytes, "depth link count", &n));
     if (n == 0) return Corrupt("depth link section without links");
     m.depth_links.resize(n);
     for (DepthLink& l : m.depth_links) {

@@ -27,9 +27,12 @@ Status BackendOptions::Validate() const {
   CCMD_RETURN_IF_ERROR(loops.Validate());
   if (queue_capacity < 1) return InvalidArgument("queue capacity must be >= 1");
   if (global_ba_iterations < 1) return InvalidArgument("global BA iterations must be >= 1");
-  if (global_ba_max_keyframes < 10) return InvalidArgument("global BA window must be >= 10 keyframes");
-  if (global_ba_max_observations < 1000) return InvalidArgument("global BA window must allow >= 1000 observations");
-  if (!(global_ba_duty > 0 && global_ba_duty <= 1)) return InvalidArgument("global BA duty must be in (0, 1]");
+  if (global_ba_max_keyframes < 10)
+    return InvalidArgument("global BA window must be >= 10 keyframes");
+  if (global_ba_max_observations < 1000)
+    return InvalidArgument("global BA window must allow >= 1000 observations");
+  if (!(global_ba_duty > 0 && global_ba_duty <= 1))
+    return InvalidArgument("global BA duty must be in (0, 1]");
   if (dense) CCMD_RETURN_IF_ERROR(dense_options.Validate());
   CCMD_RETURN_IF_ERROR(place.Validate());
   return depth_noise.Validate();
@@ -49,7 +52,8 @@ void BackendOptions::Describe(OptionsWriter* out) const {
   out->Add("queue_capacity", queue_capacity);
 }
 
-StatusOr<std::unique_ptr<Backend>> Backend::Create(const BackendOptions& options, MapObserver* observer) {
+StatusOr<std::unique_ptr<Backend>> Backend::Create(const BackendOptions& options,
+                                                   MapObserver* observer) {
   CCMD_RETURN_IF_ERROR(options.Validate());
   auto backend = std::unique_ptr<Backend>(new Backend(options));
   backend->observer_ = observer;
@@ -65,10 +69,13 @@ StatusOr<std::unique_ptr<Backend>> Backend::Create(const BackendOptions& options
 }
 
 Backend::Backend(const BackendOptions& options)
-    : options_(options), start_time_(MonotonicSeconds()),
+    : options_(options),
+      start_time_(MonotonicSeconds()),
       loop_closer_(options.loops, options.place, &maps_, start_time_),
-      ingest_stage_(options.queue_capacity), loop_stage_(options.queue_capacity * 4),
-      gba_stage_(1, Stage<GbaRequest>::Policy::kLatest), dense_stage_(options.queue_capacity * 4) {}
+      ingest_stage_(options.queue_capacity),
+      loop_stage_(options.queue_capacity * 4),
+      gba_stage_(1, Stage<GbaRequest>::Policy::kLatest),
+      dense_stage_(options.queue_capacity * 4) {}
 
 Backend::~Backend() { Shutdown(); }
 
@@ -175,9 +182,11 @@ void Backend::Ingest(IngestItem item) {
       added = true;
       // The coded images stay coded until the dense stage uses them; without a dense map
       // they are not kept at all.
-      if (dense_ && message.rgbd) (*keyframe)->rgbd = std::make_shared<const RgbdPayload>(std::move(*message.rgbd));
+      if (dense_ && message.rgbd)
+        (*keyframe)->rgbd = std::make_shared<const RgbdPayload>(std::move(*message.rgbd));
       const bool primary = maps_.primary() && guard->id() == *maps_.primary();
-      if (observer_) observer_->OnKeyframe(id, guard->id(), (*keyframe)->T_map_cam, item.arrived, primary);
+      if (observer_)
+        observer_->OnKeyframe(id, guard->id(), (*keyframe)->T_map_cam, item.arrived, primary);
       if (primary) QueueDenseAdds(guard.get(), {*keyframe}, item.arrived - start_time_);
     }
   }
@@ -194,7 +203,8 @@ void Backend::Ingest(IngestItem item) {
 
 // ---------------------------------------------------------------- dense
 
-void Backend::QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>& keyframes, double received) {
+void Backend::QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>& keyframes,
+                             double received) {
   if (!dense_) return;
   for (ServerKeyframe* kf : keyframes) {
     if (kf->in_dense || !kf->rgbd) continue;
@@ -257,7 +267,8 @@ void Backend::UpdateDense(DenseTask task) {
 Status Backend::AddToDense(const DenseTask& task) {
   auto decoded = DecodeRgbdPayload(*task.rgbd);
   if (!decoded.ok()) {
-    return decoded.status().WithContext("agent " + std::to_string(task.keyframe.agent.value()) + " keyframe " +
+    return decoded.status().WithContext("agent " + std::to_string(task.keyframe.agent.value()) +
+                                        " keyframe " +
                                         std::to_string(task.keyframe.keyframe.value()) +
                                         ": RGB-D payload not decodable, keyframe kept without it");
   }
@@ -292,7 +303,8 @@ Status Backend::ExportDenseMap(const std::string& path) {
 // ---------------------------------------------------------------- loops
 
 void Backend::DetectLoops(const GlobalKeyframeId& id) {
-  if (auto closure = loop_closer_.Process(id, CameraOf(id.agent), /*stored=*/false)) AfterLoop(std::move(*closure));
+  if (auto closure = loop_closer_.Process(id, CameraOf(id.agent), /*stored=*/false))
+    AfterLoop(std::move(*closure));
   // Measuring the index visits every word's list: now and then is enough.
   if (id.keyframe.value() % 32 == 0) place_bytes_ = loop_closer_.place().MemoryBytes();
   // Keyframes that arrived before the first vocabulary was trained are queried now, oldest
@@ -318,8 +330,8 @@ void Backend::AfterLoop(LoopClosure closure) {
   // The other map's keyframes now feed the dense map.
   QueueDenseAdds(closure.map.get(), closure.joined_primary);
   if (observer_) observer_->OnLoop(closure.event);
-  NotifyPoses(closure.event.fusion ? PoseSource::kFusion : PoseSource::kLoop, closure.event.map, closure.moved,
-              MonotonicSeconds());
+  NotifyPoses(closure.event.fusion ? PoseSource::kFusion : PoseSource::kLoop, closure.event.map,
+              closure.moved, MonotonicSeconds());
   {
     std::lock_guard<std::mutex> lock(stats_mutex_);
     AppendSample(&loop_events_, closure.event);
@@ -334,7 +346,9 @@ void Backend::AfterLoop(LoopClosure closure) {
   closure.map = MapManager::Guard();
   // A loop the map already agreed with corrected nothing: there is nothing to optimise.
   if (!closure.event.already_closed) {
-    RequestGlobalBa({closure.event.query.agent, {closure.event.query, closure.event.candidate}, closure.event.fusion});
+    RequestGlobalBa({closure.event.query.agent,
+                     {closure.event.query, closure.event.candidate},
+                     closure.event.fusion});
   }
 }
 
@@ -352,7 +366,8 @@ void Backend::WaitForGbaTurn() {
   std::unique_lock<std::mutex> lock(gba_turn_mutex_);
   const double wait_s = gba_next_start_ - Now();
   if (wait_s <= 0) return;
-  gba_turn_cv_.wait_for(lock, std::chrono::duration<double>(wait_s), [&] { return stopping_.load(); });
+  gba_turn_cv_.wait_for(lock, std::chrono::duration<double>(wait_s),
+                        [&] { return stopping_.load(); });
 }
 
 void Backend::RunGlobalBa(GbaRequest request) {
@@ -378,8 +393,9 @@ void Backend::RunGlobalBa(GbaRequest request) {
     MapManager::Guard guard = maps_.CheckOutAgent(request.agent);
     map_id = guard->id();
     if (windowed) {
-      const std::set<GlobalKeyframeId> window = SelectGlobalBaWindow(
-          *guard, request.around, options_.global_ba_max_keyframes, options_.global_ba_max_observations);
+      const std::set<GlobalKeyframeId> window =
+          SelectGlobalBaWindow(*guard, request.around, options_.global_ba_max_keyframes,
+                               options_.global_ba_max_observations);
       problem = BuildGlobalBa(*guard, cameras, options_.depth_noise, &window);
     } else {
       problem = BuildGlobalBa(*guard, cameras, options_.depth_noise);
@@ -417,9 +433,10 @@ void Backend::RunGlobalBa(GbaRequest request) {
   }
   ReleaseFreeMemory();  // the solver's workspace
   CCMD_LOG(INFO) << "global BA on map " << map_id.value() << (windowed ? " (window)" : "") << ": "
-                 << problem.keyframes.size() << " keyframes, " << problem.points.size() << " points, "
-                 << problem.problem.observations.size() << " observations, "
-                 << summary.iterations << " iterations, " << seconds << " s" << (applied ? "" : " (abandoned: newer work)");
+                 << problem.keyframes.size() << " keyframes, " << problem.points.size()
+                 << " points, " << problem.problem.observations.size() << " observations, "
+                 << summary.iterations << " iterations, " << seconds << " s"
+                 << (applied ? "" : " (abandoned: newer work)");
 }
 
 // ---------------------------------------------------------------- results
@@ -433,7 +450,8 @@ bool Backend::AgentInPrimaryMap(AgentId agent) const {
 Trajectory Backend::AgentTrajectory(AgentId agent) {
   Trajectory trajectory;
   MapManager::Guard guard = maps_.CheckOutAgent(agent);
-  for (ServerKeyframe* kf : guard->AgentKeyframes(agent)) trajectory.push_back({kf->timestamp, kf->T_map_cam});
+  for (ServerKeyframe* kf : guard->AgentKeyframes(agent))
+    trajectory.push_back({kf->timestamp, kf->T_map_cam});
   std::sort(trajectory.begin(), trajectory.end(),
             [](const StampedPose& a, const StampedPose& b) { return a.timestamp < b.timestamp; });
   return trajectory;
@@ -445,9 +463,11 @@ Trajectory Backend::FusedTrajectory() {
   if (!primary) return trajectory;
   MapManager::Guard guard = maps_.CheckOut(*primary);
   if (!guard) return trajectory;
-  for (const auto& [id, kf] : guard->keyframes()) trajectory.push_back({kf->timestamp, kf->T_map_cam});
-  std::stable_sort(trajectory.begin(), trajectory.end(),
-                   [](const StampedPose& a, const StampedPose& b) { return a.timestamp < b.timestamp; });
+  for (const auto& [id, kf] : guard->keyframes())
+    trajectory.push_back({kf->timestamp, kf->T_map_cam});
+  std::stable_sort(
+      trajectory.begin(), trajectory.end(),
+      [](const StampedPose& a, const StampedPose& b) { return a.timestamp < b.timestamp; });
   return trajectory;
 }
 

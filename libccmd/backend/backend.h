@@ -29,9 +29,9 @@
 #include "libccmd/dense/dense_map.h"
 #include "libccmd/io/trajectory.h"
 #include "libccmd/util/json.h"
+#include "libccmd/util/options_writer.h"
 #include "libccmd/util/stage.h"
 #include "proto/messages.h"
-#include "libccmd/util/options_writer.h"
 
 namespace ccmd {
 
@@ -51,7 +51,7 @@ struct BackendOptions {
   bool dense = true;
   DenseMapOptions dense_options;
   PlaceIndexOptions place;
-  std::size_t queue_capacity = 64;      // per stage
+  std::size_t queue_capacity = 64;  // per stage
 
   Status Validate() const;
   void Describe(OptionsWriter* out) const;
@@ -85,10 +85,10 @@ struct BackendStats {
 // recent kMaxSamples of each kind are kept (memory must not grow with the run's length).
 struct BackendTimings {
   static constexpr std::size_t kMaxSamples = 1 << 17;
-  std::vector<double> intake_ms;          // per keyframe, in intake order
-  std::vector<double> intake_at_s;        // when it entered its map (back-end clock)
-  std::vector<char> intake_during_gba;    // per intake_ms entry: a global BA was running
-  std::vector<double> dense_ms;           // per RGB-D keyframe: receipt to in the dense map
+  std::vector<double> intake_ms;        // per keyframe, in intake order
+  std::vector<double> intake_at_s;      // when it entered its map (back-end clock)
+  std::vector<char> intake_during_gba;  // per intake_ms entry: a global BA was running
+  std::vector<double> dense_ms;         // per RGB-D keyframe: receipt to in the dense map
   std::vector<double> dense_at_s;
   std::vector<double> global_ba_seconds;  // per global BA run, abandoned ones included
   std::vector<char> global_ba_applied;    // per run: the result was written to the map
@@ -167,10 +167,10 @@ class Backend {
     GlobalKeyframeId keyframe;
     Pose T_world_cam = Pose::Identity();
     std::shared_ptr<const RgbdPayload> rgbd;
-    PinholeCamera camera;   // full resolution
-    double received = -1;   // back-end clock; < 0: unknown (a keyframe that joined by fusion)
-    std::vector<KeyframePose> poses;        // updates
-    MapId from, to;                         // kMergeMaps
+    PinholeCamera camera;  // full resolution
+    double received = -1;  // back-end clock; < 0: unknown (a keyframe that joined by fusion)
+    std::vector<KeyframePose> poses;  // updates
+    MapId from, to;                   // kMergeMaps
   };
   // A global BA request: the map of `agent`, around the loop's keyframes.
   struct GbaRequest {
@@ -194,12 +194,14 @@ class Backend {
   void WaitForGbaTurn();
   // Dense work for keyframes that entered the primary map, and pose changes of keyframes in it.
   // `received`: the back-end clock when the keyframe arrived (< 0: not measured).
-  void QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>& keyframes, double received = -1);
+  void QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>& keyframes,
+                      double received = -1);
   void QueueDenseUpdates(const std::vector<ServerKeyframe*>& moved, DenseTask::Kind kind);
   PinholeCamera CameraOf(AgentId agent) const;
   double Now() const;
   // Tells the observer (if any) that `moved` have new poses in `map`.
-  void NotifyPoses(PoseSource source, MapId map, const std::vector<ServerKeyframe*>& moved, double arrived_s);
+  void NotifyPoses(PoseSource source, MapId map, const std::vector<ServerKeyframe*>& moved,
+                   double arrived_s);
 
   const BackendOptions options_;
   MapObserver* observer_ = nullptr;  // set before the stages start, never changed
@@ -207,7 +209,8 @@ class Backend {
   std::unique_ptr<DenseMap> dense_;
   const double start_time_;
   LoopCloser loop_closer_;  // loop stage only
-  std::atomic<std::size_t> place_bytes_{0};  // the place index's memory, as the loop stage last saw it
+  std::atomic<std::size_t> place_bytes_{
+      0};  // the place index's memory, as the loop stage last saw it
 
   mutable std::mutex cameras_mutex_;
   std::map<AgentId, PinholeCamera> cameras_;

@@ -9,7 +9,8 @@ namespace ccmd {
 namespace {
 
 // The samples taken at or after `since` (times in the same order as the samples).
-std::vector<double> Since(const std::vector<double>& samples, const std::vector<double>& at, double since) {
+std::vector<double> Since(const std::vector<double>& samples, const std::vector<double>& at,
+                          double since) {
   const auto first = std::lower_bound(at.begin(), at.end(), since);
   return std::vector<double>(samples.begin() + (first - at.begin()), samples.end());
 }
@@ -87,7 +88,8 @@ constexpr std::size_t kLoopEventsInJson = 1000;
 
 Json LoopEventsJson(const std::vector<LoopEvent>& loop_events) {
   Json events = Json::MakeArray();
-  const std::size_t first = loop_events.size() > kLoopEventsInJson ? loop_events.size() - kLoopEventsInJson : 0;
+  const std::size_t first =
+      loop_events.size() > kLoopEventsInJson ? loop_events.size() - kLoopEventsInJson : 0;
   for (std::size_t i = first; i < loop_events.size(); ++i) {
     const LoopEvent& e = loop_events[i];
     Json x;

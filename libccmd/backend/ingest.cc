@@ -6,10 +6,11 @@
 
 namespace ccmd {
 
-StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent, const KeyframeMessage& m,
-                                             const Pose& T_map_agent) {
+StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent,
+                                             const KeyframeMessage& m, const Pose& T_map_agent) {
   const GlobalKeyframeId id{agent, m.id};
-  if (map->keyframe(id)) return InvalidArgument("keyframe " + std::to_string(m.id.value()) + " already known");
+  if (map->keyframe(id))
+    return InvalidArgument("keyframe " + std::to_string(m.id.value()) + " already known");
   auto kf = std::make_unique<ServerKeyframe>();
   kf->id = id;
   kf->timestamp = m.timestamp;
@@ -22,8 +23,9 @@ StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent, cons
     const auto own = map->AgentKeyframes(agent);
     if (!own.empty()) reference = own.back();
   }
-  kf->T_map_cam = reference ? reference->T_map_cam * (reference->T_agent_cam.inverse() * kf->T_agent_cam)
-                            : T_map_agent * kf->T_agent_cam;
+  kf->T_map_cam = reference
+                      ? reference->T_map_cam * (reference->T_agent_cam.inverse() * kf->T_agent_cam)
+                      : T_map_agent * kf->T_agent_cam;
 
   const std::size_t n = m.keypoints.size();
   kf->keypoints.resize(n);
@@ -37,7 +39,8 @@ StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent, cons
   // New points are anchored here; the keypoint observing each is found by its link.
   std::unordered_map<std::uint32_t, int> keypoint_of;
   for (std::size_t i = 0; i < n; ++i) {
-    if (m.keypoints[i].map_point) keypoint_of[m.keypoints[i].map_point->value()] = static_cast<int>(i);
+    if (m.keypoints[i].map_point)
+      keypoint_of[m.keypoints[i].map_point->value()] = static_cast<int>(i);
   }
   for (const NewMapPoint& p : m.new_map_points) {
     const GlobalMapPointId pid{agent, p.id};
@@ -59,7 +62,8 @@ StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent, cons
   }
   // Keypoints without a map point (none, or one the server never received) keep their own.
   for (std::size_t i = 0; i < n; ++i) {
-    if (!raw->points[i]) raw->own_descriptors.emplace_back(static_cast<std::uint32_t>(i), m.keypoints[i].descriptor);
+    if (!raw->points[i])
+      raw->own_descriptors.emplace_back(static_cast<std::uint32_t>(i), m.keypoints[i].descriptor);
   }
   raw->own_descriptors.shrink_to_fit();
   if (unknown_links > 0) {
@@ -77,12 +81,14 @@ StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent, cons
     for (int r = 0; r < 6; ++r) {
       for (int c = r; c < 6; ++c) information(r, c) = information(c, r) = link.information[k++];
     }
-    raw->depth_links.push_back({{agent, link.keyframe}, PoseFromWire(link.T_this_other), SqrtInformation(information)});
+    raw->depth_links.push_back(
+        {{agent, link.keyframe}, PoseFromWire(link.T_this_other), SqrtInformation(information)});
   }
   return raw;
 }
 
-std::vector<ServerKeyframe*> ApplyPoseUpdates(ServerMap* map, AgentId agent, const PoseUpdateMessage& m) {
+std::vector<ServerKeyframe*> ApplyPoseUpdates(ServerMap* map, AgentId agent,
+                                              const PoseUpdateMessage& m) {
   std::vector<ServerKeyframe*> moved;
   for (const PoseUpdateEntry& e : m.entries) {
     ServerKeyframe* kf = map->keyframe({agent, e.keyframe});

@@ -16,12 +16,14 @@ namespace ccmd {
 // first keyframe in a map is placed by `T_map_agent`. Known map points are linked, new ones
 // anchored to this keyframe, covisibility recorded. RGB-D data is not decoded here.
 // Returns the new keyframe, or an error for an inconsistent message (duplicate id, ...).
-StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent, const KeyframeMessage& message,
+StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent,
+                                             const KeyframeMessage& message,
                                              const Pose& T_map_agent);
 
 // Applies an agent's local-BA pose updates: each keyframe moves by the change the agent made
 // (T_agent_old^-1 T_agent_new, on the right), which keeps server-side corrections. Returns the
 // keyframes that moved (unknown ids are skipped).
-std::vector<ServerKeyframe*> ApplyPoseUpdates(ServerMap* map, AgentId agent, const PoseUpdateMessage& message);
+std::vector<ServerKeyframe*> ApplyPoseUpdates(ServerMap* map, AgentId agent,
+                                              const PoseUpdateMessage& message);
 
 }  // namespace ccmd

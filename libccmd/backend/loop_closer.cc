@@ -42,9 +42,9 @@ void LoopCloserOptions::Describe(OptionsWriter* out) const {
 
 // ---------------------------------------------------------------- step 1: candidates
 
-std::vector<PlaceHit> SelectLoopCandidates(std::vector<PlaceHit> hits, bool cooling_down, MapId query_map,
-                                           const std::function<std::optional<MapId>(AgentId)>& map_of_agent,
-                                           int max_candidates) {
+std::vector<PlaceHit> SelectLoopCandidates(
+    std::vector<PlaceHit> hits, bool cooling_down, MapId query_map,
+    const std::function<std::optional<MapId>(AgentId)>& map_of_agent, int max_candidates) {
   if (cooling_down) {
     hits.erase(std::remove_if(hits.begin(), hits.end(),
                               [&](const PlaceHit& c) {
@@ -65,7 +65,8 @@ bool LoopConsistency::Confirm(const GlobalKeyframeId& query, MapId candidate_map
   // Ids compared as unsigned: a query older than the last one (a late query) never confirms.
   const bool consistent =
       pending.count > 0 && pending.candidate_map == candidate_map &&
-      query.keyframe.value() - pending.last_query.value() <= static_cast<std::uint32_t>(options_.consistency_max_gap) &&
+      query.keyframe.value() - pending.last_query.value() <=
+          static_cast<std::uint32_t>(options_.consistency_max_gap) &&
       TranslationDistance(pending.T_candidate_map_query_map, T_candidate_map_query_map) <
           options_.consistency_translation &&
       RotationDistance(pending.T_candidate_map_query_map, T_candidate_map_query_map) <
@@ -107,7 +108,8 @@ void MergeLoopMatches(ServerMap* map, const LoopMatch& match) {
 std::vector<ServerKeyframe*> CloseLoopInMap(ServerMap* map, const LoopMatch& match,
                                             const MapPoseGraphOptions& options) {
   const ServerKeyframe* candidate = match.candidate;
-  map->AddLoopEdge({candidate->id, match.query->id, candidate->T_map_cam.inverse() * match.T_candidate_map_query});
+  map->AddLoopEdge({candidate->id, match.query->id,
+                    candidate->T_map_cam.inverse() * match.T_candidate_map_query});
   MergeLoopMatches(map, match);
   auto moved = OptimizeMapPoseGraph(map, options);
   if (!moved.ok()) {
@@ -120,11 +122,12 @@ std::vector<ServerKeyframe*> CloseLoopInMap(ServerMap* map, const LoopMatch& mat
 bool LoopAlreadyClosed(const LoopMatch& match, const LoopCloserOptions& options) {
   const Pose& T_map_query = match.query->T_map_cam;
   return TranslationDistance(T_map_query, match.T_candidate_map_query) < options.min_correction_m &&
-         RotationDistance(T_map_query, match.T_candidate_map_query) < options.min_correction_deg * M_PI / 180;
+         RotationDistance(T_map_query, match.T_candidate_map_query) <
+             options.min_correction_deg * M_PI / 180;
 }
 
-MapFusion FuseMapsByLoop(MapManager* maps, MapManager::Guard* query_map, MapManager::Guard* candidate_map,
-                         const LoopMatch& match) {
+MapFusion FuseMapsByLoop(MapManager* maps, MapManager::Guard* query_map,
+                         MapManager::Guard* candidate_map, const LoopMatch& match) {
   const Pose T_cmap_qmap = match.T_candidate_map_query * match.query->T_map_cam.inverse();
   const auto primary = maps->primary();
   const MapId old_query = (*query_map)->id(), old_candidate = (*candidate_map)->id();
@@ -150,9 +153,13 @@ MapFusion FuseMapsByLoop(MapManager* maps, MapManager::Guard* query_map, MapMana
 
 // ---------------------------------------------------------------- the three steps in order
 
-LoopCloser::LoopCloser(const LoopCloserOptions& options, const PlaceIndexOptions& place, MapManager* maps,
-                       double start_time)
-    : options_(options), place_(place), maps_(maps), start_time_(start_time), consistency_(options),
+LoopCloser::LoopCloser(const LoopCloserOptions& options, const PlaceIndexOptions& place,
+                       MapManager* maps, double start_time)
+    : options_(options),
+      place_(place),
+      maps_(maps),
+      start_time_(start_time),
+      consistency_(options),
       cooldown_(options.loop_cooldown_keyframes) {}
 
 std::optional<GlobalKeyframeId> LoopCloser::NextLateQuery() {
@@ -162,7 +169,8 @@ std::optional<GlobalKeyframeId> LoopCloser::NextLateQuery() {
   return id;
 }
 
-std::optional<LoopCloser::Query> LoopCloser::FindCandidates(const GlobalKeyframeId& id, bool stored) {
+std::optional<LoopCloser::Query> LoopCloser::FindCandidates(const GlobalKeyframeId& id,
+                                                            bool stored) {
   std::vector<Descriptor> descriptors;
   std::vector<PlaceHit> hits;
   Query query;
@@ -172,12 +180,13 @@ std::optional<LoopCloser::Query> LoopCloser::FindCandidates(const GlobalKeyframe
     if (!keyframe) return std::nullopt;
     query.map = guard->id();
     descriptors = keyframe->Descriptors();
-    const LoopCandidateRule rule = MakeLoopCandidateRule(place_, id, *keyframe, options_.exclude_recent_keyframes);
+    const LoopCandidateRule rule =
+        MakeLoopCandidateRule(place_, id, *keyframe, options_.exclude_recent_keyframes);
     hits = QueryLoopCandidates(place_, descriptors, rule, options_.loop_candidates * 3);
   }
-  query.candidates =
-      SelectLoopCandidates(std::move(hits), cooldown_.Active(id), query.map,
-                           [this](AgentId agent) { return maps_->MapOfAgent(agent); }, options_.loop_candidates);
+  query.candidates = SelectLoopCandidates(
+      std::move(hits), cooldown_.Active(id), query.map,
+      [this](AgentId agent) { return maps_->MapOfAgent(agent); }, options_.loop_candidates);
   if (!stored) {
     const std::vector<GlobalKeyframeId> late = place_.Add(id, descriptors);
     late_queries_.insert(late_queries_.end(), late.begin(), late.end());
@@ -185,8 +194,8 @@ std::optional<LoopCloser::Query> LoopCloser::FindCandidates(const GlobalKeyframe
   return query;
 }
 
-std::optional<LoopClosure> LoopCloser::Process(const GlobalKeyframeId& id, const PinholeCamera& camera,
-                                               bool stored) {
+std::optional<LoopClosure> LoopCloser::Process(const GlobalKeyframeId& id,
+                                               const PinholeCamera& camera, bool stored) {
   const std::optional<Query> query = FindCandidates(id, stored);
   if (!query) return std::nullopt;
   std::optional<LoopClosure> closure;
@@ -196,9 +205,9 @@ std::optional<LoopClosure> LoopCloser::Process(const GlobalKeyframeId& id, const
   return closure;
 }
 
-LoopCloser::Outcome LoopCloser::TryCandidate(const GlobalKeyframeId& id, const PinholeCamera& camera,
-                                             const PlaceHit& candidate, MapId query_map,
-                                             std::optional<LoopClosure>* closure) {
+LoopCloser::Outcome LoopCloser::TryCandidate(const GlobalKeyframeId& id,
+                                             const PinholeCamera& camera, const PlaceHit& candidate,
+                                             MapId query_map, std::optional<LoopClosure>* closure) {
   const auto candidate_map = maps_->MapOfAgent(candidate.keyframe.agent);
   if (!candidate_map) return Outcome::kNextCandidate;
   const bool same_map = *candidate_map == query_map;
@@ -208,7 +217,8 @@ LoopCloser::Outcome LoopCloser::TryCandidate(const GlobalKeyframeId& id, const P
   } else {
     std::tie(query_guard, candidate_guard) = maps_->CheckOutPair(query_map, *candidate_map);
   }
-  if (!query_guard || (!same_map && !candidate_guard)) return Outcome::kDone;  // fused meanwhile: next keyframe
+  if (!query_guard || (!same_map && !candidate_guard))
+    return Outcome::kDone;  // fused meanwhile: next keyframe
   const ServerMap& cmap = same_map ? *query_guard : *candidate_guard;
   ServerKeyframe* query = query_guard->keyframe(id);
   ServerKeyframe* cand = cmap.keyframe(candidate.keyframe);
@@ -217,11 +227,12 @@ LoopCloser::Outcome LoopCloser::TryCandidate(const GlobalKeyframeId& id, const P
   if (!match) return Outcome::kNextCandidate;
 
   int count = 0;
-  const bool accepted =
-      consistency_.Confirm(id, cmap.id(), match->T_candidate_map_query * query->T_map_cam.inverse(), &count);
-  CCMD_LOG(INFO) << "loop candidate: agent " << id.agent.value() << " keyframe " << id.keyframe.value() << " ~ agent "
-                 << cand->id.agent.value() << " keyframe " << cand->id.keyframe.value() << " (" << match->inliers
-                 << " inliers, " << count << "/" << options_.loop_consistency << " consistent)";
+  const bool accepted = consistency_.Confirm(
+      id, cmap.id(), match->T_candidate_map_query * query->T_map_cam.inverse(), &count);
+  CCMD_LOG(INFO) << "loop candidate: agent " << id.agent.value() << " keyframe "
+                 << id.keyframe.value() << " ~ agent " << cand->id.agent.value() << " keyframe "
+                 << cand->id.keyframe.value() << " (" << match->inliers << " inliers, " << count
+                 << "/" << options_.loop_consistency << " consistent)";
   if (!accepted) return Outcome::kDone;
   *closure = Correct(&query_guard, same_map ? nullptr : &candidate_guard, *match);
   return Outcome::kClosed;
@@ -254,11 +265,13 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
   }
   event.map = closure.map->id();
   cooldown_.Start(event.query);
-  CCMD_LOG(INFO) << (event.fusion ? "maps fused" : event.already_closed ? "loop already closed" : "loop closed")
-                 << ": agent " << event.query.agent.value()
-                 << " keyframe " << event.query.keyframe.value() << " with agent " << event.candidate.agent.value()
-                 << " keyframe " << event.candidate.keyframe.value() << ", " << event.inliers << " inliers, map "
-                 << event.map.value();
+  CCMD_LOG(INFO) << (event.fusion           ? "maps fused"
+                     : event.already_closed ? "loop already closed"
+                                            : "loop closed")
+                 << ": agent " << event.query.agent.value() << " keyframe "
+                 << event.query.keyframe.value() << " with agent " << event.candidate.agent.value()
+                 << " keyframe " << event.candidate.keyframe.value() << ", " << event.inliers
+                 << " inliers, map " << event.map.value();
   return closure;
 }
 

@@ -23,8 +23,8 @@
 #include "libccmd/backend/map_optimization.h"
 #include "libccmd/backend/place_index.h"
 #include "libccmd/geometry/camera.h"
-#include "libccmd/util/status.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 
@@ -34,9 +34,10 @@ struct LoopCloserOptions {
   int loop_consistency = 2;               // consecutive confirming keyframes needed
   double consistency_translation = 0.05;  // metres between confirming map-to-map transforms
   double consistency_rotation_deg = 3.0;
-  int consistency_max_gap = 3;            // keyframe ids between two confirming queries
-  int exclude_recent_keyframes = 25;      // same-agent neighbours in id that never count as loops
-  int loop_cooldown_keyframes = 10;       // after a loop, the agent's next keyframes seek no loop in their own map
+  int consistency_max_gap = 3;        // keyframe ids between two confirming queries
+  int exclude_recent_keyframes = 25;  // same-agent neighbours in id that never count as loops
+  int loop_cooldown_keyframes =
+      10;  // after a loop, the agent's next keyframes seek no loop in their own map
   // A loop inside a map whose verified pose of the query differs from the query's pose in the
   // map by less than this is already closed: its edge and matches are kept, but there is
   // nothing to correct (no pose graph, no global BA). An agent circling a room finds such
@@ -56,17 +57,17 @@ struct LoopEvent {
   // What verification measured: the query's camera in the candidate's camera frame (the loop
   // edge), so that a benchmark can check the transform against ground truth.
   Pose T_candidate_query = Pose::Identity();
-  bool fusion = false;     // two maps fused (else a loop inside a map)
+  bool fusion = false;          // two maps fused (else a loop inside a map)
   bool already_closed = false;  // inside a map that agreed with it already: nothing corrected
-  MapId map;               // the map after the event
+  MapId map;                    // the map after the event
 };
 
 // Step 1, after the place index's query: the candidates LoopCloser verifies, best first. While
 // the agent cools down, candidates in the query's own map are dropped (and those whose map is
 // unknown); at most `max_candidates` remain.
-std::vector<PlaceHit> SelectLoopCandidates(std::vector<PlaceHit> hits, bool cooling_down, MapId query_map,
-                                           const std::function<std::optional<MapId>(AgentId)>& map_of_agent,
-                                           int max_candidates);
+std::vector<PlaceHit> SelectLoopCandidates(
+    std::vector<PlaceHit> hits, bool cooling_down, MapId query_map,
+    const std::function<std::optional<MapId>(AgentId)>& map_of_agent, int max_candidates);
 
 // Step 2: the consistency rule. A verified loop of the query with a keyframe of
 // `candidate_map` measures T_candidate_map_query_map. It is accepted when it agrees (within
@@ -79,8 +80,8 @@ class LoopConsistency {
   explicit LoopConsistency(const LoopCloserOptions& options) : options_(options) {}
   // Records a verified loop; true if it completes the rule. `count` receives how many
   // consecutive agreeing loops there are with this one (for the log).
-  bool Confirm(const GlobalKeyframeId& query, MapId candidate_map, const Pose& T_candidate_map_query_map,
-               int* count = nullptr);
+  bool Confirm(const GlobalKeyframeId& query, MapId candidate_map,
+               const Pose& T_candidate_map_query_map, int* count = nullptr);
 
  private:
   struct Pending {
@@ -113,28 +114,29 @@ void MergeLoopMatches(ServerMap* map, const LoopMatch& match);
 
 // Step 3 inside one map: the loop edge (the verified relative pose), merged matches, then the
 // pose graph. Returns the keyframes the pose graph moved (none if it failed: logged).
-std::vector<ServerKeyframe*> CloseLoopInMap(ServerMap* map, const LoopMatch& match, const MapPoseGraphOptions& options);
+std::vector<ServerKeyframe*> CloseLoopInMap(ServerMap* map, const LoopMatch& match,
+                                            const MapPoseGraphOptions& options);
 // Whether a verified loop inside a map is already closed (see min_correction_m).
 bool LoopAlreadyClosed(const LoopMatch& match, const LoopCloserOptions& options);
 
 // What a fusion changed, beyond the fused map itself.
 struct MapFusion {
-  MapManager::Guard map;                          // the fused map, still checked out
-  std::vector<ServerKeyframe*> moved;             // keyframes that entered the other map's frame
-  std::vector<ServerKeyframe*> joined_primary;    // keyframes that entered the primary map
-  std::optional<MapId> primary_before;            // the primary map, if it took part
+  MapManager::Guard map;                        // the fused map, still checked out
+  std::vector<ServerKeyframe*> moved;           // keyframes that entered the other map's frame
+  std::vector<ServerKeyframe*> joined_primary;  // keyframes that entered the primary map
+  std::optional<MapId> primary_before;          // the primary map, if it took part
 };
 
 // Step 3 between two maps: they are fused into a new map in the primary map's frame if one of
 // them is primary, else in the candidate's; the loop becomes a loop edge and the matches are
 // merged. The guards become empty; the result holds the fused map.
-MapFusion FuseMapsByLoop(MapManager* maps, MapManager::Guard* query_map, MapManager::Guard* candidate_map,
-                         const LoopMatch& match);
+MapFusion FuseMapsByLoop(MapManager* maps, MapManager::Guard* query_map,
+                         MapManager::Guard* candidate_map, const LoopMatch& match);
 
 // A loop the LoopCloser accepted and corrected.
 struct LoopClosure {
   LoopEvent event;
-  MapManager::Guard map;                        // the map after the correction, still checked out
+  MapManager::Guard map;  // the map after the correction, still checked out
   // Keyframes the pose graph moved, or a fusion brought into the other map's frame.
   std::vector<ServerKeyframe*> moved;
   std::vector<ServerKeyframe*> joined_primary;  // keyframes a fusion brought into the primary map
@@ -144,12 +146,14 @@ struct LoopClosure {
 class LoopCloser {
  public:
   // `start_time`: MonotonicSeconds() at which the back-end started (the events' clock).
-  LoopCloser(const LoopCloserOptions& options, const PlaceIndexOptions& place, MapManager* maps, double start_time);
+  LoopCloser(const LoopCloserOptions& options, const PlaceIndexOptions& place, MapManager* maps,
+             double start_time);
 
   // Runs the three steps for a keyframe of an agent with `camera`. `stored`: the keyframe is
   // already in the place index (a late query), so it is only queried. Returns the loop it
   // closed, if any, with its map still checked out.
-  std::optional<LoopClosure> Process(const GlobalKeyframeId& id, const PinholeCamera& camera, bool stored);
+  std::optional<LoopClosure> Process(const GlobalKeyframeId& id, const PinholeCamera& camera,
+                                     bool stored);
 
   // Keyframes stored before an online vocabulary existed, to be queried now, oldest first.
   std::optional<GlobalKeyframeId> NextLateQuery();
@@ -164,9 +168,11 @@ class LoopCloser {
   std::optional<Query> FindCandidates(const GlobalKeyframeId& id, bool stored);
   enum class Outcome { kNextCandidate, kDone, kClosed };
   // Verifies one candidate; on acceptance corrects and fills `closure`.
-  Outcome TryCandidate(const GlobalKeyframeId& id, const PinholeCamera& camera, const PlaceHit& candidate,
-                       MapId query_map, std::optional<LoopClosure>* closure);
-  LoopClosure Correct(MapManager::Guard* query_guard, MapManager::Guard* candidate_guard, const LoopMatch& match);
+  Outcome TryCandidate(const GlobalKeyframeId& id, const PinholeCamera& camera,
+                       const PlaceHit& candidate, MapId query_map,
+                       std::optional<LoopClosure>* closure);
+  LoopClosure Correct(MapManager::Guard* query_guard, MapManager::Guard* candidate_guard,
+                      const LoopMatch& match);
 
   const LoopCloserOptions options_;
   PlaceIndex place_;

@@ -13,12 +13,15 @@ namespace ccmd {
 
 Status LoopVerificationOptions::Validate() const {
   if (window_keyframes < 0) return InvalidArgument("loop verification window must be >= 0");
-  if (max_hamming < 1 || max_hamming > 256) return InvalidArgument("loop max Hamming distance must be 1..256");
+  if (max_hamming < 1 || max_hamming > 256)
+    return InvalidArgument("loop max Hamming distance must be 1..256");
   if (!(ratio > 0 && ratio <= 1)) return InvalidArgument("loop match ratio must be in (0, 1]");
   if (min_matches < 4 || min_ransac_inliers < 4 || min_inliers < 10) {
-    return InvalidArgument("loop verification needs at least 4 matches and inliers, 10 after refinement");
+    return InvalidArgument(
+        "loop verification needs at least 4 matches and inliers, 10 after refinement");
   }
-  if (!(ransac_reprojection_px > 0)) return InvalidArgument("loop RANSAC threshold must be positive");
+  if (!(ransac_reprojection_px > 0))
+    return InvalidArgument("loop RANSAC threshold must be positive");
   return depth_noise.Validate();
 }
 
@@ -36,7 +39,8 @@ void LoopVerificationOptions::Describe(OptionsWriter* out) const {
 bool LoopCandidateRule::Allowed(const GlobalKeyframeId& c) const {
   if (c == query || connected.count(c)) return false;
   return c.agent != query.agent ||
-         std::abs(static_cast<long>(c.keyframe.value()) - static_cast<long>(query.keyframe.value())) > exclude_recent;
+         std::abs(static_cast<long>(c.keyframe.value()) -
+                  static_cast<long>(query.keyframe.value())) > exclude_recent;
 }
 
 LoopCandidateRule MakeLoopCandidateRule(const PlaceIndex& place, const GlobalKeyframeId& id,
@@ -53,11 +57,13 @@ LoopCandidateRule MakeLoopCandidateRule(const PlaceIndex& place, const GlobalKey
   return rule;
 }
 
-std::vector<PlaceHit> QueryLoopCandidates(const PlaceIndex& place, const std::vector<Descriptor>& descriptors,
+std::vector<PlaceHit> QueryLoopCandidates(const PlaceIndex& place,
+                                          const std::vector<Descriptor>& descriptors,
                                           const LoopCandidateRule& rule, int max_results) {
-  std::vector<PlaceHit> hits =
-      place.Query(descriptors, max_results, [&rule](const GlobalKeyframeId& c) { return rule.Allowed(c); });
-  hits.erase(std::remove_if(hits.begin(), hits.end(), [&](const PlaceHit& h) { return h.score < rule.min_score; }),
+  std::vector<PlaceHit> hits = place.Query(
+      descriptors, max_results, [&rule](const GlobalKeyframeId& c) { return rule.Allowed(c); });
+  hits.erase(std::remove_if(hits.begin(), hits.end(),
+                            [&](const PlaceHit& h) { return h.score < rule.min_score; }),
              hits.end());
   return hits;
 }
@@ -70,8 +76,9 @@ std::vector<ServerMapPoint*> WindowPoints(const ServerKeyframe* query, ServerKey
   std::vector<ServerKeyframe*> window = {candidate};
   std::vector<std::pair<GlobalKeyframeId, int>> neighbours(candidate->covisibility.begin(),
                                                            candidate->covisibility.end());
-  std::sort(neighbours.begin(), neighbours.end(),
-            [](const auto& a, const auto& b) { return a.second != b.second ? a.second > b.second : a.first < b.first; });
+  std::sort(neighbours.begin(), neighbours.end(), [](const auto& a, const auto& b) {
+    return a.second != b.second ? a.second > b.second : a.first < b.first;
+  });
   for (const auto& [id, weight] : neighbours) {
     if (static_cast<int>(window.size()) > window_keyframes) break;
     if (ServerKeyframe* kf = candidate_map.keyframe(id); kf && kf != query) window.push_back(kf);
@@ -118,31 +125,38 @@ CCMD_POPCNT_CLONES std::vector<int> MatchKeypoints(const ServerKeyframe& query,
 }
 
 // PnP RANSAC of the matches: the query camera's pose in the candidate's map, if enough agree.
-std::optional<Pose> SolvePnpRansac(const std::vector<cv::Point3f>& object, const std::vector<cv::Point2f>& image,
-                                   const PinholeCamera& camera, const LoopVerificationOptions& options) {
-  const cv::Mat K = (cv::Mat_<double>(3, 3) << camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1);
+std::optional<Pose> SolvePnpRansac(const std::vector<cv::Point3f>& object,
+                                   const std::vector<cv::Point2f>& image,
+                                   const PinholeCamera& camera,
+                                   const LoopVerificationOptions& options) {
+  const cv::Mat K =
+      (cv::Mat_<double>(3, 3) << camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1);
   cv::Mat rvec, tvec;
   std::vector<int> ransac_inliers;
   cv::setRNGSeed(0x100b);  // deterministic RANSAC
   const bool solved = cv::solvePnPRansac(object, image, K, cv::noArray(), rvec, tvec, false, 300,
                                          static_cast<float>(options.ransac_reprojection_px), 0.999,
                                          ransac_inliers, cv::SOLVEPNP_EPNP);
-  if (!solved || static_cast<int>(ransac_inliers.size()) < options.min_ransac_inliers) return std::nullopt;
+  if (!solved || static_cast<int>(ransac_inliers.size()) < options.min_ransac_inliers)
+    return std::nullopt;
   cv::Mat R;
   cv::Rodrigues(rvec, R);
   Eigen::Matrix3d Re;
   cv::cv2eigen(R, Re);
   Pose T_cam_map = Pose::Identity();
   T_cam_map.linear() = Re;
-  T_cam_map.translation() = Eigen::Vector3d(tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2));
+  T_cam_map.translation() =
+      Eigen::Vector3d(tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2));
   return T_cam_map;
 }
 
 }  // namespace
 
-std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& camera, ServerKeyframe* candidate,
-                                    const ServerMap& candidate_map, const LoopVerificationOptions& options) {
-  const std::vector<ServerMapPoint*> points = WindowPoints(query, candidate, candidate_map, options.window_keyframes);
+std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& camera,
+                                    ServerKeyframe* candidate, const ServerMap& candidate_map,
+                                    const LoopVerificationOptions& options) {
+  const std::vector<ServerMapPoint*> points =
+      WindowPoints(query, candidate, candidate_map, options.window_keyframes);
   if (static_cast<int>(points.size()) < options.min_matches) return std::nullopt;
   const std::vector<int> point_of = MatchKeypoints(*query, points, options);
   std::vector<cv::Point3f> object;
@@ -151,7 +165,8 @@ std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& 
   for (std::size_t i = 0; i < point_of.size(); ++i) {
     if (point_of[i] < 0) continue;
     const Eigen::Vector3d p = points[point_of[i]]->World();
-    object.emplace_back(static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z()));
+    object.emplace_back(static_cast<float>(p.x()), static_cast<float>(p.y()),
+                        static_cast<float>(p.z()));
     image.push_back(query->keypoints[i].pt);
     keypoint_index.push_back(static_cast<int>(i));
   }
@@ -164,8 +179,9 @@ std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& 
   for (std::size_t k = 0; k < object.size(); ++k) {
     const ServerKeypoint& kp = query->keypoints[keypoint_index[k]];
     const double inv_sigma2 = std::pow(1.2, -2.0 * kp.octave);
-    observations.push_back({points[point_of[keypoint_index[k]]]->World(), Eigen::Vector2d(kp.pt.x, kp.pt.y),
-                            kp.depth, inv_sigma2, kp.depth > 0 ? options.depth_noise.Information(kp.depth) : 0.0});
+    observations.push_back({points[point_of[keypoint_index[k]]]->World(),
+                            Eigen::Vector2d(kp.pt.x, kp.pt.y), kp.depth, inv_sigma2,
+                            kp.depth > 0 ? options.depth_noise.Information(kp.depth) : 0.0});
   }
   const Intrinsics intrinsics{camera.fx, camera.fy, camera.cx, camera.cy};
   const PoseOptimizationResult refined = OptimizePose(*T_cam_map, observations, intrinsics);
@@ -177,7 +193,8 @@ std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& 
   match.T_candidate_map_query = refined.T_cam_world.inverse();
   match.inliers = refined.inliers;
   for (std::size_t k = 0; k < observations.size(); ++k) {
-    if (refined.inlier[k]) match.matches.emplace_back(keypoint_index[k], points[point_of[keypoint_index[k]]]);
+    if (refined.inlier[k])
+      match.matches.emplace_back(keypoint_index[k], points[point_of[keypoint_index[k]]]);
   }
   return match;
 }

@@ -30,16 +30,17 @@ struct LoopCandidateRule {
 LoopCandidateRule MakeLoopCandidateRule(const PlaceIndex& place, const GlobalKeyframeId& id,
                                         const ServerKeyframe& query, int exclude_recent);
 // The place index's best hits that pass the rule, best first, at most `max_results`.
-std::vector<PlaceHit> QueryLoopCandidates(const PlaceIndex& place, const std::vector<Descriptor>& descriptors,
+std::vector<PlaceHit> QueryLoopCandidates(const PlaceIndex& place,
+                                          const std::vector<Descriptor>& descriptors,
                                           const LoopCandidateRule& rule, int max_results);
 
 struct LoopVerificationOptions {
-  int window_keyframes = 10;       // candidate + this many covisible neighbours
-  int max_hamming = 50;            // descriptor distance accepted
-  float ratio = 0.8f;              // best / second best
-  int min_matches = 30;            // before RANSAC
+  int window_keyframes = 10;  // candidate + this many covisible neighbours
+  int max_hamming = 50;       // descriptor distance accepted
+  float ratio = 0.8f;         // best / second best
+  int min_matches = 30;       // before RANSAC
   int min_ransac_inliers = 25;
-  int min_inliers = 40;            // after refinement: the loop's acceptance threshold
+  int min_inliers = 40;  // after refinement: the loop's acceptance threshold
   double ransac_reprojection_px = 4.0;
   DepthNoise depth_noise;
 

@@ -73,7 +73,8 @@ MapManager::Guard MapManager::Fuse(Guard* keep, Guard* other, const Pose& T_keep
   other->entry_->retired = true;
   maps_.erase(keep_id);
   maps_.erase(other_id);
-  CCMD_LOG(INFO) << "maps " << keep_id.value() << " and " << other_id.value() << " fused into map " << id.value();
+  CCMD_LOG(INFO) << "maps " << keep_id.value() << " and " << other_id.value() << " fused into map "
+                 << id.value();
   return result;
 }
 

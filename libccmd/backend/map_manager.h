@@ -35,8 +35,7 @@ class MapManager {
 
    private:
     friend class MapManager;
-    Guard(std::shared_ptr<Entry> entry)
-        : entry_(std::move(entry)), lock_(entry_->mutex) {}
+    Guard(std::shared_ptr<Entry> entry) : entry_(std::move(entry)), lock_(entry_->mutex) {}
     std::shared_ptr<Entry> entry_;
     std::unique_lock<std::mutex> lock_;
   };

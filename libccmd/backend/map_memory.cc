@@ -16,8 +16,8 @@ std::size_t Capacity(const std::vector<T>& v) {
 }  // namespace
 
 std::size_t SparseMemory::total() const {
-  return keyframe_bytes + keypoint_bytes + descriptor_bytes + point_link_bytes + map_point_bytes + covisibility_bytes +
-         depth_link_bytes + loop_edge_bytes + rgbd_coded_bytes + place_bytes;
+  return keyframe_bytes + keypoint_bytes + descriptor_bytes + point_link_bytes + map_point_bytes +
+         covisibility_bytes + depth_link_bytes + loop_edge_bytes + rgbd_coded_bytes + place_bytes;
 }
 
 void SparseMemory::Add(const SparseMemory& o) {
@@ -39,11 +39,17 @@ Json SparseMemory::ToJson() const {
   Json j;
   j["keyframes"] = keyframes;
   j["map_points"] = map_points;
-  const std::pair<const char*, std::size_t> parts[] = {
-      {"keyframe", keyframe_bytes},        {"keypoints", keypoint_bytes},      {"descriptors", descriptor_bytes},
-      {"point_links", point_link_bytes},   {"map_points", map_point_bytes},    {"covisibility", covisibility_bytes},
-      {"depth_links", depth_link_bytes},   {"loop_edges", loop_edge_bytes},    {"rgbd_coded", rgbd_coded_bytes},
-      {"place_recognition", place_bytes},  {"total", total()}};
+  const std::pair<const char*, std::size_t> parts[] = {{"keyframe", keyframe_bytes},
+                                                       {"keypoints", keypoint_bytes},
+                                                       {"descriptors", descriptor_bytes},
+                                                       {"point_links", point_link_bytes},
+                                                       {"map_points", map_point_bytes},
+                                                       {"covisibility", covisibility_bytes},
+                                                       {"depth_links", depth_link_bytes},
+                                                       {"loop_edges", loop_edge_bytes},
+                                                       {"rgbd_coded", rgbd_coded_bytes},
+                                                       {"place_recognition", place_bytes},
+                                                       {"total", total()}};
   Json bytes, per_keyframe;
   for (const auto& [name, value] : parts) {
     bytes[name] = value;
@@ -62,7 +68,8 @@ SparseMemory MeasureSparseMemory(const ServerMap& map) {
     m.keypoint_bytes += Capacity(kf->keypoints);
     m.descriptor_bytes += Capacity(kf->own_descriptors);
     m.point_link_bytes += Capacity(kf->points);
-    m.covisibility_bytes += kf->covisibility.size() * (kTreeNode + sizeof(GlobalKeyframeId) + sizeof(int));
+    m.covisibility_bytes +=
+        kf->covisibility.size() * (kTreeNode + sizeof(GlobalKeyframeId) + sizeof(int));
     m.depth_link_bytes += Capacity(kf->depth_links);
     if (kf->rgbd) {
       m.rgbd_coded_bytes +=

@@ -14,16 +14,16 @@ namespace ccmd {
 struct SparseMemory {
   std::size_t keyframes = 0;
   std::size_t map_points = 0;
-  std::size_t keyframe_bytes = 0;     // the keyframe objects and the map's index of them
-  std::size_t keypoint_bytes = 0;     // positions, octaves, angles, depths
-  std::size_t descriptor_bytes = 0;   // one per keypoint
-  std::size_t point_link_bytes = 0;   // keypoint to map point
-  std::size_t map_point_bytes = 0;    // points, their descriptors and observations, the index
+  std::size_t keyframe_bytes = 0;    // the keyframe objects and the map's index of them
+  std::size_t keypoint_bytes = 0;    // positions, octaves, angles, depths
+  std::size_t descriptor_bytes = 0;  // one per keypoint
+  std::size_t point_link_bytes = 0;  // keypoint to map point
+  std::size_t map_point_bytes = 0;   // points, their descriptors and observations, the index
   std::size_t covisibility_bytes = 0;
   std::size_t depth_link_bytes = 0;
   std::size_t loop_edge_bytes = 0;
-  std::size_t rgbd_coded_bytes = 0;   // coded RGB-D waiting for the dense map
-  std::size_t place_bytes = 0;        // place recognition (filled in by the back-end)
+  std::size_t rgbd_coded_bytes = 0;  // coded RGB-D waiting for the dense map
+  std::size_t place_bytes = 0;       // place recognition (filled in by the back-end)
 
   std::size_t total() const;
   void Add(const SparseMemory& other);

@@ -7,7 +7,8 @@
 namespace ccmd {
 
 Status MapPoseGraphOptions::Validate() const {
-  if (min_covisibility_weight < 1) return InvalidArgument("pose graph covisibility weight must be >= 1");
+  if (min_covisibility_weight < 1)
+    return InvalidArgument("pose graph covisibility weight must be >= 1");
   for (const double s : {odometry_sigma_rotation, odometry_sigma_translation, loop_sigma_rotation,
                          loop_sigma_translation}) {
     if (!(s > 0) || !std::isfinite(s)) return InvalidArgument("pose graph sigmas must be positive");
@@ -25,7 +26,8 @@ void MapPoseGraphOptions::Describe(OptionsWriter* out) const {
   out->Add("max_iterations", max_iterations);
 }
 
-StatusOr<std::vector<ServerKeyframe*>> OptimizeMapPoseGraph(ServerMap* map, const MapPoseGraphOptions& options) {
+StatusOr<std::vector<ServerKeyframe*>> OptimizeMapPoseGraph(ServerMap* map,
+                                                            const MapPoseGraphOptions& options) {
   std::vector<ServerKeyframe*> keyframes;
   std::map<GlobalKeyframeId, int> index;
   std::vector<PoseGraphNode> nodes;
@@ -36,12 +38,16 @@ StatusOr<std::vector<ServerKeyframe*>> OptimizeMapPoseGraph(ServerMap* map, cons
   }
   if (keyframes.size() < 2) return std::vector<ServerKeyframe*>{};
   std::vector<PoseGraphEdge> edges;
-  auto relative = [](const ServerKeyframe* a, const ServerKeyframe* b) { return a->T_map_cam.inverse() * b->T_map_cam; };
-  const double odo_r = 1.0 / options.odometry_sigma_rotation, odo_t = 1.0 / options.odometry_sigma_translation;
+  auto relative = [](const ServerKeyframe* a, const ServerKeyframe* b) {
+    return a->T_map_cam.inverse() * b->T_map_cam;
+  };
+  const double odo_r = 1.0 / options.odometry_sigma_rotation,
+               odo_t = 1.0 / options.odometry_sigma_translation;
   // Consecutive keyframes of each agent.
   for (std::size_t i = 1; i < keyframes.size(); ++i) {
     if (keyframes[i]->id.agent != keyframes[i - 1]->id.agent) continue;
-    edges.push_back({static_cast<int>(i - 1), static_cast<int>(i), relative(keyframes[i - 1], keyframes[i]), odo_r, odo_t});
+    edges.push_back({static_cast<int>(i - 1), static_cast<int>(i),
+                     relative(keyframes[i - 1], keyframes[i]), odo_r, odo_t});
   }
   // Strong covisibility links, once per pair.
   for (std::size_t i = 0; i < keyframes.size(); ++i) {
@@ -49,7 +55,8 @@ StatusOr<std::vector<ServerKeyframe*>> OptimizeMapPoseGraph(ServerMap* map, cons
       if (weight < options.min_covisibility_weight) continue;
       const auto it = index.find(other);
       if (it == index.end() || it->second <= static_cast<int>(i)) continue;
-      edges.push_back({static_cast<int>(i), it->second, relative(keyframes[i], keyframes[it->second]), odo_r, odo_t});
+      edges.push_back({static_cast<int>(i), it->second,
+                       relative(keyframes[i], keyframes[it->second]), odo_r, odo_t});
     }
   }
   for (const LoopEdge& loop : map->loop_edges()) {
@@ -60,7 +67,8 @@ StatusOr<std::vector<ServerKeyframe*>> OptimizeMapPoseGraph(ServerMap* map, cons
   }
   PoseGraphOptions graph_options;
   graph_options.max_iterations = options.max_iterations;
-  CCMD_ASSIGN_OR_RETURN(const PoseGraphSummary summary, OptimizePoseGraph(&nodes, edges, graph_options));
+  CCMD_ASSIGN_OR_RETURN(const PoseGraphSummary summary,
+                        OptimizePoseGraph(&nodes, edges, graph_options));
   (void)summary;
   std::vector<ServerKeyframe*> moved;
   for (std::size_t i = 0; i < keyframes.size(); ++i) {
@@ -78,8 +86,8 @@ namespace {
 // Fills a GlobalBaProblem: cameras (keyframes) and points, each added once.
 class GlobalBaBuilder {
  public:
-  GlobalBaBuilder(const ServerMap& map, const std::map<AgentId, PinholeCamera>& cameras, const DepthNoise& depth_noise,
-                  GlobalBaProblem* g)
+  GlobalBaBuilder(const ServerMap& map, const std::map<AgentId, PinholeCamera>& cameras,
+                  const DepthNoise& depth_noise, GlobalBaProblem* g)
       : map_(map), depth_noise_(depth_noise), g_(g) {
     for (const auto& [agent, camera] : cameras) {
       calibration_[agent] = static_cast<int>(g_->problem.calibrations.size());
@@ -96,7 +104,8 @@ class GlobalBaBuilder {
     const auto known = camera_index_.find(kf);
     if (known != camera_index_.end()) return known->second;
     const auto c = calibration_.find(kf->id.agent);
-    if (c == calibration_.end()) return -1;  // no camera known for that agent (cannot happen in a session)
+    if (c == calibration_.end())
+      return -1;  // no camera known for that agent (cannot happen in a session)
     const int index = static_cast<int>(g_->keyframes.size());
     camera_index_[kf] = index;
     g_->keyframes.push_back(kf->id);
@@ -115,7 +124,8 @@ class GlobalBaBuilder {
     g_->points.push_back(p->id);
     g_->problem.points.push_back({p->World()});
     for (const auto& o : p->observations) {
-      const int c = fixed && fixed->count(o.keyframe) ? Camera(o.keyframe, /*fixed=*/true) : Known(o.keyframe);
+      const int c = fixed && fixed->count(o.keyframe) ? Camera(o.keyframe, /*fixed=*/true)
+                                                      : Known(o.keyframe);
       if (c < 0) continue;
       const ServerKeypoint& kp = o.keyframe->keypoints[o.keypoint];
       g_->problem.observations.push_back({c, index, Eigen::Vector2d(kp.pt.x, kp.pt.y), kp.depth,
@@ -130,7 +140,8 @@ class GlobalBaBuilder {
       for (const ServerKeyframe::DepthLink& link : map_.keyframe(g_->keyframes[b])->depth_links) {
         const int a = Known(map_.keyframe(link.other));
         if (a >= 0) {
-          g_->problem.relative_poses.push_back({a, static_cast<int>(b), link.T_this_other, link.sqrt_information});
+          g_->problem.relative_poses.push_back(
+              {a, static_cast<int>(b), link.T_this_other, link.sqrt_information});
         }
       }
     }
@@ -157,7 +168,8 @@ namespace {
 // The keyframes outside a window that see its points most often, at most half as many as the
 // window holds: they hold the window in place (the gauge) without the problem growing with
 // every pass over the place.
-std::set<const ServerKeyframe*> FixedNeighbours(const ServerMap& map, const std::set<GlobalKeyframeId>& window) {
+std::set<const ServerKeyframe*> FixedNeighbours(const ServerMap& map,
+                                                const std::set<GlobalKeyframeId>& window) {
   std::map<const ServerKeyframe*, int> seen;
   std::unordered_set<const ServerMapPoint*> visited;
   for (const GlobalKeyframeId& id : window) {
@@ -184,7 +196,8 @@ std::set<const ServerKeyframe*> FixedNeighbours(const ServerMap& map, const std:
 }  // namespace
 
 GlobalBaProblem BuildGlobalBa(const ServerMap& map, const std::map<AgentId, PinholeCamera>& cameras,
-                              const DepthNoise& depth_noise, const std::set<GlobalKeyframeId>* window) {
+                              const DepthNoise& depth_noise,
+                              const std::set<GlobalKeyframeId>* window) {
   GlobalBaProblem g;
   GlobalBaBuilder builder(map, cameras, depth_noise, &g);
   for (const auto& [id, kf] : map.keyframes()) {
@@ -198,12 +211,14 @@ GlobalBaProblem BuildGlobalBa(const ServerMap& map, const std::map<AgentId, Pinh
     for (const ServerMapPoint* p : kf->points) builder.Point(p, window ? &fixed : nullptr);
   }
   builder.DepthLinks();
-  const bool gauge = std::any_of(g.problem.cameras.begin(), g.problem.cameras.end(), [](const auto& c) { return c.fixed; });
+  const bool gauge = std::any_of(g.problem.cameras.begin(), g.problem.cameras.end(),
+                                 [](const auto& c) { return c.fixed; });
   if (!gauge && !g.problem.cameras.empty()) g.problem.cameras[0].fixed = true;
   return g;
 }
 
-std::set<GlobalKeyframeId> SelectGlobalBaWindow(const ServerMap& map, const std::vector<GlobalKeyframeId>& seeds,
+std::set<GlobalKeyframeId> SelectGlobalBaWindow(const ServerMap& map,
+                                                const std::vector<GlobalKeyframeId>& seeds,
                                                 int max_keyframes, std::size_t max_observations) {
   std::set<GlobalKeyframeId> window;
   std::size_t observations = 0;
@@ -211,7 +226,8 @@ std::set<GlobalKeyframeId> SelectGlobalBaWindow(const ServerMap& map, const std:
   const auto admit = [&](const ServerKeyframe* kf) {
     std::size_t own = 0;
     for (const ServerMapPoint* p : kf->points) own += p && p->observations.size() >= 2;
-    if (static_cast<int>(window.size()) >= max_keyframes || (!window.empty() && observations + own > max_observations)) {
+    if (static_cast<int>(window.size()) >= max_keyframes ||
+        (!window.empty() && observations + own > max_observations)) {
       return false;
     }
     observations += own;
@@ -266,7 +282,9 @@ std::vector<ServerKeyframe*> ApplyGlobalBa(ServerMap* map, const GlobalBaProblem
   for (const auto& [id, kf] : map->keyframes()) {
     // Only keyframes that arrived after the problem was built (others were left out on purpose).
     const auto last = g.last_keyframe.find(id.agent);
-    if (g.T_map_cam_before.count(id) || (last != g.last_keyframe.end() && id.keyframe <= last->second)) continue;
+    if (g.T_map_cam_before.count(id) ||
+        (last != g.last_keyframe.end() && id.keyframe <= last->second))
+      continue;
     const auto agent = corrections.find(id.agent);
     if (agent == corrections.end() || agent->second.empty()) continue;
     // Nearest optimised keyframe of the same agent at or before this one (else the first).

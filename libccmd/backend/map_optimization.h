@@ -20,7 +20,7 @@
 namespace ccmd {
 
 struct MapPoseGraphOptions {
-  int min_covisibility_weight = 50;  // covisibility edges kept in the graph
+  int min_covisibility_weight = 50;          // covisibility edges kept in the graph
   double odometry_sigma_rotation = 0.01;     // radians
   double odometry_sigma_translation = 0.01;  // metres
   double loop_sigma_rotation = 0.005;
@@ -34,7 +34,8 @@ struct MapPoseGraphOptions {
 // Nodes: every keyframe; edges: consecutive keyframes of each agent and covisibility links
 // (measured as the current relative poses), and the map's loop edges (their measurements).
 // The map's origin keyframe is fixed. Keyframes are moved in place; returns those that moved.
-StatusOr<std::vector<ServerKeyframe*>> OptimizeMapPoseGraph(ServerMap* map, const MapPoseGraphOptions& options = {});
+StatusOr<std::vector<ServerKeyframe*>> OptimizeMapPoseGraph(
+    ServerMap* map, const MapPoseGraphOptions& options = {});
 
 // Global BA in three steps so that the solve runs without holding the map:
 struct GlobalBaProblem {
@@ -49,14 +50,17 @@ struct GlobalBaProblem {
 // map) with every observation, keyframes outside the window that observe them held fixed (and
 // the first of the window if none does, to fix the gauge).
 GlobalBaProblem BuildGlobalBa(const ServerMap& map, const std::map<AgentId, PinholeCamera>& cameras,
-                              const DepthNoise& depth_noise, const std::set<GlobalKeyframeId>* window = nullptr);
+                              const DepthNoise& depth_noise,
+                              const std::set<GlobalKeyframeId>* window = nullptr);
 // The keyframes closest to `seeds` in the covisibility graph (breadth first, strongest links
 // first), at most `max_keyframes` and no more than make `max_observations` observations of
 // points seen twice: the window of a global BA around a loop in a large map. A place seen on
 // many passes has points with many observations; the second bound keeps the problem (its
 // time and memory) the same size there.
-std::set<GlobalKeyframeId> SelectGlobalBaWindow(const ServerMap& map, const std::vector<GlobalKeyframeId>& seeds,
-                                                int max_keyframes, std::size_t max_observations = SIZE_MAX);
+std::set<GlobalKeyframeId> SelectGlobalBaWindow(const ServerMap& map,
+                                                const std::vector<GlobalKeyframeId>& seeds,
+                                                int max_keyframes,
+                                                std::size_t max_observations = SIZE_MAX);
 // Writes the result back: optimised keyframes get their new poses; keyframes added since the
 // problem was built move with the correction of the nearest optimised keyframe of their agent
 // (keyframes left out of a window stay); optimised points get their new positions. Returns the

@@ -21,7 +21,8 @@ namespace {
 
 cv::Mat ToMat(const std::vector<Descriptor>& descriptors) {
   cv::Mat m(static_cast<int>(descriptors.size()), 32, CV_8U);
-  for (std::size_t i = 0; i < descriptors.size(); ++i) std::memcpy(m.ptr(static_cast<int>(i)), descriptors[i].data(), 32);
+  for (std::size_t i = 0; i < descriptors.size(); ++i)
+    std::memcpy(m.ptr(static_cast<int>(i)), descriptors[i].data(), 32);
   return m;
 }
 
@@ -29,10 +30,12 @@ cv::Mat ToMat(const std::vector<Descriptor>& descriptors) {
 
 PlaceIndex::PlaceIndex(const PlaceIndexOptions& options)
     : options_(options), vocabulary_(options.vocabulary) {
-  if (options_.online_training && !vocabulary_) builder_ = std::make_unique<VocabularyBuilder>(options_.online);
+  if (options_.online_training && !vocabulary_)
+    builder_ = std::make_unique<VocabularyBuilder>(options_.online);
 }
 
-std::vector<GlobalKeyframeId> PlaceIndex::Add(const GlobalKeyframeId& id, const std::vector<Descriptor>& descriptors) {
+std::vector<GlobalKeyframeId> PlaceIndex::Add(const GlobalKeyframeId& id,
+                                              const std::vector<Descriptor>& descriptors) {
   const cv::Mat mat = ToMat(descriptors);
   const bool had_vocabulary = vocabulary_ != nullptr;
   if (builder_) {
@@ -45,7 +48,8 @@ std::vector<GlobalKeyframeId> PlaceIndex::Add(const GlobalKeyframeId& id, const 
       descriptors_.clear();
     }
   }
-  if (vocabulary_ && !database_.Contains(id)) database_.Add(id, MapId(0), vocabulary_->Transform(mat)).IgnoreError();
+  if (vocabulary_ && !database_.Contains(id))
+    database_.Add(id, MapId(0), vocabulary_->Transform(mat)).IgnoreError();
   std::vector<GlobalKeyframeId> late;
   if (!had_vocabulary && vocabulary_) {
     for (const GlobalKeyframeId& stored : before_training_) {
@@ -60,7 +64,8 @@ std::vector<GlobalKeyframeId> PlaceIndex::Add(const GlobalKeyframeId& id, const 
 }
 
 std::size_t PlaceIndex::MemoryBytes() const {
-  std::size_t bytes = database_.MemoryBytes() + before_training_.capacity() * sizeof(GlobalKeyframeId);
+  std::size_t bytes =
+      database_.MemoryBytes() + before_training_.capacity() * sizeof(GlobalKeyframeId);
   for (const auto& [id, m] : descriptors_) bytes += m.total() * m.elemSize() + sizeof(cv::Mat) + 48;
   return bytes;
 }
@@ -75,19 +80,22 @@ void PlaceIndex::Retrain() {
   vocabulary_ = std::make_shared<const Vocabulary>(std::move(trained).value());
   ++trainings_;
   database_.Clear();
-  for (const auto& [id, mat] : descriptors_) database_.Add(id, MapId(0), vocabulary_->Transform(mat)).IgnoreError();
+  for (const auto& [id, mat] : descriptors_)
+    database_.Add(id, MapId(0), vocabulary_->Transform(mat)).IgnoreError();
   CCMD_LOG(INFO) << "place recognition vocabulary trained online: " << stats.words << " words from "
                  << stats.images << " keyframes in " << stats.seconds << " s";
 }
 
-std::vector<PlaceHit> PlaceIndex::Query(const std::vector<Descriptor>& descriptors, int max_results,
-                                        const std::function<bool(const GlobalKeyframeId&)>& accept) const {
+std::vector<PlaceHit> PlaceIndex::Query(
+    const std::vector<Descriptor>& descriptors, int max_results,
+    const std::function<bool(const GlobalKeyframeId&)>& accept) const {
   std::vector<PlaceHit> hits;
   if (!vocabulary_) return hits;
   PlaceQueryOptions query;
   query.max_results = max_results;
   query.accept = [&](const GlobalKeyframeId& id, MapId) { return accept(id); };
-  for (const PlaceCandidate& c : database_.Query(vocabulary_->Transform(ToMat(descriptors)), query)) {
+  for (const PlaceCandidate& c :
+       database_.Query(vocabulary_->Transform(ToMat(descriptors)), query)) {
     hits.push_back({c.keyframe, c.score});
   }
   return hits;

@@ -43,7 +43,8 @@ class PlaceIndex {
 
   // Stores a keyframe. Returns the keyframes that could not be queried so far and can be now:
   // those added before the first online training, once it has happened (empty otherwise).
-  std::vector<GlobalKeyframeId> Add(const GlobalKeyframeId& id, const std::vector<Descriptor>& descriptors);
+  std::vector<GlobalKeyframeId> Add(const GlobalKeyframeId& id,
+                                    const std::vector<Descriptor>& descriptors);
   std::vector<PlaceHit> Query(const std::vector<Descriptor>& descriptors, int max_results,
                               const std::function<bool(const GlobalKeyframeId&)>& accept) const;
   double Score(const GlobalKeyframeId& a, const GlobalKeyframeId& b) const;

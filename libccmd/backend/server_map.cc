@@ -14,8 +14,9 @@ const Descriptor kNoDescriptor{};
 
 const Descriptor& ServerKeyframe::descriptor(std::size_t i) const {
   if (points[i]) return points[i]->descriptor;
-  const auto it = std::lower_bound(own_descriptors.begin(), own_descriptors.end(), i,
-                                   [](const auto& entry, std::size_t k) { return entry.first < k; });
+  const auto it =
+      std::lower_bound(own_descriptors.begin(), own_descriptors.end(), i,
+                       [](const auto& entry, std::size_t k) { return entry.first < k; });
   return it != own_descriptors.end() && it->first == i ? it->second : kNoDescriptor;
 }
 
@@ -32,8 +33,9 @@ void ServerKeyframe::AppendKeypoint(const ServerKeypoint& keypoint, const Descri
 }
 
 void ServerKeyframe::KeepOwnDescriptor(std::size_t i, const Descriptor& d) {
-  const auto it = std::lower_bound(own_descriptors.begin(), own_descriptors.end(), i,
-                                   [](const auto& entry, std::size_t k) { return entry.first < k; });
+  const auto it =
+      std::lower_bound(own_descriptors.begin(), own_descriptors.end(), i,
+                       [](const auto& entry, std::size_t k) { return entry.first < k; });
   if (it != own_descriptors.end() && it->first == i) {
     it->second = d;
   } else {
@@ -65,11 +67,13 @@ ServerMapPoint* ServerMap::point(const GlobalMapPointId& id) const {
 }
 
 std::size_t ServerMap::PointBytes(std::size_t hash_node) const {
-  std::size_t bytes = (points_.size() + merged_into_.size()) * hash_node +
-                      points_.size() * (sizeof(GlobalMapPointId) + sizeof(std::unique_ptr<ServerMapPoint>)) +
-                      merged_into_.size() * 2 * sizeof(GlobalMapPointId);
+  std::size_t bytes =
+      (points_.size() + merged_into_.size()) * hash_node +
+      points_.size() * (sizeof(GlobalMapPointId) + sizeof(std::unique_ptr<ServerMapPoint>)) +
+      merged_into_.size() * 2 * sizeof(GlobalMapPointId);
   for (const auto& [id, p] : points_) {
-    bytes += sizeof(ServerMapPoint) + p->observations.capacity() * sizeof(ServerMapPoint::Observation);
+    bytes +=
+        sizeof(ServerMapPoint) + p->observations.capacity() * sizeof(ServerMapPoint::Observation);
   }
   return bytes;
 }
@@ -77,7 +81,8 @@ std::size_t ServerMap::PointBytes(std::size_t hash_node) const {
 ServerKeyframe* ServerMap::AddKeyframe(std::unique_ptr<ServerKeyframe> keyframe) {
   ServerKeyframe* raw = keyframe.get();
   if (!origin_) origin_ = raw->id;
-  if (std::find(agents_.begin(), agents_.end(), raw->id.agent) == agents_.end()) agents_.push_back(raw->id.agent);
+  if (std::find(agents_.begin(), agents_.end(), raw->id.agent) == agents_.end())
+    agents_.push_back(raw->id.agent);
   keyframes_[raw->id] = std::move(keyframe);
   return raw;
 }

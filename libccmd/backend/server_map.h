@@ -60,7 +60,7 @@ class ServerKeyframe {
   Pose T_agent_cam = Pose::Identity();  // as its agent last reported it (agent's own frame)
   std::optional<KeyframeId> parent;     // spanning tree, same agent
   std::vector<ServerKeypoint> keypoints;
-  std::vector<ServerMapPoint*> points;      // per keypoint, may be null
+  std::vector<ServerMapPoint*> points;  // per keypoint, may be null
   // A keypoint's descriptor is its map point's (as the agent sends it); only keypoints without
   // a map point keep one of their own, sorted by keypoint (most keypoints are linked: this
   // saves about 15 kB a keyframe).
@@ -103,7 +103,9 @@ class ServerMap {
 
   ServerKeyframe* keyframe(const GlobalKeyframeId& id) const;
   ServerMapPoint* point(const GlobalMapPointId& id) const;  // follows merges
-  const std::map<GlobalKeyframeId, std::unique_ptr<ServerKeyframe>>& keyframes() const { return keyframes_; }
+  const std::map<GlobalKeyframeId, std::unique_ptr<ServerKeyframe>>& keyframes() const {
+    return keyframes_;
+  }
   std::size_t num_points() const { return points_.size(); }
   // Bytes of the map points (objects, observations) and of the point index and merge aliases,
   // counting `hash_node` per hash table entry.

@@ -186,8 +186,8 @@ struct Reader {
 // The streams that follow the sizes of all but the last (which takes the rest of the input),
 // copied into `padded` with 8 zero bytes after each, so refills may load 8 bytes at a clamped
 // position.
-Status SplitStreams(ByteReader* r, std::array<std::uint64_t, kStreams> stream_size, std::vector<std::uint8_t>* padded,
-                    std::array<Reader, kStreams>* readers) {
+Status SplitStreams(ByteReader* r, std::array<std::uint64_t, kStreams> stream_size,
+                    std::vector<std::uint8_t>* padded, std::array<Reader, kStreams>* readers) {
   std::uint64_t total = 0;
   for (int k = 0; k + 1 < kStreams; ++k) total += stream_size[k];
   if (total > r->remaining()) return Corrupt("Huffman streams exceed the input");

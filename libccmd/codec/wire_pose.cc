@@ -11,8 +11,9 @@ WirePose PoseToWire(const Pose& T) {
 }
 
 Pose PoseFromWire(const WirePose& w) {
-  return PoseFromTranslationQuaternion(Eigen::Vector3d(w.t[0], w.t[1], w.t[2]),
-                                       Eigen::Quaterniond(w.q_xyzw[3], w.q_xyzw[0], w.q_xyzw[1], w.q_xyzw[2]));
+  return PoseFromTranslationQuaternion(
+      Eigen::Vector3d(w.t[0], w.t[1], w.t[2]),
+      Eigen::Quaterniond(w.q_xyzw[3], w.q_xyzw[0], w.q_xyzw[1], w.q_xyzw[2]));
 }
 
 }  // namespace ccmd

@@ -13,8 +13,8 @@
 #include <opencv2/core/mat.hpp>
 
 #include "libccmd/geometry/camera.h"
-#include "libccmd/util/status.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 

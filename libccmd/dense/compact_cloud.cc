@@ -5,10 +5,12 @@
 
 namespace ccmd {
 
-CompactCloud CompactCloud::Encode(const CameraCloud& cloud, const std::vector<std::uint32_t>& indices) {
+CompactCloud CompactCloud::Encode(const CameraCloud& cloud,
+                                  const std::vector<std::uint32_t>& indices) {
   CompactCloud c;
   float largest = 0;
-  for (const std::uint32_t i : indices) largest = std::max(largest, cloud.points[i].cwiseAbs().maxCoeff());
+  for (const std::uint32_t i : indices)
+    largest = std::max(largest, cloud.points[i].cwiseAbs().maxCoeff());
   // A step that maps the largest coordinate to 32767 (at least a micrometre, for empty or
   // degenerate clouds).
   c.step_ = std::max(largest / 32767.0f, 1e-6f);
@@ -16,8 +18,10 @@ CompactCloud CompactCloud::Encode(const CameraCloud& cloud, const std::vector<st
   c.xyz_.reserve(indices.size());
   c.colors_.reserve(indices.size());
   for (const std::uint32_t i : indices) {
-    const Eigen::Vector3f q = (cloud.points[i] * inverse).array().round().cwiseMax(-32767.0f).cwiseMin(32767.0f);
-    c.xyz_.push_back({static_cast<std::int16_t>(q.x()), static_cast<std::int16_t>(q.y()), static_cast<std::int16_t>(q.z())});
+    const Eigen::Vector3f q =
+        (cloud.points[i] * inverse).array().round().cwiseMax(-32767.0f).cwiseMin(32767.0f);
+    c.xyz_.push_back({static_cast<std::int16_t>(q.x()), static_cast<std::int16_t>(q.y()),
+                      static_cast<std::int16_t>(q.z())});
     c.colors_.push_back(cloud.colors[i]);
   }
   return c;

@@ -237,7 +237,8 @@ Status DenseMap::UpdateKeyframePose(const GlobalKeyframeId& id, const Pose& T_wo
   return Status::Ok();
 }
 
-StatusOr<std::vector<DenseMap::Entry*>> DenseMap::EntriesOf(const std::vector<KeyframePose>& poses) const {
+StatusOr<std::vector<DenseMap::Entry*>> DenseMap::EntriesOf(
+    const std::vector<KeyframePose>& poses) const {
   std::vector<Entry*> entries;
   entries.reserve(poses.size());
   for (const KeyframePose& p : poses) {
@@ -291,7 +292,9 @@ Status DenseMap::TransformAgent(AgentId agent, const Pose& T_new_old) {
     return NotFound("agent " + std::to_string(agent.value()) + " has no dense map");
   for (auto& [index, segment] : node->segments) {
     for (auto& entry : segment.slots) {
-      if (entry) SetPose(entry.get(), T_new_old * entry->T_world_cam);  // the voxel grid does not move with the points
+      if (entry)
+        SetPose(entry.get(),
+                T_new_old * entry->T_world_cam);  // the voxel grid does not move with the points
     }
   }
   MapNodeOf(agent).rebuild_held = true;

@@ -75,8 +75,8 @@
 #include "libccmd/geometry/pose.h"
 #include "libccmd/io/ply.h"
 #include "libccmd/util/ids.h"
-#include "libccmd/util/status.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 
@@ -204,7 +204,8 @@ class DenseMap {
   // them with the keyframe's pose (KeyframePoseOf): with kNone every stored point (what it was
   // added with while in the filter window, what it keeps once compacted), with kWindow (or
   // kGlobal) those the map uses.
-  StatusOr<CameraCloud> KeyframeCloud(const GlobalKeyframeId& id, DenseFilter filter = DenseFilter::kNone) const;
+  StatusOr<CameraCloud> KeyframeCloud(const GlobalKeyframeId& id,
+                                      DenseFilter filter = DenseFilter::kNone) const;
   // The keyframe a label names, if present.
   StatusOr<GlobalKeyframeId> FindLabel(std::uint32_t label) const;
 
@@ -264,7 +265,8 @@ class DenseMap {
   MapNode& MapNodeOf(AgentId agent);
   // The entry's points in the map frame: its cached ones, or a compacted keyframe's decoded
   // into `scratch`.
-  const std::vector<Eigen::Vector3f>& WorldPoints(const Entry& entry, std::vector<Eigen::Vector3f>* scratch) const;
+  const std::vector<Eigen::Vector3f>& WorldPoints(const Entry& entry,
+                                                  std::vector<Eigen::Vector3f>* scratch) const;
   // A pose change: re-transforms a window keyframe, and marks it for Maintain().
   void SetPose(Entry* entry, const Pose& T_world_cam);
   void Transform(Entry* entry) const;

@@ -24,8 +24,8 @@ inline constexpr std::size_t kRefilterChunk = 32;
 inline constexpr std::size_t kTreeNodeOverhead = 48;
 
 inline std::string IdText(const GlobalKeyframeId& id) {
-  return "keyframe (agent " + std::to_string(id.agent.value()) + ", keyframe " + std::to_string(id.keyframe.value()) +
-         ")";
+  return "keyframe (agent " + std::to_string(id.agent.value()) + ", keyframe " +
+         std::to_string(id.keyframe.value()) + ")";
 }
 
 }  // namespace ccmd::dense_detail

@@ -10,8 +10,8 @@ using dense_detail::kRefilterChunk;
 
 // ---- filtering -----------------------------------------------------------------------------
 
-const std::vector<Eigen::Vector3f>& DenseMap::WorldPoints(const Entry& entry,
-                                                          std::vector<Eigen::Vector3f>* scratch) const {
+const std::vector<Eigen::Vector3f>& DenseMap::WorldPoints(
+    const Entry& entry, std::vector<Eigen::Vector3f>* scratch) const {
   if (!entry.compact) return entry.world;
   entry.stored.Transform(entry.T_world_cam, scratch);
   return *scratch;

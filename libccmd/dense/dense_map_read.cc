@@ -27,7 +27,8 @@ void DenseMap::AppendPoints(const Entry& entry, DenseFilter filter, PointCloud* 
   if (entry.compact) {  // whatever the filter: it keeps only what the map needs
     entry.stored.Transform(entry.T_world_cam, &decoded_);
     cloud->points.insert(cloud->points.end(), decoded_.begin(), decoded_.end());
-    cloud->colors.insert(cloud->colors.end(), entry.stored.colors().begin(), entry.stored.colors().end());
+    cloud->colors.insert(cloud->colors.end(), entry.stored.colors().begin(),
+                         entry.stored.colors().end());
     cloud->labels.resize(cloud->labels.size() + decoded_.size(), entry.label);
     return;
   }
@@ -116,7 +117,8 @@ StatusOr<PointCloud> DenseMap::ExtractKeyframe(const GlobalKeyframeId& id) const
   return cloud;
 }
 
-StatusOr<CameraCloud> DenseMap::KeyframeCloud(const GlobalKeyframeId& id, DenseFilter filter) const {
+StatusOr<CameraCloud> DenseMap::KeyframeCloud(const GlobalKeyframeId& id,
+                                              DenseFilter filter) const {
   std::lock_guard<std::mutex> lock(mutex_);
   const AgentNode* node = FindAgent(id.agent);
   const Entry* entry = node ? Find(*node, id.keyframe.value()) : nullptr;
@@ -193,7 +195,8 @@ DenseMapStats DenseMap::Stats() const {
   stats.agents = agent_map_.size();
   stats.pending_keyframes = pending_.size();
   std::size_t bytes = sizeof(*this) + occupied_.MemoryBytes() + nearest_.MemoryBytes() +
-                      voxels_.capacity() * sizeof(VoxelIndex) + indices_.capacity() * sizeof(std::uint32_t) +
+                      voxels_.capacity() * sizeof(VoxelIndex) +
+                      indices_.capacity() * sizeof(std::uint32_t) +
                       decoded_.capacity() * sizeof(Eigen::Vector3f);
   bytes += (agent_map_.size() + pending_.size() + maps_.size()) * kTreeNodeOverhead;
   for (const auto& [map, node] : maps_) {

@@ -11,8 +11,8 @@
 #include <string>
 
 #include "libccmd/dense/dense_map.h"
-#include "libccmd/util/status.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 

@@ -113,7 +113,8 @@ void MapPictureOptions::Describe(OptionsWriter* out) const {
   out->Add("field_of_view_deg", field_of_view_deg);
   out->Add("background", std::vector<double>{background[0], background[1], background[2]});
   std::vector<std::string> agents_text;
-  for (const auto& [id, name_colour] : agents) agents_text.push_back(std::to_string(id) + ":" + name_colour.first);
+  for (const auto& [id, name_colour] : agents)
+    agents_text.push_back(std::to_string(id) + ":" + name_colour.first);
   out->Add("agents", agents_text);
 }
 

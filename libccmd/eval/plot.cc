@@ -47,8 +47,8 @@ std::string FormatTick(double v, double step) {
   return text;
 }
 
-void Text(cv::Mat& img, const std::string& s, cv::Point at, double scale = 0.5, const cv::Scalar& color = kBlack,
-          bool centred = false) {
+void Text(cv::Mat& img, const std::string& s, cv::Point at, double scale = 0.5,
+          const cv::Scalar& color = kBlack, bool centred = false) {
   int baseline = 0;
   const cv::Size size = cv::getTextSize(s, cv::FONT_HERSHEY_SIMPLEX, scale, 1, &baseline);
   if (centred) at.x -= size.width / 2;
@@ -84,7 +84,8 @@ void DrawFrame(cv::Mat& img, const Axes& a, const PlotOptions& o, bool x_ticks =
   Text(img, o.y_label, cv::Point(10, kTop - 12), 0.5, kBlack);
 }
 
-void DrawLegend(cv::Mat& img, const std::vector<std::pair<std::string, cv::Scalar>>& entries, int width) {
+void DrawLegend(cv::Mat& img, const std::vector<std::pair<std::string, cv::Scalar>>& entries,
+                int width) {
   int y = kTop + 18;
   for (const auto& [label, color] : entries) {
     if (label.empty()) continue;
@@ -98,8 +99,9 @@ void DrawLegend(cv::Mat& img, const std::vector<std::pair<std::string, cv::Scala
 }  // namespace
 
 cv::Scalar SeriesColor(int index) {
-  static const cv::Scalar palette[] = {{200, 80, 30},  {40, 140, 240}, {60, 170, 60},  {50, 50, 210},
-                                       {170, 90, 150}, {40, 190, 200}, {120, 120, 120}, {150, 150, 20}};
+  static const cv::Scalar palette[] = {{200, 80, 30},   {40, 140, 240}, {60, 170, 60},
+                                       {50, 50, 210},   {170, 90, 150}, {40, 190, 200},
+                                       {120, 120, 120}, {150, 150, 20}};
   return palette[static_cast<std::size_t>(index) % 8];
 }
 
@@ -121,7 +123,8 @@ cv::Mat PlotLines(const std::vector<PlotSeries>& series, const PlotOptions& o) {
   const double mx = 0.05 * (x1 - x0), my = 0.05 * (y1 - y0);
   Axes a{x0 - mx, x1 + mx, y0 - my, y1 + my, o.width, o.height};
   if (o.equal_aspect) {
-    const double sx = (a.x1 - a.x0) / (o.width - kLeft - kRight), sy = (a.y1 - a.y0) / (o.height - kTop - kBottom);
+    const double sx = (a.x1 - a.x0) / (o.width - kLeft - kRight),
+                 sy = (a.y1 - a.y0) / (o.height - kTop - kBottom);
     const double s = std::max(sx, sy);
     const double cx = (a.x0 + a.x1) / 2, cy = (a.y0 + a.y1) / 2;
     a.x0 = cx - s * (o.width - kLeft - kRight) / 2;
@@ -137,7 +140,8 @@ cv::Mat PlotLines(const std::vector<PlotSeries>& series, const PlotOptions& o) {
       if (std::isfinite(s.x[i]) && std::isfinite(s.y[i])) pts.push_back(a.Map(s.x[i], s.y[i]));
     }
     if (s.points) {
-      for (const auto& p : pts) cv::circle(img, p, s.thickness + 1, s.color, cv::FILLED, cv::LINE_AA);
+      for (const auto& p : pts)
+        cv::circle(img, p, s.thickness + 1, s.color, cv::FILLED, cv::LINE_AA);
     } else if (pts.size() > 1) {
       cv::polylines(img, pts, false, s.color, s.thickness, cv::LINE_AA);
     }
@@ -155,7 +159,9 @@ cv::Mat PlotBars(const std::vector<BarGroup>& groups, const std::vector<std::str
     for (double v : g.values) top = std::max(top, log_scale ? std::log10(std::max(v, 1.0)) : v);
   }
   if (top <= 0) top = 1;
-  Axes a{0, static_cast<double>(std::max<std::size_t>(groups.size(), 1)), 0, top * 1.1, o.width, o.height};
+  Axes a{0,       static_cast<double>(std::max<std::size_t>(groups.size(), 1)),
+         0,       top * 1.1,
+         o.width, o.height};
   DrawFrame(img, a, o, /*x_ticks=*/false);
   const std::size_t n = series_labels.size();
   for (std::size_t gi = 0; gi < groups.size(); ++gi) {
@@ -164,12 +170,14 @@ cv::Mat PlotBars(const std::vector<BarGroup>& groups, const std::vector<std::str
       const double v = groups[gi].values[si];
       const double h = log_scale ? std::log10(std::max(v, 1.0)) : v;
       const double left = gi + 0.1 + si * slot;
-      cv::rectangle(img, a.Map(left, 0), a.Map(left + slot * 0.9, h), colors[si % colors.size()], cv::FILLED);
+      cv::rectangle(img, a.Map(left, 0), a.Map(left + slot * 0.9, h), colors[si % colors.size()],
+                    cv::FILLED);
     }
     Text(img, groups[gi].label, a.Map(gi + 0.5, 0) + cv::Point(0, 20), 0.45, kBlack, true);
   }
   std::vector<std::pair<std::string, cv::Scalar>> legend;
-  for (std::size_t si = 0; si < n; ++si) legend.emplace_back(series_labels[si], colors[si % colors.size()]);
+  for (std::size_t si = 0; si < n; ++si)
+    legend.emplace_back(series_labels[si], colors[si % colors.size()]);
   DrawLegend(img, legend, o.width);
   return img;
 }
@@ -181,7 +189,8 @@ Status WritePng(const cv::Mat& image, const std::string& path) {
   } catch (const cv::Exception& e) {
     return IoError("cannot encode " + path + ": " + e.msg);
   }
-  return WriteFileAtomic(path, std::string_view(reinterpret_cast<const char*>(bytes.data()), bytes.size()));
+  return WriteFileAtomic(
+      path, std::string_view(reinterpret_cast<const char*>(bytes.data()), bytes.size()));
 }
 
 }  // namespace ccmd

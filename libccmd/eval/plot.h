@@ -8,8 +8,8 @@
 
 #include <opencv2/core.hpp>
 
-#include "libccmd/util/status.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 
@@ -33,11 +33,12 @@ struct PlotOptions {
 cv::Mat PlotLines(const std::vector<PlotSeries>& series, const PlotOptions& options);
 
 struct BarGroup {
-  std::string label;            // one per category on the x axis
-  std::vector<double> values;   // one per series
+  std::string label;           // one per category on the x axis
+  std::vector<double> values;  // one per series
 };
 cv::Mat PlotBars(const std::vector<BarGroup>& groups, const std::vector<std::string>& series_labels,
-                 const std::vector<cv::Scalar>& colors, const PlotOptions& options, bool log_scale = false);
+                 const std::vector<cv::Scalar>& colors, const PlotOptions& options,
+                 bool log_scale = false);
 
 // A distinct colour per index (agents).
 cv::Scalar SeriesColor(int index);

@@ -92,7 +92,8 @@ StatusOr<ReconstructionError> ComputeReconstructionError(const PointCloud& refer
     if (result.point_to_plane) {
       const Eigen::Vector3f offset = reconstruction.points[i] - reference.points[j];
       const double normal_part = std::abs(offset.dot(reference.normals[j].normalized()));
-      const double tangential = std::sqrt(std::max(0.0, static_cast<double>(d2) - normal_part * normal_part));
+      const double tangential =
+          std::sqrt(std::max(0.0, static_cast<double>(d2) - normal_part * normal_part));
       if (tangential <= tangential_limit) d = normal_part;
     }
     accuracy[i] = d;
@@ -105,7 +106,8 @@ StatusOr<ReconstructionError> ComputeReconstructionError(const PointCloud& refer
   result.rmse = a.rmse;
   result.max = a.max;
   std::vector<double> sorted = accuracy;
-  const std::size_t k95 = std::min(sorted.size() - 1, static_cast<std::size_t>(0.95 * sorted.size()));
+  const std::size_t k95 =
+      std::min(sorted.size() - 1, static_cast<std::size_t>(0.95 * sorted.size()));
   std::nth_element(sorted.begin(), sorted.begin() + k95, sorted.end());
   result.p95 = sorted[k95];
   const ErrorStatistics c = ComputeStatistics(completeness);

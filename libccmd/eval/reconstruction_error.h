@@ -10,15 +10,15 @@
 #include <vector>
 
 #include "libccmd/io/ply.h"
-#include "libccmd/util/status.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 
 struct ReconstructionOptions {
-  bool point_to_plane = true;        // use reference normals when present
+  bool point_to_plane = true;            // use reference normals when present
   double completeness_threshold = 0.02;  // metres: reference points "covered" within this
-  int threads = 0;                   // 0: all cores
+  int threads = 0;                       // 0: all cores
 
   Status Validate() const;
   void Describe(OptionsWriter* out) const;

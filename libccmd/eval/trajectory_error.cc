@@ -78,7 +78,8 @@ double SecondSpread(const std::vector<Eigen::Vector3d>& points) {
   Eigen::Matrix3d covariance = Eigen::Matrix3d::Zero();
   for (const auto& p : points) covariance += (p - mean) * (p - mean).transpose();
   covariance /= static_cast<double>(points.size());
-  const Eigen::Vector3d eigenvalues = Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(covariance).eigenvalues();
+  const Eigen::Vector3d eigenvalues =
+      Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(covariance).eigenvalues();
   return std::sqrt(std::max(0.0, eigenvalues(1)));  // ascending: (1) is the middle one
 }
 
@@ -92,7 +93,8 @@ StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& 
   const std::size_t needed = options.align && !may_use_poses ? 3 : 1;
   if (matches.size() < needed) {
     return InvalidArgument("only " + std::to_string(matches.size()) +
-                           " poses match the ground truth in time (need " + std::to_string(needed) + ")");
+                           " poses match the ground truth in time (need " + std::to_string(needed) +
+                           ")");
   }
   std::vector<Eigen::Vector3d> est, gt;
   AteResult result;
@@ -102,7 +104,9 @@ StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& 
     result.timestamps.push_back(estimate[ie].timestamp);
   }
   if (options.align) {
-    result.aligned_by_poses = may_use_poses && (est.size() < 3 || SecondSpread(est) < options.pose_alignment_below_spread_m);
+    result.aligned_by_poses =
+        may_use_poses &&
+        (est.size() < 3 || SecondSpread(est) < options.pose_alignment_below_spread_m);
     std::vector<Eigen::Vector3d> est_fit = est, gt_fit = gt;
     if (result.aligned_by_poses) {
       for (const auto& [ie, ig] : matches) {

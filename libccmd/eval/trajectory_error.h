@@ -9,8 +9,8 @@
 
 #include "libccmd/geometry/alignment.h"
 #include "libccmd/io/trajectory.h"
-#include "libccmd/util/status.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 
@@ -36,11 +36,11 @@ struct AteOptions {
 
 struct AteResult {
   std::size_t matched = 0;
-  ErrorStatistics error;               // metres
-  Similarity3 alignment;               // maps the estimate into the ground-truth frame
-  std::vector<double> timestamps;      // matched estimate timestamps
-  std::vector<double> errors;          // per matched pose, metres
-  bool aligned_by_poses = false;       // see AteOptions::pose_alignment_below_spread_m
+  ErrorStatistics error;           // metres
+  Similarity3 alignment;           // maps the estimate into the ground-truth frame
+  std::vector<double> timestamps;  // matched estimate timestamps
+  std::vector<double> errors;      // per matched pose, metres
+  bool aligned_by_poses = false;   // see AteOptions::pose_alignment_below_spread_m
 };
 
 StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& estimate,

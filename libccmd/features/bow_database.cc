@@ -175,9 +175,11 @@ std::size_t BowDatabase::PostingCount() const {
 std::size_t BowDatabase::MemoryBytes() const {
   std::shared_lock lock(mutex_);
   // An unordered_map node: the value, a next pointer and the cached hash; plus its bucket.
-  constexpr std::size_t kHashNode = sizeof(std::pair<GlobalKeyframeId, std::uint32_t>) + 3 * sizeof(void*);
-  std::size_t bytes = entries_.capacity() * sizeof(Entry) + free_slots_.capacity() * sizeof(std::uint32_t) +
-                      slot_of_.size() * kHashNode + postings_.capacity() * sizeof(postings_[0]);
+  constexpr std::size_t kHashNode =
+      sizeof(std::pair<GlobalKeyframeId, std::uint32_t>) + 3 * sizeof(void*);
+  std::size_t bytes = entries_.capacity() * sizeof(Entry) +
+                      free_slots_.capacity() * sizeof(std::uint32_t) + slot_of_.size() * kHashNode +
+                      postings_.capacity() * sizeof(postings_[0]);
   for (const Entry& e : entries_) bytes += e.bow.entries().capacity() * sizeof(BowEntry);
   for (const auto& list : postings_) bytes += list.capacity() * sizeof(Posting);
   return bytes;

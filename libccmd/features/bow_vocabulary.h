@@ -33,7 +33,7 @@
 namespace ccmd {
 
 struct VocabularyOptions {
-  int branching = 10;       // k: children per node
+  int branching = 10;  // k: children per node
   // L: levels below the root (up to k^L words). 5 rather than DBoW2's 6: as good on
   // synthetic revisits and better on real images (docs/place_recognition.md).
   int depth = 5;

@@ -5,7 +5,8 @@
 
 namespace ccmd {
 
-FeatureGrid::FeatureGrid(const std::vector<cv::KeyPoint>& keypoints, int width, int height, int cell)
+FeatureGrid::FeatureGrid(const std::vector<cv::KeyPoint>& keypoints, int width, int height,
+                         int cell)
     : keypoints_(&keypoints), cell_(cell) {
   cols_ = std::max(1, (width + cell - 1) / cell);
   rows_ = std::max(1, (height + cell - 1) / cell);

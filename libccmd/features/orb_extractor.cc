@@ -18,7 +18,8 @@ constexpr double kHarrisK = 0.04;
 }  // namespace
 
 Status OrbOptions::Validate() const {
-  if (features < 50 || features > 20000) return InvalidArgument("ORB features must be in [50, 20000]");
+  if (features < 50 || features > 20000)
+    return InvalidArgument("ORB features must be in [50, 20000]");
   if (!(scale_factor > 1.0f && scale_factor < 2.0f)) {
     return InvalidArgument("ORB scale factor must be in (1, 2)");
   }
@@ -67,7 +68,8 @@ OrbExtractor::OrbExtractor(const OrbOptions& options) : options_(options) {
   // Row half-widths of the circular orientation patch.
   circle_extent_.resize(kPatchRadius + 1);
   for (int dy = 0; dy <= kPatchRadius; ++dy) {
-    circle_extent_[dy] = static_cast<int>(std::floor(std::sqrt((kPatchRadius + 0.5) * (kPatchRadius + 0.5) - dy * dy)));
+    circle_extent_[dy] = static_cast<int>(
+        std::floor(std::sqrt((kPatchRadius + 0.5) * (kPatchRadius + 0.5) - dy * dy)));
   }
 }
 
@@ -96,15 +98,18 @@ std::vector<cv::KeyPoint> DistributeKeypoints(std::vector<cv::KeyPoint> candidat
   if (static_cast<int>(candidates.size()) <= count) return candidates;
   const CellGrid grid(width, height, count);
   // Strongest first, so the first keypoint seen in a cell is its best.
-  std::stable_sort(candidates.begin(), candidates.end(),
-                   [](const cv::KeyPoint& a, const cv::KeyPoint& b) { return a.response > b.response; });
+  std::stable_sort(
+      candidates.begin(), candidates.end(),
+      [](const cv::KeyPoint& a, const cv::KeyPoint& b) { return a.response > b.response; });
   std::vector<int> taken(grid.size(), 0);
   std::vector<int> rank(candidates.size());
-  for (std::size_t i = 0; i < candidates.size(); ++i) rank[i] = taken[grid.Index(candidates[i].pt)]++;
+  for (std::size_t i = 0; i < candidates.size(); ++i)
+    rank[i] = taken[grid.Index(candidates[i].pt)]++;
   std::vector<std::size_t> order(candidates.size());
   for (std::size_t i = 0; i < order.size(); ++i) order[i] = i;
   // Rank within the cell first, strength second (order is already by strength).
-  std::stable_sort(order.begin(), order.end(), [&](std::size_t a, std::size_t b) { return rank[a] < rank[b]; });
+  std::stable_sort(order.begin(), order.end(),
+                   [&](std::size_t a, std::size_t b) { return rank[a] < rank[b]; });
   std::vector<cv::KeyPoint> kept;
   kept.reserve(count);
   for (int i = 0; i < count; ++i) kept.push_back(candidates[order[i]]);
@@ -142,19 +147,22 @@ std::vector<cv::KeyPoint> OrbExtractor::FindCorners(const cv::Mat& image, int co
   const cv::Rect inner(e - 3, e - 3, image.cols - 2 * e + 6, image.rows - 2 * e + 6);
   // FAST with non-maximum suppression in `roi`; keeps the corners `edge` pixels inside the
   // level for which keep(corner) holds, in level coordinates.
-  auto fast = [&](const cv::Rect& roi, int threshold, std::vector<cv::KeyPoint>* out, const auto& keep) {
+  auto fast = [&](const cv::Rect& roi, int threshold, std::vector<cv::KeyPoint>* out,
+                  const auto& keep) {
     std::vector<cv::KeyPoint> found;
     cv::FAST(image(roi), found, threshold, /*nonmaxSuppression=*/true);
     for (cv::KeyPoint& k : found) {
       k.pt.x += roi.x;
       k.pt.y += roi.y;
-      if (k.pt.x < e || k.pt.y < e || k.pt.x >= image.cols - e || k.pt.y >= image.rows - e) continue;
+      if (k.pt.x < e || k.pt.y < e || k.pt.x >= image.cols - e || k.pt.y >= image.rows - e)
+        continue;
       if (keep(k)) out->push_back(k);
     }
   };
   const auto all = [](const cv::KeyPoint&) { return true; };
   std::vector<cv::KeyPoint> corners;
-  const int strong_threshold = options_.fast_threshold, weak_threshold = options_.min_fast_threshold;
+  const int strong_threshold = options_.fast_threshold,
+            weak_threshold = options_.min_fast_threshold;
   fast(inner, strong_threshold, &corners, all);
   if (static_cast<int>(corners.size()) <= count || weak_threshold == strong_threshold) {
     if (weak_threshold < strong_threshold) {
@@ -203,7 +211,8 @@ std::vector<cv::KeyPoint> OrbExtractor::FindCorners(const cv::Mat& image, int co
   // Raster order, as one pass gives them (the distribution's sort is stable).
   std::vector<std::pair<int, int>> raster(corners.size());
   for (std::size_t i = 0; i < corners.size(); ++i) {
-    raster[i] = {cvRound(corners[i].pt.y) * image.cols + cvRound(corners[i].pt.x), static_cast<int>(i)};
+    raster[i] = {cvRound(corners[i].pt.y) * image.cols + cvRound(corners[i].pt.x),
+                 static_cast<int>(i)};
   }
   std::sort(raster.begin(), raster.end());
   std::vector<cv::KeyPoint> ordered;
@@ -228,7 +237,8 @@ std::vector<cv::KeyPoint> OrbExtractor::DetectLevel(const cv::Mat& image, int le
     // Corners under the preferred FAST threshold rank after all stronger ones.
     if (!strong) k.response -= 1e9f;
   }
-  std::vector<cv::KeyPoint> kept = DistributeKeypoints(std::move(corners), image.cols, image.rows, count);
+  std::vector<cv::KeyPoint> kept =
+      DistributeKeypoints(std::move(corners), image.cols, image.rows, count);
   for (cv::KeyPoint& k : kept) {
     k.angle = Orientation(image, cvRound(k.pt.x), cvRound(k.pt.y));
     k.octave = level;
@@ -258,7 +268,8 @@ float OrbExtractor::Orientation(const cv::Mat& image, int x0, int y0) const {
     m10 += sum;
     m01 += dy * difference;
   }
-  float angle = static_cast<float>(std::atan2(static_cast<double>(m01), static_cast<double>(m10)) * 180.0 / CV_PI);
+  float angle = static_cast<float>(std::atan2(static_cast<double>(m01), static_cast<double>(m10)) *
+                                   180.0 / CV_PI);
   if (angle < 0) angle += 360.0f;
   return angle;
 }
@@ -272,8 +283,8 @@ OrbFeatures OrbExtractor::Extract(const cv::Mat& gray) const {
   // its edge threshold; ours keep `edge` pixels away on every level.
   static thread_local cv::Ptr<cv::ORB> orb;
   if (!orb || orb->getEdgeThreshold() != options_.edge) {
-    orb = cv::ORB::create(options_.features, options_.scale_factor, 1, options_.edge, 0, 2, cv::ORB::HARRIS_SCORE,
-                          31, options_.fast_threshold);
+    orb = cv::ORB::create(options_.features, options_.scale_factor, 1, options_.edge, 0, 2,
+                          cv::ORB::HARRIS_SCORE, 31, options_.fast_threshold);
   }
   OrbFeatures features;
   std::vector<cv::Mat> descriptors;

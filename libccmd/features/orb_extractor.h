@@ -21,9 +21,9 @@ struct OrbOptions {
   int features = 1000;
   float scale_factor = 1.2f;
   int levels = 8;
-  int fast_threshold = 20;      // preferred corners
-  int min_fast_threshold = 7;   // accepted where nothing stronger exists
-  int edge = 19;                // keypoints keep this far from each level's border (pixels)
+  int fast_threshold = 20;     // preferred corners
+  int min_fast_threshold = 7;  // accepted where nothing stronger exists
+  int edge = 19;               // keypoints keep this far from each level's border (pixels)
 
   Status Validate() const;
   void Describe(OptionsWriter* out) const;

@@ -47,7 +47,8 @@ DistortionAt EvaluateDistortion(const std::array<double, 5>& d, const Eigen::Vec
 
 // Newton's method from `start`; false if it does not converge (the model folds or is
 // singular there).
-bool SolveUndistort(const std::array<double, 5>& d, const Eigen::Vector2d& target, Eigen::Vector2d* xy) {
+bool SolveUndistort(const std::array<double, 5>& d, const Eigen::Vector2d& target,
+                    Eigen::Vector2d* xy) {
   for (int i = 0; i < 30; ++i) {
     const DistortionAt at = EvaluateDistortion(d, *xy);
     const Eigen::Vector2d residual = at.value - target;
@@ -127,7 +128,8 @@ Eigen::Vector2d PinholeCamera::DistortPixel(const Eigen::Vector2d& ideal) const 
   return {fx * xy.x() + cx, fy * xy.y() + cy};
 }
 
-PixelRays::PixelRays(const PinholeCamera& camera, bool exact) : width_(camera.width), height_(camera.height) {
+PixelRays::PixelRays(const PinholeCamera& camera, bool exact)
+    : width_(camera.width), height_(camera.height) {
   const std::size_t n = static_cast<std::size_t>(width_) * height_;
   x_.resize(n);
   y_.resize(n);
@@ -170,10 +172,12 @@ PixelRays::PixelRays(const PinholeCamera& camera, bool exact) : width_(camera.wi
   }
   for (int v = 0; v < height_; ++v) {
     const int j = std::min(v / kStep, nv - 2);
-    const double b = static_cast<double>(v - node(j, height_)) / (node(j + 1, height_) - node(j, height_));
+    const double b =
+        static_cast<double>(v - node(j, height_)) / (node(j + 1, height_) - node(j, height_));
     for (int u = 0; u < width_; ++u) {
       const int i = std::min(u / kStep, nu - 2);
-      const double a = static_cast<double>(u - node(i, width_)) / (node(i + 1, width_) - node(i, width_));
+      const double a =
+          static_cast<double>(u - node(i, width_)) / (node(i + 1, width_) - node(i, width_));
       const Eigen::Vector2d* c = &correction[static_cast<std::size_t>(j) * nu + i];
       const Eigen::Vector2d delta =
           (1 - b) * ((1 - a) * c[0] + a * c[1]) + b * ((1 - a) * c[nu] + a * c[nu + 1]);
@@ -211,8 +215,8 @@ PinholeCamera PinholeCamera::Resized(int new_width, int new_height) const {
 std::string PinholeCamera::ToString() const {
   char text[256];
   std::snprintf(text, sizeof(text),
-                "%dx%d fx=%.3f fy=%.3f cx=%.3f cy=%.3f fps=%.1f depth_factor=%.1f far=%.2fm",
-                width, height, fx, fy, cx, cy, fps, depth_map_factor, far_depth_m);
+                "%dx%d fx=%.3f fy=%.3f cx=%.3f cy=%.3f fps=%.1f depth_factor=%.1f far=%.2fm", width,
+                height, fx, fy, cx, cy, fps, depth_map_factor, far_depth_m);
   std::string out = text;
   if (HasDistortion()) {
     std::snprintf(text, sizeof(text), " k1=%.6f k2=%.6f p1=%.6f p2=%.6f k3=%.6f", distortion[0],

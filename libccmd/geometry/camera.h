@@ -20,8 +20,8 @@
 
 #include <Eigen/Core>
 
-#include "libccmd/util/status.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 

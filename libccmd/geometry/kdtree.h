@@ -16,7 +16,8 @@ class PointKdTree {
  public:
   explicit PointKdTree(const std::vector<Eigen::Vector3f>& points)
       : adaptor_{&points},
-        index_(std::make_unique<Index>(3, adaptor_, nanoflann::KDTreeSingleIndexAdaptorParams(16))) {}
+        index_(
+            std::make_unique<Index>(3, adaptor_, nanoflann::KDTreeSingleIndexAdaptorParams(16))) {}
 
   bool empty() const { return adaptor_.points->empty(); }
 

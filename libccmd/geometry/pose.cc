@@ -36,14 +36,15 @@ Pose Orthonormalized(const Pose& pose) {
 Pose InterpolatePose(const Pose& a, const Pose& b, double alpha) {
   const Eigen::Quaterniond qa = QuaternionOf(a);
   const Eigen::Quaterniond qb = QuaternionOf(b);
-  return PoseFromTranslationQuaternion(
-      (1.0 - alpha) * a.translation() + alpha * b.translation(), qa.slerp(alpha, qb));
+  return PoseFromTranslationQuaternion((1.0 - alpha) * a.translation() + alpha * b.translation(),
+                                       qa.slerp(alpha, qb));
 }
 
 double RotationAngle(const Pose& pose) {
   // atan2 of sin and cos parts stays accurate near 0 and pi, where acos of the trace is not.
   const Eigen::Matrix3d& R = pose.linear();
-  const double s = 0.5 * Eigen::Vector3d(R(2, 1) - R(1, 2), R(0, 2) - R(2, 0), R(1, 0) - R(0, 1)).norm();
+  const double s =
+      0.5 * Eigen::Vector3d(R(2, 1) - R(1, 2), R(0, 2) - R(2, 0), R(1, 0) - R(0, 1)).norm();
   const double c = 0.5 * (R.trace() - 1.0);
   return std::atan2(s, c);
 }

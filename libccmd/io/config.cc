@@ -98,7 +98,8 @@ StatusOr<PinholeCamera> ReadCamera(const ConfigFile& config) {
   }
   // Each value is checked where it is read, so that the message names the key.
   auto finite = [&](const char* key, double value, bool non_zero) -> Status {
-    if (!std::isfinite(value)) return InvalidArgument(path + ": " + key + " must be a finite number");
+    if (!std::isfinite(value))
+      return InvalidArgument(path + ": " + key + " must be a finite number");
     if (non_zero && value == 0) return InvalidArgument(path + ": " + key + " must not be zero");
     return Status::Ok();
   };
@@ -113,15 +114,18 @@ StatusOr<PinholeCamera> ReadCamera(const ConfigFile& config) {
   CCMD_ASSIGN_OR_RETURN(camera.fps, config.GetDouble("Camera.fps", 30.0));
   CCMD_ASSIGN_OR_RETURN(camera.depth_map_factor, config.GetDouble("DepthMapFactor", 5000.0));
   if (!(camera.depth_map_factor > 0) || !std::isfinite(camera.depth_map_factor)) {
-    return InvalidArgument(path + ": DepthMapFactor must be a positive finite number (units per metre)");
+    return InvalidArgument(path +
+                           ": DepthMapFactor must be a positive finite number (units per metre)");
   }
   const char* distortion_keys[5] = {"k1", "k2", "p1", "p2", "k3"};
   for (int i = 0; i < 5; ++i) {
     CCMD_ASSIGN_OR_RETURN(camera.distortion[i], GetCameraValue(config, distortion_keys[i], 0.0));
-    CCMD_RETURN_IF_ERROR(finite((std::string("Camera.") + distortion_keys[i]).c_str(), camera.distortion[i], false));
+    CCMD_RETURN_IF_ERROR(
+        finite((std::string("Camera.") + distortion_keys[i]).c_str(), camera.distortion[i], false));
   }
   CCMD_ASSIGN_OR_RETURN(const int rgb, config.GetInt("Camera.RGB", 1));
-  if (rgb != 0 && rgb != 1) return InvalidArgument(path + ": Camera.RGB must be 0 (BGR files) or 1 (RGB files)");
+  if (rgb != 0 && rgb != 1)
+    return InvalidArgument(path + ": Camera.RGB must be 0 (BGR files) or 1 (RGB files)");
   camera.rgb = rgb == 1;
   // ORB-SLAM: close points are those with depth < ThDepth * bf / fx (bf = baseline * fx).
   CCMD_ASSIGN_OR_RETURN(const double th_depth, config.GetDouble("ThDepth", 40.0));
@@ -147,12 +151,14 @@ StatusOr<std::optional<DepthToColorCalibration>> ReadDepthToColor(const ConfigFi
   if (!config.Has("Depth.fx")) return std::optional<DepthToColorCalibration>();
   DepthToColorCalibration calibration;
   PinholeCamera& depth = calibration.depth;
-  const char* keys[6] = {"Depth.fx", "Depth.fy", "Depth.cx", "Depth.cy", "Depth.width", "Depth.height"};
+  const char* keys[6] = {"Depth.fx", "Depth.fy",    "Depth.cx",
+                         "Depth.cy", "Depth.width", "Depth.height"};
   double values[6];
   for (int i = 0; i < 6; ++i) {
     if (!config.Has(keys[i])) return InvalidArgument(path + ": " + keys[i] + " is missing");
     CCMD_ASSIGN_OR_RETURN(values[i], config.GetDouble(keys[i], 0));
-    if (!std::isfinite(values[i])) return InvalidArgument(path + ": " + keys[i] + " must be a finite number");
+    if (!std::isfinite(values[i]))
+      return InvalidArgument(path + ": " + keys[i] + " must be a finite number");
   }
   depth.fx = values[0];
   depth.fy = values[1];
@@ -191,7 +197,8 @@ StatusOr<std::optional<DepthToColorCalibration>> ReadDepthToColor(const ConfigFi
   return std::optional<DepthToColorCalibration>(calibration);
 }
 
-StatusOr<std::optional<DepthToColorCalibration>> LoadDepthToColorCalibration(const std::string& path) {
+StatusOr<std::optional<DepthToColorCalibration>> LoadDepthToColorCalibration(
+    const std::string& path) {
   CCMD_ASSIGN_OR_RETURN(const ConfigFile config, ConfigFile::Open(path));
   return ReadDepthToColor(config);
 }
@@ -210,9 +217,9 @@ Status WriteCameraConfig(const PinholeCamera& camera, const std::string& path,
                 "Camera.bf: %.6f\nThDepth: %.6f\nDepthMapFactor: %.3f\nCamera.RGB: %d\n",
                 camera.fx, camera.fy, camera.cx, camera.cy, camera.distortion[0],
                 camera.distortion[1], camera.distortion[2], camera.distortion[3],
-                camera.distortion[4], camera.width, camera.height, camera.fps,
-                camera.bf, camera.far_depth_m * std::fabs(camera.fx) / camera.bf,
-                camera.depth_map_factor, camera.rgb ? 1 : 0);
+                camera.distortion[4], camera.width, camera.height, camera.fps, camera.bf,
+                camera.far_depth_m * std::fabs(camera.fx) / camera.bf, camera.depth_map_factor,
+                camera.rgb ? 1 : 0);
   std::string out = text;
   if (depth) {
     const PinholeCamera& d = depth->depth;
@@ -223,8 +230,8 @@ Status WriteCameraConfig(const PinholeCamera& camera, const std::string& path,
                   "Depth.width: %d\nDepth.height: %d\n"
                   "Depth.R_color_depth: [%.9f, %.9f, %.9f, %.9f, %.9f, %.9f, %.9f, %.9f, %.9f]\n"
                   "Depth.t_color_depth: [%.9f, %.9f, %.9f]\n",
-                  d.fx, d.fy, d.cx, d.cy, d.width, d.height, R(0, 0), R(0, 1), R(0, 2), R(1, 0), R(1, 1),
-                  R(1, 2), R(2, 0), R(2, 1), R(2, 2), t.x(), t.y(), t.z());
+                  d.fx, d.fy, d.cx, d.cy, d.width, d.height, R(0, 0), R(0, 1), R(0, 2), R(1, 0),
+                  R(1, 1), R(1, 2), R(2, 0), R(2, 1), R(2, 2), t.x(), t.y(), t.z());
     out += text;
   }
   return WriteFileAtomic(path, out);

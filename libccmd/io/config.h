@@ -36,7 +36,8 @@ class ConfigFile {
   StatusOr<int> GetInt(const std::string& key, int fallback) const;
   StatusOr<std::string> GetString(const std::string& key, const std::string& fallback) const;
   // A list of exactly `count` numbers at `key`, nullopt when absent.
-  StatusOr<std::optional<std::vector<double>>> GetNumbers(const std::string& key, std::size_t count) const;
+  StatusOr<std::optional<std::vector<double>>> GetNumbers(const std::string& key,
+                                                          std::size_t count) const;
 
  private:
   ConfigFile() = default;
@@ -66,7 +67,8 @@ struct DepthToColorCalibration {
 //   Depth.t_color_depth: [tx, ty, tz] in metres    (default zero)
 // Returns nullopt if the file has no Depth.fx (no registration wanted).
 StatusOr<std::optional<DepthToColorCalibration>> ReadDepthToColor(const ConfigFile& config);
-StatusOr<std::optional<DepthToColorCalibration>> LoadDepthToColorCalibration(const std::string& path);
+StatusOr<std::optional<DepthToColorCalibration>> LoadDepthToColorCalibration(
+    const std::string& path);
 
 // Writes a camera (and its depth block, if given) as an ORB-SLAM style YAML file that
 // ReadCamera and ReadDepthToColor read back unchanged (used by ccmd_synth and --record).

@@ -92,28 +92,41 @@ namespace {
 enum class PlyType { kInt8, kUint8, kInt16, kUint16, kInt32, kUint32, kFloat32, kFloat64 };
 
 bool ParsePlyType(std::string_view name, PlyType* type) {
-  if (name == "char" || name == "int8") *type = PlyType::kInt8;
-  else if (name == "uchar" || name == "uint8") *type = PlyType::kUint8;
-  else if (name == "short" || name == "int16") *type = PlyType::kInt16;
-  else if (name == "ushort" || name == "uint16") *type = PlyType::kUint16;
-  else if (name == "int" || name == "int32") *type = PlyType::kInt32;
-  else if (name == "uint" || name == "uint32") *type = PlyType::kUint32;
-  else if (name == "float" || name == "float32") *type = PlyType::kFloat32;
-  else if (name == "double" || name == "float64") *type = PlyType::kFloat64;
-  else return false;
+  if (name == "char" || name == "int8")
+    *type = PlyType::kInt8;
+  else if (name == "uchar" || name == "uint8")
+    *type = PlyType::kUint8;
+  else if (name == "short" || name == "int16")
+    *type = PlyType::kInt16;
+  else if (name == "ushort" || name == "uint16")
+    *type = PlyType::kUint16;
+  else if (name == "int" || name == "int32")
+    *type = PlyType::kInt32;
+  else if (name == "uint" || name == "uint32")
+    *type = PlyType::kUint32;
+  else if (name == "float" || name == "float32")
+    *type = PlyType::kFloat32;
+  else if (name == "double" || name == "float64")
+    *type = PlyType::kFloat64;
+  else
+    return false;
   return true;
 }
 
 int TypeSize(PlyType type) {
   switch (type) {
     case PlyType::kInt8:
-    case PlyType::kUint8: return 1;
+    case PlyType::kUint8:
+      return 1;
     case PlyType::kInt16:
-    case PlyType::kUint16: return 2;
+    case PlyType::kUint16:
+      return 2;
     case PlyType::kInt32:
     case PlyType::kUint32:
-    case PlyType::kFloat32: return 4;
-    case PlyType::kFloat64: return 8;
+    case PlyType::kFloat32:
+      return 4;
+    case PlyType::kFloat64:
+      return 8;
   }
   return 0;
 }
@@ -150,14 +163,48 @@ class BodyReader {
       for (int i = 0; i < size / 2; ++i) std::swap(bytes[i], bytes[size - 1 - i]);
     }
     switch (type) {
-      case PlyType::kInt8: *value = static_cast<std::int8_t>(bytes[0]); break;
-      case PlyType::kUint8: *value = bytes[0]; break;
-      case PlyType::kInt16: { std::int16_t v; std::memcpy(&v, bytes, 2); *value = v; break; }
-      case PlyType::kUint16: { std::uint16_t v; std::memcpy(&v, bytes, 2); *value = v; break; }
-      case PlyType::kInt32: { std::int32_t v; std::memcpy(&v, bytes, 4); *value = v; break; }
-      case PlyType::kUint32: { std::uint32_t v; std::memcpy(&v, bytes, 4); *value = v; break; }
-      case PlyType::kFloat32: { float v; std::memcpy(&v, bytes, 4); *value = v; break; }
-      case PlyType::kFloat64: { double v; std::memcpy(&v, bytes, 8); *value = v; break; }
+      case PlyType::kInt8:
+        *value = static_cast<std::int8_t>(bytes[0]);
+        break;
+      case PlyType::kUint8:
+        *value = bytes[0];
+        break;
+      case PlyType::kInt16: {
+        std::int16_t v;
+        std::memcpy(&v, bytes, 2);
+        *value = v;
+        break;
+      }
+      case PlyType::kUint16: {
+        std::uint16_t v;
+        std::memcpy(&v, bytes, 2);
+        *value = v;
+        break;
+      }
+      case PlyType::kInt32: {
+        std::int32_t v;
+        std::memcpy(&v, bytes, 4);
+        *value = v;
+        break;
+      }
+      case PlyType::kUint32: {
+        std::uint32_t v;
+        std::memcpy(&v, bytes, 4);
+        *value = v;
+        break;
+      }
+      case PlyType::kFloat32: {
+        float v;
+        std::memcpy(&v, bytes, 4);
+        *value = v;
+        break;
+      }
+      case PlyType::kFloat64: {
+        double v;
+        std::memcpy(&v, bytes, 8);
+        *value = v;
+        break;
+      }
     }
     return true;
   }
@@ -201,10 +248,14 @@ StatusOr<PointCloud> ReadPly(const std::string& path, const PlyReadOptions& opti
     const auto f = SplitWhitespace(line);
     if (f.empty() || f[0] == "ply" || f[0] == "comment" || f[0] == "obj_info") continue;
     if (f[0] == "format" && f.size() >= 2) {
-      if (f[1] == "ascii") format = Format::kAscii;
-      else if (f[1] == "binary_little_endian") format = Format::kBinaryLittle;
-      else if (f[1] == "binary_big_endian") format = Format::kBinaryBig;
-      else return Unsupported(path + ": unknown PLY format " + std::string(f[1]));
+      if (f[1] == "ascii")
+        format = Format::kAscii;
+      else if (f[1] == "binary_little_endian")
+        format = Format::kBinaryLittle;
+      else if (f[1] == "binary_big_endian")
+        format = Format::kBinaryBig;
+      else
+        return Unsupported(path + ": unknown PLY format " + std::string(f[1]));
       have_format = true;
     } else if (f[0] == "element" && f.size() == 3) {
       auto count = ParseInt(f[2]);
@@ -239,12 +290,14 @@ StatusOr<PointCloud> ReadPly(const std::string& path, const PlyReadOptions& opti
     const bool is_face = element.name == "face";
     if (is_vertex) {
       if (element.count > options.max_vertices) {
-        return OutOfRange(path + ": " + std::to_string(element.count) + " vertices exceed the limit");
+        return OutOfRange(path + ": " + std::to_string(element.count) +
+                          " vertices exceed the limit");
       }
       // A binary file must hold at least count * (bytes per vertex): check before allocating.
       if (format != Format::kAscii) {
         std::uint64_t bytes_per_vertex = 0;
-        for (const auto& p : element.properties) bytes_per_vertex += p.is_list ? 1 : TypeSize(p.type);
+        for (const auto& p : element.properties)
+          bytes_per_vertex += p.is_list ? 1 : TypeSize(p.type);
         if (element.count * bytes_per_vertex > data.size() - body) {
           return Corrupt(path + ": file shorter than its vertex count says");
         }
@@ -253,16 +306,26 @@ StatusOr<PointCloud> ReadPly(const std::string& path, const PlyReadOptions& opti
           il = -1;
       for (int k = 0; k < static_cast<int>(element.properties.size()); ++k) {
         const std::string& n = element.properties[k].name;
-        if (n == "x") ix = k;
-        else if (n == "y") iy = k;
-        else if (n == "z") iz = k;
-        else if (n == "nx") inx = k;
-        else if (n == "ny") iny = k;
-        else if (n == "nz") inz = k;
-        else if (n == "red" || n == "r") ir = k;
-        else if (n == "green" || n == "g") ig = k;
-        else if (n == "blue" || n == "b") ib = k;
-        else if (n == "label") il = k;
+        if (n == "x")
+          ix = k;
+        else if (n == "y")
+          iy = k;
+        else if (n == "z")
+          iz = k;
+        else if (n == "nx")
+          inx = k;
+        else if (n == "ny")
+          iny = k;
+        else if (n == "nz")
+          inz = k;
+        else if (n == "red" || n == "r")
+          ir = k;
+        else if (n == "green" || n == "g")
+          ig = k;
+        else if (n == "blue" || n == "b")
+          ib = k;
+        else if (n == "label")
+          il = k;
       }
       if (ix < 0 || iy < 0 || iz < 0) return Corrupt(path + ": vertices have no x y z");
       const bool normals = inx >= 0 && iny >= 0 && inz >= 0;
@@ -318,7 +381,8 @@ StatusOr<PointCloud> ReadPly(const std::string& path, const PlyReadOptions& opti
     } else {
       // Elements other than vertex/face (or faces before vertices) are not used; stop here,
       // since skipping them would need their list sizes.
-      if (!vertices_read) return Unsupported(path + ": element '" + element.name + "' before vertices");
+      if (!vertices_read)
+        return Unsupported(path + ": element '" + element.name + "' before vertices");
       break;
     }
   }

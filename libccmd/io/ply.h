@@ -12,16 +12,16 @@
 
 #include <Eigen/Core>
 
-#include "libccmd/util/status.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 
 struct PointCloud {
   std::vector<Eigen::Vector3f> points;
-  std::vector<std::array<std::uint8_t, 3>> colors;  // R, G, B; empty or one per point
-  std::vector<Eigen::Vector3f> normals;             // empty or one per point
-  std::vector<std::uint32_t> labels;                // empty or one per point
+  std::vector<std::array<std::uint8_t, 3>> colors;      // R, G, B; empty or one per point
+  std::vector<Eigen::Vector3f> normals;                 // empty or one per point
+  std::vector<std::uint32_t> labels;                    // empty or one per point
   std::vector<std::array<std::uint32_t, 3>> triangles;  // faces (read only)
 
   std::size_t size() const { return points.size(); }

@@ -9,10 +9,10 @@ namespace ccmd {
 // Colour may be larger than depth (e.g. 1920x1080 with 640x480 depth); consumers that
 // need them aligned resize colour to the depth size.
 struct RgbdFrame {
-  int index = -1;         // position in its sequence (or capture counter for live sources)
-  double timestamp = 0;   // seconds (dataset time, or device time for live sources)
-  cv::Mat bgr;            // CV_8UC3
-  cv::Mat depth_mm;       // CV_16UC1
+  int index = -1;        // position in its sequence (or capture counter for live sources)
+  double timestamp = 0;  // seconds (dataset time, or device time for live sources)
+  cv::Mat bgr;           // CV_8UC3
+  cv::Mat depth_mm;      // CV_16UC1
 };
 
 }  // namespace ccmd

@@ -32,7 +32,8 @@ StatusOr<std::vector<FrameRange>> SplitWithOverlap(int num_frames, int num_segme
   std::vector<FrameRange> segments;
   for (int i = 0; i < num_segments; ++i) {
     const int first = i * stride;
-    const int last = (i == num_segments - 1) ? num_frames - 1 : std::min(num_frames - 1, first + length - 1);
+    const int last =
+        (i == num_segments - 1) ? num_frames - 1 : std::min(num_frames - 1, first + length - 1);
     segments.push_back({first, last});
   }
   return segments;

@@ -37,8 +37,9 @@ StatusOr<Trajectory> ParseTumTrajectory(const std::string& text, const std::stri
     }
     trajectory.push_back({v[0], PoseFromTranslationQuaternion({v[1], v[2], v[3]}, q)});
   }
-  std::stable_sort(trajectory.begin(), trajectory.end(),
-                   [](const StampedPose& a, const StampedPose& b) { return a.timestamp < b.timestamp; });
+  std::stable_sort(
+      trajectory.begin(), trajectory.end(),
+      [](const StampedPose& a, const StampedPose& b) { return a.timestamp < b.timestamp; });
   return trajectory;
 }
 
@@ -56,8 +57,8 @@ std::string FormatTumTrajectory(const Trajectory& trajectory, const std::string&
   for (const StampedPose& sample : trajectory) {
     const Eigen::Vector3d t = sample.T_world_cam.translation();
     const Eigen::Quaterniond q = QuaternionOf(sample.T_world_cam);
-    std::snprintf(line, sizeof(line), "%.6f %.9f %.9f %.9f %.9f %.9f %.9f %.9f\n",
-                  sample.timestamp, t.x(), t.y(), t.z(), q.x(), q.y(), q.z(), q.w());
+    std::snprintf(line, sizeof(line), "%.6f %.9f %.9f %.9f %.9f %.9f %.9f %.9f\n", sample.timestamp,
+                  t.x(), t.y(), t.z(), q.x(), q.y(), q.z(), q.w());
     out += line;
   }
   return out;

@@ -30,7 +30,6 @@ std::string FormatTumTrajectory(const Trajectory& trajectory, const std::string&
 
 // The pose at `t`, interpolated between the two samples around it, if both lie within
 // `max_gap` seconds of t. Requires a time-sorted trajectory.
-std::optional<Pose> InterpolateTrajectory(const Trajectory& trajectory, double t,
-                                          double max_gap);
+std::optional<Pose> InterpolateTrajectory(const Trajectory& trajectory, double t, double max_gap);
 
 }  // namespace ccmd

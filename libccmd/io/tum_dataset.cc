@@ -48,14 +48,16 @@ StatusOr<std::vector<TimedFile>> ReadTimedFileList(const std::string& path) {
     if (!t.ok()) return t.status().WithContext(path + ":" + std::to_string(line_number));
     files.push_back({*t, std::string(fields[1])});
   }
-  std::stable_sort(files.begin(), files.end(),
-                   [](const TimedFile& a, const TimedFile& b) { return a.timestamp < b.timestamp; });
+  std::stable_sort(files.begin(), files.end(), [](const TimedFile& a, const TimedFile& b) {
+    return a.timestamp < b.timestamp;
+  });
   return files;
 }
 
-std::vector<std::pair<std::size_t, std::size_t>> AssociateTimestamps(
-    const std::vector<double>& a, const std::vector<double>& b, double max_difference,
-    double offset) {
+std::vector<std::pair<std::size_t, std::size_t>> AssociateTimestamps(const std::vector<double>& a,
+                                                                     const std::vector<double>& b,
+                                                                     double max_difference,
+                                                                     double offset) {
   // Candidate pairs within the tolerance. Walking both lists in time order with a sliding
   // window over b keeps this O(n log n + candidates) instead of the script's O(n*m).
   std::vector<std::size_t> b_order(b.size());
@@ -80,8 +82,9 @@ std::vector<std::pair<std::size_t, std::size_t>> AssociateTimestamps(
       if (difference < max_difference) candidates.push_back({difference, i, b_order[k]});
     }
   }
-  std::stable_sort(candidates.begin(), candidates.end(),
-                   [](const Candidate& x, const Candidate& y) { return x.difference < y.difference; });
+  std::stable_sort(
+      candidates.begin(), candidates.end(),
+      [](const Candidate& x, const Candidate& y) { return x.difference < y.difference; });
   std::vector<bool> a_used(a.size(), false), b_used(b.size(), false);
   std::vector<std::pair<std::size_t, std::size_t>> matches;
   for (const Candidate& c : candidates) {
@@ -117,7 +120,8 @@ Status ReadAssociations(const std::string& path, std::vector<TimedFile>* rgb,
     if (!t2.ok()) return t2.status().WithContext(where);
     TimedFile first{*t1, std::string(fields[1])};
     TimedFile second{*t2, std::string(fields[3])};
-    if (LooksLikeDepthPath(first.path) && !LooksLikeDepthPath(second.path)) std::swap(first, second);
+    if (LooksLikeDepthPath(first.path) && !LooksLikeDepthPath(second.path))
+      std::swap(first, second);
     rgb->push_back(first);
     depth->push_back(second);
   }
@@ -246,8 +250,8 @@ std::string GuessCameraConfigName(const std::string& folder) {
     return "tum_fr2.yaml";
   if (name.find("freiburg3") != std::string::npos || name.find("fr3") != std::string::npos)
     return "tum_fr3.yaml";
-  if (name.find("living_room") != std::string::npos || name.find("office_room") != std::string::npos ||
-      name.find("icl") != std::string::npos)
+  if (name.find("living_room") != std::string::npos ||
+      name.find("office_room") != std::string::npos || name.find("icl") != std::string::npos)
     return "icl_nuim.yaml";
   if (name.find("7scenes") != std::string::npos || name.find("redkitchen") != std::string::npos)
     return "7scenes.yaml";

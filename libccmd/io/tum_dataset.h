@@ -20,8 +20,8 @@
 #include "libccmd/geometry/camera.h"
 #include "libccmd/io/rgbd_frame.h"
 #include "libccmd/io/trajectory.h"
-#include "libccmd/util/status.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 
@@ -35,14 +35,15 @@ StatusOr<std::vector<TimedFile>> ReadTimedFileList(const std::string& path);
 
 // Greedy nearest-timestamp association (TUM associate.py): returns (index in a, index in b)
 // pairs with |a - (b + offset)| < max_difference, sorted by a's index.
-std::vector<std::pair<std::size_t, std::size_t>> AssociateTimestamps(
-    const std::vector<double>& a, const std::vector<double>& b, double max_difference,
-    double offset = 0.0);
+std::vector<std::pair<std::size_t, std::size_t>> AssociateTimestamps(const std::vector<double>& a,
+                                                                     const std::vector<double>& b,
+                                                                     double max_difference,
+                                                                     double offset = 0.0);
 
 struct TumFrameInfo {
-  double timestamp = 0;        // the colour image's time, which names the frame
+  double timestamp = 0;  // the colour image's time, which names the frame
   double depth_timestamp = 0;
-  std::string rgb_path;        // absolute or relative to the current folder
+  std::string rgb_path;  // absolute or relative to the current folder
   std::string depth_path;
   std::optional<Pose> T_world_cam_gt;  // interpolated ground truth, if available
 };

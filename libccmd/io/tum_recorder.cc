@@ -11,7 +11,8 @@
 namespace ccmd {
 
 Status TumRecorderOptions::Validate() const {
-  if (png_compression < 0 || png_compression > 9) return InvalidArgument("PNG compression must be 0..9");
+  if (png_compression < 0 || png_compression > 9)
+    return InvalidArgument("PNG compression must be 0..9");
   if (queue_frames < 0) return InvalidArgument("queue frames must be >= 0");
   if (writer_threads < 1) return InvalidArgument("writer threads must be at least 1");
   return Status::Ok();

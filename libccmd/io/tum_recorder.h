@@ -29,8 +29,8 @@
 #include "libccmd/io/rgbd_frame.h"
 #include "libccmd/io/trajectory.h"
 #include "libccmd/util/bounded_queue.h"
-#include "libccmd/util/status.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 

@@ -84,9 +84,9 @@ StatusOr<AgentIdentity> LoadOrCreateIdentity(const std::string& path) {
 }
 
 IdentityVerifier VerifierOf(const AgentIdentity& identity) {
-  const Mac mac = HmacSha256(
-      identity, ByteSpan(reinterpret_cast<const std::uint8_t*>(kVerifierLabel.data()),
-                         kVerifierLabel.size()));
+  const Mac mac =
+      HmacSha256(identity, ByteSpan(reinterpret_cast<const std::uint8_t*>(kVerifierLabel.data()),
+                                    kVerifierLabel.size()));
   IdentityVerifier verifier;
   std::copy(mac.begin(), mac.end(), verifier.begin());
   return verifier;

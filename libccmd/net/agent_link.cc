@@ -87,7 +87,8 @@ void AgentLinkOptions::Describe(OptionsWriter* out) const {
   out->Add("camera.width", camera.width);
   out->Add("camera.height", camera.height);
   out->Add("camera.depth_scale", camera.depth_scale);
-  out->Add("camera.distortion", std::vector<double>(camera.distortion.begin(), camera.distortion.end()));
+  out->Add("camera.distortion",
+           std::vector<double>(camera.distortion.begin(), camera.distortion.end()));
   out->Add("psk", psk.empty() ? "none" : "set");
   out->Add("spill_dir", spill_dir);
   out->Add("memory_limit_bytes", memory_limit_bytes);
@@ -153,7 +154,8 @@ StatusOr<std::uint64_t> AgentLink::Send(std::uint8_t type, std::vector<std::uint
   {
     std::lock_guard<std::mutex> lock(mutex_);
     if (!IsDataType(type)) {
-      return Refuse(InvalidArgument("type " + std::to_string(type) + " is not a data message type"));
+      return Refuse(
+          InvalidArgument("type " + std::to_string(type) + " is not a data message type"));
     }
     if (!terminal_.ok()) return Refuse(terminal_);
     if (stopping_) return Refuse(Cancelled("the link is closed"));
@@ -463,8 +465,7 @@ Status AgentLink::Handshake(Wire* wire) {
   if (released_last > 0 && options_.on_acked) options_.on_acked(released_first, released_last);
   CCMD_LOG(INFO) << "agent '" << options_.name << "' connected to " << options_.server
                  << " as agent " << welcome.agent << "; server stored up to message "
-                 << welcome.last_stored_seq
-                 << (keyed ? "" : " (no key: frames not authenticated)");
+                 << welcome.last_stored_seq << (keyed ? "" : " (no key: frames not authenticated)");
   return Status::Ok();
 }
 
@@ -548,8 +549,8 @@ Status AgentLink::HandleInbox(Wire* wire) {
       if (verified.code() != StatusCode::kPermissionDenied) return verified;
       std::lock_guard<std::mutex> lock(mutex_);
       ++stats_.auth_failures;
-      return Unavailable("a frame from the server failed authentication (" +
-                         verified.message() + "); reconnecting");
+      return Unavailable("a frame from the server failed authentication (" + verified.message() +
+                         "); reconnecting");
     }
     CCMD_RETURN_IF_ERROR(HandleServerFrame(f));
   }

@@ -102,14 +102,13 @@ class SessionAuth::Mac {
     int length = 0;
     std::uint8_t unused[16];
     FrameTag tag;
-    const bool ok =
-        EVP_EncryptInit_ex(ctx_, nullptr, nullptr, nullptr, nonce) == 1 &&
-        EVP_EncryptUpdate(ctx_, nullptr, &length, header.data(), static_cast<int>(header.size())) ==
-            1 &&
-        (payload.empty() || EVP_EncryptUpdate(ctx_, nullptr, &length, payload.data(),
-                                              static_cast<int>(payload.size())) == 1) &&
-        EVP_EncryptFinal_ex(ctx_, unused, &length) == 1 &&
-        EVP_CIPHER_CTX_ctrl(ctx_, EVP_CTRL_GCM_GET_TAG, kFrameTagSize, tag.data()) == 1;
+    const bool ok = EVP_EncryptInit_ex(ctx_, nullptr, nullptr, nullptr, nonce) == 1 &&
+                    EVP_EncryptUpdate(ctx_, nullptr, &length, header.data(),
+                                      static_cast<int>(header.size())) == 1 &&
+                    (payload.empty() || EVP_EncryptUpdate(ctx_, nullptr, &length, payload.data(),
+                                                          static_cast<int>(payload.size())) == 1) &&
+                    EVP_EncryptFinal_ex(ctx_, unused, &length) == 1 &&
+                    EVP_CIPHER_CTX_ctrl(ctx_, EVP_CTRL_GCM_GET_TAG, kFrameTagSize, tag.data()) == 1;
     CCMD_CHECK(ok) << "AES-256-GCM failed";
     return tag;
   }
@@ -141,14 +140,13 @@ FrameTag SessionAuth::Tag(const SessionKey& key, FrameRole sender, std::uint64_t
 void SessionAuth::SealLast(std::size_t frame_start, std::vector<std::uint8_t>* out) {
   const double start = Now();
   const ByteSpan frame(out->data() + frame_start, out->size() - frame_start);
-  const FrameTag tag = send_mac_->Tag(sent_++, frame.first(kFrameHeaderSize),
-                                      frame.subspan(kFrameHeaderSize));
+  const FrameTag tag =
+      send_mac_->Tag(sent_++, frame.first(kFrameHeaderSize), frame.subspan(kFrameHeaderSize));
   out->insert(out->end(), tag.begin(), tag.end());
   cpu_seconds_ += Now() - start;
 }
 
-void SessionAuth::AppendFrame(std::uint8_t type, ByteSpan payload,
-                              std::vector<std::uint8_t>* out) {
+void SessionAuth::AppendFrame(std::uint8_t type, ByteSpan payload, std::vector<std::uint8_t>* out) {
   const std::size_t start = out->size();
   ::ccmd::AppendFrame(type, keyed_ ? kFrameTagged : 0, payload, out);
   if (keyed_) SealLast(start, out);

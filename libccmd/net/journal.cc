@@ -118,14 +118,15 @@ std::optional<IntactRecord> IntactAt(ScanSource* src, std::uint64_t pos,
   std::uint8_t header_bytes[kFrameHeaderSize];
   if (src->size() - pos < kFrameHeaderSize) return std::nullopt;
   if (!src->Read(pos, kFrameHeaderSize, header_bytes).ok()) return std::nullopt;
-  StatusOr<FrameHeader> h =
-      ParseFrameHeader(ByteSpan(header_bytes, kFrameHeaderSize),
-                       FrameLimits{.max_payload_bytes = kMaxJournalPayloadBytes, .oldest_version = 1});
+  StatusOr<FrameHeader> h = ParseFrameHeader(
+      ByteSpan(header_bytes, kFrameHeaderSize),
+      FrameLimits{.max_payload_bytes = kMaxJournalPayloadBytes, .oldest_version = 1});
   if (!h.ok() || h->tagged() || h->payload_size > src->size() - pos - kFrameHeaderSize) {
     return std::nullopt;
   }
   payload->resize(h->payload_size);
-  if (!payload->empty() && !src->Read(pos + kFrameHeaderSize, payload->size(), payload->data()).ok()) {
+  if (!payload->empty() &&
+      !src->Read(pos + kFrameHeaderSize, payload->size(), payload->data()).ok()) {
     return std::nullopt;
   }
   if (Crc32c(*payload) != h->payload_crc) return std::nullopt;
@@ -198,9 +199,9 @@ class Scanner {
     }
     std::uint8_t header_bytes[kFrameHeaderSize];
     CCMD_RETURN_IF_ERROR(src_->Read(pos_, kFrameHeaderSize, header_bytes));
-    StatusOr<FrameHeader> header =
-        ParseFrameHeader(ByteSpan(header_bytes, kFrameHeaderSize),
-                         FrameLimits{.max_payload_bytes = kMaxJournalPayloadBytes, .oldest_version = 1});
+    StatusOr<FrameHeader> header = ParseFrameHeader(
+        ByteSpan(header_bytes, kFrameHeaderSize),
+        FrameLimits{.max_payload_bytes = kMaxJournalPayloadBytes, .oldest_version = 1});
     if (!header.ok()) {
       CCMD_ASSIGN_OR_RETURN(const bool zeros, AllZeroFrom(src_, pos_));
       if (zeros) return Torn("zero-filled tail");
@@ -242,7 +243,8 @@ class Scanner {
 
   Status Record(std::uint8_t type, std::uint8_t version) {
     if (!scan_.has_info) {
-      if (type != kJournalInfoRecord) return Damaged("first record is not a journal info record").status();
+      if (type != kJournalInfoRecord)
+        return Damaged("first record is not a journal info record").status();
       StatusOr<JournalAgentInfo> info = ParseJournalInfo(payload_, version);
       if (!info.ok()) return Damaged(info.status().message()).status();
       scan_.info = std::move(*info);
@@ -263,8 +265,7 @@ class Scanner {
     StatusOr<DataEnvelope> env = ParseDataEnvelope(payload_);
     if (!env.ok()) return Damaged(env.status().message()).status();
     if (env->seq <= scan_.last_seq) {
-      return Damaged("sequence number " + std::to_string(env->seq) + " does not increase")
-          .status();
+      return Damaged("sequence number " + std::to_string(env->seq) + " does not increase").status();
     }
     if (scan_.last_seq != 0 && env->seq != scan_.last_seq + 1) ++scan_.gaps;
     if (scan_.records == 0) scan_.first_seq = env->seq;

@@ -120,8 +120,8 @@ struct JournalRecord {
 };
 
 struct JournalScan {
-  bool has_info = false;  // false: the file ends inside its first record (crash at creation)
-  JournalAgentInfo info;  // with every update record applied
+  bool has_info = false;      // false: the file ends inside its first record (crash at creation)
+  JournalAgentInfo info;      // with every update record applied
   std::uint64_t records = 0;  // data records
   std::uint64_t first_seq = 0;
   std::uint64_t last_seq = 0;

@@ -180,7 +180,8 @@ StatusOr<std::uint64_t> JournalStage::Resume() {
     }
     CCMD_ASSIGN_OR_RETURN(agent.writer, JournalWriter::OpenForAppend(path, scan.valid_bytes));
     agent.info = scan.info;  // with its update records applied
-    CCMD_RETURN_IF_ERROR(RaiseRecordedLimit(&agent.info, agent.writer.get(), options_.max_payload_bytes));
+    CCMD_RETURN_IF_ERROR(
+        RaiseRecordedLimit(&agent.info, agent.writer.get(), options_.max_payload_bytes));
     agent.written_seq = agent.durable_seq = scan.last_seq;
     // Restored agents get a slot time-out's grace to come back before new names take it.
     agent.last_detach = MonotonicSeconds();
@@ -454,8 +455,9 @@ void JournalStage::Detach(const StageItem& item, Batch* batch) {
 
 Status JournalStage::Persist(Agent* agent, Batch* batch) {
   const AgentId id = agent->info.id;
-  CCMD_ASSIGN_OR_RETURN(agent->writer, JournalWriter::Create(
-                                           JoinPath(options_.dir, JournalFileName(id)), agent->info));
+  CCMD_ASSIGN_OR_RETURN(
+      agent->writer,
+      JournalWriter::Create(JoinPath(options_.dir, JournalFileName(id)), agent->info));
   CCMD_LOG(INFO) << "registered agent " << id << " '" << agent->info.name << "' ("
                  << DescribeCamera(agent->info.camera) << ")";
   Announce(agent, /*from_journal=*/false, &batch->deliveries).IgnoreError();

@@ -73,11 +73,11 @@ class DeliveryStage {
 struct StageItem {
   enum class Kind { kAttach, kData, kDetach };
   Kind kind = Kind::kData;
-  std::uint64_t conn = 0;  // the I/O thread's connection token
-  HelloMessage hello;      // kAttach
+  std::uint64_t conn = 0;       // the I/O thread's connection token
+  HelloMessage hello;           // kAttach
   IdentityVerifier verifier{};  // kAttach: of the identity the connection presented
-  AgentId agent;           // kData, kDetach
-  std::uint64_t seq = 0;   // kData
+  AgentId agent;                // kData, kDetach
+  std::uint64_t seq = 0;        // kData
   std::uint8_t type = 0;
   std::vector<std::uint8_t> message;
   double received_time = 0;  // MonotonicSeconds() at the I/O thread (every kind)
@@ -107,7 +107,7 @@ struct StageFeedback {
 struct JournalStageOptions {
   std::string dir;
   bool fsync = true;
-  int max_agents = 16;        // active at once (see above)
+  int max_agents = 16;          // active at once (see above)
   double slot_timeout_s = 300;  // a disconnected agent keeps its slot this long
   std::size_t queue_capacity = 256;
   std::size_t max_batch = 64;

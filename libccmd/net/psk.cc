@@ -43,10 +43,10 @@ ByteSpan AsBytes(std::string_view s) {
 
 StatusOr<std::string> ReadPskFile(const std::string& path) {
   CCMD_ASSIGN_OR_RETURN(std::string text, ReadFileToString(path, 2 * kMaxPskBytes));
-  struct stat st{};
+  struct stat st {};
   if (::stat(path.c_str(), &st) == 0 && (st.st_mode & (S_IRWXG | S_IRWXO)) != 0) {
-    CCMD_LOG(WARNING) << "key file " << path
-                      << " can be read by other users; consider `chmod 600 " << path << "`";
+    CCMD_LOG(WARNING) << "key file " << path << " can be read by other users; consider `chmod 600 "
+                      << path << "`";
   }
   std::string key = TrimTrailingSpace(std::move(text));
   CCMD_RETURN_IF_ERROR(CheckKeyLength(key, path));

@@ -33,8 +33,8 @@ void RefusalLog::Write(const std::string& line) {
   }
 }
 
-void RefusalLog::Note(const std::string& source, const std::string& peer,
-                      const std::string& reason, const std::string& text, double now) {
+void RefusalLog::Note(const std::string& source, const std::string& peer, const std::string& reason,
+                      const std::string& text, double now) {
   Flush(now);
   std::string key = source;
   const std::size_t tracked = sources_.size() - sources_.count(kOtherSources);

@@ -496,8 +496,7 @@ void ServerIo::CheckStreamingTimers(Connection* c, double now) {
   } else if (now - c->last_frame >= options_.idle_timeout_s) {
     stats_->Count("idle_timeouts");
     Close(c, ByeReason::kTimeout,
-          "no complete frame received for " + std::to_string(options_.idle_timeout_s) + " s",
-          now);
+          "no complete frame received for " + std::to_string(options_.idle_timeout_s) + " s", now);
   } else if (now - c->last_tx >= options_.heartbeat_interval_s) {
     Send(c, SessionType::kHeartbeat, {});
   }
@@ -568,8 +567,6 @@ void Server::Stop() {
   }
 }
 
-Json Server::StatsJson() const {
-  return stats_->ToJson(MonotonicSeconds());
-}
+Json Server::StatsJson() const { return stats_->ToJson(MonotonicSeconds()); }
 
 }  // namespace ccmd

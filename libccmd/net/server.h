@@ -37,7 +37,7 @@ struct ServerOptions {
   std::string listen = "127.0.0.1:7420";  // HOST:PORT; port 0 = any free port
   std::string journal_dir;                // required: one journal per agent
   bool resume = false;                    // replay journal_dir's journals before serving
-  std::string psk;          // pre-shared key; empty = no authentication, allowed on loopback only
+  std::string psk;  // pre-shared key; empty = no authentication, allowed on loopback only
   // Agents active at once (connected, or disconnected less than slot_timeout_s ago); a new
   // name is refused ("server full") while all are; registered agents are always served.
   int max_agents = 16;
@@ -45,9 +45,9 @@ struct ServerOptions {
   int max_handshakes = 32;  // connections not yet through the handshake
   std::uint32_t max_payload_bytes = kDefaultMaxPayloadBytes;  // per frame
   double handshake_timeout_s = 5.0;                           // accept to welcome
-  double idle_timeout_s = 30.0;  // a session without a complete frame this long is closed
-  double frame_timeout_s = 20.0;  // a frame must be complete this long after its header
-  double heartbeat_interval_s = 5.0;  // the server sends a heartbeat after this much silence
+  double idle_timeout_s = 30.0;          // a session without a complete frame this long is closed
+  double frame_timeout_s = 20.0;         // a frame must be complete this long after its header
+  double heartbeat_interval_s = 5.0;     // the server sends a heartbeat after this much silence
   double refusal_log_interval_s = 10.0;  // refused connections: one summary per source
   std::size_t per_agent_memory_bytes = 64u << 20;  // received, not yet journaled
   std::size_t max_output_bytes = 8u << 20;         // unsent bytes to an agent not reading

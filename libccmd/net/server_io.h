@@ -43,8 +43,8 @@ struct Connection {
   ConnState state = ConnState::kAwaitHello;
   bool counted_as_handshake = true;
   double opened = 0, last_tx = 0, close_deadline = 0;
-  double last_frame = 0;          // the last complete frame (idle time-out)
-  double frame_started = 0;       // when the header of the frame in progress arrived
+  double last_frame = 0;           // the last complete frame (idle time-out)
+  double frame_started = 0;        // when the header of the frame in progress arrived
   std::uint64_t frame_header = 0;  // decoder's headers_accepted() at frame_started
   std::unique_ptr<FrameDecoder> decoder;
   HelloMessage hello;
@@ -72,7 +72,7 @@ class ServerIo {
   void Stop();
 
  private:
-  struct Slot {  // per registered agent
+  struct Slot {                      // per registered agent
     std::uint64_t conn = 0;          // current connection, 0 = none
     std::uint64_t received_seq = 0;  // highest sequence number passed to the journal stage
     std::uint64_t inflight_bytes = 0;

@@ -33,8 +33,8 @@ void ServerIo::HandleFrame(Connection* c, Frame& frame, double now) {
     if (!verified.ok()) {
       const bool forged = verified.code() == StatusCode::kPermissionDenied;
       if (forged) stats_->Count("frame_auth_failures");
-      Close(c, forged ? ByeReason::kFrameAuthFailed : ByeReason::kProtocolError,
-            verified.message(), now);
+      Close(c, forged ? ByeReason::kFrameAuthFailed : ByeReason::kProtocolError, verified.message(),
+            now);
       return;
     }
   } else if (frame.tag) {
@@ -250,8 +250,8 @@ void ServerIo::Welcome(Connection* c, const AttachResult& r, double now) {
   welcome.max_payload_bytes = options_.max_payload_bytes;
   welcome.idle_timeout_ms = static_cast<std::uint32_t>(options_.idle_timeout_s * 1e3);
   c->state = ConnState::kStreaming;
-  c->decoder = std::make_unique<FrameDecoder>(
-      FrameLimits{.max_payload_bytes = options_.max_payload_bytes});
+  c->decoder =
+      std::make_unique<FrameDecoder>(FrameLimits{.max_payload_bytes = options_.max_payload_bytes});
   c->frame_header = 0;
   c->last_frame = now;
   stats_->AgentConnected(r.agent, c->hello.name, now);

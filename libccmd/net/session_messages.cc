@@ -90,8 +90,10 @@ Status ValidateSessionCamera(const SessionCamera& c) {
   const bool finite = std::isfinite(c.fx) && std::isfinite(c.fy) && std::isfinite(c.cx) &&
                       std::isfinite(c.cy) && std::isfinite(c.depth_scale);
   if (!finite || c.fx == 0 || c.fy == 0 || c.depth_scale <= 0) {
-    return InvalidArgument("camera needs finite, non-zero fx and fy (either sign), finite cx, cy and a depth scale > 0 (" +
-                           DescribeCamera(c) + ")");
+    return InvalidArgument(
+        "camera needs finite, non-zero fx and fy (either sign), finite cx, cy and a depth scale > "
+        "0 (" +
+        DescribeCamera(c) + ")");
   }
   for (const double k : c.distortion) {
     if (!std::isfinite(k)) return InvalidArgument("camera distortion coefficients must be finite");
@@ -109,8 +111,8 @@ std::string DescribeCamera(const SessionCamera& c) {
                 c.fy, c.cx, c.cy, c.width, c.height, c.depth_scale);
   std::string out = text;
   if (c.HasDistortion()) {
-    std::snprintf(text, sizeof(text), " distortion %.6f %.6f %.6f %.6f %.6f", c.distortion[0], c.distortion[1],
-                  c.distortion[2], c.distortion[3], c.distortion[4]);
+    std::snprintf(text, sizeof(text), " distortion %.6f %.6f %.6f %.6f %.6f", c.distortion[0],
+                  c.distortion[1], c.distortion[2], c.distortion[3], c.distortion[4]);
     out += text;
   }
   return out;
@@ -349,8 +351,7 @@ StatusOr<DataEnvelope> ParseDataEnvelope(ByteSpan payload) {
   CCMD_RETURN_IF_ERROR(r.ReadU64(&e.seq));
   if (e.seq == 0) return Corrupt("data message with sequence number 0");
   if (e.seq > kMaxSequenceNumber) {
-    return Corrupt("data message with sequence number " + std::to_string(e.seq) +
-                   " (above 2^62)");
+    return Corrupt("data message with sequence number " + std::to_string(e.seq) + " (above 2^62)");
   }
   e.message = payload.subspan(kDataEnvelopeBytes);
   return e;

@@ -122,7 +122,7 @@ struct ChallengeMessage {
 };
 
 struct AuthMessage {
-  std::optional<Mac> proof;        // empty when the server requires no key
+  std::optional<Mac> proof;         // empty when the server requires no key
   AgentIdentity masked_identity{};  // the agent's identity XOR the session's identity pad
 };
 

@@ -61,7 +61,8 @@ struct AgentTraffic {
   std::uint64_t wire_overhead_bytes = 0;
   KeyframeSizeBreakdown keyframe_parts;
   double first_message = -1, last_message = -1;  // seconds since the server started
-  std::uint64_t first_message_bytes = 0;  // sent before first_message: not part of a rate over the span
+  std::uint64_t first_message_bytes =
+      0;  // sent before first_message: not part of a rate over the span
   std::uint64_t delivered = 0, replayed = 0, last_delivered_seq = 0;
   struct Bucket {
     std::uint64_t bytes = 0;

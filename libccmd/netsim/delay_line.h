@@ -12,8 +12,8 @@
 #include <limits>
 #include <vector>
 
-#include "libccmd/util/random.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/random.h"
 #include "libccmd/util/status.h"
 
 namespace ccmd {

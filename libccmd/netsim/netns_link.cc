@@ -103,7 +103,8 @@ Status DisableOffloads(const std::string& interface) {
   const int result = ::ioctl(fd, SIOCETHTOOL, &request);
   const int error = errno;
   ::close(fd);
-  if (result != 0) return IoError("turning checksum offload off on " + interface + ": " + std::strerror(error));
+  if (result != 0)
+    return IoError("turning checksum offload off on " + interface + ": " + std::strerror(error));
   return Status::Ok();
 }
 
@@ -137,17 +138,22 @@ Status CheckNetnsLinkAvailable(const NetnsLinkOptions& options) {
         "a shaped link needs root: it creates network namespaces, veth pairs and tc qdiscs "
         "(run as root, e.g. with sudo, or leave out --link to run on loopback)");
   }
-  if (FindProgram(options.ip_program, "ip").empty() || FindProgram(options.tc_program, "tc").empty()) {
-    return NotFound("iproute2's ip and tc are needed for a shaped link (apt-get install iproute2; scripts/setup.sh installs it)");
+  if (FindProgram(options.ip_program, "ip").empty() ||
+      FindProgram(options.tc_program, "tc").empty()) {
+    return NotFound(
+        "iproute2's ip and tc are needed for a shaped link (apt-get install iproute2; "
+        "scripts/setup.sh installs it)");
   }
   return Status::Ok();
 }
 
-StatusOr<std::unique_ptr<NetnsLink>> NetnsLink::Create(const LinkSpec& spec, const NetnsLinkOptions& options) {
+StatusOr<std::unique_ptr<NetnsLink>> NetnsLink::Create(const LinkSpec& spec,
+                                                       const NetnsLinkOptions& options) {
   CCMD_RETURN_IF_ERROR(spec.Validate());
   CCMD_RETURN_IF_ERROR(CheckNetnsLinkAvailable(options));
-  std::uint64_t state = static_cast<std::uint64_t>(::getpid()) ^
-                        static_cast<std::uint64_t>(std::chrono::steady_clock::now().time_since_epoch().count());
+  std::uint64_t state =
+      static_cast<std::uint64_t>(::getpid()) ^
+      static_cast<std::uint64_t>(std::chrono::steady_clock::now().time_since_epoch().count());
   Status last;
   for (int attempt = 0; attempt < kAttempts; ++attempt) {
     const std::uint32_t id = static_cast<std::uint32_t>(SplitMix64(&state) & 0xFFFFFF);
@@ -167,7 +173,8 @@ StatusOr<std::unique_ptr<NetnsLink>> NetnsLink::Create(const LinkSpec& spec, con
     link->interfaces_[1] = short_prefix + "la";
     link->interfaces_[2] = short_prefix + "ls";
     link->interfaces_[3] = short_prefix + "s";
-    const std::string subnet = "10." + std::to_string((id >> 8) & 0xFF) + "." + std::to_string(id & 0xFF) + ".";
+    const std::string subnet =
+        "10." + std::to_string((id >> 8) & 0xFF) + "." + std::to_string(id & 0xFF) + ".";
     link->addresses_[0] = subnet + "1";
     link->addresses_[2] = subnet + "2";
     if (FileExists(NetnsPath(link->names_[0])) || FileExists(NetnsPath(link->names_[1])) ||
@@ -180,7 +187,8 @@ StatusOr<std::unique_ptr<NetnsLink>> NetnsLink::Create(const LinkSpec& spec, con
     if (last.ok()) return link;
     link->Close().IgnoreError();
   }
-  return last.ok() ? Unavailable("no free network namespace names after " + std::to_string(kAttempts) + " tries")
+  return last.ok() ? Unavailable("no free network namespace names after " +
+                                 std::to_string(kAttempts) + " tries")
                    : last;
 }
 
@@ -202,21 +210,25 @@ Status NetnsLink::Run(const std::vector<std::string>& argv) const {
 Status NetnsLink::Build() {
   const std::string &a = names_[0], &l = names_[1], &s = names_[2];
   for (const std::string& ns : {a, l, s}) CCMD_RETURN_IF_ERROR(Run({ip_, "netns", "add", ns}));
-  CCMD_RETURN_IF_ERROR(Run({ip_, "link", "add", interfaces_[0], "netns", a, "type", "veth", "peer", "name",
-                            interfaces_[1], "netns", l}));
-  CCMD_RETURN_IF_ERROR(Run({ip_, "link", "add", interfaces_[3], "netns", s, "type", "veth", "peer", "name",
-                            interfaces_[2], "netns", l}));
+  CCMD_RETURN_IF_ERROR(Run({ip_, "link", "add", interfaces_[0], "netns", a, "type", "veth", "peer",
+                            "name", interfaces_[1], "netns", l}));
+  CCMD_RETURN_IF_ERROR(Run({ip_, "link", "add", interfaces_[3], "netns", s, "type", "veth", "peer",
+                            "name", interfaces_[2], "netns", l}));
   const std::pair<std::string, std::string> ends[4] = {
       {a, interfaces_[0]}, {l, interfaces_[1]}, {l, interfaces_[2]}, {s, interfaces_[3]}};
   // No IPv6 link-local addresses: nothing but the run's own traffic crosses the link.
   for (const auto& [ns, interface] : ends) {
-    CCMD_RETURN_IF_ERROR(Run({ip_, "-n", ns, "link", "set", "dev", interface, "addrgenmode", "none"}));
+    CCMD_RETURN_IF_ERROR(
+        Run({ip_, "-n", ns, "link", "set", "dev", interface, "addrgenmode", "none"}));
   }
-  CCMD_RETURN_IF_ERROR(Run({ip_, "-n", a, "addr", "add", addresses_[0] + "/24", "dev", interfaces_[0]}));
-  CCMD_RETURN_IF_ERROR(Run({ip_, "-n", s, "addr", "add", addresses_[2] + "/24", "dev", interfaces_[3]}));
+  CCMD_RETURN_IF_ERROR(
+      Run({ip_, "-n", a, "addr", "add", addresses_[0] + "/24", "dev", interfaces_[0]}));
+  CCMD_RETURN_IF_ERROR(
+      Run({ip_, "-n", s, "addr", "add", addresses_[2] + "/24", "dev", interfaces_[3]}));
   CCMD_RETURN_IF_ERROR(RunInNetns(NetnsPath(a), [&] { return DisableOffloads(interfaces_[0]); }));
   CCMD_RETURN_IF_ERROR(RunInNetns(NetnsPath(s), [&] { return DisableOffloads(interfaces_[3]); }));
-  for (const std::string& ns : {a, s}) CCMD_RETURN_IF_ERROR(Run({ip_, "-n", ns, "link", "set", "dev", "lo", "up"}));
+  for (const std::string& ns : {a, s})
+    CCMD_RETURN_IF_ERROR(Run({ip_, "-n", ns, "link", "set", "dev", "lo", "up"}));
   for (const auto& [ns, interface] : ends) {
     CCMD_RETURN_IF_ERROR(Run({ip_, "-n", ns, "link", "set", "dev", interface, "up"}));
   }
@@ -227,12 +239,14 @@ Status NetnsLink::Build() {
     const long burst = std::max<long>(2 * 1514, std::lround(spec_.rate_bytes_per_s * 0.004));
     const long latency_us = std::lround(spec_.queue_s * 1e6);
     for (const std::string& interface : {interfaces_[1], interfaces_[2]}) {
-      CCMD_RETURN_IF_ERROR(Run({tc_, "-n", l, "qdisc", "add", "dev", interface, "root", "tbf", "rate",
-                                std::to_string(rate) + "bps", "burst", std::to_string(burst), "latency",
-                                std::to_string(latency_us) + "us"}));
+      CCMD_RETURN_IF_ERROR(
+          Run({tc_, "-n", l, "qdisc", "add", "dev", interface, "root", "tbf", "rate",
+               std::to_string(rate) + "bps", "burst", std::to_string(burst), "latency",
+               std::to_string(latency_us) + "us"}));
     }
   }
-  CCMD_ASSIGN_OR_RETURN(forwarder_, PacketForwarder::Start(NetnsPath(l), interfaces_[1], interfaces_[2], spec_));
+  CCMD_ASSIGN_OR_RETURN(
+      forwarder_, PacketForwarder::Start(NetnsPath(l), interfaces_[1], interfaces_[2], spec_));
   return Status::Ok();
 }
 
@@ -241,8 +255,9 @@ Status NetnsLink::StartWatchdog() {
   // run made. It ignores the terminal's signals so that Ctrl-C cannot kill it first.
   std::string script = "trap '' INT TERM HUP QUIT; read _; ";
   for (const std::string& ns : names_) {
-    script += "for p in $(" + ip_ + " netns pids " + ns + " 2>/dev/null); do kill -9 $p 2>/dev/null; done; " + ip_ +
-              " netns del " + ns + " 2>/dev/null; ";
+    script += "for p in $(" + ip_ + " netns pids " + ns +
+              " 2>/dev/null); do kill -9 $p 2>/dev/null; done; " + ip_ + " netns del " + ns +
+              " 2>/dev/null; ";
   }
   script += "exit 0";
   int fds[2];
@@ -308,8 +323,12 @@ Status NetnsLink::RunIn(Side side, const std::function<Status()>& fn) const {
   return RunInNetns(NetnsPath(names_[static_cast<int>(side)]), fn);
 }
 
-const std::string& NetnsLink::address(Side side) const { return addresses_[static_cast<int>(side)]; }
-const std::string& NetnsLink::namespace_name(Side side) const { return names_[static_cast<int>(side)]; }
+const std::string& NetnsLink::address(Side side) const {
+  return addresses_[static_cast<int>(side)];
+}
+const std::string& NetnsLink::namespace_name(Side side) const {
+  return names_[static_cast<int>(side)];
+}
 
 PacketForwarderStats NetnsLink::forwarder_stats() const {
   return forwarder_ ? forwarder_->stats() : PacketForwarderStats{};

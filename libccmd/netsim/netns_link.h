@@ -16,7 +16,8 @@
 // stop every process left in the namespaces and delete them. Needs root.
 //
 //   CCMD_ASSIGN_OR_RETURN(auto link, NetnsLink::Create(spec));
-//   Subprocess::Start(link->Command(NetnsLink::Side::kServer, {server, "--listen", link->address(kServer) + ":0", ...}), ...);
+//   Subprocess::Start(link->Command(NetnsLink::Side::kServer, {server, "--listen",
+//   link->address(kServer) + ":0", ...}), ...);
 
 #include <functional>
 #include <memory>
@@ -26,13 +27,14 @@
 #include "libccmd/netsim/link_spec.h"
 #include "libccmd/netsim/packet_forwarder.h"
 #include "libccmd/util/json.h"
-#include "libccmd/util/status.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 
 struct NetnsLinkOptions {
-  std::string ip_program;  // iproute2's ip and tc; "" = looked up in /usr/sbin, /sbin, /usr/bin, /bin
+  std::string
+      ip_program;  // iproute2's ip and tc; "" = looked up in /usr/sbin, /sbin, /usr/bin, /bin
   std::string tc_program;
   bool watchdog = true;  // tests that kill nothing may turn it off
 
@@ -44,7 +46,8 @@ class NetnsLink {
  public:
   enum class Side { kAgents = 0, kLink = 1, kServer = 2 };
 
-  static StatusOr<std::unique_ptr<NetnsLink>> Create(const LinkSpec& spec, const NetnsLinkOptions& options = {});
+  static StatusOr<std::unique_ptr<NetnsLink>> Create(const LinkSpec& spec,
+                                                     const NetnsLinkOptions& options = {});
   ~NetnsLink();
   NetnsLink(const NetnsLink&) = delete;
   NetnsLink& operator=(const NetnsLink&) = delete;

@@ -56,8 +56,10 @@ StatusOr<UniqueFd> OpenPacketSocket(const std::string& interface) {
   // Frames this stage writes on an interface would come back to its own socket as outgoing.
   const int one = 1;
   ::setsockopt(fd.get(), SOL_PACKET, PACKET_IGNORE_OUTGOING, &one, sizeof(one));
-  ::setsockopt(fd.get(), SOL_SOCKET, SO_RCVBUFFORCE, &kSocketBufferBytes, sizeof(kSocketBufferBytes));
-  ::setsockopt(fd.get(), SOL_SOCKET, SO_SNDBUFFORCE, &kSocketBufferBytes, sizeof(kSocketBufferBytes));
+  ::setsockopt(fd.get(), SOL_SOCKET, SO_RCVBUFFORCE, &kSocketBufferBytes,
+               sizeof(kSocketBufferBytes));
+  ::setsockopt(fd.get(), SOL_SOCKET, SO_SNDBUFFORCE, &kSocketBufferBytes,
+               sizeof(kSocketBufferBytes));
   return fd;
 }
 
@@ -87,33 +89,33 @@ Json PacketForwarderStats::ToJson() const {
 PacketForwarder::PacketForwarder(const LinkSpec& spec)
     : lines_{DelayLine(LineOptions(spec, 0)), DelayLine(LineOptions(spec, 1))} {}
 
-StatusOr<std::unique_ptr<PacketForwarder>> PacketForwarder::Start(const std::string& netns_path,
-                                                                  const std::string& agents_interface,
-                                                                  const std::string& server_interface,
-                                                                  const LinkSpec& spec) {
+StatusOr<std::unique_ptr<PacketForwarder>> PacketForwarder::Start(
+    const std::string& netns_path, const std::string& agents_interface,
+    const std::string& server_interface, const LinkSpec& spec) {
   CCMD_RETURN_IF_ERROR(spec.Validate());
   std::unique_ptr<PacketForwarder> forwarder(new PacketForwarder(spec));
   if (!forwarder->wake_.valid()) return IoError("eventfd: " + std::string(std::strerror(errno)));
   std::promise<Status> ready;
   std::future<Status> opened = ready.get_future();
   PacketForwarder* f = forwarder.get();
-  forwarder->thread_ = std::thread([f, netns_path, agents_interface, server_interface, ready = std::move(ready)]() mutable {
-    // The namespace is a property of this thread only; sockets stay in it once created.
-    const int ns = ::open(netns_path.c_str(), O_RDONLY | O_CLOEXEC);
-    if (ns < 0) {
-      ready.set_value(IoError("cannot open " + netns_path + ": " + std::strerror(errno)));
-      return;
-    }
-    const int entered = ::setns(ns, CLONE_NEWNET);
-    ::close(ns);
-    if (entered != 0) {
-      ready.set_value(IoError("cannot enter " + netns_path + ": " + std::strerror(errno)));
-      return;
-    }
-    const Status s = f->Open(agents_interface, server_interface);
-    ready.set_value(s);
-    if (s.ok()) f->Run();
-  });
+  forwarder->thread_ = std::thread(
+      [f, netns_path, agents_interface, server_interface, ready = std::move(ready)]() mutable {
+        // The namespace is a property of this thread only; sockets stay in it once created.
+        const int ns = ::open(netns_path.c_str(), O_RDONLY | O_CLOEXEC);
+        if (ns < 0) {
+          ready.set_value(IoError("cannot open " + netns_path + ": " + std::strerror(errno)));
+          return;
+        }
+        const int entered = ::setns(ns, CLONE_NEWNET);
+        ::close(ns);
+        if (entered != 0) {
+          ready.set_value(IoError("cannot enter " + netns_path + ": " + std::strerror(errno)));
+          return;
+        }
+        const Status s = f->Open(agents_interface, server_interface);
+        ready.set_value(s);
+        if (s.ok()) f->Run();
+      });
   const Status s = opened.get();
   if (!s.ok()) {
     forwarder->thread_.join();
@@ -122,7 +124,8 @@ StatusOr<std::unique_ptr<PacketForwarder>> PacketForwarder::Start(const std::str
   return forwarder;
 }
 
-Status PacketForwarder::Open(const std::string& agents_interface, const std::string& server_interface) {
+Status PacketForwarder::Open(const std::string& agents_interface,
+                             const std::string& server_interface) {
   CCMD_ASSIGN_OR_RETURN(sockets_[0], OpenPacketSocket(agents_interface));
   CCMD_ASSIGN_OR_RETURN(sockets_[1], OpenPacketSocket(server_interface));
   return Status::Ok();
@@ -154,7 +157,8 @@ void PacketForwarder::Receive(int from) {
                                  reinterpret_cast<sockaddr*>(&source), &length);
     if (n <= 0) break;
     if (source.sll_pkttype == PACKET_OUTGOING) continue;
-    lines_[from].Push(MonotonicSeconds(), std::vector<std::uint8_t>(frame.begin(), frame.begin() + n));
+    lines_[from].Push(MonotonicSeconds(),
+                      std::vector<std::uint8_t>(frame.begin(), frame.begin() + n));
   }
   tpacket_stats counts{};
   socklen_t size = sizeof(counts);
@@ -181,7 +185,8 @@ void PacketForwarder::Run() {
       std::lock_guard<std::mutex> lock(mutex_);
       next_due = std::min(lines_[0].NextDue(), lines_[1].NextDue());
     }
-    pollfd fds[3] = {{sockets_[0].get(), POLLIN, 0}, {sockets_[1].get(), POLLIN, 0}, {wake_.fd(), POLLIN, 0}};
+    pollfd fds[3] = {
+        {sockets_[0].get(), POLLIN, 0}, {sockets_[1].get(), POLLIN, 0}, {wake_.fd(), POLLIN, 0}};
     timespec timeout{};
     timespec* wait = nullptr;
     if (std::isfinite(next_due)) {

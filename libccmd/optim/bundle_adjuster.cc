@@ -41,7 +41,8 @@ struct RelativePoseResidual {
   Eigen::Matrix<double, 6, 6> sqrt_information_;
 };
 
-bool IsOutlier(const BaObservation& o, const Intrinsics& k, const Pose& T, const Eigen::Vector3d& p) {
+bool IsOutlier(const BaObservation& o, const Intrinsics& k, const Pose& T,
+               const Eigen::Vector3d& p) {
   const double chi2 = ReprojectionChi2(k, T, p, o.uv, o.depth, o.information, o.depth_information);
   return chi2 > (o.depth > 0 ? kChi2Stereo : kChi2Mono) || (T * p).z() <= 0;
 }
@@ -86,7 +87,8 @@ class IterationRecorder : public ceres::IterationCallback {
 
 // Camera and point parameters of a problem, in Ceres' layout.
 struct Parameters {
-  explicit Parameters(const BaProblem& problem) : q(problem.cameras.size()), t(problem.cameras.size()) {
+  explicit Parameters(const BaProblem& problem)
+      : q(problem.cameras.size()), t(problem.cameras.size()) {
     for (std::size_t c = 0; c < problem.cameras.size(); ++c) {
       q[c] = Eigen::Quaterniond(problem.cameras[c].T_cam_world.linear()).normalized();
       t[c] = problem.cameras[c].T_cam_world.translation();
@@ -129,16 +131,19 @@ class CeresBundle {
     for (std::size_t i = 0; i < problem->observations.size(); ++i) {
       const BaObservation& o = problem->observations[i];
       const Intrinsics& k = problem->calibrations[problem->cameras[o.camera].calibration];
-      const ReprojectionResidual residual(k, o.uv, o.depth, std::sqrt(o.information), std::sqrt(o.depth_information));
+      const ReprojectionResidual residual(k, o.uv, o.depth, std::sqrt(o.information),
+                                          std::sqrt(o.depth_information));
       double* p = problem->points[o.point].position.data();
       add_camera(o.camera);
       if (!point_added[o.point]) {
         point_added[o.point] = true;
         ordering_->AddElementToGroup(p, 0);  // eliminated first (Schur complement)
       }
-      blocks_[i] = ceres_.AddResidualBlock(
-          new ceres::AutoDiffCostFunction<PaddedReprojection, 3, 4, 3, 3>(new PaddedReprojection(residual)),
-          o.depth > 0 ? &huber_stereo_ : &huber_mono_, x->q[o.camera].coeffs().data(), x->t[o.camera].data(), p);
+      blocks_[i] =
+          ceres_.AddResidualBlock(new ceres::AutoDiffCostFunction<PaddedReprojection, 3, 4, 3, 3>(
+                                      new PaddedReprojection(residual)),
+                                  o.depth > 0 ? &huber_stereo_ : &huber_mono_,
+                                  x->q[o.camera].coeffs().data(), x->t[o.camera].data(), p);
     }
     for (const BaRelativePose& r : problem->relative_poses) {
       if (problem->cameras[r.camera_a].fixed && problem->cameras[r.camera_b].fixed) continue;
@@ -187,7 +192,9 @@ class CeresBundle {
 ceres::Solver::Options SolverOptions(const BaOptions& options, int iterations) {
   ceres::Solver::Options solver;
   switch (options.solver) {
-    case BaLinearSolver::kDenseSchur: solver.linear_solver_type = ceres::DENSE_SCHUR; break;
+    case BaLinearSolver::kDenseSchur:
+      solver.linear_solver_type = ceres::DENSE_SCHUR;
+      break;
     case BaLinearSolver::kSparseSchur:
       solver.linear_solver_type = ceres::SPARSE_SCHUR;
       solver.sparse_linear_algebra_library_type = ceres::SUITE_SPARSE;
@@ -250,14 +257,16 @@ BaSummary BundleAdjust(BaProblem* problem, const BaOptions& options) {
     summary.outliers = 0;
     for (std::size_t i = 0; i < num_obs; ++i) {
       const BaObservation& o = problem->observations[i];
-      summary.outlier[i] = IsOutlier(o, problem->calibrations[problem->cameras[o.camera].calibration],
-                                     x.T_cam_world(o.camera), problem->points[o.point].position);
+      summary.outlier[i] =
+          IsOutlier(o, problem->calibrations[problem->cameras[o.camera].calibration],
+                    x.T_cam_world(o.camera), problem->points[o.point].position);
       summary.outliers += summary.outlier[i];
     }
     if (summary.aborted) break;
   }
   for (std::size_t c = 0; c < problem->cameras.size(); ++c) {
-    if (!problem->cameras[c].fixed) problem->cameras[c].T_cam_world = x.T_cam_world(static_cast<int>(c));
+    if (!problem->cameras[c].fixed)
+      problem->cameras[c].T_cam_world = x.T_cam_world(static_cast<int>(c));
   }
   summary.seconds = watch.ElapsedSeconds();
   return summary;

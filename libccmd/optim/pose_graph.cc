@@ -13,11 +13,14 @@ namespace {
 // the error quaternion (~ angle-axis for small errors), translation error in a's frame.
 struct RelativePoseResidual {
   RelativePoseResidual(const Pose& T_a_b, double w_rotation, double w_translation)
-      : q_ab_(Eigen::Quaterniond(T_a_b.linear()).normalized()), t_ab_(T_a_b.translation()),
-        w_r_(w_rotation), w_t_(w_translation) {}
+      : q_ab_(Eigen::Quaterniond(T_a_b.linear()).normalized()),
+        t_ab_(T_a_b.translation()),
+        w_r_(w_rotation),
+        w_t_(w_translation) {}
 
   template <typename T>
-  bool operator()(const T* t_a_ptr, const T* q_a_ptr, const T* t_b_ptr, const T* q_b_ptr, T* r) const {
+  bool operator()(const T* t_a_ptr, const T* q_a_ptr, const T* t_b_ptr, const T* q_b_ptr,
+                  T* r) const {
     const Eigen::Map<const Eigen::Matrix<T, 3, 1>> t_a(t_a_ptr), t_b(t_b_ptr);
     const Eigen::Map<const Eigen::Quaternion<T>> q_a(q_a_ptr), q_b(q_b_ptr);
     const Eigen::Quaternion<T> q_a_inv = q_a.conjugate();
@@ -60,7 +63,8 @@ StatusOr<PoseGraphSummary> OptimizePoseGraph(std::vector<PoseGraphNode>* nodes,
     }
     auto* cost = new ceres::AutoDiffCostFunction<RelativePoseResidual, 6, 3, 4, 3, 4>(
         new RelativePoseResidual(e.T_a_b, e.sqrt_info_rotation, e.sqrt_info_translation));
-    ceres::LossFunction* loss = options.huber_delta > 0 ? new ceres::HuberLoss(options.huber_delta) : nullptr;
+    ceres::LossFunction* loss =
+        options.huber_delta > 0 ? new ceres::HuberLoss(options.huber_delta) : nullptr;
     problem.AddResidualBlock(cost, loss, t[e.a].data(), q[e.a].coeffs().data(), t[e.b].data(),
                              q[e.b].coeffs().data());
     for (int k : {e.a, e.b}) {

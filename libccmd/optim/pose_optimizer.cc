@@ -23,7 +23,8 @@ struct Linear {
 };
 
 ReprojectionResidual MakeResidual(const PoseObservation& o, const Intrinsics& k) {
-  return ReprojectionResidual(k, o.uv, o.depth, std::sqrt(o.information), std::sqrt(o.depth_information));
+  return ReprojectionResidual(k, o.uv, o.depth, std::sqrt(o.information),
+                              std::sqrt(o.depth_information));
 }
 
 // Huber loss rho(s) of a squared residual s at threshold a2 (Ceres' HuberLoss(sqrt(a2))), and
@@ -48,7 +49,8 @@ double SquaredResidual(const PoseObservation& o, const Intrinsics& k, const Eige
 }
 
 double Cost(const std::vector<PoseObservation>& observations, const std::vector<bool>& active,
-            bool robust, const Intrinsics& k, const Eigen::Quaterniond& q, const Eigen::Vector3d& t) {
+            bool robust, const Intrinsics& k, const Eigen::Quaterniond& q,
+            const Eigen::Vector3d& t) {
   double cost = 0, weight;
   for (std::size_t i = 0; i < observations.size(); ++i) {
     if (!active[i]) continue;
@@ -60,7 +62,8 @@ double Cost(const std::vector<PoseObservation>& observations, const std::vector<
 }
 
 Linear Linearize(const std::vector<PoseObservation>& observations, const std::vector<bool>& active,
-                 bool robust, const Intrinsics& k, const Eigen::Quaterniond& q0, const Eigen::Vector3d& t0) {
+                 bool robust, const Intrinsics& k, const Eigen::Quaterniond& q0,
+                 const Eigen::Vector3d& t0) {
   // q = exp(dr) * q0: d(q.vec)/d(dr) = I / 2 at dr = 0, d(q.w)/d(dr) = 0.
   const auto half = [](int i) { return Jet(0.0, i) * 0.5; };
   const Eigen::Quaternion<Jet> dq(Jet(1.0), half(0), half(1), half(2));
@@ -90,16 +93,18 @@ Linear Linearize(const std::vector<PoseObservation>& observations, const std::ve
 void ApplyStep(const Vector6& step, Eigen::Quaterniond* q, Eigen::Vector3d* t) {
   const Eigen::Vector3d dr = step.head<3>();
   const double angle = dr.norm();
-  const Eigen::Quaterniond dq =
-      angle > 1e-12 ? Eigen::Quaterniond(Eigen::AngleAxisd(angle, dr / angle)) : Eigen::Quaterniond::Identity();
+  const Eigen::Quaterniond dq = angle > 1e-12
+                                    ? Eigen::Quaterniond(Eigen::AngleAxisd(angle, dr / angle))
+                                    : Eigen::Quaterniond::Identity();
   *q = (dq * *q).normalized();
   *t += step.tail<3>();
 }
 
 // Levenberg-Marquardt from (q, t); stops as Ceres' defaults do, on a relative cost decrease
 // under 1e-6 or a step under 1e-8 of the parameters.
-void Minimize(const std::vector<PoseObservation>& observations, const std::vector<bool>& active, bool robust,
-              const Intrinsics& k, int max_iterations, Eigen::Quaterniond* q, Eigen::Vector3d* t) {
+void Minimize(const std::vector<PoseObservation>& observations, const std::vector<bool>& active,
+              bool robust, const Intrinsics& k, int max_iterations, Eigen::Quaterniond* q,
+              Eigen::Vector3d* t) {
   double lambda = 1e-4;
   Linear linear = Linearize(observations, active, robust, k, *q, *t);
   for (int iteration = 0; iteration < max_iterations; ++iteration) {
@@ -150,7 +155,8 @@ PoseOptimizationResult OptimizePose(const Pose& T_cam_world_initial,
     if (used < 3) break;
     // Robust in the first rounds; the last rounds fit the inliers exactly (ORB-SLAM drops the
     // kernel once the outliers are out).
-    Minimize(observations, active, /*robust=*/round < 2, intrinsics, options.iterations_per_round, &q, &t);
+    Minimize(observations, active, /*robust=*/round < 2, intrinsics, options.iterations_per_round,
+             &q, &t);
 
     Pose T = Pose::Identity();
     T.linear() = q.normalized().toRotationMatrix();
@@ -159,8 +165,8 @@ PoseOptimizationResult OptimizePose(const Pose& T_cam_world_initial,
     int inliers = 0;
     for (std::size_t i = 0; i < observations.size(); ++i) {
       const PoseObservation& o = observations[i];
-      const double chi2 = ReprojectionChi2(intrinsics, T, o.point_world, o.uv, o.depth, o.information,
-                                           o.depth_information);
+      const double chi2 = ReprojectionChi2(intrinsics, T, o.point_world, o.uv, o.depth,
+                                           o.information, o.depth_information);
       active[i] = chi2 <= Threshold(o);
       inliers += active[i];
     }

@@ -17,7 +17,8 @@ Status DepthNoise::Validate() const {
 StatusOr<DepthNoise> ReadDepthNoise(const ConfigFile& c, DepthNoise n) {
   CCMD_ASSIGN_OR_RETURN(n.sigma_0, c.GetDouble("DepthNoise.sigma0", n.sigma_0));
   CCMD_ASSIGN_OR_RETURN(n.sigma_2, c.GetDouble("DepthNoise.sigma2", n.sigma_2));
-  CCMD_ASSIGN_OR_RETURN(n.keypoint_offset, c.GetDouble("DepthNoise.keypointOffset", n.keypoint_offset));
+  CCMD_ASSIGN_OR_RETURN(n.keypoint_offset,
+                        c.GetDouble("DepthNoise.keypointOffset", n.keypoint_offset));
   if (const Status s = n.Validate(); !s.ok()) return InvalidArgument(c.path() + ": " + s.message());
   return n;
 }

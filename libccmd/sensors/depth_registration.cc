@@ -11,9 +11,9 @@ StatusOr<cv::Mat> RegisterDepth(const cv::Mat& depth_mm, const DepthToColorCalib
                                 const PinholeCamera& color_camera) {
   const PinholeCamera& depth = calibration.depth;
   if (depth_mm.cols != depth.width || depth_mm.rows != depth.height) {
-    return InvalidArgument("depth image is " + std::to_string(depth_mm.cols) + "x" + std::to_string(depth_mm.rows) +
-                           ", the config's Depth block describes " + std::to_string(depth.width) + "x" +
-                           std::to_string(depth.height));
+    return InvalidArgument("depth image is " + std::to_string(depth_mm.cols) + "x" +
+                           std::to_string(depth_mm.rows) + ", the config's Depth block describes " +
+                           std::to_string(depth.width) + "x" + std::to_string(depth.height));
   }
   return RegisterDepthToColor(depth_mm, depth, color_camera, calibration.T_color_depth);
 }
@@ -96,8 +96,9 @@ double EdgeAlignmentScore(const cv::Mat& bgr, const cv::Mat& depth_mm) {
     for (int x = 1; x + 1 < depth_mm.cols; ++x) {
       const int d = depth_mm.at<std::uint16_t>(y, x);
       if (d == 0) continue;
-      const int neighbours[4] = {depth_mm.at<std::uint16_t>(y, x - 1), depth_mm.at<std::uint16_t>(y, x + 1),
-                                 depth_mm.at<std::uint16_t>(y - 1, x), depth_mm.at<std::uint16_t>(y + 1, x)};
+      const int neighbours[4] = {
+          depth_mm.at<std::uint16_t>(y, x - 1), depth_mm.at<std::uint16_t>(y, x + 1),
+          depth_mm.at<std::uint16_t>(y - 1, x), depth_mm.at<std::uint16_t>(y + 1, x)};
       bool edge = false;
       for (int n : neighbours) edge |= n == 0 || n - d > d / 20;
       if (!edge) continue;

@@ -28,8 +28,9 @@ Status SourceOptions::Validate() const {
 
 void SourceOptions::Describe(OptionsWriter* out) const {
   out->Add("camera_config", camera_config);
-  out->Add("segment", segment ? std::to_string(segment->first) + "/" + std::to_string(segment->second)
-                              : std::string("all"));
+  out->Add("segment", segment
+                          ? std::to_string(segment->first) + "/" + std::to_string(segment->second)
+                          : std::string("all"));
   out->Add("segment_overlap", segment_overlap);
   out->Add("configs_dir", configs_dir);
   out->Add("register_depth", register_depth);
@@ -48,13 +49,16 @@ class RegisteredSource : public RgbdSource {
     CCMD_RETURN_IF_ERROR(inner_->Read(frame));
     auto registered = RegisterDepth(frame->depth_mm, calibration_, camera());
     if (!registered.ok()) {
-      return InvalidArgument("frame " + std::to_string(frame->index) + ": " + registered.status().message());
+      return InvalidArgument("frame " + std::to_string(frame->index) + ": " +
+                             registered.status().message());
     }
     frame->depth_mm = std::move(registered).value();
     return Status::Ok();
   }
   const PinholeCamera& camera() const override { return inner_->camera(); }
-  std::string Describe() const override { return inner_->Describe() + ", depth registered to colour"; }
+  std::string Describe() const override {
+    return inner_->Describe() + ", depth registered to colour";
+  }
   int FrameCount() const override { return inner_->FrameCount(); }
   Trajectory GroundTruth() const override { return inner_->GroundTruth(); }
 
@@ -154,7 +158,8 @@ StatusOr<std::unique_ptr<RgbdSource>> OpenSource(const std::string& spec,
       CCMD_ASSIGN_OR_RETURN(registration, LoadDepthToColorCalibration(config_used));
     }
     // Open once to count frames, then with the segment range.
-    CCMD_ASSIGN_OR_RETURN(std::unique_ptr<RgbdSource> source, DatasetSource::Open(argument, camera));
+    CCMD_ASSIGN_OR_RETURN(std::unique_ptr<RgbdSource> source,
+                          DatasetSource::Open(argument, camera));
     CCMD_ASSIGN_OR_RETURN(const auto range, SegmentRange(source->FrameCount(), options));
     if (range) {
       CCMD_ASSIGN_OR_RETURN(source, DatasetSource::Open(argument, camera, range));

@@ -27,10 +27,10 @@
 namespace ccmd {
 
 struct SourceOptions {
-  std::string camera_config;               // YAML; empty: the dataset's camera.yaml or a guess
+  std::string camera_config;                   // YAML; empty: the dataset's camera.yaml or a guess
   std::optional<std::pair<int, int>> segment;  // (i, k): replay segment i of k (1-based)
   double segment_overlap = 0.1;
-  std::string configs_dir;                 // where shipped configs live, for guesses
+  std::string configs_dir;  // where shipped configs live, for guesses
   // Recorded sequences: register depth to colour when the camera config has a Depth block.
   // false gives the frames as recorded (the benchmark's reference runs on them too).
   bool register_depth = true;

@@ -23,8 +23,8 @@ SyntheticSource::SyntheticSource(const SyntheticSequenceOptions& options,
 
 Status SyntheticSource::Read(RgbdFrame* frame) {
   if (next_ > range_.last) return EndOfStream();
-  const RenderedFrame rendered = RenderFrame(scene_, camera_, path_[next_].T_world_cam,
-                                             FrameRenderOptions(options_, next_));
+  const RenderedFrame rendered =
+      RenderFrame(scene_, camera_, path_[next_].T_world_cam, FrameRenderOptions(options_, next_));
   frame->index = next_;
   frame->timestamp = path_[next_].timestamp;
   frame->bgr = rendered.bgr;
@@ -53,14 +53,21 @@ StatusOr<SyntheticSequenceOptions> ParseSyntheticSpec(const std::string& spec) {
     const std::string key(Trim(kv[0]));
     auto value = ParseDouble(kv[1]);
     if (!value.ok()) return value.status().WithContext("synthetic option " + key);
-    if (key == "frames") options.frames = static_cast<int>(*value);
-    else if (key == "seed") options.seed = static_cast<std::uint64_t>(*value);
-    else if (key == "width") options.width = static_cast<int>(*value);
-    else if (key == "height") options.height = static_cast<int>(*value);
-    else if (key == "noise") options.noise_scale = *value, options.noise = *value > 0;
-    else if (key == "fps") options.fps = *value;
-    else return InvalidArgument("unknown synthetic option '" + key +
-                                "' (frames, seed, width, height, noise, fps)");
+    if (key == "frames")
+      options.frames = static_cast<int>(*value);
+    else if (key == "seed")
+      options.seed = static_cast<std::uint64_t>(*value);
+    else if (key == "width")
+      options.width = static_cast<int>(*value);
+    else if (key == "height")
+      options.height = static_cast<int>(*value);
+    else if (key == "noise")
+      options.noise_scale = *value, options.noise = *value > 0;
+    else if (key == "fps")
+      options.fps = *value;
+    else
+      return InvalidArgument("unknown synthetic option '" + key +
+                             "' (frames, seed, width, height, noise, fps)");
   }
   if (options.frames < 1 || options.width < 32 || options.height < 24 || !(options.fps > 0)) {
     return InvalidArgument("synthetic options out of range: " + spec);

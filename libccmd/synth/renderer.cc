@@ -3,8 +3,8 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
-#include <optional>
 #include <opencv2/imgproc.hpp>
+#include <optional>
 #include <thread>
 
 #include "libccmd/util/random.h"
@@ -28,7 +28,8 @@ Status RenderOptions::Validate() const {
   if (!(depth.min_range > 0 && depth.max_range > depth.min_range)) {
     return InvalidArgument("depth range must satisfy 0 < min < max");
   }
-  if (!(color_sigma >= 0) || !(blur_sigma >= 0)) return InvalidArgument("noise sigmas must be >= 0");
+  if (!(color_sigma >= 0) || !(blur_sigma >= 0))
+    return InvalidArgument("noise sigmas must be >= 0");
   if (threads < 1) return InvalidArgument("render threads must be at least 1");
   return Status::Ok();
 }
@@ -70,7 +71,6 @@ const std::vector<float>& GaussianTable() {
   }();
   return table;
 }
-
 
 // Sutherland-Hodgman clip of a polygon against z >= near.
 std::vector<Eigen::Vector3d> ClipNear(const std::vector<Eigen::Vector3d>& in, double near) {
@@ -181,8 +181,8 @@ std::vector<FramePolygon> PreparePolygons(const SyntheticScene& scene, const Pin
 
 // Z-buffer rasterisation of rows [band_first, band_last] of `camera`'s pinhole image:
 // the nearest polygon's index and depth per pixel.
-void RasterizeBand(const std::vector<FramePolygon>& frame_polygons, const PinholeCamera& camera, double near,
-                   int band_first, int band_last, cv::Mat* zbuf, cv::Mat* ids) {
+void RasterizeBand(const std::vector<FramePolygon>& frame_polygons, const PinholeCamera& camera,
+                   double near, int band_first, int band_last, cv::Mat* zbuf, cv::Mat* ids) {
   const int W = camera.width;
   for (std::size_t k = 0; k < frame_polygons.size(); ++k) {
     const FramePolygon& c = frame_polygons[k];
@@ -253,7 +253,8 @@ PinholeCamera CoveringPinhole(const PinholeCamera& camera) {
 class OutputRays {
  public:
   explicit OutputRays(const PinholeCamera& camera) : camera_(camera), ray_x_(camera.width) {
-    for (int x = 0; x < camera.width; ++x) ray_x_[x] = static_cast<float>((x - camera.cx) / camera.fx);
+    for (int x = 0; x < camera.width; ++x)
+      ray_x_[x] = static_cast<float>((x - camera.cx) / camera.fx);
     if (camera.HasDistortion()) table_.emplace(camera, /*exact=*/true);
   }
   // Fills `y_fill` (width values) when the rows are separable.
@@ -272,8 +273,8 @@ class OutputRays {
 // With distortion: each output pixel takes the polygon seen at its ray's cell of the covering
 // pinhole grid, and the exact depth of that polygon along the ray.
 void ResampleBand(const std::vector<FramePolygon>& frame_polygons, const PinholeCamera& grid,
-                  const cv::Mat& grid_ids, const OutputRays& rays, double near, int band_first, int band_last,
-                  cv::Mat* zbuf, cv::Mat* ids) {
+                  const cv::Mat& grid_ids, const OutputRays& rays, double near, int band_first,
+                  int band_last, cv::Mat* zbuf, cv::Mat* ids) {
   std::vector<float> y_fill;
   for (int y = band_first; y <= band_last; ++y) {
     const auto [xs, ys] = rays.Row(y, &y_fill);
@@ -307,8 +308,8 @@ struct ShadeInputs {
 };
 
 // Texture, light and visibility marks for rows [band_first, band_last] of the output image.
-void ShadeBand(const ShadeInputs& in, const cv::Mat& zbuf, const cv::Mat& ids, int band_first, int band_last,
-               RenderedFrame* out, cv::Mat* cos_angle, cv::Mat* shaded) {
+void ShadeBand(const ShadeInputs& in, const cv::Mat& zbuf, const cv::Mat& ids, int band_first,
+               int band_last, RenderedFrame* out, cv::Mat* cos_angle, cv::Mat* shaded) {
   const DepthSensorModel& dm = *in.depth_model;
   std::vector<float> y_fill;
   for (int y = band_first; y <= band_last; ++y) {
@@ -334,7 +335,8 @@ void ShadeBand(const ShadeInputs& in, const cv::Mat& zbuf, const cv::Mat& ids, i
 
       // Trilinear mip-mapping: the texture level whose texel matches the pixel footprint.
       const float footprint = z * ray_norm * in.inv_f / std::max(cos_t, 0.2f);
-      const float level = std::min(std::max(FastLog2(footprint * in.inv_texel + 1e-9f), 0.0f), c.max_level);
+      const float level =
+          std::min(std::max(FastLog2(footprint * in.inv_texel + 1e-9f), 0.0f), c.max_level);
       const int l0 = static_cast<int>(level);
       const float w1 = level - l0;
       const float scale0 = in.inv_texel / static_cast<float>(1 << l0);
@@ -342,7 +344,8 @@ void ShadeBand(const ShadeInputs& in, const cv::Mat& zbuf, const cv::Mat& ids, i
       SampleBilinear(c.texture->levels[l0], s * scale0 - 0.5f, t * scale0 - 0.5f, color);
       if (w1 > 0.02f) {
         float coarse[3];
-        SampleBilinear(c.texture->levels[l0 + 1], s * scale0 * 0.5f - 0.5f, t * scale0 * 0.5f - 0.5f, coarse);
+        SampleBilinear(c.texture->levels[l0 + 1], s * scale0 * 0.5f - 0.5f,
+                       t * scale0 * 0.5f - 0.5f, coarse);
         for (int ch = 0; ch < 3; ++ch) color[ch] += w1 * (coarse[ch] - color[ch]);
       }
       // Lambertian point light: view-independent, like a matte indoor scene.
@@ -416,7 +419,8 @@ RenderedFrame RenderFrame(const SyntheticScene& scene, const PinholeCamera& came
   // Pass 1: visible polygon and depth per pixel, then shading, by bands of rows.
   ForRowBands(H, threads, [&](int band_first, int band_last) {
     if (distorted) {
-      ResampleBand(frame_polygons, grid, grid_ids, rays, kNear, band_first, band_last, &zbuf, &out.polygon);
+      ResampleBand(frame_polygons, grid, grid_ids, rays, kNear, band_first, band_last, &zbuf,
+                   &out.polygon);
     } else {
       RasterizeBand(frame_polygons, camera, kNear, band_first, band_last, &zbuf, &out.polygon);
     }

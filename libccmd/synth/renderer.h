@@ -30,28 +30,28 @@ struct DepthSensorModel {
   double edge_dropout = 0.35;         // chance to lose a pixel at a depth discontinuity
   double edge_jump = 0.05;            // relative depth jump that counts as a discontinuity
   double random_dropout = 0.003;
-  double quantum_m = 0.001;           // sensor output resolution (1 mm)
+  double quantum_m = 0.001;  // sensor output resolution (1 mm)
 
   void Describe(OptionsWriter* out) const;
 };
 
 struct RenderOptions {
-  bool noise = true;            // false: exact depth and colour (for ground truth and tests)
+  bool noise = true;  // false: exact depth and colour (for ground truth and tests)
   DepthSensorModel depth;
-  double color_sigma = 2.0;     // grey levels
-  double blur_sigma = 0.5;      // pixels; 0 disables
-  std::uint64_t seed = 0;       // noise seed (mix in the frame index)
-  int threads = 1;              // bands of rows rendered in parallel (same image for any count)
+  double color_sigma = 2.0;  // grey levels
+  double blur_sigma = 0.5;   // pixels; 0 disables
+  std::uint64_t seed = 0;    // noise seed (mix in the frame index)
+  int threads = 1;           // bands of rows rendered in parallel (same image for any count)
 
   Status Validate() const;
   void Describe(OptionsWriter* out) const;
 };
 
 struct RenderedFrame {
-  cv::Mat bgr;          // CV_8UC3
-  cv::Mat depth_mm;     // CV_16UC1, sensor model applied
-  cv::Mat depth_true;   // CV_32FC1 metres, exact z of the visible surface, 0 where none
-  cv::Mat polygon;      // CV_32SC1 index of the visible polygon, -1 where none
+  cv::Mat bgr;         // CV_8UC3
+  cv::Mat depth_mm;    // CV_16UC1, sensor model applied
+  cv::Mat depth_true;  // CV_32FC1 metres, exact z of the visible surface, 0 where none
+  cv::Mat polygon;     // CV_32SC1 index of the visible polygon, -1 where none
 };
 
 // Per polygon, one flag per cell of the grid of SyntheticScene::VisibilityGrid(spacing):

@@ -10,9 +10,12 @@
 namespace ccmd {
 
 Status RoomSceneOptions::Validate() const {
-  if (!(size_x > 1 && size_y > 1 && height > 1)) return InvalidArgument("room must be over 1 m each way");
-  if (!(texel_m > 0) || !(shapes_per_m2 > 0)) return InvalidArgument("texture must have size and density");
-  if (!(free_radius_x > 0 && free_radius_y > 0)) return InvalidArgument("free radii must be positive");
+  if (!(size_x > 1 && size_y > 1 && height > 1))
+    return InvalidArgument("room must be over 1 m each way");
+  if (!(texel_m > 0) || !(shapes_per_m2 > 0))
+    return InvalidArgument("texture must have size and density");
+  if (!(free_radius_x > 0 && free_radius_y > 0))
+    return InvalidArgument("free radii must be positive");
   return Status::Ok();
 }
 
@@ -59,8 +62,8 @@ MipTexture MakeProceduralTexture(int width, int height, double texel_m, double s
   cv::Mat low(std::max(2, height / 48), std::max(2, width / 48), CV_32FC3);
   for (int y = 0; y < low.rows; ++y) {
     for (int x = 0; x < low.cols; ++x) {
-      low.at<cv::Vec3f>(y, x) = cv::Vec3f(rng.Uniform(-45, 45), rng.Uniform(-45, 45),
-                                          rng.Uniform(-45, 45));
+      low.at<cv::Vec3f>(y, x) =
+          cv::Vec3f(rng.Uniform(-45, 45), rng.Uniform(-45, 45), rng.Uniform(-45, 45));
     }
   }
   cv::Mat variation;
@@ -122,8 +125,7 @@ MipTexture MakeProceduralTexture(int width, int height, double texel_m, double s
       case 4: {  // thick stroke
         const int thickness = std::max(1, static_cast<int>(size * rng.Uniform(0.08, 0.2)));
         cv::line(texture, P(c.x - ca * size / 2, c.y - sa * size / 2),
-                 P(c.x + ca * size / 2, c.y + sa * size / 2), color, thickness, cv::LINE_AA,
-                 shift);
+                 P(c.x + ca * size / 2, c.y + sa * size / 2), color, thickness, cv::LINE_AA, shift);
         break;
       }
       default: {  // glyphs: dense corners like printed text
@@ -187,8 +189,8 @@ void SyntheticScene::AddPolygon(const std::vector<Eigen::Vector3d>& vertices, in
       flat.levels.push_back(cv::Mat(4, 4, CV_8UC3, cv::Scalar(128, 128, 128)));
       textures_.push_back(flat);
     } else {
-      textures_.push_back(MakeProceduralTexture(
-          w, h, texel_m_, shapes_per_m2_, MixSeed(texture_seed_, polygons_.size())));
+      textures_.push_back(MakeProceduralTexture(w, h, texel_m_, shapes_per_m2_,
+                                                MixSeed(texture_seed_, polygons_.size())));
     }
     p.texture = static_cast<int>(textures_.size()) - 1;
   }
@@ -258,7 +260,8 @@ class RoomBuilder {
   void Box(const Eigen::Vector3d& centre, const Eigen::Vector3d& half, const Eigen::Matrix3d& R,
            bool skip_bottom = true) {
     auto corner = [&](int sx, int sy, int sz) {
-      return Eigen::Vector3d(centre + R * Eigen::Vector3d(sx * half.x(), sy * half.y(), sz * half.z()));
+      return Eigen::Vector3d(centre +
+                             R * Eigen::Vector3d(sx * half.x(), sy * half.y(), sz * half.z()));
     };
     for (int axis = 0; axis < 3; ++axis) {
       for (int sign = -1; sign <= 1; sign += 2) {
@@ -303,7 +306,8 @@ class RoomBuilder {
   bool OutsideFreeZone(const Eigen::Vector2d& lo, const Eigen::Vector2d& hi) const {
     for (double x : {lo.x(), hi.x(), (lo.x() + hi.x()) / 2}) {
       for (double y : {lo.y(), hi.y(), (lo.y() + hi.y()) / 2}) {
-        const double e = std::pow(x / options_.free_radius_x, 2) + std::pow(y / options_.free_radius_y, 2);
+        const double e =
+            std::pow(x / options_.free_radius_x, 2) + std::pow(y / options_.free_radius_y, 2);
         if (e < 1.0) return false;
       }
     }
@@ -393,10 +397,11 @@ class RoomBuilder {
         case 4: {  // board leaning against the wall
           const double h = rng_->Uniform(0.9, 1.6);
           const double tilt = rng_->Uniform(0.12, 0.3);
-          const Eigen::Vector2d c = (wall_a + wall_b) / 2 + inward * (0.02 + std::sin(tilt) * h / 2);
+          const Eigen::Vector2d c =
+              (wall_a + wall_b) / 2 + inward * (0.02 + std::sin(tilt) * h / 2);
           const double yaw = std::atan2(along.y(), along.x());
-          const Eigen::Matrix3d R = Yaw(yaw) * Eigen::AngleAxisd(-tilt, Eigen::Vector3d::UnitX())
-                                                   .toRotationMatrix();
+          const Eigen::Matrix3d R =
+              Yaw(yaw) * Eigen::AngleAxisd(-tilt, Eigen::Vector3d::UnitX()).toRotationMatrix();
           Box({c.x(), c.y(), std::cos(tilt) * h / 2}, {width / 2 * 0.9, 0.012, h / 2}, R, false);
           Picture(wall_a, wall_b, inward, 1.75);
           break;
@@ -415,8 +420,8 @@ class RoomBuilder {
 
  private:
   // A vertical slab between two wall-side points, extruded by `d` into the room.
-  void Slab(const Eigen::Vector2d& a, const Eigen::Vector2d& b, const Eigen::Vector2d& d,
-            double z0, double z1, bool skip_bottom = true) {
+  void Slab(const Eigen::Vector2d& a, const Eigen::Vector2d& b, const Eigen::Vector2d& d, double z0,
+            double z1, bool skip_bottom = true) {
     const Eigen::Vector2d lo = a.cwiseMin(b).cwiseMin(a + d).cwiseMin(b + d);
     const Eigen::Vector2d hi = a.cwiseMax(b).cwiseMax(a + d).cwiseMax(b + d);
     AxisBox({lo.x(), lo.y(), z0}, {hi.x(), hi.y(), z1}, skip_bottom && z0 <= 0.0);

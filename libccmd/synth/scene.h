@@ -50,11 +50,11 @@ struct ScenePolygon {
 
 struct RoomSceneOptions {
   std::uint64_t seed = 1;
-  double size_x = 5.0;   // metres, room extent along x (centred on the origin)
-  double size_y = 4.5;   // along y
-  double height = 2.6;   // floor at z = 0, ceiling at z = height (world z points up)
-  double texel_m = 0.004;           // texture resolution
-  double shapes_per_m2 = 260.0;     // texture density
+  double size_x = 5.0;           // metres, room extent along x (centred on the origin)
+  double size_y = 4.5;           // along y
+  double height = 2.6;           // floor at z = 0, ceiling at z = height (world z points up)
+  double texel_m = 0.004;        // texture resolution
+  double shapes_per_m2 = 260.0;  // texture density
   // Objects keep out of this ellipse around the room centre, where cameras move.
   double free_radius_x = 1.75;
   double free_radius_y = 1.5;

@@ -95,7 +95,8 @@ Trajectory MakeLoopPath(int num_frames, double fps, const LoopPathOptions& o) {
     const Eigen::Vector3d forward(std::cos(pitch) * std::cos(yaw), std::cos(pitch) * std::sin(yaw),
                                   std::sin(pitch));
     Pose pose = LookAt(eye, eye + forward, Eigen::Vector3d::UnitZ());
-    pose.linear() = pose.linear() * Eigen::AngleAxisd(roll, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+    pose.linear() =
+        pose.linear() * Eigen::AngleAxisd(roll, Eigen::Vector3d::UnitZ()).toRotationMatrix();
     trajectory.push_back({o.start_time + t, pose});
   }
   return trajectory;
@@ -149,8 +150,8 @@ std::string DescribeOptions(const SyntheticSequenceOptions& o) {
   if (o.camera) s << "camera " << o.camera->ToString() << "\n";
   if (o.depth_camera) {
     const Eigen::Vector3d t = o.depth_camera->T_color_depth.translation();
-    s << "depth_camera " << o.depth_camera->depth.ToString() << " at (" << t.x() << ", " << t.y() << ", "
-      << t.z() << ") m in the colour frame\n";
+    s << "depth_camera " << o.depth_camera->depth.ToString() << " at (" << t.x() << ", " << t.y()
+      << ", " << t.z() << ") m in the colour frame\n";
   }
   return s.str();
 }
@@ -161,7 +162,8 @@ struct RecordedFrame {
   cv::Mat colour, depth;
 };
 
-RecordedFrame RenderRecordedFrame(const SyntheticScene& scene, const SyntheticSequenceOptions& options,
+RecordedFrame RenderRecordedFrame(const SyntheticScene& scene,
+                                  const SyntheticSequenceOptions& options,
                                   const PinholeCamera& camera, const Pose& T_world_cam, int index,
                                   VisibilityMarks* marks) {
   const RenderOptions render = FrameRenderOptions(options, index);
@@ -194,9 +196,8 @@ StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
   const SyntheticScene scene = SyntheticScene::MakeRoom(room);
   const Trajectory path = MakeLoopPath(options.frames, fps, options.path);
 
-  const int threads = options.threads > 0
-                          ? options.threads
-                          : std::max(1u, std::thread::hardware_concurrency());
+  const int threads =
+      options.threads > 0 ? options.threads : std::max(1u, std::thread::hardware_concurrency());
   std::atomic<int> next{0}, done{0};
   std::atomic<double> render_seconds{0.0};
   std::mutex mutex;
@@ -208,7 +209,8 @@ StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
       const int i = next++;
       if (i >= options.frames) break;
       const Stopwatch watch;
-      const RecordedFrame frame = RenderRecordedFrame(scene, options, camera, path[i].T_world_cam, i, &marks[id]);
+      const RecordedFrame frame =
+          RenderRecordedFrame(scene, options, camera, path[i].T_world_cam, i, &marks[id]);
       double expected = render_seconds.load();
       while (!render_seconds.compare_exchange_weak(expected, expected + watch.ElapsedSeconds())) {
       }
@@ -249,7 +251,8 @@ StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
   CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "depth.txt"), depth_list));
   CCMD_RETURN_IF_ERROR(WriteTumTrajectory(path, JoinPath(folder, "groundtruth.txt"),
                                           "ground truth of the colour camera, T_world_cam"));
-  CCMD_RETURN_IF_ERROR(WriteCameraConfig(camera, JoinPath(folder, "camera.yaml"), options.depth_camera));
+  CCMD_RETURN_IF_ERROR(
+      WriteCameraConfig(camera, JoinPath(folder, "camera.yaml"), options.depth_camera));
   CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "sequence.txt"), DescribeOptions(options)));
 
   VisibilityMarks seen = marks[0];

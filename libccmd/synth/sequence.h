@@ -13,8 +13,8 @@
 #include "libccmd/io/trajectory.h"
 #include "libccmd/synth/renderer.h"
 #include "libccmd/synth/scene.h"
-#include "libccmd/util/status.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 
@@ -28,11 +28,11 @@ struct LoopPathOptions {
   double height = 1.35;
   double height_amplitude = 0.12;
   double loop_period_s = 16.0;
-  double yaw_ahead_deg = 35.0;     // looking this far ahead of the outward direction
-  double pitch_deg = -14.0;        // negative looks down
+  double yaw_ahead_deg = 35.0;  // looking this far ahead of the outward direction
+  double pitch_deg = -14.0;     // negative looks down
   double pitch_amplitude_deg = 8.0;
   double roll_amplitude_deg = 4.0;
-  double start_time = 1.0;         // timestamp of frame 0
+  double start_time = 1.0;  // timestamp of frame 0
 
   Status Validate() const;
   void Describe(OptionsWriter* out) const;

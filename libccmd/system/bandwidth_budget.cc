@@ -15,8 +15,8 @@ std::vector<RgbdLevel> DefaultBudgetLadder(const RgbdEncodeOptions& base, int* d
   // most (1 % adds 0.4 to 42 mm of mean error per kB). Richer: finer coding first (it lowers
   // the mean error: 11 to 5.6 mm on ICL-NUIM), then more views with RGB-D (the most
   // completeness per kB, but each overlapping view adds a little error), full resolution last.
-  auto level = [&](std::string name, double scale, int downsample, int quality, int bound_e4, bool every = false,
-                   bool allow = true) {
+  auto level = [&](std::string name, double scale, int downsample, int quality, int bound_e4,
+                   bool every = false, bool allow = true) {
     RgbdLevel l;
     l.name = std::move(name);
     l.request.threshold_scale = scale;
@@ -31,7 +31,8 @@ std::vector<RgbdLevel> DefaultBudgetLadder(const RgbdEncodeOptions& base, int* d
   const int r = base.downsample, q = base.jpeg_quality, e = base.bound_e4;
   const int finer_r = std::max(1, r / 2), coarser_r = std::min(4, r * 2);
   const int fine_q = std::max(q, 90), fine_e = std::max(1, e / 2);
-  const int low_q = std::max(10, q - 25), lowest_q = std::max(10, q - 40), coarse_e = std::min(2000, e * 2);
+  const int low_q = std::max(10, q - 25), lowest_q = std::max(10, q - 40),
+            coarse_e = std::min(2000, e * 2);
   std::vector<RgbdLevel> ladder = {
       level("fine coding, every keyframe, r x2", 1, finer_r, fine_q, fine_e, true),
       level("fine coding, every keyframe", 1, r, fine_q, fine_e, true),
@@ -59,11 +60,14 @@ double RelativeRgbdSize(const RgbdEncodeOptions& encode) {
 }
 
 Status BandwidthBudgetOptions::Validate() const {
-  if (!(budget_bytes_per_s >= 1000)) return InvalidArgument("a bandwidth budget below 1 kB/s cannot carry a keyframe stream");
+  if (!(budget_bytes_per_s >= 1000))
+    return InvalidArgument("a bandwidth budget below 1 kB/s cannot carry a keyframe stream");
   if (!(max_queue_s > 0)) return InvalidArgument("the send queue bound must be positive");
-  if (!(band_s > 0) || !(max_credit_s > band_s)) return InvalidArgument("budget credit needs 0 < band < max credit");
+  if (!(band_s > 0) || !(max_credit_s > band_s))
+    return InvalidArgument("budget credit needs 0 < band < max credit");
   if (!(window_s > 0)) return InvalidArgument("the acknowledgement window must be positive");
-  if (!(payload_share > 0 && payload_share <= 1)) return InvalidArgument("payload share must be in (0, 1]");
+  if (!(payload_share > 0 && payload_share <= 1))
+    return InvalidArgument("payload share must be in (0, 1]");
   return Status::Ok();
 }
 
@@ -76,13 +80,15 @@ void BandwidthBudgetOptions::Describe(OptionsWriter* out) const {
   out->Add("payload_share", payload_share);
 }
 
-BandwidthBudget::BandwidthBudget(const BandwidthBudgetOptions& options, std::vector<RgbdLevel> ladder, int start_level)
+BandwidthBudget::BandwidthBudget(const BandwidthBudgetOptions& options,
+                                 std::vector<RgbdLevel> ladder, int start_level)
     : options_(options),
       ladder_(std::move(ladder)),
       level_(start_level),
       rgbd_bytes_(ladder_.size(), 0.0),
       keyframes_per_level_(ladder_.size(), 0) {
-  CCMD_CHECK(!ladder_.empty() && !ladder_.back().request.allow);  // the last rung sends geometry only
+  CCMD_CHECK(!ladder_.empty() &&
+             !ladder_.back().request.allow);  // the last rung sends geometry only
   CCMD_CHECK(start_level >= 0 && start_level < static_cast<int>(ladder_.size()));
 }
 
@@ -96,16 +102,19 @@ void BandwidthBudget::Observe(const LinkObservation& link) {
   }
   const std::uint64_t acked = link.handed_bytes - std::min(link.handed_bytes, link.unacked_bytes);
   samples_.push_back({link.now_s, acked, link.unacked_bytes});
-  while (samples_.size() > 2 && samples_[1].t <= link.now_s - options_.window_s) samples_.erase(samples_.begin());
+  while (samples_.size() > 2 && samples_[1].t <= link.now_s - options_.window_s)
+    samples_.erase(samples_.begin());
   // The rate the server acknowledges at says what the link gives only while there was
   // always something waiting for it.
   const Sample& oldest = samples_.front();
-  const bool backlogged = std::all_of(samples_.begin(), samples_.end(), [](const Sample& s) { return s.unacked > 0; });
+  const bool backlogged =
+      std::all_of(samples_.begin(), samples_.end(), [](const Sample& s) { return s.unacked > 0; });
   const double span = link.now_s - oldest.t;
   link_rate_ = backlogged && span >= 0.5 * options_.window_s ? (acked - oldest.acked) / span : -1.0;
   // A stalled link (backlogged, nothing acknowledged) earns no credit.
   const double fill = link_rate_ >= 0 ? std::min(budget, link_rate_) : budget;
-  credit_bytes_ += fill * std::max(0.0, link.now_s - last_s_) - static_cast<double>(link.handed_bytes - last_handed_);
+  credit_bytes_ += fill * std::max(0.0, link.now_s - last_s_) -
+                   static_cast<double>(link.handed_bytes - last_handed_);
   credit_bytes_ = std::min(credit_bytes_, options_.max_credit_s * budget);
   last_s_ = link.now_s;
   last_handed_ = link.handed_bytes;
@@ -116,7 +125,8 @@ const RgbdLevel& BandwidthBudget::Plan(const LinkObservation& link) {
   const double budget = options_.budget_bytes_per_s * options_.payload_share;
   // Queue time at the rate the link gives (a stalled one counts as 5 % of the budget, so its
   // queue reads as long, not infinite).
-  const double rate = link_rate_ >= 0 ? std::max(0.05 * budget, std::min(link_rate_, budget)) : budget;
+  const double rate =
+      link_rate_ >= 0 ? std::max(0.05 * budget, std::min(link_rate_, budget)) : budget;
   BudgetDecision d;
   d.time_s = link.now_s - start_s_;
   d.queue_s = link.unacked_bytes / rate;
@@ -157,19 +167,23 @@ double BandwidthBudget::ExpectedRgbdBytes(int level) const {
   for (int distance = 1; distance < static_cast<int>(ladder_.size()); ++distance) {
     for (const int l : {level + distance, level - distance}) {
       if (l >= 0 && l < static_cast<int>(ladder_.size()) && rgbd_bytes_[l] > 0) {
-        return rgbd_bytes_[l] * RelativeRgbdSize(ladder_[level].encode) / RelativeRgbdSize(ladder_[l].encode);
+        return rgbd_bytes_[l] * RelativeRgbdSize(ladder_[level].encode) /
+               RelativeRgbdSize(ladder_[l].encode);
       }
     }
   }
   return -1;  // nothing seen yet: the first RGB-D keyframe teaches the sizes
 }
 
-void BandwidthBudget::Record(KeyframeId keyframe, std::uint64_t message_bytes, std::uint64_t rgbd_bytes, bool rgbd) {
+void BandwidthBudget::Record(KeyframeId keyframe, std::uint64_t message_bytes,
+                             std::uint64_t rgbd_bytes, bool rgbd) {
   if (!pending_) return;  // a keyframe without a plan (the sink was not asked): nothing to add
   pending_ = false;
   BudgetDecision& d = current_;
   // Running means (weight 0.3 for the newest): sizes follow the scene.
-  auto update = [](double* mean, double sample) { *mean = *mean > 0 ? 0.7 * *mean + 0.3 * sample : sample; };
+  auto update = [](double* mean, double sample) {
+    *mean = *mean > 0 ? 0.7 * *mean + 0.3 * sample : sample;
+  };
   update(&geometry_bytes_, static_cast<double>(message_bytes - rgbd_bytes));
   if (rgbd) update(&rgbd_bytes_[d.level], static_cast<double>(rgbd_bytes));
   d.keyframe = keyframe;

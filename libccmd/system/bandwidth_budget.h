@@ -15,11 +15,11 @@
 // A credit below -band_s of budget steps one level leaner, above +band_s one level richer
 // if the credit pays for a keyframe at that level. Whatever the credit, the level is then
 // made lean enough that the keyframe fits in what is left of the queue bound (max_queue_s,
-// or two keyframes' geometry if that takes longer) at the link's rate (sizes are learnt per level; unseen levels are estimated from seen ones), so the
-// send queue, and with it the keyframes' wait, stays bounded in time. When geometry alone
-// overflows it, the keyframe goes without RGB-D and the queue grows: geometry is never
-// dropped, and the decisions say so. Every decision is recorded.
-// The wire itself is paced at the budget by the link (AgentLinkOptions::max_send_bytes_per_s).
+// or two keyframes' geometry if that takes longer) at the link's rate (sizes are learnt per level;
+// unseen levels are estimated from seen ones), so the send queue, and with it the keyframes' wait,
+// stays bounded in time. When geometry alone overflows it, the keyframe goes without RGB-D and the
+// queue grows: geometry is never dropped, and the decisions say so. Every decision is recorded. The
+// wire itself is paced at the budget by the link (AgentLinkOptions::max_send_bytes_per_s).
 //
 // No clock of its own and no threads: callers pass observations, so tests are exact.
 
@@ -31,8 +31,8 @@
 #include "libccmd/tracking/keyframe_sink.h"
 #include "libccmd/util/ids.h"
 #include "libccmd/util/json.h"
-#include "libccmd/util/status.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/status.h"
 
 namespace ccmd {
 
@@ -69,9 +69,9 @@ struct BandwidthBudgetOptions {
 
 // What the agent's link reports (AgentLink::stats and the bytes handed to it).
 struct LinkObservation {
-  double now_s = 0;                // monotonic
-  std::uint64_t handed_bytes = 0;  // message bytes handed to the link so far
-  std::uint64_t unacked_bytes = 0; // of those, not yet acknowledged by the server
+  double now_s = 0;                 // monotonic
+  std::uint64_t handed_bytes = 0;   // message bytes handed to the link so far
+  std::uint64_t unacked_bytes = 0;  // of those, not yet acknowledged by the server
 };
 
 struct BudgetDecision {
@@ -86,12 +86,14 @@ struct BudgetDecision {
 
 class BandwidthBudget {
  public:
-  BandwidthBudget(const BandwidthBudgetOptions& options, std::vector<RgbdLevel> ladder, int start_level);
+  BandwidthBudget(const BandwidthBudgetOptions& options, std::vector<RgbdLevel> ladder,
+                  int start_level);
 
   // The level for the next keyframe (recorded, to be completed by Record).
   const RgbdLevel& Plan(const LinkObservation& link);
   // The keyframe the last plan went to, as it was sent.
-  void Record(KeyframeId keyframe, std::uint64_t message_bytes, std::uint64_t rgbd_bytes, bool rgbd);
+  void Record(KeyframeId keyframe, std::uint64_t message_bytes, std::uint64_t rgbd_bytes,
+              bool rgbd);
 
   // The recorded decisions: the first kMaxRecorded (a run's memory must not grow without
   // end; the counts per level and the queue figures cover every keyframe).
@@ -119,9 +121,9 @@ class BandwidthBudget {
     double t;
     std::uint64_t acked, unacked;
   };
-  std::vector<Sample> samples_;  // within window_s
-  double geometry_bytes_ = 0;            // running mean of a keyframe without its RGB-D
-  std::vector<double> rgbd_bytes_;       // running mean per level; 0 = not seen
+  std::vector<Sample> samples_;     // within window_s
+  double geometry_bytes_ = 0;       // running mean of a keyframe without its RGB-D
+  std::vector<double> rgbd_bytes_;  // running mean per level; 0 = not seen
   double max_queue_seen_s_ = 0;
   int shed_ = 0;
   std::vector<int> keyframes_per_level_;

@@ -60,13 +60,15 @@ double AgentRateBytesPerSecond(const Json* traffic) {
   return Num(traffic, "average_traffic_bytes_per_s");
 }
 
-void PlotBudget(const Json& server_stats, const std::vector<std::pair<std::string, double>>& budgets,
+void PlotBudget(const Json& server_stats,
+                const std::vector<std::pair<std::string, double>>& budgets,
                 const std::string& path) {
   std::vector<PlotSeries> series;
   const double bucket = Num(server_stats.Get("transport"), "bucket_seconds", 1.0);
   for (std::size_t i = 0; i < budgets.size(); ++i) {
     const Json* traffic = FindAgentTraffic(server_stats, budgets[i].first);
-    if (!traffic || !traffic->Get("per_bucket") || traffic->Get("per_bucket")->size() == 0) continue;
+    if (!traffic || !traffic->Get("per_bucket") || traffic->Get("per_bucket")->size() == 0)
+      continue;
     std::map<long, double> kBps;
     for (const Json& b : traffic->Get("per_bucket")->array()) {
       kBps[std::lround(Num(&b, "t") / bucket)] = Num(&b, "bytes") / 1e3 / bucket;
@@ -131,8 +133,8 @@ struct Latencies {
 
 // Matches one agent's keyframe log with the server's arrivals. Returns its keyframe and
 // RGB-D counts.
-std::pair<int, int> MatchKeyframes(const std::string& name, const Json* log, const ArrivalMap& arrivals,
-                                   Latencies* out) {
+std::pair<int, int> MatchKeyframes(const std::string& name, const Json* log,
+                                   const ArrivalMap& arrivals, Latencies* out) {
   int keyframes = 0, rgbd = 0;
   if (!log) return {0, 0};
   for (const Json& k : log->array()) {
@@ -164,10 +166,13 @@ std::pair<int, int> MatchKeyframes(const std::string& name, const Json* log, con
 }
 
 // One agent's rate and budget figures into its results entry `a`, and its report row.
-std::string AgentRow(const std::string& run_dir, const StatusOr<Json>& server_stats, const ArrivalMap& arrivals,
-                     Json* a, Latencies* latencies, double* budget_kBps) {
+std::string AgentRow(const std::string& run_dir, const StatusOr<Json>& server_stats,
+                     const ArrivalMap& arrivals, Json* a, Latencies* latencies,
+                     double* budget_kBps) {
   const std::string name = a->Get("name") ? a->Get("name")->string() : "";
-  const double rate = server_stats.ok() ? AgentRateBytesPerSecond(FindAgentTraffic(*server_stats, name)) / 1e3 : 0.0;
+  const double rate = server_stats.ok()
+                          ? AgentRateBytesPerSecond(FindAgentTraffic(*server_stats, name)) / 1e3
+                          : 0.0;
   (*a)["kBps"] = rate;
   auto stats = ReadJsonFile(JoinPath(run_dir, "agents/" + name + "_stats.json"));
   const Json* link = stats.ok() ? stats->Get("link") : nullptr;
@@ -179,13 +184,16 @@ std::string AgentRow(const std::string& run_dir, const StatusOr<Json>& server_st
     (*a)["queue_max_s"] = Num(budget, "queue_max_s");
     (*a)["queue_bound_s"] = Num(budget, "queue_bound_s");
     (*a)["rgbd_withheld_for_queue"] = Num(budget, "shed_keyframes");
-    if (const Json* levels = budget->Get("keyframes_per_level")) (*a)["keyframes_per_level"] = *levels;
+    if (const Json* levels = budget->Get("keyframes_per_level"))
+      (*a)["keyframes_per_level"] = *levels;
   }
-  const auto [keyframes, rgbd] = MatchKeyframes(name, link ? link->Get("keyframe_log") : nullptr, arrivals, latencies);
+  const auto [keyframes, rgbd] =
+      MatchKeyframes(name, link ? link->Get("keyframe_log") : nullptr, arrivals, latencies);
   std::ostringstream md;
-  md << "| " << name << " | " << (budget ? Fmt("%.0f", *budget_kBps) : "-") << " | " << Fmt("%.1f", rate) << " | "
-     << (budget && *budget_kBps > 0 ? Fmt("%.3f", rate / *budget_kBps) : "-") << " | " << keyframes << " | " << rgbd
-     << " | " << (budget ? Fmt("%.2f", Num(budget, "queue_max_s")) : "-") << " | "
+  md << "| " << name << " | " << (budget ? Fmt("%.0f", *budget_kBps) : "-") << " | "
+     << Fmt("%.1f", rate) << " | "
+     << (budget && *budget_kBps > 0 ? Fmt("%.3f", rate / *budget_kBps) : "-") << " | " << keyframes
+     << " | " << rgbd << " | " << (budget ? Fmt("%.2f", Num(budget, "queue_max_s")) : "-") << " | "
      << (budget ? Fmt("%.0f", Num(budget, "shed_keyframes")) : "-") << " |\n";
   return md.str();
 }
@@ -216,8 +224,9 @@ void AddLatencyResults(const Latencies& l, Json* results) {
 std::string LatencySection(const Latencies& l) {
   std::ostringstream md;
   const bool once = l.sent > 0 && l.missing == 0 && l.duplicated == 0;
-  md << "Keyframes: " << l.sent << " sent, " << (l.sent - l.missing) << " received, " << l.missing << " missing, "
-     << l.duplicated << " received more than once" << (once ? " (every keyframe exactly once)" : "") << ".\n\n";
+  md << "Keyframes: " << l.sent << " sent, " << (l.sent - l.missing) << " received, " << l.missing
+     << " missing, " << l.duplicated << " received more than once"
+     << (once ? " (every keyframe exactly once)" : "") << ".\n\n";
   md << "| latency | keyframes | median (s) | 95 % (s) | max (s) |\n|---|---:|---:|---:|---:|\n";
   auto row = [&](const std::string& what, const std::vector<double>& v) {
     md << "| " << what << " | " << v.size() << " | " << Fmt("%.3f", Percentile(v, 0.5)) << " | "
@@ -228,17 +237,21 @@ std::string LatencySection(const Latencies& l) {
   row("creation on the agent -> received by the server's back-end", l.to_server);
   row("**creation -> points in the dense map (map latency)**", l.to_dense_direct);
   row("the same with keyframes that waited for their map's fusion", l.to_dense);
-  md << "\n" << l.rgbd << " keyframes carried RGB-D; " << l.to_dense.size() << " have points in the dense map, "
-     << l.fused_in << " of them came in with a map fusion. The dense map holds only maps in the world frame (the "
-                      "primary map and what is fused into it): a keyframe of another map waits for that fusion, "
-                      "which depends on when the agents' views first overlap, not on the link; the map latency counts "
-                      "the keyframes whose map was already in the world frame.\n";
+  md << "\n"
+     << l.rgbd << " keyframes carried RGB-D; " << l.to_dense.size()
+     << " have points in the dense map, " << l.fused_in
+     << " of them came in with a map fusion. The dense map holds only maps in the world frame (the "
+        "primary map and what is fused into it): a keyframe of another map waits for that fusion, "
+        "which depends on when the agents' views first overlap, not on the link; the map latency "
+        "counts "
+        "the keyframes whose map was already in the world frame.\n";
   return md.str();
 }
 
 }  // namespace
 
-StatusOr<std::string> AddLinkFigures(const std::string& run_dir, const LinkRunInfo& info, Json* results) {
+StatusOr<std::string> AddLinkFigures(const std::string& run_dir, const LinkRunInfo& info,
+                                     Json* results) {
   (*results)["link"] = info.link.empty() ? std::string("loopback") : info.link;
   if (!info.link_stats.is_null()) (*results)["link_stats"] = info.link_stats;
   const auto server_stats = ReadJsonFile(JoinPath(run_dir, "server_stats.json"));
@@ -246,17 +259,20 @@ StatusOr<std::string> AddLinkFigures(const std::string& run_dir, const LinkRunIn
   std::ostringstream md;
   md << "\n## Link, budget and map latency\n\n";
   md << "Link: "
-     << (info.link.empty() ? "loopback (no shaping)"
-                           : "`" + info.link + "` (network namespaces, tbf rate, delay/jitter/loss stage)")
+     << (info.link.empty()
+             ? "loopback (no shaping)"
+             : "`" + info.link + "` (network namespaces, tbf rate, delay/jitter/loss stage)")
      << ".\n\n";
   if (!arrivals.ok()) {
-    md << "No keyframe_arrivals.csv from the server (" << arrivals.status().ToString() << "): no latency figures.\n";
+    md << "No keyframe_arrivals.csv from the server (" << arrivals.status().ToString()
+       << "): no latency figures.\n";
     return md.str();
   }
   Latencies latencies;
   std::vector<std::pair<std::string, double>> budgets;
   Json::Array agents = results->Get("agents") ? results->Get("agents")->array() : Json::Array{};
-  md << "| agent | budget (kB/s) | rate (kB/s) | rate / budget | keyframes | RGB-D | queue max (s) | RGB-D withheld "
+  md << "| agent | budget (kB/s) | rate (kB/s) | rate / budget | keyframes | RGB-D | queue max (s) "
+        "| RGB-D withheld "
         "(queue) |\n|---|---:|---:|---:|---:|---:|---:|---:|\n";
   for (Json& a : agents) {
     double budget_kBps = 0;
@@ -265,10 +281,13 @@ StatusOr<std::string> AddLinkFigures(const std::string& run_dir, const LinkRunIn
   }
   (*results)["agents"] = Json(agents);
   AddLatencyResults(latencies, results);
-  md << "\nRate: message bytes the server received from the agent between its first and last message, per second. "
-        "Queue: bytes handed to the link and not yet acknowledged, in seconds at the rate the link gave.\n\n";
+  md << "\nRate: message bytes the server received from the agent between its first and last "
+        "message, per second. "
+        "Queue: bytes handed to the link and not yet acknowledged, in seconds at the rate the link "
+        "gave.\n\n";
   md << LatencySection(latencies);
-  const bool any_budget = std::any_of(budgets.begin(), budgets.end(), [](const auto& b) { return b.second > 0; });
+  const bool any_budget =
+      std::any_of(budgets.begin(), budgets.end(), [](const auto& b) { return b.second > 0; });
   if (any_budget && server_stats.ok()) {
     PlotBudget(*server_stats, budgets, JoinPath(run_dir, "plots/budget.png"));
     md << "\n![budget](plots/budget.png)\n";
@@ -281,9 +300,12 @@ Status AppendBudgetSweep(const std::string& run_dir, const std::vector<BudgetRow
   CCMD_ASSIGN_OR_RETURN(std::string report, ReadFileToString(JoinPath(run_dir, "report.md")));
   std::ostringstream md;
   md << "\n## Bandwidth budget sweep\n\n"
-     << "Each row is a full run of the same replay with every agent under the budget (none: the agents' defaults, no "
-        "budget). Rate: mean over agents of the bytes each sent per second between its first and last message.\n\n"
-     << "| budget (kB/s) | rate (kB/s) | rate / budget | keyframes | with RGB-D | map latency p50 / p95 (s) | "
+     << "Each row is a full run of the same replay with every agent under the budget (none: the "
+        "agents' defaults, no "
+        "budget). Rate: mean over agents of the bytes each sent per second between its first and "
+        "last message.\n\n"
+     << "| budget (kB/s) | rate (kB/s) | rate / budget | keyframes | with RGB-D | map latency p50 "
+        "/ p95 (s) | "
         "recon mean (m) | completeness | fused ATE (m) | maps | run |\n"
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|\n";
   Json list = Json::MakeArray();
@@ -308,19 +330,22 @@ Status AppendBudgetSweep(const std::string& run_dir, const std::vector<BudgetRow
     e["budget_kBps"] = row.budget_kBps;
     e["run_dir"] = row.run_dir;
     e["kBps"] = rate;
-    for (const char* key : {"keyframes_sent", "rgbd_keyframes", "map_latency_p50_s", "map_latency_p95_s", "recon_mean_m",
-                            "recon_completeness", "ate_rmse_m", "maps_after_fusion", "keyframes_delivered_once"}) {
+    for (const char* key : {"keyframes_sent", "rgbd_keyframes", "map_latency_p50_s",
+                            "map_latency_p95_s", "recon_mean_m", "recon_completeness", "ate_rmse_m",
+                            "maps_after_fusion", "keyframes_delivered_once"}) {
       if (const Json* v = r.Get(key)) e[key] = *v;
     }
     list.Push(e);
-    md << "| " << (row.budget_kBps > 0 ? Fmt("%.0f", row.budget_kBps) : "none") << " | " << Fmt("%.1f", rate) << " | "
-       << (row.budget_kBps > 0 ? Fmt("%.3f", rate / row.budget_kBps) : "-") << " | " << Num(&r, "keyframes_sent") << " | "
-       << Num(&r, "rgbd_keyframes") << " | " << Fmt("%.2f", Num(&r, "map_latency_p50_s")) << " / "
+    md << "| " << (row.budget_kBps > 0 ? Fmt("%.0f", row.budget_kBps) : "none") << " | "
+       << Fmt("%.1f", rate) << " | "
+       << (row.budget_kBps > 0 ? Fmt("%.3f", rate / row.budget_kBps) : "-") << " | "
+       << Num(&r, "keyframes_sent") << " | " << Num(&r, "rgbd_keyframes") << " | "
+       << Fmt("%.2f", Num(&r, "map_latency_p50_s")) << " / "
        << Fmt("%.2f", Num(&r, "map_latency_p95_s")) << " | "
        << (r.Has("recon_mean_m") ? Fmt("%.4f", Num(&r, "recon_mean_m")) : "-") << " | "
-       << (r.Has("recon_completeness") ? Fmt("%.1f%%", 100 * Num(&r, "recon_completeness")) : "-") << " | "
-       << (r.Has("ate_rmse_m") ? Fmt("%.4f", Num(&r, "ate_rmse_m")) : "-") << " | " << Num(&r, "maps_after_fusion", -1)
-       << " | `" << row.run_dir << "` |\n";
+       << (r.Has("recon_completeness") ? Fmt("%.1f%%", 100 * Num(&r, "recon_completeness")) : "-")
+       << " | " << (r.Has("ate_rmse_m") ? Fmt("%.4f", Num(&r, "ate_rmse_m")) : "-") << " | "
+       << Num(&r, "maps_after_fusion", -1) << " | `" << row.run_dir << "` |\n";
     if (row.budget_kBps > 0 && r.Has("recon_mean_m")) {
       error.x.push_back(row.budget_kBps);
       error.y.push_back(1e3 * Num(&r, "recon_mean_m"));
@@ -346,7 +371,8 @@ Status AppendBudgetSweep(const std::string& run_dir, const std::vector<BudgetRow
     e.thickness = c.thickness = 1;
     e.x = c.x = {*lo, *hi};
     e.y = {1e3 * Num(&row.results, "recon_mean_m"), 1e3 * Num(&row.results, "recon_mean_m")};
-    c.y = {100 * Num(&row.results, "recon_completeness"), 100 * Num(&row.results, "recon_completeness")};
+    c.y = {100 * Num(&row.results, "recon_completeness"),
+           100 * Num(&row.results, "recon_completeness")};
     series.push_back(e);
     series.push_back(c);
   }
@@ -362,25 +388,33 @@ Status AppendKnobCosts(const std::string& run_dir, const std::vector<KnobRow>& r
   CCMD_ASSIGN_OR_RETURN(Json results, ReadJsonFile(JoinPath(run_dir, "results.json")));
   CCMD_ASSIGN_OR_RETURN(std::string report, ReadFileToString(JoinPath(run_dir, "report.md")));
   auto rgbd_per_keyframe = [](const Json& r) {
-    return (Num(&r, "colour_bytes") + Num(&r, "depth_bytes")) / std::max(1.0, Num(&r, "keyframes_sent"));
+    return (Num(&r, "colour_bytes") + Num(&r, "depth_bytes")) /
+           std::max(1.0, Num(&r, "keyframes_sent"));
   };
   const Json& base = rows.front().results;
-  const double base_bytes = rgbd_per_keyframe(base), base_completeness = Num(&base, "recon_completeness");
+  const double base_bytes = rgbd_per_keyframe(base),
+               base_completeness = Num(&base, "recon_completeness");
   std::ostringstream md;
   md << "\n## What each RGB-D knob costs the map\n\n"
-     << "Each row is a full run of the same replay with one RGB-D setting changed from the agents' defaults (first "
-        "row). Bytes are colour and depth per keyframe sent (with or without RGB-D). Cost: completeness points lost "
-        "per kB saved per keyframe; for a setting that spends more, points gained per kB spent. Completeness moves by "
-        "several points between runs of one setting (the trajectories differ), so single runs rank only large "
+     << "Each row is a full run of the same replay with one RGB-D setting changed from the agents' "
+        "defaults (first "
+        "row). Bytes are colour and depth per keyframe sent (with or without RGB-D). Cost: "
+        "completeness points lost "
+        "per kB saved per keyframe; for a setting that spends more, points gained per kB spent. "
+        "Completeness moves by "
+        "several points between runs of one setting (the trajectories differ), so single runs rank "
+        "only large "
         "effects; ccmd_knob_bench measures the same knobs at ground-truth poses.\n\n"
-     << "| setting | RGB-D kB/keyframe | change | RGB-D keyframes | map points | completeness | change (pp) | "
+     << "| setting | RGB-D kB/keyframe | change | RGB-D keyframes | map points | completeness | "
+        "change (pp) | "
         "recon mean (mm) | fused ATE (cm) | cost (pp per kB) | run |\n"
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|\n";
   Json list = Json::MakeArray();
   for (const KnobRow& row : rows) {
     const Json& r = row.results;
     const double bytes = rgbd_per_keyframe(r), completeness = Num(&r, "recon_completeness");
-    const double saved_kB = (base_bytes - bytes) / 1e3, lost_pp = 100 * (base_completeness - completeness);
+    const double saved_kB = (base_bytes - bytes) / 1e3,
+                 lost_pp = 100 * (base_completeness - completeness);
     const bool reference = &row == &rows.front();
     Json e;
     e["knob"] = row.knob;
@@ -395,11 +429,14 @@ Status AppendKnobCosts(const std::string& run_dir, const std::vector<KnobRow>& r
     if (has_cost) e["completeness_pp_per_kB"] = lost_pp / saved_kB;
     list.Push(e);
     md << "| " << row.knob << " | " << Fmt("%.2f", bytes / 1e3) << " | "
-       << (reference ? std::string("-") : Fmt("%+.2f", -saved_kB)) << " | " << Num(&r, "rgbd_keyframes") << " of "
-       << Num(&r, "keyframes_sent") << " | " << Fmt("%.0f", Num(&r, "map_points")) << " | "
-       << Fmt("%.1f%%", 100 * completeness) << " | " << (reference ? std::string("-") : Fmt("%+.1f", -lost_pp)) << " | "
-       << Fmt("%.1f", 1e3 * Num(&r, "recon_mean_m")) << " | " << Fmt("%.2f", 100 * Num(&r, "ate_rmse_m")) << " | "
-       << (has_cost ? Fmt("%.2f", lost_pp / saved_kB) : std::string("-")) << " | `" << row.run_dir << "` |\n";
+       << (reference ? std::string("-") : Fmt("%+.2f", -saved_kB)) << " | "
+       << Num(&r, "rgbd_keyframes") << " of " << Num(&r, "keyframes_sent") << " | "
+       << Fmt("%.0f", Num(&r, "map_points")) << " | " << Fmt("%.1f%%", 100 * completeness) << " | "
+       << (reference ? std::string("-") : Fmt("%+.1f", -lost_pp)) << " | "
+       << Fmt("%.1f", 1e3 * Num(&r, "recon_mean_m")) << " | "
+       << Fmt("%.2f", 100 * Num(&r, "ate_rmse_m")) << " | "
+       << (has_cost ? Fmt("%.2f", lost_pp / saved_kB) : std::string("-")) << " | `" << row.run_dir
+       << "` |\n";
   }
   results["knob_costs"] = list;
   CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(run_dir, "report.md"), report + md.str()));

@@ -27,7 +27,8 @@ struct LinkRunInfo {
 // Adds "link", "map_latency_p50_s", "map_latency_p95_s" and the other link figures to
 // `results` (and "kBps", "budget_kBps" to each entry of results["agents"]), writes
 // plots/budget.png when an agent had a budget, and returns the report's section (markdown).
-StatusOr<std::string> AddLinkFigures(const std::string& run_dir, const LinkRunInfo& info, Json* results);
+StatusOr<std::string> AddLinkFigures(const std::string& run_dir, const LinkRunInfo& info,
+                                     Json* results);
 
 // One run of a budget sweep: the same replay with every agent under `budget_kBps` (0: none).
 struct BudgetRow {

@@ -49,7 +49,8 @@ void LinkSink::OnKeyframe(KeyframeSnapshot keyframe) {
   }
   auto message = ToKeyframeMessage(keyframe, rgbd);
   if (!message.ok()) {
-    CCMD_LOG(ERROR) << "keyframe " << keyframe.id << " not encodable: " << message.status().ToString();
+    CCMD_LOG(ERROR) << "keyframe " << keyframe.id
+                    << " not encodable: " << message.status().ToString();
     std::lock_guard<std::mutex> lock(mutex_);
     ++stats_.failed;
     return;
@@ -57,7 +58,8 @@ void LinkSink::OnKeyframe(KeyframeSnapshot keyframe) {
   KeyframeSizeBreakdown parts;
   auto bytes = SerializeKeyframe(*message, &parts);
   if (!bytes.ok()) {
-    CCMD_LOG(ERROR) << "keyframe " << keyframe.id << " not serializable: " << bytes.status().ToString();
+    CCMD_LOG(ERROR) << "keyframe " << keyframe.id
+                    << " not serializable: " << bytes.status().ToString();
     std::lock_guard<std::mutex> lock(mutex_);
     ++stats_.failed;
     return;
@@ -67,23 +69,27 @@ void LinkSink::OnKeyframe(KeyframeSnapshot keyframe) {
   const auto sent = link_->Send(MessageType::kKeyframe, std::move(bytes).value());
   std::lock_guard<std::mutex> lock(mutex_);
   if (!sent.ok()) {
-    CCMD_LOG(ERROR) << "keyframe " << keyframe.id << " refused by the link: " << sent.status().ToString();
+    CCMD_LOG(ERROR) << "keyframe " << keyframe.id
+                    << " refused by the link: " << sent.status().ToString();
     ++stats_.failed;
     return;
   }
   Handed(*sent, size);
   if (sent_.size() < kMaxLogged) {
-    sent_.push_back({keyframe.id, keyframe.created_wall_s, WallSeconds(), size, parts.colour + parts.depth});
+    sent_.push_back(
+        {keyframe.id, keyframe.created_wall_s, WallSeconds(), size, parts.colour + parts.depth});
   } else {
     ++not_logged_;  // memory must not grow with the run's length
   }
-  if (budget_) budget_->Record(keyframe.id, size, parts.colour + parts.depth, message->rgbd.has_value());
+  if (budget_)
+    budget_->Record(keyframe.id, size, parts.colour + parts.depth, message->rgbd.has_value());
   ++stats_.keyframes;
   stats_.rgbd_keyframes += message->rgbd.has_value();
   stats_.keypoints_sent += message->keypoints.size();
   stats_.keypoints_extracted += keyframe.keypoints_extracted;
   stats_.new_points += message->new_map_points.size();
-  stats_.full_rgbd_pixels += static_cast<std::uint64_t>(keyframe.image_width) * keyframe.image_height;
+  stats_.full_rgbd_pixels +=
+      static_cast<std::uint64_t>(keyframe.image_width) * keyframe.image_height;
   stats_.keyframe_bytes += size;
   stats_.encode_ms_total += encode_ms;
   stats_.parts.pose += parts.pose;
@@ -127,7 +133,8 @@ Json LinkSink::StatsJson(bool detailed) const {
   j["pose_updates_sent"] = s.pose_updates;
   j["keyframe_bytes"] = s.keyframe_bytes;
   j["pose_update_bytes"] = s.pose_update_bytes;
-  j["keyframe_bytes_mean"] = s.keyframes ? static_cast<double>(s.keyframe_bytes) / s.keyframes : 0.0;
+  j["keyframe_bytes_mean"] =
+      s.keyframes ? static_cast<double>(s.keyframe_bytes) / s.keyframes : 0.0;
   j["encode_ms_mean"] = s.keyframes ? s.encode_ms_total / s.keyframes : 0.0;
   j["failed"] = s.failed;
   j["keyframe_parts_bytes"] = KeyframePartsJson(s.parts);
@@ -140,8 +147,8 @@ Json LinkSink::StatsJson(bool detailed) const {
   Json log = Json::MakeArray();
   for (const SentKeyframe& k : sent_) {
     // Whole milliseconds since the Unix epoch: JSON numbers keep them exactly.
-    log.Push(Json(Json::Array{k.id.value(), std::llround(k.created_wall_s * 1e3), std::llround(k.handed_wall_s * 1e3),
-                              k.bytes, k.rgbd_bytes}));
+    log.Push(Json(Json::Array{k.id.value(), std::llround(k.created_wall_s * 1e3),
+                              std::llround(k.handed_wall_s * 1e3), k.bytes, k.rgbd_bytes}));
   }
   j["keyframe_log"] = log;
   j["keyframe_log_not_logged"] = not_logged_;
@@ -154,7 +161,8 @@ std::string DefaultAgentName() {
   if (gethostname(host, sizeof(host) - 1) != 0) host[0] = 0;
   std::string name;
   for (const char* c = host; *c; ++c) {
-    if (std::isalnum(static_cast<unsigned char>(*c)) || *c == '-' || *c == '_' || *c == '.') name.push_back(*c);
+    if (std::isalnum(static_cast<unsigned char>(*c)) || *c == '-' || *c == '_' || *c == '.')
+      name.push_back(*c);
   }
   if (name.empty()) name = "agent";
   return name + "-" + std::to_string(getpid());

@@ -24,7 +24,7 @@ struct LinkSinkStats {
   // Counts behind the parts, for the size an uncompressed format would need.
   std::uint64_t keypoints_sent = 0, keypoints_extracted = 0, new_points = 0;
   std::uint64_t full_rgbd_pixels = 0;  // width x height of every keyframe
-  std::uint64_t failed = 0;  // messages the link refused (it logs why)
+  std::uint64_t failed = 0;            // messages the link refused (it logs why)
   double encode_ms_total = 0;
 };
 
@@ -39,7 +39,8 @@ struct SentKeyframe {
 class LinkSink : public KeyframeSink {
  public:
   // With a budget, each keyframe's RGB-D selection and coding follow its plan.
-  LinkSink(AgentLink* link, const RgbdEncodeOptions& rgbd, std::unique_ptr<BandwidthBudget> budget = nullptr)
+  LinkSink(AgentLink* link, const RgbdEncodeOptions& rgbd,
+           std::unique_ptr<BandwidthBudget> budget = nullptr)
       : link_(link), rgbd_(rgbd), budget_(std::move(budget)) {}
   void OnKeyframe(KeyframeSnapshot keyframe) override;
   void OnPoseUpdates(std::vector<PoseUpdate> updates) override;
@@ -61,7 +62,7 @@ class LinkSink : public KeyframeSink {
   LinkSinkStats stats_;
   std::unique_ptr<BandwidthBudget> budget_;
   std::optional<RgbdEncodeOptions> planned_;  // the budget's coding for the next keyframe
-  std::vector<SentKeyframe> sent_;  // the first kMaxLogged keyframes
+  std::vector<SentKeyframe> sent_;            // the first kMaxLogged keyframes
   std::uint64_t not_logged_ = 0;
   static constexpr std::size_t kMaxLogged = 100000;
   std::uint64_t handed_bytes_ = 0;

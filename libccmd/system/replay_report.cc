@@ -48,7 +48,8 @@ PointCloud SampleMesh(const PointCloud& mesh, double spacing) {
 
 Status ReferenceOptions::Validate() const {
   if (stride < 1) return InvalidArgument("reference stride must be at least 1");
-  if (downsample < 1 || downsample > 16) return InvalidArgument("reference downsample must be 1..16");
+  if (downsample < 1 || downsample > 16)
+    return InvalidArgument("reference downsample must be 1..16");
   if (!(voxel_m > 0)) return InvalidArgument("reference voxel must be positive");
   if (registration) CCMD_RETURN_IF_ERROR(registration->depth.Validate().WithContext("Depth block"));
   return Status::Ok();
@@ -62,11 +63,12 @@ void ReferenceOptions::Describe(OptionsWriter* out) const {
   out->Add("registration", registration ? "Depth block" : "none");
 }
 
-StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset, const ReferenceOptions& options,
-                                          std::string* source) {
+StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset,
+                                          const ReferenceOptions& options, std::string* source) {
   CCMD_RETURN_IF_ERROR(options.Validate());
   std::string path = options.reference_ply;
-  if (path.empty() && FileExists(JoinPath(dataset.folder(), "surface.ply"))) path = JoinPath(dataset.folder(), "surface.ply");
+  if (path.empty() && FileExists(JoinPath(dataset.folder(), "surface.ply")))
+    path = JoinPath(dataset.folder(), "surface.ply");
   if (!path.empty()) {
     CCMD_ASSIGN_OR_RETURN(PointCloud cloud, ReadPly(path));
     if (!cloud.triangles.empty()) {
@@ -95,7 +97,8 @@ StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset, const Refe
     if (bgr.size() != depth.size()) cv::resize(bgr, bgr, depth.size(), 0, 0, cv::INTER_AREA);
     if (factor > 1) {
       // Nearest (not averaging) for depth: no mixed depths across edges.
-      cv::resize(depth, depth, cv::Size(depth.cols / factor, depth.rows / factor), 0, 0, cv::INTER_NEAREST);
+      cv::resize(depth, depth, cv::Size(depth.cols / factor, depth.rows / factor), 0, 0,
+                 cv::INTER_NEAREST);
       cv::resize(bgr, bgr, depth.size(), 0, 0, cv::INTER_AREA);
     }
     kf.depth_mm = depth;
@@ -137,8 +140,8 @@ Eigen::Matrix<double, 2, 3> ViewPlane(const Trajectory& gt) {
   return P;
 }
 
-PlotSeries Projected(const Trajectory& t, const Eigen::Matrix<double, 2, 3>& P, const std::string& label,
-                     cv::Scalar color, int thickness) {
+PlotSeries Projected(const Trajectory& t, const Eigen::Matrix<double, 2, 3>& P,
+                     const std::string& label, cv::Scalar color, int thickness) {
   PlotSeries s;
   s.label = label;
   s.color = color;
@@ -205,8 +208,8 @@ std::string JoinNames(const std::vector<std::string>& names) {
 
 // plots/map_top.png and plots/map_view.png, drawn from the server's map.ply (in its own world
 // frame, up from its keyframes); agents coloured as in the other plots. False without a map.
-bool WriteMapPlots(const std::string& server_dir, const std::string& plots_dir, const Json& server_stats,
-                   int agents) {
+bool WriteMapPlots(const std::string& server_dir, const std::string& plots_dir,
+                   const Json& server_stats, int agents) {
   auto map = ReadPly(JoinPath(server_dir, "map.ply"));
   if (!map.ok() || map->size() == 0) return false;
   auto cameras = ReadTumTrajectory(JoinPath(server_dir, "trajectory_fused.txt"));
@@ -214,21 +217,24 @@ bool WriteMapPlots(const std::string& server_dir, const std::string& plots_dir, 
   const Json* ids = server_stats.Get("agent_ids");
   for (int i = 1; i <= agents; ++i) {
     const std::string name = "agent" + std::to_string(i);
-    if (ids && ids->Get(name)) options.agents[static_cast<int>(ids->Get(name)->number())] = {name, SeriesColor(i - 1)};
+    if (ids && ids->Get(name))
+      options.agents[static_cast<int>(ids->Get(name)->number())] = {name, SeriesColor(i - 1)};
   }
-  const Status s = WriteMapPictures(*map, cameras.ok() ? *cameras : Trajectory{}, options, plots_dir);
+  const Status s =
+      WriteMapPictures(*map, cameras.ok() ? *cameras : Trajectory{}, options, plots_dir);
   if (!s.ok()) CCMD_LOG(WARNING) << "map pictures: " << s.ToString();
   return s.ok();
 }
 
 }  // namespace
 
-StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dataset, const ReplayRunInfo& info,
-                              const ReferenceOptions& reference) {
+StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dataset,
+                              const ReplayRunInfo& info, const ReferenceOptions& reference) {
   const std::string& server_dir = run_dir;  // the server writes its results into the run folder
   const std::string plots_dir = JoinPath(run_dir, "plots");
   CCMD_RETURN_IF_ERROR(MakeDirectories(plots_dir));
-  CCMD_ASSIGN_OR_RETURN(const Json server_stats, ReadJsonFile(JoinPath(server_dir, "server_stats.json")));
+  CCMD_ASSIGN_OR_RETURN(const Json server_stats,
+                        ReadJsonFile(JoinPath(server_dir, "server_stats.json")));
   const Trajectory gt = dataset.GroundTruthAtFrames();
   Json results;
   results["dataset"] = info.dataset_dir;
@@ -275,7 +281,8 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   int with_traffic = 0;
   KeyframeSizeBreakdown parts_total;
   double keyframes_total = 0, rgbd_keyframes_total = 0;
-  double naive_pose = 0, naive_keypoints = 0, naive_descriptors = 0, naive_points = 0, naive_colour = 0, naive_depth = 0;
+  double naive_pose = 0, naive_keypoints = 0, naive_descriptors = 0, naive_points = 0,
+         naive_colour = 0, naive_depth = 0;
   for (int i = 1; i <= info.agents; ++i) {
     const std::string name = "agent" + std::to_string(i);
     Json a;
@@ -298,9 +305,13 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
     }
     const Json* traffic = FindAgentTraffic(server_stats, name);
     if (traffic) {
-      const Json* kf = traffic->Get("messages") ? traffic->Get("messages")->Get("keyframe") : nullptr;
+      const Json* kf =
+          traffic->Get("messages") ? traffic->Get("messages")->Get("keyframe") : nullptr;
       a["keyframes"] = Num(kf, "count");
-      a["bytes"] = Num(kf, "bytes") + Num(traffic->Get("messages") ? traffic->Get("messages")->Get("pose_update") : nullptr, "bytes");
+      a["bytes"] =
+          Num(kf, "bytes") +
+          Num(traffic->Get("messages") ? traffic->Get("messages")->Get("pose_update") : nullptr,
+              "bytes");
       a["atps_kBps"] = Num(traffic, "average_traffic_bytes_per_s") / 1e3;
       a["akfs_kB"] = Num(traffic, "average_keyframe_bytes") / 1e3;
       a["akfr_hz"] = Num(traffic, "keyframe_rate_hz");
@@ -352,7 +363,8 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   double dataset_bytes_per_s = 0, dataset_keyframes_per_s = 0;
   int with_duration = 0;
   for (const Json& a : agents.array()) {
-    const int first = static_cast<int>(Num(&a, "first_frame", -1)), last = static_cast<int>(Num(&a, "last_frame", -1));
+    const int first = static_cast<int>(Num(&a, "first_frame", -1)),
+              last = static_cast<int>(Num(&a, "last_frame", -1));
     if (first < 0 || last <= first || last >= static_cast<int>(dataset.size())) continue;
     const double duration = dataset.frame(last).timestamp - dataset.frame(first).timestamp;
     if (duration <= 0) continue;
@@ -416,7 +428,8 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
     auto ref = LoadOrBuildReference(dataset, reference, &source);
     auto rec = ReadPly(map_path);
     // A reference built here is kept, so that the map can be compared again (ccmd_eval recon).
-    if (ref.ok() && reference.reference_ply.empty() && !FileExists(JoinPath(dataset.folder(), "surface.ply"))) {
+    if (ref.ok() && reference.reference_ply.empty() &&
+        !FileExists(JoinPath(dataset.folder(), "surface.ply"))) {
       const Status kept = WritePly(*ref, JoinPath(run_dir, "reference.ply"));
       if (!kept.ok()) CCMD_LOG(WARNING) << kept.ToString();
     }
@@ -444,10 +457,14 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   const bool map_plots = WriteMapPlots(server_dir, plots_dir, server_stats, info.agents);
   if (!gt.empty()) {
     const auto P = ViewPlane(gt);
-    std::vector<PlotSeries> series = {Projected(gt, P, "ground truth", cv::Scalar(160, 160, 160), 4)};
+    std::vector<PlotSeries> series = {
+        Projected(gt, P, "ground truth", cv::Scalar(160, 160, 160), 4)};
     for (std::size_t i = 0; i < agent_trajectories.size(); ++i) {
-      Trajectory aligned = fused_ate ? TransformTrajectory(agent_trajectories[i], fused_ate->alignment) : agent_trajectories[i];
-      series.push_back(Projected(aligned, P, "agent" + std::to_string(i + 1), SeriesColor(static_cast<int>(i)), 2));
+      Trajectory aligned = fused_ate
+                               ? TransformTrajectory(agent_trajectories[i], fused_ate->alignment)
+                               : agent_trajectories[i];
+      series.push_back(Projected(aligned, P, "agent" + std::to_string(i + 1),
+                                 SeriesColor(static_cast<int>(i)), 2));
       series.back().points = true;
     }
     PlotOptions o;
@@ -487,8 +504,10 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
     PlotOptions o;
     o.title = "Bytes per keyframe by kind (log scale)";
     o.y_label = "log10(bytes)";
-    WritePng(PlotBars(groups, {"sent", "uncompressed"}, {SeriesColor(0), SeriesColor(6)}, o, /*log_scale=*/true),
-             JoinPath(plots_dir, "bytes_per_kind.png")).IgnoreError();
+    WritePng(PlotBars(groups, {"sent", "uncompressed"}, {SeriesColor(0), SeriesColor(6)}, o,
+                      /*log_scale=*/true),
+             JoinPath(plots_dir, "bytes_per_kind.png"))
+        .IgnoreError();
   }
   {
     std::vector<PlotSeries> series;
@@ -528,36 +547,44 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   std::ostringstream md;
   md << "# Split-replay report\n\n";
   md << "- dataset: `" << info.dataset_dir << "` (" << dataset.size() << " frames)\n";
-  md << "- agents: " << info.agents << ", pace: " << info.rate << ", wall time " << Fmt("%.1f", info.wall_seconds) << " s\n";
+  md << "- agents: " << info.agents << ", pace: " << info.rate << ", wall time "
+     << Fmt("%.1f", info.wall_seconds) << " s\n";
   md << "- command: `" << info.command << "`\n";
   if (!info.config.empty()) md << "- config: `" << info.config << "` (copied to config.yaml)\n";
   md << "\n## Maps and trajectories\n\n";
-  md << "Maps left after fusion: " << results["maps_after_fusion"].number() << " (loops " << results["loops"].number()
-     << ", fusions " << results["fusions"].number() << ", global BA runs " << results["global_ba_runs"].number() << ")\n\n";
+  md << "Maps left after fusion: " << results["maps_after_fusion"].number() << " (loops "
+     << results["loops"].number() << ", fusions " << results["fusions"].number()
+     << ", global BA runs " << results["global_ba_runs"].number() << ")\n\n";
   if (results["maps_after_fusion"].number() > 1) {
     std::vector<std::string> others;
     for (int i = 1; i <= info.agents; ++i) {
-      if (!membership.InPrimary("agent" + std::to_string(i))) others.push_back("agent" + std::to_string(i));
+      if (!membership.InPrimary("agent" + std::to_string(i)))
+        others.push_back("agent" + std::to_string(i));
     }
-    md << "**Not every map fused.** The fused trajectory and the dense map below are the primary map's, which holds "
+    md << "**Not every map fused.** The fused trajectory and the dense map below are the primary "
+          "map's, which holds "
        << JoinNames(primary_agents) << "; " << JoinNames(others)
        << " kept their own maps: their server ATE in the table is in their own map's frame.\n\n";
   }
-  md << "| agent | frames | map | server keyframes | ATE RMSE (server, m) | ATE RMSE (agent odometry, m) | lost frames |\n"
+  md << "| agent | frames | map | server keyframes | ATE RMSE (server, m) | ATE RMSE (agent "
+        "odometry, m) | lost frames |\n"
         "|---|---|---|---|---|---|---|\n";
   for (const Json& a : agents.array()) {
-    md << "| " << a.Get("name")->string() << " | " << Num(&a, "first_frame") << "-" << Num(&a, "last_frame") << " | "
-       << (a.Get("in_primary_map")->boolean() ? "primary" : "own") << " | "
-       << Num(&a, "keyframes") << " | " << (a.Has("ate_rmse_m") ? Fmt("%.4f", Num(&a, "ate_rmse_m")) : "-") << " | "
-       << (a.Has("agent_frames_ate_rmse_m") ? Fmt("%.4f", Num(&a, "agent_frames_ate_rmse_m")) : "-") << " | "
-       << Num(&a, "lost_frames") << " |\n";
+    md << "| " << a.Get("name")->string() << " | " << Num(&a, "first_frame") << "-"
+       << Num(&a, "last_frame") << " | " << (a.Get("in_primary_map")->boolean() ? "primary" : "own")
+       << " | " << Num(&a, "keyframes") << " | "
+       << (a.Has("ate_rmse_m") ? Fmt("%.4f", Num(&a, "ate_rmse_m")) : "-") << " | "
+       << (a.Has("agent_frames_ate_rmse_m") ? Fmt("%.4f", Num(&a, "agent_frames_ate_rmse_m")) : "-")
+       << " | " << Num(&a, "lost_frames") << " |\n";
   }
   if (results.Has("ate_rmse_m")) {
-    md << "\nFused trajectory (every keyframe of the primary map: " << JoinNames(primary_agents) << "): ATE RMSE **"
-       << Fmt("%.4f", results["ate_rmse_m"].number()) << " m** over " << results["fused_keyframes"].number()
-       << " keyframes (max " << Fmt("%.4f", results["ate_max_m"].number()) << " m)"
+    md << "\nFused trajectory (every keyframe of the primary map: " << JoinNames(primary_agents)
+       << "): ATE RMSE **" << Fmt("%.4f", results["ate_rmse_m"].number()) << " m** over "
+       << results["fused_keyframes"].number() << " keyframes (max "
+       << Fmt("%.4f", results["ate_max_m"].number()) << " m)"
        << (results["ate_aligned_by"].string() == "poses"
-               ? ", aligned by whole keyframe poses: too few keyframes, or all within a centimetre of a line, to "
+               ? ", aligned by whole keyframe poses: too few keyframes, or all within a centimetre "
+                 "of a line, to "
                  "align by positions"
                : "")
        << ".\n";
@@ -566,46 +593,61 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   }
   md << "\n![trajectories](plots/trajectories.png)\n\n## Dense map\n\n";
   if (results.Has("recon_mean_m")) {
-    md << "| points | mean distance (m) | median (m) | 95% (m) | Hausdorff (m) | completeness (2 cm) |\n|---|---|---|---|---|---|\n";
-    md << "| " << Fmt("%.0f", results["map_points"].number()) << " | " << Fmt("%.4f", results["recon_mean_m"].number()) << " | "
-       << Fmt("%.4f", results["recon_median_m"].number()) << " | " << Fmt("%.4f", results["recon_p95_m"].number()) << " | "
+    md << "| points | mean distance (m) | median (m) | 95% (m) | Hausdorff (m) | completeness (2 "
+          "cm) |\n|---|---|---|---|---|---|\n";
+    md << "| " << Fmt("%.0f", results["map_points"].number()) << " | "
+       << Fmt("%.4f", results["recon_mean_m"].number()) << " | "
+       << Fmt("%.4f", results["recon_median_m"].number()) << " | "
+       << Fmt("%.4f", results["recon_p95_m"].number()) << " | "
        << Fmt("%.4f", results["recon_hausdorff_m"].number()) << " | "
        << Fmt("%.1f%%", 100 * results["recon_completeness"].number()) << " |\n\n";
-    md << "Reference: " << results["reference"].string() << " (" << results["reference_points"].number()
-       << " points). The map is aligned to it by the fit of the primary map's keyframe poses (centres and "
+    md << "Reference: " << results["reference"].string() << " ("
+       << results["reference_points"].number()
+       << " points). The map is aligned to it by the fit of the primary map's keyframe poses "
+          "(centres and "
           "orientations) to the ground truth.\n";
   } else {
     md << "No dense map or no reference to compare with.\n";
   }
-  if (map_plots) md << "\n![dense map, top view](plots/map_top.png)\n\n![dense map, perspective](plots/map_view.png)\n";
-  md << "\n## Bandwidth\n\n| agent | ATPS (kB/s) | AKFS (kB) | AKFR (Hz) | keyframes with RGB-D | bytes |\n|---|---|---|---|---|---|\n";
+  if (map_plots)
+    md << "\n![dense map, top view](plots/map_top.png)\n\n![dense map, "
+          "perspective](plots/map_view.png)\n";
+  md << "\n## Bandwidth\n\n| agent | ATPS (kB/s) | AKFS (kB) | AKFR (Hz) | keyframes with RGB-D | "
+        "bytes |\n|---|---|---|---|---|---|\n";
   for (const Json& a : agents.array()) {
-    md << "| " << a.Get("name")->string() << " | " << Fmt("%.1f", Num(&a, "atps_kBps")) << " | " << Fmt("%.1f", Num(&a, "akfs_kB"))
-       << " | " << Fmt("%.2f", Num(&a, "akfr_hz")) << " | " << Num(&a, "rgbd_keyframes") << " of " << Num(&a, "keyframes")
-       << " | " << Fmt("%.0f", Num(&a, "bytes")) << " |\n";
+    md << "| " << a.Get("name")->string() << " | " << Fmt("%.1f", Num(&a, "atps_kBps")) << " | "
+       << Fmt("%.1f", Num(&a, "akfs_kB")) << " | " << Fmt("%.2f", Num(&a, "akfr_hz")) << " | "
+       << Num(&a, "rgbd_keyframes") << " of " << Num(&a, "keyframes") << " | "
+       << Fmt("%.0f", Num(&a, "bytes")) << " |\n";
   }
-  md << "| mean | " << Fmt("%.1f", Num(&results, "atps_kBps")) << " | " << Fmt("%.1f", Num(&results, "akfs_kB")) << " | "
-     << Fmt("%.2f", Num(&results, "akfr_hz")) << " | | |\n\n";
-  md << "ATPS and AKFR are per second of connection (wall clock of this run); per second of the dataset's own time "
+  md << "| mean | " << Fmt("%.1f", Num(&results, "atps_kBps")) << " | "
+     << Fmt("%.1f", Num(&results, "akfs_kB")) << " | " << Fmt("%.2f", Num(&results, "akfr_hz"))
+     << " | | |\n\n";
+  md << "ATPS and AKFR are per second of connection (wall clock of this run); per second of the "
+        "dataset's own time "
         "(what a robot moving at that speed would send): "
-     << Fmt("%.1f", Num(&results, "atps_dataset_kBps")) << " kB/s and " << Fmt("%.2f", Num(&results, "akfr_dataset_hz"))
-     << " keyframes/s per agent.\n\n";
-  md << "Bytes per keyframe by kind, against an uncompressed format (4x4 float pose, 5 floats per keypoint, every "
-        "descriptor, id + xyz per map point, full-resolution colour and float depth with every keyframe):\n\n";
+     << Fmt("%.1f", Num(&results, "atps_dataset_kBps")) << " kB/s and "
+     << Fmt("%.2f", Num(&results, "akfr_dataset_hz")) << " keyframes/s per agent.\n\n";
+  md << "Bytes per keyframe by kind, against an uncompressed format (4x4 float pose, 5 floats per "
+        "keypoint, every "
+        "descriptor, id + xyz per map point, full-resolution colour and float depth with every "
+        "keyframe):\n\n";
   md << "| kind | sent (B/keyframe) | uncompressed (B/keyframe) | ratio |\n|---|---|---|---|\n";
   for (const auto& [kind, ours, naive] : per_kind) {
     md << "| " << kind << " | " << Fmt("%.0f", ours) << " | " << Fmt("%.0f", naive) << " | "
        << (naive > 0 ? Fmt("%.3f", ours / naive) : "-") << " |\n";
   }
-  md << "\n![traffic](plots/traffic.png)\n\n![bytes per kind](plots/bytes_per_kind.png)\n\n## CPU\n\n";
+  md << "\n![traffic](plots/traffic.png)\n\n![bytes per kind](plots/bytes_per_kind.png)\n\n## "
+        "CPU\n\n";
   md << "| process | CPU (s) | CPU (% of one core) | peak memory (MB) |\n|---|---|---|---|\n";
   for (const ReplayProcess& p : info.processes) {
     md << "| " << p.name << " | " << Fmt("%.1f", p.cpu_seconds) << " | "
-       << Fmt("%.0f", p.wall_seconds > 0 ? 100 * p.cpu_seconds / p.wall_seconds : 0.0) << " | " << Fmt("%.0f", p.max_rss_mb)
-       << " |\n";
+       << Fmt("%.0f", p.wall_seconds > 0 ? 100 * p.cpu_seconds / p.wall_seconds : 0.0) << " | "
+       << Fmt("%.0f", p.max_rss_mb) << " |\n";
   }
   md << "\n![cpu](plots/cpu.png)\n";
-  auto link_section = AddLinkFigures(run_dir, LinkRunInfo{info.link, info.link_stats, info.agents}, &results);
+  auto link_section =
+      AddLinkFigures(run_dir, LinkRunInfo{info.link, info.link_stats, info.agents}, &results);
   if (link_section.ok()) {
     md << *link_section;
   } else {
@@ -630,9 +672,11 @@ Status AppendAblation(const std::string& run_dir, const std::vector<AblationRow>
   }
   std::ostringstream md;
   md << "\n## Sampling rate and RGB-D keyframe selection\n\n"
-     << "Each row is a full run of the same replay; only the agents' RGB-D settings differ. RGB-D bytes are "
+     << "Each row is a full run of the same replay; only the agents' RGB-D settings differ. RGB-D "
+        "bytes are "
         "colour and depth over all agents; ratios are to r = 1 with RGB-D for every keyframe.\n\n"
-     << "| r | selection | RGB-D keyframes | RGB-D bytes | per keyframe | ratio | map points | ratio | recon mean (m) | "
+     << "| r | selection | RGB-D keyframes | RGB-D bytes | per keyframe | ratio | map points | "
+        "ratio | recon mean (m) | "
         "fused ATE (m) | run |\n|---|---|---|---|---|---|---|---|---|---|---|\n";
   Json list = Json::MakeArray();
   for (const AblationRow& row : rows) {
@@ -650,15 +694,20 @@ Status AppendAblation(const std::string& run_dir, const std::vector<AblationRow>
     if (row.results.Has("ate_rmse_m")) e["ate_rmse_m"] = Num(&row.results, "ate_rmse_m");
     e["maps_after_fusion"] = Num(&row.results, "maps_after_fusion", -1);
     list.Push(e);
-    md << "| " << (row.downsample == 1 ? std::string("1") : "1/" + std::to_string(row.downsample)) << " | "
-       << (row.selection ? "on" : "off") << " | " << Fmt("%.0f", e["rgbd_keyframes"].number()) << " of "
+    md << "| " << (row.downsample == 1 ? std::string("1") : "1/" + std::to_string(row.downsample))
+       << " | " << (row.selection ? "on" : "off") << " | "
+       << Fmt("%.0f", e["rgbd_keyframes"].number()) << " of "
        << Fmt("%.0f", e["keyframes"].number()) << " | " << Fmt("%.0f", bytes / 1e3) << " kB | "
-       << Fmt("%.2f", bytes / std::max(1.0, e["keyframes"].number()) / 1e3) << " kB | " << (reference_bytes > 0 ? Fmt("%.3f", bytes / reference_bytes) : "-") << " | " << Fmt("%.0f", points) << " | "
+       << Fmt("%.2f", bytes / std::max(1.0, e["keyframes"].number()) / 1e3) << " kB | "
+       << (reference_bytes > 0 ? Fmt("%.3f", bytes / reference_bytes) : "-") << " | "
+       << Fmt("%.0f", points) << " | "
        << (reference_points > 0 ? Fmt("%.3f", points / reference_points) : "-") << " | "
        << (e.Has("recon_mean_m") ? Fmt("%.4f", e["recon_mean_m"].number()) : "-") << " | "
-       << (e.Has("ate_rmse_m") ? Fmt("%.4f", e["ate_rmse_m"].number()) : "-") << " | `" << row.run_dir << "` |\n";
+       << (e.Has("ate_rmse_m") ? Fmt("%.4f", e["ate_rmse_m"].number()) : "-") << " | `"
+       << row.run_dir << "` |\n";
   }
-  md << "\nPer keyframe: RGB-D bytes over all keyframes sent, with or without RGB-D (the paper's Table V measure).\n";
+  md << "\nPer keyframe: RGB-D bytes over all keyframes sent, with or without RGB-D (the paper's "
+        "Table V measure).\n";
   results["ablation"] = list;
   CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(run_dir, "report.md"), report + md.str()));
   return WriteJsonFile(results, JoinPath(run_dir, "results.json"));

@@ -18,7 +18,7 @@
 namespace ccmd {
 
 struct ReplayProcess {
-  std::string name;        // "agent1", ..., "server"
+  std::string name;  // "agent1", ..., "server"
   double cpu_seconds = 0;
   double wall_seconds = 0;
   double max_rss_mb = 0;
@@ -28,10 +28,10 @@ struct ReplayProcess {
 
 struct ReplayRunInfo {
   std::string dataset_dir;
-  std::string command;     // as typed
-  std::string config;      // camera/tracking config used ("" = from the dataset)
+  std::string command;  // as typed
+  std::string config;   // camera/tracking config used ("" = from the dataset)
   int agents = 0;
-  std::string rate;        // realtime or max
+  std::string rate;  // realtime or max
   double wall_seconds = 0;
   std::vector<FrameRange> segments;
   std::vector<ReplayProcess> processes;
@@ -58,20 +58,20 @@ struct ReferenceOptions {
 // The reference surface for reconstruction error: a given PLY (meshes are sampled), the
 // dataset's surface.ply (synthetic sequences), or a cloud back-projected from the dataset's
 // depth at its ground-truth poses (TUM, 7-Scenes). `source` says which.
-StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset, const ReferenceOptions& options,
-                                          std::string* source);
+StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset,
+                                          const ReferenceOptions& options, std::string* source);
 
 // Points sampled on a triangle mesh at about `spacing` metres, with the faces' normals.
 PointCloud SampleMesh(const PointCloud& mesh, double spacing);
 
-// Reads the run folder (the server's results, agents/) and computes every figure; writes results.json,
-// report.md and plots/ there. Returns the results.
-StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dataset, const ReplayRunInfo& info,
-                              const ReferenceOptions& reference);
+// Reads the run folder (the server's results, agents/) and computes every figure; writes
+// results.json, report.md and plots/ there. Returns the results.
+StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dataset,
+                              const ReplayRunInfo& info, const ReferenceOptions& reference);
 
 // One run of the sampling-rate / keyframe-selection grid (the CCMD-SLAM paper's Table V).
 struct AblationRow {
-  int downsample = 2;    // r = 1 / downsample
+  int downsample = 2;     // r = 1 / downsample
   bool selection = true;  // RGB-D only for keyframes the covisibility selection picks
   std::string run_dir;    // relative to the main run's folder
   Json results;           // that run's results.json

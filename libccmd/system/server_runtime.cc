@@ -30,7 +30,8 @@ void ServerRuntimeOptions::Describe(OptionsWriter* out) const {
   if (view) out->Nested("view", *view);
 }
 
-StatusOr<std::unique_ptr<ServerRuntime>> ServerRuntime::Create(const ServerRuntimeOptions& options) {
+StatusOr<std::unique_ptr<ServerRuntime>> ServerRuntime::Create(
+    const ServerRuntimeOptions& options) {
   if (options.output_dir.empty()) return InvalidArgument("the server needs an output folder");
   CCMD_RETURN_IF_ERROR(options.net.Validate());
   CCMD_RETURN_IF_ERROR(options.backend.Validate());
@@ -62,8 +63,9 @@ void ServerRuntime::OnAgentKnown(const AgentDescription& agent, bool from_journa
   }
   const Status s = backend_->RegisterAgent(agent.id, agent.name, CameraFromSession(agent.camera));
   if (!s.ok()) CCMD_LOG(ERROR) << "agent " << agent.name << ": " << s.ToString();
-  CCMD_LOG(INFO) << "agent " << agent.id << " '" << agent.name << "' " << (from_journal ? "restored" : "joined")
-                 << " (" << DescribeCamera(agent.camera) << ")";
+  CCMD_LOG(INFO) << "agent " << agent.id << " '" << agent.name << "' "
+                 << (from_journal ? "restored" : "joined") << " (" << DescribeCamera(agent.camera)
+                 << ")";
 }
 
 void ServerRuntime::OnAgentDisconnected(AgentId agent, const std::string& reason) {
@@ -76,20 +78,24 @@ void ServerRuntime::OnMessage(DeliveredMessage m) {
   if (m.type == static_cast<std::uint8_t>(MessageType::kKeyframe)) {
     auto keyframe = ParseKeyframe(m.payload);
     if (keyframe.ok()) {
-      backend_->SubmitKeyframe(m.agent, std::move(keyframe).value(), m.replayed ? 0.0 : m.received_time)
+      backend_
+          ->SubmitKeyframe(m.agent, std::move(keyframe).value(), m.replayed ? 0.0 : m.received_time)
           .IgnoreError();
       return;
     }
-    CCMD_LOG(WARNING) << "agent " << m.agent << " message " << m.seq << ": " << keyframe.status().ToString();
+    CCMD_LOG(WARNING) << "agent " << m.agent << " message " << m.seq << ": "
+                      << keyframe.status().ToString();
   } else if (m.type == static_cast<std::uint8_t>(MessageType::kPoseUpdate)) {
     auto update = ParsePoseUpdate(m.payload);
     if (update.ok()) {
       backend_->SubmitPoseUpdate(m.agent, std::move(update).value(), m.received_time).IgnoreError();
       return;
     }
-    CCMD_LOG(WARNING) << "agent " << m.agent << " message " << m.seq << ": " << update.status().ToString();
+    CCMD_LOG(WARNING) << "agent " << m.agent << " message " << m.seq << ": "
+                      << update.status().ToString();
   } else {
-    CCMD_LOG(WARNING) << "agent " << m.agent << " message " << m.seq << ": unknown type " << int{m.type};
+    CCMD_LOG(WARNING) << "agent " << m.agent << " message " << m.seq << ": unknown type "
+                      << int{m.type};
   }
   ++malformed_messages_;
 }
@@ -114,7 +120,8 @@ Json ServerRuntime::StatsJson() {
   }
   j["agent_ids"] = agents;
   j["agent_maps"] = agent_maps;
-  if (backend_ && backend_->PrimaryMap()) j["primary_map"] = static_cast<int>(backend_->PrimaryMap()->value());
+  if (backend_ && backend_->PrimaryMap())
+    j["primary_map"] = static_cast<int>(backend_->PrimaryMap()->value());
   j["malformed_messages"] = malformed_messages_.load();
   const ProcessUsage usage = CurrentProcessUsage();
   Json process;
@@ -157,16 +164,19 @@ Status ServerRuntime::WriteResults() {
     std::lock_guard<std::mutex> lock(names_mutex_);
     names = names_;
   }
-  keep(WriteTumTrajectory(backend_->FusedTrajectory(), JoinPath(options_.output_dir, "trajectory_fused.txt"),
+  keep(WriteTumTrajectory(backend_->FusedTrajectory(),
+                          JoinPath(options_.output_dir, "trajectory_fused.txt"),
                           "keyframes of the primary map (world frame)"));
   for (const auto& [id, name] : names) {
-    keep(WriteTumTrajectory(backend_->AgentTrajectory(id), JoinPath(options_.output_dir, "trajectory_" + name + ".txt"),
-                            backend_->AgentInPrimaryMap(id) ? "keyframes, world frame (primary map)"
-                                                            : "keyframes, NOT fused: the agent's own map frame"));
+    keep(WriteTumTrajectory(
+        backend_->AgentTrajectory(id), JoinPath(options_.output_dir, "trajectory_" + name + ".txt"),
+        backend_->AgentInPrimaryMap(id) ? "keyframes, world frame (primary map)"
+                                        : "keyframes, NOT fused: the agent's own map frame"));
   }
   if (backend_->dense() && backend_->PrimaryMap()) {
     const auto dense_maps = backend_->dense()->Maps();
-    if (std::find(dense_maps.begin(), dense_maps.end(), *backend_->PrimaryMap()) != dense_maps.end()) {
+    if (std::find(dense_maps.begin(), dense_maps.end(), *backend_->PrimaryMap()) !=
+        dense_maps.end()) {
       keep(backend_->ExportDenseMap(JoinPath(options_.output_dir, "map.ply")));
     } else {
       CCMD_LOG(INFO) << "no RGB-D keyframe reached the primary map: no map.ply";
@@ -179,15 +189,20 @@ Status ServerRuntime::WriteResults() {
 }
 
 Status ServerRuntime::WriteKeyframeArrivals(const std::map<AgentId, std::string>& names) {
-  std::string csv = "# agent,keyframe,stage,wall_ms (stage: received by the back-end, dense = points in the dense map, "
-                    "dense_fused = came in with a map fusion)\n";
+  std::string csv =
+      "# agent,keyframe,stage,wall_ms (stage: received by the back-end, dense = points in the "
+      "dense map, "
+      "dense_fused = came in with a map fusion)\n";
   char line[160];
   for (const KeyframeArrival& a : backend_->keyframe_arrivals()) {
     const auto name = names.find(a.id.agent);
-    const char* stage = a.stage == KeyframeArrival::Stage::kReceived ? "received" : a.after_fusion ? "dense_fused" : "dense";
-    std::snprintf(line, sizeof(line), "%s,%u,%s,%.3f\n",
-                  name != names.end() ? name->second.c_str() : std::to_string(a.id.agent.value()).c_str(),
-                  a.id.keyframe.value(), stage, a.wall_s * 1e3);
+    const char* stage = a.stage == KeyframeArrival::Stage::kReceived ? "received"
+                        : a.after_fusion                             ? "dense_fused"
+                                                                     : "dense";
+    std::snprintf(
+        line, sizeof(line), "%s,%u,%s,%.3f\n",
+        name != names.end() ? name->second.c_str() : std::to_string(a.id.agent.value()).c_str(),
+        a.id.keyframe.value(), stage, a.wall_s * 1e3);
     csv += line;
   }
   return WriteFileAtomic(JoinPath(options_.output_dir, "keyframe_arrivals.csv"), csv);
@@ -223,10 +238,13 @@ namespace {
 
 // One agent's traffic from the transport's statistics (TrafficStats::ToJson).
 void FillTraffic(const Json& agent, double uptime_s, double bucket_s, ViewAgentStats* stats) {
-  auto num = [](const Json* j, const char* key) { return j && j->Get(key) ? j->Get(key)->number() : 0.0; };
+  auto num = [](const Json* j, const char* key) {
+    return j && j->Get(key) ? j->Get(key)->number() : 0.0;
+  };
   const Json* messages = agent.Get("messages");
-  stats->bytes = static_cast<std::uint64_t>(num(messages ? messages->Get("keyframe") : nullptr, "bytes") +
-                                            num(messages ? messages->Get("pose_update") : nullptr, "bytes"));
+  stats->bytes =
+      static_cast<std::uint64_t>(num(messages ? messages->Get("keyframe") : nullptr, "bytes") +
+                                 num(messages ? messages->Get("pose_update") : nullptr, "bytes"));
   stats->rate_kBps = num(&agent, "average_traffic_bytes_per_s") / 1e3;
   stats->connected = agent.Get("connected") && agent.Get("connected")->boolean();
   stats->bucket_s = bucket_s;
@@ -237,7 +255,8 @@ void FillTraffic(const Json& agent, double uptime_s, double bucket_s, ViewAgentS
   if (const Json* buckets = agent.Get("per_bucket")) {
     for (const Json& b : buckets->array()) {
       const long index = std::lround(num(&b, "t") / bucket_s) - (last - kShown + 1);
-      if (index >= 0 && index < kShown) stats->traffic_kBps[index] = num(&b, "bytes") / 1e3 / bucket_s;
+      if (index >= 0 && index < kShown)
+        stats->traffic_kBps[index] = num(&b, "bytes") / 1e3 / bucket_s;
     }
   }
 }
@@ -255,7 +274,8 @@ ViewStats ServerRuntime::CollectViewStats() {
   const Json transport = server_ ? server_->StatsJson() : Json();
   std::map<std::string, const Json*> traffic;
   if (const Json* agents = transport.Get("agents")) {
-    for (const Json& a : agents->array()) traffic[a.Get("name") ? a.Get("name")->string() : ""] = &a;
+    for (const Json& a : agents->array())
+      traffic[a.Get("name") ? a.Get("name")->string() : ""] = &a;
   }
   std::map<AgentId, std::string> names;
   {
@@ -278,7 +298,8 @@ ViewStats ServerRuntime::CollectViewStats() {
     }
     if (const auto it = traffic.find(name); it != traffic.end()) {
       FillTraffic(*it->second, transport.Get("uptime_s") ? transport.Get("uptime_s")->number() : 0,
-                  transport.Get("bucket_seconds") ? transport.Get("bucket_seconds")->number() : 1.0, &a);
+                  transport.Get("bucket_seconds") ? transport.Get("bucket_seconds")->number() : 1.0,
+                  &a);
     }
     view.agents.push_back(std::move(a));
   }

@@ -15,19 +15,19 @@
 #include "libccmd/dense/snapshot.h"
 #include "libccmd/net/message_consumer.h"
 #include "libccmd/net/server.h"
-#include "libccmd/view/view_server.h"
 #include "libccmd/util/options_writer.h"
 #include "libccmd/util/status.h"
+#include "libccmd/view/view_server.h"
 
 namespace ccmd {
 
 struct ServerRuntimeOptions {
   ServerOptions net;
   BackendOptions backend;
-  std::string output_dir;          // results; created if missing
-  double stats_period_s = 5.0;     // server_stats.json rewritten this often
-  double snapshot_period_s = 30.0; // dense map snapshot (<= 0: only at the end)
-  double memory_period_s = 30.0;   // memory by part in server_stats.json (it reads every map)
+  std::string output_dir;           // results; created if missing
+  double stats_period_s = 5.0;      // server_stats.json rewritten this often
+  double snapshot_period_s = 30.0;  // dense map snapshot (<= 0: only at the end)
+  double memory_period_s = 30.0;    // memory by part in server_stats.json (it reads every map)
   std::optional<ViewServerOptions> view;  // set: serve the live map view (docs/view.md)
 
   Status Validate() const;

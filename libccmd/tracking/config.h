@@ -10,6 +10,7 @@ namespace ccmd {
 // Reads ORBextractor.nFeatures / scaleFactor / nLevels / iniThFAST / minThFAST and the ccmd
 // keys Tracking.*, DepthNoise.* and RgbdSelection.* (docs/frontend.md lists them); absent keys
 // keep `defaults`.
-StatusOr<TrackingOptions> ReadTrackingOptions(const ConfigFile& config, TrackingOptions defaults = {});
+StatusOr<TrackingOptions> ReadTrackingOptions(const ConfigFile& config,
+                                              TrackingOptions defaults = {});
 
 }  // namespace ccmd

@@ -33,9 +33,11 @@ DepthModel DepthModel::FromDepth(const cv::Mat& depth_mm, const PinholeCamera& c
         }
       }
       const double z = 1e-3 * sum / (step * step);
-      if (lo == 0 || z < min_depth || z > max_depth || (hi - lo) * 1e-3 > 0.005 + 0.02 * z) continue;
+      if (lo == 0 || z < min_depth || z > max_depth || (hi - lo) * 1e-3 > 0.005 + 0.02 * z)
+        continue;
       // The block centre as recorded; with distortion, its ray is that of the ideal pixel.
-      const Eigen::Vector2d uv = camera.UndistortPixel({x * step + 0.5 * (step - 1), y * step + 0.5 * (step - 1)});
+      const Eigen::Vector2d uv =
+          camera.UndistortPixel({x * step + 0.5 * (step - 1), y * step + 0.5 * (step - 1)});
       m.vertex_[y * m.width_ + x] = camera.BackProject(uv.x(), uv.y(), z).cast<float>();
     }
   }
@@ -62,7 +64,8 @@ std::optional<std::pair<int, int>> DepthModel::Cell(const Eigen::Vector3d& p) co
   if (p.z() <= 0) return std::nullopt;
   const Eigen::Vector2d uv = camera_.ProjectToImage(p);
   const double u = uv.x(), v = uv.y();
-  const int x = static_cast<int>(std::floor(u / step_)), y = static_cast<int>(std::floor(v / step_));
+  const int x = static_cast<int>(std::floor(u / step_)),
+            y = static_cast<int>(std::floor(v / step_));
   if (x < 0 || y < 0 || x >= width_ || y >= height_) return std::nullopt;
   return std::make_pair(x, y);
 }
@@ -96,15 +99,18 @@ std::optional<DepthAlignment> AlignDepth(const DepthModel& source, const DepthMo
   if (source.empty() || target.empty()) return std::nullopt;
   int source_points = 0;
   for (int y = 0; y < source.height(); y += options.source_stride) {
-    for (int x = 0; x < source.width(); x += options.source_stride) source_points += source.normal(x, y).z() != 0;
+    for (int x = 0; x < source.width(); x += options.source_stride)
+      source_points += source.normal(x, y).z() != 0;
   }
-  const int min_inliers = std::max(50, static_cast<int>(options.min_inlier_fraction * source_points));
+  const int min_inliers =
+      std::max(50, static_cast<int>(options.min_inlier_fraction * source_points));
   Pose T = T_target_source;
   DepthAlignment result;
   bool settled = false;
   double last_rotation_step = 0, last_translation_step = 0;
   for (int it = 0; it < options.iterations; ++it) {
-    const double max_distance = it < options.iterations / 2 ? options.max_distance : 0.5 * options.max_distance;
+    const double max_distance =
+        it < options.iterations / 2 ? options.max_distance : 0.5 * options.max_distance;
     Matrix6d H = Matrix6d::Zero();
     Eigen::Matrix<double, 6, 1> b = Eigen::Matrix<double, 6, 1>::Zero();
     int inliers = 0;
@@ -120,7 +126,9 @@ std::optional<DepthAlignment> AlignDepth(const DepthModel& source, const DepthMo
         const Eigen::Vector3d n = target.normal(cell->first, cell->second).cast<double>();
         if (n.z() == 0) continue;
         const Eigen::Vector3d v = target.vertex(cell->first, cell->second).cast<double>();
-        if ((q - v).norm() > max_distance || (R * ns.cast<double>()).dot(n) < options.min_normal_dot) continue;
+        if ((q - v).norm() > max_distance ||
+            (R * ns.cast<double>()).dot(n) < options.min_normal_dot)
+          continue;
         const double r = n.dot(q - v);
         const double sigma = noise.sigma_0 + noise.sigma_2 * v.z() * v.z();
         // Huber weight at 2 sigma: a few bad matches (moving things, edges) cannot dominate.
@@ -145,7 +153,8 @@ std::optional<DepthAlignment> AlignDepth(const DepthModel& source, const DepthMo
     if (!xi.allFinite()) return std::nullopt;
     Pose step = Pose::Identity();
     const double angle = xi.head<3>().norm();
-    if (angle > 1e-12) step.linear() = Eigen::AngleAxisd(angle, xi.head<3>() / angle).toRotationMatrix();
+    if (angle > 1e-12)
+      step.linear() = Eigen::AngleAxisd(angle, xi.head<3>() / angle).toRotationMatrix();
     step.translation() = xi.tail<3>();
     T = step * T;
     last_rotation_step = xi.head<3>().norm();
@@ -158,7 +167,8 @@ std::optional<DepthAlignment> AlignDepth(const DepthModel& source, const DepthMo
   // Not settled in the iterations given: still sliding along a weakly constrained direction
   // is fine (its information is small), but a last step of more than 5 mm or 5 mrad means the
   // association has not converged.
-  if (!settled && (last_translation_step > 0.005 || last_rotation_step > 0.005)) return std::nullopt;
+  if (!settled && (last_translation_step > 0.005 || last_rotation_step > 0.005))
+    return std::nullopt;
   result.T_target_source = T;
   return result;
 }

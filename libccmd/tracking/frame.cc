@@ -61,7 +61,8 @@ FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, cons
   constexpr int kRadius = 2;
   for (std::size_t i = 0; i < f.keypoints.size(); ++i) {
     const int x = cvRound(f.keypoints[i].pt.x), y = cvRound(f.keypoints[i].pt.y);
-    if (x < kRadius || y < kRadius || x >= depth_mm.cols - kRadius || y >= depth_mm.rows - kRadius) continue;
+    if (x < kRadius || y < kRadius || x >= depth_mm.cols - kRadius || y >= depth_mm.rows - kRadius)
+      continue;
     const double d = depth_mm.at<std::uint16_t>(y, x) * 1e-3;
     if (d < options.min_depth || d > options.max_depth) continue;
     // Corners often sit on depth edges, where a pixel of misregistration between colour and
@@ -80,7 +81,8 @@ FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, cons
     f.depth[i] = static_cast<float>(d);
     const DepthNoise& noise = options.depth_noise;
     const double pixel_sigma = noise.keypoint_offset * orb.scale()[f.keypoints[i].octave];
-    f.depth_sigma[i] = static_cast<float>(KeypointDepthSigma(depth_mm, x, y, d, pixel_sigma, noise));
+    f.depth_sigma[i] =
+        static_cast<float>(KeypointDepthSigma(depth_mm, x, y, d, pixel_sigma, noise));
     f.u_right[i] = static_cast<float>(f.keypoints[i].pt.x - camera.bf / d);
   }
   // As ORB-SLAM does: features are found and depth looked up on the image as recorded (depth
@@ -97,7 +99,8 @@ FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, cons
 }
 
 std::unique_ptr<TrackingFrame> MakeFrame(const RgbdFrame& input, const OrbExtractor& orb,
-                                 const PinholeCamera& camera, const TrackingOptions& options) {
+                                         const PinholeCamera& camera,
+                                         const TrackingOptions& options) {
   auto frame = std::make_unique<TrackingFrame>();
   frame->index = input.index;
   frame->timestamp = input.timestamp;

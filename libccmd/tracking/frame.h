@@ -48,7 +48,8 @@ struct TrackingFrame {
 // (KeypointDepthSigma). With options.subpixel_keypoints, finest-octave keypoints are first
 // moved to the sub-pixel corner position.
 std::unique_ptr<TrackingFrame> MakeFrame(const RgbdFrame& input, const OrbExtractor& orb,
-                                 const PinholeCamera& camera, const TrackingOptions& options);
+                                         const PinholeCamera& camera,
+                                         const TrackingOptions& options);
 
 // The frame's features with depth lookups, for keyframes created directly (tests).
 FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, const OrbExtractor& orb,

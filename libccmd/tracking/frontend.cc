@@ -5,23 +5,31 @@ namespace ccmd {
 Status TrackingOptions::Validate() const {
   auto fail = [](const char* reason) { return InvalidArgument(reason); };
   CCMD_RETURN_IF_ERROR(orb.Validate());
-  if (!(min_depth > 0 && max_depth > min_depth)) return fail("depth range must satisfy 0 < min < max");
+  if (!(min_depth > 0 && max_depth > min_depth))
+    return fail("depth range must satisfy 0 < min < max");
   CCMD_RETURN_IF_ERROR(depth_noise.Validate());
-  if (local_ba_window < 1 || local_ba_window > 100) return fail("local BA window must be in [1, 100]");
-  if (local_ba_robust_iterations < 0 || local_ba_iterations < 0 || local_ba_robust_iterations + local_ba_iterations < 1 ||
-      local_ba_robust_iterations > 100 || local_ba_iterations > 100) {
+  if (local_ba_window < 1 || local_ba_window > 100)
+    return fail("local BA window must be in [1, 100]");
+  if (local_ba_robust_iterations < 0 || local_ba_iterations < 0 ||
+      local_ba_robust_iterations + local_ba_iterations < 1 || local_ba_robust_iterations > 100 ||
+      local_ba_iterations > 100) {
     return fail("local BA iterations must be in [0, 100], at least one in all");
   }
   if (!(local_ba_function_tolerance >= 0 && local_ba_function_tolerance < 1)) {
     return fail("local BA function tolerance must be in [0, 1)");
   }
-  if (!(cpu_budget >= 0 && cpu_budget <= 256)) return fail("CPU budget must be in [0, 256] cores (0: none)");
-  if (depth_alignment_neighbours < 0 || depth_alignment_neighbours > 20) return fail("depth alignment neighbours must be in [0, 20]");
+  if (!(cpu_budget >= 0 && cpu_budget <= 256))
+    return fail("CPU budget must be in [0, 256] cores (0: none)");
+  if (depth_alignment_neighbours < 0 || depth_alignment_neighbours > 20)
+    return fail("depth alignment neighbours must be in [0, 20]");
   if (!(depth_alignment_weight >= 0)) return fail("depth alignment weight must be >= 0");
-  if (max_keyframes < local_ba_window + 5) return fail("max keyframes must exceed the local BA window by 5");
+  if (max_keyframes < local_ba_window + 5)
+    return fail("max keyframes must exceed the local BA window by 5");
   if (max_frames_between_keyframes < 0) return fail("max frames between keyframes must be >= 0");
-  if (max_new_points_per_keyframe < 0) return fail("max new points per keyframe must be >= 0 (0: all)");
-  if (!(keyframe_tracked_ratio > 0 && keyframe_tracked_ratio < 1)) return fail("keyframe tracked ratio must be in (0, 1)");
+  if (max_new_points_per_keyframe < 0)
+    return fail("max new points per keyframe must be >= 0 (0: all)");
+  if (!(keyframe_tracked_ratio > 0 && keyframe_tracked_ratio < 1))
+    return fail("keyframe tracked ratio must be in (0, 1)");
   return rgbd_selection.Validate();
 }
 
@@ -51,7 +59,8 @@ void TrackingOptions::Describe(OptionsWriter* out) const {
 }
 
 StatusOr<std::unique_ptr<Frontend>> Frontend::Create(const PinholeCamera& camera,
-                                                     const TrackingOptions& options, KeyframeSink* sink) {
+                                                     const TrackingOptions& options,
+                                                     KeyframeSink* sink) {
   CCMD_RETURN_IF_ERROR(camera.Validate().WithContext("camera"));
   CCMD_RETURN_IF_ERROR(options.Validate().WithContext("tracking options"));
   return std::unique_ptr<Frontend>(new Frontend(camera, options, sink));

@@ -21,9 +21,9 @@ namespace ccmd {
 struct FrontendStats {
   int frames = 0;
   int tracked_frames = 0;
-  int lost_frames = 0;       // frames after initialisation that could not be tracked
-  int keyframes = 0;         // keyframes created
-  int map_keyframes = 0;     // keyframes in the bounded map now
+  int lost_frames = 0;    // frames after initialisation that could not be tracked
+  int keyframes = 0;      // keyframes created
+  int map_keyframes = 0;  // keyframes in the bounded map now
   std::size_t map_points = 0;
   double extract_ms_total = 0;
   double track_ms_total = 0;
@@ -36,7 +36,8 @@ class Frontend {
  public:
   // `sink` may be null (offline runs that only want the trajectory).
   static StatusOr<std::unique_ptr<Frontend>> Create(const PinholeCamera& camera,
-                                                    const TrackingOptions& options, KeyframeSink* sink);
+                                                    const TrackingOptions& options,
+                                                    KeyframeSink* sink);
   ~Frontend();
 
   TrackResult ProcessFrame(const RgbdFrame& frame);

@@ -4,7 +4,8 @@
 
 namespace ccmd {
 
-StatusOr<KeyframeMessage> ToKeyframeMessage(const KeyframeSnapshot& s, const RgbdEncodeOptions& rgbd_options) {
+StatusOr<KeyframeMessage> ToKeyframeMessage(const KeyframeSnapshot& s,
+                                            const RgbdEncodeOptions& rgbd_options) {
   KeyframeMessage m;
   m.id = s.id;
   m.timestamp = s.timestamp;
@@ -20,7 +21,8 @@ StatusOr<KeyframeMessage> ToKeyframeMessage(const KeyframeSnapshot& s, const Rgb
     k.depth_m = s.depth[i];
     k.map_point = s.point_ids[i];
     // Only unlinked keypoints carry their descriptor; a linked one's is its map point's.
-    if (!k.map_point) std::memcpy(k.descriptor.data(), s.descriptors.ptr<std::uint8_t>(static_cast<int>(i)), 32);
+    if (!k.map_point)
+      std::memcpy(k.descriptor.data(), s.descriptors.ptr<std::uint8_t>(static_cast<int>(i)), 32);
   }
   for (const auto& p : s.new_points) {
     NewMapPoint n;

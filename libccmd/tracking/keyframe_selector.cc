@@ -7,9 +7,11 @@ namespace ccmd {
 
 Status RgbdSelectionOptions::Validate() const {
   auto fail = [](const char* reason) { return InvalidArgument(reason); };
-  if (!(threshold_ratio >= 0 && threshold_ratio <= 1)) return fail("RGB-D threshold ratio must be in [0, 1]");
+  if (!(threshold_ratio >= 0 && threshold_ratio <= 1))
+    return fail("RGB-D threshold ratio must be in [0, 1]");
   if (threshold_min_points < 0 || min_threshold < 0) return fail("RGB-D thresholds must be >= 0");
-  if (!(decrement_ratio >= 0 && decrement_ratio <= 1)) return fail("RGB-D decrement ratio must be in [0, 1]");
+  if (!(decrement_ratio >= 0 && decrement_ratio <= 1))
+    return fail("RGB-D decrement ratio must be in [0, 1]");
   if (required_covering < 1) return fail("RGB-D required covering keyframes must be >= 1");
   return Status::Ok();
 }
@@ -36,8 +38,8 @@ RgbdDecision RgbdSelector::Decide(KeyframeId keyframe, int tracked_points,
   });
   d.considered = neighbours;
   const double scale = request.threshold_scale;
-  double threshold =
-      scale * std::max<double>(options_.threshold_min_points, options_.threshold_ratio * tracked_points);
+  double threshold = scale * std::max<double>(options_.threshold_min_points,
+                                              options_.threshold_ratio * tracked_points);
   d.threshold = static_cast<int>(std::lround(threshold));
   if (!request.allow) {
     d.transmit = false;

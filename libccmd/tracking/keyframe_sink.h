@@ -18,19 +18,20 @@ namespace ccmd {
 // (libccmd/system/bandwidth_budget.h) makes it stricter or more generous. The default asks
 // nothing.
 struct RgbdRequest {
-  bool allow = true;             // false: no RGB-D for this keyframe (geometry only)
-  bool every_keyframe = false;   // RGB-D whatever the selection would say
-  double threshold_scale = 1.0;  // multiplies S_min: below 1 fewer keyframes send RGB-D, above 1 more
+  bool allow = true;            // false: no RGB-D for this keyframe (geometry only)
+  bool every_keyframe = false;  // RGB-D whatever the selection would say
+  double threshold_scale =
+      1.0;  // multiplies S_min: below 1 fewer keyframes send RGB-D, above 1 more
 };
 
 // One decision of the RGB-D keyframe selection, recorded for statistics.
 struct RgbdDecision {
   KeyframeId keyframe;
   bool transmit = true;
-  RgbdRequest request;          // what the sink asked
-  int tracked_points = 0;       // map points of the keyframe
-  int threshold = 0;            // S_min at the start
-  int covering = 0;             // transmitted neighbours above the (decreasing) threshold
+  RgbdRequest request;     // what the sink asked
+  int tracked_points = 0;  // map points of the keyframe
+  int threshold = 0;       // S_min at the start
+  int covering = 0;        // transmitted neighbours above the (decreasing) threshold
   std::vector<std::pair<KeyframeId, int>> considered;  // transmitted neighbours and weights
 };
 
@@ -43,8 +44,8 @@ struct KeyframeSnapshot {
   std::optional<KeyframeId> parent;     // spanning tree
 
   std::vector<cv::KeyPoint> keypoints;
-  cv::Mat descriptors;                  // N x 32
-  std::vector<float> depth;             // metres, 0 = none
+  cv::Mat descriptors;                               // N x 32
+  std::vector<float> depth;                          // metres, 0 = none
   std::vector<std::optional<MapPointId>> point_ids;  // per keypoint
 
   // Map points this keyframe is the first to send: position in the keyframe's camera frame,
@@ -67,7 +68,7 @@ struct KeyframeSnapshot {
   std::vector<DepthLink> depth_links;
 
   bool has_rgbd = false;
-  cv::Mat bgr, depth_mm;  // full resolution; the codec downsamples
+  cv::Mat bgr, depth_mm;        // full resolution; the codec downsamples
   int keypoints_extracted = 0;  // before choosing what to send (for bandwidth statistics)
   int image_width = 0, image_height = 0;
   RgbdDecision decision;

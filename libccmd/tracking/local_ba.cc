@@ -4,7 +4,8 @@
 
 namespace ccmd {
 
-LocalBaProblem BuildLocalBa(Keyframe* keyframe, int window, const LocalMap& map, const OrbExtractor& orb) {
+LocalBaProblem BuildLocalBa(Keyframe* keyframe, int window, const LocalMap& map,
+                            const OrbExtractor& orb) {
   LocalBaProblem local;
   BaProblem& problem = local.problem;
   std::vector<Keyframe*> free = {keyframe};
@@ -37,8 +38,9 @@ LocalBaProblem BuildLocalBa(Keyframe* keyframe, int window, const LocalMap& map,
       }
       const cv::KeyPoint& kp = kf->features().keypoints[o.keypoint];
       const double z = kf->features().depth[o.keypoint];
-      problem.observations.push_back({it->second, static_cast<int>(j), Eigen::Vector2d(kp.pt.x, kp.pt.y), z,
-                                      orb.inv_sigma2()[kp.octave], kf->features().DepthInformation(o.keypoint)});
+      problem.observations.push_back(
+          {it->second, static_cast<int>(j), Eigen::Vector2d(kp.pt.x, kp.pt.y), z,
+           orb.inv_sigma2()[kp.octave], kf->features().DepthInformation(o.keypoint)});
     }
   }
   // Gauge: the map's first keyframe never moves; without any fixed keyframe, the oldest one in
@@ -54,7 +56,8 @@ LocalBaProblem BuildLocalBa(Keyframe* keyframe, int window, const LocalMap& map,
   return local;
 }
 
-void ApplyLocalBa(const LocalBaProblem& local, const BaSummary& summary, LocalMap* map, const OrbExtractor& orb) {
+void ApplyLocalBa(const LocalBaProblem& local, const BaSummary& summary, LocalMap* map,
+                  const OrbExtractor& orb) {
   const BaProblem& problem = local.problem;
   for (std::size_t i = 0; i < problem.observations.size(); ++i) {
     if (!summary.outlier[i]) continue;

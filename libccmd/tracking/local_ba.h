@@ -20,10 +20,12 @@ struct LocalBaProblem {
 
 // Call with the map locked. `window`: covisible keyframes optimised with the keyframe. The
 // map's first keyframe is always fixed; without any fixed keyframe the oldest is held.
-LocalBaProblem BuildLocalBa(Keyframe* keyframe, int window, const LocalMap& map, const OrbExtractor& orb);
+LocalBaProblem BuildLocalBa(Keyframe* keyframe, int window, const LocalMap& map,
+                            const OrbExtractor& orb);
 
 // Call with the map locked: poses and points back into the map, outlier observations removed
 // from it (ORB-SLAM).
-void ApplyLocalBa(const LocalBaProblem& local, const BaSummary& summary, LocalMap* map, const OrbExtractor& orb);
+void ApplyLocalBa(const LocalBaProblem& local, const BaSummary& summary, LocalMap* map,
+                  const OrbExtractor& orb);
 
 }  // namespace ccmd

@@ -15,8 +15,13 @@ namespace ccmd {
 
 LocalMapper::LocalMapper(const PinholeCamera& camera, const TrackingOptions& options, LocalMap* map,
                          const OrbExtractor* orb, KeyframeSink* sink)
-    : camera_(camera), options_(options), map_(map), orb_(orb), sink_(sink),
-      selector_(options.rgbd_selection), budget_(options.cpu_budget, camera.fps) {
+    : camera_(camera),
+      options_(options),
+      map_(map),
+      orb_(orb),
+      sink_(sink),
+      selector_(options.rgbd_selection),
+      budget_(options.cpu_budget, camera.fps) {
   if (!options_.synchronous_mapping) thread_ = std::thread([this] { Run(); });
 }
 
@@ -236,8 +241,9 @@ void LocalMapper::AlignWithNeighbours(Keyframe* keyframe) {
       continue;
     }
     // Directions the geometry does not constrain have eigenvalues near zero and add nothing.
-    depth_edges_.push_back({job.id, keyframe->id(), aligned->T_target_source,
-                            SqrtInformation(options_.depth_alignment_weight * aligned->information)});
+    depth_edges_.push_back(
+        {job.id, keyframe->id(), aligned->T_target_source,
+         SqrtInformation(options_.depth_alignment_weight * aligned->information)});
     ++accepted;
   }
   std::lock_guard<std::mutex> lock(stats_mutex_);
@@ -291,7 +297,8 @@ void LocalMapper::LocalBundleAdjustment(Keyframe* keyframe, bool reduced) {
   if (problem.observations.empty()) return;
   if (!depth_edges_.empty()) {
     std::unordered_map<KeyframeId, int> index;
-    for (std::size_t c = 0; c < local.cameras.size(); ++c) index[local.cameras[c]->id()] = static_cast<int>(c);
+    for (std::size_t c = 0; c < local.cameras.size(); ++c)
+      index[local.cameras[c]->id()] = static_cast<int>(c);
     for (const DepthEdge& e : depth_edges_) {
       const auto a = index.find(e.a), b = index.find(e.b);
       if (a != index.end() && b != index.end()) {
@@ -333,7 +340,8 @@ void LocalMapper::CullRedundantKeyframes(Keyframe* keyframe) {
       int others = 0;
       for (const auto& o : p->observations()) {
         if (o.keyframe == kf) continue;
-        if (o.keyframe->features().keypoints[o.keypoint].octave <= octave + 1 && ++others >= 3) break;
+        if (o.keyframe->features().keypoints[o.keypoint].octave <= octave + 1 && ++others >= 3)
+          break;
       }
       if (others >= 3) ++redundant;
     }
@@ -365,7 +373,8 @@ void LocalMapper::EvictOldKeyframes(Keyframe* keyframe) {
 }
 
 bool LocalMapper::Emit(Keyframe* keyframe, KeyframeSnapshot* s, std::vector<PoseUpdate>* updates) {
-  if (keyframe->bad()) return false;  // culled before it was ever sent: the server never hears of it
+  if (keyframe->bad())
+    return false;  // culled before it was ever sent: the server never hears of it
   std::vector<std::pair<KeyframeId, int>> transmitted;
   for (const auto& [kf, weight] : keyframe->connections()) {
     if (kf->emitted && kf->rgbd_sent) transmitted.emplace_back(kf->id(), weight);
@@ -389,7 +398,8 @@ bool LocalMapper::Emit(Keyframe* keyframe, KeyframeSnapshot* s, std::vector<Pose
     if (p && !p->bad() && !p->sent()) unsent.push_back(i);
   }
   std::stable_sort(unsent.begin(), unsent.end(), [&](int a, int b) {
-    const int wa = keyframe->points()[a]->WeightedObservations(), wb = keyframe->points()[b]->WeightedObservations();
+    const int wa = keyframe->points()[a]->WeightedObservations(),
+              wb = keyframe->points()[b]->WeightedObservations();
     if (wa != wb) return wa > wb;
     return f.keypoints[a].octave < f.keypoints[b].octave;
   });
@@ -417,7 +427,8 @@ bool LocalMapper::Emit(Keyframe* keyframe, KeyframeSnapshot* s, std::vector<Pose
     }
   }
   s->descriptors = cv::Mat(static_cast<int>(rows.size()), 32, CV_8U);
-  for (std::size_t r = 0; r < rows.size(); ++r) f.descriptors.row(rows[r]).copyTo(s->descriptors.row(static_cast<int>(r)));
+  for (std::size_t r = 0; r < rows.size(); ++r)
+    f.descriptors.row(rows[r]).copyTo(s->descriptors.row(static_cast<int>(r)));
   for (const auto& [kf, weight] : keyframe->connections()) {
     if (kf->emitted) s->covisibility.emplace_back(kf->id(), weight);
   }

@@ -19,7 +19,8 @@ int MapPoint::KeypointIn(const Keyframe* keyframe) const {
 
 int MapPoint::WeightedObservations() const {
   int n = 0;
-  for (const Observation& o : observations_) n += o.keyframe->features().u_right[o.keypoint] >= 0 ? 2 : 1;
+  for (const Observation& o : observations_)
+    n += o.keyframe->features().u_right[o.keypoint] >= 0 ? 2 : 1;
   return n;
 }
 
@@ -111,7 +112,8 @@ void LocalMap::EraseObservation(MapPoint* point, Keyframe* keyframe) {
   if (it == obs.end()) return;
   keyframe->points_[it->keypoint] = nullptr;
   obs.erase(it);
-  if (point->reference_ == keyframe) point->reference_ = obs.empty() ? nullptr : obs.front().keyframe;
+  if (point->reference_ == keyframe)
+    point->reference_ = obs.empty() ? nullptr : obs.front().keyframe;
   if (point->WeightedObservations() <= 2) ErasePoint(point);
 }
 
@@ -177,7 +179,8 @@ void LocalMap::UpdateConnections(Keyframe* keyframe) {
     if (still) continue;
     old_kf->weights_.erase(keyframe);
     auto& list = old_kf->ordered_connections_;
-    list.erase(std::remove_if(list.begin(), list.end(), [&](const auto& c) { return c.first == keyframe; }),
+    list.erase(std::remove_if(list.begin(), list.end(),
+                              [&](const auto& c) { return c.first == keyframe; }),
                list.end());
   }
   keyframe->weights_.clear();
@@ -186,7 +189,8 @@ void LocalMap::UpdateConnections(Keyframe* keyframe) {
   for (const auto& [kf, w] : connected) {
     kf->weights_[keyframe] = w;
     auto& list = kf->ordered_connections_;
-    list.erase(std::remove_if(list.begin(), list.end(), [&](const auto& c) { return c.first == keyframe; }),
+    list.erase(std::remove_if(list.begin(), list.end(),
+                              [&](const auto& c) { return c.first == keyframe; }),
                list.end());
     list.emplace_back(keyframe, w);
     std::sort(list.begin(), list.end(), [](const auto& a, const auto& b) {
@@ -222,7 +226,8 @@ void LocalMap::EraseKeyframe(Keyframe* keyframe, bool relative) {
   for (const auto& [kf, w] : keyframe->ordered_connections_) {
     kf->weights_.erase(keyframe);
     auto& list = kf->ordered_connections_;
-    list.erase(std::remove_if(list.begin(), list.end(), [&](const auto& c) { return c.first == keyframe; }),
+    list.erase(std::remove_if(list.begin(), list.end(),
+                              [&](const auto& c) { return c.first == keyframe; }),
                list.end());
   }
   keyframe->ordered_connections_.clear();
@@ -279,7 +284,8 @@ std::vector<std::pair<double, Pose>> LocalMap::AllKeyframePoses() const {
     const auto pose = KeyframePose(id);
     if (!pose) continue;
     const auto live = keyframes_.find(id);
-    const double t = live != keyframes_.end() ? live->second->timestamp() : removed_.at(id).timestamp;
+    const double t =
+        live != keyframes_.end() ? live->second->timestamp() : removed_.at(id).timestamp;
     poses.emplace_back(t, *pose);
   }
   return poses;

@@ -8,9 +8,9 @@
 // dangling one; links inside the graph are raw pointers that removal always unlinks.
 
 #include <map>
-#include <optional>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <unordered_map>
 #include <vector>
 
@@ -136,8 +136,8 @@ class Keyframe {
   // Reduced depth for dense alignment with later keyframes (kept while in the map).
   std::shared_ptr<const DepthModel> depth_model;
   // Link bookkeeping.
-  bool emitted = false;   // sent to the link
-  bool rgbd_sent = false; // its RGB-D data went with it
+  bool emitted = false;       // sent to the link
+  bool rgbd_sent = false;     // its RGB-D data went with it
   double created_wall_s = 0;  // wall clock (Unix seconds) when the tracker made it
   Pose emitted_T_world_cam = Pose::Identity();  // pose last sent (for pose updates)
 

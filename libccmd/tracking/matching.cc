@@ -46,8 +46,9 @@ std::vector<int> RotationOutliers(const std::vector<float>& rotations) {
   return dropped;
 }
 
-CCMD_POPCNT_CLONES int SearchFromLastFrame(TrackingFrame* current, const TrackingFrame& last, float radius, const OrbExtractor& orb,
-                        const PinholeCamera& camera) {
+CCMD_POPCNT_CLONES int SearchFromLastFrame(TrackingFrame* current, const TrackingFrame& last,
+                                           float radius, const OrbExtractor& orb,
+                                           const PinholeCamera& camera) {
   const Pose& Tcw = current->T_cam_world;
   // Moving forward makes points look larger: search the same or finer octaves; backward the
   // same or coarser (ORB-SLAM's RGB-D rule, threshold the virtual baseline).
@@ -81,7 +82,8 @@ CCMD_POPCNT_CLONES int SearchFromLastFrame(TrackingFrame* current, const Trackin
           std::abs(u_right_predicted - current->features.u_right[j]) > r) {
         continue;
       }
-      const int d = HammingDistance(point->descriptor().data(), current->features.descriptors.ptr<uchar>(j));
+      const int d =
+          HammingDistance(point->descriptor().data(), current->features.descriptors.ptr<uchar>(j));
       if (d < best) {
         best = d;
         best_index = j;
@@ -91,7 +93,8 @@ CCMD_POPCNT_CLONES int SearchFromLastFrame(TrackingFrame* current, const Trackin
     current->points[best_index] = point;
     current->outlier[best_index] = false;
     matched_keypoint.push_back(best_index);
-    rotations.push_back(last.features.keypoints[i].angle - current->features.keypoints[best_index].angle);
+    rotations.push_back(last.features.keypoints[i].angle -
+                        current->features.keypoints[best_index].angle);
     ++matches;
   }
   for (int k : RotationOutliers(rotations)) {
@@ -101,8 +104,9 @@ CCMD_POPCNT_CLONES int SearchFromLastFrame(TrackingFrame* current, const Trackin
   return matches;
 }
 
-CCMD_POPCNT_CLONES int SearchLocalPoints(TrackingFrame* current, const std::vector<MapPointPtr>& candidates, float radius,
-                      const OrbExtractor& orb, const PinholeCamera& camera) {
+CCMD_POPCNT_CLONES int SearchLocalPoints(TrackingFrame* current,
+                                         const std::vector<MapPointPtr>& candidates, float radius,
+                                         const OrbExtractor& orb, const PinholeCamera& camera) {
   const Pose& Tcw = current->T_cam_world;
   const Eigen::Vector3d center = current->camera_center();
   int matches = 0;
@@ -132,7 +136,8 @@ CCMD_POPCNT_CLONES int SearchLocalPoints(TrackingFrame* current, const std::vect
           std::abs(u_right_predicted - current->features.u_right[j]) > r) {
         continue;
       }
-      const int d = HammingDistance(point->descriptor().data(), current->features.descriptors.ptr<uchar>(j));
+      const int d =
+          HammingDistance(point->descriptor().data(), current->features.descriptors.ptr<uchar>(j));
       const int octave = current->features.keypoints[j].octave;
       if (d < c.distance) {
         c.second = c.distance;
@@ -155,7 +160,8 @@ CCMD_POPCNT_CLONES int SearchLocalPoints(TrackingFrame* current, const std::vect
   return matches;
 }
 
-CCMD_POPCNT_CLONES int SearchByDescriptor(TrackingFrame* current, const Keyframe& keyframe, float ratio) {
+CCMD_POPCNT_CLONES int SearchByDescriptor(TrackingFrame* current, const Keyframe& keyframe,
+                                          float ratio) {
   std::vector<int> matched_keypoint;
   std::vector<float> rotations;
   std::vector<int> best_for_keypoint(current->size(), std::numeric_limits<int>::max());
@@ -188,7 +194,8 @@ CCMD_POPCNT_CLONES int SearchByDescriptor(TrackingFrame* current, const Keyframe
     current->points[j] = points[owner[j]];
     current->outlier[j] = false;
     matched_keypoint.push_back(j);
-    rotations.push_back(keyframe.features().keypoints[owner[j]].angle - current->features.keypoints[j].angle);
+    rotations.push_back(keyframe.features().keypoints[owner[j]].angle -
+                        current->features.keypoints[j].angle);
     ++matches;
   }
   for (int k : RotationOutliers(rotations)) {
@@ -198,8 +205,9 @@ CCMD_POPCNT_CLONES int SearchByDescriptor(TrackingFrame* current, const Keyframe
   return matches;
 }
 
-CCMD_POPCNT_CLONES int FusePoints(LocalMap* map, Keyframe* keyframe, const std::vector<MapPointPtr>& points,
-               const OrbExtractor& orb, const PinholeCamera& camera, float radius) {
+CCMD_POPCNT_CLONES int FusePoints(LocalMap* map, Keyframe* keyframe,
+                                  const std::vector<MapPointPtr>& points, const OrbExtractor& orb,
+                                  const PinholeCamera& camera, float radius) {
   const Pose& Tcw = keyframe->T_cam_world();
   const Eigen::Vector3d center = keyframe->camera_center();
   int fused = 0;
@@ -215,8 +223,8 @@ CCMD_POPCNT_CLONES int FusePoints(LocalMap* map, Keyframe* keyframe, const std::
     if (ray.dot(point->normal()) < 0.5 * distance) continue;
     const int level = point->PredictScale(distance, orb);
     const float r = radius * orb.scale()[level];
-    const std::vector<int> area = keyframe->grid().FeaturesInArea(
-        static_cast<float>(uv.x()), static_cast<float>(uv.y()), r);
+    const std::vector<int> area =
+        keyframe->grid().FeaturesInArea(static_cast<float>(uv.x()), static_cast<float>(uv.y()), r);
     const double u_right_predicted = uv.x() - camera.bf / pc.z();
     int best = std::numeric_limits<int>::max(), best_index = -1;
     for (int j : area) {
@@ -232,7 +240,8 @@ CCMD_POPCNT_CLONES int FusePoints(LocalMap* map, Keyframe* keyframe, const std::
         gate = kChi2Stereo;
       }
       if (e2 * orb.inv_sigma2()[kp.octave] > gate) continue;
-      const int d = HammingDistance(point->descriptor().data(), keyframe->features().descriptors.ptr<uchar>(j));
+      const int d = HammingDistance(point->descriptor().data(),
+                                    keyframe->features().descriptors.ptr<uchar>(j));
       if (d < best) {
         best = d;
         best_index = j;

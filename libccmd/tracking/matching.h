@@ -18,14 +18,14 @@ constexpr int kMatchLow = 50;    // strict threshold (fusion, brute force)
 
 // Matches the map points of `last` (already tracked there) into `current`, whose pose is the
 // prediction. Search radius = radius * scale of the last keypoint's octave. Returns matches.
-int SearchFromLastFrame(TrackingFrame* current, const TrackingFrame& last, float radius, const OrbExtractor& orb,
-                        const PinholeCamera& camera);
+int SearchFromLastFrame(TrackingFrame* current, const TrackingFrame& last, float radius,
+                        const OrbExtractor& orb, const PinholeCamera& camera);
 
 // Projects candidate map points (not yet matched in `current`) and matches them.
 // `radius` multiplies ORB-SLAM's viewing-angle dependent window. Increases the points'
 // visible counters for those predicted in view. Returns the number of new matches.
-int SearchLocalPoints(TrackingFrame* current, const std::vector<MapPointPtr>& candidates, float radius,
-                      const OrbExtractor& orb, const PinholeCamera& camera);
+int SearchLocalPoints(TrackingFrame* current, const std::vector<MapPointPtr>& candidates,
+                      float radius, const OrbExtractor& orb, const PinholeCamera& camera);
 
 // Brute-force matching of the keyframe's map points against the frame's descriptors (ratio
 // test and rotation consistency). Fills current->points; returns the number of matches.

@@ -33,7 +33,7 @@ struct RgbdSelectionOptions {
 
 struct TrackingOptions {
   OrbOptions orb;
-  double min_depth = 0.1;   // metres; keypoint depth outside [min, max] counts as missing
+  double min_depth = 0.1;  // metres; keypoint depth outside [min, max] counts as missing
   double max_depth = 10.0;
   // Moves the finest octave's keypoints to their sub-pixel corner position (frame.h).
   bool subpixel_keypoints = false;

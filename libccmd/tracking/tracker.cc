@@ -15,9 +15,12 @@ namespace ccmd {
 
 const char* TrackingStateName(TrackingState state) {
   switch (state) {
-    case TrackingState::kNotInitialized: return "not initialized";
-    case TrackingState::kOk: return "ok";
-    case TrackingState::kLost: return "lost";
+    case TrackingState::kNotInitialized:
+      return "not initialized";
+    case TrackingState::kOk:
+      return "ok";
+    case TrackingState::kLost:
+      return "lost";
   }
   return "?";
 }
@@ -47,7 +50,8 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
     if (ok) state_ = TrackingState::kOk;
   } else {
     if (state_ == TrackingState::kOk) {
-      if (velocity_ && last_ && last_->has_pose && current_->index > last_relocalisation_frame_ + 2) {
+      if (velocity_ && last_ && last_->has_pose &&
+          current_->index > last_relocalisation_frame_ + 2) {
         ok = TrackWithMotionModel();
       }
       if (!ok) ok = TrackReferenceKeyframe();
@@ -58,7 +62,8 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
     if (ok) ok = TrackLocalMap();
     if (ok) {
       state_ = TrackingState::kOk;
-      if (last_ && last_->has_pose) velocity_ = current_->T_cam_world * last_->T_cam_world.inverse();
+      if (last_ && last_->has_pose)
+        velocity_ = current_->T_cam_world * last_->T_cam_world.inverse();
       if (NeedNewKeyframe()) {
         CreateKeyframe();
         result.new_keyframe = true;
@@ -69,8 +74,8 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
       }
     } else {
       if (state_ == TrackingState::kOk) {
-        CCMD_LOG(WARNING) << "tracking lost at frame " << current_->index << " (t=" << current_->timestamp
-                          << "); relocalising";
+        CCMD_LOG(WARNING) << "tracking lost at frame " << current_->index
+                          << " (t=" << current_->timestamp << "); relocalising";
       }
       state_ = TrackingState::kLost;
       velocity_.reset();
@@ -82,7 +87,8 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
   if (state_ == TrackingState::kOk && current_->has_pose && reference_) {
     const Pose T_world_cam = current_->T_cam_world.inverse();
     result.T_world_cam = T_world_cam;
-    records_.push_back({current_->timestamp, reference_->id(), reference_->T_cam_world() * T_world_cam});
+    records_.push_back(
+        {current_->timestamp, reference_->id(), reference_->T_cam_world() * T_world_cam});
   }
   result.tracked_points = current_->TrackedPoints();
   result.track_ms = watch.ElapsedMillis();
@@ -96,9 +102,9 @@ bool Tracker::Initialize(TrackingFrame* frame) {
   for (float d : frame->features.depth) with_depth += d > 0;
   if (frame->size() < 300 || with_depth < 100) return false;
   frame->SetPose(Pose::Identity());
-  auto keyframe = std::make_shared<Keyframe>(map_->NextKeyframeId(), frame->timestamp, frame->index,
-                                             frame->features, Pose::Identity(), camera_.width,
-                                             camera_.height);
+  auto keyframe =
+      std::make_shared<Keyframe>(map_->NextKeyframeId(), frame->timestamp, frame->index,
+                                 frame->features, Pose::Identity(), camera_.width, camera_.height);
   keyframe->bgr = frame->bgr;
   keyframe->depth_mm = frame->depth_mm;
   map_->AddKeyframe(keyframe);
@@ -106,14 +112,16 @@ bool Tracker::Initialize(TrackingFrame* frame) {
     const float z = frame->features.depth[i];
     if (z <= 0) continue;
     const cv::Point2f& pt = frame->features.keypoints[i].pt;
-    auto point = std::make_shared<MapPoint>(map_->NextMapPointId(), camera_.BackProject(pt.x, pt.y, z));
+    auto point =
+        std::make_shared<MapPoint>(map_->NextMapPointId(), camera_.BackProject(pt.x, pt.y, z));
     map_->AddMapPoint(point);
     map_->AddObservation(point, keyframe.get(), i);
     point->UpdateDescriptor();
     point->UpdateNormalAndDepth(*orb_);
     frame->points[i] = point;
   }
-  CCMD_LOG(INFO) << "map initialised with " << map_->num_points() << " points at frame " << frame->index;
+  CCMD_LOG(INFO) << "map initialised with " << map_->num_points() << " points at frame "
+                 << frame->index;
   reference_ = keyframe;
   last_keyframe_ = keyframe;
   last_keyframe_frame_ = frame->index;
@@ -137,7 +145,8 @@ int Tracker::OptimizeCurrentPose() {
   const Intrinsics k{camera_.fx, camera_.fy, camera_.cx, camera_.cy};
   const PoseOptimizationResult r = OptimizePose(current_->T_cam_world, observations, k);
   current_->SetPose(r.T_cam_world);
-  for (std::size_t j = 0; j < keypoint_of.size(); ++j) current_->outlier[keypoint_of[j]] = !r.inlier[j];
+  for (std::size_t j = 0; j < keypoint_of.size(); ++j)
+    current_->outlier[keypoint_of[j]] = !r.inlier[j];
   return r.inliers;
 }
 
@@ -190,8 +199,10 @@ bool Tracker::TrackReferenceKeyframe() {
 bool Tracker::Relocalize() {
   // Candidates: every keyframe of the (bounded) map, newest first.
   std::vector<KeyframePtr> candidates;
-  for (auto it = map_->keyframes().rbegin(); it != map_->keyframes().rend(); ++it) candidates.push_back(it->second);
-  const cv::Mat K = (cv::Mat_<double>(3, 3) << camera_.fx, 0, camera_.cx, 0, camera_.fy, camera_.cy, 0, 0, 1);
+  for (auto it = map_->keyframes().rbegin(); it != map_->keyframes().rend(); ++it)
+    candidates.push_back(it->second);
+  const cv::Mat K =
+      (cv::Mat_<double>(3, 3) << camera_.fx, 0, camera_.cx, 0, camera_.fy, camera_.cy, 0, 0, 1);
   for (const KeyframePtr& kf : candidates) {
     std::fill(current_->points.begin(), current_->points.end(), nullptr);
     std::fill(current_->outlier.begin(), current_->outlier.end(), false);
@@ -202,14 +213,15 @@ bool Tracker::Relocalize() {
     for (int i = 0; i < current_->size(); ++i) {
       if (!current_->points[i]) continue;
       const Eigen::Vector3d& p = current_->points[i]->position();
-      object.emplace_back(static_cast<float>(p.x()), static_cast<float>(p.y()), static_cast<float>(p.z()));
+      object.emplace_back(static_cast<float>(p.x()), static_cast<float>(p.y()),
+                          static_cast<float>(p.z()));
       image.push_back(current_->features.keypoints[i].pt);
       index.push_back(i);
     }
     cv::Mat rvec, tvec;
     std::vector<int> inliers;
-    const bool solved = cv::solvePnPRansac(object, image, K, cv::noArray(), rvec, tvec, false, 200, 4.0f,
-                                           0.99, inliers, cv::SOLVEPNP_EPNP);
+    const bool solved = cv::solvePnPRansac(object, image, K, cv::noArray(), rvec, tvec, false, 200,
+                                           4.0f, 0.99, inliers, cv::SOLVEPNP_EPNP);
     if (!solved || inliers.size() < 15) continue;
     cv::Mat R;
     cv::Rodrigues(rvec, R);
@@ -282,7 +294,8 @@ void Tracker::UpdateLocalMap() {
         break;
       }
     }
-    if (Keyframe* parent = local[i]->parent(); parent && in_local.insert(parent).second) local.push_back(parent);
+    if (Keyframe* parent = local[i]->parent(); parent && in_local.insert(parent).second)
+      local.push_back(parent);
   }
   local_keyframes_.clear();
   for (Keyframe* kf : local) local_keyframes_.push_back(map_->keyframe(kf->id()));
@@ -330,7 +343,8 @@ bool Tracker::TrackLocalMap() {
       if (p->num_observations() > 0) ++matches_inliers_;
     }
   }
-  const bool recently_relocalised = frames_since_relocalisation_ < options_.max_frames_between_keyframes;
+  const bool recently_relocalised =
+      frames_since_relocalisation_ < options_.max_frames_between_keyframes;
   if (recently_relocalised && matches_inliers_ < 50) return false;
   return matches_inliers_ >= 30;
 }
@@ -352,19 +366,21 @@ bool Tracker::NeedNewKeyframe() const {
     }
   }
   const bool need_close = tracked_close < 100 && untracked_close > 70;
-  const double ratio = keyframes < 2 ? 0.8 * options_.keyframe_tracked_ratio : options_.keyframe_tracked_ratio;
+  const double ratio =
+      keyframes < 2 ? 0.8 * options_.keyframe_tracked_ratio : options_.keyframe_tracked_ratio;
   const int since = current_->index - last_keyframe_frame_;
   const bool c1a = since >= max_frames;
   const bool c1b = mapping_->Idle();
   const bool c1c = matches_inliers_ < 0.25 * reference_matches || need_close;
-  const bool c2 = (matches_inliers_ < ratio * reference_matches || need_close) && matches_inliers_ > 15;
+  const bool c2 =
+      (matches_inliers_ < ratio * reference_matches || need_close) && matches_inliers_ > 15;
   return (c1a || c1b || c1c) && c2;
 }
 
 void Tracker::CreateKeyframe() {
-  auto keyframe = std::make_shared<Keyframe>(map_->NextKeyframeId(), current_->timestamp, current_->index,
-                                             current_->features, current_->T_cam_world.inverse(),
-                                             camera_.width, camera_.height);
+  auto keyframe = std::make_shared<Keyframe>(
+      map_->NextKeyframeId(), current_->timestamp, current_->index, current_->features,
+      current_->T_cam_world.inverse(), camera_.width, camera_.height);
   keyframe->bgr = current_->bgr;
   keyframe->depth_mm = current_->depth_mm;
   map_->AddKeyframe(keyframe);

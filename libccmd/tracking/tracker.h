@@ -34,8 +34,8 @@ struct TrackResult {
 class MappingQueue {
  public:
   virtual ~MappingQueue() = default;
-  virtual bool Idle() const = 0;       // waiting for work
-  virtual bool CanAccept() const = 0;  // room for another keyframe
+  virtual bool Idle() const = 0;                         // waiting for work
+  virtual bool CanAccept() const = 0;                    // room for another keyframe
   virtual void Insert(const KeyframePtr& keyframe) = 0;  // only called after CanAccept()
 };
 

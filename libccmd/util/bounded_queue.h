@@ -18,9 +18,7 @@ namespace ccmd {
 template <typename T>
 class BoundedQueue {
  public:
-  explicit BoundedQueue(std::size_t capacity) : capacity_(capacity) {
-    CCMD_CHECK_GT(capacity, 0u);
-  }
+  explicit BoundedQueue(std::size_t capacity) : capacity_(capacity) { CCMD_CHECK_GT(capacity, 0u); }
   BoundedQueue(const BoundedQueue&) = delete;
   BoundedQueue& operator=(const BoundedQueue&) = delete;
 

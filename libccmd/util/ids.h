@@ -31,7 +31,7 @@ std::ostream& operator<<(std::ostream& os, TypedId<Tag, Rep> id) {
 using AgentId = TypedId<struct AgentIdTag, std::uint16_t>;
 using KeyframeId = TypedId<struct KeyframeIdTag, std::uint32_t>;  // unique within an agent
 using MapPointId = TypedId<struct MapPointIdTag, std::uint32_t>;  // unique within an agent
-using MapId = TypedId<struct MapIdTag, std::uint32_t>;             // server-side maps
+using MapId = TypedId<struct MapIdTag, std::uint32_t>;            // server-side maps
 
 struct GlobalKeyframeId {
   AgentId agent;

@@ -34,11 +34,16 @@ std::string& LogTag() {
 
 const char* LevelLetter(LogLevel level) {
   switch (level) {
-    case LogLevel::DEBUG: return "D";
-    case LogLevel::INFO: return "I";
-    case LogLevel::WARNING: return "W";
-    case LogLevel::ERROR: return "E";
-    case LogLevel::FATAL: return "F";
+    case LogLevel::DEBUG:
+      return "D";
+    case LogLevel::INFO:
+      return "I";
+    case LogLevel::WARNING:
+      return "W";
+    case LogLevel::ERROR:
+      return "E";
+    case LogLevel::FATAL:
+      return "F";
   }
   return "?";
 }
@@ -49,11 +54,16 @@ void SetMinLogLevel(LogLevel level) { MinLevelStorage() = static_cast<int>(level
 LogLevel MinLogLevel() { return static_cast<LogLevel>(MinLevelStorage().load()); }
 
 bool ParseLogLevel(const std::string& text, LogLevel* level) {
-  if (text == "debug") *level = LogLevel::DEBUG;
-  else if (text == "info") *level = LogLevel::INFO;
-  else if (text == "warning") *level = LogLevel::WARNING;
-  else if (text == "error") *level = LogLevel::ERROR;
-  else return false;
+  if (text == "debug")
+    *level = LogLevel::DEBUG;
+  else if (text == "info")
+    *level = LogLevel::INFO;
+  else if (text == "warning")
+    *level = LogLevel::WARNING;
+  else if (text == "error")
+    *level = LogLevel::ERROR;
+  else
+    return false;
   return true;
 }
 

@@ -45,19 +45,16 @@ struct LogVoidify {
 }  // namespace internal
 }  // namespace ccmd
 
-#define CCMD_LOG(level)                                                     \
-  !(::ccmd::LogLevel::level >= ::ccmd::MinLogLevel())                       \
-      ? (void)0                                                             \
-      : ::ccmd::internal::LogVoidify() &                                    \
-            ::ccmd::internal::LogMessage(::ccmd::LogLevel::level, __FILE__, \
-                                         __LINE__)                          \
-                .stream()
+#define CCMD_LOG(level)                               \
+  !(::ccmd::LogLevel::level >= ::ccmd::MinLogLevel()) \
+      ? (void)0                                       \
+      : ::ccmd::internal::LogVoidify() &              \
+            ::ccmd::internal::LogMessage(::ccmd::LogLevel::level, __FILE__, __LINE__).stream()
 
-#define CCMD_CHECK(cond)                                                                    \
-  (cond) ? (void)0                                                                          \
-         : ::ccmd::internal::LogVoidify() &                                                 \
-               ::ccmd::internal::LogMessage(::ccmd::LogLevel::FATAL, __FILE__, __LINE__)    \
-                       .stream()                                                            \
+#define CCMD_CHECK(cond)                                                                          \
+  (cond) ? (void)0                                                                                \
+         : ::ccmd::internal::LogVoidify() &                                                       \
+               ::ccmd::internal::LogMessage(::ccmd::LogLevel::FATAL, __FILE__, __LINE__).stream() \
                    << "check failed: " #cond " "
 
 #define CCMD_CHECK_OP(a, op, b) CCMD_CHECK((a)op(b)) << "(" << (a) << " vs " << (b) << ") "

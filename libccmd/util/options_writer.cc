@@ -6,7 +6,9 @@
 
 namespace ccmd {
 
-void OptionsWriter::Add(std::string_view name, bool value) { AddText(name, value ? "true" : "false"); }
+void OptionsWriter::Add(std::string_view name, bool value) {
+  AddText(name, value ? "true" : "false");
+}
 
 void OptionsWriter::Add(std::string_view name, double value) {
   if (!std::isfinite(value)) {

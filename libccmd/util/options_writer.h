@@ -3,7 +3,8 @@
 // One way for every options struct to show its values. Each struct has
 //   Status Validate() const;                      // clear error for a bad value
 //   void Describe(OptionsWriter* out) const;      // every field, by name
-// and programs log DescribeOptions(options) at start-up, so a run's log says exactly what it ran with.
+// and programs log DescribeOptions(options) at start-up, so a run's log says exactly what it ran
+// with.
 //
 //   void DenseMapOptions::Describe(OptionsWriter* out) const {
 //     out->Add("voxel_size_m", voxel_size_m);
@@ -28,7 +29,8 @@ class OptionsWriter {
   void Add(std::string_view name, std::string_view value);
   void Add(std::string_view name, const char* value) { Add(name, std::string_view(value)); }
   void Add(std::string_view name, const std::string& value) { Add(name, std::string_view(value)); }
-  template <typename T, typename = std::enable_if_t<std::is_integral_v<T> && !std::is_same_v<T, bool>>>
+  template <typename T,
+            typename = std::enable_if_t<std::is_integral_v<T> && !std::is_same_v<T, bool>>>
   void Add(std::string_view name, T value) {
     AddText(name, std::to_string(value));
   }
@@ -82,7 +84,8 @@ template <typename Options>
 void LogOptions(std::string_view what, const Options& options) {
   OptionsWriter out;
   options.Describe(&out);
-  for (const auto& [name, value] : out.entries()) CCMD_LOG(INFO) << what << "." << name << " = " << value;
+  for (const auto& [name, value] : out.entries())
+    CCMD_LOG(INFO) << what << "." << name << " = " << value;
 }
 
 }  // namespace ccmd

@@ -10,7 +10,8 @@ namespace ccmd {
 
 inline double Percentile(std::vector<double> samples, double q) {
   if (samples.empty()) return 0;
-  const std::size_t k = std::min(samples.size() - 1, static_cast<std::size_t>(q * (samples.size() - 1) + 0.5));
+  const std::size_t k =
+      std::min(samples.size() - 1, static_cast<std::size_t>(q * (samples.size() - 1) + 0.5));
   std::nth_element(samples.begin(), samples.begin() + k, samples.end());
   return samples[k];
 }

@@ -13,15 +13,15 @@ namespace ccmd {
 
 enum class StatusCode {
   kOk = 0,
-  kInvalidArgument,    // bad option or API use
-  kNotFound,           // missing file, device, key
-  kIoError,            // read/write/socket failure
-  kCorrupt,            // malformed data: bad magic, CRC, truncated, inconsistent fields
-  kOutOfRange,         // a value or size beyond a configured limit
-  kUnsupported,        // valid but not handled: protocol version, pixel format
-  kUnavailable,        // temporarily unavailable: device busy, peer gone; may retry
-  kEndOfStream,        // orderly end of a source or connection
-  kPermissionDenied,   // authentication failed
+  kInvalidArgument,   // bad option or API use
+  kNotFound,          // missing file, device, key
+  kIoError,           // read/write/socket failure
+  kCorrupt,           // malformed data: bad magic, CRC, truncated, inconsistent fields
+  kOutOfRange,        // a value or size beyond a configured limit
+  kUnsupported,       // valid but not handled: protocol version, pixel format
+  kUnavailable,       // temporarily unavailable: device busy, peer gone; may retry
+  kEndOfStream,       // orderly end of a source or connection
+  kPermissionDenied,  // authentication failed
   kTimeout,
   kCancelled,
   kInternal,
@@ -54,7 +54,9 @@ class [[nodiscard]] Status {
   std::string message_;
 };
 
-inline Status InvalidArgument(std::string m) { return {StatusCode::kInvalidArgument, std::move(m)}; }
+inline Status InvalidArgument(std::string m) {
+  return {StatusCode::kInvalidArgument, std::move(m)};
+}
 inline Status NotFound(std::string m) { return {StatusCode::kNotFound, std::move(m)}; }
 inline Status IoError(std::string m) { return {StatusCode::kIoError, std::move(m)}; }
 inline Status Corrupt(std::string m) { return {StatusCode::kCorrupt, std::move(m)}; }
@@ -64,7 +66,9 @@ inline Status Unavailable(std::string m) { return {StatusCode::kUnavailable, std
 inline Status EndOfStream(std::string m = "end of stream") {
   return {StatusCode::kEndOfStream, std::move(m)};
 }
-inline Status PermissionDenied(std::string m) { return {StatusCode::kPermissionDenied, std::move(m)}; }
+inline Status PermissionDenied(std::string m) {
+  return {StatusCode::kPermissionDenied, std::move(m)};
+}
 inline Status Timeout(std::string m) { return {StatusCode::kTimeout, std::move(m)}; }
 inline Status Cancelled(std::string m) { return {StatusCode::kCancelled, std::move(m)}; }
 inline Status Internal(std::string m) { return {StatusCode::kInternal, std::move(m)}; }
@@ -73,7 +77,7 @@ inline Status Internal(std::string m) { return {StatusCode::kInternal, std::move
 template <typename T>
 class [[nodiscard]] StatusOr {
  public:
-  StatusOr(T value) : data_(std::move(value)) {}  // NOLINT: implicit by design
+  StatusOr(T value) : data_(std::move(value)) {}        // NOLINT: implicit by design
   StatusOr(Status status) : data_(std::move(status)) {  // NOLINT: implicit by design
     if (std::get<Status>(data_).ok()) data_ = Status(StatusCode::kInternal, "StatusOr from Ok");
   }

@@ -21,11 +21,13 @@ struct Subprocess::Drainer {
   std::thread thread;
 };
 
-StatusOr<Subprocess> Subprocess::Start(const std::vector<std::string>& argv, const std::string& stdout_path,
+StatusOr<Subprocess> Subprocess::Start(const std::vector<std::string>& argv,
+                                       const std::string& stdout_path,
                                        const std::string& stderr_path, bool pipe_stdout) {
   if (argv.empty()) return InvalidArgument("no program to start");
   int pipe_fds[2] = {-1, -1};
-  if (pipe_stdout && ::pipe2(pipe_fds, O_CLOEXEC) != 0) return IoError(std::string("pipe: ") + std::strerror(errno));
+  if (pipe_stdout && ::pipe2(pipe_fds, O_CLOEXEC) != 0)
+    return IoError(std::string("pipe: ") + std::strerror(errno));
   // Files are opened before fork so that errors are reported here.
   int out_fd = -1, err_fd = -1;
   if (!pipe_stdout && !stdout_path.empty()) {
@@ -144,8 +146,8 @@ void Subprocess::Reap(int status, const ::rusage& usage) {
   exited_ = true;
   result_.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
   result_.signal = WIFSIGNALED(status) ? WTERMSIG(status) : 0;
-  result_.cpu_seconds = usage.ru_utime.tv_sec + usage.ru_utime.tv_usec * 1e-6 + usage.ru_stime.tv_sec +
-                        usage.ru_stime.tv_usec * 1e-6;
+  result_.cpu_seconds = usage.ru_utime.tv_sec + usage.ru_utime.tv_usec * 1e-6 +
+                        usage.ru_stime.tv_sec + usage.ru_stime.tv_usec * 1e-6;
   result_.max_rss_mb = usage.ru_maxrss / 1024.0;
 }
 

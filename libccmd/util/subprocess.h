@@ -25,8 +25,9 @@ class Subprocess {
  public:
   // Starts `argv[0]` (a path) with the arguments. stdout goes to `stdout_path` (or, if
   // `pipe_stdout`, to a pipe read with ReadLine), stderr to `stderr_path` ("" = inherit).
-  static StatusOr<Subprocess> Start(const std::vector<std::string>& argv, const std::string& stdout_path,
-                                    const std::string& stderr_path, bool pipe_stdout = false);
+  static StatusOr<Subprocess> Start(const std::vector<std::string>& argv,
+                                    const std::string& stdout_path, const std::string& stderr_path,
+                                    bool pipe_stdout = false);
   Subprocess(Subprocess&& other) noexcept;
   Subprocess& operator=(Subprocess&& other) noexcept;
   ~Subprocess();  // kills (SIGKILL) and reaps a child still running

@@ -7,14 +7,12 @@ namespace ccmd {
 
 // Seconds on a monotonic clock; only differences are meaningful.
 inline double MonotonicSeconds() {
-  return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch())
-      .count();
+  return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count();
 }
 
 // Seconds since the Unix epoch (wall clock), for timestamps written to files.
 inline double WallSeconds() {
-  return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch())
-      .count();
+  return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
 }
 
 // CPU time in seconds: of the calling thread, and of the whole process (all threads). They

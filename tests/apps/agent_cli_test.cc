@@ -21,16 +21,16 @@ TEST(AgentCliTest, OfflineRunWritesTrajectoryStatsAndRecording) {
   testing::TempDir dir;
   std::string out;
   const std::string spec = "synth:frames=45,seed=3";
-  ASSERT_EQ(RunCommand(ProgramPath("ccmd_agent") + " --source " + spec + " --offline --synchronous" +
-                           " --trajectory " + dir.File("traj.txt") + " --stats " + dir.File("stats.json") +
-                           " --record " + dir.File("rec"),
+  ASSERT_EQ(RunCommand(ProgramPath("ccmd_agent") + " --source " + spec +
+                           " --offline --synchronous" + " --trajectory " + dir.File("traj.txt") +
+                           " --stats " + dir.File("stats.json") + " --record " + dir.File("rec"),
                        &out),
             0)
       << out;
   auto stats = ReadJsonFile(dir.File("stats.json"));
   ASSERT_TRUE(stats.ok());
-  for (const char* key : {"frames", "keyframes", "lost_frames", "fps", "extract_ms_mean", "track_ms_mean",
-                          "local_ba_ms_mean", "rgbd_decisions"}) {
+  for (const char* key : {"frames", "keyframes", "lost_frames", "fps", "extract_ms_mean",
+                          "track_ms_mean", "local_ba_ms_mean", "rgbd_decisions"}) {
     EXPECT_TRUE(stats->Has(key)) << key;
   }
   EXPECT_EQ(stats->Get("frames")->number(), 45);
@@ -65,8 +65,9 @@ TEST(AgentCliTest, RgbdEveryKeyframeOverridesTheSelection) {
   testing::TempDir dir;
   auto decisions = [&](const std::string& flags, int* transmitted, int* total) {
     std::string out;
-    ASSERT_EQ(RunCommand(ProgramPath("ccmd_agent") + " --source synth:frames=60,seed=3 --offline --synchronous " +
-                             flags + " --stats " + dir.File("stats.json"),
+    ASSERT_EQ(RunCommand(ProgramPath("ccmd_agent") +
+                             " --source synth:frames=60,seed=3 --offline --synchronous " + flags +
+                             " --stats " + dir.File("stats.json"),
                          &out),
               0)
         << out;
@@ -86,7 +87,8 @@ TEST(AgentCliTest, RgbdEveryKeyframeOverridesTheSelection) {
   EXPECT_LT(selected, selected_total);  // the selection skipped some
   EXPECT_GT(selected, 0);
   EXPECT_EQ(every, every_total);
-  EXPECT_EQ(every_total, selected_total);  // the same keyframes (synchronous mapping is deterministic)
+  EXPECT_EQ(every_total,
+            selected_total);  // the same keyframes (synchronous mapping is deterministic)
 }
 
 TEST(AgentCliTest, MissingServerOrSourceIsExplained) {
@@ -95,7 +97,10 @@ TEST(AgentCliTest, MissingServerOrSourceIsExplained) {
   EXPECT_NE(out.find("--offline"), std::string::npos) << out;
   EXPECT_NE(RunCommand(ProgramPath("ccmd_agent") + " --source tum:/no/such --offline", &out), 0);
   EXPECT_NE(out.find("/no/such"), std::string::npos) << out;
-  EXPECT_NE(RunCommand(ProgramPath("ccmd_agent") + " --source synth:frames=5 --offline --segment 4/3", &out), 0);
+  EXPECT_NE(
+      RunCommand(ProgramPath("ccmd_agent") + " --source synth:frames=5 --offline --segment 4/3",
+                 &out),
+      0);
 }
 
 }  // namespace

@@ -28,7 +28,8 @@ const Json* ServerAgent(const Json& stats, const std::string& name) {
 // Message bytes per second between the agent's first and last message, as the server saw them.
 double ServerSideRate(const Json& agent) {
   const Json* m = agent.Get("messages");
-  const double bytes = m->Get("keyframe")->Get("bytes")->number() + m->Get("pose_update")->Get("bytes")->number();
+  const double bytes =
+      m->Get("keyframe")->Get("bytes")->number() + m->Get("pose_update")->Get("bytes")->number();
   // The first message left before its arrival opened the span.
   return (bytes - agent.Get("first_message_bytes")->number()) /
          (agent.Get("last_message_s")->number() - agent.Get("first_message_s")->number());
@@ -36,23 +37,26 @@ double ServerSideRate(const Json& agent) {
 
 TEST(BudgetCliTest, AgentUnderABudgetStaysWithinItAndSendsEveryKeyframe) {
   testing::TempDir dir;
-  auto server = Subprocess::Start({ProgramPath("ccmd_server"), "--listen", "127.0.0.1:0", "--journal",
-                                   dir.File("journal"), "--out", dir.File("out"), "--no-fsync", "--no-dense"},
-                                  "", dir.File("server.log"), /*pipe_stdout=*/true);
+  auto server =
+      Subprocess::Start({ProgramPath("ccmd_server"), "--listen", "127.0.0.1:0", "--journal",
+                         dir.File("journal"), "--out", dir.File("out"), "--no-fsync", "--no-dense"},
+                        "", dir.File("server.log"), /*pipe_stdout=*/true);
   ASSERT_TRUE(server.ok());
   std::string port;
   while (port.empty()) {
     auto line = server->ReadLine(60);
     ASSERT_TRUE(line.ok()) << line.status().ToString();
-    if (line->find("listening on ") != std::string::npos) port = line->substr(line->find_last_of(':') + 1);
+    if (line->find("listening on ") != std::string::npos)
+      port = line->substr(line->find_last_of(':') + 1);
   }
   server->DrainStdoutTo(dir.File("server.out"));
   // 30 kB/s is below what the synthetic room's keyframes need (their geometry alone is more
   // at 30 frames a second): the agent must adapt and its link must pace.
   std::string out;
-  ASSERT_EQ(RunCommand(ProgramPath("ccmd_agent") + " --source synth:frames=60,seed=3 --rate realtime --server 127.0.0.1:" +
-                           port + " --name budgeted --bandwidth-budget 30 --spill-dir " + dir.File("spill") +
-                           " --stats " + dir.File("agent.json"),
+  ASSERT_EQ(RunCommand(ProgramPath("ccmd_agent") +
+                           " --source synth:frames=60,seed=3 --rate realtime --server 127.0.0.1:" +
+                           port + " --name budgeted --bandwidth-budget 30 --spill-dir " +
+                           dir.File("spill") + " --stats " + dir.File("agent.json"),
                        &out),
             0)
       << out;
@@ -77,9 +81,15 @@ TEST(BudgetCliTest, AgentUnderABudgetStaysWithinItAndSendsEveryKeyframe) {
 
 TEST(BudgetCliTest, RefusesABudgetWithoutAServerABadLinkAndAViewOverALink) {
   std::string out;
-  EXPECT_NE(RunCommand(ProgramPath("ccmd_agent") + " --source synth:frames=5 --offline --bandwidth-budget 50", &out), 0);
+  EXPECT_NE(RunCommand(ProgramPath("ccmd_agent") +
+                           " --source synth:frames=5 --offline --bandwidth-budget 50",
+                       &out),
+            0);
   EXPECT_NE(out.find("--bandwidth-budget"), std::string::npos) << out;
-  EXPECT_NE(RunCommand(ProgramPath("ccmd_replay") + " --dataset /nonexistent --out /tmp/x --link rate=fast", &out), 0);
+  EXPECT_NE(RunCommand(ProgramPath("ccmd_replay") +
+                           " --dataset /nonexistent --out /tmp/x --link rate=fast",
+                       &out),
+            0);
   EXPECT_NE(out.find("rate"), std::string::npos) << out;
   // The live view would serve inside the server's namespace, out of every browser's reach.
   EXPECT_NE(RunCommand(ProgramPath("ccmd_replay") +
@@ -100,8 +110,9 @@ TEST(BudgetCliTest, ReplayOverAShapedLinkDeliversEveryKeyframeAndRemovesTheLink)
   ASSERT_TRUE(WriteSyntheticSequence(dir.File("seq"), synth).ok());
   const std::string spec = "rate=3mbit,delay=20ms,jitter=5ms,loss=0.01";
   std::string out;
-  ASSERT_EQ(RunCommand(ProgramPath("ccmd_replay") + " --dataset " + dir.File("seq") + " --agents 2 --rate realtime --out " +
-                           dir.File("run") + " --link " + spec + " --agent-arg=--bandwidth-budget --agent-arg=40",
+  ASSERT_EQ(RunCommand(ProgramPath("ccmd_replay") + " --dataset " + dir.File("seq") +
+                           " --agents 2 --rate realtime --out " + dir.File("run") + " --link " +
+                           spec + " --agent-arg=--bandwidth-budget --agent-arg=40",
                        &out),
             0)
       << out;

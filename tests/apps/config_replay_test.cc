@@ -35,11 +35,13 @@ namespace {
 // The configs with an end-to-end test below. A config added to configs/ without joining this
 // list fails EveryShippedConfigHasAnEndToEndTest.
 const char* const kTestedConfigs[] = {
-    "7scenes.yaml",        "icl_nuim.yaml", "realsense_d435.yaml", "realsense_d435_v4l2.yaml",
-    "synthetic.yaml",      "tum_fr1.yaml",  "tum_fr2.yaml",        "tum_fr3.yaml",
+    "7scenes.yaml",   "icl_nuim.yaml", "realsense_d435.yaml", "realsense_d435_v4l2.yaml",
+    "synthetic.yaml", "tum_fr1.yaml",  "tum_fr2.yaml",        "tum_fr3.yaml",
 };
 
-std::string ConfigPath(const std::string& name) { return std::string(CCMD_CONFIG_DIR) + "/" + name; }
+std::string ConfigPath(const std::string& name) {
+  return std::string(CCMD_CONFIG_DIR) + "/" + name;
+}
 
 TEST(ShippedConfigsTest, EveryShippedConfigHasAnEndToEndTest) {
   const std::set<std::string> tested(std::begin(kTestedConfigs), std::end(kTestedConfigs));
@@ -48,10 +50,12 @@ TEST(ShippedConfigsTest, EveryShippedConfigHasAnEndToEndTest) {
     if (entry.path().extension() == ".yaml") shipped.insert(entry.path().filename().string());
   }
   for (const std::string& name : shipped) {
-    EXPECT_TRUE(tested.count(name)) << "configs/" << name
-                                    << " has no end-to-end test: add it to kTestedConfigs in " << __FILE__;
+    EXPECT_TRUE(tested.count(name))
+        << "configs/" << name << " has no end-to-end test: add it to kTestedConfigs in "
+        << __FILE__;
   }
-  for (const std::string& name : tested) EXPECT_TRUE(shipped.count(name)) << name << " is no longer shipped";
+  for (const std::string& name : tested)
+    EXPECT_TRUE(shipped.count(name)) << name << " is no longer shipped";
 }
 
 class ConfigReplayTest : public ::testing::TestWithParam<std::string> {};
@@ -75,7 +79,9 @@ TEST_P(ConfigReplayTest, RenderedThroughTheCameraReplaysIntoAnAccurateMap) {
   }
 }
 
-INSTANTIATE_TEST_SUITE_P(Shipped, ConfigReplayTest, ::testing::ValuesIn(std::vector<std::string>(std::begin(kTestedConfigs), std::end(kTestedConfigs))),
+INSTANTIATE_TEST_SUITE_P(Shipped, ConfigReplayTest,
+                         ::testing::ValuesIn(std::vector<std::string>(std::begin(kTestedConfigs),
+                                                                      std::end(kTestedConfigs))),
                          [](const ::testing::TestParamInfo<std::string>& info) {
                            // "tum_fr1.yaml" -> "TumFr1" (test names are alphanumeric).
                            std::string name;
@@ -85,7 +91,9 @@ INSTANTIATE_TEST_SUITE_P(Shipped, ConfigReplayTest, ::testing::ValuesIn(std::vec
                                upper = true;
                                continue;
                              }
-                             name += upper ? static_cast<char>(std::toupper(static_cast<unsigned char>(c))) : c;
+                             name += upper ? static_cast<char>(
+                                                 std::toupper(static_cast<unsigned char>(c)))
+                                           : c;
                              upper = false;
                            }
                            return name;

@@ -39,7 +39,8 @@ void MakeExcerpt(const std::string& from, const std::string& to, int count) {
     ASSERT_TRUE(WriteFileAtomic(JoinPath(to, list), out).ok());
   }
   for (const char* images : {"rgb", "depth"}) {
-    ASSERT_EQ(testing::RunCommand("ln -s " + JoinPath(from, images) + " " + JoinPath(to, images)), 0);
+    ASSERT_EQ(testing::RunCommand("ln -s " + JoinPath(from, images) + " " + JoinPath(to, images)),
+              0);
   }
 }
 
@@ -50,11 +51,12 @@ TEST(DatasetReplayTest, AgentTracksIclNuimWithTheShippedConfig) {
   CCMD_REQUIRE_DATASET(dataset, kIcl);
   testing::TempDir dir;
   std::string out;
-  ASSERT_EQ(testing::RunCommand(testing::ProgramPath("ccmd_agent") + " --source tum:" + dataset + " --config " +
-                                    Config("icl_nuim.yaml") + " --offline --max-frames 150 --trajectory " +
-                                    dir.File("traj.txt"),
-                                &out),
-            0)
+  ASSERT_EQ(
+      testing::RunCommand(testing::ProgramPath("ccmd_agent") + " --source tum:" + dataset +
+                              " --config " + Config("icl_nuim.yaml") +
+                              " --offline --max-frames 150 --trajectory " + dir.File("traj.txt"),
+                          &out),
+      0)
       << out;
   auto trajectory = ReadTumTrajectory(dir.File("traj.txt"));
   auto gt = ReadTumTrajectory(JoinPath(dataset, "groundtruth.txt"));
@@ -75,7 +77,8 @@ TEST(DatasetReplayTest, TwoAgentsFuseOnIclNuim) {
   testing::TempDir dir;
   MakeExcerpt(dataset, dir.File("icl"), 180);
   std::string out;
-  auto results = testing::RunReplay(dir.File("icl"), 2, Config("icl_nuim.yaml"), dir.File("run"), &out);
+  auto results =
+      testing::RunReplay(dir.File("icl"), 2, Config("icl_nuim.yaml"), dir.File("run"), &out);
   ASSERT_TRUE(results.ok()) << results.status().ToString() << "\n" << out;
   testing::ExpectFusedWithin(*results, 0.02, 0.03, out);
 }

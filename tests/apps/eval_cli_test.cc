@@ -15,7 +15,8 @@ using testing::RunCommand;
 
 TEST(EvalCliTest, SplitPrintsFirstLastPerSegment) {
   std::string out;
-  ASSERT_EQ(RunCommand(ProgramPath("ccmd_eval") + " split --frames 600 --agents 3", &out), 0) << out;
+  ASSERT_EQ(RunCommand(ProgramPath("ccmd_eval") + " split --frames 600 --agents 3", &out), 0)
+      << out;
   EXPECT_EQ(out, "0 214\n193 407\n386 599\n");
   EXPECT_NE(RunCommand(ProgramPath("ccmd_eval") + " split --frames 3 --agents 3", &out), 0);
   EXPECT_NE(out.find("too few"), std::string::npos) << out;
@@ -65,8 +66,8 @@ TEST(EvalCliTest, ReconWritesMeanAndHausdorff) {
   ASSERT_TRUE(WritePly(ref, dir.File("ref.ply")).ok());
   ASSERT_TRUE(WritePly(rec, dir.File("rec.ply")).ok());
   std::string out;
-  ASSERT_EQ(RunCommand(ProgramPath("ccmd_eval") + " recon --ref " + dir.File("ref.ply") + " --rec " +
-                           dir.File("rec.ply") + " --json " + dir.File("r.json"),
+  ASSERT_EQ(RunCommand(ProgramPath("ccmd_eval") + " recon --ref " + dir.File("ref.ply") +
+                           " --rec " + dir.File("rec.ply") + " --json " + dir.File("r.json"),
                        &out),
             0)
       << out;

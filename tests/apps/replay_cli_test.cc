@@ -26,8 +26,8 @@ TEST(ReplayCliTest, TwoAgentsFuseAndTheReportMatchesTheFiles) {
   std::string out;
   auto results = testing::RunReplay(dir.File("seq"), 2, "", dir.File("run"), &out);
   ASSERT_TRUE(results.ok()) << results.status().ToString() << "\n" << out;
-  for (const char* key : {"ate_rmse_m", "maps_after_fusion", "recon_mean_m", "recon_hausdorff_m", "atps_kBps",
-                          "akfs_kB", "akfr_hz", "agents"}) {
+  for (const char* key : {"ate_rmse_m", "maps_after_fusion", "recon_mean_m", "recon_hausdorff_m",
+                          "atps_kBps", "akfs_kB", "akfr_hz", "agents"}) {
     ASSERT_TRUE(results->Has(key)) << key;
   }
   EXPECT_EQ(results->Get("maps_after_fusion")->number(), 1);
@@ -36,9 +36,10 @@ TEST(ReplayCliTest, TwoAgentsFuseAndTheReportMatchesTheFiles) {
     for (const char* key : {"ate_rmse_m", "keyframes", "bytes"}) EXPECT_TRUE(a.Has(key)) << key;
     EXPECT_GT(a.Get("keyframes")->number(), 5);
   }
-  for (const char* file : {"run/report.md", "run/map.ply", "run/trajectory_fused.txt",
-                           "run/plots/trajectories.png", "run/plots/traffic.png", "run/plots/bytes_per_kind.png",
-                           "run/plots/map_top.png", "run/plots/map_view.png"}) {
+  for (const char* file :
+       {"run/report.md", "run/map.ply", "run/trajectory_fused.txt", "run/plots/trajectories.png",
+        "run/plots/traffic.png", "run/plots/bytes_per_kind.png", "run/plots/map_top.png",
+        "run/plots/map_view.png"}) {
     EXPECT_TRUE(FileExists(dir.File(file))) << file;
   }
   // Independent check: the fused ATE from the written trajectory against the ground truth.
@@ -77,7 +78,8 @@ TEST(ReplayCliTest, TwoAgentsFuseAndTheReportMatchesTheFiles) {
   for (const char* name : {"agent1", "agent2"}) {
     auto s = ReadJsonFile(dir.File(std::string("run/agents/") + name + "_stats.json"));
     ASSERT_TRUE(s.ok());
-    agent_bytes += s->Get("link")->Get("keyframe_bytes")->number() + s->Get("link")->Get("pose_update_bytes")->number();
+    agent_bytes += s->Get("link")->Get("keyframe_bytes")->number() +
+                   s->Get("link")->Get("pose_update_bytes")->number();
   }
   EXPECT_EQ(server_bytes, agent_bytes);
 }
@@ -95,7 +97,8 @@ TEST(ReplayCliTest, ShortSlowSplitStillReportsThePrimaryMap) {
   std::string out;
   auto results = testing::RunReplay(dir.File("seq"), 2, "", dir.File("run"), &out);
   ASSERT_TRUE(results.ok()) << results.status().ToString() << "\n" << out;
-  ASSERT_GE(results->Get("fused_keyframes") ? results->Get("fused_keyframes")->number() : 0, 1) << out;
+  ASSERT_GE(results->Get("fused_keyframes") ? results->Get("fused_keyframes")->number() : 0, 1)
+      << out;
   ASSERT_TRUE(results->Has("ate_rmse_m")) << out;
   ASSERT_TRUE(results->Has("recon_mean_m")) << out;
   EXPECT_LT(results->Get("ate_rmse_m")->number(), 0.01);
@@ -119,8 +122,8 @@ TEST(ReplayCliTest, RefusesAFolderThatHoldsARun) {
   synth.height = 120;
   ASSERT_TRUE(WriteSyntheticSequence(dir.File("seq"), synth).ok());
   std::string out;
-  EXPECT_NE(testing::RunCommand(testing::ProgramPath("ccmd_replay") + " --dataset " + dir.File("seq") +
-                                    " --agents 2 --out " + dir.File("run"),
+  EXPECT_NE(testing::RunCommand(testing::ProgramPath("ccmd_replay") + " --dataset " +
+                                    dir.File("seq") + " --agents 2 --out " + dir.File("run"),
                                 &out),
             0);
   EXPECT_NE(out.find("already holds a run"), std::string::npos) << out;

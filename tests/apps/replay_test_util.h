@@ -16,8 +16,8 @@ namespace ccmd::testing {
 // results.json, or an error; `log` gets the program's output either way.
 inline StatusOr<Json> RunReplay(const std::string& dataset, int agents, const std::string& config,
                                 const std::string& out, std::string* log) {
-  std::string command = ProgramPath("ccmd_replay") + " --dataset " + dataset + " --agents " + std::to_string(agents) +
-                        " --out " + out;
+  std::string command = ProgramPath("ccmd_replay") + " --dataset " + dataset + " --agents " +
+                        std::to_string(agents) + " --out " + out;
   if (!config.empty()) command += " --config " + config;
   const int code = RunCommand(command, log);
   if (code != 0) return Internal("ccmd_replay exited with " + std::to_string(code));

@@ -27,7 +27,8 @@ TEST(SynthCliTest, BadArgumentsFailWithAMessage) {
   std::string out;
   EXPECT_NE(testing::RunCommand(testing::ProgramPath("ccmd_synth") + " --frames 5", &out), 0);
   EXPECT_NE(out.find("--out"), std::string::npos) << out;
-  EXPECT_NE(testing::RunCommand(testing::ProgramPath("ccmd_synth") + " --out /tmp/x --width 5", &out), 0);
+  EXPECT_NE(
+      testing::RunCommand(testing::ProgramPath("ccmd_synth") + " --out /tmp/x --width 5", &out), 0);
 }
 
 }  // namespace

@@ -65,7 +65,8 @@ class RecordingObserver : public MapObserver {
     maps[id] = map;
     EXPECT_GT(arrived_s, 0);
   }
-  void OnPoses(PoseSource source, MapId map, const std::vector<KeyframePose>& moved, double) override {
+  void OnPoses(PoseSource source, MapId map, const std::vector<KeyframePose>& moved,
+               double) override {
     std::lock_guard<std::mutex> lock(mutex_);
     sources[source]++;
     for (const KeyframePose& p : moved) {
@@ -105,9 +106,10 @@ class RecordingObserver : public MapObserver {
 
 // The ground-truth pose at a keyframe's timestamp (keyframes are frames of the path).
 Pose TruePose(const Trajectory& ground_truth, double timestamp) {
-  const auto it = std::min_element(ground_truth.begin(), ground_truth.end(), [&](const auto& a, const auto& b) {
-    return std::abs(a.timestamp - timestamp) < std::abs(b.timestamp - timestamp);
-  });
+  const auto it =
+      std::min_element(ground_truth.begin(), ground_truth.end(), [&](const auto& a, const auto& b) {
+        return std::abs(a.timestamp - timestamp) < std::abs(b.timestamp - timestamp);
+      });
   EXPECT_LT(std::abs(it->timestamp - timestamp), 1e-6);
   return it->T_world_cam;
 }
@@ -127,7 +129,8 @@ TEST(BackendIntegrationTest, TwoAgentsAreFusedIntoOneAccurateMap) {
   for (int i = 0; i < 2; ++i) {
     const AgentId id(i + 1);
     sinks.push_back(std::make_unique<WireSink>(id, backend->get()));
-    ASSERT_TRUE((*backend)->RegisterAgent(id, "agent" + std::to_string(i + 1), SyntheticCamera()).ok());
+    ASSERT_TRUE(
+        (*backend)->RegisterAgent(id, "agent" + std::to_string(i + 1), SyntheticCamera()).ok());
     agents.emplace_back([&, i] {
       SyntheticSource source(synth, (*segments)[i]);
       auto frontend = Frontend::Create(source.camera(), TrackingOptions(), sinks[i].get());
@@ -154,9 +157,10 @@ TEST(BackendIntegrationTest, TwoAgentsAreFusedIntoOneAccurateMap) {
   const std::vector<LoopEvent> events = (*backend)->loop_events();
   ASSERT_EQ(static_cast<int>(events.size()), stats.loops + stats.fusions);
   for (const LoopEvent& e : events) {
-    const Pose T_world_query = TruePose(ground_truth, sinks[e.query.agent.value() - 1]->timestamps_.at(e.query.keyframe));
-    const Pose T_world_candidate =
-        TruePose(ground_truth, sinks[e.candidate.agent.value() - 1]->timestamps_.at(e.candidate.keyframe));
+    const Pose T_world_query =
+        TruePose(ground_truth, sinks[e.query.agent.value() - 1]->timestamps_.at(e.query.keyframe));
+    const Pose T_world_candidate = TruePose(
+        ground_truth, sinks[e.candidate.agent.value() - 1]->timestamps_.at(e.candidate.keyframe));
     const Pose truth = T_world_candidate.inverse() * T_world_query;
     EXPECT_LT(TranslationDistance(truth, e.T_candidate_query), 0.02);
     EXPECT_LT(RotationDistance(truth, e.T_candidate_query), 1.0 * M_PI / 180);
@@ -166,12 +170,14 @@ TEST(BackendIntegrationTest, TwoAgentsAreFusedIntoOneAccurateMap) {
   const BackendTimings timings = (*backend)->timings();
   EXPECT_EQ(timings.intake_ms.size(), stats.keyframes_received);
   ASSERT_EQ(timings.intake_during_gba.size(), timings.intake_ms.size());
-  EXPECT_EQ(static_cast<std::size_t>(std::count(timings.intake_during_gba.begin(), timings.intake_during_gba.end(), 1)),
+  EXPECT_EQ(static_cast<std::size_t>(
+                std::count(timings.intake_during_gba.begin(), timings.intake_during_gba.end(), 1)),
             stats.intake_during_gba_count);
   EXPECT_GE(stats.global_ba_runs, 1);
   EXPECT_EQ(static_cast<int>(timings.global_ba_seconds.size()), stats.global_ba_runs);
   ASSERT_EQ(timings.global_ba_applied.size(), timings.global_ba_seconds.size());
-  EXPECT_EQ(static_cast<int>(std::count(timings.global_ba_applied.begin(), timings.global_ba_applied.end(), 1)),
+  EXPECT_EQ(static_cast<int>(
+                std::count(timings.global_ba_applied.begin(), timings.global_ba_applied.end(), 1)),
             stats.global_ba_runs - stats.global_ba_aborted);
   for (double seconds : timings.global_ba_seconds) EXPECT_GT(seconds, 0.0);
   // The dense map holds keyframes of both agents.
@@ -212,7 +218,8 @@ TEST(BackendIntegrationTest, TwoAgentsAreFusedIntoOneAccurateMap) {
     ASSERT_NE(first, last);
     double best = 1e9;
     for (auto it = first; it != last; ++it) {
-      best = std::min(best, TranslationDistance(it->second, pose) + RotationDistance(it->second, pose));
+      best = std::min(best,
+                      TranslationDistance(it->second, pose) + RotationDistance(it->second, pose));
     }
     EXPECT_LT(best, 1e-9);
     EXPECT_EQ(observer.maps.at(id), *(*backend)->PrimaryMap());
@@ -221,9 +228,11 @@ TEST(BackendIntegrationTest, TwoAgentsAreFusedIntoOneAccurateMap) {
   EXPECT_GT(observer.sources[PoseSource::kAgent], 0);
   EXPECT_GT(observer.sources[PoseSource::kFusion], 0);
   // An applied global BA that moved nothing tells nothing: at most one report per applied run.
-  EXPECT_LE(observer.sources[PoseSource::kGlobalBa], stats.global_ba_runs - stats.global_ba_aborted);
+  EXPECT_LE(observer.sources[PoseSource::kGlobalBa],
+            stats.global_ba_runs - stats.global_ba_aborted);
   EXPECT_EQ(observer.dense.size(), stats.dense_keyframes);
-  for (const GlobalKeyframeId& id : observer.dense) EXPECT_TRUE((*backend)->dense()->KeyframeCloud(id).ok());
+  for (const GlobalKeyframeId& id : observer.dense)
+    EXPECT_TRUE((*backend)->dense()->KeyframeCloud(id).ok());
   (*backend)->Shutdown();
 }
 

@@ -78,9 +78,10 @@ inline constexpr std::uint32_t kRevisitPointIds = 100000;
 // for a revisit (`local_window` set): as an agent's tracking would, it links only the points
 // the keyframes from `*local_window` on observe, and makes the others again as new points
 // (kRevisitPointIds + j).
-inline ServerKeyframe* AddGeneratedKeyframe(ServerMap* map, const GeneratedWorld& world, AgentId agent,
-                                            std::uint32_t id, const Pose& T_true, const Pose& T_map_cam,
-                                            Rng* rng, std::optional<std::uint32_t> local_window = std::nullopt) {
+inline ServerKeyframe* AddGeneratedKeyframe(
+    ServerMap* map, const GeneratedWorld& world, AgentId agent, std::uint32_t id,
+    const Pose& T_true, const Pose& T_map_cam, Rng* rng,
+    std::optional<std::uint32_t> local_window = std::nullopt) {
   const PinholeCamera camera = TestCamera();
   auto kf = std::make_unique<ServerKeyframe>();
   kf->id = {agent, KeyframeId(id)};
@@ -106,9 +107,10 @@ inline ServerKeyframe* AddGeneratedKeyframe(ServerMap* map, const GeneratedWorld
     GlobalMapPointId pid{agent, MapPointId(j)};
     ServerMapPoint* p = map->point(pid);
     if (local_window) {
-      const bool tracked = p && std::any_of(p->observations.begin(), p->observations.end(), [&](const auto& o) {
-                             return o.keyframe->id.keyframe.value() >= *local_window;
-                           });
+      const bool tracked =
+          p && std::any_of(p->observations.begin(), p->observations.end(), [&](const auto& o) {
+            return o.keyframe->id.keyframe.value() >= *local_window;
+          });
       if (!tracked) {
         pid.point = MapPointId(kRevisitPointIds + j);
         p = map->point(pid);
@@ -116,8 +118,8 @@ inline ServerKeyframe* AddGeneratedKeyframe(ServerMap* map, const GeneratedWorld
     }
     if (!p) {
       // Measured in the anchor's camera frame: it moves with the anchor's map pose.
-      p = map->AddPoint(std::make_unique<ServerMapPoint>(pid, raw, T_true.inverse() * world.points[seen[k]],
-                                                         world.descriptors[seen[k]]));
+      p = map->AddPoint(std::make_unique<ServerMapPoint>(
+          pid, raw, T_true.inverse() * world.points[seen[k]], world.descriptors[seen[k]]));
     }
     map->AddObservation(p, raw, static_cast<int>(k));
   }

@@ -23,13 +23,15 @@ constexpr double kDegree = M_PI / 180;
 
 Pose Offset(double metres, double degrees) {
   Pose T = Pose::Identity();
-  T.linear() = Eigen::AngleAxisd(degrees * kDegree, Eigen::Vector3d(0.3, 1, 0.2).normalized()).toRotationMatrix();
+  T.linear() = Eigen::AngleAxisd(degrees * kDegree, Eigen::Vector3d(0.3, 1, 0.2).normalized())
+                   .toRotationMatrix();
   T.translation() = Eigen::Vector3d(metres, 0, 0);
   return T;
 }
 
 GlobalKeyframeId Kf(int agent, int keyframe) {
-  return {AgentId(static_cast<std::uint16_t>(agent)), KeyframeId(static_cast<std::uint32_t>(keyframe))};
+  return {AgentId(static_cast<std::uint16_t>(agent)),
+          KeyframeId(static_cast<std::uint32_t>(keyframe))};
 }
 
 TEST(LoopConsistencyTest, TwoAgreeingKeyframesCloseALoopAndTheCountStartsAgain) {
@@ -69,7 +71,9 @@ TEST(LoopConsistencyTest, DisagreeingGappedOrOtherMapLoopsDoNotConfirm) {
     EXPECT_FALSE(rule.Confirm(c.second, c.map, c.T_second, &count)) << c.what;
     EXPECT_EQ(count, 1) << c.what;
     // The disagreeing loop is the new reference: one that agrees with it confirms.
-    EXPECT_TRUE(rule.Confirm({AgentId(1), KeyframeId(c.second.keyframe.value() + 1)}, c.map, c.T_second)) << c.what;
+    EXPECT_TRUE(
+        rule.Confirm({AgentId(1), KeyframeId(c.second.keyframe.value() + 1)}, c.map, c.T_second))
+        << c.what;
   }
 }
 
@@ -79,7 +83,8 @@ TEST(LoopConsistencyTest, AgentsAreCountedApartAndTheRequiredCountIsAnOption) {
   LoopConsistency rule(options);
   const Pose T = Offset(0.5, 10);
   EXPECT_FALSE(rule.Confirm(Kf(1, 10), MapId(5), T));
-  EXPECT_FALSE(rule.Confirm(Kf(2, 40), MapId(5), Offset(2, 50)));  // another agent: no effect on agent 1
+  EXPECT_FALSE(
+      rule.Confirm(Kf(2, 40), MapId(5), Offset(2, 50)));  // another agent: no effect on agent 1
   EXPECT_FALSE(rule.Confirm(Kf(1, 11), MapId(5), T));
   EXPECT_TRUE(rule.Confirm(Kf(1, 12), MapId(5), T));
 }
@@ -118,22 +123,26 @@ TEST(SelectLoopCandidatesTest, CoolingDownDropsOnlyTheQuerysOwnMap) {
 // that grows 0.15 degrees and 4 mm per keyframe.
 Pose Drifted(int i, int steps) {
   Pose drift = Pose::Identity();
-  drift.linear() = Eigen::AngleAxisd(0.15 * kDegree * i, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  drift.linear() =
+      Eigen::AngleAxisd(0.15 * kDegree * i, Eigen::Vector3d::UnitZ()).toRotationMatrix();
   drift.translation() = Eigen::Vector3d(0.004 * i, 0.002 * i, 0);
   return drift * CirclePose(i, steps);
 }
 
 // The matches verification would find between a revisit keyframe and the candidate: every
 // keypoint whose wall point the candidate also observes.
-LoopMatch TrueMatch(ServerKeyframe* query, ServerKeyframe* candidate, const Pose& T_candidate_query_true) {
+LoopMatch TrueMatch(ServerKeyframe* query, ServerKeyframe* candidate,
+                    const Pose& T_candidate_query_true) {
   LoopMatch match;
   match.query = query;
   match.candidate = candidate;
   match.T_candidate_map_query = candidate->T_map_cam * T_candidate_query_true;
   std::map<std::uint32_t, ServerMapPoint*> candidate_points;
-  for (ServerMapPoint* p : candidate->points) candidate_points[p->id.point.value() % testing::kRevisitPointIds] = p;
+  for (ServerMapPoint* p : candidate->points)
+    candidate_points[p->id.point.value() % testing::kRevisitPointIds] = p;
   for (std::size_t k = 0; k < query->points.size(); ++k) {
-    const auto it = candidate_points.find(query->points[k]->id.point.value() % testing::kRevisitPointIds);
+    const auto it =
+        candidate_points.find(query->points[k]->id.point.value() % testing::kRevisitPointIds);
     if (it != candidate_points.end()) match.matches.emplace_back(static_cast<int>(k), it->second);
   }
   match.inliers = static_cast<int>(match.matches.size());
@@ -146,11 +155,13 @@ TEST(LoopCorrectionTest, ALoopInsideAMapRemovesTheDriftAndMergesTheMatches) {
   constexpr int kSteps = 36;
   ServerMap map(MapId(1));
   for (int i = 0; i < kSteps; ++i) {
-    AddGeneratedKeyframe(&map, world, AgentId(1), i, CirclePose(i, kSteps), Drifted(i, kSteps), &rng);
+    AddGeneratedKeyframe(&map, world, AgentId(1), i, CirclePose(i, kSteps), Drifted(i, kSteps),
+                         &rng);
   }
   // Back at the start: keyframe 36 sees what keyframe 0 saw, as new points.
-  ServerKeyframe* query = AddGeneratedKeyframe(&map, world, AgentId(1), kSteps, CirclePose(0, kSteps),
-                                               Drifted(kSteps, kSteps), &rng, /*local_window=*/kSteps - 5);
+  ServerKeyframe* query =
+      AddGeneratedKeyframe(&map, world, AgentId(1), kSteps, CirclePose(0, kSteps),
+                           Drifted(kSteps, kSteps), &rng, /*local_window=*/kSteps - 5);
   ServerKeyframe* candidate = map.keyframe(Kf(1, 0));
   const double drift_before = TranslationDistance(query->T_map_cam, CirclePose(0, kSteps));
   ASSERT_GT(drift_before, 0.1);
@@ -158,7 +169,8 @@ TEST(LoopCorrectionTest, ALoopInsideAMapRemovesTheDriftAndMergesTheMatches) {
   ASSERT_GT(match.inliers, 50);
   const std::size_t points_before = map.num_points();
   std::size_t own_copies = 0;  // points the query made again, to be merged into the candidate's
-  for (const auto& [keypoint, point] : match.matches) own_copies += query->points[keypoint] != point;
+  for (const auto& [keypoint, point] : match.matches)
+    own_copies += query->points[keypoint] != point;
   ASSERT_GT(own_copies, 50u);
 
   const std::vector<ServerKeyframe*> moved = CloseLoopInMap(&map, match, MapPoseGraphOptions());
@@ -175,8 +187,10 @@ TEST(LoopCorrectionTest, ALoopInsideAMapRemovesTheDriftAndMergesTheMatches) {
   EXPECT_EQ(std::count(moved.begin(), moved.end(), query), 1);
   EXPECT_GE(moved.size(), static_cast<std::size_t>(kSteps / 2));
   // Halfway round, the correction is about half the drift: the error is spread.
-  const double halfway = TranslationDistance(map.keyframe(Kf(1, kSteps / 2))->T_map_cam, CirclePose(kSteps / 2, kSteps));
-  EXPECT_LT(halfway, TranslationDistance(Drifted(kSteps / 2, kSteps), CirclePose(kSteps / 2, kSteps)));
+  const double halfway = TranslationDistance(map.keyframe(Kf(1, kSteps / 2))->T_map_cam,
+                                             CirclePose(kSteps / 2, kSteps));
+  EXPECT_LT(halfway,
+            TranslationDistance(Drifted(kSteps / 2, kSteps), CirclePose(kSteps / 2, kSteps)));
 }
 
 TEST(LoopCorrectionTest, FusionBringsTheOtherMapIntoThePrimaryMapsFrame) {
@@ -186,7 +200,9 @@ TEST(LoopCorrectionTest, FusionBringsTheOtherMapIntoThePrimaryMapsFrame) {
   MapManager maps;
   {
     MapManager::Guard first = maps.CheckOutAgent(AgentId(1));  // the primary map, world frame
-    for (int i = 0; i < 8; ++i) AddGeneratedKeyframe(first.get(), world, AgentId(1), i, CirclePose(i, kSteps), CirclePose(i, kSteps), &rng);
+    for (int i = 0; i < 8; ++i)
+      AddGeneratedKeyframe(first.get(), world, AgentId(1), i, CirclePose(i, kSteps),
+                           CirclePose(i, kSteps), &rng);
   }
   const Pose T_map2_world = Offset(2.0, 70);  // agent 2 starts its own map elsewhere
   {
@@ -212,7 +228,8 @@ TEST(LoopCorrectionTest, FusionBringsTheOtherMapIntoThePrimaryMapsFrame) {
   EXPECT_EQ(fusion.joined_primary.size(), 5u);
   for (ServerKeyframe* kf : fusion.joined_primary) {
     EXPECT_EQ(kf->id.agent, AgentId(2));
-    EXPECT_LT(TranslationDistance(kf->T_map_cam, CirclePose(4 + kf->id.keyframe.value(), kSteps)), 1e-6);
+    EXPECT_LT(TranslationDistance(kf->T_map_cam, CirclePose(4 + kf->id.keyframe.value(), kSteps)),
+              1e-6);
   }
   EXPECT_EQ(fusion.map->keyframes().size(), 13u);
   EXPECT_EQ(fusion.map->loop_edges().size(), 1u);
@@ -227,20 +244,26 @@ TEST(LoopCorrectionTest, FusingTwoMapsThatAreNotPrimaryKeepsTheCandidatesFrame) 
   const Pose T_map3 = Offset(1.0, 30), T_map2 = Offset(-1.5, -40);
   {
     MapManager::Guard a = maps.CheckOutAgent(AgentId(2));
-    for (int i = 0; i < 4; ++i) AddGeneratedKeyframe(a.get(), world, AgentId(2), i, CirclePose(i, 24), T_map2 * CirclePose(i, 24), &rng);
+    for (int i = 0; i < 4; ++i)
+      AddGeneratedKeyframe(a.get(), world, AgentId(2), i, CirclePose(i, 24),
+                           T_map2 * CirclePose(i, 24), &rng);
   }
   {
     MapManager::Guard b = maps.CheckOutAgent(AgentId(3));
-    for (int i = 0; i < 4; ++i) AddGeneratedKeyframe(b.get(), world, AgentId(3), i, CirclePose(i, 24), T_map3 * CirclePose(i, 24), &rng);
+    for (int i = 0; i < 4; ++i)
+      AddGeneratedKeyframe(b.get(), world, AgentId(3), i, CirclePose(i, 24),
+                           T_map3 * CirclePose(i, 24), &rng);
   }
   auto [query_guard, candidate_guard] = maps.CheckOutPair(MapId(3), MapId(2));
   ServerKeyframe* query = query_guard->keyframe(Kf(3, 1));
   ServerKeyframe* candidate = candidate_guard->keyframe(Kf(2, 1));
-  MapFusion fusion = FuseMapsByLoop(&maps, &query_guard, &candidate_guard, TrueMatch(query, candidate, Pose::Identity()));
+  MapFusion fusion = FuseMapsByLoop(&maps, &query_guard, &candidate_guard,
+                                    TrueMatch(query, candidate, Pose::Identity()));
   EXPECT_FALSE(fusion.primary_before.has_value());
   EXPECT_TRUE(fusion.joined_primary.empty());
   EXPECT_EQ(maps.primary(), MapId(1));
-  EXPECT_LT(TranslationDistance(query->T_map_cam, T_map2 * CirclePose(1, 24)), 1e-6);  // candidate's frame
+  EXPECT_LT(TranslationDistance(query->T_map_cam, T_map2 * CirclePose(1, 24)),
+            1e-6);  // candidate's frame
 }
 
 // What LoopCloser::Process closed for one keyframe (the closure's map guard released at once).
@@ -259,7 +282,8 @@ std::vector<ProcessResult> WalkPastTheStart(int cooldown_keyframes) {
   // Training images: the wall in 40 parts (one image would give every word a zero weight).
   std::vector<cv::Mat> images(40, cv::Mat(0, 32, CV_8U));
   for (std::size_t j = 0; j < world.descriptors.size(); ++j) {
-    images[j % 40].push_back(cv::Mat(1, 32, CV_8U, const_cast<std::uint8_t*>(world.descriptors[j].data())));
+    images[j % 40].push_back(
+        cv::Mat(1, 32, CV_8U, const_cast<std::uint8_t*>(world.descriptors[j].data())));
   }
   VocabularyOptions vocabulary_options;
   vocabulary_options.depth = 3;
@@ -278,10 +302,12 @@ std::vector<ProcessResult> WalkPastTheStart(int cooldown_keyframes) {
   for (int id = 0; id < kSteps + 8; ++id) {
     {
       MapManager::Guard guard = maps.CheckOutAgent(AgentId(1));
-      AddGeneratedKeyframe(guard.get(), world, AgentId(1), id, CirclePose(id % kSteps, kSteps), Drifted(id, kSteps),
-                           &rng, id < kSteps ? std::nullopt : std::optional<std::uint32_t>(id - 5));
+      AddGeneratedKeyframe(guard.get(), world, AgentId(1), id, CirclePose(id % kSteps, kSteps),
+                           Drifted(id, kSteps), &rng,
+                           id < kSteps ? std::nullopt : std::optional<std::uint32_t>(id - 5));
     }
-    std::optional<LoopClosure> closure = closer.Process(Kf(1, id), testing::TestCamera(), /*stored=*/false);
+    std::optional<LoopClosure> closure =
+        closer.Process(Kf(1, id), testing::TestCamera(), /*stored=*/false);
     ProcessResult r;
     if (closure) r = {true, closure->event, closure->moved.size()};
     results.push_back(r);

@@ -42,19 +42,20 @@ void ExpectQueryPoseRecovered(const PinholeCamera& camera) {
     world.emplace_back(rng.Uniform(-1.5, 1.5), rng.Uniform(-1, 1), rng.Uniform(2, 4));
     descriptors.push_back(RandomDescriptor(&rng));
     const Eigen::Vector2d uv = camera.Project(world.back());
-    candidate->AppendKeypoint({cv::Point2f(uv.x(), uv.y()), 0, static_cast<float>(world.back().z())},
-                              descriptors.back());
+    candidate->AppendKeypoint(
+        {cv::Point2f(uv.x(), uv.y()), 0, static_cast<float>(world.back().z())}, descriptors.back());
   }
   ServerKeyframe* cand = map.AddKeyframe(std::move(candidate));
   for (int j = 0; j < 400; ++j) {
-    ServerMapPoint* p = map.AddPoint(std::make_unique<ServerMapPoint>(GlobalMapPointId{AgentId(1), MapPointId(j)}, cand,
-                                                                      world[j], descriptors[j]));
+    ServerMapPoint* p = map.AddPoint(std::make_unique<ServerMapPoint>(
+        GlobalMapPointId{AgentId(1), MapPointId(j)}, cand, world[j], descriptors[j]));
     map.AddObservation(p, cand, j);
   }
   // Query: another agent's keyframe at a known pose, seeing the same points (noisy pixels and
   // depth, descriptors with a few flipped bits); a third of its keypoints are unrelated.
   Pose T_map_query = Pose::Identity();
-  T_map_query.linear() = Eigen::AngleAxisd(0.15, Eigen::Vector3d(0.2, 1, 0).normalized()).toRotationMatrix();
+  T_map_query.linear() =
+      Eigen::AngleAxisd(0.15, Eigen::Vector3d(0.2, 1, 0).normalized()).toRotationMatrix();
   T_map_query.translation() = Eigen::Vector3d(0.3, -0.1, 0.2);
   ServerKeyframe query;
   query.id = {AgentId(2), KeyframeId(7)};
@@ -63,7 +64,8 @@ void ExpectQueryPoseRecovered(const PinholeCamera& camera) {
     const Eigen::Vector3d pc = T_map_query.inverse() * world[j];
     const Eigen::Vector2d uv = camera.Project(pc);
     if (!camera.InImage(uv) || j % 3 == 0) {
-      query.AppendKeypoint({cv::Point2f(rng.Uniform(0, 640), rng.Uniform(0, 480)), 0, static_cast<float>(rng.Uniform(1, 4))},
+      query.AppendKeypoint({cv::Point2f(rng.Uniform(0, 640), rng.Uniform(0, 480)), 0,
+                            static_cast<float>(rng.Uniform(1, 4))},
                            RandomDescriptor(&rng));
       continue;
     }
@@ -79,15 +81,20 @@ void ExpectQueryPoseRecovered(const PinholeCamera& camera) {
   EXPECT_GE(match->inliers, 0.9 * true_matches);
   EXPECT_LE(match->inliers, true_matches);
   for (const auto& [keypoint, point] : match->matches) {
-    EXPECT_EQ(point->id.point.value(), static_cast<std::uint32_t>(keypoint));  // keypoint j saw point j
+    EXPECT_EQ(point->id.point.value(),
+              static_cast<std::uint32_t>(keypoint));  // keypoint j saw point j
   }
 }
 
-TEST(LoopVerificationTest, RecoversTheQueryPoseDespiteOutliers) { ExpectQueryPoseRecovered(Camera()); }
+TEST(LoopVerificationTest, RecoversTheQueryPoseDespiteOutliers) {
+  ExpectQueryPoseRecovered(Camera());
+}
 
 // The PnP RANSAC and the refinement take the signed focal length: a camera with fy < 0 finds
 // the same pose, not its mirror image.
-TEST(LoopVerificationTest, NegativeFocalLengthGivesTheSamePose) { ExpectQueryPoseRecovered(testing::IclNuimCamera()); }
+TEST(LoopVerificationTest, NegativeFocalLengthGivesTheSamePose) {
+  ExpectQueryPoseRecovered(testing::IclNuimCamera());
+}
 
 TEST(LoopVerificationTest, UnrelatedViewsAreRejected) {
   Rng rng(42);
@@ -96,19 +103,22 @@ TEST(LoopVerificationTest, UnrelatedViewsAreRejected) {
   auto candidate = std::make_unique<ServerKeyframe>();
   candidate->id = {AgentId(1), KeyframeId(0)};
   for (int j = 0; j < 300; ++j) {
-    candidate->AppendKeypoint({cv::Point2f(rng.Uniform(0, 640), rng.Uniform(0, 480)), 0, 2.0f}, RandomDescriptor(&rng));
+    candidate->AppendKeypoint({cv::Point2f(rng.Uniform(0, 640), rng.Uniform(0, 480)), 0, 2.0f},
+                              RandomDescriptor(&rng));
   }
   ServerKeyframe* cand = map.AddKeyframe(std::move(candidate));
   for (int j = 0; j < 300; ++j) {
     const cv::Point2f& pt = cand->keypoints[j].pt;
-    ServerMapPoint* p = map.AddPoint(std::make_unique<ServerMapPoint>(GlobalMapPointId{AgentId(1), MapPointId(j)}, cand,
-                                                                      camera.BackProject(pt.x, pt.y, 2.0), cand->descriptor(j)));
+    ServerMapPoint* p = map.AddPoint(
+        std::make_unique<ServerMapPoint>(GlobalMapPointId{AgentId(1), MapPointId(j)}, cand,
+                                         camera.BackProject(pt.x, pt.y, 2.0), cand->descriptor(j)));
     map.AddObservation(p, cand, j);
   }
   ServerKeyframe query;
   query.id = {AgentId(2), KeyframeId(1)};
   for (int j = 0; j < 300; ++j) {
-    query.AppendKeypoint({cv::Point2f(rng.Uniform(0, 640), rng.Uniform(0, 480)), 0, 2.0f}, RandomDescriptor(&rng));
+    query.AppendKeypoint({cv::Point2f(rng.Uniform(0, 640), rng.Uniform(0, 480)), 0, 2.0f},
+                         RandomDescriptor(&rng));
   }
   EXPECT_FALSE(VerifyLoop(&query, camera, cand, map).has_value());
 }

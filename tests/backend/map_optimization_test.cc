@@ -20,12 +20,15 @@ using testing::MakeRingWorld;
 
 constexpr double kDegree = M_PI / 180;
 
-GlobalKeyframeId Kf(int keyframe) { return {AgentId(1), KeyframeId(static_cast<std::uint32_t>(keyframe))}; }
+GlobalKeyframeId Kf(int keyframe) {
+  return {AgentId(1), KeyframeId(static_cast<std::uint32_t>(keyframe))};
+}
 
 // 0.2 degrees and 5 mm more per keyframe.
 Pose Drift(int i) {
   Pose drift = Pose::Identity();
-  drift.linear() = Eigen::AngleAxisd(0.2 * kDegree * i, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  drift.linear() =
+      Eigen::AngleAxisd(0.2 * kDegree * i, Eigen::Vector3d::UnitZ()).toRotationMatrix();
   drift.translation() = Eigen::Vector3d(0.005 * i, 0, 0.001 * i);
   return drift;
 }
@@ -36,14 +39,16 @@ TEST(MapPoseGraphTest, ALoopEdgeSpreadsTheCorrectionAndTheOriginStays) {
   constexpr int kSteps = 30;
   ServerMap map(MapId(1));
   for (int i = 0; i < kSteps; ++i) {
-    AddGeneratedKeyframe(&map, world, AgentId(1), i, CirclePose(i, kSteps), Drift(i) * CirclePose(i, kSteps), &rng);
+    AddGeneratedKeyframe(&map, world, AgentId(1), i, CirclePose(i, kSteps),
+                         Drift(i) * CirclePose(i, kSteps), &rng);
   }
   // Keyframe 30 is where keyframe 0 is (the true relative pose is the identity); the agent
   // made new points there.
-  AddGeneratedKeyframe(&map, world, AgentId(1), kSteps, CirclePose(0, kSteps), Drift(kSteps) * CirclePose(0, kSteps),
-                       &rng, /*local_window=*/kSteps - 5);
+  AddGeneratedKeyframe(&map, world, AgentId(1), kSteps, CirclePose(0, kSteps),
+                       Drift(kSteps) * CirclePose(0, kSteps), &rng, /*local_window=*/kSteps - 5);
   map.AddLoopEdge({Kf(0), Kf(kSteps), Pose::Identity()});
-  const double before = TranslationDistance(map.keyframe(Kf(kSteps))->T_map_cam, CirclePose(0, kSteps));
+  const double before =
+      TranslationDistance(map.keyframe(Kf(kSteps))->T_map_cam, CirclePose(0, kSteps));
   ASSERT_GT(before, 0.15);
 
   auto moved = OptimizeMapPoseGraph(&map);
@@ -72,10 +77,12 @@ TEST(MapPoseGraphTest, AConsistentMapIsLeftAlone) {
   const GeneratedWorld world = MakeRingWorld(1500, &rng);
   ServerMap map(MapId(1));
   for (int i = 0; i < 12; ++i) {
-    AddGeneratedKeyframe(&map, world, AgentId(1), i, CirclePose(i, 30), Drift(i) * CirclePose(i, 30), &rng);
+    AddGeneratedKeyframe(&map, world, AgentId(1), i, CirclePose(i, 30),
+                         Drift(i) * CirclePose(i, 30), &rng);
   }
   // A loop edge that agrees with the map as it is.
-  map.AddLoopEdge({Kf(2), Kf(9), map.keyframe(Kf(2))->T_map_cam.inverse() * map.keyframe(Kf(9))->T_map_cam});
+  map.AddLoopEdge(
+      {Kf(2), Kf(9), map.keyframe(Kf(2))->T_map_cam.inverse() * map.keyframe(Kf(9))->T_map_cam});
   auto moved = OptimizeMapPoseGraph(&map);
   ASSERT_TRUE(moved.ok());
   for (ServerKeyframe* kf : *moved) {
@@ -89,7 +96,9 @@ TEST(GlobalBaTest, APerturbedKeyframeReturnsAndLateKeyframesFollowTheirNeighbour
   const GeneratedWorld world = MakeRingWorld(2500, &rng);
   constexpr int kSteps = 40;
   ServerMap map(MapId(1));
-  for (int i = 0; i < 8; ++i) AddGeneratedKeyframe(&map, world, AgentId(1), i, CirclePose(i, kSteps), CirclePose(i, kSteps), &rng);
+  for (int i = 0; i < 8; ++i)
+    AddGeneratedKeyframe(&map, world, AgentId(1), i, CirclePose(i, kSteps), CirclePose(i, kSteps),
+                         &rng);
   // Keyframe 5 is 4 cm and 1 degree off; its points were anchored with the true view, so
   // the ones only it sees move with it and are not in the problem.
   Pose error = Pose::Identity();
@@ -103,14 +112,16 @@ TEST(GlobalBaTest, APerturbedKeyframeReturnsAndLateKeyframesFollowTheirNeighbour
   EXPECT_EQ(problem.keyframes.size(), 8u);
   std::size_t seen_twice = 0;
   for (const auto& [id, kf] : map.keyframes()) {
-    for (ServerMapPoint* p : kf->points) seen_twice += p && p->anchor == kf.get() && p->observations.size() >= 2;
+    for (ServerMapPoint* p : kf->points)
+      seen_twice += p && p->anchor == kf.get() && p->observations.size() >= 2;
   }
   EXPECT_EQ(problem.points.size(), seen_twice);
   EXPECT_LT(problem.points.size(), map.num_points());
   EXPECT_TRUE(problem.problem.cameras[0].fixed);  // the origin
 
   // Keyframe 8 arrives while the problem is solved, placed relative to keyframe 7.
-  ServerKeyframe* late = AddGeneratedKeyframe(&map, world, AgentId(1), 8, CirclePose(8, kSteps), CirclePose(8, kSteps), &rng);
+  ServerKeyframe* late = AddGeneratedKeyframe(&map, world, AgentId(1), 8, CirclePose(8, kSteps),
+                                              CirclePose(8, kSteps), &rng);
   const Pose late_before = late->T_map_cam;
   BaOptions ba;
   ba.solver = BaLinearSolver::kSparseSchur;
@@ -131,11 +142,14 @@ TEST(GlobalBaTest, AWindowAroundALoopOptimisesOnlyItsKeyframes) {
   const GeneratedWorld world = MakeRingWorld(4000, &rng);
   constexpr int kSteps = 60;
   ServerMap map(MapId(1));
-  for (int i = 0; i < 30; ++i) AddGeneratedKeyframe(&map, world, AgentId(1), i, CirclePose(i, kSteps), CirclePose(i, kSteps), &rng);
+  for (int i = 0; i < 30; ++i)
+    AddGeneratedKeyframe(&map, world, AgentId(1), i, CirclePose(i, kSteps), CirclePose(i, kSteps),
+                         &rng);
   const std::set<GlobalKeyframeId> window = SelectGlobalBaWindow(map, {Kf(15), Kf(16)}, 8);
   ASSERT_EQ(window.size(), 8u);
   EXPECT_TRUE(window.count(Kf(15)) && window.count(Kf(16)));
-  for (const GlobalKeyframeId& id : window) EXPECT_LE(std::abs(static_cast<int>(id.keyframe.value()) - 15), 6);
+  for (const GlobalKeyframeId& id : window)
+    EXPECT_LE(std::abs(static_cast<int>(id.keyframe.value()) - 15), 6);
   EXPECT_FALSE(window.count(Kf(0)));  // the origin is far away
 
   Pose error = Pose::Identity();

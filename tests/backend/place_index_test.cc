@@ -43,7 +43,9 @@ cv::Mat ToMat(const std::vector<Descriptor>& descriptors) {
   return m;
 }
 
-GlobalKeyframeId Kf(int keyframe) { return {AgentId(1), KeyframeId(static_cast<std::uint32_t>(keyframe))}; }
+GlobalKeyframeId Kf(int keyframe) {
+  return {AgentId(1), KeyframeId(static_cast<std::uint32_t>(keyframe))};
+}
 
 const auto kAcceptAll = [](const GlobalKeyframeId&) { return true; };
 

@@ -23,7 +23,8 @@ WirePose ToWire(const Pose& T) {
 }
 
 // A keyframe message with one new map point 2 m in front of the camera.
-KeyframeMessage Message(std::uint32_t id, const Pose& T_world_cam, std::optional<std::uint32_t> parent) {
+KeyframeMessage Message(std::uint32_t id, const Pose& T_world_cam,
+                        std::optional<std::uint32_t> parent) {
   KeyframeMessage m;
   m.id = KeyframeId(id);
   m.timestamp = id;
@@ -97,7 +98,8 @@ TEST(ServerMapTest, DepthLinksBecomeRelativePosesInTheGlobalBa) {
   ASSERT_TRUE(k1.ok());
   ASSERT_EQ((*k1)->depth_links.size(), 2u);
   const auto& stored = (*k1)->depth_links[0];
-  EXPECT_LT(((stored.sqrt_information.transpose() * stored.sqrt_information) - information).norm(), 1e-3);
+  EXPECT_LT(((stored.sqrt_information.transpose() * stored.sqrt_information) - information).norm(),
+            1e-3);
 
   const GlobalBaProblem g = BuildGlobalBa(map, {{agent, PinholeCamera()}}, DepthNoise());
   ASSERT_EQ(g.problem.relative_poses.size(), 1u);
@@ -113,14 +115,20 @@ TEST(MapManagerTest, FusionPlacesTheOtherMapByTheTransform) {
   std::vector<Pose> poses_b;
   {
     auto guard = maps.CheckOutAgent(a);
-    ASSERT_TRUE(AddKeyframeMessage(guard.get(), a, Message(0, Pose::Identity(), std::nullopt), Pose::Identity()).ok());
+    ASSERT_TRUE(AddKeyframeMessage(guard.get(), a, Message(0, Pose::Identity(), std::nullopt),
+                                   Pose::Identity())
+                    .ok());
   }
   {
     auto guard = maps.CheckOutAgent(b);
     for (std::uint32_t i = 0; i < 3; ++i) {
       poses_b.push_back(MakePose(0.2 * i, {0.5 * i, 0, 0}));
-      ASSERT_TRUE(AddKeyframeMessage(guard.get(), b, Message(i, poses_b.back(), i ? std::optional<std::uint32_t>(i - 1) : std::nullopt),
-                                     Pose::Identity()).ok());
+      ASSERT_TRUE(
+          AddKeyframeMessage(
+              guard.get(), b,
+              Message(i, poses_b.back(), i ? std::optional<std::uint32_t>(i - 1) : std::nullopt),
+              Pose::Identity())
+              .ok());
     }
   }
   EXPECT_EQ(*maps.primary(), MapId(1));

@@ -19,9 +19,9 @@
 #include "libccmd/sensors/source_factory.h"
 #include "libccmd/tracking/frontend.h"
 #include "libccmd/tracking/keyframe_message.h"
+#include "libccmd/util/file_util.h"
 #include "libccmd/util/json.h"
 #include "libccmd/util/logging.h"
-#include "libccmd/util/file_util.h"
 #include "libccmd/util/percentile.h"
 #include "libccmd/util/timer.h"
 #include "tests/bench_backend/loop_eval.h"
@@ -54,8 +54,10 @@ constexpr int kGroundTruthDepthShrink = 4;
 
 cv::Mat SmallDepthMetres(const cv::Mat& depth_mm) {
   cv::Mat small, metres;
-  cv::resize(depth_mm, small, cv::Size(depth_mm.cols / kGroundTruthDepthShrink, depth_mm.rows / kGroundTruthDepthShrink),
-             0, 0, cv::INTER_NEAREST);
+  cv::resize(
+      depth_mm, small,
+      cv::Size(depth_mm.cols / kGroundTruthDepthShrink, depth_mm.rows / kGroundTruthDepthShrink), 0,
+      0, cv::INTER_NEAREST);
   small.convertTo(metres, CV_32F, 1e-3);
   return metres;
 }
@@ -87,20 +89,23 @@ Json LatencyJson(const LatencySummary& s) {
 // and the global BA runs. The keyframes that arrived without a global BA are the reference.
 Json ReportTimings(const BackendTimings& t) {
   std::vector<double> during, without;
-  for (std::size_t i = 0; i < t.intake_ms.size(); ++i) (t.intake_during_gba[i] ? during : without).push_back(t.intake_ms[i]);
+  for (std::size_t i = 0; i < t.intake_ms.size(); ++i)
+    (t.intake_during_gba[i] ? during : without).push_back(t.intake_ms[i]);
   const LatencySummary d = Summarize(during), w = Summarize(without), all = Summarize(t.intake_ms);
   std::printf("keyframe intake latency (submission to insertion into its map), ms:\n");
   std::printf("  %-28s %9s %8s %8s %8s\n", "", "keyframes", "median", "p95", "max");
-  std::printf("  %-28s %9zu %8.1f %8.1f %8.1f\n", "no global BA running", w.count, w.median, w.p95, w.max);
-  std::printf("  %-28s %9zu %8.1f %8.1f %8.1f\n", "while a global BA ran", d.count, d.median, d.p95, d.max);
+  std::printf("  %-28s %9zu %8.1f %8.1f %8.1f\n", "no global BA running", w.count, w.median, w.p95,
+              w.max);
+  std::printf("  %-28s %9zu %8.1f %8.1f %8.1f\n", "while a global BA ran", d.count, d.median, d.p95,
+              d.max);
   std::printf("  %-28s %9zu %8.1f %8.1f %8.1f\n", "all", all.count, all.median, all.p95, all.max);
   Json j;
   j["without_gba"] = LatencyJson(w);
   j["during_gba"] = LatencyJson(d);
   j["all"] = LatencyJson(all);
   if (d.count > 0 && w.count > 0 && w.median > 0 && w.p95 > 0) {
-    std::printf("  during / without global BA: median %.2f, p95 %.2f, max %.2f\n", d.median / w.median, d.p95 / w.p95,
-                w.max > 0 ? d.max / w.max : 0.0);
+    std::printf("  during / without global BA: median %.2f, p95 %.2f, max %.2f\n",
+                d.median / w.median, d.p95 / w.p95, w.max > 0 ? d.max / w.max : 0.0);
     j["ratio_median"] = d.median / w.median;
     j["ratio_p95"] = d.p95 / w.p95;
   }
@@ -109,11 +114,14 @@ Json ReportTimings(const BackendTimings& t) {
   for (char a : t.global_ba_applied) applied += a != 0;
   double total = 0;
   for (double r : runs) total += r;
-  std::printf("global BA: %zu runs (%d applied, %zu abandoned for newer loops), %.2f s in all, median %.2f s, "
-              "max %.2f s; runs:",
-              runs.size(), applied, runs.size() - applied, total, Percentile(runs, 0.5),
-              runs.empty() ? 0.0 : *std::max_element(runs.begin(), runs.end()));
-  for (std::size_t i = 0; i < runs.size(); ++i) std::printf(" %.2f%s", runs[i], t.global_ba_applied[i] ? "" : "*");
+  std::printf(
+      "global BA: %zu runs (%d applied, %zu abandoned for newer loops), %.2f s in all, median %.2f "
+      "s, "
+      "max %.2f s; runs:",
+      runs.size(), applied, runs.size() - applied, total, Percentile(runs, 0.5),
+      runs.empty() ? 0.0 : *std::max_element(runs.begin(), runs.end()));
+  for (std::size_t i = 0; i < runs.size(); ++i)
+    std::printf(" %.2f%s", runs[i], t.global_ba_applied[i] ? "" : "*");
   std::printf("%s\n", applied < static_cast<int>(runs.size()) ? " (* abandoned)" : "");
   Json g;
   g["runs"] = runs.size();
@@ -196,7 +204,8 @@ int main(int argc, char** argv) {
   app.add_option("--json", json_path, "Write results as JSON");
   app.add_option("--out", out_dir, "Write trajectories and the dense map here");
   app.add_option("--vocabulary", vocabulary_path,
-                 "Vocabulary file (default: the build's, as ccmd_server uses); empty or missing: trained online")
+                 "Vocabulary file (default: the build's, as ccmd_server uses); empty or missing: "
+                 "trained online")
       ->capture_default_str();
   app.add_flag("--no-gba", no_gba, "Disable global BA");
   app.add_flag("--no-dense", no_dense, "Disable the dense map");
@@ -205,9 +214,10 @@ int main(int argc, char** argv) {
                  "Inliers a verified loop needs after refinement")
       ->capture_default_str()
       ->check(CLI::Range(6, 1000));
-  app.add_flag("--loop-eval", loop_eval,
-               "Also measure the loop detector offline: every keyframe queried and its candidates verified, "
-               "precision and recall against ground truth");
+  app.add_flag(
+      "--loop-eval", loop_eval,
+      "Also measure the loop detector offline: every keyframe queried and its candidates verified, "
+      "precision and recall against ground truth");
   CLI11_PARSE(app, argc, argv);
 
   options.global_ba = !no_gba;
@@ -223,13 +233,16 @@ int main(int argc, char** argv) {
     std::printf("vocabulary %s: %d words, fingerprint %08x\n", vocabulary_path.c_str(),
                 options.place.vocabulary->word_count(), options.place.vocabulary->Fingerprint());
   } else {
-    std::printf("no vocabulary file%s%s: trained online from the keyframes\n", vocabulary_path.empty() ? "" : " at ",
-                vocabulary_path.c_str());
+    std::printf("no vocabulary file%s%s: trained online from the keyframes\n",
+                vocabulary_path.empty() ? "" : " at ", vocabulary_path.c_str());
   }
-  std::printf("loop detection: %d candidates verified per query, >= %d inliers after refinement (%d RANSAC, %d "
-              "matches), %d consistent keyframes, same-agent neighbours within %d ids excluded\n",
-              options.loops.loop_candidates, options.loops.verification.min_inliers, options.loops.verification.min_ransac_inliers,
-              options.loops.verification.min_matches, options.loops.loop_consistency, options.loops.exclude_recent_keyframes);
+  std::printf(
+      "loop detection: %d candidates verified per query, >= %d inliers after refinement (%d "
+      "RANSAC, %d "
+      "matches), %d consistent keyframes, same-agent neighbours within %d ids excluded\n",
+      options.loops.loop_candidates, options.loops.verification.min_inliers,
+      options.loops.verification.min_ransac_inliers, options.loops.verification.min_matches,
+      options.loops.loop_consistency, options.loops.exclude_recent_keyframes);
   auto backend = Backend::Create(options);
   if (!backend.ok()) {
     std::fprintf(stderr, "%s\n", backend.status().ToString().c_str());
@@ -250,10 +263,13 @@ int main(int argc, char** argv) {
     }
     for (const auto& p : (*source)->GroundTruth()) ground_truth.push_back(p);
     cameras[AgentId(i + 1)] = (*source)->camera();
-    (*backend)->RegisterAgent(AgentId(i + 1), "agent" + std::to_string(i + 1), (*source)->camera()).IgnoreError();
+    (*backend)
+        ->RegisterAgent(AgentId(i + 1), "agent" + std::to_string(i + 1), (*source)->camera())
+        .IgnoreError();
     sources.push_back(std::move(source).value());
   }
-  std::sort(ground_truth.begin(), ground_truth.end(), [](auto& a, auto& b) { return a.timestamp < b.timestamp; });
+  std::sort(ground_truth.begin(), ground_truth.end(),
+            [](auto& a, auto& b) { return a.timestamp < b.timestamp; });
   ground_truth.erase(std::unique(ground_truth.begin(), ground_truth.end(),
                                  [](auto& a, auto& b) { return a.timestamp == b.timestamp; }),
                      ground_truth.end());
@@ -293,14 +309,15 @@ int main(int argc, char** argv) {
   result["total_seconds"] = total_seconds;
   const auto maps = (*backend)->Maps();
   result["maps_after_fusion"] = maps.size();
-  std::printf("%d agents: %.1f s tracking, %.1f s until the back-end was idle; %zu map(s) left\n", agents,
-              agents_seconds, total_seconds, maps.size());
+  std::printf("%d agents: %.1f s tracking, %.1f s until the back-end was idle; %zu map(s) left\n",
+              agents, agents_seconds, total_seconds, maps.size());
   const Trajectory fused = (*backend)->FusedTrajectory();
   auto ate = ComputeAte(ground_truth, fused);
   if (ate.ok()) {
     result["fused_ate_rmse_m"] = ate->error.rmse;
     result["fused_keyframes"] = ate->matched;
-    std::printf("fused trajectory (primary map): %zu keyframes, ATE rmse %.4f m\n", ate->matched, ate->error.rmse);
+    std::printf("fused trajectory (primary map): %zu keyframes, ATE rmse %.4f m\n", ate->matched,
+                ate->error.rmse);
   }
   Json per_agent = Json::MakeArray();
   for (int i = 0; i < agents; ++i) {
@@ -313,23 +330,30 @@ int main(int argc, char** argv) {
     a["bytes"] = sinks[i]->bytes_;
     if (agent_ate.ok()) a["ate_rmse_m"] = agent_ate->error.rmse;
     if (frames_ate.ok()) a["agent_frames_ate_rmse_m"] = frames_ate->error.rmse;
-    std::printf("agent %d: %d keyframes, %.1f kB/keyframe, server ATE %.4f m, agent-side ATE %.4f m, %s\n", i + 1,
-                sinks[i]->keyframes_, sinks[i]->bytes_ / 1e3 / std::max(1, sinks[i]->keyframes_),
-                agent_ate.ok() ? agent_ate->error.rmse : -1.0, frames_ate.ok() ? frames_ate->error.rmse : -1.0,
-                a["in_primary_map"].boolean() ? "in the primary map" : "NOT fused");
+    std::printf(
+        "agent %d: %d keyframes, %.1f kB/keyframe, server ATE %.4f m, agent-side ATE %.4f m, %s\n",
+        i + 1, sinks[i]->keyframes_, sinks[i]->bytes_ / 1e3 / std::max(1, sinks[i]->keyframes_),
+        agent_ate.ok() ? agent_ate->error.rmse : -1.0,
+        frames_ate.ok() ? frames_ate->error.rmse : -1.0,
+        a["in_primary_map"].boolean() ? "in the primary map" : "NOT fused");
     const KeyframeSizeBreakdown& b = sinks[i]->parts_;
     const double n = std::max(1, sinks[i]->keyframes_) * 1e3;
-    std::printf("   per keyframe (kB): pose %.2f keypoints %.1f descriptors %.1f map points %.1f colour %.1f depth %.1f other %.1f; RGB-D sent with %d of %d\n",
-                b.pose / n, b.keypoints / n, b.descriptors / n, b.map_points / n, b.colour / n, b.depth / n,
-                b.other / n, sinks[i]->rgbd_keyframes_, sinks[i]->keyframes_);
+    std::printf(
+        "   per keyframe (kB): pose %.2f keypoints %.1f descriptors %.1f map points %.1f colour "
+        "%.1f depth %.1f other %.1f; RGB-D sent with %d of %d\n",
+        b.pose / n, b.keypoints / n, b.descriptors / n, b.map_points / n, b.colour / n, b.depth / n,
+        b.other / n, sinks[i]->rgbd_keyframes_, sinks[i]->keyframes_);
     a["rgbd_keyframes"] = sinks[i]->rgbd_keyframes_;
     per_agent.Push(a);
   }
   result["agents"] = per_agent;
   const BackendStats s = (*backend)->stats();
-  std::printf("loops %d, fusions %d, global BA %d (%.1f s), intake median %.1f ms p99 %.1f ms; during GBA: %zu keyframes, median %.1f ms max %.1f ms\n",
-              s.loops, s.fusions, s.global_ba_runs, s.global_ba_seconds, s.intake_ms_median, s.intake_ms_p99,
-              s.intake_during_gba_count, s.intake_during_gba_ms_median, s.intake_during_gba_ms_max);
+  std::printf(
+      "loops %d, fusions %d, global BA %d (%.1f s), intake median %.1f ms p99 %.1f ms; during GBA: "
+      "%zu keyframes, median %.1f ms max %.1f ms\n",
+      s.loops, s.fusions, s.global_ba_runs, s.global_ba_seconds, s.intake_ms_median,
+      s.intake_ms_p99, s.intake_during_gba_count, s.intake_during_gba_ms_median,
+      s.intake_during_gba_ms_max);
   result["intake"] = ReportTimings((*backend)->timings());
 
   if (have_ground_truth) {
@@ -352,24 +376,30 @@ int main(int argc, char** argv) {
                 camera.Resized(depth->second.cols, depth->second.rows));
     }
     frame_depths.clear();
-    if (missing > 0) std::printf("%d keyframes without ground truth are left out of the loop checks\n", missing);
+    if (missing > 0)
+      std::printf("%d keyframes without ground truth are left out of the loop checks\n", missing);
     // How well the agents' own maps agree with the ground truth sets the tolerance a loop's
     // transform is judged with (at least the default).
     std::printf("loop checks against ground truth:\n");
     bench::TransformError p95;
-    result["covisible_pairs_error"] = bench::ReportCovisiblePairs(bench::CovisiblePairErrors(recorder.messages(), truth), &p95);
+    result["covisible_pairs_error"] =
+        bench::ReportCovisiblePairs(bench::CovisiblePairErrors(recorder.messages(), truth), &p95);
     const bench::PlaceGroundTruthOptions& defaults = truth.options();
     truth.SetTransformTolerance(std::max(defaults.max_translation_error, p95.translation),
                                 std::max(defaults.max_rotation_error_deg, p95.rotation_deg));
-    std::printf("  a loop's transform is right within %.1f mm and %.2f deg of the true one (the larger of the "
-                "default and the reference's p95)\n",
-                truth.options().max_translation_error * 1e3, truth.options().max_rotation_error_deg);
+    std::printf(
+        "  a loop's transform is right within %.1f mm and %.2f deg of the true one (the larger of "
+        "the "
+        "default and the reference's p95)\n",
+        truth.options().max_translation_error * 1e3, truth.options().max_rotation_error_deg);
     result["transform_tolerance_m"] = truth.options().max_translation_error;
     result["transform_tolerance_deg"] = truth.options().max_rotation_error_deg;
     const std::vector<LoopEvent> events = (*backend)->loop_events();
-    result["accepted_loops"] = bench::ReportLoopEvents(bench::CheckLoopEvents(events, truth), events);
+    result["accepted_loops"] =
+        bench::ReportLoopEvents(bench::CheckLoopEvents(events, truth), events);
     if (loop_eval) {
-      const bench::DetectorEvaluation evaluation = bench::EvaluateDetector(recorder.messages(), cameras, options, truth);
+      const bench::DetectorEvaluation evaluation =
+          bench::EvaluateDetector(recorder.messages(), cameras, options, truth);
       result["loop_detector"] = bench::ReportDetector(evaluation, truth);
     }
   }
@@ -378,7 +408,8 @@ int main(int argc, char** argv) {
     WriteTumTrajectory(fused, out_dir + "/trajectory_fused.txt").IgnoreError();
     for (int i = 0; i < agents; ++i) {
       WriteTumTrajectory((*backend)->AgentTrajectory(AgentId(i + 1)),
-                         out_dir + "/trajectory_agent" + std::to_string(i + 1) + ".txt").IgnoreError();
+                         out_dir + "/trajectory_agent" + std::to_string(i + 1) + ".txt")
+          .IgnoreError();
     }
     if (!no_dense) {
       const Status st = (*backend)->ExportDenseMap(out_dir + "/map.ply");

@@ -22,7 +22,9 @@ double Median(std::vector<double> v) {
   return v[v.size() / 2];
 }
 
-double Max(const std::vector<double>& v) { return v.empty() ? 0 : *std::max_element(v.begin(), v.end()); }
+double Max(const std::vector<double>& v) {
+  return v.empty() ? 0 : *std::max_element(v.begin(), v.end());
+}
 
 double Share(int part, int whole) { return whole > 0 ? static_cast<double>(part) / whole : 0; }
 
@@ -51,11 +53,13 @@ Json CheckJson(const LoopCheck& c) {
 }
 
 void PrintCheck(const char* label, const LoopCheck& c) {
-  std::printf("    %s %s ~ %s: %d inliers, centres %.2f m and axes %.0f deg apart, overlap %.2f (%s), transform "
-              "error %.1f mm %.2f deg\n",
-              label, Name(c.query).c_str(), Name(c.candidate).c_str(), c.inliers, c.relation.distance,
-              c.relation.angle_deg, c.relation.overlap, c.relation.same_place ? "same place" : "wider",
-              c.error.translation * 1e3, c.error.rotation_deg);
+  std::printf(
+      "    %s %s ~ %s: %d inliers, centres %.2f m and axes %.0f deg apart, overlap %.2f (%s), "
+      "transform "
+      "error %.1f mm %.2f deg\n",
+      label, Name(c.query).c_str(), Name(c.candidate).c_str(), c.inliers, c.relation.distance,
+      c.relation.angle_deg, c.relation.overlap, c.relation.same_place ? "same place" : "wider",
+      c.error.translation * 1e3, c.error.rotation_deg);
 }
 
 // Error statistics of a set of checks (only those flagged by `use`).
@@ -67,10 +71,12 @@ struct ErrorSummary {
   }
   void Print(const char* label) const {
     if (translation.empty()) return;
-    std::printf("  %s transform error: translation median %.1f mm, max %.1f mm; rotation median %.2f deg, max %.2f "
-                "deg (%zu loops)\n",
-                label, Median(translation) * 1e3, Max(translation) * 1e3, Median(rotation), Max(rotation),
-                translation.size());
+    std::printf(
+        "  %s transform error: translation median %.1f mm, max %.1f mm; rotation median %.2f deg, "
+        "max %.2f "
+        "deg (%zu loops)\n",
+        label, Median(translation) * 1e3, Max(translation) * 1e3, Median(rotation), Max(rotation),
+        translation.size());
   }
   Json ToJson() const {
     Json j;
@@ -87,8 +93,8 @@ struct ErrorSummary {
 
 // ---------------------------------------------------------------- ground truth
 
-void PlaceGroundTruth::Add(const GlobalKeyframeId& id, const Pose& T_world_cam, const cv::Mat& depth_small,
-                           const PinholeCamera& camera) {
+void PlaceGroundTruth::Add(const GlobalKeyframeId& id, const Pose& T_world_cam,
+                           const cv::Mat& depth_small, const PinholeCamera& camera) {
   View view;
   view.T_world_cam = T_world_cam;
   view.depth_small = depth_small;
@@ -137,7 +143,8 @@ Relation PlaceGroundTruth::Relate(const GlobalKeyframeId& a, const GlobalKeyfram
   }
   r.overlap = cached->second;
   r.related = r.overlap >= options_.related_overlap;
-  r.same_place = r.distance <= options_.same_place_distance && r.angle_deg <= options_.same_place_angle_deg &&
+  r.same_place = r.distance <= options_.same_place_distance &&
+                 r.angle_deg <= options_.same_place_angle_deg &&
                  r.overlap >= options_.same_place_overlap;
   return r;
 }
@@ -148,7 +155,9 @@ bool PlaceGroundTruth::SamePlace(const GlobalKeyframeId& a, const GlobalKeyframe
   const Pose& ta = ia->second.T_world_cam;
   const Pose& tb = ib->second.T_world_cam;
   if ((ta.translation() - tb.translation()).norm() > options_.same_place_distance) return false;
-  if (ta.linear().col(2).dot(tb.linear().col(2)) < std::cos(options_.same_place_angle_deg * kDegree)) return false;
+  if (ta.linear().col(2).dot(tb.linear().col(2)) <
+      std::cos(options_.same_place_angle_deg * kDegree))
+    return false;
   return Relate(a, b).same_place;
 }
 
@@ -156,7 +165,8 @@ Pose PlaceGroundTruth::TrueRelative(const GlobalKeyframeId& a, const GlobalKeyfr
   return views_.at(a).T_world_cam.inverse() * views_.at(b).T_world_cam;
 }
 
-TransformError PlaceGroundTruth::Error(const GlobalKeyframeId& a, const GlobalKeyframeId& b, const Pose& T_a_b) const {
+TransformError PlaceGroundTruth::Error(const GlobalKeyframeId& a, const GlobalKeyframeId& b,
+                                       const Pose& T_a_b) const {
   TransformError e;
   const auto ia = views_.find(a), ib = views_.find(b);
   if (ia == views_.end() || ib == views_.end()) {
@@ -201,7 +211,11 @@ class OfflineDetector {
  public:
   OfflineDetector(const std::map<AgentId, PinholeCamera>& cameras, const BackendOptions& options,
                   const PlaceGroundTruth& truth, DetectorEvaluation* out)
-      : cameras_(cameras), options_(options), truth_(truth), place_(options.place), consistency_(options.loops),
+      : cameras_(cameras),
+        options_(options),
+        truth_(truth),
+        place_(options.place),
+        consistency_(options.loops),
         out_(out) {}
 
   void Receive(const RecordedMessage& m) {
@@ -226,7 +240,8 @@ class OfflineDetector {
     LoopCandidateRule rule;
     if (ready) {
       rule = MakeLoopCandidateRule(place_, id, *query, options_.loops.exclude_recent_keyframes);
-      hits = QueryLoopCandidates(place_, query->Descriptors(), rule, options_.loops.loop_candidates * 3);
+      hits = QueryLoopCandidates(place_, query->Descriptors(), rule,
+                                 options_.loops.loop_candidates * 3);
     }
     // What the index held when the query ran: the allowed candidates, and among them revisits.
     bool revisit = false;
@@ -248,9 +263,10 @@ class OfflineDetector {
     ++out_->queries;
     out_->revisit_queries += revisit;
     // No cool-down here: every keyframe is a query.
-    hits = SelectLoopCandidates(std::move(hits), /*cooling_down=*/false, MapId(id.agent.value()),
-                                [](AgentId agent) { return std::optional<MapId>(MapId(agent.value())); },
-                                options_.loops.loop_candidates);
+    hits = SelectLoopCandidates(
+        std::move(hits), /*cooling_down=*/false, MapId(id.agent.value()),
+        [](AgentId agent) { return std::optional<MapId>(MapId(agent.value())); },
+        options_.loops.loop_candidates);
     bool topn_related = false;
     for (std::size_t k = 0; k < hits.size(); ++k) {
       const bool related = truth_.Relate(id, hits[k].keyframe).related;
@@ -266,14 +282,16 @@ class OfflineDetector {
       ServerMap* cmap = maps_.Of(hit.keyframe.agent);
       ServerKeyframe* candidate = cmap->keyframe(hit.keyframe);
       if (!candidate) continue;
-      const auto match = VerifyLoop(query, cameras_.at(id.agent), candidate, *cmap, options_.loops.verification);
+      const auto match =
+          VerifyLoop(query, cameras_.at(id.agent), candidate, *cmap, options_.loops.verification);
       if (!match) continue;
       LoopCheck check;
       check.query = id;
       check.candidate = hit.keyframe;
       check.inliers = match->inliers;
       check.relation = truth_.Relate(hit.keyframe, id);
-      check.error = truth_.Error(hit.keyframe, id, candidate->T_map_cam.inverse() * match->T_candidate_map_query);
+      check.error = truth_.Error(hit.keyframe, id,
+                                 candidate->T_map_cam.inverse() * match->T_candidate_map_query);
       check.correct = truth_.TransformRight(check.error);
       out_->verified.push_back(check);
       found |= check.correct;
@@ -288,10 +306,11 @@ class OfflineDetector {
   }
 
   // The back-end's consistency rule, with one map per agent.
-  void Consistency(ServerKeyframe* query, AgentId candidate_agent, const Pose& T_candidate_map_query,
-                   const LoopCheck& check) {
+  void Consistency(ServerKeyframe* query, AgentId candidate_agent,
+                   const Pose& T_candidate_map_query, const LoopCheck& check) {
     const Pose T_cmap_qmap = T_candidate_map_query * query->T_map_cam.inverse();
-    if (consistency_.Confirm(query->id, MapId(candidate_agent.value()), T_cmap_qmap)) out_->consistent.push_back(check);
+    if (consistency_.Confirm(query->id, MapId(candidate_agent.value()), T_cmap_qmap))
+      out_->consistent.push_back(check);
   }
 
   const std::map<AgentId, PinholeCamera>& cameras_;
@@ -335,7 +354,8 @@ std::vector<TransformError> CovisiblePairErrors(const std::vector<RecordedMessag
   return errors;
 }
 
-std::vector<LoopCheck> CheckLoopEvents(const std::vector<LoopEvent>& events, const PlaceGroundTruth& truth) {
+std::vector<LoopCheck> CheckLoopEvents(const std::vector<LoopEvent>& events,
+                                       const PlaceGroundTruth& truth) {
   std::vector<LoopCheck> checks;
   for (const LoopEvent& e : events) {
     LoopCheck c;
@@ -369,31 +389,43 @@ Json ReportDetector(const DetectorEvaluation& ev, const PlaceGroundTruth& truth)
   for (const LoopCheck& c : ev.consistent) consistent_correct += c.correct;
   const int consistent_false = static_cast<int>(ev.consistent.size()) - consistent_correct;
 
-  std::printf("loop detector, offline (the back-end's PlaceIndex, candidate filter, VerifyLoop and consistency rule "
-              "and options; every keyframe queried on arrival, no cool-down, no loop closed; %.1f s):\n",
-              ev.seconds);
-  std::printf("  ground truth: same place (a revisit) = centres within %.2f m, optical axes within %.0f deg, each "
-              "view sees >= %.0f%% of the other; a good BoW candidate: each view sees >= %.0f%% of the other; a "
-              "verified loop is correct when its transform is within %.0f mm and %.1f deg of the true one\n",
-              o.same_place_distance, o.same_place_angle_deg, o.same_place_overlap * 100, o.related_overlap * 100,
-              o.max_translation_error * 1e3, o.max_rotation_error_deg);
-  std::printf("  %d keyframes, %d queries, %d with a revisit among the allowed candidates\n", ev.keyframes, ev.queries,
-              ev.revisit_queries);
-  std::printf("  BoW: %d candidates proposed, %d overlap the query (%.3f); reference, revisit queries whose best "
-              "candidate overlaps: top-1 %d/%d = %.3f, any proposed %d/%d = %.3f\n",
-              ev.candidates, ev.candidates_related, Share(ev.candidates_related, ev.candidates), ev.bow_top1_related,
-              ev.revisit_queries, Share(ev.bow_top1_related, ev.revisit_queries), ev.bow_topn_related,
-              ev.revisit_queries, Share(ev.bow_topn_related, ev.revisit_queries));
-  std::printf("  verified: %zu, correct (TP) %d (%d between same-place views, %d wider), false (FP) %d; "
-              "precision %.3f\n",
-              ev.verified.size(), tp, tp_same_place, tp - tp_same_place, fp,
-              Share(tp, static_cast<int>(ev.verified.size())));
-  std::printf("  revisits with a correct verified loop %d/%d: recall %.3f (FN %d: %d without a good candidate, %d "
-              "whose good candidates failed verification); BoW top-1 reference %.3f\n",
-              ev.revisits_found, ev.revisit_queries, Share(ev.revisits_found, ev.revisit_queries), fn,
-              ev.missed_no_candidate, ev.missed_verification, Share(ev.bow_top1_related, ev.revisit_queries));
-  std::printf("  consistent (what the back-end would accept): %zu, correct %d, false %d\n", ev.consistent.size(),
-              consistent_correct, consistent_false);
+  std::printf(
+      "loop detector, offline (the back-end's PlaceIndex, candidate filter, VerifyLoop and "
+      "consistency rule "
+      "and options; every keyframe queried on arrival, no cool-down, no loop closed; %.1f s):\n",
+      ev.seconds);
+  std::printf(
+      "  ground truth: same place (a revisit) = centres within %.2f m, optical axes within %.0f "
+      "deg, each "
+      "view sees >= %.0f%% of the other; a good BoW candidate: each view sees >= %.0f%% of the "
+      "other; a "
+      "verified loop is correct when its transform is within %.0f mm and %.1f deg of the true "
+      "one\n",
+      o.same_place_distance, o.same_place_angle_deg, o.same_place_overlap * 100,
+      o.related_overlap * 100, o.max_translation_error * 1e3, o.max_rotation_error_deg);
+  std::printf("  %d keyframes, %d queries, %d with a revisit among the allowed candidates\n",
+              ev.keyframes, ev.queries, ev.revisit_queries);
+  std::printf(
+      "  BoW: %d candidates proposed, %d overlap the query (%.3f); reference, revisit queries "
+      "whose best "
+      "candidate overlaps: top-1 %d/%d = %.3f, any proposed %d/%d = %.3f\n",
+      ev.candidates, ev.candidates_related, Share(ev.candidates_related, ev.candidates),
+      ev.bow_top1_related, ev.revisit_queries, Share(ev.bow_top1_related, ev.revisit_queries),
+      ev.bow_topn_related, ev.revisit_queries, Share(ev.bow_topn_related, ev.revisit_queries));
+  std::printf(
+      "  verified: %zu, correct (TP) %d (%d between same-place views, %d wider), false (FP) %d; "
+      "precision %.3f\n",
+      ev.verified.size(), tp, tp_same_place, tp - tp_same_place, fp,
+      Share(tp, static_cast<int>(ev.verified.size())));
+  std::printf(
+      "  revisits with a correct verified loop %d/%d: recall %.3f (FN %d: %d without a good "
+      "candidate, %d "
+      "whose good candidates failed verification); BoW top-1 reference %.3f\n",
+      ev.revisits_found, ev.revisit_queries, Share(ev.revisits_found, ev.revisit_queries), fn,
+      ev.missed_no_candidate, ev.missed_verification,
+      Share(ev.bow_top1_related, ev.revisit_queries));
+  std::printf("  consistent (what the back-end would accept): %zu, correct %d, false %d\n",
+              ev.consistent.size(), consistent_correct, consistent_false);
   correct_errors.Print("correct verified loops:");
   all_errors.Print("all verified loops:");
   for (const LoopCheck& c : ev.verified) {
@@ -440,11 +472,16 @@ Json ReportCovisiblePairs(const std::vector<TransformError>& errors, TransformEr
   std::vector<double> sorted_t = pairs.translation, sorted_r = pairs.rotation;
   std::sort(sorted_t.begin(), sorted_t.end());
   std::sort(sorted_r.begin(), sorted_r.end());
-  const auto p95 = [](const std::vector<double>& v) { return v.empty() ? 0.0 : v[(v.size() - 1) * 95 / 100]; };
-  std::printf("  reference, covisible keyframe pairs of one agent (its map against ground truth): translation median "
-              "%.1f mm, p95 %.1f mm, max %.1f mm; rotation median %.2f deg, p95 %.2f deg, max %.2f deg (%zu pairs)\n",
-              Median(pairs.translation) * 1e3, p95(sorted_t) * 1e3, Max(pairs.translation) * 1e3,
-              Median(pairs.rotation), p95(sorted_r), Max(pairs.rotation), pairs.translation.size());
+  const auto p95 = [](const std::vector<double>& v) {
+    return v.empty() ? 0.0 : v[(v.size() - 1) * 95 / 100];
+  };
+  std::printf(
+      "  reference, covisible keyframe pairs of one agent (its map against ground truth): "
+      "translation median "
+      "%.1f mm, p95 %.1f mm, max %.1f mm; rotation median %.2f deg, p95 %.2f deg, max %.2f deg "
+      "(%zu pairs)\n",
+      Median(pairs.translation) * 1e3, p95(sorted_t) * 1e3, Max(pairs.translation) * 1e3,
+      Median(pairs.rotation), p95(sorted_r), Max(pairs.rotation), pairs.translation.size());
   p95_out->translation = p95(sorted_t);
   p95_out->rotation_deg = p95(sorted_r);
   Json j = pairs.ToJson();
@@ -463,15 +500,16 @@ Json ReportLoopEvents(const std::vector<LoopCheck>& checks, const std::vector<Lo
     correct += c.correct;
     same_place += c.relation.same_place;
     errors.Add(c);
-    PrintCheck(c.correct ? (events[i].fusion ? "fusion ok" : "loop ok  ") : (events[i].fusion ? "FALSE FUSION" : "FALSE LOOP"),
+    PrintCheck(c.correct ? (events[i].fusion ? "fusion ok" : "loop ok  ")
+                         : (events[i].fusion ? "FALSE FUSION" : "FALSE LOOP"),
                c);
     Json x = CheckJson(c);
     x["fusion"] = events[i].fusion;
     list.Push(x);
   }
   const int wrong = static_cast<int>(checks.size()) - correct;
-  std::printf("  accepted %zu (%d of them same place), correct %d, false %d\n", checks.size(), same_place, correct,
-              wrong);
+  std::printf("  accepted %zu (%d of them same place), correct %d, false %d\n", checks.size(),
+              same_place, correct, wrong);
   errors.Print("accepted loops:");
   Json j;
   j["accepted"] = checks.size();

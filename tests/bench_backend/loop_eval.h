@@ -37,7 +37,7 @@ struct RecordedMessage {
 struct PlaceGroundTruthOptions {
   // Same place (a revisit): camera centres and optical axes close, and each view sees at least
   // `same_place_overlap` of the other's surface.
-  double same_place_distance = 0.5;       // metres
+  double same_place_distance = 0.5;  // metres
   double same_place_angle_deg = 35.0;
   double same_place_overlap = 0.5;
   // A BoW candidate is a good one (geometric verification can relate it) when each view sees
@@ -50,20 +50,20 @@ struct PlaceGroundTruthOptions {
   // definition (a wider baseline) is still a correct loop. The bench widens them to what the
   // agents' own maps show against the ground truth (CovisiblePairErrors): a loop cannot be
   // judged more finely than the map and the ground truth agree.
-  double max_translation_error = 0.05;    // metres
+  double max_translation_error = 0.05;  // metres
   double max_rotation_error_deg = 3.0;
 };
 
 struct Relation {
-  double distance = 0;       // between camera centres, metres
-  double angle_deg = 0;      // between optical axes
-  double overlap = 0;        // the smaller of the two views' shares seen by the other
+  double distance = 0;   // between camera centres, metres
+  double angle_deg = 0;  // between optical axes
+  double overlap = 0;    // the smaller of the two views' shares seen by the other
   bool same_place = false;
-  bool related = false;      // a good BoW candidate
+  bool related = false;  // a good BoW candidate
 };
 
 struct TransformError {
-  double translation = 0;    // metres
+  double translation = 0;  // metres
   double rotation_deg = 0;
 };
 
@@ -81,10 +81,12 @@ class PlaceGroundTruth {
   // Relate(a, b).same_place, with the surface overlap computed only when pose is close.
   bool SamePlace(const GlobalKeyframeId& a, const GlobalKeyframeId& b) const;
   // Error of a measured T_a_b (b's camera in a's camera frame) against the true one.
-  TransformError Error(const GlobalKeyframeId& a, const GlobalKeyframeId& b, const Pose& T_a_b) const;
+  TransformError Error(const GlobalKeyframeId& a, const GlobalKeyframeId& b,
+                       const Pose& T_a_b) const;
   Pose TrueRelative(const GlobalKeyframeId& a, const GlobalKeyframeId& b) const;
   bool TransformRight(const TransformError& e) const {
-    return e.translation <= options_.max_translation_error && e.rotation_deg <= options_.max_rotation_error_deg;
+    return e.translation <= options_.max_translation_error &&
+           e.rotation_deg <= options_.max_rotation_error_deg;
   }
   const PlaceGroundTruthOptions& options() const { return options_; }
   void SetTransformTolerance(double translation, double rotation_deg) {
@@ -113,22 +115,23 @@ struct LoopCheck {
   int inliers = 0;
   Relation relation;
   TransformError error;
-  bool correct = false;      // the transform is right
+  bool correct = false;  // the transform is right
 };
 
 struct DetectorEvaluation {
   int keyframes = 0;
-  int queries = 0;                   // detection queries run (the vocabulary was ready)
-  int revisit_queries = 0;           // a same-place keyframe was among the allowed candidates
-  int candidates = 0;                // proposed by BoW (after the back-end's filter and limit)
-  int candidates_related = 0;        // of which overlap the query
-  int bow_top1_related = 0;          // revisit queries whose best candidate overlaps the query
-  int bow_topn_related = 0;          // revisit queries with an overlapping proposed candidate
-  std::vector<LoopCheck> verified;   // every verified candidate
-  int revisits_found = 0;            // revisit queries with a correct verified loop
-  int missed_no_candidate = 0;       // revisit queries without one, and no good candidate proposed
-  int missed_verification = 0;       // ... a good candidate was proposed but not verified
-  std::vector<LoopCheck> consistent; // first verified candidate that completed the consistency rule
+  int queries = 0;                  // detection queries run (the vocabulary was ready)
+  int revisit_queries = 0;          // a same-place keyframe was among the allowed candidates
+  int candidates = 0;               // proposed by BoW (after the back-end's filter and limit)
+  int candidates_related = 0;       // of which overlap the query
+  int bow_top1_related = 0;         // revisit queries whose best candidate overlaps the query
+  int bow_topn_related = 0;         // revisit queries with an overlapping proposed candidate
+  std::vector<LoopCheck> verified;  // every verified candidate
+  int revisits_found = 0;           // revisit queries with a correct verified loop
+  int missed_no_candidate = 0;      // revisit queries without one, and no good candidate proposed
+  int missed_verification = 0;      // ... a good candidate was proposed but not verified
+  std::vector<LoopCheck>
+      consistent;  // first verified candidate that completed the consistency rule
   double seconds = 0;
 };
 
@@ -153,7 +156,8 @@ std::vector<TransformError> CovisiblePairErrors(const std::vector<RecordedMessag
 Json ReportCovisiblePairs(const std::vector<TransformError>& pairs, TransformError* p95);
 
 // The live back-end's loops checked against ground truth.
-std::vector<LoopCheck> CheckLoopEvents(const std::vector<LoopEvent>& events, const PlaceGroundTruth& truth);
+std::vector<LoopCheck> CheckLoopEvents(const std::vector<LoopEvent>& events,
+                                       const PlaceGroundTruth& truth);
 
 // Prints the tables and returns the figures as JSON.
 Json ReportDetector(const DetectorEvaluation& evaluation, const PlaceGroundTruth& truth);

@@ -32,8 +32,8 @@ struct Costs {
 
 // Per frame: feature extraction (the reference), then undistorting its keypoints, timed apart;
 // every tenth frame also the dense back-projection at the transmitted half resolution.
-void MeasureCosts(const RgbdFrame& frame, const PinholeCamera& camera, const OrbExtractor& orb, int index,
-                  Costs* costs) {
+void MeasureCosts(const RgbdFrame& frame, const PinholeCamera& camera, const OrbExtractor& orb,
+                  int index, Costs* costs) {
   cv::Mat gray;
   cv::cvtColor(frame.bgr, gray, cv::COLOR_BGR2GRAY);
   PinholeCamera plain = camera;
@@ -65,12 +65,17 @@ void MeasureCosts(const RgbdFrame& frame, const PinholeCamera& camera, const Orb
 }  // namespace
 
 int main(int argc, char** argv) {
-  CLI::App app{"Front-end accuracy with and without lens undistortion on a distorted synthetic sequence, and its cost."};
+  CLI::App app{
+      "Front-end accuracy with and without lens undistortion on a distorted synthetic sequence, "
+      "and its cost."};
   std::string config_path = std::string(CCMD_CONFIG_DIR) + "/tum_fr1.yaml", json_path;
   int frames = 300;
   std::uint64_t seed = 1;
-  app.add_option("--config", config_path, "Camera config whose distortion to render and undo")->capture_default_str();
-  app.add_option("--frames", frames, "Frames of the room's loop")->check(CLI::Range(30, 100000))->capture_default_str();
+  app.add_option("--config", config_path, "Camera config whose distortion to render and undo")
+      ->capture_default_str();
+  app.add_option("--frames", frames, "Frames of the room's loop")
+      ->check(CLI::Range(30, 100000))
+      ->capture_default_str();
   app.add_option("--seed", seed, "Room and noise seed")->capture_default_str();
   app.add_option("--json", json_path, "Also write the figures as JSON");
   CLI11_PARSE(app, argc, argv);
@@ -78,7 +83,8 @@ int main(int argc, char** argv) {
   auto camera = LoadCameraConfig(config_path);
   auto config = ConfigFile::Open(config_path);
   if (!camera.ok() || !config.ok()) {
-    std::fprintf(stderr, "%s\n", (camera.ok() ? config.status() : camera.status()).ToString().c_str());
+    std::fprintf(stderr, "%s\n",
+                 (camera.ok() ? config.status() : camera.status()).ToString().c_str());
     return 1;
   }
   if (!camera->HasDistortion()) {
@@ -108,7 +114,8 @@ int main(int argc, char** argv) {
               camera->ToString().c_str());
   for (int i = 0; i < frames; ++i) {
     RgbdFrame frame;
-    const RenderedFrame rendered = RenderFrame(scene, *camera, path[i].T_world_cam, FrameRenderOptions(synth, i));
+    const RenderedFrame rendered =
+        RenderFrame(scene, *camera, path[i].T_world_cam, FrameRenderOptions(synth, i));
     frame.index = i;
     frame.timestamp = path[i].timestamp;
     frame.bgr = rendered.bgr;
@@ -123,7 +130,8 @@ int main(int argc, char** argv) {
   auto with = ComputeAte(path, (*undistorting)->FrameTrajectory());
   auto without = ComputeAte(path, (*ignoring)->FrameTrajectory());
   if (!with.ok() || !without.ok()) {
-    std::fprintf(stderr, "ATE: %s\n", (with.ok() ? without.status() : with.status()).ToString().c_str());
+    std::fprintf(stderr, "ATE: %s\n",
+                 (with.ok() ? without.status() : with.status()).ToString().c_str());
     return 1;
   }
   Json j;
@@ -144,14 +152,20 @@ int main(int argc, char** argv) {
   std::printf("\n| front-end | ATE RMSE (mm) | lost frames |\n|---|---|---|\n");
   std::printf("| keypoints undistorted (shipped) | %.2f | %d |\n", 1e3 * with->error.rmse,
               (*undistorting)->stats().lost_frames);
-  std::printf("| distortion ignored | %.2f | %d |\n", 1e3 * without->error.rmse, (*ignoring)->stats().lost_frames);
+  std::printf("| distortion ignored | %.2f | %d |\n", 1e3 * without->error.rmse,
+              (*ignoring)->stats().lost_frames);
   std::printf("ratio undistorted / ignored: %.3f\n\n", j["ate_ratio"].number());
-  std::printf("cost per frame: %.0f keypoints undistorted in %.3f ms, feature extraction %.2f ms (ratio %.4f)\n",
-              j["keypoints_per_frame"].number(), j["undistort_ms_per_frame"].number(),
-              j["extract_ms_per_frame"].number(), j["undistort_to_extract_ratio"].number());
-  std::printf("dense back-projection of a half-resolution keyframe: %.2f ms with distortion, %.2f ms pinhole "
-              "(ratio %.2f)\n",
-              j["backproject_ms"].number(), j["backproject_pinhole_ms"].number(), j["backproject_ratio"].number());
+  std::printf(
+      "cost per frame: %.0f keypoints undistorted in %.3f ms, feature extraction %.2f ms (ratio "
+      "%.4f)\n",
+      j["keypoints_per_frame"].number(), j["undistort_ms_per_frame"].number(),
+      j["extract_ms_per_frame"].number(), j["undistort_to_extract_ratio"].number());
+  std::printf(
+      "dense back-projection of a half-resolution keyframe: %.2f ms with distortion, %.2f ms "
+      "pinhole "
+      "(ratio %.2f)\n",
+      j["backproject_ms"].number(), j["backproject_pinhole_ms"].number(),
+      j["backproject_ratio"].number());
   if (!json_path.empty()) {
     const Status s = WriteJsonFile(j, json_path);
     if (!s.ok()) std::fprintf(stderr, "%s\n", s.ToString().c_str());

@@ -36,13 +36,12 @@ double ResidentMegabytes() {
   return 0;
 }
 
-double ProcessCpuSeconds() {
-  return static_cast<double>(std::clock()) / CLOCKS_PER_SEC;
-}
+double ProcessCpuSeconds() { return static_cast<double>(std::clock()) / CLOCKS_PER_SEC; }
 
 Trajectory RgbdOdometryTrajectory(const std::vector<RgbdFrame>& frames, const PinholeCamera& camera,
                                   double* ms_per_frame) {
-  const cv::Mat K = (cv::Mat_<float>(3, 3) << camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1);
+  const cv::Mat K =
+      (cv::Mat_<float>(3, 3) << camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1);
   cv::Ptr<cv::rgbd::RgbdOdometry> odometry = cv::rgbd::RgbdOdometry::create(K);
   Trajectory trajectory;
   Pose T_world_cam = Pose::Identity();
@@ -76,9 +75,9 @@ Trajectory RgbdOdometryTrajectory(const std::vector<RgbdFrame>& frames, const Pi
 // (sub-ranges, every n-th frame, played backwards) check that a figure is not particular to
 // one stretch of frames.
 struct FrameOrder {
-  int first = 0;     // frames skipped at the start
-  int step = 1;      // every step-th frame from there
-  int count = 0;     // at most this many of those (0: all)
+  int first = 0;  // frames skipped at the start
+  int step = 1;   // every step-th frame from there
+  int count = 0;  // at most this many of those (0: all)
   bool reverse = false;
   // Frames to read from the source for this selection (0: all).
   int FramesNeeded() const { return count > 0 ? first + (count - 1) * step + 1 : 0; }
@@ -100,7 +99,8 @@ std::vector<RgbdFrame> ReorderFrames(std::vector<RgbdFrame> frames, const FrameO
 }  // namespace
 
 int main(int argc, char** argv) {
-  CLI::App app{"Front-end benchmark: ATE against ground truth and OpenCV RgbdOdometry, speed, footprint."};
+  CLI::App app{
+      "Front-end benchmark: ATE against ground truth and OpenCV RgbdOdometry, speed, footprint."};
   std::string source_spec, config_path, json_path, trajectory_path, baseline_path, stage = "all";
   int max_frames = 0;
   bool skip_baseline = false, synchronous = false, footprint = false;
@@ -110,22 +110,27 @@ int main(int argc, char** argv) {
   app.add_option("--frames", max_frames, "Use at most this many frames (after --first and --step)");
   app.add_option("--json", json_path, "Write the results as JSON");
   app.add_option("--trajectory", trajectory_path, "Write our frame trajectory (TUM format)");
-  app.add_option("--baseline-trajectory", baseline_path, "Write RgbdOdometry's trajectory (TUM format)");
+  app.add_option("--baseline-trajectory", baseline_path,
+                 "Write RgbdOdometry's trajectory (TUM format)");
   app.add_flag("--skip-baseline", skip_baseline, "Do not run RgbdOdometry");
   app.add_flag("--synchronous", synchronous, "Local mapping in the tracking thread");
   FrameOrder order;
-  app.add_option("--first", order.first, "Skip this many frames at the start")->check(CLI::NonNegativeNumber);
-  app.add_option("--step", order.step, "Use every n-th frame (from --first)")->check(CLI::PositiveNumber);
+  app.add_option("--first", order.first, "Skip this many frames at the start")
+      ->check(CLI::NonNegativeNumber);
+  app.add_option("--step", order.step, "Use every n-th frame (from --first)")
+      ->check(CLI::PositiveNumber);
   app.add_flag("--reverse", order.reverse, "Play the selected frames backwards");
   app.add_flag("--footprint", footprint,
                "Stream frames (no preloading) and print memory and frame time every 300 frames");
-  app.add_option("--cpu-budget", cpu_budget,
-                 "CPU cores the front-end may use (as ccmd_agent --cpu-budget; the replay is paced to it)")
+  app.add_option(
+         "--cpu-budget", cpu_budget,
+         "CPU cores the front-end may use (as ccmd_agent --cpu-budget; the replay is paced to it)")
       ->check(CLI::Range(0.0, 256.0))
       ->capture_default_str();
-  app.add_option("--stage", stage,
-                 "What to run: all; frontend (the front-end only, e.g. under callgrind); extract (ORB "
-                 "extraction alone, ours and OpenCV's)")
+  app.add_option(
+         "--stage", stage,
+         "What to run: all; frontend (the front-end only, e.g. under callgrind); extract (ORB "
+         "extraction alone, ours and OpenCV's)")
       ->check(CLI::IsMember({"all", "frontend", "extract"}))
       ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
@@ -185,8 +190,9 @@ int main(int argc, char** argv) {
         w["map_keyframes"] = s.map_keyframes;
         w["map_points"] = s.map_points;
         w["cpu_seconds"] = ProcessCpuSeconds();
-        std::printf("frames %5d  rss %7.1f MB  front-end %6.2f ms/frame  map %3d keyframes %6zu points\n",
-                    n, w["rss_mb"].number(), window_frontend_ms / 300, s.map_keyframes, s.map_points);
+        std::printf(
+            "frames %5d  rss %7.1f MB  front-end %6.2f ms/frame  map %3d keyframes %6zu points\n",
+            n, w["rss_mb"].number(), window_frontend_ms / 300, s.map_keyframes, s.map_points);
         std::fflush(stdout);
         windows.Push(w);
         window_frontend_ms = 0;
@@ -199,7 +205,8 @@ int main(int argc, char** argv) {
     RgbdFrame frame;
     order.count = max_frames;
     const int needed = order.FramesNeeded();
-    while ((*source)->Read(&frame).ok() && (needed == 0 || static_cast<int>(frames.size()) < needed)) {
+    while ((*source)->Read(&frame).ok() &&
+           (needed == 0 || static_cast<int>(frames.size()) < needed)) {
       frames.push_back(frame);
     }
     frames = ReorderFrames(std::move(frames), order);
@@ -209,7 +216,8 @@ int main(int argc, char** argv) {
           bench::MeasureExtraction(frames, options.orb, stage == "extract" ? 3 : 1, true);
       bench::Print(extraction);
       result["extraction"] = bench::ToJson(extraction);
-      if (stage == "extract") return json_path.empty() || WriteJsonFile(result, json_path).ok() ? 0 : 1;
+      if (stage == "extract")
+        return json_path.empty() || WriteJsonFile(result, json_path).ok() ? 0 : 1;
     }
     const double cpu0 = ProcessCpuSeconds();
     const Stopwatch watch;
@@ -225,7 +233,8 @@ int main(int argc, char** argv) {
   const FrontendStats stats = (*frontend)->stats();
   Trajectory ours = (*frontend)->FrameTrajectory();
   // Played backwards, the trajectory is in reverse time order; evaluation matches by time.
-  std::sort(ours.begin(), ours.end(), [](const auto& a, const auto& b) { return a.timestamp < b.timestamp; });
+  std::sort(ours.begin(), ours.end(),
+            [](const auto& a, const auto& b) { return a.timestamp < b.timestamp; });
   const double fps = stats.frames / std::max(wall, 1e-9);
   result["frames"] = stats.frames;
   result["tracked_frames"] = stats.tracked_frames;
@@ -237,29 +246,38 @@ int main(int argc, char** argv) {
   result["cpu_cores_used"] = wall > 0 ? cpu / wall : 0;
   result["extract_ms_mean"] = stats.extract_ms_total / std::max(1, stats.frames);
   result["track_ms_mean"] = stats.track_ms_total / std::max(1, stats.frames);
-  result["local_ba_ms_mean"] =
-      stats.mapping.local_ba_runs ? stats.mapping.local_ba_ms_total / stats.mapping.local_ba_runs : 0.0;
-  result["mapping_ms_mean"] = stats.mapping.keyframes ? stats.mapping.mapping_ms_total / stats.mapping.keyframes : 0.0;
+  result["local_ba_ms_mean"] = stats.mapping.local_ba_runs
+                                   ? stats.mapping.local_ba_ms_total / stats.mapping.local_ba_runs
+                                   : 0.0;
+  result["mapping_ms_mean"] =
+      stats.mapping.keyframes ? stats.mapping.mapping_ms_total / stats.mapping.keyframes : 0.0;
   std::printf("%s\n", (*source)->Describe().c_str());
-  std::printf("ccmd front-end: %d frames, %d tracked, %d lost, %d keyframes, %.1f fps (%.2fx real time)\n",
-              stats.frames, stats.tracked_frames, stats.lost_frames, stats.keyframes, fps, fps / camera.fps);
-  std::printf("  per frame: extraction %.2f ms, tracking %.2f ms; per keyframe: mapping %.1f ms (local BA %.1f ms)\n",
-              result["extract_ms_mean"].number(), result["track_ms_mean"].number(),
-              result["mapping_ms_mean"].number(), result["local_ba_ms_mean"].number());
+  std::printf(
+      "ccmd front-end: %d frames, %d tracked, %d lost, %d keyframes, %.1f fps (%.2fx real time)\n",
+      stats.frames, stats.tracked_frames, stats.lost_frames, stats.keyframes, fps,
+      fps / camera.fps);
+  std::printf(
+      "  per frame: extraction %.2f ms, tracking %.2f ms; per keyframe: mapping %.1f ms (local BA "
+      "%.1f ms)\n",
+      result["extract_ms_mean"].number(), result["track_ms_mean"].number(),
+      result["mapping_ms_mean"].number(), result["local_ba_ms_mean"].number());
   result["depth_alignments"] = stats.mapping.depth_alignments;
   result["depth_alignments_failed"] = stats.mapping.depth_alignments_failed;
   result["depth_alignment_ms_mean"] =
-      stats.mapping.keyframes ? stats.mapping.depth_alignment_ms_total / stats.mapping.keyframes : 0.0;
+      stats.mapping.keyframes ? stats.mapping.depth_alignment_ms_total / stats.mapping.keyframes
+                              : 0.0;
   bench::ReportStages(stats, &result);
-  std::printf("  depth alignment: %d accepted, %d rejected, %.1f ms per keyframe\n", stats.mapping.depth_alignments,
-              stats.mapping.depth_alignments_failed, result["depth_alignment_ms_mean"].number());
+  std::printf("  depth alignment: %d accepted, %d rejected, %.1f ms per keyframe\n",
+              stats.mapping.depth_alignments, stats.mapping.depth_alignments_failed,
+              result["depth_alignment_ms_mean"].number());
   if (!trajectory_path.empty()) WriteTumTrajectory(ours, trajectory_path).IgnoreError();
   if (!ground_truth.empty()) {
     auto ate = ComputeAte(ground_truth, ours);
     if (ate.ok()) {
       result["ate_rmse_m"] = ate->error.rmse;
       result["ate_max_m"] = ate->error.max;
-      std::printf("  ATE rmse %.4f m (max %.4f m, %zu poses)\n", ate->error.rmse, ate->error.max, ate->matched);
+      std::printf("  ATE rmse %.4f m (max %.4f m, %zu poses)\n", ate->error.rmse, ate->error.max,
+                  ate->matched);
     }
     if (!skip_baseline && !frames.empty()) {
       double ms = 0;
@@ -270,13 +288,16 @@ int main(int argc, char** argv) {
         result["rgbd_odometry_ate_rmse_m"] = base_ate->error.rmse;
         result["rgbd_odometry_ms_per_frame"] = ms;
         if (ate.ok()) result["ate_ratio_to_rgbd_odometry"] = ate->error.rmse / base_ate->error.rmse;
-        std::printf("OpenCV RgbdOdometry (frame to frame): ATE rmse %.4f m, %.1f ms/frame; ratio ours/baseline %.2f\n",
-                    base_ate->error.rmse, ms, ate.ok() ? ate->error.rmse / base_ate->error.rmse : 0.0);
+        std::printf(
+            "OpenCV RgbdOdometry (frame to frame): ATE rmse %.4f m, %.1f ms/frame; ratio "
+            "ours/baseline %.2f\n",
+            base_ate->error.rmse, ms, ate.ok() ? ate->error.rmse / base_ate->error.rmse : 0.0);
       }
       // With a Depth block our frames are registered; RgbdOdometry also runs on the frames as
       // recorded, with the depth camera's intrinsics (what it is given without calibration).
-      auto registration = config_path.empty() ? StatusOr<std::optional<DepthToColorCalibration>>(std::nullopt)
-                                              : LoadDepthToColorCalibration(config_path);
+      auto registration = config_path.empty()
+                              ? StatusOr<std::optional<DepthToColorCalibration>>(std::nullopt)
+                              : LoadDepthToColorCalibration(config_path);
       if (registration.ok() && registration->has_value()) {
         SourceOptions raw_options = source_options;
         raw_options.register_depth = false;
@@ -284,17 +305,23 @@ int main(int argc, char** argv) {
         if (raw_source.ok()) {
           std::vector<RgbdFrame> raw_frames;
           RgbdFrame f;
-          while (raw_frames.size() < frames.size() && (*raw_source)->Read(&f).ok()) raw_frames.push_back(f);
+          while (raw_frames.size() < frames.size() && (*raw_source)->Read(&f).ok())
+            raw_frames.push_back(f);
           frames.clear();  // memory: one copy of the sequence at a time
           double raw_ms = 0;
-          const Trajectory raw = RgbdOdometryTrajectory(raw_frames, (*registration)->depth, &raw_ms);
+          const Trajectory raw =
+              RgbdOdometryTrajectory(raw_frames, (*registration)->depth, &raw_ms);
           auto raw_ate = ComputeAte(ground_truth, raw);
           if (raw_ate.ok()) {
             result["rgbd_odometry_unregistered_ate_rmse_m"] = raw_ate->error.rmse;
-            if (ate.ok()) result["ate_ratio_to_rgbd_odometry_unregistered"] = ate->error.rmse / raw_ate->error.rmse;
-            std::printf("OpenCV RgbdOdometry on the frames as recorded (depth intrinsics): ATE rmse %.4f m; "
-                        "ratio ours/baseline %.2f\n",
-                        raw_ate->error.rmse, ate.ok() ? ate->error.rmse / raw_ate->error.rmse : 0.0);
+            if (ate.ok())
+              result["ate_ratio_to_rgbd_odometry_unregistered"] =
+                  ate->error.rmse / raw_ate->error.rmse;
+            std::printf(
+                "OpenCV RgbdOdometry on the frames as recorded (depth intrinsics): ATE rmse %.4f "
+                "m; "
+                "ratio ours/baseline %.2f\n",
+                raw_ate->error.rmse, ate.ok() ? ate->error.rmse / raw_ate->error.rmse : 0.0);
           }
         }
       }

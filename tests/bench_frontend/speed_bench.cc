@@ -37,7 +37,8 @@ void KeepFaster(const Pass& pass, Pass* best) {
 ExtractionSpeed MeasureExtraction(const std::vector<RgbdFrame>& frames, const OrbOptions& options,
                                   int passes, bool reference) {
   std::vector<cv::Mat> grays(frames.size());
-  for (std::size_t i = 0; i < frames.size(); ++i) cv::cvtColor(frames[i].bgr, grays[i], cv::COLOR_BGR2GRAY);
+  for (std::size_t i = 0; i < frames.size(); ++i)
+    cv::cvtColor(frames[i].bgr, grays[i], cv::COLOR_BGR2GRAY);
   const OrbExtractor ours(options);
   // OpenCV's ORB with the same budget, pyramid and preferred FAST threshold (its edge
   // threshold is also the border it keeps).
@@ -46,7 +47,8 @@ ExtractionSpeed MeasureExtraction(const std::vector<RgbdFrame>& frames, const Or
                       cv::ORB::HARRIS_SCORE, 31, options.fast_threshold);
   Pass best_ours, best_opencv;
   for (int p = 0; p < std::max(1, passes); ++p) {
-    KeepFaster(TimePass(grays, [&](const cv::Mat& g) { return ours.Extract(g).keypoints.size(); }), &best_ours);
+    KeepFaster(TimePass(grays, [&](const cv::Mat& g) { return ours.Extract(g).keypoints.size(); }),
+               &best_ours);
     if (!reference) continue;
     KeepFaster(TimePass(grays,
                         [&](const cv::Mat& g) {
@@ -84,11 +86,15 @@ Json ToJson(const ExtractionSpeed& s) {
 }
 
 void Print(const ExtractionSpeed& s) {
-  std::printf("ORB extraction alone (%d frames, fastest pass): %.2f ms/frame (CPU %.2f ms), %.0f keypoints\n",
-              s.frames, s.ours_ms, s.ours_cpu_ms, s.ours_keypoints);
+  std::printf(
+      "ORB extraction alone (%d frames, fastest pass): %.2f ms/frame (CPU %.2f ms), %.0f "
+      "keypoints\n",
+      s.frames, s.ours_ms, s.ours_cpu_ms, s.ours_keypoints);
   if (s.opencv_ms > 0) {
-    std::printf("  OpenCV ORB detect+compute: %.2f ms/frame (CPU %.2f ms), %.0f keypoints; ratio ours/OpenCV %.2f\n",
-                s.opencv_ms, s.opencv_cpu_ms, s.opencv_keypoints, s.ours_ms / s.opencv_ms);
+    std::printf(
+        "  OpenCV ORB detect+compute: %.2f ms/frame (CPU %.2f ms), %.0f keypoints; ratio "
+        "ours/OpenCV %.2f\n",
+        s.opencv_ms, s.opencv_cpu_ms, s.opencv_keypoints, s.ours_ms / s.opencv_ms);
   }
 }
 
@@ -108,14 +114,17 @@ void ReportStages(const FrontendStats& s, Json* result) {
   r["local_ba_skipped_waiting"] = m.local_ba_skipped_waiting;
   r["local_ba_skipped_budget"] = m.local_ba_skipped_budget;
   r["local_ba_iterations_mean"] = m.local_ba_iterations / runs;
-  std::printf("  CPU per frame: extraction %.2f ms, tracking %.2f ms; per keyframe: mapping %.1f ms "
-              "(local BA %.1f ms per run)\n",
-              r["extract_cpu_ms_mean"].number(), r["track_cpu_ms_mean"].number(), r["mapping_cpu_ms_mean"].number(),
-              r["local_ba_cpu_ms_mean"].number());
-  std::printf("  local BA: %d runs (%.1f iterations each), %d stopped early, %d reduced and %d skipped for the CPU "
-              "budget, %d skipped for a waiting keyframe\n",
-              m.local_ba_runs, r["local_ba_iterations_mean"].number(), m.local_ba_aborted, m.local_ba_reduced,
-              m.local_ba_skipped_budget, m.local_ba_skipped_waiting);
+  std::printf(
+      "  CPU per frame: extraction %.2f ms, tracking %.2f ms; per keyframe: mapping %.1f ms "
+      "(local BA %.1f ms per run)\n",
+      r["extract_cpu_ms_mean"].number(), r["track_cpu_ms_mean"].number(),
+      r["mapping_cpu_ms_mean"].number(), r["local_ba_cpu_ms_mean"].number());
+  std::printf(
+      "  local BA: %d runs (%.1f iterations each), %d stopped early, %d reduced and %d skipped for "
+      "the CPU "
+      "budget, %d skipped for a waiting keyframe\n",
+      m.local_ba_runs, r["local_ba_iterations_mean"].number(), m.local_ba_aborted,
+      m.local_ba_reduced, m.local_ba_skipped_budget, m.local_ba_skipped_waiting);
 }
 
 }  // namespace ccmd::bench

@@ -53,8 +53,8 @@ struct Keyframe {
   cv::Mat bgr, depth_mm;
 };
 
-StatusOr<Row> Measure(const Setting& setting, const std::vector<Keyframe>& keyframes, const PinholeCamera& camera,
-                      const PointCloud& reference) {
+StatusOr<Row> Measure(const Setting& setting, const std::vector<Keyframe>& keyframes,
+                      const PinholeCamera& camera, const PointCloud& reference) {
   CCMD_ASSIGN_OR_RETURN(auto dense, DenseMap::Create(DenseMapOptions{}));
   Row row;
   row.setting = setting;
@@ -68,7 +68,8 @@ StatusOr<Row> Measure(const Setting& setting, const std::vector<Keyframe>& keyfr
     CCMD_ASSIGN_OR_RETURN(const RgbdPayload payload, EncodeRgbdPayload(frame, setting.encode));
     bytes += payload.colour_jpeg.size() + payload.depth.size();
     CCMD_ASSIGN_OR_RETURN(const DecodedRgbd decoded, DecodeRgbdPayload(payload));
-    CCMD_ASSIGN_OR_RETURN(const cv::Mat prepared, PrepareColour(k.bgr, k.depth_mm.size(), setting.encode.downsample));
+    CCMD_ASSIGN_OR_RETURN(const cv::Mat prepared,
+                          PrepareColour(k.bgr, k.depth_mm.size(), setting.encode.downsample));
     psnr += cv::PSNR(decoded.bgr, prepared);
     DenseKeyframe kf;
     kf.id = {AgentId(1), KeyframeId(static_cast<std::uint32_t>(i))};
@@ -117,14 +118,18 @@ std::vector<Setting> Settings(int rgbd_every) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  CLI::App app{"What each RGB-D knob of the bandwidth budget costs the dense map, at ground-truth poses"};
+  CLI::App app{
+      "What each RGB-D knob of the bandwidth budget costs the dense map, at ground-truth poses"};
   std::string dataset, config, json_path;
   int keyframe_every = 6, rgbd_every = 4, max_keyframes = 0;
   app.add_option("--dataset", dataset, "TUM-layout folder with ground truth")->required();
-  app.add_option("--config", config, "Camera config (default: the dataset's camera.yaml or a guess)");
-  app.add_option("--keyframe-every", keyframe_every, "A keyframe every k frames (replays: about 5 to 6)")
+  app.add_option("--config", config,
+                 "Camera config (default: the dataset's camera.yaml or a guess)");
+  app.add_option("--keyframe-every", keyframe_every,
+                 "A keyframe every k frames (replays: about 5 to 6)")
       ->capture_default_str();
-  app.add_option("--rgbd-every", rgbd_every, "The default selection's share: every m-th keyframe carries RGB-D")
+  app.add_option("--rgbd-every", rgbd_every,
+                 "The default selection's share: every m-th keyframe carries RGB-D")
       ->capture_default_str();
   app.add_option("--max-keyframes", max_keyframes, "Use at most this many keyframes (0: all)");
   app.add_option("--json", json_path, "Write the rows as JSON");
@@ -168,10 +173,14 @@ int main(int argc, char** argv) {
     if (max_keyframes > 0 && static_cast<int>(keyframes.size()) >= max_keyframes) break;
   }
   if (keyframes.empty()) return Fail("no frames with ground truth");
-  std::printf("%s: %zu keyframes (every %d frames), RGB-D on every %d; reference %s\n\n", dataset.c_str(),
-              keyframes.size(), keyframe_every, rgbd_every, reference_source.c_str());
-  std::printf("| setting | RGB-D kB/keyframe | saved kB | map points | mean mm | completeness | colour PSNR dB | "
-              "completeness pp per kB | mean mm per kB | PSNR dB per kB |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+  std::printf("%s: %zu keyframes (every %d frames), RGB-D on every %d; reference %s\n\n",
+              dataset.c_str(), keyframes.size(), keyframe_every, rgbd_every,
+              reference_source.c_str());
+  std::printf(
+      "| setting | RGB-D kB/keyframe | saved kB | map points | mean mm | completeness | colour "
+      "PSNR dB | "
+      "completeness pp per kB | mean mm per kB | PSNR dB per kB "
+      "|\n|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|\n");
   std::vector<Row> rows;
   Json list = Json::MakeArray();
   for (const Setting& s : Settings(rgbd_every)) {
@@ -189,10 +198,10 @@ int main(int argc, char** argv) {
       std::snprintf(text, sizeof(text), "%+.3f", v / saved_kB);
       return has_cost ? std::string(text) : std::string("-");
     };
-    std::printf("| %s | %.2f | %+.2f | %zu | %.2f | %.1f%% | %.2f | %s | %s | %s |\n", s.name.c_str(),
-                row->rgbd_bytes_per_keyframe / 1e3, saved_kB, row->map_points, 1e3 * row->error.mean,
-                100 * row->error.completeness, row->psnr_db, per_kB(d_completeness).c_str(), per_kB(d_mean).c_str(),
-                per_kB(d_psnr).c_str());
+    std::printf("| %s | %.2f | %+.2f | %zu | %.2f | %.1f%% | %.2f | %s | %s | %s |\n",
+                s.name.c_str(), row->rgbd_bytes_per_keyframe / 1e3, saved_kB, row->map_points,
+                1e3 * row->error.mean, 100 * row->error.completeness, row->psnr_db,
+                per_kB(d_completeness).c_str(), per_kB(d_mean).c_str(), per_kB(d_psnr).c_str());
     std::fflush(stdout);
     Json e;
     e["setting"] = s.name;

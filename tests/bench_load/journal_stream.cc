@@ -59,7 +59,9 @@ StatusOr<JournalStream> ReadStream(const std::string& path) {
   return stream;
 }
 
-WirePose Moved(const Pose& T_offset, const WirePose& pose) { return PoseToWire(T_offset * PoseFromWire(pose)); }
+WirePose Moved(const Pose& T_offset, const WirePose& pose) {
+  return PoseToWire(T_offset * PoseFromWire(pose));
+}
 
 }  // namespace
 
@@ -74,8 +76,8 @@ StatusOr<std::vector<JournalStream>> ReadJournalStreams(const std::string& folde
   return streams;
 }
 
-KeyframeMessage LapKeyframe(const JournalStream& stream, const KeyframeMessage& recorded, std::uint32_t lap,
-                            const Pose& T_offset_recorded) {
+KeyframeMessage LapKeyframe(const JournalStream& stream, const KeyframeMessage& recorded,
+                            std::uint32_t lap, const Pose& T_offset_recorded) {
   const std::uint32_t k = lap * stream.keyframe_ids, p = lap * stream.map_point_ids;
   KeyframeMessage m = recorded;
   m.id = KeyframeId(m.id.value() + k);
@@ -85,14 +87,15 @@ KeyframeMessage LapKeyframe(const JournalStream& stream, const KeyframeMessage& 
     if (kp.map_point) kp.map_point = MapPointId(kp.map_point->value() + p);
   }
   for (NewMapPoint& point : m.new_map_points) point.id = MapPointId(point.id.value() + p);
-  for (CovisibilityLink& link : m.covisibility) link.keyframe = KeyframeId(link.keyframe.value() + k);
+  for (CovisibilityLink& link : m.covisibility)
+    link.keyframe = KeyframeId(link.keyframe.value() + k);
   // Relative poses between the agent's keyframes do not depend on its frame.
   for (DepthLink& link : m.depth_links) link.keyframe = KeyframeId(link.keyframe.value() + k);
   return m;
 }
 
-PoseUpdateMessage LapPoseUpdate(const JournalStream& stream, const PoseUpdateMessage& recorded, std::uint32_t lap,
-                                const Pose& T_offset_recorded) {
+PoseUpdateMessage LapPoseUpdate(const JournalStream& stream, const PoseUpdateMessage& recorded,
+                                std::uint32_t lap, const Pose& T_offset_recorded) {
   PoseUpdateMessage m = recorded;
   for (PoseUpdateEntry& e : m.entries) {
     e.keyframe = KeyframeId(e.keyframe.value() + lap * stream.keyframe_ids);

@@ -28,9 +28,9 @@ struct JournalStream {
   SessionCamera camera;
   std::vector<StreamMessage> messages;  // in journal order
   std::size_t keyframes = 0;
-  std::uint32_t keyframe_ids = 0;       // one past the largest keyframe id
-  std::uint32_t map_point_ids = 0;      // one past the largest map point id
-  std::size_t keyframe_bytes = 0;       // serialized, all keyframes of one lap
+  std::uint32_t keyframe_ids = 0;   // one past the largest keyframe id
+  std::uint32_t map_point_ids = 0;  // one past the largest map point id
+  std::size_t keyframe_bytes = 0;   // serialized, all keyframes of one lap
 };
 
 // Every agent_*.journal in `folder`, in file name order. Errors: no journal, a journal that
@@ -39,10 +39,10 @@ StatusOr<std::vector<JournalStream>> ReadJournalStreams(const std::string& folde
 
 // Message `index` of lap `lap` of the stream, for an agent whose poses are moved by
 // T_offset_recorded (maps the recorded world frame into the agent's own).
-KeyframeMessage LapKeyframe(const JournalStream& stream, const KeyframeMessage& recorded, std::uint32_t lap,
-                            const Pose& T_offset_recorded);
-PoseUpdateMessage LapPoseUpdate(const JournalStream& stream, const PoseUpdateMessage& recorded, std::uint32_t lap,
-                                const Pose& T_offset_recorded);
+KeyframeMessage LapKeyframe(const JournalStream& stream, const KeyframeMessage& recorded,
+                            std::uint32_t lap, const Pose& T_offset_recorded);
+PoseUpdateMessage LapPoseUpdate(const JournalStream& stream, const PoseUpdateMessage& recorded,
+                                std::uint32_t lap, const Pose& T_offset_recorded);
 
 // The rigid offset of agent `index` (0-based): a turn about the vertical and a shift, different
 // for every agent; agent 0 keeps the recorded frame.

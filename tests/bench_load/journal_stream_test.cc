@@ -49,7 +49,8 @@ KeyframeMessage RecordedKeyframe(std::uint32_t i, Rng* rng) {
     if (k < 40) {
       NewMapPoint p;
       p.id = MapPointId(40 * i + k);
-      p.p_cam = {static_cast<float>(rng->Uniform(-1, 1)), static_cast<float>(rng->Uniform(-1, 1)), 2.0f};
+      p.p_cam = {static_cast<float>(rng->Uniform(-1, 1)), static_cast<float>(rng->Uniform(-1, 1)),
+                 2.0f};
       for (auto& b : p.descriptor) b = static_cast<std::uint8_t>(rng->Next());
       kp.descriptor = p.descriptor;
       kp.map_point = p.id;
@@ -67,14 +68,16 @@ KeyframeMessage RecordedKeyframe(std::uint32_t i, Rng* rng) {
 // A journal of `keyframes` keyframes with a pose update after every third.
 void WriteJournal(const std::string& folder, int keyframes) {
   ASSERT_TRUE(MakeDirectories(folder).ok());
-  auto writer = JournalWriter::Create(JoinPath(folder, JournalFileName(AgentId(1))), {AgentId(1), "recorded", Camera()});
+  auto writer = JournalWriter::Create(JoinPath(folder, JournalFileName(AgentId(1))),
+                                      {AgentId(1), "recorded", Camera()});
   ASSERT_TRUE(writer.ok()) << writer.status().ToString();
   Rng rng(9);
   std::uint64_t seq = 0;
   for (int i = 0; i < keyframes; ++i) {
     auto bytes = SerializeKeyframe(RecordedKeyframe(static_cast<std::uint32_t>(i), &rng));
     ASSERT_TRUE(bytes.ok()) << bytes.status().ToString();
-    ASSERT_TRUE((*writer)->Append(static_cast<std::uint8_t>(MessageType::kKeyframe), ++seq, *bytes).ok());
+    ASSERT_TRUE(
+        (*writer)->Append(static_cast<std::uint8_t>(MessageType::kKeyframe), ++seq, *bytes).ok());
     if (i % 3 == 2) {
       PoseUpdateMessage update;
       Pose T = Pose::Identity();
@@ -82,7 +85,8 @@ void WriteJournal(const std::string& folder, int keyframes) {
       update.entries.push_back({KeyframeId(static_cast<std::uint32_t>(i)), PoseToWire(T)});
       auto u = SerializePoseUpdate(update);
       ASSERT_TRUE(u.ok());
-      ASSERT_TRUE((*writer)->Append(static_cast<std::uint8_t>(MessageType::kPoseUpdate), ++seq, *u).ok());
+      ASSERT_TRUE(
+          (*writer)->Append(static_cast<std::uint8_t>(MessageType::kPoseUpdate), ++seq, *u).ok());
     }
   }
   ASSERT_TRUE((*writer)->Sync().ok());
@@ -115,11 +119,15 @@ TEST(JournalStreamTest, ReadsAJournalAndRenumbersEveryLap) {
   EXPECT_EQ(lap2.keypoints[0].map_point, MapPointId(800 + 160));
   EXPECT_EQ(lap2.keypoints[50].map_point, MapPointId(800 + 130));  // linked to keyframe 3's
   EXPECT_EQ(lap2.new_map_points[0].p_cam, recorded.new_map_points[0].p_cam);  // camera frame
-  const Pose moved = PoseFromWire(lap2.T_world_cam), expected = offset * PoseFromWire(recorded.T_world_cam);
+  const Pose moved = PoseFromWire(lap2.T_world_cam),
+             expected = offset * PoseFromWire(recorded.T_world_cam);
   EXPECT_LT((moved.matrix() - expected.matrix()).cwiseAbs().maxCoeff(), 1e-9);
-  const KeyframeMessage lap0 = LapKeyframe(s, recorded, 0, AgentOffset(0));  // agent 0, first lap: as recorded
+  const KeyframeMessage lap0 =
+      LapKeyframe(s, recorded, 0, AgentOffset(0));  // agent 0, first lap: as recorded
   EXPECT_EQ(lap0.id, recorded.id);
-  EXPECT_LT((PoseFromWire(lap0.T_world_cam).matrix() - PoseFromWire(recorded.T_world_cam).matrix()).cwiseAbs().maxCoeff(),
+  EXPECT_LT((PoseFromWire(lap0.T_world_cam).matrix() - PoseFromWire(recorded.T_world_cam).matrix())
+                .cwiseAbs()
+                .maxCoeff(),
             1e-12);
 
   const PoseUpdateMessage update = LapPoseUpdate(s, *s.messages[3].pose_update, 1, offset);
@@ -136,24 +144,26 @@ TEST(JournalStreamTest, AFolderWithoutJournalsIsAnError) {
 TEST(LoadCliTest, AgentsReplayTheStreamsAndTheServersIntakeIsReported) {
   testing::TempDir dir;
   WriteJournal(dir.File("recorded"), 10);
-  auto server = Subprocess::Start({testing::ProgramPath("ccmd_server"), "--listen", "127.0.0.1:0", "--journal",
-                                   dir.File("run"), "--out", dir.File("out"), "--no-dense", "--stats-interval", "0.2"},
-                                  "", dir.File("server.log"), /*pipe_stdout=*/true);
+  auto server = Subprocess::Start(
+      {testing::ProgramPath("ccmd_server"), "--listen", "127.0.0.1:0", "--journal", dir.File("run"),
+       "--out", dir.File("out"), "--no-dense", "--stats-interval", "0.2"},
+      "", dir.File("server.log"), /*pipe_stdout=*/true);
   ASSERT_TRUE(server.ok()) << server.status().ToString();
   std::string port;
   while (port.empty()) {
     auto line = server->ReadLine(30);
     ASSERT_TRUE(line.ok()) << "ccmd_server did not start";
-    if (line->find("listening on") != std::string::npos) port = line->substr(line->find_last_of(':') + 1);
+    if (line->find("listening on") != std::string::npos)
+      port = line->substr(line->find_last_of(':') + 1);
   }
   server->DrainStdoutTo(dir.File("server.out"));
   std::string output;
-  const int code = testing::RunCommand(testing::ProgramPath("ccmd_load") + " --server 127.0.0.1:" + port +
-                                           " --journals " + dir.File("recorded") +
-                                           " --agents 2 --rate 10 --seconds 2 --json " + dir.File("load.json") +
-                                           " --server-stats " + dir.File("out/server_stats.json") + " --plots " +
-                                           dir.File("plots"),
-                                       &output);
+  const int code = testing::RunCommand(
+      testing::ProgramPath("ccmd_load") + " --server 127.0.0.1:" + port + " --journals " +
+          dir.File("recorded") + " --agents 2 --rate 10 --seconds 2 --json " +
+          dir.File("load.json") + " --server-stats " + dir.File("out/server_stats.json") +
+          " --plots " + dir.File("plots"),
+      &output);
   ASSERT_EQ(code, 0) << output;
   ASSERT_TRUE(server->Signal(SIGTERM).ok());
   EXPECT_EQ(server->Wait().exit_code, 0);
@@ -171,7 +181,8 @@ TEST(LoadCliTest, AgentsReplayTheStreamsAndTheServersIntakeIsReported) {
   EXPECT_GT(j->Get("series")->size(), 1u);
   EXPECT_TRUE(FileExists(dir.File("plots/memory.png")));
   // The server kept every keyframe, renumbered by lap (ids 0..19 per agent).
-  EXPECT_EQ(j->Get("server_backend")->Get("keyframes")->number(), j->Get("keyframes_sent")->number());
+  EXPECT_EQ(j->Get("server_backend")->Get("keyframes")->number(),
+            j->Get("keyframes_sent")->number());
 }
 
 }  // namespace

@@ -53,18 +53,21 @@ Status SendNext(Agent* agent, LoadResult* result) {
       agent->lap++;
     }
     if (m.pose_update) {
-      CCMD_ASSIGN_OR_RETURN(std::vector<std::uint8_t> bytes,
-                            SerializePoseUpdate(LapPoseUpdate(*agent->stream, *m.pose_update, lap, agent->offset)));
+      CCMD_ASSIGN_OR_RETURN(
+          std::vector<std::uint8_t> bytes,
+          SerializePoseUpdate(LapPoseUpdate(*agent->stream, *m.pose_update, lap, agent->offset)));
       result->bytes_sent += bytes.size();
       CCMD_RETURN_IF_ERROR(agent->link->Send(MessageType::kPoseUpdate, std::move(bytes)).status());
       result->pose_updates_sent++;
       continue;
     }
-    CCMD_ASSIGN_OR_RETURN(std::vector<std::uint8_t> bytes,
-                          SerializeKeyframe(LapKeyframe(*agent->stream, *m.keyframe, lap, agent->offset)));
+    CCMD_ASSIGN_OR_RETURN(
+        std::vector<std::uint8_t> bytes,
+        SerializeKeyframe(LapKeyframe(*agent->stream, *m.keyframe, lap, agent->offset)));
     result->bytes_sent += bytes.size();
     std::lock_guard<std::mutex> lock(agent->mutex);  // the acknowledgement must find it pending
-    CCMD_ASSIGN_OR_RETURN(const std::uint64_t number, agent->link->Send(MessageType::kKeyframe, std::move(bytes)));
+    CCMD_ASSIGN_OR_RETURN(const std::uint64_t number,
+                          agent->link->Send(MessageType::kKeyframe, std::move(bytes)));
     agent->pending.emplace_back(number, MonotonicSeconds());
     agent->keyframes_sent++;
     result->keyframes_sent++;
@@ -87,7 +90,8 @@ std::optional<Json> ReadServerStats(const std::string& path) {
   return std::move(json).value();
 }
 
-LoadSample Sample(double time_s, const std::vector<std::unique_ptr<Agent>>& agents, const std::optional<Json>& stats) {
+LoadSample Sample(double time_s, const std::vector<std::unique_ptr<Agent>>& agents,
+                  const std::optional<Json>& stats) {
   LoadSample s;
   s.time_s = time_s;
   for (const auto& a : agents) {
@@ -140,10 +144,12 @@ StatusOr<std::vector<std::unique_ptr<Agent>>> Connect(const LoadOptions& options
 }
 
 // Sends on every agent's schedule for options.seconds, sampling once a second.
-Status Send(const LoadOptions& options, const std::vector<std::unique_ptr<Agent>>& agents, LoadResult* result) {
+Status Send(const LoadOptions& options, const std::vector<std::unique_ptr<Agent>>& agents,
+            LoadResult* result) {
   const double t0 = MonotonicSeconds() + 0.2;
   const double period = 1.0 / options.rate;
-  for (const auto& a : agents) a->next_due = t0 + period * a->index / agents.size();  // spread over one period
+  for (const auto& a : agents)
+    a->next_due = t0 + period * a->index / agents.size();  // spread over one period
   double next_sample = t0;
   while (true) {
     Agent* due = std::min_element(agents.begin(), agents.end(), [](const auto& a, const auto& b) {
@@ -151,47 +157,57 @@ Status Send(const LoadOptions& options, const std::vector<std::unique_ptr<Agent>
                  })->get();
     const double when = std::min(due->next_due, next_sample);
     if (when - t0 >= options.seconds) break;
-    std::this_thread::sleep_until(std::chrono::steady_clock::now() +
-                                  std::chrono::duration<double>(std::max(0.0, when - MonotonicSeconds())));
+    std::this_thread::sleep_until(
+        std::chrono::steady_clock::now() +
+        std::chrono::duration<double>(std::max(0.0, when - MonotonicSeconds())));
     if (next_sample <= due->next_due) {
-      result->series.push_back(Sample(next_sample - t0, agents, ReadServerStats(options.server_stats)));
+      result->series.push_back(
+          Sample(next_sample - t0, agents, ReadServerStats(options.server_stats)));
       if (result->series.size() % 30 == 0) {
         const LoadSample& s = result->series.back();
-        std::printf("%5.0f s  sent %llu  acked %llu  server: %.0f keyframes, %.0f MB, intake p99 %.0f ms (last minute)\n",
-                    s.time_s, static_cast<unsigned long long>(s.sent), static_cast<unsigned long long>(s.acked),
-                    s.keyframes, s.rss_mb, s.intake_p99_ms);
+        std::printf(
+            "%5.0f s  sent %llu  acked %llu  server: %.0f keyframes, %.0f MB, intake p99 %.0f ms "
+            "(last minute)\n",
+            s.time_s, static_cast<unsigned long long>(s.sent),
+            static_cast<unsigned long long>(s.acked), s.keyframes, s.rss_mb, s.intake_p99_ms);
         std::fflush(stdout);
       }
       next_sample += 1.0;
       continue;
     }
     const Status sent = SendNext(due, result);
-    if (!sent.ok()) return sent.WithContext(options.name_prefix + "-" + std::to_string(due->index + 1));
+    if (!sent.ok())
+      return sent.WithContext(options.name_prefix + "-" + std::to_string(due->index + 1));
     due->next_due += period;
   }
-  result->end_of_sending = Sample(MonotonicSeconds() - t0, agents, ReadServerStats(options.server_stats));
+  result->end_of_sending =
+      Sample(MonotonicSeconds() - t0, agents, ReadServerStats(options.server_stats));
   result->series.push_back(result->end_of_sending);
   return Status::Ok();
 }
 
 // Waits for every acknowledgement, then for the server to take in every keyframe.
-void Drain(const LoadOptions& options, const std::vector<std::unique_ptr<Agent>>& agents, double received_before,
-           LoadResult* result) {
+void Drain(const LoadOptions& options, const std::vector<std::unique_ptr<Agent>>& agents,
+           double received_before, LoadResult* result) {
   const double deadline = MonotonicSeconds() + options.drain_timeout_s;
   for (const auto& a : agents) {
     const Status s = a->link->Flush(std::max(1.0, deadline - MonotonicSeconds()));
-    if (!s.ok()) result->errors.push_back(a->link->stats().last_error.empty() ? s.ToString() : a->link->stats().last_error);
+    if (!s.ok())
+      result->errors.push_back(a->link->stats().last_error.empty() ? s.ToString()
+                                                                   : a->link->stats().last_error);
   }
   while (!options.server_stats.empty()) {
     const std::optional<Json> stats = ReadServerStats(options.server_stats);
     const double received = ServerReceived(stats);
     if (stats) result->server_final = *stats;
-    if (received >= 0) result->server_keyframes_received = received - std::max(0.0, received_before);
+    if (received >= 0)
+      result->server_keyframes_received = received - std::max(0.0, received_before);
     if (result->server_keyframes_received >= static_cast<double>(result->keyframes_sent) ||
         MonotonicSeconds() > deadline) {
       break;
     }
-    std::this_thread::sleep_for(std::chrono::seconds(1));  // the server rewrites the file once a period
+    std::this_thread::sleep_for(
+        std::chrono::seconds(1));  // the server rewrites the file once a period
   }
 }
 
@@ -200,13 +216,15 @@ void Drain(const LoadOptions& options, const std::vector<std::unique_ptr<Agent>>
 Status LoadOptions::Validate() const {
   if (server.empty()) return InvalidArgument("give the server as HOST:PORT");
   if (agents < 1 || agents > 255) return InvalidArgument("agents must be within [1, 255]");
-  if (!(rate > 0 && rate <= 100)) return InvalidArgument("the keyframe rate must be within (0, 100] per second");
+  if (!(rate > 0 && rate <= 100))
+    return InvalidArgument("the keyframe rate must be within (0, 100] per second");
   if (!(seconds > 0)) return InvalidArgument("seconds must be positive");
   if (!(drain_timeout_s > 0)) return InvalidArgument("the drain time-out must be positive");
   return Status::Ok();
 }
 
-StatusOr<LoadResult> RunLoad(const LoadOptions& options, const std::vector<JournalStream>& streams) {
+StatusOr<LoadResult> RunLoad(const LoadOptions& options,
+                             const std::vector<JournalStream>& streams) {
   CCMD_RETURN_IF_ERROR(options.Validate());
   if (streams.empty()) return InvalidArgument("no keyframe streams");
   LoadResult result;
@@ -260,9 +278,12 @@ Json LoadResultJson(const LoadResult& r) {
   j["server_peak_rss_mb"] = peak ? *peak : Json();
   // From the first sample that has the server's CPU (the first ones may precede its file).
   double cpu = -1;
-  const auto first = std::find_if(r.series.begin(), r.series.end(), [](const LoadSample& s) { return s.cpu_seconds >= 0; });
-  if (first != r.series.end() && r.end_of_sending.cpu_seconds >= 0 && r.end_of_sending.time_s > first->time_s) {
-    cpu = 100 * (r.end_of_sending.cpu_seconds - first->cpu_seconds) / (r.end_of_sending.time_s - first->time_s);
+  const auto first = std::find_if(r.series.begin(), r.series.end(),
+                                  [](const LoadSample& s) { return s.cpu_seconds >= 0; });
+  if (first != r.series.end() && r.end_of_sending.cpu_seconds >= 0 &&
+      r.end_of_sending.time_s > first->time_s) {
+    cpu = 100 * (r.end_of_sending.cpu_seconds - first->cpu_seconds) /
+          (r.end_of_sending.time_s - first->time_s);
   }
   j["server_cpu_percent"] = optional(cpu);
   if (const Json* backend = r.server_final.Get("backend")) j["server_backend"] = *backend;

@@ -16,22 +16,22 @@
 namespace ccmd::load {
 
 struct LoadOptions {
-  std::string server;           // HOST:PORT
-  std::string psk;              // "" for a keyless loopback server
+  std::string server;  // HOST:PORT
+  std::string psk;     // "" for a keyless loopback server
   int agents = 8;
-  double rate = 5.5;            // keyframes per second per agent (the paper's highest)
-  double seconds = 600;         // sending time
+  double rate = 5.5;     // keyframes per second per agent (the paper's highest)
+  double seconds = 600;  // sending time
   std::string name_prefix = "load";
-  std::string spill_dir;        // resend buffers past their memory limit ("" = none)
-  std::string server_stats;     // the server's server_stats.json ("" = no server figures)
-  double drain_timeout_s = 300; // after sending: acknowledgements, then the server's intake
+  std::string spill_dir;         // resend buffers past their memory limit ("" = none)
+  std::string server_stats;      // the server's server_stats.json ("" = no server figures)
+  double drain_timeout_s = 300;  // after sending: acknowledgements, then the server's intake
 
   Status Validate() const;
 };
 
 // Once a second during the run.
 struct LoadSample {
-  double time_s = 0;  // since the first keyframe
+  double time_s = 0;                               // since the first keyframe
   std::uint64_t sent = 0, acked = 0, unacked = 0;  // keyframes, all agents
   // From the server's statistics (negative when not read).
   double rss_mb = -1, cpu_seconds = -1;
@@ -50,8 +50,8 @@ struct LoadResult {
   double mean_keyframe_bytes = 0;
   std::vector<double> ack_ms;  // per keyframe: Send to acknowledgement (stored by the server)
   std::vector<LoadSample> series;
-  LoadSample end_of_sending;   // the sample taken when sending stopped
-  Json server_final;           // the server's statistics after the drain
+  LoadSample end_of_sending;  // the sample taken when sending stopped
+  Json server_final;          // the server's statistics after the drain
   double server_keyframes_received = -1;
   std::vector<std::string> errors;  // links that failed
 };

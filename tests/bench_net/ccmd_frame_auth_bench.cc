@@ -155,7 +155,8 @@ int main(int argc, char** argv) {
   for (int t = 0; t < trials; ++t) {
     const std::string path = dir + "/agent_00001.journal";
     ::unlink(path.c_str());
-    auto journal = JournalWriter::Create(path, {AgentId(1), "bench", {525, 525, 319.5, 239.5, 640, 480, 5000}});
+    auto journal = JournalWriter::Create(
+        path, {AgentId(1), "bench", {525, 525, 319.5, 239.5, 640, 480, 5000}});
     if (!journal.ok()) {
       std::fprintf(stderr, "%s\n", journal.status().ToString().c_str());
       return 1;

@@ -17,10 +17,10 @@
 //   ccmd_net_bench [--agents 8] [--seconds 30] [--rate 5.5] [--bytes 60000] [--json OUT]
 
 #include <fcntl.h>
-#include <sys/stat.h>
 #include <poll.h>
 #include <signal.h>
 #include <sys/socket.h>
+#include <sys/stat.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -386,14 +386,15 @@ int main(int argc, char** argv) {
     }
     out[r.name] = j;
   }
-  std::printf("\nServer accounting (stats JSON, mean over agents; per agent over its connected "
-              "time):\n| configuration | traffic kB/s | keyframe rate Hz | keyframe bytes | "
-              "tag CPU s | tag share of server CPU |\n|---|---|---|---|---|---|\n");
+  std::printf(
+      "\nServer accounting (stats JSON, mean over agents; per agent over its connected "
+      "time):\n| configuration | traffic kB/s | keyframe rate Hz | keyframe bytes | "
+      "tag CPU s | tag share of server CPU |\n|---|---|---|---|---|---|\n");
   for (const Result& r : results) {
     if (r.name == "raw") continue;
     std::printf("| %s | %.1f | %.3f | %.0f | %.3f | %.2f %% |\n", r.name.c_str(),
-                r.accounted_bytes_per_s / 1e3, r.accounted_keyframe_hz,
-                r.accounted_keyframe_bytes, r.auth_cpu_seconds, 100 * r.auth_cpu_share);
+                r.accounted_bytes_per_s / 1e3, r.accounted_keyframe_hz, r.accounted_keyframe_bytes,
+                r.auth_cpu_seconds, 100 * r.auth_cpu_share);
     out[r.name]["auth_cpu_seconds"] = r.auth_cpu_seconds;
     out[r.name]["auth_cpu_share"] = r.auth_cpu_share;
     out[r.name]["accounted_traffic_bytes_per_s"] = r.accounted_bytes_per_s;

@@ -59,7 +59,8 @@ TEST(BackProjectionTest, RecordedPixelsGoAlongTheirUndistortedRays) {
   auto cloud = BackProjectKeyframe(depth, bgr, camera, options);
   ASSERT_TRUE(cloud.ok()) << cloud.status().ToString();
   ASSERT_EQ(cloud->size(), 640u * 480u);
-  for (const auto& [u, v] : std::vector<std::pair<int, int>>{{0, 0}, {639, 0}, {320, 240}, {17, 401}, {639, 479}}) {
+  for (const auto& [u, v] :
+       std::vector<std::pair<int, int>>{{0, 0}, {639, 0}, {320, 240}, {17, 401}, {639, 479}}) {
     const Eigen::Vector3f& p = cloud->points[static_cast<std::size_t>(v) * 640 + u];
     EXPECT_FLOAT_EQ(p.z(), 2.0f);
     const Eigen::Vector2d uv = camera.ProjectToImage(p.cast<double>());

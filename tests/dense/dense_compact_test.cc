@@ -45,7 +45,8 @@ TEST(CompactCloudTest, KeepsChosenPointsWithinHalfAStepInNineBytesEach) {
   EXPECT_EQ(compact.MemoryBytes(), 9 * chosen.size());
   const CameraCloud decoded = compact.Decode();
   for (std::size_t k = 0; k < chosen.size(); ++k) {
-    EXPECT_LE((decoded.points[k] - cloud.points[chosen[k]]).cwiseAbs().maxCoeff(), 0.5f * compact.step() * 1.001f);
+    EXPECT_LE((decoded.points[k] - cloud.points[chosen[k]]).cwiseAbs().maxCoeff(),
+              0.5f * compact.step() * 1.001f);
     EXPECT_EQ(decoded.colors[k], cloud.colors[chosen[k]]);
   }
   // Transform is the pose applied to the decoded points.
@@ -88,7 +89,8 @@ double Covered(const PointCloud& a, const PointCloud& b, double distance) {
 void AddStrip(DenseMap* map, int first, int n, const std::function<int(int)>& image_of,
               const std::function<Pose(int)>& pose_of) {
   for (int i = first; i < first + n; ++i) {
-    DenseKeyframe k = PlaneKeyframe(kAgent, static_cast<std::uint32_t>(i), StripPose(image_of(i)), 31);
+    DenseKeyframe k =
+        PlaneKeyframe(kAgent, static_cast<std::uint32_t>(i), StripPose(image_of(i)), 31);
     k.T_world_cam = pose_of(i);
     ASSERT_TRUE(map->AddKeyframe(k).ok());
   }
@@ -139,7 +141,8 @@ TEST(DenseCompactTest, RevisitingAPlaceAddsAlmostNothing) {
   const auto pose = [&](int i) { return StripPose(image(i)); };
   AddStrip(compact.get(), 0, 16, image, pose);
   AddStrip(full.get(), 0, 16, image, pose);
-  const std::size_t compact_after_two = compact->Stats().points, full_after_two = full->Stats().kept_points;
+  const std::size_t compact_after_two = compact->Stats().points,
+                    full_after_two = full->Stats().kept_points;
   AddStrip(compact.get(), 16, 32, image, pose);
   AddStrip(full.get(), 16, 32, image, pose);
   EXPECT_LT(compact->Stats().points, 1.15 * compact_after_two);
@@ -148,7 +151,8 @@ TEST(DenseCompactTest, RevisitingAPlaceAddsAlmostNothing) {
 
 TEST(DenseCompactTest, PoseUpdatesMoveCompactedPointsExactly) {
   auto map = MakeMap(CompactOptions());
-  AddStrip(map.get(), 0, 8, [](int i) { return i; }, [](int i) { return StripPose(i); });
+  AddStrip(
+      map.get(), 0, 8, [](int i) { return i; }, [](int i) { return StripPose(i); });
   const GlobalKeyframeId id{kAgent, KeyframeId(1)};
   auto before = map->ExtractKeyframe(id);
   auto camera = map->KeyframeCloud(id);
@@ -205,12 +209,14 @@ TEST(DenseCompactTest, AfterALoopCorrectionTheMapIsAFromScratchBuildWithinAVoxel
   ASSERT_TRUE(ours.ok() && reference.ok());
   EXPECT_GT(Covered(*reference, *ours, kVoxel), 0.99);  // coverage
   EXPECT_GT(Covered(*ours, *reference, kVoxel), 0.99);  // nothing where the reference has nothing
-  EXPECT_LT(std::abs(static_cast<double>(ours->size()) - reference->size()), 0.05 * reference->size());
+  EXPECT_LT(std::abs(static_cast<double>(ours->size()) - reference->size()),
+            0.05 * reference->size());
 }
 
 TEST(DenseCompactTest, RemovingAndFusingKeepTheHeldVoxelsRight) {
   auto map = MakeMap(CompactOptions());
-  AddStrip(map.get(), 0, 10, [](int i) { return i; }, [](int i) { return StripPose(i); });
+  AddStrip(
+      map.get(), 0, 10, [](int i) { return i; }, [](int i) { return StripPose(i); });
   // Removing a compacted keyframe frees its voxels: the same view added again is stored again.
   const std::size_t before = map->Stats().points;
   const std::size_t two = map->ExtractKeyframe({kAgent, KeyframeId(2)})->size();
@@ -226,7 +232,8 @@ TEST(DenseCompactTest, RemovingAndFusingKeepTheHeldVoxelsRight) {
   const std::size_t agent2_alone = map->Stats().points - (before - two);
   ASSERT_TRUE(map->MergeMaps(MapId(2), MapId(1), Pose::Identity()).ok());
   map->Maintain();
-  EXPECT_LT(map->Stats().points - (before - two), agent2_alone);  // its duplicates of agent 1 are gone
+  EXPECT_LT(map->Stats().points - (before - two),
+            agent2_alone);  // its duplicates of agent 1 are gone
   auto global = map->Extract(DenseSelection::Map(MapId(1)));
   ASSERT_TRUE(global.ok());
   EXPECT_GT(global->size(), 0u);

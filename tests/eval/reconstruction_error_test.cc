@@ -56,8 +56,8 @@ TEST(ReconstructionErrorTest, MissingPartShowsInCompletenessAndHausdorff) {
   }
   auto e = ComputeReconstructionError(ref, rec);
   ASSERT_TRUE(e.ok());
-  EXPECT_LT(e->mean, 1e-6);                    // what exists is exact
-  EXPECT_NEAR(e->max_reverse, 0.5, 1e-5);      // the far edge is 0.5 m from the nearest point
+  EXPECT_LT(e->mean, 1e-6);                // what exists is exact
+  EXPECT_NEAR(e->max_reverse, 0.5, 1e-5);  // the far edge is 0.5 m from the nearest point
   EXPECT_NEAR(e->hausdorff, 0.5, 1e-5);
   EXPECT_NEAR(e->completeness, 53.0 / 101.0, 0.01);  // columns x <= 0.52 are within 2 cm
 }

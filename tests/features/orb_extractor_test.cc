@@ -27,16 +27,21 @@ cv::Mat RenderGray() {
 TEST(DistributeKeypointsTest, SpreadsOverCellsBeforeTakingSecondBest) {
   std::vector<cv::KeyPoint> candidates;
   // 100 strong corners packed in the top-left 20x20 pixels, 16 weak ones one per 4x4 cell.
-  for (int i = 0; i < 100; ++i) candidates.emplace_back(cv::Point2f(i % 10 * 2.0f, i / 10 * 2.0f), 7, -1, 100.0f + i);
+  for (int i = 0; i < 100; ++i)
+    candidates.emplace_back(cv::Point2f(i % 10 * 2.0f, i / 10 * 2.0f), 7, -1, 100.0f + i);
   for (int cy = 0; cy < 4; ++cy) {
-    for (int cx = 0; cx < 4; ++cx) candidates.emplace_back(cv::Point2f(cx * 100 + 50.0f, cy * 100 + 50.0f), 7, -1, 1.0f);
+    for (int cx = 0; cx < 4; ++cx)
+      candidates.emplace_back(cv::Point2f(cx * 100 + 50.0f, cy * 100 + 50.0f), 7, -1, 1.0f);
   }
   const auto kept = DistributeKeypoints(candidates, 400, 400, 16);  // 16 cells of 100 px
   ASSERT_EQ(kept.size(), 16u);
   int weak = 0;
   for (const auto& k : kept) weak += k.response == 1.0f;
   EXPECT_EQ(weak, 15);  // every other cell's only corner, plus the best of the crowded cell
-  EXPECT_EQ(std::max_element(kept.begin(), kept.end(), [](auto& a, auto& b) { return a.response < b.response; })->response, 199.0f);
+  EXPECT_EQ(std::max_element(kept.begin(), kept.end(),
+                             [](auto& a, auto& b) { return a.response < b.response; })
+                ->response,
+            199.0f);
 }
 
 TEST(OrbExtractorTest, BudgetSpreadAndLevels) {
@@ -56,7 +61,8 @@ TEST(OrbExtractorTest, BudgetSpreadAndLevels) {
     ASSERT_GE(k.octave, 0);
     ASSERT_LT(k.octave, 8);
     per_level[k.octave]++;
-    cells[std::min(5, static_cast<int>(k.pt.y / 80)) * 8 + std::min(7, static_cast<int>(k.pt.x / 80))]++;
+    cells[std::min(5, static_cast<int>(k.pt.y / 80)) * 8 +
+          std::min(7, static_cast<int>(k.pt.x / 80))]++;
   }
   for (int level = 0; level < 8; ++level) EXPECT_GT(per_level[level], 0) << level;
   EXPECT_EQ(std::count(cells.begin(), cells.end(), 0), 0);  // no empty 80x80 cell
@@ -71,7 +77,9 @@ std::vector<cv::KeyPoint> ReferenceSelection(const cv::Mat& gray, const OrbExtra
   for (int level = 0; level < o.levels; ++level) {
     if (level > 0) {
       cv::Mat smaller;
-      cv::resize(image, smaller, cv::Size(cvRound(gray.cols / orb.scale()[level]), cvRound(gray.rows / orb.scale()[level])),
+      cv::resize(image, smaller,
+                 cv::Size(cvRound(gray.cols / orb.scale()[level]),
+                          cvRound(gray.rows / orb.scale()[level])),
                  0, 0, cv::INTER_LINEAR);
       image = smaller;
     }
@@ -83,12 +91,14 @@ std::vector<cv::KeyPoint> ReferenceSelection(const cv::Mat& gray, const OrbExtra
     cv::cornerHarris(image, harris, 7, 3, 0.04);
     for (cv::KeyPoint k : corners) {
       k.pt += cv::Point2f(e - 3, e - 3);
-      if (k.pt.x < e || k.pt.y < e || k.pt.x >= image.cols - e || k.pt.y >= image.rows - e) continue;
+      if (k.pt.x < e || k.pt.y < e || k.pt.x >= image.cols - e || k.pt.y >= image.rows - e)
+        continue;
       const bool strong = k.response >= o.fast_threshold;
       k.response = harris.at<float>(cvRound(k.pt.y), cvRound(k.pt.x)) - (strong ? 0.0f : 1e9f);
       inside.push_back(k);
     }
-    for (cv::KeyPoint k : DistributeKeypoints(inside, image.cols, image.rows, orb.level_budget()[level])) {
+    for (cv::KeyPoint k :
+         DistributeKeypoints(inside, image.cols, image.rows, orb.level_budget()[level])) {
       k.octave = level;
       k.pt = (k.pt + cv::Point2f(0.5f, 0.5f)) * orb.scale()[level] - cv::Point2f(0.5f, 0.5f);
       all.push_back(k);
@@ -119,7 +129,8 @@ TEST(OrbExtractorTest, ChoosesTheKeypointsOfASinglePassWithHarrisOverTheWholeIma
     ASSERT_EQ(f.keypoints.size(), expected.size());
     int same = 0;
     for (std::size_t i = 0; i < expected.size(); ++i) {
-      same += f.keypoints[i].octave == expected[i].octave && cv::norm(f.keypoints[i].pt - expected[i].pt) < 1e-4;
+      same += f.keypoints[i].octave == expected[i].octave &&
+              cv::norm(f.keypoints[i].pt - expected[i].pt) < 1e-4;
     }
     // Harris values computed in another order may swap two corners of equal rank.
     EXPECT_GE(same, static_cast<int>(0.995 * expected.size()));
@@ -149,7 +160,8 @@ TEST(OrbExtractorTest, ShiftedImageMatchesAtShiftedPositions) {
     if (best > 50 || best > 0.8 * second) continue;
     ++matched;
     const cv::Point2f expected = a.keypoints[i].pt + cv::Point2f(7, -5);
-    if (cv::norm(expected - b.keypoints[best_j].pt) < 1.5 * std::pow(1.2, a.keypoints[i].octave)) ++consistent;
+    if (cv::norm(expected - b.keypoints[best_j].pt) < 1.5 * std::pow(1.2, a.keypoints[i].octave))
+      ++consistent;
   }
   EXPECT_GT(matched, 500);
   EXPECT_GT(consistent, 0.95 * matched);

@@ -18,7 +18,8 @@ SessionKeys Keys() {
   agent.fill(0x11);
   server.fill(0x22);
   static constexpr std::uint8_t kHello[] = {'a', ' ', 'h', 'e', 'l', 'l', 'o'};
-  return DeriveSessionKeys("the fuzzing deployment key", agent, server, ByteSpan(kHello, sizeof(kHello)));
+  return DeriveSessionKeys("the fuzzing deployment key", agent, server,
+                           ByteSpan(kHello, sizeof(kHello)));
 }
 
 // The honest stream, and where each of its frames starts.

@@ -42,7 +42,8 @@ std::vector<std::vector<std::uint8_t>> FuzzSeeds() {
   JournalAgentInfo info{AgentId(3), "robot-1", Camera()};
   info.max_payload_bytes = 4096;
   info.verifier.fill(0x42);
-  std::vector<std::uint8_t> journal = EncodeFrame(kJournalInfoRecord, 0, SerializeJournalInfo(info));
+  std::vector<std::uint8_t> journal =
+      EncodeFrame(kJournalInfoRecord, 0, SerializeJournalInfo(info));
   AppendDataFrame(16, 1, std::vector<std::uint8_t>(30, 1), &journal);
   const std::vector<std::uint8_t> update =
       EncodeFrame(kJournalUpdateRecord, 0, SerializeJournalUpdate({1 << 16, {}}));

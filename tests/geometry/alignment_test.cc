@@ -9,7 +9,8 @@ namespace {
 
 std::vector<Eigen::Vector3d> RandomPoints(int n, Rng* rng) {
   std::vector<Eigen::Vector3d> points;
-  for (int i = 0; i < n; ++i) points.emplace_back(rng->Uniform(-2, 2), rng->Uniform(-1, 1), rng->Uniform(0, 3));
+  for (int i = 0; i < n; ++i)
+    points.emplace_back(rng->Uniform(-2, 2), rng->Uniform(-1, 1), rng->Uniform(0, 3));
   return points;
 }
 

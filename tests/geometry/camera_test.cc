@@ -98,7 +98,9 @@ TEST(CameraTest, UndistortInvertsDistortOverTheImage) {
 TEST(CameraTest, PixelRaysAreTheUndistortedRays) {
   const PinholeCamera c = testing::TumFr1Camera();
   const PixelRays rays(c);
-  auto plain_ray = [&](int u, int v) { return Eigen::Vector3d((u - c.cx) / c.fx, (v - c.cy) / c.fy, 1.0); };
+  auto plain_ray = [&](int u, int v) {
+    return Eigen::Vector3d((u - c.cx) / c.fx, (v - c.cy) / c.fy, 1.0);
+  };
   ASSERT_EQ(rays.width(), 640);
   ASSERT_EQ(rays.height(), 480);
   double worst = 0;
@@ -117,7 +119,7 @@ TEST(CameraTest, PixelRaysAreTheUndistortedRays) {
       worst = std::max(worst, (c.ProjectToImage(exact.Ray(u, v)) - Eigen::Vector2d(u, v)).norm());
     }
   }
-  EXPECT_LT(worst, 1e-3);  // float rounding only
+  EXPECT_LT(worst, 1e-3);                                            // float rounding only
   EXPECT_GT((rays.Ray(0, 0) - plain_ray(0, 0)).norm() * c.fx, 3.0);  // and it is not the pinhole's
   PinholeCamera plain = c;
   plain.distortion = {0, 0, 0, 0, 0};

@@ -39,7 +39,8 @@ TEST(PoseTest, OrthonormalizedRepairsDrift) {
   p.linear() = Eigen::AngleAxisd(0.3, Eigen::Vector3d::UnitX()).toRotationMatrix();
   p.linear()(0, 1) += 1e-4;
   const Pose fixed = Orthonormalized(p);
-  EXPECT_LT((fixed.linear() * fixed.linear().transpose() - Eigen::Matrix3d::Identity()).norm(), 1e-12);
+  EXPECT_LT((fixed.linear() * fixed.linear().transpose() - Eigen::Matrix3d::Identity()).norm(),
+            1e-12);
   EXPECT_LT((fixed.linear() - p.linear()).norm(), 1e-3);
 }
 

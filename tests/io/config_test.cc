@@ -30,12 +30,15 @@ TEST(ConfigTest, ReadsOrbSlamCameraKeys) {
 
 TEST(ConfigTest, MissingAndWrongKeysAreClearErrors) {
   testing::TempDir dir;
-  ASSERT_TRUE(WriteFileAtomic(dir.File("a.yaml"), "%YAML:1.0\nCamera.fx: 500\nCamera.fy: 500\nCamera.cx: 320\n").ok());
+  ASSERT_TRUE(WriteFileAtomic(dir.File("a.yaml"),
+                              "%YAML:1.0\nCamera.fx: 500\nCamera.fy: 500\nCamera.cx: 320\n")
+                  .ok());
   auto a = LoadCameraConfig(dir.File("a.yaml"));
   ASSERT_FALSE(a.ok());
   EXPECT_NE(a.status().message().find("Camera.cy"), std::string::npos);
-  ASSERT_TRUE(WriteFileAtomic(dir.File("b.yaml"),
-                              "%YAML:1.0\nCamera.fx: \"big\"\nCamera.fy: 500\nCamera.cx: 320\nCamera.cy: 240\n")
+  ASSERT_TRUE(WriteFileAtomic(
+                  dir.File("b.yaml"),
+                  "%YAML:1.0\nCamera.fx: \"big\"\nCamera.fy: 500\nCamera.cx: 320\nCamera.cy: 240\n")
                   .ok());
   EXPECT_FALSE(LoadCameraConfig(dir.File("b.yaml")).ok());
   EXPECT_EQ(LoadCameraConfig(dir.File("none.yaml")).status().code(), StatusCode::kNotFound);

@@ -65,8 +65,9 @@ TEST(PlyTest, ReadsAsciiWithFacesAndOtherPropertyOrder) {
 
 TEST(PlyTest, MalformedFilesAreErrors) {
   testing::TempDir dir;
-  const char* header = "ply\nformat binary_little_endian 1.0\nelement vertex 1000000000\n"
-                       "property float x\nproperty float y\nproperty float z\nend_header\n";
+  const char* header =
+      "ply\nformat binary_little_endian 1.0\nelement vertex 1000000000\n"
+      "property float x\nproperty float y\nproperty float z\nend_header\n";
   ASSERT_TRUE(WriteFileAtomic(dir.File("huge.ply"), std::string(header) + "abc").ok());
   EXPECT_FALSE(ReadPly(dir.File("huge.ply")).ok());  // refused before allocating
   ASSERT_TRUE(WriteFileAtomic(dir.File("junk.ply"), "not a ply").ok());

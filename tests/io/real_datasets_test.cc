@@ -85,8 +85,8 @@ TEST(RealDatasetsTest, SevenScenesHasAPosePerFrame) {
 
 // Median distance between frame `a`'s depth, moved by the ground truth into frame `b`, and
 // frame b's own depth where it lands (pixels on a 16-pixel grid, depth within 5 cm).
-double MedianReprojectedDepthError(const TumSequence& seq, const PinholeCamera& camera, int a, int b,
-                                   int* agreeing) {
+double MedianReprojectedDepthError(const TumSequence& seq, const PinholeCamera& camera, int a,
+                                   int b, int* agreeing) {
   auto fa = seq.LoadFrame(a), fb = seq.LoadFrame(b);
   EXPECT_TRUE(fa.ok() && fb.ok());
   const Pose T_b_a = seq.frame(b).T_world_cam_gt->inverse() * *seq.frame(a).T_world_cam_gt;
@@ -99,7 +99,8 @@ double MedianReprojectedDepthError(const TumSequence& seq, const PinholeCamera& 
       const Eigen::Vector3d p = T_b_a * camera.BackProject(u, v, z);
       const Eigen::Vector2d uv = camera.Project(p);
       if (p.z() <= 0 || !camera.InImage(uv)) continue;
-      const double zb = fb->depth_mm.at<std::uint16_t>(static_cast<int>(uv.y()), static_cast<int>(uv.x())) * 1e-3;
+      const double zb =
+          fb->depth_mm.at<std::uint16_t>(static_cast<int>(uv.y()), static_cast<int>(uv.x())) * 1e-3;
       if (zb <= 0) continue;
       errors.push_back(std::abs(zb - p.z()));
       *agreeing += errors.back() < 0.05;

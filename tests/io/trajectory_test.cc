@@ -13,8 +13,8 @@ TEST(TrajectoryTest, WriteThenReadKeepsPosesAndMicroseconds) {
   for (int i = 0; i < 5; ++i) {
     t.push_back({1305031453.359684 + i * 0.033,
                  PoseFromTranslationQuaternion(
-                     {0.1 * i, -0.2, 1.5},
-                     Eigen::Quaterniond(Eigen::AngleAxisd(0.1 * i, Eigen::Vector3d(0, 1, 1).normalized())))});
+                     {0.1 * i, -0.2, 1.5}, Eigen::Quaterniond(Eigen::AngleAxisd(
+                                               0.1 * i, Eigen::Vector3d(0, 1, 1).normalized())))});
   }
   testing::TempDir dir;
   ASSERT_TRUE(WriteTumTrajectory(t, dir.File("t.txt"), "test").ok());
@@ -36,9 +36,10 @@ TEST(TrajectoryTest, BadLinesReportFileAndLine) {
 }
 
 TEST(TrajectoryTest, InterpolatesWithinGapOnly) {
-  const Trajectory t = {{1.0, PoseFromTranslationQuaternion({0, 0, 0}, Eigen::Quaterniond::Identity())},
-                        {1.1, PoseFromTranslationQuaternion({1, 0, 0}, Eigen::Quaterniond::Identity())},
-                        {2.0, PoseFromTranslationQuaternion({2, 0, 0}, Eigen::Quaterniond::Identity())}};
+  const Trajectory t = {
+      {1.0, PoseFromTranslationQuaternion({0, 0, 0}, Eigen::Quaterniond::Identity())},
+      {1.1, PoseFromTranslationQuaternion({1, 0, 0}, Eigen::Quaterniond::Identity())},
+      {2.0, PoseFromTranslationQuaternion({2, 0, 0}, Eigen::Quaterniond::Identity())}};
   const auto mid = InterpolateTrajectory(t, 1.025, 0.2);
   ASSERT_TRUE(mid.has_value());
   EXPECT_NEAR(mid->translation().x(), 0.25, 1e-12);

@@ -71,7 +71,8 @@ TEST(TumDatasetTest, GroundTruthInterpolatedAtColourTimestamps) {
 
 TEST(TumDatasetTest, MissingPiecesGiveClearErrors) {
   testing::TempDir dir;
-  EXPECT_EQ(TumSequence::Open(dir.path() + "/nope", Camera()).status().code(), StatusCode::kNotFound);
+  EXPECT_EQ(TumSequence::Open(dir.path() + "/nope", Camera()).status().code(),
+            StatusCode::kNotFound);
   EXPECT_EQ(TumSequence::Open(dir.path(), Camera()).status().code(), StatusCode::kNotFound);
   WriteFolder(dir.path());
   EXPECT_FALSE(TumSequence::Open(dir.path(), std::nullopt).ok());  // no camera, no camera.yaml

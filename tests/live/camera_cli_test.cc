@@ -96,22 +96,31 @@ TEST(CameraCliTest, RegistrationCheckFindsTheTrueOffset) {
   testing::TempDir dir;
   const std::string folder = dir.File("rec");
   std::string output;
-  ASSERT_EQ(RunCamera("--source synth:frames=10 --frames 10 --record " + folder, &output), 0) << output;
+  ASSERT_EQ(RunCamera("--source synth:frames=10 --frames 10 --record " + folder, &output), 0)
+      << output;
   auto camera_yaml = ReadFileToString(folder + "/camera.yaml");
   ASSERT_TRUE(camera_yaml.ok());
   auto camera = LoadCameraConfig(folder + "/camera.yaml");
   ASSERT_TRUE(camera.ok());
   const std::string config = dir.File("registered.yaml");
-  const std::string depth_block = "\nDepth.fx: " + std::to_string(camera->fx) + "\nDepth.fy: " + std::to_string(camera->fy) +
-                                  "\nDepth.cx: " + std::to_string(camera->cx) + "\nDepth.cy: " + std::to_string(camera->cy) +
-                                  "\nDepth.width: 640\nDepth.height: 480\nDepth.t_color_depth: [0.02, 0.0, 0.0]\n";
+  const std::string depth_block =
+      "\nDepth.fx: " + std::to_string(camera->fx) + "\nDepth.fy: " + std::to_string(camera->fy) +
+      "\nDepth.cx: " + std::to_string(camera->cx) + "\nDepth.cy: " + std::to_string(camera->cy) +
+      "\nDepth.width: 640\nDepth.height: 480\nDepth.t_color_depth: [0.02, 0.0, 0.0]\n";
   ASSERT_TRUE(WriteFileAtomic(config, *camera_yaml + depth_block).ok());
-  ASSERT_EQ(RunCamera("--check-registration --source tum:" + folder + " --config " + config + " --frames 5", &output), 0)
+  ASSERT_EQ(RunCamera("--check-registration --source tum:" + folder + " --config " + config +
+                          " --frames 5",
+                      &output),
+            0)
       << output;
-  EXPECT_NE(output.find("best: t_color_depth.x +0.000 m (config +0.020 m)"), std::string::npos) << output;
+  EXPECT_NE(output.find("best: t_color_depth.x +0.000 m (config +0.020 m)"), std::string::npos)
+      << output;
 
   // Without a Depth block there is nothing to check.
-  EXPECT_EQ(RunCamera("--check-registration --source tum:" + folder + " --config " + folder + "/camera.yaml", &output), 2);
+  EXPECT_EQ(RunCamera("--check-registration --source tum:" + folder + " --config " + folder +
+                          "/camera.yaml",
+                      &output),
+            2);
   EXPECT_NE(output.find("needs a --config with a Depth block"), std::string::npos) << output;
 }
 

@@ -105,8 +105,7 @@ class BadInputTest : public ::testing::Test {
   }
   // Completes a correct handshake by hand; returns the Welcome.
   WelcomeMessage Handshake(RawClient* c, const std::string& name) {
-    std::optional<WelcomeMessage> welcome =
-        nettest::RawHandshake(c, server_->port(), name, kKey);
+    std::optional<WelcomeMessage> welcome = nettest::RawHandshake(c, server_->port(), name, kKey);
     EXPECT_TRUE(welcome.has_value());
     return welcome.value_or(WelcomeMessage{});
   }

@@ -27,13 +27,13 @@
 #include <chrono>
 #include <cmath>
 #include <condition_variable>
-#include <mutex>
 #include <cstdio>
 #include <fstream>
 #include <functional>
 #include <limits>
 #include <map>
 #include <memory>
+#include <mutex>
 #include <string>
 #include <thread>
 #include <vector>
@@ -204,7 +204,8 @@ std::optional<ByeReason> AuthWith(std::uint16_t port, const Prover& prove) {
   if (!ch.ok()) return std::nullopt;
   AuthMessage auth;
   auth.proof = prove(ch->server_nonce, hello);
-  if (!c.SendBytes(EncodeSessionFrame(SessionType::kAuth, SerializeAuth(auth)))) return std::nullopt;
+  if (!c.SendBytes(EncodeSessionFrame(SessionType::kAuth, SerializeAuth(auth))))
+    return std::nullopt;
   std::vector<Frame> frames;
   c.ReadUntilClosed(&frames, 10);
   const std::optional<ByeMessage> bye = nettest::FindBye(frames);
@@ -222,9 +223,10 @@ void AuthenticationAttacks(std::uint16_t port, Tally* t) {
   Expect(t, "ack from a client", Exchange(port, EncodeSessionFrame(SessionType::kAck, Bytes(8, 0))),
          ByeReason::kProtocolError);
   Expect(t, "wrong key",
-         AuthWith(port, [&](const Nonce& server_nonce, ByteSpan hello) -> std::optional<Mac> {
-           return AgentProof(kOtherKey, server_nonce, hello);
-         }),
+         AuthWith(port,
+                  [&](const Nonce& server_nonce, ByteSpan hello) -> std::optional<Mac> {
+                    return AgentProof(kOtherKey, server_nonce, hello);
+                  }),
          ByeReason::kAuthFailed);
   Expect(t, "no key",
          AuthWith(port, [](const Nonce&, ByteSpan) -> std::optional<Mac> { return {}; }),
@@ -286,10 +288,10 @@ void SlowAttacks(std::uint16_t port, Tally* t) {
     WireFrame header = nettest::ForgeFrame(16, Bytes(8, 1), true);
     header.PutLe32(8, 60 << 10);  // within the frame limit
     header.PutLe32(16, Crc32c(header.bytes.data(), 16));
-    Expect(t, "dribbled frame",
-           dribble(&session, Bytes(header.bytes.begin(), header.bytes.begin() + kFrameHeaderSize),
-                   30),
-           ByeReason::kTimeout);
+    Expect(
+        t, "dribbled frame",
+        dribble(&session, Bytes(header.bytes.begin(), header.bytes.begin() + kFrameHeaderSize), 30),
+        ByeReason::kTimeout);
   } else {
     t->Note("dribbled frame", false, "handshake failed");
   }
@@ -400,7 +402,10 @@ void KeylessSlots(const std::string& dir, Tally* t) {
   bool delivered = false;
   if (late.ok()) {
     for (int i = 0; i < 5; ++i) {
-      (*late)->Send(MessageType::kKeyframe, nettest::SyntheticKeyframe(300, i)).status().IgnoreError();
+      (*late)
+          ->Send(MessageType::kKeyframe, nettest::SyntheticKeyframe(300, i))
+          .status()
+          .IgnoreError();
     }
     delivered = (*late)->Flush(30).ok();
   }
@@ -440,7 +445,8 @@ class HonestAgent {
   }
   bool WaitAcked(std::uint64_t n, double timeout_s) {
     std::unique_lock<std::mutex> lock(mutex_);
-    return cv_.wait_for(lock, std::chrono::duration<double>(timeout_s), [&] { return acked_ >= n; });
+    return cv_.wait_for(lock, std::chrono::duration<double>(timeout_s),
+                        [&] { return acked_ >= n; });
   }
   // Stops sending and waits for every acknowledgement.
   Status Finish() {
@@ -527,13 +533,16 @@ int CountTransportLines(const std::string& path, std::map<std::string, int>* kin
 
 int main(int argc, char** argv) {
   using namespace ccmd;
-  CLI::App app{"A bounded attack run against a ccmd_server it starts on loopback (see the file's "
-               "header). Exit status 0 when every check holds."};
+  CLI::App app{
+      "A bounded attack run against a ccmd_server it starts on loopback (see the file's "
+      "header). Exit status 0 when every check holds."};
   Config config;
-  app.add_option("--rounds", config.rounds, "Rounds of attacks, each ending with kill -9 and --resume")
+  app.add_option("--rounds", config.rounds,
+                 "Rounds of attacks, each ending with kill -9 and --resume")
       ->check(CLI::Range(1, 100))
       ->capture_default_str();
-  app.add_option("--storm", config.storm, "Connections per storm")->check(CLI::Range(1, 100000))
+  app.add_option("--storm", config.storm, "Connections per storm")
+      ->check(CLI::Range(1, 100000))
       ->capture_default_str();
   app.add_option("--idle", config.idle, "Idle connections held at once (at most 30)")
       ->check(CLI::Range(0, 30))
@@ -547,10 +556,14 @@ int main(int argc, char** argv) {
   if (!WriteFileAtomic(key_file, kKey).ok()) return 1;
   ::chmod(key_file.c_str(), 0600);
   const std::string log = dir.File("server.log");
-  std::vector<std::string> args = {"--listen",  "127.0.0.1:0", "--journal", dir.File("journal"),
-                                   "--psk-file", key_file,     "--no-dense", "--handshake-timeout",
-                                   "1",          "--idle-timeout", "3",     "--frame-timeout",
-                                   "2",          "--max-frame-bytes", "262144"};
+  std::vector<std::string> args = {"--listen",   "127.0.0.1:0",
+                                   "--journal",  dir.File("journal"),
+                                   "--psk-file", key_file,
+                                   "--no-dense", "--handshake-timeout",
+                                   "1",          "--idle-timeout",
+                                   "3",          "--frame-timeout",
+                                   "2",          "--max-frame-bytes",
+                                   "262144"};
   auto server = std::make_unique<nettest::ServerProcess>();
   if (!server->Start(args, log)) {
     std::fprintf(stderr, "ccmd_attack: cannot start ccmd_server\n");
@@ -573,9 +586,14 @@ int main(int argc, char** argv) {
     // the journal's first records.
     server->Signal(SIGKILL);
     server->Wait();
-    args = {"--listen", "127.0.0.1:0", "--resume", dir.File("journal"), "--psk-file", key_file,
-            "--no-dense", "--handshake-timeout", "1", "--idle-timeout", "3", "--frame-timeout", "2",
-            "--max-frame-bytes", "65536"};
+    args = {"--listen",   "127.0.0.1:0",
+            "--resume",   dir.File("journal"),
+            "--psk-file", key_file,
+            "--no-dense", "--handshake-timeout",
+            "1",          "--idle-timeout",
+            "3",          "--frame-timeout",
+            "2",          "--max-frame-bytes",
+            "65536"};
     server = std::make_unique<nettest::ServerProcess>();
     const bool resumed = server->Start(args, log);
     tally.Note("kill -9, then --resume with a smaller frame limit", resumed);
@@ -610,16 +628,16 @@ int main(int argc, char** argv) {
     runs += r.first;
     ok += r.second;
   }
-  std::printf("\nhonest agent: %llu queued, %llu acknowledged, %llu sessions, %llu resent, %llu "
-              "forged frames detected; man in the middle: %d acks forged, %d keyframes injected\n",
-              static_cast<unsigned long long>(stats.queued),
-              static_cast<unsigned long long>(stats.acked),
-              static_cast<unsigned long long>(stats.sessions),
-              static_cast<unsigned long long>(stats.resent),
-              static_cast<unsigned long long>(stats.auth_failures), mitm.forged.load(),
-              mitm.injected.load());
-  std::printf("server log: %d transport lines; %d of %d checks as expected in %.1f s\n", lines, ok, runs,
-              MonotonicSeconds() - start);
+  std::printf(
+      "\nhonest agent: %llu queued, %llu acknowledged, %llu sessions, %llu resent, %llu "
+      "forged frames detected; man in the middle: %d acks forged, %d keyframes injected\n",
+      static_cast<unsigned long long>(stats.queued), static_cast<unsigned long long>(stats.acked),
+      static_cast<unsigned long long>(stats.sessions),
+      static_cast<unsigned long long>(stats.resent),
+      static_cast<unsigned long long>(stats.auth_failures), mitm.forged.load(),
+      mitm.injected.load());
+  std::printf("server log: %d transport lines; %d of %d checks as expected in %.1f s\n", lines, ok,
+              runs, MonotonicSeconds() - start);
   for (const std::string& f : tally.failures) std::printf("FAILED %s\n", f.c_str());
   if (lines > bound) {
     std::printf("the server log's lines by kind:\n");

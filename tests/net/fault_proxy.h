@@ -18,8 +18,8 @@
 #include <vector>
 
 #include "libccmd/net/socket.h"
-#include "tests/net/loopback_proxy.h"
 #include "libccmd/util/random.h"
+#include "tests/net/loopback_proxy.h"
 
 namespace ccmd::nettest {
 
@@ -40,13 +40,14 @@ class FaultProxy : public LoopbackProxy {
   std::function<void()> NewPump(UniqueFd client, UniqueFd server) override {
     std::size_t budget = SIZE_MAX;
     if (options_.max_cut_bytes > 0) {
-      budget = options_.min_cut_bytes +
-               static_cast<std::size_t>(
-                   rng_.Uniform() *
-                   static_cast<double>(options_.max_cut_bytes - options_.min_cut_bytes));
+      budget =
+          options_.min_cut_bytes +
+          static_cast<std::size_t>(rng_.Uniform() * static_cast<double>(options_.max_cut_bytes -
+                                                                        options_.min_cut_bytes));
     }
     const double delay_seed = rng_.Uniform();
-    auto pair = std::make_shared<std::pair<UniqueFd, UniqueFd>>(std::move(client), std::move(server));
+    auto pair =
+        std::make_shared<std::pair<UniqueFd, UniqueFd>>(std::move(client), std::move(server));
     return [this, pair, budget, delay_seed] {
       Pump(std::move(pair->first), std::move(pair->second), budget, delay_seed);
     };

@@ -42,10 +42,10 @@ Bytes FromHex(const std::string& hex) {
 // RFC 5869, appendix A, test cases 1 and 3 (SHA-256).
 TEST(FrameAuthTest, HkdfMatchesRfc5869) {
   const Bytes ikm(22, 0x0b);
-  EXPECT_EQ(HkdfSha256(FromHex("000102030405060708090a0b0c"), ikm,
-                       FromHex("f0f1f2f3f4f5f6f7f8f9"), 42),
-            FromHex("3cb25f25faacd57a90434f64d0362f2a2d2d0a90cf1a5a4c5db02d56ecc4c5bf34007208d5b8"
-                    "87185865"));
+  EXPECT_EQ(
+      HkdfSha256(FromHex("000102030405060708090a0b0c"), ikm, FromHex("f0f1f2f3f4f5f6f7f8f9"), 42),
+      FromHex("3cb25f25faacd57a90434f64d0362f2a2d2d0a90cf1a5a4c5db02d56ecc4c5bf34007208d5b8"
+              "87185865"));
   EXPECT_EQ(HkdfSha256({}, ikm, {}, 42),
             FromHex("8da4e775a563c18f715f802a063c5a31b8a11f5c5ee1879ec3454e5f3c738d2d9d201395faa4"
                     "b61a96c8"));

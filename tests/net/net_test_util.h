@@ -274,7 +274,8 @@ inline RawAnswer RawHandshakeWith(RawClient* c, std::uint16_t port, HelloMessage
   if (!challenge) return answer;
   StatusOr<ChallengeMessage> ch = ParseChallenge(challenge->payload);
   if (!ch.ok()) return answer;
-  const SessionKeys keys = DeriveSessionKeys(key, hello.agent_nonce, ch->server_nonce, hello_payload);
+  const SessionKeys keys =
+      DeriveSessionKeys(key, hello.agent_nonce, ch->server_nonce, hello_payload);
   AuthMessage auth;
   if (!key.empty()) auth.proof = AgentProof(key, ch->server_nonce, hello_payload);
   auth.masked_identity = MaskIdentity(c->identity, keys.identity_pad);

@@ -4,8 +4,8 @@
 
 #include <condition_variable>
 #include <cstdio>
-#include <mutex>
 #include <memory>
+#include <mutex>
 #include <thread>
 #include <vector>
 

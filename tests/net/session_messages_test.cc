@@ -179,7 +179,7 @@ TEST(SessionMessagesTest, ChallengeAuthWelcomeAckByeLayouts) {
   StatusOr<ByeMessage> bye = ParseBye(Bytes{11, 3, 0, 'a', 0x01, 'z'});
   ASSERT_TRUE(bye.ok());
   EXPECT_EQ(bye->reason, ByeReason::kReplaced);
-  EXPECT_EQ(bye->text, "a?z");                        // control characters never reach the logs
+  EXPECT_EQ(bye->text, "a?z");  // control characters never reach the logs
   EXPECT_EQ(ParseBye(Bytes{12, 0, 0})->reason, ByeReason::kFrameAuthFailed);
   EXPECT_FALSE(ParseBye(Bytes{13, 0, 0}).ok());       // unknown reason
   EXPECT_FALSE(ParseBye(Bytes{0, 0xFF, 0xFF}).ok());  // text longer than allowed

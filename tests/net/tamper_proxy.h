@@ -18,9 +18,9 @@
 #include <vector>
 
 #include "libccmd/net/socket.h"
-#include "tests/net/loopback_proxy.h"
 #include "proto/crc32c.h"
 #include "proto/frame.h"
+#include "tests/net/loopback_proxy.h"
 
 namespace ccmd::nettest {
 
@@ -67,7 +67,8 @@ class TamperProxy : public LoopbackProxy {
 
  protected:
   std::function<void()> NewPump(UniqueFd agent, UniqueFd server) override {
-    auto pair = std::make_shared<std::pair<UniqueFd, UniqueFd>>(std::move(agent), std::move(server));
+    auto pair =
+        std::make_shared<std::pair<UniqueFd, UniqueFd>>(std::move(agent), std::move(server));
     return [this, pair] { Pump(std::move(pair->first), std::move(pair->second)); };
   }
 
@@ -83,9 +84,8 @@ class TamperProxy : public LoopbackProxy {
     sides[1].fd = std::move(server_fd);
     std::vector<std::uint8_t> buffer(64 << 10);
     while (!stopping()) {
-      pollfd fds[3] = {{sides[0].fd.get(), POLLIN, 0},
-                       {sides[1].fd.get(), POLLIN, 0},
-                       {wake_fd(), POLLIN, 0}};
+      pollfd fds[3] = {
+          {sides[0].fd.get(), POLLIN, 0}, {sides[1].fd.get(), POLLIN, 0}, {wake_fd(), POLLIN, 0}};
       ::poll(fds, 3, -1);
       if (stopping()) return;
       for (int from = 0; from < 2; ++from) {

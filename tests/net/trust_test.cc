@@ -334,7 +334,8 @@ TEST_F(TrustTest, AnAlteredHelloIsRefusedBeforeAnythingIsRegistered) {
   proxy.Stop();
   server_->Stop();
   EXPECT_GE(altered.load(), 1);
-  EXPECT_EQ(server_->stats().counter("refused_wrong_key"), static_cast<std::uint64_t>(altered.load()));
+  EXPECT_EQ(server_->stats().counter("refused_wrong_key"),
+            static_cast<std::uint64_t>(altered.load()));
   EXPECT_TRUE(consumer_->messages().empty());
   EXPECT_FALSE(FileExists(dir_.File("journal/" + JournalFileName(AgentId(1)))));
 }
@@ -343,18 +344,18 @@ TEST_F(TrustTest, AnAlteredHelloIsRefusedBeforeAnythingIsRegistered) {
 TEST_F(TrustTest, AnInjectedKeyframeIsRefusedAndItsConnectionClosed) {
   StartServer(Options());
   std::atomic<int> injected{0};
-  nettest::TamperProxy proxy([&](bool from_agent, WireFrame f, std::vector<WireFrame>* forward,
-                                 std::vector<WireFrame>*) {
-    const bool after_third = from_agent && f.type() == 16 && SeqOf(f) == 3;
-    forward->push_back(std::move(f));
-    if (after_third && injected.load() == 0) {
-      ++injected;
-      WireFrame forged;
-      AppendDataFrame(16, 4, SyntheticKeyframe(66, 4), &forged.bytes, kFrameTagged);
-      forged.bytes.insert(forged.bytes.end(), kFrameTagSize, 0x5A);
-      forward->push_back(std::move(forged));
-    }
-  });
+  nettest::TamperProxy proxy(
+      [&](bool from_agent, WireFrame f, std::vector<WireFrame>* forward, std::vector<WireFrame>*) {
+        const bool after_third = from_agent && f.type() == 16 && SeqOf(f) == 3;
+        forward->push_back(std::move(f));
+        if (after_third && injected.load() == 0) {
+          ++injected;
+          WireFrame forged;
+          AppendDataFrame(16, 4, SyntheticKeyframe(66, 4), &forged.bytes, kFrameTagged);
+          forged.bytes.insert(forged.bytes.end(), kFrameTagSize, 0x5A);
+          forward->push_back(std::move(forged));
+        }
+      });
   ASSERT_TRUE(proxy.Start(server_->port()));
   auto link = AgentLink::Create(Link("robot", proxy.port())).value();
   Send(link.get(), 5, 0, 12);
@@ -372,11 +373,12 @@ TEST_F(TrustTest, AnInjectedKeyframeIsRefusedAndItsConnectionClosed) {
 // summary line with the count per reason.
 TEST(RefusalLogTest, SummarisesPerSourceAndInterval) {
   std::vector<std::string> lines;
-  RefusalLog log({.interval_s = 10, .max_sources = 2,
-                  .sink = [&](const std::string& line) { lines.push_back(line); }});
+  RefusalLog log({.interval_s = 10, .max_sources = 2, .sink = [&](const std::string& line) {
+                    lines.push_back(line);
+                  }});
   for (int i = 0; i < 1000; ++i) {
-    log.Note("10.0.0.1", "10.0.0.1:" + std::to_string(1000 + i), i % 4 ? "time-out" : "protocol error",
-             "details " + std::to_string(i), 0.001 * i);
+    log.Note("10.0.0.1", "10.0.0.1:" + std::to_string(1000 + i),
+             i % 4 ? "time-out" : "protocol error", "details " + std::to_string(i), 0.001 * i);
   }
   log.Note("10.0.0.2", "10.0.0.2:5", "time-out", "other", 2);
   log.Note("10.0.0.3", "10.0.0.3:5", "time-out", "third", 3);  // beyond max_sources
@@ -443,9 +445,9 @@ TEST(TrustStormTest, RefusedConnectionsDoNotFloodTheLog) {
 TEST(TrustCliTest, AnAgentWhoseNameIsTakenExitsNonZeroAndSaysSo) {
   testing::TempDir dir;
   nettest::ServerProcess server;
-  ASSERT_TRUE(server.Start(
-      {"--listen", "127.0.0.1:0", "--journal", dir.File("journal"), "--no-dense"},
-      dir.File("server.log")));
+  ASSERT_TRUE(
+      server.Start({"--listen", "127.0.0.1:0", "--journal", dir.File("journal"), "--no-dense"},
+                   dir.File("server.log")));
   RawClient owner;
   owner.identity = TestIdentity(1);
   HelloMessage hello;

@@ -7,7 +7,9 @@
 namespace ccmd {
 namespace {
 
-std::vector<std::uint8_t> Packet(int tag, std::size_t size = 100) { return std::vector<std::uint8_t>(size, tag & 0xFF); }
+std::vector<std::uint8_t> Packet(int tag, std::size_t size = 100) {
+  return std::vector<std::uint8_t>(size, tag & 0xFF);
+}
 
 TEST(DelayLineTest, FixedDelayReleasesEachPacketExactlyOnTime) {
   DelayLineOptions o;

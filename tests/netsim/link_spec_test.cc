@@ -41,14 +41,15 @@ TEST(LinkSpecTest, CanonicalTextParsesBackToTheSameSpec) {
 }
 
 TEST(LinkSpecTest, RejectsWhatCannotBeALink) {
-  for (const char* bad : {"", "rate", "rate=fast", "rate=2.4", "rate=2.4mbits", "rate=-1mbit", "rate=10bps",
-                          "delay=50", "delay=50xs", "delay=-5ms", "jitter=10ms", "delay=5ms,jitter=10ms", "loss=1",
-                          "loss=-0.1", "loss=abc", "bandwidth=1mbit", "rate=1mbit,rate=2mbit", "seed=-3",
-                          "queue=0ms"}) {
+  for (const char* bad : {"", "rate", "rate=fast", "rate=2.4", "rate=2.4mbits", "rate=-1mbit",
+                          "rate=10bps", "delay=50", "delay=50xs", "delay=-5ms", "jitter=10ms",
+                          "delay=5ms,jitter=10ms", "loss=1", "loss=-0.1", "loss=abc",
+                          "bandwidth=1mbit", "rate=1mbit,rate=2mbit", "seed=-3", "queue=0ms"}) {
     EXPECT_FALSE(ParseLinkSpec(bad).ok()) << "'" << bad << "' accepted";
   }
   // Errors name what is wrong.
-  EXPECT_NE(ParseLinkSpec("bandwidth=1mbit").status().message().find("bandwidth"), std::string::npos);
+  EXPECT_NE(ParseLinkSpec("bandwidth=1mbit").status().message().find("bandwidth"),
+            std::string::npos);
 }
 
 }  // namespace

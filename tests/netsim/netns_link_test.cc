@@ -12,8 +12,8 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
-#include <algorithm>
 #include <arpa/inet.h>
+#include <algorithm>
 #include <atomic>
 #include <fstream>
 #include <sstream>
@@ -28,9 +28,9 @@ namespace {
 
 using Side = NetnsLink::Side;
 
-#define CCMD_REQUIRE_ROOT()                                                                  \
-  if (::geteuid() != 0) {                                                                    \
-    GTEST_SKIP() << "not root: network namespaces cannot be created here; skipping";        \
+#define CCMD_REQUIRE_ROOT()                                                          \
+  if (::geteuid() != 0) {                                                            \
+    GTEST_SKIP() << "not root: network namespaces cannot be created here; skipping"; \
   }
 
 bool NamespaceExists(const std::string& name) { return FileExists("/run/netns/" + name); }
@@ -44,16 +44,24 @@ Connection Connect(const NetnsLink& link) {
   Connection c;
   UniqueFd listener;
   std::uint16_t port = 0;
-  EXPECT_TRUE(link.RunIn(Side::kServer, [&]() -> Status {
-                    bool loopback;
-                    CCMD_ASSIGN_OR_RETURN(listener, ListenTcp(HostPort{link.address(Side::kServer), 0}, 4, &loopback));
-                    CCMD_ASSIGN_OR_RETURN(port, LocalPort(listener.get()));
-                    return Status::Ok();
-                  }).ok());
-  EXPECT_TRUE(link.RunIn(Side::kAgents, [&]() -> Status {
-                    CCMD_ASSIGN_OR_RETURN(c.client, ConnectTcp(HostPort{link.address(Side::kServer), port}, 10.0));
-                    return Status::Ok();
-                  }).ok());
+  EXPECT_TRUE(link.RunIn(Side::kServer,
+                         [&]() -> Status {
+                           bool loopback;
+                           CCMD_ASSIGN_OR_RETURN(
+                               listener,
+                               ListenTcp(HostPort{link.address(Side::kServer), 0}, 4, &loopback));
+                           CCMD_ASSIGN_OR_RETURN(port, LocalPort(listener.get()));
+                           return Status::Ok();
+                         })
+                  .ok());
+  EXPECT_TRUE(link.RunIn(Side::kAgents,
+                         [&]() -> Status {
+                           CCMD_ASSIGN_OR_RETURN(
+                               c.client,
+                               ConnectTcp(HostPort{link.address(Side::kServer), port}, 10.0));
+                           return Status::Ok();
+                         })
+                  .ok());
   pollfd p{listener.get(), POLLIN, 0};
   EXPECT_EQ(::poll(&p, 1, 10000), 1);
   c.server = UniqueFd(::accept4(listener.get(), nullptr, nullptr, SOCK_NONBLOCK | SOCK_CLOEXEC));
@@ -187,23 +195,32 @@ TEST(NetnsLinkTest, LossIsWhatWasAsked) {
   ASSERT_TRUE(c.client.valid());
   UniqueFd receiver, sender;
   std::uint16_t port = 0;
-  ASSERT_TRUE((*link)->RunIn(Side::kServer, [&]() -> Status {
-                       receiver = UniqueFd(::socket(AF_INET, SOCK_DGRAM | SOCK_CLOEXEC | SOCK_NONBLOCK, 0));
-                       const int size = 16 << 20;
-                       ::setsockopt(receiver.get(), SOL_SOCKET, SO_RCVBUFFORCE, &size, sizeof(size));
-                       sockaddr_in a{};
-                       a.sin_family = AF_INET;
-                       ::inet_pton(AF_INET, (*link)->address(Side::kServer).c_str(), &a.sin_addr);
-                       if (::bind(receiver.get(), reinterpret_cast<sockaddr*>(&a), sizeof(a)) != 0) return IoError("bind");
-                       socklen_t len = sizeof(a);
-                       ::getsockname(receiver.get(), reinterpret_cast<sockaddr*>(&a), &len);
-                       port = ntohs(a.sin_port);
-                       return Status::Ok();
-                     }).ok());
-  ASSERT_TRUE((*link)->RunIn(Side::kAgents, [&]() -> Status {
-                       sender = UniqueFd(::socket(AF_INET, SOCK_DGRAM | SOCK_CLOEXEC, 0));
-                       return Status::Ok();
-                     }).ok());
+  ASSERT_TRUE(
+      (*link)
+          ->RunIn(Side::kServer,
+                  [&]() -> Status {
+                    receiver =
+                        UniqueFd(::socket(AF_INET, SOCK_DGRAM | SOCK_CLOEXEC | SOCK_NONBLOCK, 0));
+                    const int size = 16 << 20;
+                    ::setsockopt(receiver.get(), SOL_SOCKET, SO_RCVBUFFORCE, &size, sizeof(size));
+                    sockaddr_in a{};
+                    a.sin_family = AF_INET;
+                    ::inet_pton(AF_INET, (*link)->address(Side::kServer).c_str(), &a.sin_addr);
+                    if (::bind(receiver.get(), reinterpret_cast<sockaddr*>(&a), sizeof(a)) != 0)
+                      return IoError("bind");
+                    socklen_t len = sizeof(a);
+                    ::getsockname(receiver.get(), reinterpret_cast<sockaddr*>(&a), &len);
+                    port = ntohs(a.sin_port);
+                    return Status::Ok();
+                  })
+          .ok());
+  ASSERT_TRUE((*link)
+                  ->RunIn(Side::kAgents,
+                          [&]() -> Status {
+                            sender = UniqueFd(::socket(AF_INET, SOCK_DGRAM | SOCK_CLOEXEC, 0));
+                            return Status::Ok();
+                          })
+                  .ok());
   sockaddr_in to{};
   to.sin_family = AF_INET;
   to.sin_port = htons(port);
@@ -211,7 +228,8 @@ TEST(NetnsLinkTest, LossIsWhatWasAsked) {
   constexpr int kDatagrams = 3000;
   const std::vector<std::uint8_t> datagram(200, 5);
   for (int i = 0; i < kDatagrams; ++i) {
-    ASSERT_EQ(::sendto(sender.get(), datagram.data(), datagram.size(), 0, reinterpret_cast<sockaddr*>(&to), sizeof(to)),
+    ASSERT_EQ(::sendto(sender.get(), datagram.data(), datagram.size(), 0,
+                       reinterpret_cast<sockaddr*>(&to), sizeof(to)),
               200);
   }
   // Count until nothing more can arrive (the link's delay is 1 ms; 1 s of silence ends it).
@@ -248,8 +266,9 @@ TEST(NetnsLinkTest, WatchdogRemovesEverythingWhenTheOwnerIsKilled) {
       ::execv(args[0], args.data());
       ::_exit(127);
     }
-    const std::string report = (*link)->namespace_name(Side::kAgents) + " " + (*link)->namespace_name(Side::kLink) +
-                               " " + (*link)->namespace_name(Side::kServer) + " " + std::to_string(inside) + "\n";
+    const std::string report =
+        (*link)->namespace_name(Side::kAgents) + " " + (*link)->namespace_name(Side::kLink) + " " +
+        (*link)->namespace_name(Side::kServer) + " " + std::to_string(inside) + "\n";
     if (::write(fds[1], report.data(), report.size()) < 0) ::_exit(1);
     ::pause();  // until killed
     ::_exit(0);

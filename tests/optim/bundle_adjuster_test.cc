@@ -52,8 +52,8 @@ Scene MakeScene(double pixel_noise, Rng* rng) {
 double MeanReprojection(const BaProblem& p) {
   double sum = 0;
   for (const auto& o : p.observations) {
-    sum += std::sqrt(ReprojectionChi2(kCamera, p.cameras[o.camera].T_cam_world, p.points[o.point].position,
-                                      o.uv, 0, 1.0, 0));
+    sum += std::sqrt(ReprojectionChi2(kCamera, p.cameras[o.camera].T_cam_world,
+                                      p.points[o.point].position, o.uv, 0, 1.0, 0));
   }
   return sum / p.observations.size();
 }
@@ -67,7 +67,9 @@ TEST(BundleAdjusterTest, FixesAPerturbedKeyframeAndLowersReprojectionError) {
   delta.linear() = RotationFromAngleAxis({0.02, -0.03, 0.01});
   delta.translation() = Eigen::Vector3d(0.05, -0.02, 0.03);
   s.problem.cameras[3].T_cam_world = delta * s.problem.cameras[3].T_cam_world;
-  for (auto& p : s.problem.points) p.position += Eigen::Vector3d(rng.Uniform(-0.02, 0.02), rng.Uniform(-0.02, 0.02), rng.Uniform(-0.02, 0.02));
+  for (auto& p : s.problem.points)
+    p.position += Eigen::Vector3d(rng.Uniform(-0.02, 0.02), rng.Uniform(-0.02, 0.02),
+                                  rng.Uniform(-0.02, 0.02));
   const double before = MeanReprojection(s.problem);
   const BaSummary summary = BundleAdjust(&s.problem, BaOptions());
   const double after = MeanReprojection(s.problem);
@@ -143,7 +145,8 @@ TEST(BundleAdjusterTest, SparseSchurGivesTheSameSolution) {
   BaOptions sparse;
   sparse.solver = BaLinearSolver::kSparseSchur;
   BundleAdjust(&b.problem, sparse);
-  EXPECT_LT(TranslationDistance(a.problem.cameras[2].T_cam_world, b.problem.cameras[2].T_cam_world), 1e-6);
+  EXPECT_LT(TranslationDistance(a.problem.cameras[2].T_cam_world, b.problem.cameras[2].T_cam_world),
+            1e-6);
 }
 
 // A relative pose places a camera that has no observation at all: T_b = T_b_a * T_a. The
@@ -177,10 +180,12 @@ TEST(BundleAdjusterTest, RelativePoseIsWeighedByItsInformation) {
   Scene s = MakeScene(0.3, &rng);
   s.problem.cameras[0].fixed = true;
   Pose wrong = s.T_cam_world[3] * s.T_cam_world[1].inverse();  // T_3_1, true
-  wrong.translation() += Eigen::Vector3d(0.05, 0, 0);           // 5 cm off
+  wrong.translation() += Eigen::Vector3d(0.05, 0, 0);          // 5 cm off
   Scene weak = s, strong = s;
-  weak.problem.relative_poses.push_back({1, 3, wrong, 0.01 * Eigen::Matrix<double, 6, 6>::Identity()});
-  strong.problem.relative_poses.push_back({1, 3, wrong, 1e5 * Eigen::Matrix<double, 6, 6>::Identity()});
+  weak.problem.relative_poses.push_back(
+      {1, 3, wrong, 0.01 * Eigen::Matrix<double, 6, 6>::Identity()});
+  strong.problem.relative_poses.push_back(
+      {1, 3, wrong, 1e5 * Eigen::Matrix<double, 6, 6>::Identity()});
   BundleAdjust(&weak.problem, BaOptions());
   BundleAdjust(&strong.problem, BaOptions());
   const auto relative = [](const BaProblem& p) {

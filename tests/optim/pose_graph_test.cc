@@ -22,7 +22,8 @@ TEST(PoseGraphTest, ClosesADriftedLoop) {
   std::vector<Pose> truth;
   for (int i = 0; i < n; ++i) truth.push_back(CirclePose(i, n));
   Pose bias = Pose::Identity();
-  bias.linear() = Eigen::AngleAxisd(0.004, Eigen::Vector3d(0.3, 0.1, 1).normalized()).toRotationMatrix();
+  bias.linear() =
+      Eigen::AngleAxisd(0.004, Eigen::Vector3d(0.3, 0.1, 1).normalized()).toRotationMatrix();
   bias.translation() = Eigen::Vector3d(0.004, -0.002, 0.001);
   std::vector<PoseGraphEdge> edges;
   std::vector<PoseGraphNode> nodes(n);
@@ -47,7 +48,8 @@ TEST(PoseGraphTest, ClosesADriftedLoop) {
   auto summary = OptimizePoseGraph(&nodes, edges);
   ASSERT_TRUE(summary.ok()) << summary.status().ToString();
   double worst = 0;
-  for (int i = 0; i < n; ++i) worst = std::max(worst, TranslationDistance(nodes[i].T_world_node, truth[i]));
+  for (int i = 0; i < n; ++i)
+    worst = std::max(worst, TranslationDistance(nodes[i].T_world_node, truth[i]));
   // The error left is the odometry bias spread around the loop, a fraction of the drift.
   EXPECT_LT(worst, 0.2 * drift_before);
   EXPECT_LT(TranslationDistance(nodes[n - 1].T_world_node, truth[n - 1]), 0.02);
@@ -65,7 +67,8 @@ TEST(PoseGraphTest, ConsistentMeasurementsLeaveTheGraphAlone) {
     edges.push_back({i - 1, i, CirclePose(i - 1, n).inverse() * CirclePose(i, n)});
   }
   ASSERT_TRUE(OptimizePoseGraph(&nodes, edges).ok());
-  for (int i = 0; i < n; ++i) EXPECT_LT(TranslationDistance(nodes[i].T_world_node, CirclePose(i, n)), 1e-9);
+  for (int i = 0; i < n; ++i)
+    EXPECT_LT(TranslationDistance(nodes[i].T_world_node, CirclePose(i, n)), 1e-9);
 }
 
 TEST(PoseGraphTest, NeedsAFixedNodeAndValidEdges) {

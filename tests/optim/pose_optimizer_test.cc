@@ -55,13 +55,17 @@ TEST(PoseOptimizerTest, RejectsGrossOutliers) {
   const Pose truth = MakePose({-0.05, 0.3, 0.0}, {-0.2, 0.1, 0.0});
   auto obs = Observe(truth, 200, 0.3, &rng);
   // A quarter of the matches are wrong: their pixels are anywhere in the image.
-  for (std::size_t i = 0; i < obs.size(); i += 4) obs[i].uv = Eigen::Vector2d(rng.Uniform(0, 640), rng.Uniform(0, 480));
-  const PoseOptimizationResult r = OptimizePose(truth * MakePose({0.02, 0, 0}, {0.05, 0, 0}), obs, kCamera);
+  for (std::size_t i = 0; i < obs.size(); i += 4)
+    obs[i].uv = Eigen::Vector2d(rng.Uniform(0, 640), rng.Uniform(0, 480));
+  const PoseOptimizationResult r =
+      OptimizePose(truth * MakePose({0.02, 0, 0}, {0.05, 0, 0}), obs, kCamera);
   EXPECT_LT(TranslationDistance(r.T_cam_world, truth), 0.005);
   int wrong_kept = 0, right_dropped = 0;
   for (std::size_t i = 0; i < obs.size(); ++i) {
-    if (i % 4 == 0) wrong_kept += r.inlier[i];
-    else right_dropped += !r.inlier[i];
+    if (i % 4 == 0)
+      wrong_kept += r.inlier[i];
+    else
+      right_dropped += !r.inlier[i];
   }
   EXPECT_LE(wrong_kept, 2);
   EXPECT_LE(right_dropped, 5);
@@ -85,10 +89,13 @@ Pose CeresLeastSquares(const Pose& start, const std::vector<PoseObservation>& ob
   ceres::Problem problem;
   problem.AddParameterBlock(q.coeffs().data(), 4, new ceres::EigenQuaternionManifold);
   for (const PoseObservation& o : obs) {
-    const ReprojectionResidual r(kCamera, o.uv, o.depth, std::sqrt(o.information), std::sqrt(o.depth_information));
+    const ReprojectionResidual r(kCamera, o.uv, o.depth, std::sqrt(o.information),
+                                 std::sqrt(o.depth_information));
     ceres::CostFunction* cost =
-        o.depth > 0 ? static_cast<ceres::CostFunction*>(new ceres::AutoDiffCostFunction<Fixed, 3, 4, 3>(new Fixed{r, o.point_world}))
-                    : new ceres::AutoDiffCostFunction<Fixed, 2, 4, 3>(new Fixed{r, o.point_world});
+        o.depth > 0
+            ? static_cast<ceres::CostFunction*>(
+                  new ceres::AutoDiffCostFunction<Fixed, 3, 4, 3>(new Fixed{r, o.point_world}))
+            : new ceres::AutoDiffCostFunction<Fixed, 2, 4, 3>(new Fixed{r, o.point_world});
     problem.AddResidualBlock(cost, nullptr, q.coeffs().data(), t.data());
   }
   ceres::Solver::Options options;
@@ -110,7 +117,8 @@ TEST(PoseOptimizerTest, ReachesTheLeastSquaresOptimumCeresFinds) {
   const auto obs = Observe(truth, 400, 1.0, &rng);  // noisy, no outliers: all stay inliers
   const Pose start = truth * MakePose({0.03, -0.02, 0.01}, {0.04, 0.03, -0.05});
   const PoseOptimizationResult r = OptimizePose(start, obs, kCamera);
-  ASSERT_EQ(r.inliers, static_cast<int>(obs.size()) - static_cast<int>(std::count(r.inlier.begin(), r.inlier.end(), false)));
+  ASSERT_EQ(r.inliers, static_cast<int>(obs.size()) -
+                           static_cast<int>(std::count(r.inlier.begin(), r.inlier.end(), false)));
   std::vector<PoseObservation> inliers;
   for (std::size_t i = 0; i < obs.size(); ++i) {
     if (r.inlier[i]) inliers.push_back(obs[i]);

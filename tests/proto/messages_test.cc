@@ -347,7 +347,8 @@ TEST(MessagesTest, DepthLinksRoundTripAndCostTheirBytes) {
   EXPECT_EQ(back->depth_links[0].keyframe, link.keyframe);
   EXPECT_EQ(back->depth_links[1].keyframe, KeyframeId(m.id.value() - 1));
   for (int i = 0; i < 21; ++i) EXPECT_EQ(back->depth_links[0].information[i], link.information[i]);
-  for (int i = 0; i < 3; ++i) ExpectFloatRounded(link.T_this_other.t[i], back->depth_links[0].T_this_other.t[i]);
+  for (int i = 0; i < 3; ++i)
+    ExpectFloatRounded(link.T_this_other.t[i], back->depth_links[0].T_this_other.t[i]);
   EXPECT_EQ(back->keypoints.size(), m.keypoints.size());
   // Every truncation of the section is an error; a non-finite value cannot be sent.
   for (std::size_t n = without.size() - 1; n < with.size(); ++n) {

@@ -72,10 +72,12 @@ TEST(SourceFactoryTest, DatasetDepthIsRegisteredWhenTheConfigSaysHow) {
   ASSERT_TRUE(camera_yaml.ok());
   const PinholeCamera camera = SyntheticCamera(64, 48);
   auto write_config = [&](const std::string& name, int depth_width) {
-    const std::string depth_block = "Depth.fx: " + std::to_string(camera.fx * 1.1) + "\nDepth.fy: " +
-                                    std::to_string(camera.fy * 1.1) + "\nDepth.cx: " + std::to_string(camera.cx) +
-                                    "\nDepth.cy: " + std::to_string(camera.cy) + "\nDepth.width: " +
-                                    std::to_string(depth_width) + "\nDepth.height: 48\nDepth.t_color_depth: [0.03, 0.0, 0.0]\n";
+    const std::string depth_block = "Depth.fx: " + std::to_string(camera.fx * 1.1) +
+                                    "\nDepth.fy: " + std::to_string(camera.fy * 1.1) +
+                                    "\nDepth.cx: " + std::to_string(camera.cx) +
+                                    "\nDepth.cy: " + std::to_string(camera.cy) +
+                                    "\nDepth.width: " + std::to_string(depth_width) +
+                                    "\nDepth.height: 48\nDepth.t_color_depth: [0.03, 0.0, 0.0]\n";
     EXPECT_TRUE(WriteFileAtomic(dir.File(name), *camera_yaml + "\n" + depth_block).ok());
     return dir.File(name);
   };
@@ -94,8 +96,8 @@ TEST(SourceFactoryTest, DatasetDepthIsRegisteredWhenTheConfigSaysHow) {
   ASSERT_TRUE((*source)->Read(&frame).ok());
   auto calibration = LoadDepthToColorCalibration(options.camera_config);
   ASSERT_TRUE(calibration.ok() && calibration->has_value());
-  const cv::Mat expected =
-      RegisterDepthToColor(raw.depth_mm, (*calibration)->depth, (*source)->camera(), (*calibration)->T_color_depth);
+  const cv::Mat expected = RegisterDepthToColor(raw.depth_mm, (*calibration)->depth,
+                                                (*source)->camera(), (*calibration)->T_color_depth);
   ASSERT_EQ(frame.depth_mm.size(), expected.size());
   EXPECT_EQ(cv::countNonZero(frame.depth_mm != expected), 0);
   EXPECT_GT(cv::countNonZero(frame.depth_mm != raw.depth_mm), 100);  // registration moved the depth
@@ -137,7 +139,8 @@ TEST(SourceFactoryTest, SyntheticDepthImagerIsRegisteredBackToTheColourView) {
   o.depth_camera = depth;
   ASSERT_TRUE(WriteSyntheticSequence(dir.path(), o).ok());
   auto registration = LoadDepthToColorCalibration(dir.File("camera.yaml"));
-  ASSERT_TRUE(registration.ok() && registration->has_value()) << "camera.yaml keeps the Depth block";
+  ASSERT_TRUE(registration.ok() && registration->has_value())
+      << "camera.yaml keeps the Depth block";
   EXPECT_NEAR((*registration)->depth.fx, 192.5, 1e-6);
 
   auto source = OpenSource("tum:" + dir.path(), SourceOptions());
@@ -148,12 +151,14 @@ TEST(SourceFactoryTest, SyntheticDepthImagerIsRegisteredBackToTheColourView) {
   room.seed = o.seed;
   RenderOptions exact;
   exact.noise = false;
-  const RenderedFrame truth = RenderFrame(SyntheticScene::MakeRoom(room), colour,
-                                          MakeLoopPath(2, colour.fps, o.path)[0].T_world_cam, exact);
+  const RenderedFrame truth =
+      RenderFrame(SyntheticScene::MakeRoom(room), colour,
+                  MakeLoopPath(2, colour.fps, o.path)[0].T_world_cam, exact);
   int both = 0, agree = 0;
   for (int v = 0; v < truth.depth_mm.rows; ++v) {
     for (int u = 0; u < truth.depth_mm.cols; ++u) {
-      const int a = frame.depth_mm.at<std::uint16_t>(v, u), b = truth.depth_mm.at<std::uint16_t>(v, u);
+      const int a = frame.depth_mm.at<std::uint16_t>(v, u),
+                b = truth.depth_mm.at<std::uint16_t>(v, u);
       if (a == 0 || b == 0) continue;
       ++both;
       // A depth pixel's value fills its whole footprint (1.6 colour pixels here): on slanted

@@ -23,8 +23,8 @@ TempDir::TempDir() {
   static std::atomic<int> counter{0};
   const auto base = std::filesystem::temp_directory_path();
   for (int attempt = 0;; ++attempt) {
-    const auto candidate = base / ("ccmd_test_" + std::to_string(::getpid()) + "_" +
-                                   std::to_string(counter++));
+    const auto candidate =
+        base / ("ccmd_test_" + std::to_string(::getpid()) + "_" + std::to_string(counter++));
     std::error_code ec;
     if (std::filesystem::create_directory(candidate, ec)) {
       path_ = candidate.string();
@@ -51,7 +51,8 @@ int RunCommand(const std::string& command, std::string* output) {
   std::array<char, 4096> buffer;
   std::string captured;
   std::size_t n;
-  while ((n = std::fread(buffer.data(), 1, buffer.size(), pipe)) > 0) captured.append(buffer.data(), n);
+  while ((n = std::fread(buffer.data(), 1, buffer.size(), pipe)) > 0)
+    captured.append(buffer.data(), n);
   const int status = ::pclose(pipe);
   if (output) *output = captured;
   return WIFEXITED(status) ? WEXITSTATUS(status) : -1;

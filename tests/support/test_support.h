@@ -33,8 +33,8 @@ int RunCommand(const std::string& command, std::string* output = nullptr);
 }  // namespace ccmd::testing
 
 // Skips the current test with a notice when a shared dataset is absent.
-#define CCMD_REQUIRE_DATASET(var, name)                                                  \
-  const std::string var = ::ccmd::testing::SharedDatasetPath(name);                      \
-  if (var.empty()) {                                                                     \
+#define CCMD_REQUIRE_DATASET(var, name)                                                 \
+  const std::string var = ::ccmd::testing::SharedDatasetPath(name);                     \
+  if (var.empty()) {                                                                    \
     GTEST_SKIP() << "dataset " << name << " not found in ../shared/datasets; skipping"; \
   }

@@ -20,7 +20,8 @@ ScenePolygon Quad(const Eigen::Vector3d& centre, const Eigen::Vector3d& n, doubl
   ScenePolygon p;
   p.vertices = {centre - half * u - half * v, centre + half * u - half * v,
                 centre + half * u + half * v, centre - half * u + half * v};
-  const Eigen::Vector3d winding = (p.vertices[1] - p.vertices[0]).cross(p.vertices[2] - p.vertices[0]);
+  const Eigen::Vector3d winding =
+      (p.vertices[1] - p.vertices[0]).cross(p.vertices[2] - p.vertices[0]);
   if (winding.dot(towards - centre) < 0) std::reverse(p.vertices.begin(), p.vertices.end());
   return p;
 }
@@ -38,7 +39,8 @@ TEST(RendererTest, DepthEqualsRayPlaneIntersectionComputedByHand) {
       SyntheticScene::FromPolygons({Quad(point, n, 5.0, Eigen::Vector3d::Zero())});
   const PinholeCamera camera = SyntheticCamera(640, 480);
   const RenderedFrame frame = RenderFrame(scene, camera, Pose::Identity(), Exact());
-  for (const auto& [u, v] : std::vector<std::pair<int, int>>{{0, 0}, {319, 239}, {600, 50}, {37, 471}}) {
+  for (const auto& [u, v] :
+       std::vector<std::pair<int, int>>{{0, 0}, {319, 239}, {600, 50}, {37, 471}}) {
     // Ray through the pixel centre, r = ((u - cx)/fx, (v - cy)/fy, 1); the plane n.x = n.point
     // meets it at z = (n . point) / (n . r).
     const Eigen::Vector3d r((u - 319.5) / 525.0, (v - 239.5) / 525.0, 1.0);
@@ -96,7 +98,7 @@ TEST(RendererTest, DepthNoiseFollowsTheSensorModel) {
   const double sigma = std::sqrt(sum_sq / n - (sum / n) * (sum / n));
   EXPECT_GT(sigma, 0.95 * sigma_lo);
   EXPECT_LT(sigma, 1.05 * sigma_hi);
-  EXPECT_LT(std::abs(sum / n), 2e-4);                       // unbiased
+  EXPECT_LT(std::abs(sum / n), 2e-4);  // unbiased
   EXPECT_NEAR(static_cast<double>(invalid) / (n + invalid), model.random_dropout, 0.002);
 }
 
@@ -149,8 +151,10 @@ TEST(RendererTest, RoomTextureGivesManyWellSpreadOrbFeatures) {
     std::vector<cv::KeyPoint> corners;
     cv::FAST(gray, corners, 20);
     std::vector<int> cells(48, 0);
-    for (const auto& k : corners) cells[static_cast<int>(k.pt.y / 80) * 8 + static_cast<int>(k.pt.x / 80)]++;
-    EXPECT_GE(std::count_if(cells.begin(), cells.end(), [](int c) { return c >= 10; }), 40) << "frame " << i;
+    for (const auto& k : corners)
+      cells[static_cast<int>(k.pt.y / 80) * 8 + static_cast<int>(k.pt.x / 80)]++;
+    EXPECT_GE(std::count_if(cells.begin(), cells.end(), [](int c) { return c >= 10; }), 40)
+        << "frame " << i;
     // Valid depth on most of the image.
     EXPECT_GT(cv::countNonZero(frame.depth_mm), 0.85 * 640 * 480) << "frame " << i;
   }
@@ -161,15 +165,18 @@ TEST(RendererTest, RoomTextureGivesManyWellSpreadOrbFeatures) {
 TEST(RendererTest, DistortedCameraSeesAlongEachRawPixelsRay) {
   const Eigen::Vector3d point(0.1, -0.05, 2.0);
   const Eigen::Vector3d n = Eigen::Vector3d(0.3, -0.2, -1.0).normalized();
-  const SyntheticScene scene = SyntheticScene::FromPolygons({Quad(point, n, 5.0, Eigen::Vector3d::Zero())});
+  const SyntheticScene scene =
+      SyntheticScene::FromPolygons({Quad(point, n, 5.0, Eigen::Vector3d::Zero())});
   const PinholeCamera camera = testing::TumFr1Camera();
   const RenderedFrame frame = RenderFrame(scene, camera, Pose::Identity(), Exact());
-  const cv::Mat K = (cv::Mat_<double>(3, 3) << camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1);
+  const cv::Mat K =
+      (cv::Mat_<double>(3, 3) << camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1);
   const cv::Mat dist(camera.distortion, true);
   std::vector<cv::Point2d> raw = {{2, 3}, {319, 239}, {630, 20}, {40, 470}, {600, 450}};
   std::vector<cv::Point2d> normalised;
-  cv::undistortPoints(raw, normalised, K, dist.reshape(1, 1), cv::noArray(), cv::noArray(),
-                      cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 100, 1e-14));
+  cv::undistortPoints(
+      raw, normalised, K, dist.reshape(1, 1), cv::noArray(), cv::noArray(),
+      cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 100, 1e-14));
   for (std::size_t i = 0; i < raw.size(); ++i) {
     const Eigen::Vector3d r(normalised[i].x, normalised[i].y, 1.0);
     const double z = n.dot(point) / n.dot(r);
@@ -200,10 +207,12 @@ TEST(RendererTest, DistortedCameraImagesObjectsWhereTheLensPutsThem) {
     }
   }
   ASSERT_GT(count, 50);
-  const cv::Mat K = (cv::Mat_<double>(3, 3) << camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1);
+  const cv::Mat K =
+      (cv::Mat_<double>(3, 3) << camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1);
   std::vector<cv::Point2d> projected;
-  cv::projectPoints(std::vector<cv::Point3d>{{centre.x(), centre.y(), centre.z()}}, cv::Vec3d(0, 0, 0),
-                    cv::Vec3d(0, 0, 0), K, cv::Mat(camera.distortion, true).reshape(1, 1), projected);
+  cv::projectPoints(std::vector<cv::Point3d>{{centre.x(), centre.y(), centre.z()}},
+                    cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), K,
+                    cv::Mat(camera.distortion, true).reshape(1, 1), projected);
   EXPECT_NEAR(su / count, projected[0].x, 0.5);
   EXPECT_NEAR(sv / count, projected[0].y, 0.5);
   const Eigen::Vector2d pinhole = camera.Project(centre);

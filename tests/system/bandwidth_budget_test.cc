@@ -47,16 +47,19 @@ SimResult Simulate(double budget, double seconds, double rate_hz, double geometr
     const RgbdLevel& level = b.Plan(o);
     const int index = static_cast<int>(&level - &b.ladder()[0]);
     r.levels.push_back(index);
-    double p = level.request.every_keyframe ? 1.0 : std::min(1.0, 0.3 * level.request.threshold_scale);
+    double p =
+        level.request.every_keyframe ? 1.0 : std::min(1.0, 0.3 * level.request.threshold_scale);
     if (!level.request.allow) p = 0;
     const bool rgbd = rng.Bernoulli(p);
     const double quality = level.encode.jpeg_quality / 75.0;
     const double bound = std::sqrt(50.0 / level.encode.bound_e4);
-    const double rgbd_bytes =
-        rgbd ? rgbd_full * (0.6 * quality + 0.4 * bound) / (level.encode.downsample * level.encode.downsample) : 0;
+    const double rgbd_bytes = rgbd ? rgbd_full * (0.6 * quality + 0.4 * bound) /
+                                         (level.encode.downsample * level.encode.downsample)
+                                   : 0;
     const double g = geometry * (0.8 + 0.4 * rng.Uniform());
-    b.Record(KeyframeId(static_cast<std::uint32_t>(r.keyframes)), static_cast<std::uint64_t>(g + rgbd_bytes),
-             static_cast<std::uint64_t>(rgbd_bytes), rgbd);
+    b.Record(KeyframeId(static_cast<std::uint32_t>(r.keyframes)),
+             static_cast<std::uint64_t>(g + rgbd_bytes), static_cast<std::uint64_t>(rgbd_bytes),
+             rgbd);
     handed += g + rgbd_bytes;
     ++r.keyframes;
     r.rgbd += rgbd;
@@ -105,7 +108,8 @@ TEST(BandwidthBudgetTest, BelowTheGeometryRateOnlyGeometryGoesAndNothingIsDroppe
   const SimResult r = Simulate(50e3, 30, 5, 15e3, 25e3);
   EXPECT_EQ(r.recorded, r.keyframes);
   const int tail = static_cast<int>(r.levels.size()) / 2;
-  const int leanest = static_cast<int>(DefaultBudgetLadder(RgbdEncodeOptions{}, nullptr).size()) - 1;
+  const int leanest =
+      static_cast<int>(DefaultBudgetLadder(RgbdEncodeOptions{}, nullptr).size()) - 1;
   for (std::size_t i = tail; i < r.levels.size(); ++i) EXPECT_EQ(r.levels[i], leanest) << i;
   EXPECT_GT(r.shed, 0);
   EXPECT_GT(r.max_queue_s, 0.5);  // said so: geometry alone overflows the bound

@@ -23,7 +23,8 @@ TEST(LinkReportTest, LatenciesDeliveryAndRatesComeFromTheLogs) {
   ASSERT_TRUE(MakeDirectories(dir.File("plots")).ok());
   // agent1: keyframes 0-2 (0 and 2 with RGB-D), under a 50 kB/s budget; agent2: keyframes 0-1.
   Json a1, a2;
-  a1["link"]["keyframe_log"] = Log({{0, 1000, 1010, 30000, 12000}, {1, 2000, 2010, 15000, 0}, {2, 3000, 3010, 30000, 12000}});
+  a1["link"]["keyframe_log"] = Log(
+      {{0, 1000, 1010, 30000, 12000}, {1, 2000, 2010, 15000, 0}, {2, 3000, 3010, 30000, 12000}});
   a1["link"]["budget"]["budget_kBps"] = 50;
   a1["link"]["budget"]["queue_max_s"] = 0.4;
   a2["link"]["keyframe_log"] = Log({{0, 1500, 1510, 30000, 12000}, {1, 2500, 2510, 15000, 0}});

@@ -42,10 +42,11 @@ template <typename T, typename = void>
 struct FollowsConvention : std::false_type {};
 template <typename T>
 struct FollowsConvention<
-    T, std::enable_if_t<std::is_same_v<decltype(std::declval<const T&>().Validate()), Status> &&
-                        std::is_same_v<decltype(std::declval<const T&>().Describe(
-                                           std::declval<OptionsWriter*>())),
-                                       void>>> : std::true_type {};
+    T, std::enable_if_t<
+           std::is_same_v<decltype(std::declval<const T&>().Validate()), Status> &&
+           std::is_same_v<
+               decltype(std::declval<const T&>().Describe(std::declval<OptionsWriter*>())), void>>>
+    : std::true_type {};
 
 template <typename... T>
 constexpr bool AllFollow() {

@@ -16,7 +16,8 @@
 namespace ccmd {
 namespace {
 
-Json RunResults(double colour, double depth, double points, double rgbd_keyframes, double keyframes) {
+Json RunResults(double colour, double depth, double points, double rgbd_keyframes,
+                double keyframes) {
   Json j;
   j["colour_bytes"] = colour;
   j["depth_bytes"] = depth;
@@ -46,7 +47,8 @@ TEST(ReplayReportTest, ReferenceCloudUsesTheDepthRegistration) {
   o.room.shapes_per_m2 = 20;
   o.surface_spacing = 0.1;
   ASSERT_TRUE(WriteSyntheticSequence(dir.path(), o).ok());
-  ASSERT_EQ(std::remove(dir.File("surface.ply").c_str()), 0);  // build the reference from ground truth
+  ASSERT_EQ(std::remove(dir.File("surface.ply").c_str()),
+            0);  // build the reference from ground truth
   auto dataset = TumSequence::Open(dir.path(), std::nullopt);
   ASSERT_TRUE(dataset.ok()) << dataset.status().ToString();
   ReferenceOptions options;
@@ -72,7 +74,8 @@ TEST(ReplayReportTest, ReferenceCloudUsesTheDepthRegistration) {
 
   calibration.depth = dataset->camera().Resized(80, 60);
   options.registration = calibration;
-  EXPECT_EQ(LoadOrBuildReference(*dataset, options, nullptr).status().code(), StatusCode::kInvalidArgument);
+  EXPECT_EQ(LoadOrBuildReference(*dataset, options, nullptr).status().code(),
+            StatusCode::kInvalidArgument);
 }
 
 // What the server leaves when two agents did not fuse (a short excerpt of a slow camera, as
@@ -98,7 +101,8 @@ TEST(ReplayReportTest, UnfusedRunStillReportsThePrimaryMapAndNamesItsAgents) {
   auto in_frame_of = [&](int origin, std::vector<int> frames) {
     const Pose T_map_world = dataset->frame(origin).T_world_cam_gt->inverse();
     Trajectory t;
-    for (int f : frames) t.push_back({dataset->frame(f).timestamp, T_map_world * *dataset->frame(f).T_world_cam_gt});
+    for (int f : frames)
+      t.push_back({dataset->frame(f).timestamp, T_map_world * *dataset->frame(f).T_world_cam_gt});
     return t;
   };
   const Trajectory primary = in_frame_of(4, {4, 7});
@@ -108,12 +112,14 @@ TEST(ReplayReportTest, UnfusedRunStillReportsThePrimaryMapAndNamesItsAgents) {
   // The primary map's dense points: frame 5's exact depth, in the primary map's frame.
   auto frame = dataset->LoadFrame(5);
   ASSERT_TRUE(frame.ok());
-  const Pose T_map_cam = dataset->frame(4).T_world_cam_gt->inverse() * *dataset->frame(5).T_world_cam_gt;
+  const Pose T_map_cam =
+      dataset->frame(4).T_world_cam_gt->inverse() * *dataset->frame(5).T_world_cam_gt;
   PointCloud map;
   for (int v = 0; v < frame->depth_mm.rows; v += 2) {
     for (int u = 0; u < frame->depth_mm.cols; u += 2) {
       const double z = frame->depth_mm.at<std::uint16_t>(v, u) * 1e-3;
-      if (z > 0) map.points.push_back((T_map_cam * dataset->camera().BackProject(u, v, z)).cast<float>());
+      if (z > 0)
+        map.points.push_back((T_map_cam * dataset->camera().BackProject(u, v, z)).cast<float>());
     }
   }
   ASSERT_TRUE(WritePly(map, JoinPath(run, "map.ply")).ok());
@@ -182,9 +188,15 @@ TEST(ReplayReportTest, AblationTableAddsRowsWithRatiosToTheFullRun) {
   ASSERT_TRUE(report.ok());
   EXPECT_EQ(report->rfind("# Split-replay report\n", 0), 0u);  // appended, not replaced
   // 2500 / 10000 bytes and 400 / 1000 points; 1000 / 10000 and 100 / 1000 for r = 1/4.
-  EXPECT_NE(report->find("| 1/2 | on | 5 of 20 | 2 kB | 0.12 kB | 0.250 | 400 | 0.400 |"), std::string::npos) << *report;
-  EXPECT_NE(report->find("| 1/4 | on | 5 of 21 | 1 kB | 0.05 kB | 0.100 | 100 | 0.100 |"), std::string::npos) << *report;
-  EXPECT_NE(report->find("| 1 | off | 20 of 20 | 10 kB | 0.50 kB | 1.000 | 1000 | 1.000 |"), std::string::npos) << *report;
+  EXPECT_NE(report->find("| 1/2 | on | 5 of 20 | 2 kB | 0.12 kB | 0.250 | 400 | 0.400 |"),
+            std::string::npos)
+      << *report;
+  EXPECT_NE(report->find("| 1/4 | on | 5 of 21 | 1 kB | 0.05 kB | 0.100 | 100 | 0.100 |"),
+            std::string::npos)
+      << *report;
+  EXPECT_NE(report->find("| 1 | off | 20 of 20 | 10 kB | 0.50 kB | 1.000 | 1000 | 1.000 |"),
+            std::string::npos)
+      << *report;
 }
 
 TEST(ReplayReportTest, AblationNeedsTheMainRunsFiles) {

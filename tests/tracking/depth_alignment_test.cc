@@ -25,13 +25,15 @@ PinholeCamera Vga() {
 }
 
 // Depth (mm) seen from T_world_cam: the nearest plane along each pixel's ray, plus noise.
-cv::Mat RenderDepth(const std::vector<Plane>& planes, const Pose& T_world_cam, double noise_m, Rng* rng) {
+cv::Mat RenderDepth(const std::vector<Plane>& planes, const Pose& T_world_cam, double noise_m,
+                    Rng* rng) {
   const PinholeCamera cam = Vga();
   cv::Mat depth(cam.height, cam.width, CV_16UC1, cv::Scalar(0));
   const Eigen::Vector3d c = T_world_cam.translation();
   for (int v = 0; v < cam.height; ++v) {
     for (int u = 0; u < cam.width; ++u) {
-      const Eigen::Vector3d ray = T_world_cam.linear() * Eigen::Vector3d((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1);
+      const Eigen::Vector3d ray =
+          T_world_cam.linear() * Eigen::Vector3d((u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1);
       double best = 1e9;
       for (const Plane& p : planes) {
         const double denom = p.n.dot(ray);
@@ -39,7 +41,9 @@ cv::Mat RenderDepth(const std::vector<Plane>& planes, const Pose& T_world_cam, d
         const double t = (p.k - p.n.dot(c)) / denom;  // ray z = 1, so t is the depth
         if (t > 0.2 && t < best) best = t;
       }
-      if (best < 8) depth.at<std::uint16_t>(v, u) = static_cast<std::uint16_t>(std::lround(1000 * (best + noise_m * rng->Normal())));
+      if (best < 8)
+        depth.at<std::uint16_t>(v, u) =
+            static_cast<std::uint16_t>(std::lround(1000 * (best + noise_m * rng->Normal())));
     }
   }
   return depth;
@@ -65,7 +69,8 @@ TEST(DepthAlignmentTest, RecoversTheRelativePoseOfTwoViews) {
   const DepthModel b = Model(RenderDepth(kCorner, T_world_b, 0, &rng));
   ASSERT_GT(a.valid_points(), 5000);
   const Pose truth = T_world_b.inverse() * T_world_a;  // T_b_a
-  const Pose guess = Motion({0.01, -0.015, 0.01}, {0.02, 0.015, -0.02}) * truth;  // ~3 cm, ~1 degree off
+  const Pose guess =
+      Motion({0.01, -0.015, 0.01}, {0.02, 0.015, -0.02}) * truth;  // ~3 cm, ~1 degree off
   const auto aligned = AlignDepth(a, b, guess, DepthNoise());
   ASSERT_TRUE(aligned.has_value());
   EXPECT_LT(TranslationDistance(aligned->T_target_source, truth), 0.001);
@@ -83,7 +88,8 @@ TEST(DepthAlignmentTest, NoisyDepthStillAlignsWithinMillimetres) {
   const DepthModel a = Model(RenderDepth(kCorner, T_world_a, 0.004, &rng));
   const DepthModel b = Model(RenderDepth(kCorner, T_world_b, 0.004, &rng));
   const Pose truth = T_world_b.inverse() * T_world_a;
-  const auto aligned = AlignDepth(a, b, Motion({0.01, 0, -0.01}, {0.01, -0.01, 0.01}) * truth, DepthNoise());
+  const auto aligned =
+      AlignDepth(a, b, Motion({0.01, 0, -0.01}, {0.01, -0.01, 0.01}) * truth, DepthNoise());
   ASSERT_TRUE(aligned.has_value());
   EXPECT_LT(TranslationDistance(aligned->T_target_source, truth), 0.003);
   EXPECT_LT(RotationDistance(aligned->T_target_source, truth), 0.2 * M_PI / 180);
@@ -99,11 +105,14 @@ TEST(DepthAlignmentTest, APlaneLeavesThreeDirectionsWithoutInformation) {
   const DepthModel a = Model(RenderDepth(wall, T_world_a, 0, &rng));
   const DepthModel b = Model(RenderDepth(wall, T_world_b, 0, &rng));
   const Pose truth = T_world_b.inverse() * T_world_a;
-  const Pose guess = Motion({0, 0, 0}, {0.02, 0, 0.03}) * truth;  // 2 cm along the wall, 3 cm in depth
+  const Pose guess =
+      Motion({0, 0, 0}, {0.02, 0, 0.03}) * truth;  // 2 cm along the wall, 3 cm in depth
   const auto aligned = AlignDepth(a, b, guess, DepthNoise());
   ASSERT_TRUE(aligned.has_value());
-  EXPECT_NEAR(aligned->T_target_source.translation().z(), truth.translation().z(), 0.001);  // depth fixed
-  EXPECT_NEAR(aligned->T_target_source.translation().x(), guess.translation().x(), 0.001);  // slide kept
+  EXPECT_NEAR(aligned->T_target_source.translation().z(), truth.translation().z(),
+              0.001);  // depth fixed
+  EXPECT_NEAR(aligned->T_target_source.translation().x(), guess.translation().x(),
+              0.001);  // slide kept
   const Eigen::SelfAdjointEigenSolver<Matrix6d> eigen(aligned->information);
   const auto& e = eigen.eigenvalues();  // ascending
   EXPECT_LT(e(2), 1e-6 * e(5));

@@ -27,7 +27,8 @@ TEST(TrackingFrameTest, KeypointsAreUndistortedAfterTheDepthLookupAtTheRecordedP
   distorted.distortion = testing::TumFr1Camera().distortion;
   const OrbExtractor orb;
   const FrameFeatures raw = ComputeFeatures(gray, frame.depth_mm, orb, plain, TrackingOptions{});
-  const FrameFeatures undistorted = ComputeFeatures(gray, frame.depth_mm, orb, distorted, TrackingOptions{});
+  const FrameFeatures undistorted =
+      ComputeFeatures(gray, frame.depth_mm, orb, distorted, TrackingOptions{});
   ASSERT_EQ(raw.keypoints.size(), undistorted.keypoints.size());
   ASSERT_GT(raw.keypoints.size(), 500u);
   double largest_shift = 0;
@@ -54,7 +55,8 @@ cv::Mat DepthRamp(double z0_mm, double slope_x, double slope_y) {
   cv::Mat depth(60, 80, CV_16UC1);
   for (int y = 0; y < depth.rows; ++y) {
     for (int x = 0; x < depth.cols; ++x) {
-      depth.at<std::uint16_t>(y, x) = static_cast<std::uint16_t>(std::lround(z0_mm + slope_x * x + slope_y * y));
+      depth.at<std::uint16_t>(y, x) =
+          static_cast<std::uint16_t>(std::lround(z0_mm + slope_x * x + slope_y * y));
     }
   }
   return depth;
@@ -78,9 +80,11 @@ TEST(KeypointDepthSigmaTest, SlopeTimesPositionUncertaintyAddsInQuadrature) {
   // along the gradient. A keypoint uncertain by 2 pixels reads depth uncertain by 10 mm.
   const cv::Mat depth = DepthRamp(1500, 3, 4);
   const double z = 1e-3 * depth.at<std::uint16_t>(30, 40);
-  EXPECT_NEAR(KeypointDepthSigma(depth, 40, 30, z, 2.0, noise), std::sqrt(0.001 * 0.001 + 0.010 * 0.010), 1e-9);
+  EXPECT_NEAR(KeypointDepthSigma(depth, 40, 30, z, 2.0, noise),
+              std::sqrt(0.001 * 0.001 + 0.010 * 0.010), 1e-9);
   // The finer the keypoint's octave, the less its depth is in doubt.
-  EXPECT_LT(KeypointDepthSigma(depth, 40, 30, z, 1.0, noise), KeypointDepthSigma(depth, 40, 30, z, 2.0, noise));
+  EXPECT_LT(KeypointDepthSigma(depth, 40, 30, z, 1.0, noise),
+            KeypointDepthSigma(depth, 40, 30, z, 2.0, noise));
 }
 
 TEST(KeypointDepthSigmaTest, DepthInformationIsOneOverVariance) {

@@ -112,10 +112,12 @@ TEST(FrontendTest, SinkGetsEveryKeyframeOnceWithConsistentLinks) {
         EXPECT_TRUE(sent_points.count(id->value())) << "link to an unknown point";
       }
     }
-    for (const auto& [neighbour, weight] : k.covisibility) EXPECT_TRUE(ids.count(neighbour.value()));
+    for (const auto& [neighbour, weight] : k.covisibility)
+      EXPECT_TRUE(ids.count(neighbour.value()));
     // Depth links go to keyframes sent before, with a usable information matrix.
     for (const auto& link : k.depth_links) {
-      EXPECT_TRUE(ids.count(link.other.value()) && link.other != k.id) << "depth link to an unsent keyframe";
+      EXPECT_TRUE(ids.count(link.other.value()) && link.other != k.id)
+          << "depth link to an unsent keyframe";
       EXPECT_TRUE(link.information.allFinite());
       EXPECT_GT(link.information.trace(), 0);
       ++depth_links;

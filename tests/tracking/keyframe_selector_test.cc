@@ -11,9 +11,9 @@ using Links = std::vector<std::pair<KeyframeId, int>>;
 
 RgbdSelectionOptions Options(int required = 1) {
   RgbdSelectionOptions o;
-  o.threshold_ratio = 0.5;       // S = 0.5 * tracked points
+  o.threshold_ratio = 0.5;  // S = 0.5 * tracked points
   o.threshold_min_points = 60;
-  o.decrement_ratio = 0.1;       // S drops by 0.1 * tracked per covering keyframe
+  o.decrement_ratio = 0.1;  // S drops by 0.1 * tracked per covering keyframe
   o.min_threshold = 30;
   o.required_covering = required;
   return o;
@@ -27,7 +27,8 @@ TEST(RgbdSelectorTest, FirstKeyframeAndUnconnectedOnesAreTransmitted) {
 TEST(RgbdSelectorTest, OneStrongTransmittedNeighbourSkipsTheRgbd) {
   const RgbdSelector selector(Options());
   // 400 tracked points: S = 200. A neighbour sharing 250 covers it.
-  const RgbdDecision d = selector.Decide(KeyframeId(5), 400, {{KeyframeId(3), 120}, {KeyframeId(4), 250}});
+  const RgbdDecision d =
+      selector.Decide(KeyframeId(5), 400, {{KeyframeId(3), 120}, {KeyframeId(4), 250}});
   EXPECT_FALSE(d.transmit);
   EXPECT_EQ(d.threshold, 200);
   EXPECT_EQ(d.covering, 1);
@@ -37,15 +38,18 @@ TEST(RgbdSelectorTest, OneStrongTransmittedNeighbourSkipsTheRgbd) {
 
 TEST(RgbdSelectorTest, WeakOverlapIsTransmitted) {
   const RgbdSelector selector(Options());
-  EXPECT_TRUE(selector.Decide(KeyframeId(5), 400, {{KeyframeId(3), 150}, {KeyframeId(4), 200}}).transmit);
+  EXPECT_TRUE(
+      selector.Decide(KeyframeId(5), 400, {{KeyframeId(3), 150}, {KeyframeId(4), 200}}).transmit);
 }
 
 TEST(RgbdSelectorTest, DecrementLowersTheBarForLaterNeighbours) {
   const RgbdSelector selector(Options(/*required=*/2));
   // S = 200; 250 covers and S becomes 160; 170 > 160 covers too: two covering, skip.
-  EXPECT_FALSE(selector.Decide(KeyframeId(9), 400, {{KeyframeId(1), 170}, {KeyframeId(2), 250}}).transmit);
+  EXPECT_FALSE(
+      selector.Decide(KeyframeId(9), 400, {{KeyframeId(1), 170}, {KeyframeId(2), 250}}).transmit);
   // 150 < 160: only one covering, transmit.
-  const RgbdDecision d = selector.Decide(KeyframeId(9), 400, {{KeyframeId(1), 150}, {KeyframeId(2), 250}});
+  const RgbdDecision d =
+      selector.Decide(KeyframeId(9), 400, {{KeyframeId(1), 150}, {KeyframeId(2), 250}});
   EXPECT_TRUE(d.transmit);
   EXPECT_EQ(d.covering, 1);
 }
@@ -55,9 +59,15 @@ TEST(RgbdSelectorTest, ThresholdHasFloors) {
   const RgbdSelector selector(o);
   // 80 tracked: 0.5 * 80 = 40 < 60, so S = 60; decrement 8 per covering: 61 > 60 -> S 52,
   // 53 > 52 -> S 44, 45 > 44 -> three covering.
-  EXPECT_FALSE(selector.Decide(KeyframeId(1), 80, {{KeyframeId(2), 61}, {KeyframeId(3), 53}, {KeyframeId(4), 45}}).transmit);
+  EXPECT_FALSE(selector
+                   .Decide(KeyframeId(1), 80,
+                           {{KeyframeId(2), 61}, {KeyframeId(3), 53}, {KeyframeId(4), 45}})
+                   .transmit);
   o.min_threshold = 50;  // S cannot go below 50: the third (45) no longer covers
-  EXPECT_TRUE(RgbdSelector(o).Decide(KeyframeId(1), 80, {{KeyframeId(2), 61}, {KeyframeId(3), 53}, {KeyframeId(4), 45}}).transmit);
+  EXPECT_TRUE(RgbdSelector(o)
+                  .Decide(KeyframeId(1), 80,
+                          {{KeyframeId(2), 61}, {KeyframeId(3), 53}, {KeyframeId(4), 45}})
+                  .transmit);
 }
 
 TEST(RgbdSelectorTest, DisabledSendsEverything) {

@@ -25,7 +25,7 @@ struct FrontendRun {
 // Runs the first `frames` frames of `dir` with the shipped `config_name`; `adjust` may change
 // the tracking options read from it.
 FrontendRun RunFrontend(const std::string& dir, const std::string& config_name, int frames,
-                const std::function<void(TrackingOptions*)>& adjust = nullptr) {
+                        const std::function<void(TrackingOptions*)>& adjust = nullptr) {
   FrontendRun run;
   const std::string config_path = std::string(CCMD_CONFIG_DIR) + "/" + config_name;
   SourceOptions source_options;
@@ -77,9 +77,11 @@ TEST(RealDataFrontendTest, IclNuimTracksToMillimetres) {
 TEST(RealDataFrontendTest, IclNuimNeedsItsOwnDepthNoiseModel) {
   CCMD_REQUIRE_DATASET(dir, "iclnuim_office_traj0_0000_0449");
   const FrontendRun shipped = RunFrontend(dir, "icl_nuim.yaml", kFrames);
-  const FrontendRun kinect = RunFrontend(dir, "icl_nuim.yaml", kFrames, [](TrackingOptions* o) { o->depth_noise = DepthNoise(); });
+  const FrontendRun kinect = RunFrontend(dir, "icl_nuim.yaml", kFrames,
+                                         [](TrackingOptions* o) { o->depth_noise = DepthNoise(); });
   EXPECT_EQ(kinect.stats.lost_frames, 0);
-  EXPECT_LT(shipped.ate_rmse, 0.5 * kinect.ate_rmse) << shipped.ate_rmse << " m against " << kinect.ate_rmse << " m";
+  EXPECT_LT(shipped.ate_rmse, 0.5 * kinect.ate_rmse)
+      << shipped.ate_rmse << " m against " << kinect.ate_rmse << " m";
 }
 
 // Without the keypoint's position uncertainty in its depth sigma, exact depth makes keypoints
@@ -87,8 +89,9 @@ TEST(RealDataFrontendTest, IclNuimNeedsItsOwnDepthNoiseModel) {
 // the front-end needs a keyframe at almost every frame.
 TEST(RealDataFrontendTest, IclNuimNeedsTheKeypointSlopeTerm) {
   CCMD_REQUIRE_DATASET(dir, "iclnuim_office_traj0_0000_0449");
-  const FrontendRun without =
-      RunFrontend(dir, "icl_nuim.yaml", kFrames, [](TrackingOptions* o) { o->depth_noise.keypoint_offset = 0; });
+  const FrontendRun without = RunFrontend(dir, "icl_nuim.yaml", kFrames, [](TrackingOptions* o) {
+    o->depth_noise.keypoint_offset = 0;
+  });
   const FrontendRun with = RunFrontend(dir, "icl_nuim.yaml", kFrames);
   EXPECT_EQ(with.stats.lost_frames, 0);
   EXPECT_GT(without.stats.keyframes, 3 * with.stats.keyframes)
@@ -99,10 +102,12 @@ TEST(RealDataFrontendTest, IclNuimNeedsTheKeypointSlopeTerm) {
 // depth with its neighbours' (depth_alignment.h) takes most of the remaining error away.
 TEST(RealDataFrontendTest, IclNuimDepthAlignmentHelps) {
   CCMD_REQUIRE_DATASET(dir, "iclnuim_office_traj0_0000_0449");
-  const FrontendRun without = RunFrontend(dir, "icl_nuim.yaml", kFrames, [](TrackingOptions* o) { o->depth_alignment_weight = 0; });
+  const FrontendRun without = RunFrontend(
+      dir, "icl_nuim.yaml", kFrames, [](TrackingOptions* o) { o->depth_alignment_weight = 0; });
   const FrontendRun with = RunFrontend(dir, "icl_nuim.yaml", kFrames);
   EXPECT_GT(with.stats.mapping.depth_alignments, with.stats.keyframes);
-  EXPECT_LT(with.ate_rmse, 0.7 * without.ate_rmse) << with.ate_rmse << " m against " << without.ate_rmse << " m";
+  EXPECT_LT(with.ate_rmse, 0.7 * without.ate_rmse)
+      << with.ate_rmse << " m against " << without.ate_rmse << " m";
 }
 
 TEST(RealDataFrontendTest, SevenScenesTracksToCentimetres) {

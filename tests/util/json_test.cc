@@ -30,8 +30,9 @@ TEST(JsonTest, RoundTripKeepsValuesAndEscapes) {
 }
 
 TEST(JsonTest, MalformedInputIsAnErrorNotACrash) {
-  for (const char* bad : {"", "{", "[1,", "{\"a\" 1}", "tru", "\"unterminated", "[1] x",
-                          "{\"a\":}", "[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[1]"}) {
+  for (const char* bad :
+       {"", "{", "[1,", "{\"a\" 1}", "tru", "\"unterminated", "[1] x", "{\"a\":}",
+        "[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[1]"}) {
     EXPECT_FALSE(Json::Parse(bad).ok()) << bad;
   }
 }

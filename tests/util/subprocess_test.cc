@@ -12,14 +12,16 @@ namespace {
 
 TEST(SubprocessTest, ExitCodeOutputFileAndPipe) {
   testing::TempDir dir;
-  auto p = Subprocess::Start({"/bin/sh", "-c", "echo hello; echo oops >&2; exit 3"}, dir.File("out"), dir.File("err"));
+  auto p = Subprocess::Start({"/bin/sh", "-c", "echo hello; echo oops >&2; exit 3"},
+                             dir.File("out"), dir.File("err"));
   ASSERT_TRUE(p.ok()) << p.status().ToString();
   const ProcessResult r = p->Wait();
   EXPECT_EQ(r.exit_code, 3);
   EXPECT_EQ(*ReadFileToString(dir.File("out")), "hello\n");
   EXPECT_EQ(*ReadFileToString(dir.File("err")), "oops\n");
 
-  auto q = Subprocess::Start({"/bin/sh", "-c", "echo first; echo second; echo third"}, "", "", /*pipe_stdout=*/true);
+  auto q = Subprocess::Start({"/bin/sh", "-c", "echo first; echo second; echo third"}, "", "",
+                             /*pipe_stdout=*/true);
   ASSERT_TRUE(q.ok());
   EXPECT_EQ(*q->ReadLine(10), "first");
   q->DrainStdoutTo(dir.File("rest"));
@@ -43,7 +45,8 @@ TEST(SubprocessTest, SignalEndsTheChildAndReadLineTimesOut) {
 }
 
 TEST(SubprocessTest, CpuTimeIsCounted) {
-  auto p = Subprocess::Start({"/bin/sh", "-c", "i=0; while [ $i -lt 200000 ]; do i=$((i+1)); done"}, "", "");
+  auto p = Subprocess::Start({"/bin/sh", "-c", "i=0; while [ $i -lt 200000 ]; do i=$((i+1)); done"},
+                             "", "");
   ASSERT_TRUE(p.ok());
   const ProcessResult r = p->Wait();
   EXPECT_EQ(r.exit_code, 0);

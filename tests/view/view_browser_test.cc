@@ -57,7 +57,8 @@ TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
 
   // Every point kept: the page keeps a keyframe's cloud as it first loaded it, and does not yet
   // reload it when the dense store compacts the keyframe (its points then differ).
-  auto server = testing::StartServerWithView(testing::ProgramPath("ccmd_server"), dir.path(), {"--dense-every-point"});
+  auto server = testing::StartServerWithView(testing::ProgramPath("ccmd_server"), dir.path(),
+                                             {"--dense-every-point"});
   ASSERT_TRUE(server.ok()) << server.status().ToString();
   testing::BrowserOptions browser_options;
   browser_options.log_path = dir.File("chromium.log");
