@@ -32,8 +32,8 @@ PACKAGES=(
   libgtest-dev libgmock-dev libbenchmark-dev libzstd-dev liblz4-dev
   # instruction counts per front-end stage (scripts/profile_frontend.sh)
   valgrind
-  # fuzzing (libFuzzer) and sanitizer runtimes
-  clang libclang-rt-14-dev
+  # fuzzing (libFuzzer) and sanitizer runtimes; the format check (scripts/check_format.sh)
+  clang libclang-rt-14-dev clang-format
   # shaped evaluation links (ccmd_replay --link): ip netns, veth, tc tbf
   iproute2
   # the server's live map view: HTTP server, three.js served to the browser, and the headless
