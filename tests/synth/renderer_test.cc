@@ -184,7 +184,9 @@ TEST(RendererTest, DistortedCameraSeesAlongEachRawPixelsRay) {
     EXPECT_NEAR(frame.depth_true.at<float>(v, u), z, 2e-6 * z) << u << "," << v;
     // Without distortion the same pixel would look elsewhere: at the corners by centimetres.
     const Eigen::Vector3d pinhole((u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1.0);
-    if (i != 1) EXPECT_GT(std::abs(n.dot(point) / n.dot(pinhole) - z), 2e-3) << u << "," << v;
+    if (i != 1) {
+      EXPECT_GT(std::abs(n.dot(point) / n.dot(pinhole) - z), 2e-3) << u << "," << v;
+    }
   }
 }
 
