@@ -95,7 +95,7 @@ TrackResult Frontend::ProcessFrame(const RgbdFrame& frame) {
 void Frontend::Finish() { mapper_->Finish(); }
 
 Trajectory Frontend::FrameTrajectory() {
-  std::lock_guard<std::mutex> lock(map_.mutex());
+  const auto lock = map_.Lock();
   Trajectory trajectory;
   for (const Tracker::FrameRecord& r : tracker_->records()) {
     const auto T_world_ref = map_.KeyframePose(r.reference);
@@ -105,7 +105,7 @@ Trajectory Frontend::FrameTrajectory() {
 }
 
 Trajectory Frontend::KeyframeTrajectory() {
-  std::lock_guard<std::mutex> lock(map_.mutex());
+  const auto lock = map_.Lock();
   Trajectory trajectory;
   for (const auto& [t, pose] : map_.AllKeyframePoses()) trajectory.push_back({t, pose});
   return trajectory;
@@ -114,7 +114,7 @@ Trajectory Frontend::KeyframeTrajectory() {
 FrontendStats Frontend::stats() {
   FrontendStats s = stats_;
   s.mapping = mapper_->stats();
-  std::lock_guard<std::mutex> lock(map_.mutex());
+  const auto lock = map_.Lock();
   s.keyframes = static_cast<int>(map_.keyframes_created());
   s.map_keyframes = static_cast<int>(map_.keyframes().size());
   s.map_points = map_.num_points();

@@ -105,7 +105,7 @@ void LocalMapper::Process(const KeyframePtr& keyframe_ptr) {
   const ThreadCpuStopwatch cpu;
   Keyframe* keyframe = keyframe_ptr.get();
   {
-    std::lock_guard<std::mutex> lock(map_->mutex());
+    const auto lock = map_->Lock();
     if (keyframe->bad()) return;
     for (const MapPointPtr& p : keyframe->points()) {
       if (!p || p->bad()) continue;
@@ -124,7 +124,7 @@ void LocalMapper::Process(const KeyframePtr& keyframe_ptr) {
   std::vector<PoseUpdate> updates;
   bool emitted = false;
   {
-    std::lock_guard<std::mutex> lock(map_->mutex());
+    const auto lock = map_->Lock();
     if (options_.cull_redundant_keyframes) CullRedundantKeyframes(keyframe);
     EvictOldKeyframes(keyframe);
     std::erase_if(depth_edges_, [&](const DepthEdge& e) {
@@ -208,7 +208,7 @@ void LocalMapper::AlignWithNeighbours(Keyframe* keyframe) {
   const Stopwatch watch;
   cv::Mat depth;
   {
-    std::lock_guard<std::mutex> lock(map_->mutex());
+    const auto lock = map_->Lock();
     if (keyframe->bad()) return;
     depth = keyframe->depth_mm;
   }
@@ -223,7 +223,7 @@ void LocalMapper::AlignWithNeighbours(Keyframe* keyframe) {
   if (model->empty()) return;
   std::vector<Job> jobs;
   {
-    std::lock_guard<std::mutex> lock(map_->mutex());
+    const auto lock = map_->Lock();
     if (keyframe->bad()) return;
     keyframe->depth_model = model;
     for (Keyframe* n : keyframe->BestCovisible(options_.depth_alignment_neighbours)) {
@@ -289,7 +289,7 @@ void LocalMapper::LocalBundleAdjustment(Keyframe* keyframe, bool reduced) {
   }
   LocalBaProblem local;
   {
-    std::lock_guard<std::mutex> lock(map_->mutex());
+    const auto lock = map_->Lock();
     if (keyframe->bad()) return;
     local = BuildLocalBa(keyframe, window, *map_, *orb_);
   }
@@ -309,7 +309,7 @@ void LocalMapper::LocalBundleAdjustment(Keyframe* keyframe, bool reduced) {
   problem.calibrations = {Intrinsics{camera_.fx, camera_.fy, camera_.cx, camera_.cy}};
   const BaSummary summary = BundleAdjust(&problem, ba_options);
   {
-    std::lock_guard<std::mutex> lock(map_->mutex());
+    const auto lock = map_->Lock();
     ApplyLocalBa(local, summary, map_, *orb_);
   }
   std::lock_guard<std::mutex> lock(stats_mutex_);

@@ -1,8 +1,8 @@
 #pragma once
 
 // The agent's local map: keyframes, map points, their observations and the covisibility
-// graph. One mutex (LocalMap::mutex()) guards the whole graph; the tracker holds it while it
-// works on a frame and the local mapper while it edits the graph, and neither holds it during
+// graph. One mutex, taken with LocalMap::Lock(), guards the whole graph; the tracker holds it while
+// it works on a frame and the local mapper while it edits the graph, and neither holds it during
 // feature extraction or a bundle-adjustment solve. Objects are owned through shared_ptr so a
 // frame that still refers to a map point the mapper has removed sees a "bad" object, never a
 // dangling one; links inside the graph are raw pointers that removal always unlinks.
@@ -170,7 +170,10 @@ struct KeyframeRecord {
 
 class LocalMap {
  public:
-  std::mutex& mutex() { return mutex_; }
+  // Holds the whole graph until the returned lock goes out of scope. A frame's tracking and
+  // each step of local mapping are transactions over many keyframes and points, so the caller
+  // scopes the lock; the mutex itself stays inside the map.
+  [[nodiscard]] std::unique_lock<std::mutex> Lock() { return std::unique_lock<std::mutex>(mutex_); }
 
   KeyframeId NextKeyframeId() { return KeyframeId(next_keyframe_id_++); }
   MapPointId NextMapPointId() { return MapPointId(next_point_id_++); }

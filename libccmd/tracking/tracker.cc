@@ -43,7 +43,7 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
   watch.Restart();
   cpu.Restart();
 
-  std::lock_guard<std::mutex> lock(map_->mutex());
+  const auto lock = map_->Lock();
   bool ok = false;
   if (state_ == TrackingState::kNotInitialized) {
     ok = Initialize(current_.get());
