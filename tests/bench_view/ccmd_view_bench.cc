@@ -232,7 +232,9 @@ int RunLatency(const LatencyOptions& o, const Common& common) {
                                      "--name",
                                      "agent" + std::to_string(i),
                                      "--rate",
-                                     o.rate};
+                                     o.rate,
+                                     "--spill-dir",
+                                     JoinPath(work, "spill" + std::to_string(i))};
     if (!o.config.empty()) {
       argv.push_back("--config");
       argv.push_back(o.config);

@@ -82,7 +82,10 @@ TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
     auto agent = Subprocess::Start(
         {testing::ProgramPath("ccmd_agent"), "--source", "tum:" + dir.File("seq"), "--segment",
          std::to_string(i) + "/2", "--server", "127.0.0.1:" + std::to_string(server->port),
-         "--name", "agent" + std::to_string(i), "--rgbd-every-keyframe"},  // more clouds to check
+         "--name", "agent" + std::to_string(i), "--rgbd-every-keyframe",  // more clouds to check
+         // Its own spill folder (and identity file): the default one in /tmp is shared with any
+         // other agent of that name on the machine, such as another test's.
+         "--spill-dir", dir.File("spill" + std::to_string(i))},
         dir.File("agent" + std::to_string(i) + ".out"),
         dir.File("agent" + std::to_string(i) + ".log"));
     ASSERT_TRUE(agent.ok());
