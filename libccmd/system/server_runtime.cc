@@ -32,10 +32,7 @@ void ServerRuntimeOptions::Describe(OptionsWriter* out) const {
 
 StatusOr<std::unique_ptr<ServerRuntime>> ServerRuntime::Create(
     const ServerRuntimeOptions& options) {
-  if (options.output_dir.empty()) return InvalidArgument("the server needs an output folder");
-  CCMD_RETURN_IF_ERROR(options.net.Validate());
-  CCMD_RETURN_IF_ERROR(options.backend.Validate());
-  if (options.view) CCMD_RETURN_IF_ERROR(options.view->Validate());
+  CCMD_RETURN_IF_ERROR(options.Validate());
   CCMD_RETURN_IF_ERROR(MakeDirectories(options.output_dir));
   return std::unique_ptr<ServerRuntime>(new ServerRuntime(options));
 }
