@@ -154,7 +154,10 @@ TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
                  ", " + std::to_string(static_cast<long>(kf.Get("k")->number())) + ", " +
                  std::to_string(j) + ")");
       ASSERT_EQ(drawn.size(), 3u) << Key(kf);
-      for (int a = 0; a < 3; ++a) EXPECT_NEAR(drawn.at(a).number(), expected(a), 1e-3) << Key(kf);
+      // 3 mm: in about one run in six a point differs by 1.5 mm from the cloud fetched now (the
+      // page keeps the cloud it loaded first; docs/view.md, "Clouds of compacted keyframes"). A
+      // pose the page missed would move it by the update, centimetres after a loop.
+      for (int a = 0; a < 3; ++a) EXPECT_NEAR(drawn.at(a).number(), expected(a), 3e-3) << Key(kf);
     }
   }
 
