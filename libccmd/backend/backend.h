@@ -6,6 +6,8 @@
 //   loops   — the LoopCloser (loop_closer.h) for each new keyframe: place recognition,
 //             verification and consistency, then loop closure inside a map or fusion of two
 //             maps; the back-end passes what moved to the dense map and schedules a global BA;
+//             then the keyframe culling (keyframe_culling.h) for the agent's keyframe that has
+//             just left its recent window;
 //   global BA — on the whole map, in the background, abandoned when newer loop work arrives
 //             (only the newest request waits);
 //   dense   — the dense point store, fed with keyframes of the primary map (the first agent's
@@ -20,6 +22,7 @@
 #include <string>
 #include <vector>
 
+#include "libccmd/backend/keyframe_culling.h"
 #include "libccmd/backend/loop_closer.h"
 #include "libccmd/backend/map_manager.h"
 #include "libccmd/backend/map_memory.h"
@@ -37,6 +40,7 @@ namespace ccmd {
 
 struct BackendOptions {
   LoopCloserOptions loops;
+  KeyframeCullingOptions culling;
   bool global_ba = true;
   int global_ba_iterations = 10;
   // A map of more keyframes than this gets a global BA over a window of at most this many
@@ -66,6 +70,8 @@ struct BackendStats {
   std::size_t dense_keyframes = 0;
   int loops_already_closed = 0;  // verified loops that found the map consistent (no correction)
   int global_ba_windowed = 0;    // runs over a window of a larger map
+  // Keyframe culling: keyframes looked at, culled (their poses kept), points removed with them.
+  std::size_t culling_checked = 0, keyframes_culled = 0, culled_points = 0;
   // Intake latency: from receipt (the transport's arrival time, else the submission) to the
   // keyframe being in its map, over the samples kept (BackendTimings), and over the last
   // minute; the same to the keyframe being in the dense map (RGB-D keyframes of the primary
@@ -183,6 +189,8 @@ class Backend {
   // Stage handlers, each on its stage's thread.
   void Ingest(IngestItem item);
   void DetectLoops(const GlobalKeyframeId& id);
+  // Culls `id` if it is redundant (loop stage).
+  void CullIfRedundant(const GlobalKeyframeId& id);
   void RunGlobalBa(GbaRequest request);
   void UpdateDense(DenseTask task);
   Status AddToDense(const DenseTask& task);
@@ -209,6 +217,7 @@ class Backend {
   std::unique_ptr<DenseMap> dense_;
   const double start_time_;
   LoopCloser loop_closer_;  // loop stage only
+  KeyframeCuller culler_;   // loop stage only
   std::atomic<std::size_t> place_bytes_{
       0};  // the place index's memory, as the loop stage last saw it
 
