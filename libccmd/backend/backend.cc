@@ -300,6 +300,7 @@ Status Backend::ExportDenseMap(const std::string& path) {
   if (!dense_) return Unsupported("the dense map is disabled");
   const auto primary = maps_.primary();
   if (!primary) return NotFound("no map yet");
+  const auto transient = LockLargeTransient();
   return dense_->ExportPly(path, DenseSelection::Map(*primary));
 }
 
@@ -430,7 +431,10 @@ void Backend::RunGlobalBa(GbaRequest request) {
   ba.first_iterations = options_.global_ba_iterations;
   ba.second_iterations = options_.global_ba_iterations;
   ba.abort = &gba_abort_;
-  const BaSummary summary = BundleAdjust(&problem.problem, ba);
+  const BaSummary summary = [&] {
+    const auto transient = LockLargeTransient();
+    return BundleAdjust(&problem.problem, ba);
+  }();
   bool applied = false;
   if (!summary.aborted) {
     MapManager::Guard guard = maps_.CheckOut(map_id);

@@ -145,6 +145,14 @@ class Backend {
   std::optional<MapId> MapOf(AgentId agent) const { return maps_.MapOfAgent(agent); }
 
   DenseMap* dense() { return dense_.get(); }
+  // Held by work whose transient memory is large: a global BA's solve (about 1 kB per
+  // observation, 30 MB for a full window) and a dense-map snapshot or export that a caller
+  // writes (the cloud and its voxel filter, about 50 bytes a point). Taking it keeps two such
+  // peaks from adding up, so the server's peak memory follows its resident memory.
+  std::unique_lock<std::mutex> LockLargeTransient(bool wait = true) {
+    return wait ? std::unique_lock<std::mutex>(large_transient_mutex_)
+                : std::unique_lock<std::mutex>(large_transient_mutex_, std::try_to_lock);
+  }
   Status ExportDenseMap(const std::string& path);
 
   BackendStats stats();
@@ -235,6 +243,8 @@ class Backend {
   std::condition_variable gba_turn_cv_;  // woken by shutdown
   double gba_next_start_ = 0;            // back-end clock; global BA stage only
   double dense_trimmed_ = 0;             // back-end clock; dense stage only
+
+  std::mutex large_transient_mutex_;  // see LockLargeTransient
 
   mutable std::mutex stats_mutex_;
   BackendStats stats_;

@@ -111,8 +111,9 @@ Coverage MeasureCoverage(const ServerKeyframe& kf, const std::vector<ServerKeyfr
   }
   if (with_depth < options.min_depth_keypoints) return coverage;
   coverage.fraction = static_cast<double>(covered) / with_depth;
-  const auto best = std::max_element(candidates.begin(), candidates.end(),
-                                     [](const Other& a, const Other& b) { return a.seen < b.seen; });
+  const auto best =
+      std::max_element(candidates.begin(), candidates.end(),
+                       [](const Other& a, const Other& b) { return a.seen < b.seen; });
   if (best != candidates.end() && best->seen > 0) coverage.best = best->kf;
   return coverage;
 }

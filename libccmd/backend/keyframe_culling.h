@@ -36,7 +36,7 @@ struct KeyframeCullingOptions {
   double min_coverage = 0.9;
   double max_scale = 1.25;  // distance ratio, either way
   double max_view_angle_deg = 30;
-  int max_covering = 4;         // nearest kept keyframes tried
+  int max_covering = 4;          // nearest kept keyframes tried
   int min_depth_keypoints = 50;  // fewer: never culled (nothing to judge it by)
 
   Status Validate() const;

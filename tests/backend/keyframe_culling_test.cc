@@ -159,8 +159,8 @@ TEST(KeyframeCullingTest, CullKeepsPointsWhereTheyWereAndMovesLoopEdges) {
   std::vector<ServerKeyframe*> kfs;
   for (int i = 0; i < 4; ++i) {
     const Pose T = CirclePose(i, 120);
-    kfs.push_back(AddGeneratedKeyframe(&map, world, kAgent, static_cast<std::uint32_t>(i), T, T,
-                                       &rng));
+    kfs.push_back(
+        AddGeneratedKeyframe(&map, world, kAgent, static_cast<std::uint32_t>(i), T, T, &rng));
   }
   ServerKeyframe* victim = kfs[1];
   ServerKeyframe* leader = kfs[0];
@@ -184,8 +184,7 @@ TEST(KeyframeCullingTest, CullKeepsPointsWhereTheyWereAndMovesLoopEdges) {
   ASSERT_EQ(map.loop_edges().size(), 1u);
   const LoopEdge& edge = map.loop_edges()[0];
   EXPECT_EQ(edge.b, leader->id);
-  EXPECT_LT(TranslationDistance(edge.T_a_b, kfs[3]->T_map_cam.inverse() * leader->T_map_cam),
-            1e-9);
+  EXPECT_LT(TranslationDistance(edge.T_a_b, kfs[3]->T_map_cam.inverse() * leader->T_map_cam), 1e-9);
   // The victim follows its leader from now on.
   Pose correction = Pose::Identity();
   correction.translation() = Eigen::Vector3d(0.3, -0.1, 0.05);
