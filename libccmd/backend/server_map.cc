@@ -161,6 +161,10 @@ std::size_t ServerMap::Cull(ServerKeyframe* kf, ServerKeyframe* follow) {
   std::vector<std::pair<std::uint32_t, Descriptor>>().swap(kf->own_descriptors);
   std::vector<ServerKeyframe::DepthLink>().swap(kf->depth_links);
   kf->covisibility.clear();
+  // Coded RGB-D still waiting for its map to join the primary map goes when the leader has
+  // its own: the leader's view covers this one, and a map that never fuses must not hold
+  // every culled keyframe's images.
+  if (kf->rgbd && (follow->rgbd || follow->in_dense)) kf->rgbd.reset();
   kf->follows = follow;
   kf->T_follows_this = T_follow_kf;
   follow->followers.push_back(kf);
