@@ -165,6 +165,7 @@ class ServerMap {
   std::vector<AgentId> agents_;
   std::optional<GlobalKeyframeId> origin_;
   std::size_t culled_ = 0;
+  std::size_t prune_aliases_at_ = 1024;  // merge aliases that start the next sweep
 };
 
 }  // namespace ccmd
