@@ -165,7 +165,16 @@ std::size_t ServerMap::Cull(ServerKeyframe* kf, ServerKeyframe* follow) {
   kf->T_follows_this = T_follow_kf;
   follow->followers.push_back(kf);
   ++culled_;
+  // Aliases of points that are gone would pile up for as long as the agents revisit places:
+  // swept when they outnumber the points (a constant cost per removed point, amortised).
+  if (removed > 0 && merged_into_.size() > 2 * points_.size() + 1024) PruneMergeAliases();
   return removed;
+}
+
+void ServerMap::PruneMergeAliases() {
+  for (auto it = merged_into_.begin(); it != merged_into_.end();) {
+    it = point(it->first) ? std::next(it) : merged_into_.erase(it);
+  }
 }
 
 void ServerMap::CarryFollowers(std::vector<ServerKeyframe*>* moved) const {

@@ -117,6 +117,8 @@ class ServerMap {
     return keyframes_;
   }
   std::size_t num_points() const { return points_.size(); }
+  // Ids of merged points that still resolve to a point (`point` follows them).
+  std::size_t num_merge_aliases() const { return merged_into_.size(); }
   // Bytes of the map points (objects, observations) and of the point index and merge aliases,
   // counting `hash_node` per hash table entry.
   std::size_t PointBytes(std::size_t hash_node) const;
@@ -151,6 +153,9 @@ class ServerMap {
   std::vector<ServerKeyframe*> AgentKeyframes(AgentId agent) const;
 
  private:
+  // Forgets merge aliases whose point is gone (removed with a culled keyframe).
+  void PruneMergeAliases();
+
   MapId id_;
   std::map<GlobalKeyframeId, std::unique_ptr<ServerKeyframe>> keyframes_;
   std::unordered_map<GlobalMapPointId, std::unique_ptr<ServerMapPoint>> points_;
