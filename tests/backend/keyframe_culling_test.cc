@@ -248,45 +248,6 @@ TEST(KeyframeCullingTest, AliasesOfRemovedPointsAreForgotten) {
   EXPECT_EQ(map.num_merge_aliases(), 0u);
 }
 
-TEST(KeyframeCullingTest, AliasesOfRemovedPointsAreForgotten) {
-  // Points merged by loops leave aliases (the agent may still name the old id); once the
-  // merged point itself is removed with a culled keyframe, its aliases must go too, or they
-  // would pile up for as long as agents revisit places.
-  ServerMap map(MapId(1));
-  auto make = [&](std::uint32_t id) {
-    auto kf = std::make_unique<ServerKeyframe>();
-    kf->id = {kAgent, KeyframeId(id)};
-    return map.AddKeyframe(std::move(kf));
-  };
-  ServerKeyframe* leader = make(0);
-  ServerKeyframe* victim = make(1);
-  ServerKeyframe* other = make(2);
-  constexpr std::uint32_t kPoints = 3000;
-  for (std::uint32_t j = 0; j < kPoints; ++j) {
-    victim->AppendKeypoint({cv::Point2f(1, 1), 0, 1.0f}, Descriptor{});
-    other->AppendKeypoint({cv::Point2f(1, 1), 0, 1.0f}, Descriptor{});
-    ServerMapPoint* kept = map.AddPoint(std::make_unique<ServerMapPoint>(
-        GlobalMapPointId{kAgent, MapPointId(j)}, victim, Eigen::Vector3d(0, 0, 1), Descriptor{}));
-    map.AddObservation(kept, victim, static_cast<int>(j));
-    // A duplicate of it that a loop merged, seen by no one else after the merge.
-    ServerMapPoint* duplicate = map.AddPoint(std::make_unique<ServerMapPoint>(
-        GlobalMapPointId{kAgent, MapPointId(kPoints + j)}, other, Eigen::Vector3d(0, 0, 1),
-        Descriptor{}));
-    map.AddObservation(duplicate, other, static_cast<int>(j));
-    map.MergePoints(duplicate, kept);
-  }
-  ASSERT_EQ(map.num_merge_aliases(), kPoints);
-  ASSERT_EQ(map.point({kAgent, MapPointId(kPoints + 5)}), map.point({kAgent, MapPointId(5)}));
-  // `other` still sees every point after the merge: culling the victim removes none.
-  EXPECT_EQ(map.Cull(victim, leader), 0u);
-  EXPECT_EQ(map.num_merge_aliases(), kPoints);
-  EXPECT_NE(map.point({kAgent, MapPointId(kPoints + 5)}), nullptr);
-  // Culling `other` removes them all, and the aliases with them.
-  EXPECT_EQ(map.Cull(other, leader), kPoints);
-  EXPECT_EQ(map.num_points(), 0u);
-  EXPECT_EQ(map.num_merge_aliases(), 0u);
-}
-
 TEST(KeyframeCullingTest, PoseGraphAndGlobalBaCarryCulledKeyframes) {
   ServerMap map = TwoLaps(24, 13);
   KeyframeCullingOptions options;
