@@ -61,7 +61,7 @@ ServerMapPoint* ServerMap::point(const GlobalMapPointId& id) const {
     if (it != points_.end()) return it->second.get();
     const auto alias = merged_into_.find(current);
     if (alias == merged_into_.end()) return nullptr;
-    current = alias->second;
+    current = alias->second.into;
   }
   return nullptr;
 }
@@ -70,7 +70,7 @@ std::size_t ServerMap::PointBytes(std::size_t hash_node) const {
   std::size_t bytes =
       (points_.size() + merged_into_.size()) * hash_node +
       points_.size() * (sizeof(GlobalMapPointId) + sizeof(std::unique_ptr<ServerMapPoint>)) +
-      merged_into_.size() * 2 * sizeof(GlobalMapPointId);
+      merged_into_.size() * (sizeof(GlobalMapPointId) + sizeof(MergeAlias));
   for (const auto& [id, p] : points_) {
     bytes +=
         sizeof(ServerMapPoint) + p->observations.capacity() * sizeof(ServerMapPoint::Observation);
@@ -83,6 +83,8 @@ ServerKeyframe* ServerMap::AddKeyframe(std::unique_ptr<ServerKeyframe> keyframe)
   if (!origin_) origin_ = raw->id;
   if (std::find(agents_.begin(), agents_.end(), raw->id.agent) == agents_.end())
     agents_.push_back(raw->id.agent);
+  KeyframeId& newest = newest_[raw->id.agent];
+  newest = std::max(newest, raw->id.keyframe);
   keyframes_[raw->id] = std::move(keyframe);
   return raw;
 }
@@ -116,8 +118,14 @@ void ServerMap::MergePoints(ServerMapPoint* from, ServerMapPoint* into) {
     }
   }
   const GlobalMapPointId id = from->id;
-  merged_into_[id] = into->id;
+  merged_into_[id] = {into->id, NewestKeyframe(id.agent)};
   points_.erase(id);
+  if (merged_into_.size() > prune_aliases_at_) PruneMergeAliases();
+}
+
+KeyframeId ServerMap::NewestKeyframe(AgentId agent) const {
+  const auto it = newest_.find(agent);
+  return it == newest_.end() ? KeyframeId(0) : it->second;
 }
 
 std::size_t ServerMap::Cull(ServerKeyframe* kf, ServerKeyframe* follow) {
@@ -169,16 +177,14 @@ std::size_t ServerMap::Cull(ServerKeyframe* kf, ServerKeyframe* follow) {
   kf->T_follows_this = T_follow_kf;
   follow->followers.push_back(kf);
   ++culled_;
-  // Aliases of points that are gone would pile up for as long as the agents revisit places:
-  // swept each time their number has doubled since the last sweep (a constant cost per
-  // alias, amortised).
-  if (removed > 0 && merged_into_.size() > prune_aliases_at_) PruneMergeAliases();
   return removed;
 }
 
 void ServerMap::PruneMergeAliases() {
   for (auto it = merged_into_.begin(); it != merged_into_.end();) {
-    it = point(it->first) ? std::next(it) : merged_into_.erase(it);
+    const std::uint32_t age =
+        NewestKeyframe(it->first.agent).value() - it->second.agent_newest.value();
+    it = age <= kMergeAliasKeyframes && point(it->first) ? std::next(it) : merged_into_.erase(it);
   }
   prune_aliases_at_ = 2 * merged_into_.size() + 1024;
 }
@@ -209,6 +215,11 @@ void ServerMap::Absorb(ServerMap* other, const Pose& T_this_other) {
   for (auto& [id, p] : other->points_) points_[id] = std::move(p);
   for (const auto& [from, to] : other->merged_into_) merged_into_[from] = to;
   culled_ += other->culled_;
+  for (const auto& [agent, newest] : other->newest_) {
+    KeyframeId& mine = newest_[agent];
+    mine = std::max(mine, newest);
+  }
+  other->newest_.clear();
   other->culled_ = 0;
   loop_edges_.insert(loop_edges_.end(), other->loop_edges_.begin(), other->loop_edges_.end());
   for (AgentId a : other->agents_) {

@@ -117,7 +117,11 @@ class ServerMap {
     return keyframes_;
   }
   std::size_t num_points() const { return points_.size(); }
-  // Ids of merged points that still resolve to a point (`point` follows them).
+  // Ids of merged points that still resolve to a point (`point` follows them). An agent names
+  // a point again only while it is in its local map, so an alias lives for
+  // kMergeAliasKeyframes keyframes of its agent (and never after its point is gone): swept
+  // each time the aliases have doubled since the last sweep.
+  static constexpr std::uint32_t kMergeAliasKeyframes = 100;
   std::size_t num_merge_aliases() const { return merged_into_.size(); }
   // Bytes of the map points (objects, observations) and of the point index and merge aliases,
   // counting `hash_node` per hash table entry.
@@ -154,13 +158,21 @@ class ServerMap {
   std::vector<ServerKeyframe*> AgentKeyframes(AgentId agent) const;
 
  private:
-  // Forgets merge aliases whose point is gone (removed with a culled keyframe).
+  // Forgets merge aliases whose point is gone (removed with a culled keyframe) or that are
+  // older than kMergeAliasKeyframes keyframes of their agent.
   void PruneMergeAliases();
+  KeyframeId NewestKeyframe(AgentId agent) const;
+
+  struct MergeAlias {
+    GlobalMapPointId into;
+    KeyframeId agent_newest;  // the merged point's agent's newest keyframe at the merge
+  };
 
   MapId id_;
   std::map<GlobalKeyframeId, std::unique_ptr<ServerKeyframe>> keyframes_;
   std::unordered_map<GlobalMapPointId, std::unique_ptr<ServerMapPoint>> points_;
-  std::unordered_map<GlobalMapPointId, GlobalMapPointId> merged_into_;
+  std::unordered_map<GlobalMapPointId, MergeAlias> merged_into_;
+  std::map<AgentId, KeyframeId> newest_;  // each agent's newest keyframe in this map
   std::vector<LoopEdge> loop_edges_;
   std::vector<AgentId> agents_;
   std::optional<GlobalKeyframeId> origin_;

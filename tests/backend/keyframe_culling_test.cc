@@ -242,10 +242,60 @@ TEST(KeyframeCullingTest, AliasesOfRemovedPointsAreForgotten) {
   EXPECT_EQ(map.Cull(victim, leader), 0u);
   EXPECT_EQ(map.num_merge_aliases(), kPoints);
   EXPECT_NE(map.point({kAgent, MapPointId(kPoints + 5)}), nullptr);
-  // Culling `other` removes them all, and the aliases with them.
+  // Culling `other` removes them all: their aliases resolve to nothing, and the next sweep
+  // (when merges have doubled the aliases since the last) forgets them.
   EXPECT_EQ(map.Cull(other, leader), kPoints);
   EXPECT_EQ(map.num_points(), 0u);
-  EXPECT_EQ(map.num_merge_aliases(), 0u);
+  EXPECT_EQ(map.point({kAgent, MapPointId(kPoints + 5)}), nullptr);
+  for (std::uint32_t j = 0; j < 100; ++j) {
+    leader->AppendKeypoint({cv::Point2f(1, 1), 0, 1.0f}, Descriptor{});
+    ServerMapPoint* kept = map.AddPoint(
+        std::make_unique<ServerMapPoint>(GlobalMapPointId{kAgent, MapPointId(2 * kPoints + 2 * j)},
+                                         leader, Eigen::Vector3d(0, 0, 1), Descriptor{}));
+    map.AddObservation(kept, leader, static_cast<int>(j));
+    map.MergePoints(map.AddPoint(std::make_unique<ServerMapPoint>(
+                        GlobalMapPointId{kAgent, MapPointId(2 * kPoints + 2 * j + 1)}, leader,
+                        Eigen::Vector3d(0, 0, 1), Descriptor{})),
+                    kept);
+  }
+  EXPECT_EQ(map.num_merge_aliases(), 100u);
+}
+
+TEST(KeyframeCullingTest, AliasesLiveAsLongAsTheirAgentMayNameThem) {
+  ServerMap map(MapId(1));
+  auto add_keyframe = [&](std::uint32_t id) {
+    auto kf = std::make_unique<ServerKeyframe>();
+    kf->id = {kAgent, KeyframeId(id)};
+    return map.AddKeyframe(std::move(kf));
+  };
+  ServerKeyframe* seer = add_keyframe(0);
+  std::uint32_t next_point = 0;
+  // Merges `n` new duplicates into a point `seer` keeps seeing.
+  auto merge = [&](std::uint32_t n) {
+    std::vector<std::uint32_t> ids;
+    for (std::uint32_t j = 0; j < n; ++j) {
+      seer->AppendKeypoint({cv::Point2f(1, 1), 0, 1.0f}, Descriptor{});
+      const auto k = static_cast<int>(seer->keypoints.size()) - 1;
+      ServerMapPoint* kept = map.AddPoint(
+          std::make_unique<ServerMapPoint>(GlobalMapPointId{kAgent, MapPointId(next_point++)}, seer,
+                                           Eigen::Vector3d(0, 0, 1), Descriptor{}));
+      map.AddObservation(kept, seer, k);
+      ServerMapPoint* duplicate = map.AddPoint(
+          std::make_unique<ServerMapPoint>(GlobalMapPointId{kAgent, MapPointId(next_point)}, seer,
+                                           Eigen::Vector3d(0, 0, 1), Descriptor{}));
+      ids.push_back(next_point++);
+      map.MergePoints(duplicate, kept);
+    }
+    return ids;
+  };
+  const std::vector<std::uint32_t> old_ids = merge(3000);
+  EXPECT_EQ(map.num_merge_aliases(), 3000u);  // young: all kept through a sweep
+  for (std::uint32_t id = 1; id <= ServerMap::kMergeAliasKeyframes + 10; ++id) add_keyframe(id);
+  const std::vector<std::uint32_t> new_ids = merge(200);
+  // The sweep that the new merges started forgot the old aliases, not the new ones.
+  EXPECT_EQ(map.num_merge_aliases(), 200u);
+  EXPECT_EQ(map.point({kAgent, MapPointId(old_ids[0])}), nullptr);
+  EXPECT_NE(map.point({kAgent, MapPointId(new_ids[0])}), nullptr);
 }
 
 TEST(KeyframeCullingTest, PoseGraphAndGlobalBaCarryCulledKeyframes) {
