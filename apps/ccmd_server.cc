@@ -76,7 +76,7 @@ int main(int argc, char** argv) {
   ccmd::ServerOptions& options = runtime.net;
   std::string journal, resume, psk_file, stats_path,
       vocabulary = ccmd::app::DefaultVocabularyPath();
-  bool no_dense = false, no_gba = false, dense_every_point = false;
+  bool no_dense = false, no_gba = false, dense_every_point = false, no_culling = false;
   double stats_interval = 5.0;
   bool no_fsync = false;
   std::string log_level;
@@ -110,6 +110,9 @@ int main(int argc, char** argv) {
       "Keep every back-projected point of every keyframe (no compaction after the filter window: "
       "about 30 bytes a point for the whole run)");
   app.add_flag("--no-global-ba", no_gba, "No global bundle adjustment after loops");
+  app.add_flag("--no-culling", no_culling,
+               "Keep every keyframe's sparse data (no keyframe culling: the sparse maps then grow "
+               "with the time spent in a place, not with the place)");
   app.add_option("--snapshot-interval", runtime.snapshot_period_s,
                  "Seconds between dense-map snapshots (0: only at the end)")
       ->capture_default_str();
@@ -183,6 +186,7 @@ int main(int argc, char** argv) {
   runtime.backend.dense = !no_dense;
   runtime.backend.dense_options.compact_keyframes = !dense_every_point;
   runtime.backend.global_ba = !no_gba;
+  runtime.backend.culling.enabled = !no_culling;
   if (!vocabulary.empty() && ccmd::FileExists(vocabulary)) {
     auto loaded = ccmd::Vocabulary::Load(vocabulary);
     if (!loaded.ok()) {

@@ -25,6 +25,7 @@ void AppendSample(std::vector<T>* samples, T value) {
 
 Status BackendOptions::Validate() const {
   CCMD_RETURN_IF_ERROR(loops.Validate());
+  CCMD_RETURN_IF_ERROR(culling.Validate());
   if (queue_capacity < 1) return InvalidArgument("queue capacity must be >= 1");
   if (global_ba_iterations < 1) return InvalidArgument("global BA iterations must be >= 1");
   if (global_ba_max_keyframes < 10)
@@ -40,6 +41,7 @@ Status BackendOptions::Validate() const {
 
 void BackendOptions::Describe(OptionsWriter* out) const {
   out->Nested("loops", loops);
+  out->Nested("culling", culling);
   out->Add("global_ba", global_ba);
   out->Add("global_ba_iterations", global_ba_iterations);
   out->Add("global_ba_max_keyframes", global_ba_max_keyframes);
@@ -72,6 +74,7 @@ Backend::Backend(const BackendOptions& options)
     : options_(options),
       start_time_(MonotonicSeconds()),
       loop_closer_(options.loops, options.place, &maps_, start_time_),
+      culler_(options.culling),
       ingest_stage_(options.queue_capacity),
       loop_stage_(options.queue_capacity * 4),
       gba_stage_(1, Stage<GbaRequest>::Policy::kLatest),
@@ -297,6 +300,7 @@ Status Backend::ExportDenseMap(const std::string& path) {
   if (!dense_) return Unsupported("the dense map is disabled");
   const auto primary = maps_.primary();
   if (!primary) return NotFound("no map yet");
+  const auto transient = LockLargeTransient();
   return dense_->ExportPly(path, DenseSelection::Map(*primary));
 }
 
@@ -305,6 +309,7 @@ Status Backend::ExportDenseMap(const std::string& path) {
 void Backend::DetectLoops(const GlobalKeyframeId& id) {
   if (auto closure = loop_closer_.Process(id, CameraOf(id.agent), /*stored=*/false))
     AfterLoop(std::move(*closure));
+  if (const auto old = culler_.Arrived(id)) CullIfRedundant(*old);
   // Measuring the index visits every word's list: now and then is enough.
   if (id.keyframe.value() % 32 == 0) place_bytes_ = loop_closer_.place().MemoryBytes();
   // Keyframes that arrived before the first vocabulary was trained are queried now, oldest
@@ -316,6 +321,26 @@ void Backend::DetectLoops(const GlobalKeyframeId& id) {
       AfterLoop(std::move(*closure));
     }
   }
+}
+
+void Backend::CullIfRedundant(const GlobalKeyframeId& id) {
+  const std::map<AgentId, PinholeCamera> cameras = [&] {
+    std::lock_guard<std::mutex> lock(cameras_mutex_);
+    return cameras_;
+  }();
+  const auto camera_of = [&](AgentId agent) -> const PinholeCamera* {
+    const auto it = cameras.find(agent);
+    return it == cameras.end() ? nullptr : &it->second;
+  };
+  {
+    MapManager::Guard guard = maps_.CheckOutAgent(id.agent);
+    culler_.Check(guard.get(), id, camera_of,
+                  [&](const GlobalKeyframeId& k) { return loop_closer_.Forget(k); });
+  }
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  stats_.culling_checked = culler_.stats().checked;
+  stats_.keyframes_culled = culler_.stats().culled;
+  stats_.culled_points = culler_.stats().points_removed;
 }
 
 void Backend::AfterLoop(LoopClosure closure) {
@@ -406,7 +431,10 @@ void Backend::RunGlobalBa(GbaRequest request) {
   ba.first_iterations = options_.global_ba_iterations;
   ba.second_iterations = options_.global_ba_iterations;
   ba.abort = &gba_abort_;
-  const BaSummary summary = BundleAdjust(&problem.problem, ba);
+  const BaSummary summary = [&] {
+    const auto transient = LockLargeTransient();
+    return BundleAdjust(&problem.problem, ba);
+  }();
   bool applied = false;
   if (!summary.aborted) {
     MapManager::Guard guard = maps_.CheckOut(map_id);

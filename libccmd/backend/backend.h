@@ -6,6 +6,8 @@
 //   loops   — the LoopCloser (loop_closer.h) for each new keyframe: place recognition,
 //             verification and consistency, then loop closure inside a map or fusion of two
 //             maps; the back-end passes what moved to the dense map and schedules a global BA;
+//             then the keyframe culling (keyframe_culling.h) for the agent's keyframe that has
+//             just left its recent window;
 //   global BA — on the whole map, in the background, abandoned when newer loop work arrives
 //             (only the newest request waits);
 //   dense   — the dense point store, fed with keyframes of the primary map (the first agent's
@@ -20,6 +22,7 @@
 #include <string>
 #include <vector>
 
+#include "libccmd/backend/keyframe_culling.h"
 #include "libccmd/backend/loop_closer.h"
 #include "libccmd/backend/map_manager.h"
 #include "libccmd/backend/map_memory.h"
@@ -37,6 +40,7 @@ namespace ccmd {
 
 struct BackendOptions {
   LoopCloserOptions loops;
+  KeyframeCullingOptions culling;
   bool global_ba = true;
   int global_ba_iterations = 10;
   // A map of more keyframes than this gets a global BA over a window of at most this many
@@ -66,6 +70,8 @@ struct BackendStats {
   std::size_t dense_keyframes = 0;
   int loops_already_closed = 0;  // verified loops that found the map consistent (no correction)
   int global_ba_windowed = 0;    // runs over a window of a larger map
+  // Keyframe culling: keyframes looked at, culled (their poses kept), points removed with them.
+  std::size_t culling_checked = 0, keyframes_culled = 0, culled_points = 0;
   // Intake latency: from receipt (the transport's arrival time, else the submission) to the
   // keyframe being in its map, over the samples kept (BackendTimings), and over the last
   // minute; the same to the keyframe being in the dense map (RGB-D keyframes of the primary
@@ -139,6 +145,14 @@ class Backend {
   std::optional<MapId> MapOf(AgentId agent) const { return maps_.MapOfAgent(agent); }
 
   DenseMap* dense() { return dense_.get(); }
+  // Held by work whose transient memory is large: a global BA's solve (about 1 kB per
+  // observation, 30 MB for a full window) and a dense-map snapshot or export that a caller
+  // writes (the cloud and its voxel filter, about 50 bytes a point). Taking it keeps two such
+  // peaks from adding up, so the server's peak memory follows its resident memory.
+  std::unique_lock<std::mutex> LockLargeTransient(bool wait = true) {
+    return wait ? std::unique_lock<std::mutex>(large_transient_mutex_)
+                : std::unique_lock<std::mutex>(large_transient_mutex_, std::try_to_lock);
+  }
   Status ExportDenseMap(const std::string& path);
 
   BackendStats stats();
@@ -183,6 +197,8 @@ class Backend {
   // Stage handlers, each on its stage's thread.
   void Ingest(IngestItem item);
   void DetectLoops(const GlobalKeyframeId& id);
+  // Culls `id` if it is redundant (loop stage).
+  void CullIfRedundant(const GlobalKeyframeId& id);
   void RunGlobalBa(GbaRequest request);
   void UpdateDense(DenseTask task);
   Status AddToDense(const DenseTask& task);
@@ -209,6 +225,7 @@ class Backend {
   std::unique_ptr<DenseMap> dense_;
   const double start_time_;
   LoopCloser loop_closer_;  // loop stage only
+  KeyframeCuller culler_;   // loop stage only
   std::atomic<std::size_t> place_bytes_{
       0};  // the place index's memory, as the loop stage last saw it
 
@@ -226,6 +243,8 @@ class Backend {
   std::condition_variable gba_turn_cv_;  // woken by shutdown
   double gba_next_start_ = 0;            // back-end clock; global BA stage only
   double dense_trimmed_ = 0;             // back-end clock; dense stage only
+
+  std::mutex large_transient_mutex_;  // see LockLargeTransient
 
   mutable std::mutex stats_mutex_;
   BackendStats stats_;

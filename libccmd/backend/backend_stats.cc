@@ -137,6 +137,9 @@ Json Backend::StatsJson() {
   j["fusions"] = s.fusions;
   j["global_ba_runs"] = s.global_ba_runs;
   j["global_ba_windowed"] = s.global_ba_windowed;
+  j["culling_checked"] = s.culling_checked;
+  j["keyframes_culled"] = s.keyframes_culled;
+  j["culled_points"] = s.culled_points;
   j["global_ba_abandoned"] = s.global_ba_aborted;
   j["global_ba_seconds"] = s.global_ba_seconds;
   j["dense_keyframes"] = s.dense_keyframes;

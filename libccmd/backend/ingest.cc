@@ -94,10 +94,13 @@ std::vector<ServerKeyframe*> ApplyPoseUpdates(ServerMap* map, AgentId agent,
     ServerKeyframe* kf = map->keyframe({agent, e.keyframe});
     if (!kf) continue;
     const Pose T_agent_new = PoseFromWire(e.T_world_cam);
-    kf->T_map_cam = kf->T_map_cam * (kf->T_agent_cam.inverse() * T_agent_new);
+    const Pose change = kf->T_agent_cam.inverse() * T_agent_new;
+    kf->T_map_cam = kf->T_map_cam * change;
     kf->T_agent_cam = T_agent_new;
+    if (kf->culled()) kf->T_follows_this = kf->T_follows_this * change;
     moved.push_back(kf);
   }
+  map->CarryFollowers(&moved);
   return moved;
 }
 

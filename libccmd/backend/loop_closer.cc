@@ -169,6 +169,13 @@ std::optional<GlobalKeyframeId> LoopCloser::NextLateQuery() {
   return id;
 }
 
+bool LoopCloser::Forget(const GlobalKeyframeId& id) {
+  if (std::find(late_queries_.begin(), late_queries_.end(), id) != late_queries_.end())
+    return false;
+  place_.Remove(id);
+  return true;
+}
+
 std::optional<LoopCloser::Query> LoopCloser::FindCandidates(const GlobalKeyframeId& id,
                                                             bool stored) {
   std::vector<Descriptor> descriptors;

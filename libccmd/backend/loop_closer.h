@@ -157,6 +157,9 @@ class LoopCloser {
 
   // Keyframes stored before an online vocabulary existed, to be queried now, oldest first.
   std::optional<GlobalKeyframeId> NextLateQuery();
+  // Forgets a keyframe that is being culled: false (and nothing forgotten) while it still waits
+  // for its late query.
+  bool Forget(const GlobalKeyframeId& id);
 
   const PlaceIndex& place() const { return place_; }
 

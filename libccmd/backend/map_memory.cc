@@ -16,12 +16,15 @@ std::size_t Capacity(const std::vector<T>& v) {
 }  // namespace
 
 std::size_t SparseMemory::total() const {
-  return keyframe_bytes + keypoint_bytes + descriptor_bytes + point_link_bytes + map_point_bytes +
-         covisibility_bytes + depth_link_bytes + loop_edge_bytes + rgbd_coded_bytes + place_bytes;
+  return keyframe_bytes + follower_bytes + keypoint_bytes + descriptor_bytes + point_link_bytes +
+         map_point_bytes + covisibility_bytes + depth_link_bytes + loop_edge_bytes +
+         rgbd_coded_bytes + place_bytes;
 }
 
 void SparseMemory::Add(const SparseMemory& o) {
   keyframes += o.keyframes;
+  culled_keyframes += o.culled_keyframes;
+  follower_bytes += o.follower_bytes;
   map_points += o.map_points;
   keyframe_bytes += o.keyframe_bytes;
   keypoint_bytes += o.keypoint_bytes;
@@ -38,18 +41,15 @@ void SparseMemory::Add(const SparseMemory& o) {
 Json SparseMemory::ToJson() const {
   Json j;
   j["keyframes"] = keyframes;
+  j["culled_keyframes"] = culled_keyframes;
   j["map_points"] = map_points;
-  const std::pair<const char*, std::size_t> parts[] = {{"keyframe", keyframe_bytes},
-                                                       {"keypoints", keypoint_bytes},
-                                                       {"descriptors", descriptor_bytes},
-                                                       {"point_links", point_link_bytes},
-                                                       {"map_points", map_point_bytes},
-                                                       {"covisibility", covisibility_bytes},
-                                                       {"depth_links", depth_link_bytes},
-                                                       {"loop_edges", loop_edge_bytes},
-                                                       {"rgbd_coded", rgbd_coded_bytes},
-                                                       {"place_recognition", place_bytes},
-                                                       {"total", total()}};
+  const std::pair<const char*, std::size_t> parts[] = {
+      {"keyframe", keyframe_bytes},         {"followers", follower_bytes},
+      {"keypoints", keypoint_bytes},        {"descriptors", descriptor_bytes},
+      {"point_links", point_link_bytes},    {"map_points", map_point_bytes},
+      {"covisibility", covisibility_bytes}, {"depth_links", depth_link_bytes},
+      {"loop_edges", loop_edge_bytes},      {"rgbd_coded", rgbd_coded_bytes},
+      {"place_recognition", place_bytes},   {"total", total()}};
   Json bytes, per_keyframe;
   for (const auto& [name, value] : parts) {
     bytes[name] = value;
@@ -64,6 +64,8 @@ SparseMemory MeasureSparseMemory(const ServerMap& map) {
   SparseMemory m;
   for (const auto& [id, kf] : map.keyframes()) {
     ++m.keyframes;
+    m.culled_keyframes += kf->culled();
+    m.follower_bytes += Capacity(kf->followers);
     m.keyframe_bytes += sizeof(ServerKeyframe) + kTreeNode + sizeof(id) + sizeof(kf);
     m.keypoint_bytes += Capacity(kf->keypoints);
     m.descriptor_bytes += Capacity(kf->own_descriptors);

@@ -101,6 +101,13 @@ std::vector<PlaceHit> PlaceIndex::Query(
   return hits;
 }
 
+void PlaceIndex::Remove(const GlobalKeyframeId& id) {
+  database_.Erase(id);
+  descriptors_.erase(id);
+  before_training_.erase(std::remove(before_training_.begin(), before_training_.end(), id),
+                         before_training_.end());
+}
+
 double PlaceIndex::Score(const GlobalKeyframeId& a, const GlobalKeyframeId& b) const {
   const auto va = database_.Get(a), vb = database_.Get(b);
   if (!va || !vb) return 0;

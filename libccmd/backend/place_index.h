@@ -48,6 +48,8 @@ class PlaceIndex {
   std::vector<PlaceHit> Query(const std::vector<Descriptor>& descriptors, int max_results,
                               const std::function<bool(const GlobalKeyframeId&)>& accept) const;
   double Score(const GlobalKeyframeId& a, const GlobalKeyframeId& b) const;
+  // Forgets a keyframe (culled): it is never a hit again and its descriptors are dropped.
+  void Remove(const GlobalKeyframeId& id);
 
   bool ready() const { return vocabulary_ != nullptr; }
   int trainings() const { return trainings_; }

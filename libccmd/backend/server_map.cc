@@ -120,6 +120,74 @@ void ServerMap::MergePoints(ServerMapPoint* from, ServerMapPoint* into) {
   points_.erase(id);
 }
 
+std::size_t ServerMap::Cull(ServerKeyframe* kf, ServerKeyframe* follow) {
+  CCMD_CHECK(kf != follow && !kf->culled() && !follow->culled() && kf->followers.empty());
+  std::size_t removed = 0;
+  for (ServerMapPoint* p : kf->points) {
+    if (!p) continue;
+    auto& observations = p->observations;
+    observations.erase(std::remove_if(observations.begin(), observations.end(),
+                                      [&](const auto& o) { return o.keyframe == kf; }),
+                       observations.end());
+    if (observations.empty()) {
+      points_.erase(p->id);
+      ++removed;
+    } else if (p->anchor == kf) {
+      const Eigen::Vector3d p_map = p->World();
+      p->anchor = observations.front().keyframe;
+      p->SetWorld(p_map);
+    }
+  }
+  for (const auto& [other, weight] : kf->covisibility) {
+    if (ServerKeyframe* o = keyframe(other)) o->covisibility.erase(kf->id);
+  }
+  const Pose T_follow_kf = follow->T_map_cam.inverse() * kf->T_map_cam;
+  for (LoopEdge& edge : loop_edges_) {
+    if (edge.a == kf->id) {
+      edge.a = follow->id;
+      edge.T_a_b = T_follow_kf * edge.T_a_b;
+    }
+    if (edge.b == kf->id) {
+      edge.b = follow->id;
+      edge.T_a_b = edge.T_a_b * T_follow_kf.inverse();
+    }
+  }
+  loop_edges_.erase(std::remove_if(loop_edges_.begin(), loop_edges_.end(),
+                                   [](const LoopEdge& e) { return e.a == e.b; }),
+                    loop_edges_.end());
+  // Give the memory back (clear() would keep the capacity).
+  std::vector<ServerKeypoint>().swap(kf->keypoints);
+  std::vector<ServerMapPoint*>().swap(kf->points);
+  std::vector<std::pair<std::uint32_t, Descriptor>>().swap(kf->own_descriptors);
+  std::vector<ServerKeyframe::DepthLink>().swap(kf->depth_links);
+  kf->covisibility.clear();
+  kf->follows = follow;
+  kf->T_follows_this = T_follow_kf;
+  follow->followers.push_back(kf);
+  ++culled_;
+  // Aliases of points that are gone would pile up for as long as the agents revisit places:
+  // swept when they outnumber the points (a constant cost per removed point, amortised).
+  if (removed > 0 && merged_into_.size() > 2 * points_.size() + 1024) PruneMergeAliases();
+  return removed;
+}
+
+void ServerMap::PruneMergeAliases() {
+  for (auto it = merged_into_.begin(); it != merged_into_.end();) {
+    it = point(it->first) ? std::next(it) : merged_into_.erase(it);
+  }
+}
+
+void ServerMap::CarryFollowers(std::vector<ServerKeyframe*>* moved) const {
+  const std::size_t leaders = moved->size();
+  for (std::size_t i = 0; i < leaders; ++i) {
+    const ServerKeyframe* leader = (*moved)[i];
+    for (ServerKeyframe* f : leader->followers) {
+      f->T_map_cam = leader->T_map_cam * f->T_follows_this;
+      moved->push_back(f);
+    }
+  }
+}
+
 void ServerMap::AddCovisibility(ServerKeyframe* a, ServerKeyframe* b, int weight) {
   if (a == b) return;
   a->covisibility[b->id] = std::max(a->covisibility[b->id], weight);
@@ -134,6 +202,8 @@ void ServerMap::Absorb(ServerMap* other, const Pose& T_this_other) {
   }
   for (auto& [id, p] : other->points_) points_[id] = std::move(p);
   for (const auto& [from, to] : other->merged_into_) merged_into_[from] = to;
+  culled_ += other->culled_;
+  other->culled_ = 0;
   loop_edges_.insert(loop_edges_.end(), other->loop_edges_.begin(), other->loop_edges_.end());
   for (AgentId a : other->agents_) {
     if (std::find(agents_.begin(), agents_.end(), a) == agents_.end()) agents_.push_back(a);

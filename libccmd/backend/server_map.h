@@ -88,6 +88,16 @@ class ServerKeyframe {
   std::shared_ptr<const RgbdPayload> rgbd;
   bool in_dense = false;
 
+  // Keyframe culling (keyframe_culling.h). A culled keyframe keeps its id, poses, parent and
+  // place in the dense map, nothing of its sparse data (keypoints, points, links): its pose
+  // follows a kept keyframe of the same map that sees the same place,
+  // T_map_cam = follows->T_map_cam * T_follows_this. A keyframe the culling has kept stays.
+  ServerKeyframe* follows = nullptr;
+  Pose T_follows_this = Pose::Identity();
+  std::vector<ServerKeyframe*> followers;  // culled keyframes that follow this one
+  bool cull_checked = false;               // the culling has looked at it
+  bool culled() const { return follows != nullptr; }
+
   Eigen::Vector3d camera_center() const { return T_map_cam.translation(); }
 };
 
@@ -107,6 +117,8 @@ class ServerMap {
     return keyframes_;
   }
   std::size_t num_points() const { return points_.size(); }
+  // Ids of merged points that still resolve to a point (`point` follows them).
+  std::size_t num_merge_aliases() const { return merged_into_.size(); }
   // Bytes of the map points (objects, observations) and of the point index and merge aliases,
   // counting `hash_node` per hash table entry.
   std::size_t PointBytes(std::size_t hash_node) const;
@@ -123,6 +135,16 @@ class ServerMap {
   void AddLoopEdge(const LoopEdge& edge) { loop_edges_.push_back(edge); }
   void AddCovisibility(ServerKeyframe* a, ServerKeyframe* b, int weight);
 
+  // Culls `kf` (see ServerKeyframe::follows): its observations leave their points (a point
+  // anchored to it moves its anchor to another observer; a point nobody else sees is removed),
+  // its covisibility and depth links go, its loop edges move to `follow` (composed with their
+  // relative pose), and from now on its pose follows `follow`, a kept keyframe of this map.
+  // Returns the number of points removed.
+  std::size_t Cull(ServerKeyframe* kf, ServerKeyframe* follow);
+  // Gives the culled followers of the keyframes in `moved` their poses and appends them.
+  void CarryFollowers(std::vector<ServerKeyframe*>* moved) const;
+  std::size_t num_culled() const { return culled_; }
+
   // Moves every keyframe and point of `other` into this map, `other`'s poses premultiplied by
   // T_this_other. `other` is left empty.
   void Absorb(ServerMap* other, const Pose& T_this_other);
@@ -131,6 +153,9 @@ class ServerMap {
   std::vector<ServerKeyframe*> AgentKeyframes(AgentId agent) const;
 
  private:
+  // Forgets merge aliases whose point is gone (removed with a culled keyframe).
+  void PruneMergeAliases();
+
   MapId id_;
   std::map<GlobalKeyframeId, std::unique_ptr<ServerKeyframe>> keyframes_;
   std::unordered_map<GlobalMapPointId, std::unique_ptr<ServerMapPoint>> points_;
@@ -138,6 +163,7 @@ class ServerMap {
   std::vector<LoopEdge> loop_edges_;
   std::vector<AgentId> agents_;
   std::optional<GlobalKeyframeId> origin_;
+  std::size_t culled_ = 0;
 };
 
 }  // namespace ccmd

@@ -28,7 +28,7 @@ std::string DenseSnapshotWriter::GlobalPath() const {
 }
 
 StatusOr<bool> DenseSnapshotWriter::Tick(double now_s) {
-  if (has_last_ && (options_.period_s <= 0 || now_s - last_s_ < options_.period_s)) return false;
+  if (!Due(now_s)) return false;
   has_last_ = true;
   last_s_ = now_s;  // also after a failure: a full disk is not retried in a tight loop
   CCMD_RETURN_IF_ERROR(WriteNow());

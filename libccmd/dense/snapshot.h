@@ -36,6 +36,10 @@ class DenseSnapshotWriter {
   // Writes a snapshot if none was written yet or `period_s` has passed since the last one
   // (`now_s` on a monotonic clock, e.g. MonotonicSeconds()). Returns whether it wrote.
   StatusOr<bool> Tick(double now_s);
+  // Whether Tick(now_s) would write.
+  bool Due(double now_s) const {
+    return !has_last_ || (options_.period_s > 0 && now_s - last_s_ >= options_.period_s);
+  }
   // Writes a snapshot now (the final one at shutdown, or one on request).
   Status WriteNow();
   Status WriteFinal() { return WriteNow(); }

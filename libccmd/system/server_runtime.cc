@@ -142,9 +142,12 @@ void ServerRuntime::Tick() {
     const Status s = WriteJsonFile(StatsJson(), JoinPath(options_.output_dir, "server_stats.json"));
     if (!s.ok()) CCMD_LOG(WARNING) << s.ToString();
   }
-  if (snapshots_ && options_.snapshot_period_s > 0) {
-    auto wrote = snapshots_->Tick(now);
-    if (!wrote.ok()) CCMD_LOG(WARNING) << "snapshot: " << wrote.status().ToString();
+  if (snapshots_ && options_.snapshot_period_s > 0 && snapshots_->Due(now)) {
+    // Not while a global BA solves (their transient memory would add up): next tick.
+    if (const auto transient = backend_->LockLargeTransient(/*wait=*/false)) {
+      auto wrote = snapshots_->Tick(now);
+      if (!wrote.ok()) CCMD_LOG(WARNING) << "snapshot: " << wrote.status().ToString();
+    }
   }
 }
 

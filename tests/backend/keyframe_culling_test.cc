@@ -1,0 +1,274 @@
+#include "libccmd/backend/keyframe_culling.h"
+
+#include <gtest/gtest.h>
+
+#include "libccmd/backend/map_optimization.h"
+#include "tests/backend/generated_map.h"
+
+namespace ccmd {
+namespace {
+
+using testing::AddGeneratedKeyframe;
+using testing::CirclePose;
+using testing::MakeRingWorld;
+using testing::TestCamera;
+
+const AgentId kAgent(1);
+
+const PinholeCamera* CameraOf(AgentId) {
+  static const PinholeCamera camera = TestCamera();
+  return &camera;
+}
+
+// Runs the culler over the keyframes of `map` in id order, as the back-end does on arrival.
+CullingStats CullInOrder(ServerMap* map, const KeyframeCullingOptions& options) {
+  KeyframeCuller culler(options);
+  std::vector<GlobalKeyframeId> ids;
+  for (const auto& [id, kf] : map->keyframes()) ids.push_back(id);
+  for (const GlobalKeyframeId& id : ids) {
+    if (const auto old = culler.Arrived(id)) {
+      culler.Check(map, *old, CameraOf, [](const GlobalKeyframeId&) { return true; });
+    }
+  }
+  return culler.stats();
+}
+
+// Two laps of the circle, `steps` keyframes each; the second lap makes its points again (an
+// agent's front-end does not remember the first lap).
+ServerMap TwoLaps(int steps, std::uint64_t seed) {
+  Rng rng(seed);
+  const auto world = MakeRingWorld(3000, &rng);
+  ServerMap map(MapId(1));
+  for (int i = 0; i < 2 * steps; ++i) {
+    const Pose T = CirclePose(i, steps);
+    std::optional<std::uint32_t> window;
+    if (i >= steps) window = static_cast<std::uint32_t>(std::max(0, i - 5));
+    AddGeneratedKeyframe(&map, world, kAgent, static_cast<std::uint32_t>(i), T, T, &rng, window);
+  }
+  return map;
+}
+
+TEST(KeyframeCullingTest, SecondPassOverAPlaceIsCulledFirstPassKept) {
+  const int steps = 24;  // 15 degrees apart: neighbours overlap, but not by 90 %
+  ServerMap map = TwoLaps(steps, 7);
+  const std::size_t points_before = map.num_points();
+  KeyframeCullingOptions options;
+  options.keep_recent = 5;
+  const CullingStats stats = CullInOrder(&map, options);
+  int first_culled = 0, second_culled = 0, second_checked = 0;
+  for (const auto& [id, kf] : map.keyframes()) {
+    const int i = static_cast<int>(id.keyframe.value());
+    if (i < steps) {
+      if (i < steps - 1) first_culled += kf->culled();
+    } else if (kf->cull_checked || kf->culled()) {
+      ++second_checked;
+      second_culled += kf->culled();
+    }
+  }
+  EXPECT_EQ(first_culled, 0);
+  // The first lap's last keyframe lies between its predecessor and the first keyframe, which
+  // see all of it together: the lap has closed.
+  EXPECT_TRUE(map.keyframe({kAgent, KeyframeId(steps - 1)})->culled());
+  ASSERT_EQ(second_checked, steps - options.keep_recent);
+  // The second lap sees exactly what the first saw, from the same places.
+  EXPECT_EQ(second_culled, second_checked);
+  EXPECT_EQ(stats.culled, static_cast<std::size_t>(second_culled) + 1);
+  // The second lap's own points go with its keyframes (those the recent keyframes still see
+  // stay).
+  EXPECT_GT(stats.points_removed, 0u);
+  EXPECT_EQ(map.num_points(), points_before - stats.points_removed);
+  EXPECT_EQ(map.num_culled(), stats.culled);
+  for (const auto& [id, kf] : map.keyframes()) {
+    if (!kf->culled()) continue;
+    EXPECT_TRUE(kf->keypoints.empty() && kf->points.empty() && kf->covisibility.empty());
+    ASSERT_NE(kf->follows, nullptr);
+    EXPECT_FALSE(kf->follows->culled());
+    EXPECT_LT(kf->follows->id.keyframe.value(), static_cast<std::uint32_t>(steps));
+  }
+  // No map point refers to a culled keyframe, and every remaining point is observed.
+  for (const auto& [id, kf] : map.keyframes()) {
+    for (const ServerMapPoint* p : kf->points) {
+      if (!p) continue;
+      ASSERT_FALSE(p->observations.empty());
+      EXPECT_FALSE(p->anchor->culled());
+      for (const auto& o : p->observations) EXPECT_FALSE(o.keyframe->culled());
+    }
+  }
+}
+
+TEST(KeyframeCullingTest, DenseKeyframesOfOnePassAreThinnedSparseOnesKept) {
+  // 120 keyframes per lap (3 degrees apart): the previous keyframe sees over 90 % of each.
+  Rng rng(3);
+  const auto world = MakeRingWorld(3000, &rng);
+  ServerMap dense(MapId(1)), sparse(MapId(2));
+  for (int i = 0; i < 60; ++i) {
+    const Pose T = CirclePose(i, 120);
+    AddGeneratedKeyframe(&dense, world, kAgent, static_cast<std::uint32_t>(i), T, T, &rng);
+  }
+  for (int i = 0; i < 12; ++i) {
+    const Pose T = CirclePose(i, 12);  // 30 degrees apart: about half of each view is new
+    AddGeneratedKeyframe(&sparse, world, kAgent, static_cast<std::uint32_t>(i), T, T, &rng);
+  }
+  KeyframeCullingOptions options;
+  options.keep_recent = 3;
+  const CullingStats dense_stats = CullInOrder(&dense, options);
+  const CullingStats sparse_stats = CullInOrder(&sparse, options);
+  EXPECT_GT(dense_stats.culled, dense_stats.checked / 3);
+  EXPECT_LT(dense_stats.culled, dense_stats.checked);  // the kept ones cover the others
+  EXPECT_EQ(sparse_stats.culled, 0u);
+  EXPECT_EQ(sparse_stats.checked, 9u);
+}
+
+TEST(KeyframeCullingTest, CoverageNeedsTheSameViewAtAboutTheSameDistance) {
+  Rng rng(11);
+  const auto world = MakeRingWorld(3000, &rng);
+  ServerMap map(MapId(1));
+  const Pose T = CirclePose(0, 24);
+  ServerKeyframe* kept = AddGeneratedKeyframe(&map, world, kAgent, 0, T, T, &rng);
+  kept->cull_checked = true;
+  KeyframeCullingOptions options;
+  const auto coverage_of = [&](const Pose& pose, std::uint32_t id) {
+    ServerKeyframe* kf = AddGeneratedKeyframe(&map, world, kAgent, id, pose, pose, &rng);
+    return MeasureCoverage(*kf, CoveringCandidates(map, *kf, options), CameraOf, options);
+  };
+  // 2 cm to the side: the same view.
+  Pose beside = T;
+  beside.translation() += 0.02 * T.linear().col(0);
+  const Coverage same = coverage_of(beside, 1);
+  EXPECT_GT(same.fraction, 0.95);
+  EXPECT_EQ(same.best, kept);
+  // Turned by 40 degrees: not a candidate (viewing direction), nothing covered.
+  Pose turned = T;
+  turned.linear() = T.linear() * Eigen::AngleAxisd(40 * M_PI / 180, Eigen::Vector3d::UnitY());
+  EXPECT_EQ(coverage_of(turned, 2).fraction, 0.0);
+  // 0.8 m closer to the wall (2.5 m away at the centre): the kept keyframe sees the same
+  // surface from 1.5x as far, too coarse to stand for this view, though it lies in its image.
+  Pose closer = T;
+  closer.translation() += 0.8 * T.linear().col(2);
+  std::vector<ServerKeyframe*> only_kept = {kept};
+  ServerKeyframe* near = AddGeneratedKeyframe(&map, world, kAgent, 3, closer, closer, &rng);
+  EXPECT_LT(MeasureCoverage(*near, only_kept, CameraOf, options).fraction, 0.2);
+  // ... and it is too far from it to be a candidate at all.
+  EXPECT_TRUE(CoveringCandidates(map, *near, options).empty());
+}
+
+TEST(KeyframeCullingTest, CullKeepsPointsWhereTheyWereAndMovesLoopEdges) {
+  Rng rng(5);
+  const auto world = MakeRingWorld(2000, &rng);
+  ServerMap map(MapId(1));
+  std::vector<ServerKeyframe*> kfs;
+  for (int i = 0; i < 4; ++i) {
+    const Pose T = CirclePose(i, 120);
+    kfs.push_back(
+        AddGeneratedKeyframe(&map, world, kAgent, static_cast<std::uint32_t>(i), T, T, &rng));
+  }
+  ServerKeyframe* victim = kfs[1];
+  ServerKeyframe* leader = kfs[0];
+  // A loop edge from keyframe 3 to the victim, measured as their true relative pose.
+  map.AddLoopEdge({kfs[3]->id, victim->id, kfs[3]->T_map_cam.inverse() * victim->T_map_cam});
+  std::map<GlobalMapPointId, Eigen::Vector3d> before;
+  int anchored = 0;
+  for (const ServerMapPoint* p : victim->points) {
+    if (!p) continue;
+    before[p->id] = p->World();
+    anchored += p->anchor == victim;
+  }
+  ASSERT_GT(anchored, 0);  // points first seen by the victim (the ring turns into view)
+  map.Cull(victim, leader);
+  for (const auto& [id, world_before] : before) {
+    const ServerMapPoint* p = map.point(id);
+    ASSERT_NE(p, nullptr);  // all are still seen by a neighbour
+    EXPECT_NE(p->anchor, victim);
+    EXPECT_LT((p->World() - world_before).norm(), 1e-9);
+  }
+  ASSERT_EQ(map.loop_edges().size(), 1u);
+  const LoopEdge& edge = map.loop_edges()[0];
+  EXPECT_EQ(edge.b, leader->id);
+  EXPECT_LT(TranslationDistance(edge.T_a_b, kfs[3]->T_map_cam.inverse() * leader->T_map_cam), 1e-9);
+  // The victim follows its leader from now on.
+  Pose correction = Pose::Identity();
+  correction.translation() = Eigen::Vector3d(0.3, -0.1, 0.05);
+  correction.linear() = Eigen::AngleAxisd(0.1, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  const Pose victim_before = victim->T_map_cam;
+  const Pose leader_before = leader->T_map_cam;
+  leader->T_map_cam = correction * leader->T_map_cam;
+  std::vector<ServerKeyframe*> moved = {leader};
+  map.CarryFollowers(&moved);
+  ASSERT_EQ(moved.size(), 2u);
+  EXPECT_EQ(moved[1], victim);
+  EXPECT_LT(TranslationDistance(victim->T_map_cam,
+                                leader->T_map_cam * leader_before.inverse() * victim_before),
+            1e-9);
+}
+
+TEST(KeyframeCullingTest, AliasesOfRemovedPointsAreForgotten) {
+  // Points merged by loops leave aliases (the agent may still name the old id); once the
+  // merged point itself is removed with a culled keyframe, its aliases must go too, or they
+  // would pile up for as long as agents revisit places.
+  ServerMap map(MapId(1));
+  auto make = [&](std::uint32_t id) {
+    auto kf = std::make_unique<ServerKeyframe>();
+    kf->id = {kAgent, KeyframeId(id)};
+    return map.AddKeyframe(std::move(kf));
+  };
+  ServerKeyframe* leader = make(0);
+  ServerKeyframe* victim = make(1);
+  ServerKeyframe* other = make(2);
+  constexpr std::uint32_t kPoints = 3000;
+  for (std::uint32_t j = 0; j < kPoints; ++j) {
+    victim->AppendKeypoint({cv::Point2f(1, 1), 0, 1.0f}, Descriptor{});
+    other->AppendKeypoint({cv::Point2f(1, 1), 0, 1.0f}, Descriptor{});
+    ServerMapPoint* kept = map.AddPoint(std::make_unique<ServerMapPoint>(
+        GlobalMapPointId{kAgent, MapPointId(j)}, victim, Eigen::Vector3d(0, 0, 1), Descriptor{}));
+    map.AddObservation(kept, victim, static_cast<int>(j));
+    // A duplicate of it that a loop merged, seen by no one else after the merge.
+    ServerMapPoint* duplicate = map.AddPoint(
+        std::make_unique<ServerMapPoint>(GlobalMapPointId{kAgent, MapPointId(kPoints + j)}, other,
+                                         Eigen::Vector3d(0, 0, 1), Descriptor{}));
+    map.AddObservation(duplicate, other, static_cast<int>(j));
+    map.MergePoints(duplicate, kept);
+  }
+  ASSERT_EQ(map.num_merge_aliases(), kPoints);
+  ASSERT_EQ(map.point({kAgent, MapPointId(kPoints + 5)}), map.point({kAgent, MapPointId(5)}));
+  // `other` still sees every point after the merge: culling the victim removes none.
+  EXPECT_EQ(map.Cull(victim, leader), 0u);
+  EXPECT_EQ(map.num_merge_aliases(), kPoints);
+  EXPECT_NE(map.point({kAgent, MapPointId(kPoints + 5)}), nullptr);
+  // Culling `other` removes them all, and the aliases with them.
+  EXPECT_EQ(map.Cull(other, leader), kPoints);
+  EXPECT_EQ(map.num_points(), 0u);
+  EXPECT_EQ(map.num_merge_aliases(), 0u);
+}
+
+TEST(KeyframeCullingTest, PoseGraphAndGlobalBaCarryCulledKeyframes) {
+  ServerMap map = TwoLaps(24, 13);
+  KeyframeCullingOptions options;
+  options.keep_recent = 5;
+  ASSERT_GT(CullInOrder(&map, options).culled, 5u);
+  std::map<GlobalKeyframeId, Pose> relative;  // culled keyframes in their leader's frame
+  for (const auto& [id, kf] : map.keyframes()) {
+    if (kf->culled()) relative[id] = kf->follows->T_map_cam.inverse() * kf->T_map_cam;
+  }
+  // A loop edge that disagrees with the map by 10 cm bends it.
+  const ServerKeyframe* last = map.keyframes().rbegin()->second.get();
+  const ServerKeyframe* first = map.keyframes().begin()->second.get();
+  Pose T_first_last = first->T_map_cam.inverse() * last->T_map_cam;
+  T_first_last.translation() += Eigen::Vector3d(0.1, 0, 0);
+  map.AddLoopEdge({first->id, last->id, T_first_last});
+  auto moved = OptimizeMapPoseGraph(&map);
+  ASSERT_TRUE(moved.ok());
+  int culled_moved = 0;
+  for (const ServerKeyframe* kf : *moved) culled_moved += kf->culled();
+  EXPECT_GT(culled_moved, 0);
+  for (const auto& [id, kf] : map.keyframes()) {
+    if (!kf->culled()) continue;
+    EXPECT_LT(TranslationDistance(kf->T_map_cam, kf->follows->T_map_cam * relative.at(id)), 1e-9);
+    EXPECT_LT(RotationDistance(kf->T_map_cam, kf->follows->T_map_cam * relative.at(id)), 1e-9);
+  }
+  const std::map<AgentId, PinholeCamera> cameras = {{kAgent, TestCamera()}};
+  const GlobalBaProblem problem = BuildGlobalBa(map, cameras, DepthNoise());
+  for (const GlobalKeyframeId& id : problem.keyframes) EXPECT_FALSE(map.keyframe(id)->culled());
+}
+
+}  // namespace
+}  // namespace ccmd
