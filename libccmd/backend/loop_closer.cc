@@ -2,11 +2,41 @@
 
 #include <algorithm>
 #include <cmath>
+#include <set>
+#include <unordered_set>
+
+#include <Eigen/SVD>
 
 #include "libccmd/util/logging.h"
 #include "libccmd/util/timer.h"
 
 namespace ccmd {
+
+Status SeamOptions::Validate() const {
+  if (keyframes < 1) return InvalidArgument("seam keyframes must be >= 1");
+  for (const double v : {search_radius_px, merge_radius_px, search_depth_m, merge_depth_m,
+                         max_correction_m, max_correction_deg}) {
+    if (!(v > 0) || !std::isfinite(v))
+      return InvalidArgument("seam radii, depth tolerances and corrections must be positive");
+  }
+  if (max_hamming < 1 || max_hamming > 256)
+    return InvalidArgument("seam max Hamming distance must be 1..256");
+  if (min_pairs < 3) return InvalidArgument("seam refinement needs at least 3 pairs");
+  return Status::Ok();
+}
+
+void SeamOptions::Describe(OptionsWriter* out) const {
+  out->Add("enabled", enabled);
+  out->Add("keyframes", keyframes);
+  out->Add("search_radius_px", search_radius_px);
+  out->Add("merge_radius_px", merge_radius_px);
+  out->Add("search_depth_m", search_depth_m);
+  out->Add("merge_depth_m", merge_depth_m);
+  out->Add("max_hamming", max_hamming);
+  out->Add("min_pairs", min_pairs);
+  out->Add("max_correction_m", max_correction_m);
+  out->Add("max_correction_deg", max_correction_deg);
+}
 
 Status LoopCloserOptions::Validate() const {
   if (loop_candidates < 1) return InvalidArgument("loop candidates must be >= 1");
@@ -23,11 +53,13 @@ Status LoopCloserOptions::Validate() const {
     return InvalidArgument("the smallest loop correction must be >= 0");
   }
   CCMD_RETURN_IF_ERROR(verification.Validate());
+  CCMD_RETURN_IF_ERROR(seam.Validate());
   return pose_graph.Validate();
 }
 
 void LoopCloserOptions::Describe(OptionsWriter* out) const {
   out->Nested("verification", verification);
+  out->Nested("seam", seam);
   out->Add("loop_candidates", loop_candidates);
   out->Add("loop_consistency", loop_consistency);
   out->Add("consistency_translation", consistency_translation);
@@ -126,8 +158,326 @@ bool LoopAlreadyClosed(const LoopMatch& match, const LoopCloserOptions& options)
              options.min_correction_deg * M_PI / 180;
 }
 
+std::vector<SeamMatch> SearchSeam(const ServerMap& map,
+                                  const std::vector<ServerKeyframe*>& keyframes,
+                                  const PinholeCamera& camera,
+                                  const std::vector<GlobalMapPointId>& points, double radius_px,
+                                  double depth_m, int max_hamming, const DepthNoise& depth_noise) {
+  constexpr double kCell = 16;  // pixels per grid cell
+  const int columns = static_cast<int>(std::ceil(camera.width / kCell)) + 1,
+            rows = static_cast<int>(std::ceil(camera.height / kCell)) + 1;
+  std::vector<SeamMatch> result;
+  for (ServerKeyframe* kf : keyframes) {
+    std::vector<std::vector<int>> grid(static_cast<std::size_t>(columns * rows));
+    const auto cell = [&](double u, double v) {
+      const int c = std::clamp(static_cast<int>(u / kCell), 0, columns - 1),
+                r = std::clamp(static_cast<int>(v / kCell), 0, rows - 1);
+      return static_cast<std::size_t>(r * columns + c);
+    };
+    for (std::size_t i = 0; i < kf->keypoints.size(); ++i)
+      grid[cell(kf->keypoints[i].pt.x, kf->keypoints[i].pt.y)].push_back(static_cast<int>(i));
+    // Per keypoint: (distance, point).
+    std::map<int, std::pair<int, GlobalMapPointId>> best;
+    const Pose T_cam_map = kf->T_map_cam.inverse();
+    const double max_radius = radius_px * std::pow(1.2, 7);
+    for (const GlobalMapPointId& id : points) {
+      const ServerMapPoint* p = map.point(id);
+      if (!p) continue;
+      const bool observed =
+          std::any_of(p->observations.begin(), p->observations.end(),
+                      [&](const ServerMapPoint::Observation& o) { return o.keyframe == kf; });
+      if (observed) continue;
+      const Eigen::Vector3d pc = T_cam_map * p->World();
+      if (pc.z() < 0.1) continue;
+      const Eigen::Vector2d uv = camera.Project(pc);
+      if (!camera.InImage(uv)) continue;
+      const int c0 = std::max(0, static_cast<int>((uv.x() - max_radius) / kCell)),
+                c1 = std::min(columns - 1, static_cast<int>((uv.x() + max_radius) / kCell)),
+                r0 = std::max(0, static_cast<int>((uv.y() - max_radius) / kCell)),
+                r1 = std::min(rows - 1, static_cast<int>((uv.y() + max_radius) / kCell));
+      int best_distance = max_hamming + 1, best_keypoint = -1;
+      for (int r = r0; r <= r1; ++r) {
+        for (int c = c0; c <= c1; ++c) {
+          for (const int i : grid[static_cast<std::size_t>(r * columns + c)]) {
+            const ServerKeypoint& kp = kf->keypoints[i];
+            const double radius = radius_px * std::pow(1.2, kp.octave);
+            if ((Eigen::Vector2d(kp.pt.x, kp.pt.y) - uv).squaredNorm() > radius * radius) continue;
+            if (kp.depth > 0 &&
+                std::abs(kp.depth - pc.z()) > depth_m + 3 * depth_noise.Sigma(pc.z())) {
+              continue;
+            }
+            const int d = HammingDistance(p->descriptor, kf->descriptor(i));
+            if (d < best_distance) {
+              best_distance = d;
+              best_keypoint = i;
+            }
+          }
+        }
+      }
+      if (best_keypoint < 0) continue;
+      const auto known = best.find(best_keypoint);
+      if (known == best.end() || best_distance < known->second.first)
+        best[best_keypoint] = {best_distance, p->id};
+    }
+    for (const auto& [keypoint, entry] : best) result.push_back({kf, keypoint, entry.second});
+  }
+  return result;
+}
+
+std::optional<Pose> AlignSeam(const ServerMap& map, const std::vector<SeamMatch>& matches,
+                              const PinholeCamera& camera, const DepthNoise& depth_noise,
+                              int min_pairs, int* inliers) {
+  if (inliers) *inliers = 0;
+  // A pair: the keypoint's back-projection and its matched point, with the back-projection's
+  // sigmas: along the ray the depth model's, across it the pixel sigma (1.2 to the octave)
+  // times the depth. The server's depth model need not be the sensor's (the handshake does
+  // not carry it): both sigmas are rescaled in every round by the residuals' robust scales
+  // along and across the rays, so a sensor better or worse than the model is weighed as it is.
+  struct Pair {
+    Eigen::Vector3d query, candidate, ray;
+    double along, across;
+  };
+  std::vector<Pair> pairs;
+  const double focal = std::sqrt(std::abs(camera.fx * camera.fy));
+  for (const SeamMatch& m : matches) {
+    const ServerMapPoint* candidate = map.point(m.point);
+    const ServerKeypoint& kp = m.keyframe->keypoints[m.keypoint];
+    if (!candidate || !(kp.depth > 0)) continue;
+    const Eigen::Vector3d query =
+        m.keyframe->T_map_cam * camera.BackProject(kp.pt.x, kp.pt.y, kp.depth);
+    const Eigen::Vector3d ray = (query - m.keyframe->T_map_cam.translation()).normalized();
+    pairs.push_back({query, candidate->World(), ray, depth_noise.Sigma(kp.depth),
+                     kp.depth * std::pow(1.2, kp.octave) / focal});
+  }
+  if (static_cast<int>(pairs.size()) < min_pairs) return std::nullopt;
+  std::vector<char> inlier(pairs.size(), 1);
+  // Start: the closed-form fit (Horn / Umeyama without scale), every pair alike.
+  Pose D = Pose::Identity();
+  {
+    Eigen::Vector3d mq = Eigen::Vector3d::Zero(), mc = Eigen::Vector3d::Zero();
+    for (const Pair& pair : pairs) {
+      mq += pair.query;
+      mc += pair.candidate;
+    }
+    mq /= static_cast<double>(pairs.size());
+    mc /= static_cast<double>(pairs.size());
+    Eigen::Matrix3d H = Eigen::Matrix3d::Zero();
+    for (const Pair& pair : pairs) H += (pair.query - mq) * (pair.candidate - mc).transpose();
+    const Eigen::JacobiSVD<Eigen::Matrix3d> svd(H, Eigen::ComputeFullU | Eigen::ComputeFullV);
+    Eigen::Matrix3d S = Eigen::Matrix3d::Identity();
+    if ((svd.matrixV() * svd.matrixU().transpose()).determinant() < 0) S(2, 2) = -1;
+    D.linear() = svd.matrixV() * S * svd.matrixU().transpose();
+    D.translation() = mc - D.linear() * mq;
+  }
+  const auto median = [](std::vector<double> v) {
+    std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+    return v[v.size() / 2];
+  };
+  std::vector<Eigen::Matrix3d> information(pairs.size());
+  for (int round = 0; round < 4; ++round) {
+    // The residuals' robust scales along and across the rays (in model sigmas), on the
+    // current inliers, rescale the model; a sensor's 2D spread across the ray has a median
+    // norm of 1.18 sigmas.
+    std::vector<double> along, across;
+    for (std::size_t k = 0; k < pairs.size(); ++k) {
+      if (!inlier[k]) continue;
+      const Eigen::Vector3d e = D * pairs[k].query - pairs[k].candidate;
+      const double a = pairs[k].ray.dot(e);
+      along.push_back(std::abs(a) / pairs[k].along);
+      across.push_back((e - a * pairs[k].ray).norm() / pairs[k].across);
+    }
+    if (along.empty()) return std::nullopt;
+    const double scale_along = std::clamp(1.4826 * median(along), 0.02, 50.0),
+                 scale_across = std::clamp(median(across) / 1.1774, 0.02, 50.0);
+    // Residuals in (rescaled) sigmas; beyond 3 robust scales (and at least 3 sigmas):
+    // outliers. The first round judges the closed-form start.
+    std::vector<double> distance(pairs.size()), kept;
+    for (std::size_t k = 0; k < pairs.size(); ++k) {
+      const Pair& pair = pairs[k];
+      const double sa = pair.along * scale_along, sc = pair.across * scale_across;
+      const Eigen::Matrix3d along_ray = pair.ray * pair.ray.transpose();
+      information[k] =
+          (Eigen::Matrix3d::Identity() - along_ray) / (sc * sc) + along_ray / (sa * sa);
+      const Eigen::Vector3d e = D * pair.query - pair.candidate;
+      distance[k] = std::sqrt(e.dot(information[k] * e));
+      if (inlier[k]) kept.push_back(distance[k]);
+    }
+    const double threshold = 3 * std::max(1.4826 * median(kept), 1.0);
+    for (std::size_t k = 0; k < pairs.size(); ++k) inlier[k] = distance[k] <= threshold;
+    // Gauss-Newton on D = exp(delta) * D over the inliers.
+    for (int iteration = 0; iteration < 5; ++iteration) {
+      Eigen::Matrix<double, 6, 6> H = Eigen::Matrix<double, 6, 6>::Zero();
+      Eigen::Matrix<double, 6, 1> g = Eigen::Matrix<double, 6, 1>::Zero();
+      for (std::size_t k = 0; k < pairs.size(); ++k) {
+        if (!inlier[k]) continue;
+        const Eigen::Vector3d p = D * pairs[k].query;
+        const Eigen::Vector3d e = p - pairs[k].candidate;
+        Eigen::Matrix<double, 3, 6> J;
+        J.leftCols<3>() << 0, p.z(), -p.y(), -p.z(), 0, p.x(), p.y(), -p.x(), 0;  // -[p]x
+        J.rightCols<3>() = Eigen::Matrix3d::Identity();
+        H += J.transpose() * information[k] * J;
+        g += J.transpose() * information[k] * e;
+      }
+      const Eigen::Matrix<double, 6, 1> delta = H.ldlt().solve(-g);
+      if (!delta.allFinite()) return std::nullopt;
+      Pose step = Pose::Identity();
+      const double angle = delta.head<3>().norm();
+      if (angle > 0)
+        step.linear() = Eigen::AngleAxisd(angle, delta.head<3>() / angle).toRotationMatrix();
+      step.translation() = delta.tail<3>();
+      D = Orthonormalized(step * D);
+      if (delta.norm() < 1e-9) break;
+    }
+  }
+  const int count = static_cast<int>(std::count(inlier.begin(), inlier.end(), 1));
+  if (inliers) *inliers = count;
+  if (count < min_pairs) return std::nullopt;
+  return D;
+}
+
+namespace {
+
+// The two sides of a loop's seam: the candidate side's keyframes and their map points, and the
+// query side's keyframes (the query and its strongest covisible neighbours of its agent).
+struct SeamSides {
+  std::unordered_set<const ServerKeyframe*> candidate_side;
+  std::vector<GlobalMapPointId> points;
+  std::vector<ServerKeyframe*> query_keyframes;
+};
+
+SeamSides MakeSeamSides(const ServerMap& map, const LoopMatch& match,
+                        const std::vector<ServerKeyframe*>& candidate_keyframes,
+                        const SeamOptions& seam) {
+  SeamSides sides;
+  sides.candidate_side.insert(candidate_keyframes.begin(), candidate_keyframes.end());
+  std::unordered_set<const ServerMapPoint*> seen;
+  for (const ServerKeyframe* kf : candidate_keyframes) {
+    for (const ServerMapPoint* p : kf->points) {
+      if (p && seen.insert(p).second) sides.points.push_back(p->id);
+    }
+  }
+  ServerKeyframe* query = match.query;
+  sides.query_keyframes = {query};
+  std::vector<std::pair<GlobalKeyframeId, int>> neighbours(query->covisibility.begin(),
+                                                           query->covisibility.end());
+  std::sort(neighbours.begin(), neighbours.end(), [](const auto& a, const auto& b) {
+    return a.second != b.second ? a.second > b.second : a.first < b.first;
+  });
+  for (const auto& [id, weight] : neighbours) {
+    if (static_cast<int>(sides.query_keyframes.size()) >= seam.keyframes) break;
+    ServerKeyframe* kf = map.keyframe(id);
+    if (kf && kf->id.agent == query->id.agent && !sides.candidate_side.count(kf))
+      sides.query_keyframes.push_back(kf);
+  }
+  return sides;
+}
+
+// The sides of a loop inside one map: the candidate's window without the query's covisible
+// keyframes (places the query's side already shares points with).
+SeamSides MakeLoopSeamSides(const ServerMap& map, const LoopMatch& match,
+                            const LoopCloserOptions& options) {
+  std::vector<ServerKeyframe*> window =
+      LoopWindowKeyframes(match.query, match.candidate, map, options.verification.window_keyframes);
+  window.erase(std::remove_if(window.begin(), window.end(),
+                              [&](const ServerKeyframe* kf) {
+                                return kf != match.candidate &&
+                                       match.query->covisibility.count(kf->id) > 0;
+                              }),
+               window.end());
+  return MakeSeamSides(map, match, window, options.seam);
+}
+
+// The seam searched tightly from the current poses: matches merged (or observations added),
+// and the query side's keyframes covisible with the candidate side's. Returns how many.
+int TieSeam(ServerMap* map, const SeamSides& sides, const PinholeCamera& camera,
+            const LoopCloserOptions& options) {
+  const SeamOptions& seam = options.seam;
+  const std::vector<SeamMatch> ties =
+      SearchSeam(*map, sides.query_keyframes, camera, sides.points, seam.merge_radius_px,
+                 seam.merge_depth_m, seam.max_hamming, options.verification.depth_noise);
+  int merged = 0;
+  for (const SeamMatch& m : ties) {
+    ServerMapPoint* point = map->point(m.point);
+    ServerMapPoint* own = m.keyframe->points[m.keypoint];
+    if (!point || own == point) continue;
+    if (own) {
+      map->MergePoints(own, point);
+    } else {
+      map->AddObservation(point, m.keyframe, m.keypoint);
+    }
+    ++merged;
+  }
+  for (ServerKeyframe* kf : sides.query_keyframes) {
+    std::map<ServerKeyframe*, int> shared;
+    for (const ServerMapPoint* p : kf->points) {
+      if (!p) continue;
+      for (const auto& o : p->observations) {
+        if (sides.candidate_side.count(o.keyframe)) shared[o.keyframe]++;
+      }
+    }
+    for (const auto& [other, weight] : shared) map->AddCovisibility(kf, other, weight);
+  }
+  return merged;
+}
+
+// The seam searched from the verified poses and the transform fitted to its depth pairs.
+std::optional<Pose> FitSeam(const ServerMap& map, const SeamSides& sides,
+                            const PinholeCamera& camera, const LoopCloserOptions& options,
+                            SeamJoin* join) {
+  const SeamOptions& seam = options.seam;
+  const DepthNoise& noise = options.verification.depth_noise;
+  const std::vector<SeamMatch> found =
+      SearchSeam(map, sides.query_keyframes, camera, sides.points, seam.search_radius_px,
+                 seam.search_depth_m, seam.max_hamming, noise);
+  join->searched = static_cast<int>(found.size());
+  return AlignSeam(map, found, camera, noise, seam.min_pairs, &join->pair_inliers);
+}
+
+bool SmallCorrection(const Pose& a, const Pose& b, const SeamOptions& seam) {
+  return TranslationDistance(a, b) < seam.max_correction_m &&
+         RotationDistance(a, b) < seam.max_correction_deg * M_PI / 180;
+}
+
+}  // namespace
+
+SeamJoin JoinSeam(ServerMap* fused, const LoopMatch& match, const PinholeCamera& query_camera,
+                  const std::vector<ServerKeyframe*>& moved, const LoopCloserOptions& options) {
+  SeamJoin join;
+  // The candidate side: the keyframes of the candidate's map before the fusion.
+  const std::unordered_set<const ServerKeyframe*> moved_set(moved.begin(), moved.end());
+  const bool query_moved = moved_set.count(match.query) > 0;
+  std::unordered_set<const ServerKeyframe*> candidate_map;
+  for (const auto& [id, kf] : fused->keyframes()) {
+    if ((moved_set.count(kf.get()) > 0) != query_moved) candidate_map.insert(kf.get());
+  }
+  std::vector<ServerKeyframe*> window = LoopWindowKeyframes(match.query, match.candidate, *fused,
+                                                            options.verification.window_keyframes);
+  window.erase(std::remove_if(window.begin(), window.end(),
+                              [&](const ServerKeyframe* kf) { return !candidate_map.count(kf); }),
+               window.end());
+  SeamSides sides = MakeSeamSides(*fused, match, window, options.seam);
+  sides.candidate_side = candidate_map;
+
+  if (const std::optional<Pose> D = FitSeam(*fused, sides, query_camera, options, &join)) {
+    const Eigen::Vector3d centre = match.query->T_map_cam.translation();
+    join.shift_m = (*D * centre - centre).norm();
+    if (SmallCorrection(Pose::Identity(), *D, options.seam)) {
+      const Pose correction = query_moved ? *D : D->inverse();
+      for (ServerKeyframe* kf : moved) kf->T_map_cam = Orthonormalized(correction * kf->T_map_cam);
+      join.corrected = true;
+      join.correction = *D;
+    }
+  }
+  // The loop's own matches first (they were verified), then the seam's, searched again from
+  // the refined poses.
+  MergeLoopMatches(fused, match);
+  join.merged = TieSeam(fused, sides, query_camera, options);
+  return join;
+}
+
 MapFusion FuseMapsByLoop(MapManager* maps, MapManager::Guard* query_map,
-                         MapManager::Guard* candidate_map, const LoopMatch& match) {
+                         MapManager::Guard* candidate_map, const LoopMatch& match,
+                         const LoopCloserOptions* options, const PinholeCamera* query_camera) {
   const Pose T_cmap_qmap = match.T_candidate_map_query * match.query->T_map_cam.inverse();
   const auto primary = maps->primary();
   const MapId old_query = (*query_map)->id(), old_candidate = (*candidate_map)->id();
@@ -144,10 +494,14 @@ MapFusion FuseMapsByLoop(MapManager* maps, MapManager::Guard* query_map,
   fusion.map = keep_query ? maps->Fuse(query_map, candidate_map, T_cmap_qmap.inverse())
                           : maps->Fuse(candidate_map, query_map, T_cmap_qmap);
   ServerMap* fused = fusion.map.get();
+  if (options && query_camera && options->seam.enabled) {
+    fusion.seam = JoinSeam(fused, match, *query_camera, fusion.moved, *options);
+  } else {
+    MergeLoopMatches(fused, match);
+  }
   // Both keyframes are in one frame now: the loop edge is their current relative pose.
   fused->AddLoopEdge({match.candidate->id, match.query->id,
                       match.candidate->T_map_cam.inverse() * match.query->T_map_cam});
-  MergeLoopMatches(fused, match);
   return fusion;
 }
 
@@ -241,12 +595,12 @@ LoopCloser::Outcome LoopCloser::TryCandidate(const GlobalKeyframeId& id,
                  << cand->id.keyframe.value() << " (" << match->inliers << " inliers, " << count
                  << "/" << options_.loop_consistency << " consistent)";
   if (!accepted) return Outcome::kDone;
-  *closure = Correct(&query_guard, same_map ? nullptr : &candidate_guard, *match);
+  *closure = Correct(&query_guard, same_map ? nullptr : &candidate_guard, *match, camera);
   return Outcome::kClosed;
 }
 
 LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guard* candidate_guard,
-                                const LoopMatch& match) {
+                                const LoopMatch& match, const PinholeCamera& camera) {
   LoopClosure closure;
   LoopEvent& event = closure.event;
   event.server_time = MonotonicSeconds() - start_time_;
@@ -254,17 +608,47 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
   event.candidate = match.candidate->id;
   event.inliers = match.inliers;
   event.T_candidate_query = match.candidate->T_map_cam.inverse() * match.T_candidate_map_query;
-  if (!candidate_guard && LoopAlreadyClosed(match, options_)) {
-    event.already_closed = true;
-    (*query_guard)->AddLoopEdge({match.candidate->id, match.query->id, event.T_candidate_query});
-    MergeLoopMatches(query_guard->get(), match);
-    closure.map = std::move(*query_guard);
-  } else if (!candidate_guard) {
-    closure.moved = CloseLoopInMap(query_guard->get(), match, options_.pose_graph);
+  if (!candidate_guard) {
+    ServerMap* map = query_guard->get();
+    // The verified pose of the query refined on the seam around the loop, as for a fusion.
+    LoopMatch refined = match;
+    SeamSides sides;
+    if (options_.seam.enabled) {
+      sides = MakeLoopSeamSides(*map, match, options_);
+      SeamJoin join;
+      if (const std::optional<Pose> D = FitSeam(*map, sides, camera, options_, &join)) {
+        const Pose T = Orthonormalized(*D * match.query->T_map_cam);
+        if (SmallCorrection(T, match.T_candidate_map_query, options_.seam)) {
+          refined.T_candidate_map_query = T;
+          event.T_candidate_query = match.candidate->T_map_cam.inverse() * T;
+        }
+      }
+      CCMD_LOG(INFO) << "loop seam: " << join.searched << " matches, " << join.pair_inliers
+                     << " depth pairs agree; verified pose moved by "
+                     << 1000 * TranslationDistance(refined.T_candidate_map_query,
+                                                   match.T_candidate_map_query)
+                     << " mm";
+    }
+    if (LoopAlreadyClosed(refined, options_)) {
+      event.already_closed = true;
+      map->AddLoopEdge({match.candidate->id, match.query->id, event.T_candidate_query});
+      MergeLoopMatches(map, refined);
+    } else {
+      closure.moved = CloseLoopInMap(map, refined, options_.pose_graph);
+    }
+    if (options_.seam.enabled) TieSeam(map, sides, camera, options_);
     closure.map = std::move(*query_guard);
   } else {
-    MapFusion fusion = FuseMapsByLoop(maps_, query_guard, candidate_guard, match);
+    MapFusion fusion =
+        FuseMapsByLoop(maps_, query_guard, candidate_guard, match, &options_, &camera);
     event.fusion = true;
+    const SeamJoin& seam = fusion.seam;
+    CCMD_LOG(INFO) << "fusion seam: " << seam.searched << " matches, " << seam.pair_inliers
+                   << " depth pairs agree; transform "
+                   << (seam.corrected ? "refined" : "kept (no trusted refinement)")
+                   << ": query moved " << 1000 * seam.shift_m << " mm, "
+                   << RotationDistance(Pose::Identity(), seam.correction) * 180 / M_PI << " deg; "
+                   << seam.merged << " points tied";
     closure.map = std::move(fusion.map);
     closure.moved = std::move(fusion.moved);
     closure.joined_primary = std::move(fusion.joined_primary);

@@ -8,8 +8,9 @@
 //      verified one counts towards LoopConsistency, which accepts a loop once consecutive
 //      keyframes of the agent agree on the transform between the two maps;
 //   3. correction: inside one map a loop edge, the matched points merged and a pose graph
-//      (CloseLoopInMap); between two maps their fusion (FuseMapsByLoop). Both report the
-//      keyframes they moved or brought into the primary map, for the dense map.
+//      (CloseLoopInMap); between two maps their fusion (FuseMapsByLoop), whose seam is then
+//      refined and tied (JoinSeam). Both report the keyframes they moved or brought into the
+//      primary map, for the dense map.
 // Each step is usable on its own (tests, the back-end bench); LoopCloser runs them in order.
 // One thread calls a LoopCloser; maps are checked out from the MapManager as they are needed.
 
@@ -28,8 +29,30 @@
 
 namespace ccmd {
 
+// How a fusion's seam is refined and tied (JoinSeam). The verified loop measures the query's
+// pose from one keyframe's matches; the candidate side's map points, projected into the query
+// side's keyframes around the loop, find many more, whose depths fix the transform between the
+// maps better, and which, merged, tie both sides in the global BA that follows.
+struct SeamOptions {
+  bool enabled = true;
+  int keyframes = 10;            // query-side keyframes searched: the query and its neighbours
+  double search_radius_px = 10;  // before the refinement (at octave 0; grows with the octave)
+  double merge_radius_px = 4;    // after it
+  double search_depth_m = 0.05;  // |keypoint depth - projected depth| accepted before
+  double merge_depth_m = 0.02;   // ... and after the refinement (plus 3 depth sigmas)
+  int max_hamming = 50;
+  int min_pairs = 20;  // 3D pairs (depth on the query side) needed to refine the transform
+  // A refinement larger than this is not trusted (the verified loop was wrong, or the matches).
+  double max_correction_m = 0.05;
+  double max_correction_deg = 2.0;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
+};
+
 struct LoopCloserOptions {
   LoopVerificationOptions verification;
+  SeamOptions seam;
   int loop_candidates = 4;                // verified per query, best score first
   int loop_consistency = 2;               // consecutive confirming keyframes needed
   double consistency_translation = 0.05;  // metres between confirming map-to-map transforms
@@ -119,19 +142,65 @@ std::vector<ServerKeyframe*> CloseLoopInMap(ServerMap* map, const LoopMatch& mat
 // Whether a verified loop inside a map is already closed (see min_correction_m).
 bool LoopAlreadyClosed(const LoopMatch& match, const LoopCloserOptions& options);
 
+// A candidate-side map point found in a query-side keyframe (JoinSeam).
+struct SeamMatch {
+  ServerKeyframe* keyframe = nullptr;
+  int keypoint = -1;
+  GlobalMapPointId point;  // resolved through the map (it may be merged meanwhile)
+};
+// The points `points` projected into each of `keyframes` (all seen through `camera`, all in
+// `map`'s frame): per keypoint the point of the smallest descriptor distance within
+// `radius_px` (times 1.2 to the keypoint's octave), at most `max_hamming`, whose projected
+// depth is within `depth_m` plus 3 sigmas of the keypoint's (keypoints without depth: within
+// the radius only). Points a keyframe already observes are skipped.
+std::vector<SeamMatch> SearchSeam(const ServerMap& map,
+                                  const std::vector<ServerKeyframe*>& keyframes,
+                                  const PinholeCamera& camera,
+                                  const std::vector<GlobalMapPointId>& points, double radius_px,
+                                  double depth_m, int max_hamming, const DepthNoise& depth_noise);
+// The rigid transform D, in the map's frame, that moves the query side onto the candidate side
+// (candidate point ~ D * query-side position) fitted to the matches with depth: the query-side
+// position is the keypoint's measured depth back-projected. Weighted by the depth noise, outliers
+// dropped in rounds. Empty with fewer than `min_pairs` pairs; `inliers` receives how many agreed.
+std::optional<Pose> AlignSeam(const ServerMap& map, const std::vector<SeamMatch>& matches,
+                              const PinholeCamera& camera, const DepthNoise& depth_noise,
+                              int min_pairs, int* inliers = nullptr);
+
+// What JoinSeam did (for the log and tests).
+struct SeamJoin {
+  int searched = 0;      // matches found before the refinement
+  int pair_inliers = 0;  // 3D pairs that agreed with the refinement
+  bool corrected = false;
+  Pose correction = Pose::Identity();  // D (AlignSeam): the query side onto the candidate side
+  double shift_m = 0;  // how far the query's camera moved relative to the other side
+  int merged = 0;      // points merged or observations added after it
+};
+// Step 3 after a fusion, before the loop's own matches are merged: the candidate's window
+// points (LoopVerificationOptions::window_keyframes) are searched in the query's keyframe and
+// its strongest covisible neighbours of the same agent (SeamOptions::keyframes); the transform
+// is refined on them (AlignSeam) and applied to the keyframes in `moved` (the side that
+// entered the other's frame); then they are searched again, tighter, and merged, and the
+// keyframes become covisible with the candidate side.
+SeamJoin JoinSeam(ServerMap* fused, const LoopMatch& match, const PinholeCamera& query_camera,
+                  const std::vector<ServerKeyframe*>& moved, const LoopCloserOptions& options);
+
 // What a fusion changed, beyond the fused map itself.
 struct MapFusion {
   MapManager::Guard map;                        // the fused map, still checked out
   std::vector<ServerKeyframe*> moved;           // keyframes that entered the other map's frame
   std::vector<ServerKeyframe*> joined_primary;  // keyframes that entered the primary map
   std::optional<MapId> primary_before;          // the primary map, if it took part
+  SeamJoin seam;
 };
 
 // Step 3 between two maps: they are fused into a new map in the primary map's frame if one of
-// them is primary, else in the candidate's; the loop becomes a loop edge and the matches are
-// merged. The guards become empty; the result holds the fused map.
+// them is primary, else in the candidate's; with `options`, the seam is refined and tied
+// (JoinSeam, through the query's `query_camera`); the loop becomes a loop edge and the matches
+// are merged. The guards become empty; the result holds the fused map.
 MapFusion FuseMapsByLoop(MapManager* maps, MapManager::Guard* query_map,
-                         MapManager::Guard* candidate_map, const LoopMatch& match);
+                         MapManager::Guard* candidate_map, const LoopMatch& match,
+                         const LoopCloserOptions* options = nullptr,
+                         const PinholeCamera* query_camera = nullptr);
 
 // A loop the LoopCloser accepted and corrected.
 struct LoopClosure {
@@ -175,7 +244,7 @@ class LoopCloser {
                        const PlaceHit& candidate, MapId query_map,
                        std::optional<LoopClosure>* closure);
   LoopClosure Correct(MapManager::Guard* query_guard, MapManager::Guard* candidate_guard,
-                      const LoopMatch& match);
+                      const LoopMatch& match, const PinholeCamera& camera);
 
   const LoopCloserOptions options_;
   PlaceIndex place_;

@@ -68,11 +68,10 @@ std::vector<PlaceHit> QueryLoopCandidates(const PlaceIndex& place,
   return hits;
 }
 
-namespace {
-
-// The map points of the candidate and of its strongest covisible neighbours, each once.
-std::vector<ServerMapPoint*> WindowPoints(const ServerKeyframe* query, ServerKeyframe* candidate,
-                                          const ServerMap& candidate_map, int window_keyframes) {
+std::vector<ServerKeyframe*> LoopWindowKeyframes(const ServerKeyframe* query,
+                                                 ServerKeyframe* candidate,
+                                                 const ServerMap& candidate_map,
+                                                 int window_keyframes) {
   std::vector<ServerKeyframe*> window = {candidate};
   std::vector<std::pair<GlobalKeyframeId, int>> neighbours(candidate->covisibility.begin(),
                                                            candidate->covisibility.end());
@@ -83,6 +82,15 @@ std::vector<ServerMapPoint*> WindowPoints(const ServerKeyframe* query, ServerKey
     if (static_cast<int>(window.size()) > window_keyframes) break;
     if (ServerKeyframe* kf = candidate_map.keyframe(id); kf && kf != query) window.push_back(kf);
   }
+  return window;
+}
+
+std::vector<ServerMapPoint*> LoopWindowPoints(const ServerKeyframe* query,
+                                              ServerKeyframe* candidate,
+                                              const ServerMap& candidate_map,
+                                              int window_keyframes) {
+  const std::vector<ServerKeyframe*> window =
+      LoopWindowKeyframes(query, candidate, candidate_map, window_keyframes);
   std::vector<ServerMapPoint*> points;
   std::unordered_set<const ServerMapPoint*> seen;
   for (ServerKeyframe* kf : window) {
@@ -92,6 +100,8 @@ std::vector<ServerMapPoint*> WindowPoints(const ServerKeyframe* query, ServerKey
   }
   return points;
 }
+
+namespace {
 
 // Each query keypoint to its best map point (ratio test), one keypoint per point: the index
 // into `points` per keypoint, -1 for none.
@@ -156,7 +166,7 @@ std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& 
                                     ServerKeyframe* candidate, const ServerMap& candidate_map,
                                     const LoopVerificationOptions& options) {
   const std::vector<ServerMapPoint*> points =
-      WindowPoints(query, candidate, candidate_map, options.window_keyframes);
+      LoopWindowPoints(query, candidate, candidate_map, options.window_keyframes);
   if (static_cast<int>(points.size()) < options.min_matches) return std::nullopt;
   const std::vector<int> point_of = MatchKeypoints(*query, points, options);
   std::vector<cv::Point3f> object;

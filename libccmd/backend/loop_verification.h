@@ -57,6 +57,16 @@ struct LoopMatch {
   std::vector<std::pair<int, ServerMapPoint*>> matches;
 };
 
+// The candidate and its strongest covisible neighbours (at most `window_keyframes` besides it,
+// never the query), and their map points, each once: what a query is matched against.
+std::vector<ServerKeyframe*> LoopWindowKeyframes(const ServerKeyframe* query,
+                                                 ServerKeyframe* candidate,
+                                                 const ServerMap& candidate_map,
+                                                 int window_keyframes);
+std::vector<ServerMapPoint*> LoopWindowPoints(const ServerKeyframe* query,
+                                              ServerKeyframe* candidate,
+                                              const ServerMap& candidate_map, int window_keyframes);
+
 // `query_camera`: intrinsics of the query keyframe's agent. Both keyframes may be in the same
 // map or in different ones (`candidate_map` is the candidate's).
 std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& query_camera,

@@ -161,13 +161,18 @@ std::size_t ServerMap::Cull(ServerKeyframe* kf, ServerKeyframe* follow) {
   std::vector<std::pair<std::uint32_t, Descriptor>>().swap(kf->own_descriptors);
   std::vector<ServerKeyframe::DepthLink>().swap(kf->depth_links);
   kf->covisibility.clear();
+  // Coded RGB-D still waiting for its map to join the primary map goes when the leader has
+  // its own: the leader's view covers this one, and a map that never fuses must not hold
+  // every culled keyframe's images.
+  if (kf->rgbd && (follow->rgbd || follow->in_dense)) kf->rgbd.reset();
   kf->follows = follow;
   kf->T_follows_this = T_follow_kf;
   follow->followers.push_back(kf);
   ++culled_;
   // Aliases of points that are gone would pile up for as long as the agents revisit places:
-  // swept when they outnumber the points (a constant cost per removed point, amortised).
-  if (removed > 0 && merged_into_.size() > 2 * points_.size() + 1024) PruneMergeAliases();
+  // swept each time their number has doubled since the last sweep (a constant cost per
+  // alias, amortised).
+  if (removed > 0 && merged_into_.size() > prune_aliases_at_) PruneMergeAliases();
   return removed;
 }
 
@@ -175,6 +180,7 @@ void ServerMap::PruneMergeAliases() {
   for (auto it = merged_into_.begin(); it != merged_into_.end();) {
     it = point(it->first) ? std::next(it) : merged_into_.erase(it);
   }
+  prune_aliases_at_ = 2 * merged_into_.size() + 1024;
 }
 
 void ServerMap::CarryFollowers(std::vector<ServerKeyframe*>* moved) const {

@@ -138,7 +138,8 @@ class ServerMap {
   // Culls `kf` (see ServerKeyframe::follows): its observations leave their points (a point
   // anchored to it moves its anchor to another observer; a point nobody else sees is removed),
   // its covisibility and depth links go, its loop edges move to `follow` (composed with their
-  // relative pose), and from now on its pose follows `follow`, a kept keyframe of this map.
+  // relative pose), its coded RGB-D not yet in the dense map goes if `follow` has RGB-D, and
+  // from now on its pose follows `follow`, a kept keyframe of this map.
   // Returns the number of points removed.
   std::size_t Cull(ServerKeyframe* kf, ServerKeyframe* follow);
   // Gives the culled followers of the keyframes in `moved` their poses and appends them.
@@ -164,6 +165,7 @@ class ServerMap {
   std::vector<AgentId> agents_;
   std::optional<GlobalKeyframeId> origin_;
   std::size_t culled_ = 0;
+  std::size_t prune_aliases_at_ = 1024;  // merge aliases that start the next sweep
 };
 
 }  // namespace ccmd

@@ -164,6 +164,9 @@ TEST(KeyframeCullingTest, CullKeepsPointsWhereTheyWereAndMovesLoopEdges) {
   }
   ServerKeyframe* victim = kfs[1];
   ServerKeyframe* leader = kfs[0];
+  // Both wait with their coded RGB-D for their map to join the primary map.
+  victim->rgbd = std::make_shared<const RgbdPayload>();
+  leader->rgbd = std::make_shared<const RgbdPayload>();
   // A loop edge from keyframe 3 to the victim, measured as their true relative pose.
   map.AddLoopEdge({kfs[3]->id, victim->id, kfs[3]->T_map_cam.inverse() * victim->T_map_cam});
   std::map<GlobalMapPointId, Eigen::Vector3d> before;
@@ -175,6 +178,7 @@ TEST(KeyframeCullingTest, CullKeepsPointsWhereTheyWereAndMovesLoopEdges) {
   }
   ASSERT_GT(anchored, 0);  // points first seen by the victim (the ring turns into view)
   map.Cull(victim, leader);
+  EXPECT_EQ(victim->rgbd, nullptr);  // the leader's RGB-D covers its view
   for (const auto& [id, world_before] : before) {
     const ServerMapPoint* p = map.point(id);
     ASSERT_NE(p, nullptr);  // all are still seen by a neighbour
@@ -199,6 +203,10 @@ TEST(KeyframeCullingTest, CullKeepsPointsWhereTheyWereAndMovesLoopEdges) {
   EXPECT_LT(TranslationDistance(victim->T_map_cam,
                                 leader->T_map_cam * leader_before.inverse() * victim_before),
             1e-9);
+  // Under a leader without RGB-D a culled keyframe keeps its own.
+  kfs[2]->rgbd = std::make_shared<const RgbdPayload>();
+  map.Cull(kfs[2], kfs[3]);
+  EXPECT_NE(kfs[2]->rgbd, nullptr);
 }
 
 TEST(KeyframeCullingTest, AliasesOfRemovedPointsAreForgotten) {

@@ -266,6 +266,109 @@ TEST(LoopCorrectionTest, FusingTwoMapsThatAreNotPrimaryKeepsTheCandidatesFrame) 
             1e-6);  // candidate's frame
 }
 
+// Two maps of the ring seen by two agents: agent 1's (the primary map, true poses) and agent
+// 2's, in a frame of its own, overlapping agent 1's last steps. The loop between agent 2's
+// keyframe 2 (step 6) and agent 1's keyframe 6 is verified with `error` on the query's pose,
+// as one keyframe's matches measure it; the maps are fused with the seam options or without.
+// The query is agent 2's keyframe (its map moves), or with `query_in_primary` agent 1's (the
+// candidate's map moves).
+struct SeamCase {
+  MapManager maps;
+  MapFusion fusion;
+  ServerKeyframe* query = nullptr;
+  // The largest distance of an agent 2 keyframe from its true pose after the fusion.
+  double worst_m = 0, worst_deg = 0;
+};
+
+void FuseWithError(const Pose& error, const LoopCloserOptions* options, SeamCase* c,
+                   bool query_in_primary = false) {
+  Rng rng(21);
+  const GeneratedWorld world = MakeRingWorld(3000, &rng);
+  constexpr int kSteps = 24;
+  {
+    MapManager::Guard first = c->maps.CheckOutAgent(AgentId(1));
+    for (int i = 0; i < 8; ++i)
+      AddGeneratedKeyframe(first.get(), world, AgentId(1), i, CirclePose(i, kSteps),
+                           CirclePose(i, kSteps), &rng);
+  }
+  const Pose T_map2_world = Offset(1.5, -50);
+  {
+    MapManager::Guard second = c->maps.CheckOutAgent(AgentId(2));
+    for (int k = 0; k < 6; ++k) {
+      AddGeneratedKeyframe(second.get(), world, AgentId(2), k, CirclePose(4 + k, kSteps),
+                           T_map2_world * CirclePose(4 + k, kSteps), &rng);
+    }
+  }
+  auto [query_guard, candidate_guard] = query_in_primary ? c->maps.CheckOutPair(MapId(1), MapId(2))
+                                                         : c->maps.CheckOutPair(MapId(2), MapId(1));
+  c->query = query_guard->keyframe(query_in_primary ? Kf(1, 6) : Kf(2, 2));
+  ServerKeyframe* candidate = candidate_guard->keyframe(query_in_primary ? Kf(2, 2) : Kf(1, 6));
+  const LoopMatch match = TrueMatch(c->query, candidate, error);
+  const PinholeCamera camera = testing::TestCamera();
+  c->fusion = FuseMapsByLoop(&c->maps, &query_guard, &candidate_guard, match, options, &camera);
+  for (int k = 0; k < 6; ++k) {
+    const Pose& T = c->fusion.map->keyframe(Kf(2, k))->T_map_cam;
+    c->worst_m = std::max(c->worst_m, TranslationDistance(T, CirclePose(4 + k, kSteps)));
+    c->worst_deg = std::max(c->worst_deg, RotationDistance(T, CirclePose(4 + k, kSteps)) / kDegree);
+  }
+}
+
+TEST(SeamTest, AFusionRefinesThePoorlyVerifiedTransformOnTheSeamAndTiesBothSides) {
+  const Pose error = Offset(0.02, 0.5);  // 2 cm and half a degree on the query's pose
+  const LoopCloserOptions options;
+  SeamCase with;
+  FuseWithError(error, &options, &with);
+  ASSERT_TRUE(with.fusion.map);
+  const SeamJoin& seam = with.fusion.seam;
+  EXPECT_TRUE(seam.corrected);
+  EXPECT_GT(seam.pair_inliers, 200);
+  // Pixels carry 0.3 px of noise and depths 2 mm: hundreds of pairs put agent 2's map within
+  // a millimetre and a few hundredths of a degree of the truth.
+  EXPECT_LT(with.worst_m, 0.001);
+  EXPECT_LT(with.worst_deg, 0.03);
+  // Agent 1's map (primary) did not move.
+  EXPECT_LT(TranslationDistance(with.fusion.map->keyframe(Kf(1, 6))->T_map_cam, CirclePose(6, 24)),
+            1e-9);
+  // Agent 2's keyframes around the query, not only the query, now observe agent 1's points.
+  EXPECT_GT(seam.merged, 100);
+  int tied_keyframes = 0;
+  for (int k = 0; k < 6; ++k) {
+    const ServerKeyframe* kf = with.fusion.map->keyframe(Kf(2, k));
+    const bool tied =
+        std::any_of(kf->points.begin(), kf->points.end(),
+                    [](const ServerMapPoint* p) { return p && p->id.agent == AgentId(1); });
+    const bool covisible =
+        std::any_of(kf->covisibility.begin(), kf->covisibility.end(),
+                    [](const auto& link) { return link.first.agent == AgentId(1); });
+    if (kf != with.query && tied && covisible) ++tied_keyframes;
+  }
+  EXPECT_GE(tied_keyframes, 3);
+
+  // The same with the query in the primary map: the candidate's map moves, by the inverse.
+  SeamCase reverse;
+  FuseWithError(error, &options, &reverse, /*query_in_primary=*/true);
+  EXPECT_TRUE(reverse.fusion.seam.corrected);
+  EXPECT_LT(reverse.worst_m, 0.001);
+  EXPECT_LT(reverse.worst_deg, 0.03);
+
+  // Without the seam the verified error stays: the map is off by about the error.
+  SeamCase without;
+  FuseWithError(error, nullptr, &without);
+  EXPECT_GT(without.worst_m, 0.015);
+  EXPECT_GT(without.worst_deg, 0.4);
+  EXPECT_FALSE(without.fusion.seam.corrected);
+}
+
+TEST(SeamTest, ARefinementLargerThanTrustedKeepsTheVerifiedTransform) {
+  // 10 cm off (more than SeamOptions::max_correction_m): the projected points are searched
+  // too far from where they are; whatever is found is not trusted to move the map.
+  LoopCloserOptions options;
+  SeamCase c;
+  FuseWithError(Offset(0.10, 0), &options, &c);
+  EXPECT_FALSE(c.fusion.seam.corrected);
+  EXPECT_GT(c.worst_m, 0.09);
+}
+
 // What LoopCloser::Process closed for one keyframe (the closure's map guard released at once).
 struct ProcessResult {
   bool closed = false;
