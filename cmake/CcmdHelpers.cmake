@@ -9,6 +9,20 @@ if(CCMD_SANITIZE)
     -fsanitize=address,undefined -fno-omit-frame-pointer -fno-sanitize-recover=undefined)
   target_link_options(ccmd_build_flags INTERFACE -fsanitize=address,undefined)
 endif()
+if(CCMD_SANITIZE_THREAD)
+  # ThreadSanitizer cannot share a process with AddressSanitizer: the two are separate builds.
+  if(CCMD_SANITIZE)
+    message(FATAL_ERROR "CCMD_SANITIZE_THREAD and CCMD_SANITIZE cannot be combined: ThreadSanitizer "
+                        "and AddressSanitizer are separate builds (scripts/test.sh --tsan uses "
+                        "build-tsan/, --sanitize build-asan/)")
+  endif()
+  # Once the code is instrumented, GCC's flow analysis warns of things it does not warn of
+  # otherwise (maybe-uninitialized std::variant members, free-nonheap-object in vector
+  # growth): false positives, shown but not stopping a -Werror build.
+  target_compile_options(ccmd_build_flags INTERFACE -fsanitize=thread -fno-omit-frame-pointer
+                         $<$<CXX_COMPILER_ID:GNU>:-Wno-error>)
+  target_link_options(ccmd_build_flags INTERFACE -fsanitize=thread)
+endif()
 
 # ccmd_add_library(NAME SOURCES ... DEPS ... [PRIVATE_DEPS ...])
 # One static library per libccmd module; includes are rooted at the repository
@@ -31,10 +45,12 @@ function(ccmd_add_executable name)
                         RUNTIME_OUTPUT_DIRECTORY ${PROJECT_BINARY_DIR}/bin)
 endfunction()
 
-# ccmd_add_test(NAME SOURCES ... DEPS ... [LABELS ...] [TIMEOUT seconds])
-# A GoogleTest binary registered test by test with ctest.
+# ccmd_add_test(NAME SOURCES ... DEPS ... [LABELS ...] [TIMEOUT seconds] [CONCURRENT pattern ...])
+# A GoogleTest binary registered test by test with ctest. CONCURRENT names, as GoogleTest
+# filter patterns ("StageTest.*"), the tests that run several threads or processes: they get
+# the label "concurrent" as well, which the ThreadSanitizer run selects (scripts/test.sh --tsan).
 function(ccmd_add_test name)
-  cmake_parse_arguments(ARG "" "TIMEOUT" "SOURCES;DEPS;LABELS" ${ARGN})
+  cmake_parse_arguments(ARG "" "TIMEOUT" "SOURCES;DEPS;LABELS;CONCURRENT" ${ARGN})
   if(NOT ARG_TIMEOUT)
     set(ARG_TIMEOUT 300)
   endif()
@@ -42,11 +58,28 @@ function(ccmd_add_test name)
   target_link_libraries(${name} PRIVATE ${ARG_DEPS} ccmd_test_support GTest::gtest GTest::gtest_main
                         ccmd_build_flags)
   set_target_properties(${name} PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${PROJECT_BINARY_DIR}/tests)
-  gtest_discover_tests(${name}
-    DISCOVERY_MODE PRE_TEST
-    DISCOVERY_TIMEOUT 60
-    PROPERTIES TIMEOUT ${ARG_TIMEOUT} LABELS "${ARG_LABELS}"
-               ENVIRONMENT "CCMD_BIN_DIR=${PROJECT_BINARY_DIR}/bin")
+  set(discover_args DISCOVERY_MODE PRE_TEST DISCOVERY_TIMEOUT 60
+      PROPERTIES TIMEOUT ${ARG_TIMEOUT} ENVIRONMENT "CCMD_BIN_DIR=${PROJECT_BINARY_DIR}/bin")
+  if(ARG_LABELS)
+    list(APPEND discover_args LABELS "${ARG_LABELS}")
+  endif()
+  if(NOT ARG_CONCURRENT)
+    gtest_discover_tests(${name} ${discover_args})
+    return()
+  endif()
+  # Two discoveries split the binary's tests; a list property cannot pass through
+  # gtest_discover_tests, so the concurrent ones get their labels from an include file that
+  # ctest reads after the discovered tests (TEST_LIST names them).
+  list(JOIN ARG_CONCURRENT ":" filter)
+  gtest_discover_tests(${name} ${discover_args} TEST_FILTER "${filter}"
+                       TEST_LIST ${name}_concurrent_tests)
+  gtest_discover_tests(${name} ${discover_args} TEST_FILTER "-${filter}")
+  set(labels_file "${CMAKE_CURRENT_BINARY_DIR}/${name}_concurrent_labels.cmake")
+  file(WRITE "${labels_file}"
+    "foreach(test IN LISTS ${name}_concurrent_tests)\n"
+    "  set_tests_properties(\"\${test}\" PROPERTIES LABELS \"${ARG_LABELS};concurrent\")\n"
+    "endforeach()\n")
+  set_property(DIRECTORY APPEND PROPERTY TEST_INCLUDE_FILES "${labels_file}")
 endfunction()
 
 # ccmd_link_closure(TARGET OUT_VAR): every target TARGET links, directly or through others.

@@ -13,7 +13,9 @@
 // Hamming distances dominate descriptor matching, and the x86-64 baseline has no popcnt
 // instruction (std::popcount becomes a dozen instructions). Hot loops are marked with this so
 // they are compiled twice and the loader picks the popcnt version where the CPU has it.
-#if defined(__x86_64__) && defined(__linux__) && defined(__GNUC__)
+// Not under ThreadSanitizer: the loader runs the choosing function (an ifunc resolver) before
+// the sanitizer's runtime is up, and its instrumented code crashes the program at start.
+#if defined(__x86_64__) && defined(__linux__) && defined(__GNUC__) && !defined(__SANITIZE_THREAD__)
 #define CCMD_POPCNT_CLONES __attribute__((target_clones("popcnt", "default")))
 #else
 #define CCMD_POPCNT_CLONES

@@ -124,16 +124,20 @@ TEST(BackendIntegrationTest, TwoAgentsAreFusedIntoOneAccurateMap) {
   const auto segments = SplitWithOverlap(synth.frames, 2);
   ASSERT_TRUE(segments.ok());
   Trajectory ground_truth = MakeLoopPath(synth.frames, synth.fps, synth.path);
-  std::vector<std::thread> agents;
+  // Every sink exists before the first agent thread starts: growing the vector while an agent
+  // reads it was a data race (ThreadSanitizer).
   std::vector<std::unique_ptr<WireSink>> sinks;
   for (int i = 0; i < 2; ++i) {
     const AgentId id(i + 1);
     sinks.push_back(std::make_unique<WireSink>(id, backend->get()));
     ASSERT_TRUE(
         (*backend)->RegisterAgent(id, "agent" + std::to_string(i + 1), SyntheticCamera()).ok());
-    agents.emplace_back([&, i] {
+  }
+  std::vector<std::thread> agents;
+  for (int i = 0; i < 2; ++i) {
+    agents.emplace_back([&, i, sink = sinks[i].get()] {
       SyntheticSource source(synth, (*segments)[i]);
-      auto frontend = Frontend::Create(source.camera(), TrackingOptions(), sinks[i].get());
+      auto frontend = Frontend::Create(source.camera(), TrackingOptions(), sink);
       ASSERT_TRUE(frontend.ok());
       RgbdFrame frame;
       while (source.Read(&frame).ok()) (*frontend)->ProcessFrame(frame);

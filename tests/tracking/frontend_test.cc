@@ -129,6 +129,31 @@ TEST(FrontendTest, SinkGetsEveryKeyframeOnceWithConsistentLinks) {
   for (const PoseUpdate& u : r.sink.updates) EXPECT_TRUE(ids.count(u.id.value()));
 }
 
+// The default: local mapping in its own thread while the tracker goes on (the agents' mode,
+// and the one the ThreadSanitizer run checks). The sink hears of each keyframe once, in the
+// order the tracker made them, and the path is tracked as well as synchronously.
+TEST(FrontendTest, AsynchronousMappingSendsEachKeyframeOnceInOrderAndTracks) {
+  TrackingOptions asynchronous;
+  ASSERT_FALSE(asynchronous.synchronous_mapping);
+  RunResult r;
+  RunSequence(120, asynchronous, &r);
+  EXPECT_EQ(r.stats.lost_frames, 0);
+  ASSERT_EQ(r.trajectory.size(), 120u);
+  ASSERT_GE(r.sink.keyframes.size(), 3u);
+  std::set<std::uint32_t> ids;
+  for (std::size_t i = 0; i < r.sink.keyframes.size(); ++i) {
+    const KeyframeSnapshot& k = r.sink.keyframes[i];
+    EXPECT_TRUE(ids.insert(k.id.value()).second) << "keyframe sent twice";
+    if (i > 0) {
+      EXPECT_GT(k.frame_index, r.sink.keyframes[i - 1].frame_index);
+    }
+  }
+  for (const PoseUpdate& u : r.sink.updates) EXPECT_TRUE(ids.count(u.id.value()));
+  auto ate = ComputeAte(r.ground_truth, r.trajectory);
+  ASSERT_TRUE(ate.ok());
+  EXPECT_LT(ate->error.rmse, 0.01);
+}
+
 TEST(FrontendTest, BoundedMapStaysBounded) {
   TrackingOptions o = Synchronous();
   o.local_ba_window = 5;
