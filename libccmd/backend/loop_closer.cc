@@ -224,20 +224,19 @@ std::vector<SeamMatch> SearchSeam(const ServerMap& map,
   return result;
 }
 
-std::optional<Pose> AlignSeam(const ServerMap& map, const std::vector<SeamMatch>& matches,
-                              const PinholeCamera& camera, const DepthNoise& depth_noise,
-                              int min_pairs, int* inliers) {
-  if (inliers) *inliers = 0;
-  // A pair: the keypoint's back-projection and its matched point, with the back-projection's
-  // sigmas: along the ray the depth model's, across it the pixel sigma (1.2 to the octave)
-  // times the depth. The server's depth model need not be the sensor's (the handshake does
-  // not carry it): both sigmas are rescaled in every round by the residuals' robust scales
-  // along and across the rays, so a sensor better or worse than the model is weighed as it is.
-  struct Pair {
-    Eigen::Vector3d query, candidate, ray;
-    double along, across;
-  };
-  std::vector<Pair> pairs;
+namespace {
+
+// A seam pair: a keypoint's back-projection and its matched point, with the back-projection's
+// sigmas: along the ray the depth model's, across it the pixel sigma (1.2 to the octave) times
+// the depth.
+struct SeamPair {
+  Eigen::Vector3d query, candidate, ray;
+  double along, across;
+};
+
+std::vector<SeamPair> SeamPairs(const ServerMap& map, const std::vector<SeamMatch>& matches,
+                                const PinholeCamera& camera, const DepthNoise& depth_noise) {
+  std::vector<SeamPair> pairs;
   const double focal = std::sqrt(std::abs(camera.fx * camera.fy));
   for (const SeamMatch& m : matches) {
     const ServerMapPoint* candidate = map.point(m.point);
@@ -249,30 +248,79 @@ std::optional<Pose> AlignSeam(const ServerMap& map, const std::vector<SeamMatch>
     pairs.push_back({query, candidate->World(), ray, depth_noise.Sigma(kp.depth),
                      kp.depth * std::pow(1.2, kp.octave) / focal});
   }
+  return pairs;
+}
+
+// The closed-form rigid fit of the queries onto the candidates (Horn / Umeyama without
+// scale), every pair alike.
+Pose ClosedFormFit(const std::vector<SeamPair>& pairs) {
+  Eigen::Vector3d mq = Eigen::Vector3d::Zero(), mc = Eigen::Vector3d::Zero();
+  for (const SeamPair& pair : pairs) {
+    mq += pair.query;
+    mc += pair.candidate;
+  }
+  mq /= static_cast<double>(pairs.size());
+  mc /= static_cast<double>(pairs.size());
+  Eigen::Matrix3d H = Eigen::Matrix3d::Zero();
+  for (const SeamPair& pair : pairs) H += (pair.query - mq) * (pair.candidate - mc).transpose();
+  const Eigen::JacobiSVD<Eigen::Matrix3d> svd(H, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  Eigen::Matrix3d S = Eigen::Matrix3d::Identity();
+  if ((svd.matrixV() * svd.matrixU().transpose()).determinant() < 0) S(2, 2) = -1;
+  Pose D = Pose::Identity();
+  D.linear() = svd.matrixV() * S * svd.matrixU().transpose();
+  D.translation() = mc - D.linear() * mq;
+  return D;
+}
+
+// Gauss-Newton on D = exp(delta) * D over the inliers, weighed by `information`. False if the
+// step is not finite.
+bool RefineSeamFit(const std::vector<SeamPair>& pairs,
+                   const std::vector<Eigen::Matrix3d>& information, const std::vector<char>& inlier,
+                   Pose* D) {
+  for (int iteration = 0; iteration < 5; ++iteration) {
+    Eigen::Matrix<double, 6, 6> H = Eigen::Matrix<double, 6, 6>::Zero();
+    Eigen::Matrix<double, 6, 1> g = Eigen::Matrix<double, 6, 1>::Zero();
+    for (std::size_t k = 0; k < pairs.size(); ++k) {
+      if (!inlier[k]) continue;
+      const Eigen::Vector3d p = *D * pairs[k].query;
+      const Eigen::Vector3d e = p - pairs[k].candidate;
+      Eigen::Matrix<double, 3, 6> J;
+      J.leftCols<3>() << 0, p.z(), -p.y(), -p.z(), 0, p.x(), p.y(), -p.x(), 0;  // -[p]x
+      J.rightCols<3>() = Eigen::Matrix3d::Identity();
+      H += J.transpose() * information[k] * J;
+      g += J.transpose() * information[k] * e;
+    }
+    const Eigen::Matrix<double, 6, 1> delta = H.ldlt().solve(-g);
+    if (!delta.allFinite()) return false;
+    Pose step = Pose::Identity();
+    const double angle = delta.head<3>().norm();
+    if (angle > 0)
+      step.linear() = Eigen::AngleAxisd(angle, delta.head<3>() / angle).toRotationMatrix();
+    step.translation() = delta.tail<3>();
+    *D = Orthonormalized(step * *D);
+    if (delta.norm() < 1e-9) break;
+  }
+  return true;
+}
+
+double Median(std::vector<double> v) {
+  std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
+  return v[v.size() / 2];
+}
+
+}  // namespace
+
+std::optional<Pose> AlignSeam(const ServerMap& map, const std::vector<SeamMatch>& matches,
+                              const PinholeCamera& camera, const DepthNoise& depth_noise,
+                              int min_pairs, int* inliers) {
+  if (inliers) *inliers = 0;
+  // The server's depth model need not be the sensor's (the handshake does not carry it): both
+  // sigmas of a pair are rescaled in every round by the residuals' robust scales along and
+  // across the rays, so a sensor better or worse than the model is weighed as it is.
+  const std::vector<SeamPair> pairs = SeamPairs(map, matches, camera, depth_noise);
   if (static_cast<int>(pairs.size()) < min_pairs) return std::nullopt;
   std::vector<char> inlier(pairs.size(), 1);
-  // Start: the closed-form fit (Horn / Umeyama without scale), every pair alike.
-  Pose D = Pose::Identity();
-  {
-    Eigen::Vector3d mq = Eigen::Vector3d::Zero(), mc = Eigen::Vector3d::Zero();
-    for (const Pair& pair : pairs) {
-      mq += pair.query;
-      mc += pair.candidate;
-    }
-    mq /= static_cast<double>(pairs.size());
-    mc /= static_cast<double>(pairs.size());
-    Eigen::Matrix3d H = Eigen::Matrix3d::Zero();
-    for (const Pair& pair : pairs) H += (pair.query - mq) * (pair.candidate - mc).transpose();
-    const Eigen::JacobiSVD<Eigen::Matrix3d> svd(H, Eigen::ComputeFullU | Eigen::ComputeFullV);
-    Eigen::Matrix3d S = Eigen::Matrix3d::Identity();
-    if ((svd.matrixV() * svd.matrixU().transpose()).determinant() < 0) S(2, 2) = -1;
-    D.linear() = svd.matrixV() * S * svd.matrixU().transpose();
-    D.translation() = mc - D.linear() * mq;
-  }
-  const auto median = [](std::vector<double> v) {
-    std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
-    return v[v.size() / 2];
-  };
+  Pose D = ClosedFormFit(pairs);
   std::vector<Eigen::Matrix3d> information(pairs.size());
   for (int round = 0; round < 4; ++round) {
     // The residuals' robust scales along and across the rays (in model sigmas), on the
@@ -287,13 +335,13 @@ std::optional<Pose> AlignSeam(const ServerMap& map, const std::vector<SeamMatch>
       across.push_back((e - a * pairs[k].ray).norm() / pairs[k].across);
     }
     if (along.empty()) return std::nullopt;
-    const double scale_along = std::clamp(1.4826 * median(along), 0.02, 50.0),
-                 scale_across = std::clamp(median(across) / 1.1774, 0.02, 50.0);
+    const double scale_along = std::clamp(1.4826 * Median(along), 0.02, 50.0),
+                 scale_across = std::clamp(Median(across) / 1.1774, 0.02, 50.0);
     // Residuals in (rescaled) sigmas; beyond 3 robust scales (and at least 3 sigmas):
     // outliers. The first round judges the closed-form start.
     std::vector<double> distance(pairs.size()), kept;
     for (std::size_t k = 0; k < pairs.size(); ++k) {
-      const Pair& pair = pairs[k];
+      const SeamPair& pair = pairs[k];
       const double sa = pair.along * scale_along, sc = pair.across * scale_across;
       const Eigen::Matrix3d along_ray = pair.ray * pair.ray.transpose();
       information[k] =
@@ -302,32 +350,9 @@ std::optional<Pose> AlignSeam(const ServerMap& map, const std::vector<SeamMatch>
       distance[k] = std::sqrt(e.dot(information[k] * e));
       if (inlier[k]) kept.push_back(distance[k]);
     }
-    const double threshold = 3 * std::max(1.4826 * median(kept), 1.0);
+    const double threshold = 3 * std::max(1.4826 * Median(kept), 1.0);
     for (std::size_t k = 0; k < pairs.size(); ++k) inlier[k] = distance[k] <= threshold;
-    // Gauss-Newton on D = exp(delta) * D over the inliers.
-    for (int iteration = 0; iteration < 5; ++iteration) {
-      Eigen::Matrix<double, 6, 6> H = Eigen::Matrix<double, 6, 6>::Zero();
-      Eigen::Matrix<double, 6, 1> g = Eigen::Matrix<double, 6, 1>::Zero();
-      for (std::size_t k = 0; k < pairs.size(); ++k) {
-        if (!inlier[k]) continue;
-        const Eigen::Vector3d p = D * pairs[k].query;
-        const Eigen::Vector3d e = p - pairs[k].candidate;
-        Eigen::Matrix<double, 3, 6> J;
-        J.leftCols<3>() << 0, p.z(), -p.y(), -p.z(), 0, p.x(), p.y(), -p.x(), 0;  // -[p]x
-        J.rightCols<3>() = Eigen::Matrix3d::Identity();
-        H += J.transpose() * information[k] * J;
-        g += J.transpose() * information[k] * e;
-      }
-      const Eigen::Matrix<double, 6, 1> delta = H.ldlt().solve(-g);
-      if (!delta.allFinite()) return std::nullopt;
-      Pose step = Pose::Identity();
-      const double angle = delta.head<3>().norm();
-      if (angle > 0)
-        step.linear() = Eigen::AngleAxisd(angle, delta.head<3>() / angle).toRotationMatrix();
-      step.translation() = delta.tail<3>();
-      D = Orthonormalized(step * D);
-      if (delta.norm() < 1e-9) break;
-    }
+    if (!RefineSeamFit(pairs, information, inlier, &D)) return std::nullopt;
   }
   const int count = static_cast<int>(std::count(inlier.begin(), inlier.end(), 1));
   if (inliers) *inliers = count;
