@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cmath>
 
+#include "libccmd/util/percentile.h"
+
 namespace ccmd {
 
 Status KeyframeCullingOptions::Validate() const {
@@ -31,15 +33,12 @@ void KeyframeCullingOptions::Describe(OptionsWriter* out) const {
 namespace {
 
 double MedianDepth(const ServerKeyframe& kf) {
-  std::vector<float> depths;
+  std::vector<double> depths;
   depths.reserve(kf.keypoints.size());
   for (const ServerKeypoint& kp : kf.keypoints) {
     if (kp.depth > 0) depths.push_back(kp.depth);
   }
-  if (depths.empty()) return 0;
-  auto middle = depths.begin() + static_cast<std::ptrdiff_t>(depths.size() / 2);
-  std::nth_element(depths.begin(), middle, depths.end());
-  return *middle;
+  return Percentile(std::move(depths), 0.5);
 }
 
 }  // namespace

@@ -5,9 +5,9 @@
 #include <set>
 #include <unordered_set>
 
-#include <Eigen/SVD>
-
+#include "libccmd/geometry/alignment.h"
 #include "libccmd/util/logging.h"
+#include "libccmd/util/percentile.h"
 #include "libccmd/util/timer.h"
 
 namespace ccmd {
@@ -251,25 +251,17 @@ std::vector<SeamPair> SeamPairs(const ServerMap& map, const std::vector<SeamMatc
   return pairs;
 }
 
-// The closed-form rigid fit of the queries onto the candidates (Horn / Umeyama without
-// scale), every pair alike.
-Pose ClosedFormFit(const std::vector<SeamPair>& pairs) {
-  Eigen::Vector3d mq = Eigen::Vector3d::Zero(), mc = Eigen::Vector3d::Zero();
+// The closed-form rigid fit of the queries onto the candidates, every pair alike; empty if
+// the pairs are degenerate.
+std::optional<Pose> ClosedFormFit(const std::vector<SeamPair>& pairs) {
+  std::vector<Eigen::Vector3d> query, candidate;
   for (const SeamPair& pair : pairs) {
-    mq += pair.query;
-    mc += pair.candidate;
+    query.push_back(pair.query);
+    candidate.push_back(pair.candidate);
   }
-  mq /= static_cast<double>(pairs.size());
-  mc /= static_cast<double>(pairs.size());
-  Eigen::Matrix3d H = Eigen::Matrix3d::Zero();
-  for (const SeamPair& pair : pairs) H += (pair.query - mq) * (pair.candidate - mc).transpose();
-  const Eigen::JacobiSVD<Eigen::Matrix3d> svd(H, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  Eigen::Matrix3d S = Eigen::Matrix3d::Identity();
-  if ((svd.matrixV() * svd.matrixU().transpose()).determinant() < 0) S(2, 2) = -1;
-  Pose D = Pose::Identity();
-  D.linear() = svd.matrixV() * S * svd.matrixU().transpose();
-  D.translation() = mc - D.linear() * mq;
-  return D;
+  const auto fit = AlignPoints(query, candidate, /*with_scale=*/false);
+  if (!fit.ok()) return std::nullopt;
+  return fit->Rigid();
 }
 
 // Gauss-Newton on D = exp(delta) * D over the inliers, weighed by `information`. False if the
@@ -293,19 +285,12 @@ bool RefineSeamFit(const std::vector<SeamPair>& pairs,
     const Eigen::Matrix<double, 6, 1> delta = H.ldlt().solve(-g);
     if (!delta.allFinite()) return false;
     Pose step = Pose::Identity();
-    const double angle = delta.head<3>().norm();
-    if (angle > 0)
-      step.linear() = Eigen::AngleAxisd(angle, delta.head<3>() / angle).toRotationMatrix();
+    step.linear() = RotationFromAngleAxis(delta.head<3>());
     step.translation() = delta.tail<3>();
     *D = Orthonormalized(step * *D);
     if (delta.norm() < 1e-9) break;
   }
   return true;
-}
-
-double Median(std::vector<double> v) {
-  std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
-  return v[v.size() / 2];
 }
 
 }  // namespace
@@ -320,7 +305,9 @@ std::optional<Pose> AlignSeam(const ServerMap& map, const std::vector<SeamMatch>
   const std::vector<SeamPair> pairs = SeamPairs(map, matches, camera, depth_noise);
   if (static_cast<int>(pairs.size()) < min_pairs) return std::nullopt;
   std::vector<char> inlier(pairs.size(), 1);
-  Pose D = ClosedFormFit(pairs);
+  std::optional<Pose> start = ClosedFormFit(pairs);
+  if (!start) return std::nullopt;
+  Pose D = *start;
   std::vector<Eigen::Matrix3d> information(pairs.size());
   for (int round = 0; round < 4; ++round) {
     // The residuals' robust scales along and across the rays (in model sigmas), on the
@@ -335,8 +322,8 @@ std::optional<Pose> AlignSeam(const ServerMap& map, const std::vector<SeamMatch>
       across.push_back((e - a * pairs[k].ray).norm() / pairs[k].across);
     }
     if (along.empty()) return std::nullopt;
-    const double scale_along = std::clamp(1.4826 * Median(along), 0.02, 50.0),
-                 scale_across = std::clamp(Median(across) / 1.1774, 0.02, 50.0);
+    const double scale_along = std::clamp(1.4826 * Percentile(along, 0.5), 0.02, 50.0),
+                 scale_across = std::clamp(Percentile(across, 0.5) / 1.1774, 0.02, 50.0);
     // Residuals in (rescaled) sigmas; beyond 3 robust scales (and at least 3 sigmas):
     // outliers. The first round judges the closed-form start.
     std::vector<double> distance(pairs.size()), kept;
@@ -350,7 +337,7 @@ std::optional<Pose> AlignSeam(const ServerMap& map, const std::vector<SeamMatch>
       distance[k] = std::sqrt(e.dot(information[k] * e));
       if (inlier[k]) kept.push_back(distance[k]);
     }
-    const double threshold = 3 * std::max(1.4826 * Median(kept), 1.0);
+    const double threshold = 3 * std::max(1.4826 * Percentile(kept, 0.5), 1.0);
     for (std::size_t k = 0; k < pairs.size(); ++k) inlier[k] = distance[k] <= threshold;
     if (!RefineSeamFit(pairs, information, inlier, &D)) return std::nullopt;
   }

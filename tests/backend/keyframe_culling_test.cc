@@ -20,6 +20,13 @@ const PinholeCamera* CameraOf(AgentId) {
   return &camera;
 }
 
+// A keyframe of kAgent with nothing but its id (keypoints are appended by the test).
+ServerKeyframe* AddBareKeyframe(ServerMap* map, std::uint32_t id) {
+  auto kf = std::make_unique<ServerKeyframe>();
+  kf->id = {kAgent, KeyframeId(id)};
+  return map->AddKeyframe(std::move(kf));
+}
+
 // Runs the culler over the keyframes of `map` in id order, as the back-end does on arrival.
 CullingStats CullInOrder(ServerMap* map, const KeyframeCullingOptions& options) {
   KeyframeCuller culler(options);
@@ -214,11 +221,7 @@ TEST(KeyframeCullingTest, AliasesOfRemovedPointsAreForgotten) {
   // merged point itself is removed with a culled keyframe, its aliases must go too, or they
   // would pile up for as long as agents revisit places.
   ServerMap map(MapId(1));
-  auto make = [&](std::uint32_t id) {
-    auto kf = std::make_unique<ServerKeyframe>();
-    kf->id = {kAgent, KeyframeId(id)};
-    return map.AddKeyframe(std::move(kf));
-  };
+  const auto make = [&](std::uint32_t id) { return AddBareKeyframe(&map, id); };
   ServerKeyframe* leader = make(0);
   ServerKeyframe* victim = make(1);
   ServerKeyframe* other = make(2);
@@ -263,11 +266,7 @@ TEST(KeyframeCullingTest, AliasesOfRemovedPointsAreForgotten) {
 
 TEST(KeyframeCullingTest, AliasesLiveAsLongAsTheirAgentMayNameThem) {
   ServerMap map(MapId(1));
-  auto add_keyframe = [&](std::uint32_t id) {
-    auto kf = std::make_unique<ServerKeyframe>();
-    kf->id = {kAgent, KeyframeId(id)};
-    return map.AddKeyframe(std::move(kf));
-  };
+  const auto add_keyframe = [&](std::uint32_t id) { return AddBareKeyframe(&map, id); };
   ServerKeyframe* seer = add_keyframe(0);
   std::uint32_t next_point = 0;
   // Merges `n` new duplicates into a point `seer` keeps seeing.
