@@ -24,6 +24,7 @@
 #include "libccmd/tracking/frontend.h"
 #include "libccmd/util/json.h"
 #include "libccmd/util/logging.h"
+#include "libccmd/util/process_usage.h"
 #include "libccmd/util/timer.h"
 
 namespace {
@@ -209,6 +210,7 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(0.0, 256.0))
       ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
+  ccmd::ConfigureAllocatorForLongRuns();  // resident memory that follows the live data
 
   if (!offline && server.empty()) {
     return Fail("give --server HOST:PORT, or --offline to run without a server");

@@ -29,6 +29,7 @@
 #include "libccmd/util/json.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/options_writer.h"
+#include "libccmd/util/process_usage.h"
 #include "libccmd/util/timer.h"
 
 namespace {
@@ -142,6 +143,7 @@ int main(int argc, char** argv) {
                "power cut)");
   app.add_option("--log-level", log_level, "debug, info, warning or error");
   CLI11_PARSE(app, argc, argv);
+  ccmd::ConfigureAllocatorForLongRuns();  // resident memory that follows the live data
 
   if (!log_level.empty()) {
     ccmd::LogLevel level;

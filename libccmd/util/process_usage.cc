@@ -28,6 +28,21 @@ ProcessUsage CurrentProcessUsage() {
   return usage;
 }
 
-void ReleaseFreeMemory() { malloc_trim(0); }
+void ReleaseFreeMemory() {
+#ifdef __GLIBC__
+  malloc_trim(0);
+#endif
+}
+
+void ConfigureAllocatorForLongRuns(long mmap_threshold_bytes, long trim_threshold_bytes) {
+#ifdef __GLIBC__
+  // Setting either value also turns off glibc's dynamic adjustment of both.
+  mallopt(M_MMAP_THRESHOLD, static_cast<int>(mmap_threshold_bytes));
+  mallopt(M_TRIM_THRESHOLD, static_cast<int>(trim_threshold_bytes));
+#else
+  (void)mmap_threshold_bytes;
+  (void)trim_threshold_bytes;
+#endif
+}
 
 }  // namespace ccmd

@@ -18,4 +18,13 @@ ProcessUsage CurrentProcessUsage();
 // stay resident. Costs about a millisecond; call it after such work, not per item.
 void ReleaseFreeMemory();
 
+// For processes that run for hours: every allocation of at least `mmap_threshold_bytes` gets
+// pages of its own that go back to the system when it is freed, and freed memory at the top
+// of a heap is returned once it exceeds `trim_threshold_bytes`. glibc otherwise raises its
+// mmap threshold to the largest block freed so far (up to 32 MB), after which decoded images,
+// clouds and solver workspaces are carved from the per-thread heaps, which fragment and keep
+// growing while the live data stays bounded. No-op where the allocator is not glibc's.
+void ConfigureAllocatorForLongRuns(long mmap_threshold_bytes = 128 * 1024,
+                                   long trim_threshold_bytes = 1024 * 1024);
+
 }  // namespace ccmd
