@@ -126,7 +126,8 @@ int main(int argc, char** argv) {
       "or never acknowledged (the counts are printed and in --stats), 1 on any other error."};
   std::string source_spec, config_path, segment_spec, trajectory_path, keyframe_trajectory_path,
       stats_path, rate = "max", server, record_dir, name, psk_file, spill_dir, progress_path;
-  double flush_timeout = 120.0, budget_kBps = 0, max_queue_s = 0.5, threshold_scale = 1.0;
+  double flush_timeout = 120.0, budget_kBps = 0,
+         max_queue_s = ccmd::BandwidthBudgetOptions{}.max_queue_s, threshold_scale = 1.0;
   ccmd::RgbdEncodeOptions rgbd;
   bool offline = false, synchronous = false, rgbd_every_keyframe = false;
   double cpu_budget = 1.0;

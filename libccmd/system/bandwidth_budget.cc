@@ -68,6 +68,11 @@ Status BandwidthBudgetOptions::Validate() const {
   if (!(window_s > 0)) return InvalidArgument("the acknowledgement window must be positive");
   if (!(payload_share > 0 && payload_share <= 1))
     return InvalidArgument("payload share must be in (0, 1]");
+  if (keyframe_scales.empty() || keyframe_scales.front() != 1.0 ||
+      !std::is_sorted(keyframe_scales.rbegin(), keyframe_scales.rend()) ||
+      !(keyframe_scales.back() > 0)) {
+    return InvalidArgument("keyframe density scales must fall from 1 and stay above 0");
+  }
   return Status::Ok();
 }
 
@@ -78,6 +83,7 @@ void BandwidthBudgetOptions::Describe(OptionsWriter* out) const {
   out->Add("max_credit_s", max_credit_s);
   out->Add("window_s", window_s);
   out->Add("payload_share", payload_share);
+  out->Add("keyframe_scales", keyframe_scales);
 }
 
 BandwidthBudget::BandwidthBudget(const BandwidthBudgetOptions& options,
@@ -86,7 +92,9 @@ BandwidthBudget::BandwidthBudget(const BandwidthBudgetOptions& options,
       ladder_(std::move(ladder)),
       level_(start_level),
       rgbd_bytes_(ladder_.size(), 0.0),
-      keyframes_per_level_(ladder_.size(), 0) {
+      keyframes_per_level_(ladder_.size(), 0),
+      keyframes_per_density_(options_.keyframe_scales.size(), 0) {
+  CCMD_CHECK(!options_.keyframe_scales.empty());
   CCMD_CHECK(!ladder_.empty() &&
              !ladder_.back().request.allow);  // the last rung sends geometry only
   CCMD_CHECK(start_level >= 0 && start_level < static_cast<int>(ladder_.size()));
@@ -120,8 +128,28 @@ void BandwidthBudget::Observe(const LinkObservation& link) {
   last_handed_ = link.handed_bytes;
 }
 
+void BandwidthBudget::Refresh(const LinkObservation& link) {
+  Observe(link);
+  const double budget = options_.budget_bytes_per_s * options_.payload_share;
+  const double rate =
+      link_rate_ >= 0 ? std::max(0.05 * budget, std::min(link_rate_, budget)) : budget;
+  BudgetDecision d;
+  d.credit_s = credit_bytes_ / budget;
+  d.queue_s = link.unacked_bytes / rate;
+  // Only denser here: thinner needs a keyframe's bytes to show the debt growing.
+  if (density_ > 0 && d.credit_s > options_.band_s && d.queue_s <= options_.max_queue_s) {
+    --density_;
+  }
+}
+
 const RgbdLevel& BandwidthBudget::Plan(const LinkObservation& link) {
   Observe(link);
+  if (last_plan_s_ >= 0 && link.now_s > last_plan_s_) {
+    const double interval = link.now_s - last_plan_s_;
+    keyframe_interval_s_ =
+        keyframe_interval_s_ > 0 ? 0.7 * keyframe_interval_s_ + 0.3 * interval : interval;
+  }
+  last_plan_s_ = link.now_s;
   const double budget = options_.budget_bytes_per_s * options_.payload_share;
   // Queue time at the rate the link gives (a stalled one counts as 5 % of the budget, so its
   // queue reads as long, not infinite).
@@ -134,19 +162,30 @@ const RgbdLevel& BandwidthBudget::Plan(const LinkObservation& link) {
   d.link_rate_bytes_per_s = std::max(0.0, link_rate_);
   max_queue_seen_s_ = std::max(max_queue_seen_s_, d.queue_s);
   const int leanest = static_cast<int>(ladder_.size()) - 1;
-  if (d.credit_s < -options_.band_s) {
+  // The queue bound holds at least two keyframes' geometry: below that, a small budget could
+  // never carry any RGB-D, however slowly keyframes came.
+  const double bound_s = std::max(options_.max_queue_s, 2 * geometry_bytes_ / rate);
+  // Geometry alone over the budget at the keyframes' pace: no level with RGB-D helps.
+  const bool geometry_overflows =
+      keyframe_interval_s_ > 0 && geometry_bytes_ > budget * keyframe_interval_s_;
+  if (geometry_overflows && d.credit_s < -options_.band_s) level_ = leanest;
+  StepDensity(d, previous_credit_s_);
+  previous_credit_s_ = d.credit_s;
+  if (density_ > 0) {
+    level_ = leanest;  // keyframes are being thinned: no RGB-D
+  } else if (d.credit_s < -options_.band_s) {
     level_ = std::min(level_ + 1, leanest);
   } else if (d.credit_s > options_.band_s) {
-    const int richer = level_ - 1;
+    // The richest level the credit pays for (unused credit beyond max_credit_s is lost);
+    // never richer on a guess: only once some RGB-D keyframe has shown what they cost.
     const double floor = -options_.band_s * budget;
-    // Never richer on a guess: only once some RGB-D keyframe has shown what they cost.
-    const double expected = richer >= 0 ? ExpectedRgbdBytes(richer) : -1;
-    if (expected >= 0 && credit_bytes_ - geometry_bytes_ - expected >= floor) level_ = richer;
+    for (int richer = level_ - 1; richer >= 0; --richer) {
+      const double expected = ExpectedRgbdBytes(richer);
+      if (expected < 0 || credit_bytes_ - geometry_bytes_ - expected < floor) break;
+      level_ = richer;
+    }
   }
   // What is left of the queue bound, in bytes at the link's rate: the keyframe must fit.
-  // The bound holds at least two keyframes' geometry: below that, a small budget could never
-  // carry any RGB-D, however slowly keyframes came.
-  const double bound_s = std::max(options_.max_queue_s, 2 * geometry_bytes_ / rate);
   const double room = bound_s * rate - static_cast<double>(link.unacked_bytes) - geometry_bytes_;
   while (level_ < leanest && ExpectedRgbdBytes(level_) > room) ++level_;
   d.level = level_;
@@ -156,9 +195,26 @@ const RgbdLevel& BandwidthBudget::Plan(const LinkObservation& link) {
     d.level = leanest;
     ++shed_;
   }
+  d.keyframe_scale = KeyframeRatioScale();
   current_ = d;
   pending_ = true;
   return ladder_[d.level];
+}
+
+void BandwidthBudget::StepDensity(const BudgetDecision& d, double previous_credit_s) {
+  const int leanest = static_cast<int>(ladder_.size()) - 1;
+  const int thinnest = static_cast<int>(options_.keyframe_scales.size()) - 1;
+  // Over the budget, not merely waiting for a keyframe in flight: the credit says so (it
+  // accrues at the link's rate when the link is slower than the budget). Thinner while the
+  // debt still grows from one keyframe to the next (the keyframes at this density bring more
+  // geometry than the budget accrues between them); denser as soon as the credit allows,
+  // since unused credit beyond max_credit_s is lost.
+  const bool debt_grows = d.credit_s < -options_.band_s && d.credit_s < previous_credit_s;
+  if (level_ == leanest && debt_grows && density_ < thinnest) {
+    ++density_;
+  } else if (density_ > 0 && d.credit_s > options_.band_s && d.queue_s <= options_.max_queue_s) {
+    --density_;
+  }
 }
 
 double BandwidthBudget::ExpectedRgbdBytes(int level) const {
@@ -191,6 +247,7 @@ void BandwidthBudget::Record(KeyframeId keyframe, std::uint64_t message_bytes,
   d.rgbd_bytes = rgbd_bytes;
   d.rgbd = rgbd;
   ++keyframes_per_level_[d.level];
+  ++keyframes_per_density_[density_];
   if (decisions_.size() < kMaxRecorded) {
     decisions_.push_back(d);
   } else {
@@ -223,6 +280,7 @@ Json BandwidthBudget::ToJson() const {
     e["keyframe"] = d.keyframe.value();
     e["t"] = d.time_s;
     e["level"] = d.level;
+    e["keyframe_scale"] = d.keyframe_scale;
     e["shed"] = d.shed;
     e["credit_s"] = d.credit_s;
     e["queue_s"] = d.queue_s;
@@ -237,6 +295,14 @@ Json BandwidthBudget::ToJson() const {
   Json histogram = Json::MakeArray();
   for (int n : keyframes_per_level_) histogram.Push(n);
   j["keyframes_per_level"] = histogram;
+  Json density = Json::MakeArray();
+  for (std::size_t i = 0; i < keyframes_per_density_.size(); ++i) {
+    Json e;
+    e["keyframe_scale"] = options_.keyframe_scales[i];
+    e["keyframes"] = keyframes_per_density_[i];
+    density.Push(e);
+  }
+  j["keyframes_per_density"] = density;
   return j;
 }
 

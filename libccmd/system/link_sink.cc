@@ -19,6 +19,17 @@ RgbdRequest LinkSink::NextRgbdRequest() {
   return level.request;
 }
 
+double LinkSink::KeyframeRatioScale() {
+  if (!budget_) return 1.0;
+  std::lock_guard<std::mutex> lock(mutex_);
+  const double now = MonotonicSeconds();
+  if (now - last_refresh_s_ >= 0.1) {
+    last_refresh_s_ = now;
+    budget_->Refresh(ObserveLocked());
+  }
+  return budget_->KeyframeRatioScale();
+}
+
 LinkObservation LinkSink::ObserveLocked() {
   // Messages are acknowledged in order: the link's count says which of ours are stored.
   const std::uint64_t acked = link_->stats().acked;

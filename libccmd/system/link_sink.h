@@ -45,6 +45,8 @@ class LinkSink : public KeyframeSink {
   void OnKeyframe(KeyframeSnapshot keyframe) override;
   void OnPoseUpdates(std::vector<PoseUpdate> updates) override;
   RgbdRequest NextRgbdRequest() override;
+  // The budget's keyframe density, refreshed from the link at most every 0.1 s.
+  double KeyframeRatioScale() override;
   LinkSinkStats stats() const;
   // Counters, the keyframe log ("keyframe_log": [id, created, handed, bytes, RGB-D bytes]
   // per keyframe, times in milliseconds since the Unix epoch) and the budget's decisions.
@@ -62,6 +64,7 @@ class LinkSink : public KeyframeSink {
   LinkSinkStats stats_;
   std::unique_ptr<BandwidthBudget> budget_;
   std::optional<RgbdEncodeOptions> planned_;  // the budget's coding for the next keyframe
+  double last_refresh_s_ = -1;                // of the budget, between keyframes
   std::vector<SentKeyframe> sent_;            // the first kMaxLogged keyframes
   std::uint64_t not_logged_ = 0;
   static constexpr std::size_t kMaxLogged = 100000;

@@ -89,6 +89,11 @@ class KeyframeSink {
   // Asked just before each keyframe's RGB-D decision (mapping thread, the agent's map
   // locked): must be quick and must not call into the front-end.
   virtual RgbdRequest NextRgbdRequest() { return {}; }
+  // Asked by the tracker's keyframe decision on every frame (tracking thread): multiplies the
+  // fraction of tracked points under which a frame becomes a keyframe. Below 1: fewer
+  // keyframes (a bandwidth budget that geometry alone overflows). Must be quick (the link's
+  // sink looks at its budget at most every 0.1 s here).
+  virtual double KeyframeRatioScale() { return 1.0; }
 };
 
 }  // namespace ccmd

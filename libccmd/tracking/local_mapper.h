@@ -60,6 +60,7 @@ class LocalMapper : public MappingQueue {
   // MappingQueue (called by the tracker with the map locked).
   bool Idle() const override;
   bool CanAccept() const override;
+  double KeyframeRatioScale() const override { return sink_ ? sink_->KeyframeRatioScale() : 1.0; }
   void Insert(const KeyframePtr& keyframe) override;
 
   // The tracking thread's CPU time for one frame, for the CPU budget.

@@ -366,8 +366,8 @@ bool Tracker::NeedNewKeyframe() const {
     }
   }
   const bool need_close = tracked_close < 100 && untracked_close > 70;
-  const double ratio =
-      keyframes < 2 ? 0.8 * options_.keyframe_tracked_ratio : options_.keyframe_tracked_ratio;
+  const double ratio = (keyframes < 2 ? 0.8 : 1.0) * options_.keyframe_tracked_ratio *
+                       mapping_->KeyframeRatioScale();
   const int since = current_->index - last_keyframe_frame_;
   const bool c1a = since >= max_frames;
   const bool c1b = mapping_->Idle();

@@ -37,6 +37,8 @@ class MappingQueue {
   virtual bool Idle() const = 0;                         // waiting for work
   virtual bool CanAccept() const = 0;                    // room for another keyframe
   virtual void Insert(const KeyframePtr& keyframe) = 0;  // only called after CanAccept()
+  // Multiplies the tracked-point fraction of the keyframe decision (KeyframeSink's).
+  virtual double KeyframeRatioScale() const { return 1.0; }
 };
 
 class Tracker {

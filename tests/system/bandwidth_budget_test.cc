@@ -17,13 +17,17 @@ namespace {
 struct SimResult {
   double average_bytes_per_s = 0;  // everything handed over, until the link drained it
   double max_queue_s = 0;          // unacknowledged bytes over the drain rate, at decisions
+  double max_queue_late_s = 0;     // the same over the second half of the run
   int keyframes = 0, recorded = 0, rgbd = 0, shed = 0;
   std::vector<int> levels;
+  std::vector<double> scales;  // keyframe density asked after each decision
 };
 
-// `rate_hz` keyframes a second for `seconds`; geometry `geometry` bytes; a keyframe at level
-// l carries RGB-D with a probability set by its selection and `rgbd_full` bytes at r = 1,
-// quality 75, scaled by pixels and quality. The link drains `link_share` of the budget.
+// `rate_hz` keyframes a second for `seconds` at the tracker's own density (a density scale s
+// makes s^3 as many: each 0.1 off a fraction of 0.5 about halves them, as measured in
+// docs/benchmarks/frontend.md); geometry `geometry` bytes; a keyframe at level l carries
+// RGB-D with a probability set by its selection and `rgbd_full` bytes at r = 1, quality 75,
+// scaled by pixels and quality. The link drains `link_share` of the budget.
 SimResult Simulate(double budget, double seconds, double rate_hz, double geometry, double rgbd_full,
                    double link_share = 0.96, std::uint64_t seed = 1) {
   BandwidthBudgetOptions options;
@@ -36,7 +40,7 @@ SimResult Simulate(double budget, double seconds, double rate_hz, double geometr
   const double drain = budget * link_share;
   double handed = 0, drained = 0, last_t = 0;
   SimResult r;
-  for (double t = 0; t < seconds; t += 1.0 / rate_hz) {
+  for (double t = 0; t < seconds; t += 1.0 / (rate_hz * std::pow(b.KeyframeRatioScale(), 3))) {
     drained = std::min(handed, drained + drain * (t - last_t));
     last_t = t;
     LinkObservation o;
@@ -44,9 +48,12 @@ SimResult Simulate(double budget, double seconds, double rate_hz, double geometr
     o.handed_bytes = static_cast<std::uint64_t>(handed);
     o.unacked_bytes = static_cast<std::uint64_t>(handed - drained);
     r.max_queue_s = std::max(r.max_queue_s, (handed - drained) / drain);
+    if (t >= seconds / 2)
+      r.max_queue_late_s = std::max(r.max_queue_late_s, (handed - drained) / drain);
     const RgbdLevel& level = b.Plan(o);
     const int index = static_cast<int>(&level - &b.ladder()[0]);
     r.levels.push_back(index);
+    r.scales.push_back(b.KeyframeRatioScale());
     double p =
         level.request.every_keyframe ? 1.0 : std::min(1.0, 0.3 * level.request.threshold_scale);
     if (!level.request.allow) p = 0;
@@ -98,22 +105,79 @@ TEST(BandwidthBudgetTest, AverageStaysWithinTenPercentOfTheBudget) {
     EXPECT_LE(r.average_bytes_per_s, budget) << budget;
     EXPECT_GE(r.average_bytes_per_s, 0.9 * budget) << budget;
     EXPECT_EQ(r.recorded, r.keyframes);  // every keyframe went, geometry included
-    // The queue stays within its bound (0.5 s), give or take a keyframe's size being guessed.
-    EXPECT_LE(r.max_queue_s, 0.7) << budget;
+    // The queue stays within its bound (1 s), give or take a keyframe's size being guessed.
+    EXPECT_LE(r.max_queue_s, BandwidthBudgetOptions{}.max_queue_s + 0.2) << budget;
   }
 }
 
-TEST(BandwidthBudgetTest, BelowTheGeometryRateOnlyGeometryGoesAndNothingIsDropped) {
-  // 75 kB/s of geometry into 50 kB/s: RGB-D stops, geometry queues (it is never dropped).
-  const SimResult r = Simulate(50e3, 30, 5, 15e3, 25e3);
-  EXPECT_EQ(r.recorded, r.keyframes);
-  const int tail = static_cast<int>(r.levels.size()) / 2;
+TEST(BandwidthBudgetTest, BelowTheGeometryRateKeyframesThinAndTheQueueStaysBounded) {
+  // 75 kB/s of geometry into 50 and 25 kB/s: RGB-D stops, then the keyframes thin out until
+  // their geometry fits; every keyframe made still goes whole, and the queue drains.
   const int leanest =
       static_cast<int>(DefaultBudgetLadder(RgbdEncodeOptions{}, nullptr).size()) - 1;
-  for (std::size_t i = tail; i < r.levels.size(); ++i) EXPECT_EQ(r.levels[i], leanest) << i;
-  EXPECT_GT(r.shed, 0);
-  EXPECT_GT(r.max_queue_s, 0.5);  // said so: geometry alone overflows the bound
-  EXPECT_GE(r.average_bytes_per_s, 0.9 * 50e3);
+  for (const double budget : {50e3, 25e3}) {
+    const SimResult r = Simulate(budget, 120, 5, 15e3, 25e3);
+    EXPECT_EQ(r.recorded, r.keyframes) << budget;
+    EXPECT_LT(*std::min_element(r.scales.begin(), r.scales.end()), 1.0) << budget;
+    for (std::size_t i = 0; i < r.levels.size(); ++i) {
+      if (r.scales[i] < 1.0) {
+        EXPECT_EQ(r.levels[i], leanest) << i;  // no RGB-D while thinning
+      }
+    }
+    EXPECT_LE(r.average_bytes_per_s, budget) << budget;
+    EXPECT_GE(r.average_bytes_per_s, 0.9 * budget) << budget;
+    // Once the density has settled the queue stays within a few keyframes' geometry.
+    EXPECT_LE(r.max_queue_late_s, 4 * 15e3 * 1.2 / (0.96 * budget)) << budget;
+  }
+}
+
+TEST(BandwidthBudgetTest, DensityComesBackWhenTheLinkHasRoom) {
+  // Thinned at 25 kB/s, then the same agent under a budget its geometry fits easily.
+  BandwidthBudgetOptions options;
+  options.budget_bytes_per_s = 25e3;
+  int start = 0;
+  BandwidthBudget b(options, DefaultBudgetLadder(RgbdEncodeOptions{}, &start), start);
+  double t = 0, handed = 0;
+  for (int k = 0; k < 20; ++k, t += 0.2) {  // 75 kB/s handed over, acknowledged at 24 kB/s
+    const double acked = std::min(handed, 24e3 * t);
+    b.Plan({t, static_cast<std::uint64_t>(handed), static_cast<std::uint64_t>(handed - acked)});
+    b.Record(KeyframeId(static_cast<std::uint32_t>(k)), 15000, 0, false);
+    handed += 15000;
+  }
+  EXPECT_LT(b.KeyframeRatioScale(), 1.0);
+  // The queue has drained; keyframes come slowly now (1 a second, 15 kB/s): the debt is
+  // repaid in about 25 s, then density steps back once a second.
+  for (int k = 20; k < 120; ++k, t += 1.0) {
+    b.Plan({t, static_cast<std::uint64_t>(handed), 0});
+    b.Record(KeyframeId(static_cast<std::uint32_t>(k)), 15000, 0, false);
+    handed += 15000;
+  }
+  EXPECT_DOUBLE_EQ(b.KeyframeRatioScale(), 1.0);
+}
+
+TEST(BandwidthBudgetTest, DensityComesBackBetweenKeyframesWhenTheCameraSlowsDown) {
+  // Thinned at 25 kB/s; then no keyframe for 10 s (the camera stops) while the queue drains.
+  BandwidthBudgetOptions options;
+  options.budget_bytes_per_s = 25e3;
+  int start = 0;
+  BandwidthBudget b(options, DefaultBudgetLadder(RgbdEncodeOptions{}, &start), start);
+  double t = 0, handed = 0;
+  for (int k = 0; k < 20; ++k, t += 0.2) {
+    const double acked = std::min(handed, 24e3 * t);
+    b.Plan({t, static_cast<std::uint64_t>(handed), static_cast<std::uint64_t>(handed - acked)});
+    b.Record(KeyframeId(static_cast<std::uint32_t>(k)), 15000, 0, false);
+    handed += 15000;
+  }
+  const double thinned = b.KeyframeRatioScale();
+  ASSERT_LT(thinned, 1.0);
+  b.Refresh({t, static_cast<std::uint64_t>(handed), static_cast<std::uint64_t>(handed)});
+  EXPECT_EQ(b.KeyframeRatioScale(), thinned);  // still in debt: no change
+  for (; t < 30; t += 0.1) {
+    const double acked = std::min(handed, 24e3 * t);
+    b.Refresh({t, static_cast<std::uint64_t>(handed), static_cast<std::uint64_t>(handed - acked)});
+  }
+  EXPECT_DOUBLE_EQ(b.KeyframeRatioScale(), 1.0);
+  EXPECT_EQ(b.decisions().size(), 20u);  // refreshing plans no keyframe
 }
 
 TEST(BandwidthBudgetTest, FollowsALinkSlowerThanTheBudget) {
@@ -121,7 +185,8 @@ TEST(BandwidthBudgetTest, FollowsALinkSlowerThanTheBudget) {
   const SimResult r = Simulate(150e3, 60, 5, 15e3, 25e3, /*link_share=*/0.6 * 0.96);
   EXPECT_EQ(r.recorded, r.keyframes);
   EXPECT_GE(r.average_bytes_per_s, 0.85 * 0.6 * 150e3);
-  EXPECT_LE(r.max_queue_s, 1.0);  // the link's rate is learnt over a 2 s window
+  // The link's rate is learnt over a 2 s window: the queue may pass its bound meanwhile.
+  EXPECT_LE(r.max_queue_s, BandwidthBudgetOptions{}.max_queue_s + 0.5);
 }
 
 TEST(BandwidthBudgetTest, AStalledLinkEarnsNoCreditAndGetsGeometryOnly) {
@@ -152,10 +217,10 @@ TEST(BandwidthBudgetTest, AStalledLinkEarnsNoCreditAndGetsGeometryOnly) {
 
 TEST(BandwidthBudgetTest, LargeRgbdNeverOverflowsTheQueueBound) {
   // 400 kB of RGB-D at r = 1 (100 kB at the default r = 1/2) into 100 kB/s: only lean levels
-  // fit in a 0.5 s queue, however much credit two keyframes a second leave.
+  // fit in a 1 s queue, however much credit two keyframes a second leave.
   const SimResult r = Simulate(100e3, 60, 2, 15e3, 400e3);
   EXPECT_EQ(r.recorded, r.keyframes);
-  EXPECT_LE(r.max_queue_s, 0.7);
+  EXPECT_LE(r.max_queue_s, BandwidthBudgetOptions{}.max_queue_s + 0.2);
   EXPECT_GT(r.rgbd, 0);
 }
 
@@ -204,6 +269,14 @@ TEST(BandwidthBudgetTest, OptionsAreValidated) {
   EXPECT_TRUE(o.Validate().ok());
   o.max_queue_s = 0;
   EXPECT_FALSE(o.Validate().ok());
+  o.max_queue_s = 0.5;
+  for (const std::vector<double>& scales :
+       {std::vector<double>{}, {0.8, 0.6}, {1.0, 0.6, 0.8}, {1.0, 0.0}}) {
+    o.keyframe_scales = scales;
+    EXPECT_FALSE(o.Validate().ok()) << scales.size();
+  }
+  o.keyframe_scales = {1.0, 0.7};
+  EXPECT_TRUE(o.Validate().ok());
 }
 
 }  // namespace
