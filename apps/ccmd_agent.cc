@@ -284,6 +284,9 @@ int main(int argc, char** argv) {
     link_options.server = server;
     link_options.name = name.empty() ? ccmd::DefaultAgentName() : name;
     link_options.camera = ccmd::SessionFromCamera(camera);
+    // The server weighs this agent's keypoint depths with the sensor's noise model.
+    link_options.camera.depth_sigma0 = tracking.depth_noise.sigma_0;
+    link_options.camera.depth_sigma2 = tracking.depth_noise.sigma_2;
     auto psk = ccmd::ResolvePsk(psk_file);
     if (!psk.ok()) return Fail(psk.status().ToString());
     link_options.psk = *psk;

@@ -78,7 +78,9 @@ Backend::Backend(const BackendOptions& options)
       ingest_stage_(options.queue_capacity),
       loop_stage_(options.queue_capacity * 4),
       gba_stage_(1, Stage<GbaRequest>::Policy::kLatest),
-      dense_stage_(options.queue_capacity * 4) {}
+      dense_stage_(options.queue_capacity * 4) {
+  depth_noise_ = AgentDepthNoise(options_.depth_noise);
+}
 
 Backend::~Backend() { Shutdown(); }
 
@@ -101,10 +103,17 @@ void Backend::Shutdown() {
   dense_stage_.Stop();
 }
 
-Status Backend::RegisterAgent(AgentId agent, const std::string& name, const PinholeCamera& camera) {
+Status Backend::RegisterAgent(AgentId agent, const std::string& name, const PinholeCamera& camera,
+                              const std::optional<DepthNoise>& depth_noise) {
   CCMD_RETURN_IF_ERROR(camera.Validate().WithContext("agent " + name));
+  if (depth_noise) CCMD_RETURN_IF_ERROR(depth_noise->Validate().WithContext("agent " + name));
   std::lock_guard<std::mutex> lock(cameras_mutex_);
   cameras_[agent] = camera;
+  if (depth_noise) {
+    depth_noise_.agents[agent] = *depth_noise;
+  } else {
+    depth_noise_.agents.erase(agent);
+  }
   names_[agent] = name;
   if (observer_) observer_->OnAgent(agent, name);
   return Status::Ok();
@@ -113,6 +122,11 @@ Status Backend::RegisterAgent(AgentId agent, const std::string& name, const Pinh
 PinholeCamera Backend::CameraOf(AgentId agent) const {
   std::lock_guard<std::mutex> lock(cameras_mutex_);
   return cameras_.at(agent);
+}
+
+DepthNoise Backend::DepthNoiseOf(AgentId agent) const {
+  std::lock_guard<std::mutex> lock(cameras_mutex_);
+  return depth_noise_.Of(agent);
 }
 
 Status Backend::SubmitKeyframe(AgentId agent, KeyframeMessage message, double arrived_s) {
@@ -307,7 +321,8 @@ Status Backend::ExportDenseMap(const std::string& path) {
 // ---------------------------------------------------------------- loops
 
 void Backend::DetectLoops(const GlobalKeyframeId& id) {
-  if (auto closure = loop_closer_.Process(id, CameraOf(id.agent), /*stored=*/false))
+  if (auto closure =
+          loop_closer_.Process(id, CameraOf(id.agent), DepthNoiseOf(id.agent), /*stored=*/false))
     AfterLoop(std::move(*closure));
   if (const auto old = culler_.Arrived(id)) CullIfRedundant(*old);
   // Measuring the index visits every word's list: now and then is enough.
@@ -317,7 +332,8 @@ void Backend::DetectLoops(const GlobalKeyframeId& id) {
   while (loop_stage_.backlog() == 0) {
     const auto late = loop_closer_.NextLateQuery();
     if (!late) break;
-    if (auto closure = loop_closer_.Process(*late, CameraOf(late->agent), /*stored=*/true)) {
+    if (auto closure = loop_closer_.Process(*late, CameraOf(late->agent), DepthNoiseOf(late->agent),
+                                            /*stored=*/true)) {
       AfterLoop(std::move(*closure));
     }
   }
@@ -399,10 +415,13 @@ void Backend::RunGlobalBa(GbaRequest request) {
   if (stopping_) return;
   gba_abort_ = false;
   if (stopping_) return;  // Shutdown sets stopping_ before gba_abort_: no abort is lost
-  const std::map<AgentId, PinholeCamera> cameras = [&] {
+  std::map<AgentId, PinholeCamera> cameras;
+  AgentDepthNoise depth_noise;
+  {
     std::lock_guard<std::mutex> lock(cameras_mutex_);
-    return cameras_;
-  }();
+    cameras = cameras_;
+    depth_noise = depth_noise_;
+  }
   const bool windowed = [&] {
     MapManager::Guard guard = maps_.CheckOutAgent(request.agent);
     return static_cast<int>(guard->keyframes().size()) > options_.global_ba_max_keyframes;
@@ -421,9 +440,9 @@ void Backend::RunGlobalBa(GbaRequest request) {
       const std::set<GlobalKeyframeId> window =
           SelectGlobalBaWindow(*guard, request.around, options_.global_ba_max_keyframes,
                                options_.global_ba_max_observations);
-      problem = BuildGlobalBa(*guard, cameras, options_.depth_noise, &window);
+      problem = BuildGlobalBa(*guard, cameras, depth_noise, &window);
     } else {
-      problem = BuildGlobalBa(*guard, cameras, options_.depth_noise);
+      problem = BuildGlobalBa(*guard, cameras, depth_noise);
     }
   }
   BaOptions ba;

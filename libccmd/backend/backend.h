@@ -19,6 +19,7 @@
 #include <map>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -121,7 +122,9 @@ class Backend {
   Backend& operator=(const Backend&) = delete;
 
   // An agent's camera (from its handshake); needed before its first keyframe.
-  Status RegisterAgent(AgentId agent, const std::string& name, const PinholeCamera& camera);
+  // `depth_noise`: the agent's sensor as its handshake announced it (else options' default).
+  Status RegisterAgent(AgentId agent, const std::string& name, const PinholeCamera& camera,
+                       const std::optional<DepthNoise>& depth_noise = std::nullopt);
   // Queue work (blocks while the ingest queue is full: back-pressure towards the network).
   // `arrived_s`: MonotonicSeconds() when the message reached the server (0: now); the
   // observer gets it with the change the message causes.
@@ -214,6 +217,7 @@ class Backend {
                       double received = -1);
   void QueueDenseUpdates(const std::vector<ServerKeyframe*>& moved, DenseTask::Kind kind);
   PinholeCamera CameraOf(AgentId agent) const;
+  DepthNoise DepthNoiseOf(AgentId agent) const;
   double Now() const;
   // Tells the observer (if any) that `moved` have new poses in `map`.
   void NotifyPoses(PoseSource source, MapId map, const std::vector<ServerKeyframe*>& moved,
@@ -231,6 +235,7 @@ class Backend {
 
   mutable std::mutex cameras_mutex_;
   std::map<AgentId, PinholeCamera> cameras_;
+  AgentDepthNoise depth_noise_;
   std::map<AgentId, std::string> names_;
 
   // A newer loop or fusion abandons a running global BA of a whole map, a fusion a windowed

@@ -568,19 +568,26 @@ std::optional<LoopCloser::Query> LoopCloser::FindCandidates(const GlobalKeyframe
 }
 
 std::optional<LoopClosure> LoopCloser::Process(const GlobalKeyframeId& id,
-                                               const PinholeCamera& camera, bool stored) {
+                                               const PinholeCamera& camera,
+                                               const DepthNoise& depth_noise, bool stored) {
   const std::optional<Query> query = FindCandidates(id, stored);
   if (!query) return std::nullopt;
+  LoopCloserOptions options = options_;
+  options.verification.depth_noise = depth_noise;
   std::optional<LoopClosure> closure;
   for (const PlaceHit& candidate : query->candidates) {
-    if (TryCandidate(id, camera, candidate, query->map, &closure) != Outcome::kNextCandidate) break;
+    if (TryCandidate(id, camera, options, candidate, query->map, &closure) !=
+        Outcome::kNextCandidate)
+      break;
   }
   return closure;
 }
 
 LoopCloser::Outcome LoopCloser::TryCandidate(const GlobalKeyframeId& id,
-                                             const PinholeCamera& camera, const PlaceHit& candidate,
-                                             MapId query_map, std::optional<LoopClosure>* closure) {
+                                             const PinholeCamera& camera,
+                                             const LoopCloserOptions& options,
+                                             const PlaceHit& candidate, MapId query_map,
+                                             std::optional<LoopClosure>* closure) {
   const auto candidate_map = maps_->MapOfAgent(candidate.keyframe.agent);
   if (!candidate_map) return Outcome::kNextCandidate;
   const bool same_map = *candidate_map == query_map;
@@ -596,7 +603,7 @@ LoopCloser::Outcome LoopCloser::TryCandidate(const GlobalKeyframeId& id,
   ServerKeyframe* query = query_guard->keyframe(id);
   ServerKeyframe* cand = cmap.keyframe(candidate.keyframe);
   if (!query || !cand) return Outcome::kNextCandidate;
-  auto match = VerifyLoop(query, camera, cand, cmap, options_.verification);
+  auto match = VerifyLoop(query, camera, cand, cmap, options.verification);
   if (!match) return Outcome::kNextCandidate;
 
   int count = 0;
@@ -607,12 +614,13 @@ LoopCloser::Outcome LoopCloser::TryCandidate(const GlobalKeyframeId& id,
                  << cand->id.keyframe.value() << " (" << match->inliers << " inliers, " << count
                  << "/" << options_.loop_consistency << " consistent)";
   if (!accepted) return Outcome::kDone;
-  *closure = Correct(&query_guard, same_map ? nullptr : &candidate_guard, *match, camera);
+  *closure = Correct(&query_guard, same_map ? nullptr : &candidate_guard, *match, camera, options);
   return Outcome::kClosed;
 }
 
 LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guard* candidate_guard,
-                                const LoopMatch& match, const PinholeCamera& camera) {
+                                const LoopMatch& match, const PinholeCamera& camera,
+                                const LoopCloserOptions& options) {
   LoopClosure closure;
   LoopEvent& event = closure.event;
   event.server_time = MonotonicSeconds() - start_time_;
@@ -625,12 +633,12 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
     // The verified pose of the query refined on the seam around the loop, as for a fusion.
     LoopMatch refined = match;
     SeamSides sides;
-    if (options_.seam.enabled) {
-      sides = MakeLoopSeamSides(*map, match, options_);
+    if (options.seam.enabled) {
+      sides = MakeLoopSeamSides(*map, match, options);
       SeamJoin join;
-      if (const std::optional<Pose> D = FitSeam(*map, sides, camera, options_, &join)) {
+      if (const std::optional<Pose> D = FitSeam(*map, sides, camera, options, &join)) {
         const Pose T = Orthonormalized(*D * match.query->T_map_cam);
-        if (SmallCorrection(T, match.T_candidate_map_query, options_.seam)) {
+        if (SmallCorrection(T, match.T_candidate_map_query, options.seam)) {
           refined.T_candidate_map_query = T;
           event.T_candidate_query = match.candidate->T_map_cam.inverse() * T;
         }
@@ -641,18 +649,18 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
                                                    match.T_candidate_map_query)
                      << " mm";
     }
-    if (LoopAlreadyClosed(refined, options_)) {
+    if (LoopAlreadyClosed(refined, options)) {
       event.already_closed = true;
       map->AddLoopEdge({match.candidate->id, match.query->id, event.T_candidate_query});
       MergeLoopMatches(map, refined);
     } else {
-      closure.moved = CloseLoopInMap(map, refined, options_.pose_graph);
+      closure.moved = CloseLoopInMap(map, refined, options.pose_graph);
     }
-    if (options_.seam.enabled) TieSeam(map, sides, camera, options_);
+    if (options.seam.enabled) TieSeam(map, sides, camera, options);
     closure.map = std::move(*query_guard);
   } else {
     MapFusion fusion =
-        FuseMapsByLoop(maps_, query_guard, candidate_guard, match, &options_, &camera);
+        FuseMapsByLoop(maps_, query_guard, candidate_guard, match, &options, &camera);
     event.fusion = true;
     const SeamJoin& seam = fusion.seam;
     CCMD_LOG(INFO) << "fusion seam: " << seam.searched << " matches, " << seam.pair_inliers

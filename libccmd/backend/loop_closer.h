@@ -218,11 +218,12 @@ class LoopCloser {
   LoopCloser(const LoopCloserOptions& options, const PlaceIndexOptions& place, MapManager* maps,
              double start_time);
 
-  // Runs the three steps for a keyframe of an agent with `camera`. `stored`: the keyframe is
-  // already in the place index (a late query), so it is only queried. Returns the loop it
-  // closed, if any, with its map still checked out.
+  // Runs the three steps for a keyframe of an agent with `camera` and a depth sensor of
+  // `depth_noise` (it weighs the keyframe's depths in verification and seam refinement).
+  // `stored`: the keyframe is already in the place index (a late query), so it is only
+  // queried. Returns the loop it closed, if any, with its map still checked out.
   std::optional<LoopClosure> Process(const GlobalKeyframeId& id, const PinholeCamera& camera,
-                                     bool stored);
+                                     const DepthNoise& depth_noise, bool stored);
 
   // Keyframes stored before an online vocabulary existed, to be queried now, oldest first.
   std::optional<GlobalKeyframeId> NextLateQuery();
@@ -240,11 +241,13 @@ class LoopCloser {
   std::optional<Query> FindCandidates(const GlobalKeyframeId& id, bool stored);
   enum class Outcome { kNextCandidate, kDone, kClosed };
   // Verifies one candidate; on acceptance corrects and fills `closure`.
+  // `options`: the closer's, with the query agent's depth noise.
   Outcome TryCandidate(const GlobalKeyframeId& id, const PinholeCamera& camera,
-                       const PlaceHit& candidate, MapId query_map,
+                       const LoopCloserOptions& options, const PlaceHit& candidate, MapId query_map,
                        std::optional<LoopClosure>* closure);
   LoopClosure Correct(MapManager::Guard* query_guard, MapManager::Guard* candidate_guard,
-                      const LoopMatch& match, const PinholeCamera& camera);
+                      const LoopMatch& match, const PinholeCamera& camera,
+                      const LoopCloserOptions& options);
 
   const LoopCloserOptions options_;
   PlaceIndex place_;

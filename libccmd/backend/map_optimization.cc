@@ -89,7 +89,7 @@ namespace {
 class GlobalBaBuilder {
  public:
   GlobalBaBuilder(const ServerMap& map, const std::map<AgentId, PinholeCamera>& cameras,
-                  const DepthNoise& depth_noise, GlobalBaProblem* g)
+                  const AgentDepthNoise& depth_noise, GlobalBaProblem* g)
       : map_(map), depth_noise_(depth_noise), g_(g) {
     for (const auto& [agent, camera] : cameras) {
       calibration_[agent] = static_cast<int>(g_->problem.calibrations.size());
@@ -130,9 +130,10 @@ class GlobalBaBuilder {
                                                       : Known(o.keyframe);
       if (c < 0) continue;
       const ServerKeypoint& kp = o.keyframe->keypoints[o.keypoint];
+      const DepthNoise& noise = depth_noise_.Of(o.keyframe->id.agent);
       g_->problem.observations.push_back({c, index, Eigen::Vector2d(kp.pt.x, kp.pt.y), kp.depth,
                                           std::pow(1.2, -2.0 * kp.octave),
-                                          kp.depth > 0 ? depth_noise_.Information(kp.depth) : 0.0});
+                                          kp.depth > 0 ? noise.Information(kp.depth) : 0.0});
     }
   }
 
@@ -156,7 +157,7 @@ class GlobalBaBuilder {
   }
 
   const ServerMap& map_;
-  const DepthNoise& depth_noise_;
+  const AgentDepthNoise& depth_noise_;
   GlobalBaProblem* g_;
   std::map<AgentId, int> calibration_;
   std::unordered_map<const ServerKeyframe*, int> camera_index_;
@@ -198,7 +199,7 @@ std::set<const ServerKeyframe*> FixedNeighbours(const ServerMap& map,
 }  // namespace
 
 GlobalBaProblem BuildGlobalBa(const ServerMap& map, const std::map<AgentId, PinholeCamera>& cameras,
-                              const DepthNoise& depth_noise,
+                              const AgentDepthNoise& depth_noise,
                               const std::set<GlobalKeyframeId>* window) {
   GlobalBaProblem g;
   GlobalBaBuilder builder(map, cameras, depth_noise, &g);

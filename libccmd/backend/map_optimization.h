@@ -38,6 +38,19 @@ struct MapPoseGraphOptions {
 StatusOr<std::vector<ServerKeyframe*>> OptimizeMapPoseGraph(
     ServerMap* map, const MapPoseGraphOptions& options = {});
 
+// The depth noise of each agent's sensor, as its handshake announced it; `fallback` (a
+// structured-light sensor's by default) for agents that announced none.
+struct AgentDepthNoise {
+  AgentDepthNoise(const DepthNoise& fallback_noise = {})  // NOLINT: every agent alike
+      : fallback(fallback_noise) {}
+  DepthNoise fallback;
+  std::map<AgentId, DepthNoise> agents;
+  const DepthNoise& Of(AgentId agent) const {
+    const auto it = agents.find(agent);
+    return it == agents.end() ? fallback : it->second;
+  }
+};
+
 // Global BA in three steps so that the solve runs without holding the map:
 struct GlobalBaProblem {
   BaProblem problem;
@@ -52,7 +65,7 @@ struct GlobalBaProblem {
 // map) with every observation, keyframes outside the window that observe them held fixed (and
 // the first of the window if none does, to fix the gauge).
 GlobalBaProblem BuildGlobalBa(const ServerMap& map, const std::map<AgentId, PinholeCamera>& cameras,
-                              const DepthNoise& depth_noise,
+                              const AgentDepthNoise& depth_noise,
                               const std::set<GlobalKeyframeId>* window = nullptr);
 // The keyframes closest to `seeds` in the covisibility graph (breadth first, strongest links
 // first), at most `max_keyframes` and no more than make `max_observations` observations of

@@ -16,8 +16,10 @@
 namespace ccmd {
 namespace {
 
-// Optional trailer of the info record: this byte, then the camera's 5 distortion coefficients.
+// Optional trailers of the info record, each a byte and its fields, in this order: the
+// camera's 5 distortion coefficients; its depth noise (sigma0, sigma2).
 constexpr std::uint8_t kJournalCameraDistortion = 1;
+constexpr std::uint8_t kJournalCameraDepthNoise = 2;
 
 std::string Errno(const std::string& what) { return what + ": " + std::strerror(errno); }
 
@@ -335,6 +337,10 @@ std::vector<std::uint8_t> SerializeJournalInfo(const JournalAgentInfo& info) {
     w.PutU8(kJournalCameraDistortion);
     PutDistortion(info.camera, &w);
   }
+  if (info.camera.HasDepthNoise()) {
+    w.PutU8(kJournalCameraDepthNoise);
+    PutDepthNoise(info.camera, &w);
+  }
   return w.Take();
 }
 
@@ -369,14 +375,24 @@ StatusOr<JournalAgentInfo> ParseJournalInfo(ByteSpan payload, std::uint8_t versi
   } else {
     CCMD_RETURN_IF_ERROR(ReadLimitAndVerifier(&r, &info.max_payload_bytes, &info.verifier));
   }
-  if (r.remaining() > 0) {
+  std::uint8_t last_extension = 0;
+  while (r.remaining() > 0) {
     std::uint8_t extension;
     CCMD_RETURN_IF_ERROR(r.ReadU8(&extension));
-    if (extension != kJournalCameraDistortion) {
+    if (extension <= last_extension) {
+      return Corrupt("journal info: camera extension " + std::to_string(extension) +
+                     " out of order");
+    }
+    last_extension = extension;
+    if (extension == kJournalCameraDistortion) {
+      CCMD_RETURN_IF_ERROR(ReadDistortion(&r, &info.camera));
+    } else if (extension == kJournalCameraDepthNoise) {
+      CCMD_RETURN_IF_ERROR(ReadDepthNoise(&r, &info.camera));
+      if (!info.camera.HasDepthNoise()) return Corrupt("journal info: zero depth noise");
+    } else {
       return Corrupt("journal info: unknown camera extension " + std::to_string(extension) +
                      " (written by a newer server?)");
     }
-    CCMD_RETURN_IF_ERROR(ReadDistortion(&r, &info.camera));
   }
   CCMD_RETURN_IF_ERROR(r.ExpectEnd());
   Status camera_ok = ValidateSessionCamera(info.camera);

@@ -11,6 +11,7 @@ namespace {
 
 constexpr std::uint8_t kHelloFresh = 1u << 0;
 constexpr std::uint8_t kHelloDistortion = 1u << 1;  // 5 x f64 follow the depth scale
+constexpr std::uint8_t kHelloDepthNoise = 1u << 2;  // 2 x f64 follow (after any distortion)
 constexpr std::uint32_t kMaxImageSide = 16384;
 
 void PutNonce(const std::array<std::uint8_t, 32>& n, ByteWriter* w) {
@@ -98,6 +99,11 @@ Status ValidateSessionCamera(const SessionCamera& c) {
   for (const double k : c.distortion) {
     if (!std::isfinite(k)) return InvalidArgument("camera distortion coefficients must be finite");
   }
+  if (c.HasDepthNoise() &&
+      !(c.depth_sigma0 > 0 && c.depth_sigma0 <= 1 && c.depth_sigma2 >= 0 && c.depth_sigma2 <= 1)) {
+    return InvalidArgument(
+        "camera depth noise needs 0 < sigma0 <= 1 m and 0 <= sigma2 <= 1 (finite)");
+  }
   if (c.width == 0 || c.height == 0 || c.width > kMaxImageSide || c.height > kMaxImageSide) {
     return InvalidArgument("camera image size must be 1.." + std::to_string(kMaxImageSide) +
                            " pixels per side");
@@ -113,6 +119,11 @@ std::string DescribeCamera(const SessionCamera& c) {
   if (c.HasDistortion()) {
     std::snprintf(text, sizeof(text), " distortion %.6f %.6f %.6f %.6f %.6f", c.distortion[0],
                   c.distortion[1], c.distortion[2], c.distortion[3], c.distortion[4]);
+    out += text;
+  }
+  if (c.HasDepthNoise()) {
+    std::snprintf(text, sizeof(text), " depth noise %.5f + %.5f z^2 m", c.depth_sigma0,
+                  c.depth_sigma2);
     out += text;
   }
   return out;
@@ -147,15 +158,27 @@ Status ReadDistortion(ByteReader* r, SessionCamera* c) {
   return Status::Ok();
 }
 
+void PutDepthNoise(const SessionCamera& c, ByteWriter* w) {
+  w->PutF64(c.depth_sigma0);
+  w->PutF64(c.depth_sigma2);
+}
+
+Status ReadDepthNoise(ByteReader* r, SessionCamera* c) {
+  CCMD_RETURN_IF_ERROR(r->ReadF64(&c->depth_sigma0));
+  return r->ReadF64(&c->depth_sigma2);
+}
+
 std::vector<std::uint8_t> SerializeHello(const HelloMessage& m) {
   ByteWriter w(128);
   w.PutU8(m.version);
-  const bool distortion = m.camera.HasDistortion();
-  w.PutU8((m.fresh ? kHelloFresh : 0) | (distortion ? kHelloDistortion : 0));
+  const bool distortion = m.camera.HasDistortion(), noise = m.camera.HasDepthNoise();
+  w.PutU8((m.fresh ? kHelloFresh : 0) | (distortion ? kHelloDistortion : 0) |
+          (noise ? kHelloDepthNoise : 0));
   w.PutU8(static_cast<std::uint8_t>(m.name.size()));
   w.PutBytes(m.name.data(), m.name.size());
   PutSessionCamera(m.camera, &w);
   if (distortion) PutDistortion(m.camera, &w);
+  if (noise) PutDepthNoise(m.camera, &w);
   w.PutU64(m.first_seq);
   w.PutU64(m.next_seq);
   PutNonce(m.agent_nonce, &w);
@@ -171,7 +194,8 @@ StatusOr<HelloMessage> ParseHello(ByteSpan payload) {
                        ", this server version " + std::to_string(kProtocolVersion));
   }
   std::uint8_t flags;
-  CCMD_RETURN_IF_ERROR(ReadFlags(&r, kHelloFresh | kHelloDistortion, "hello", &flags));
+  CCMD_RETURN_IF_ERROR(
+      ReadFlags(&r, kHelloFresh | kHelloDistortion | kHelloDepthNoise, "hello", &flags));
   m.fresh = (flags & kHelloFresh) != 0;
   std::uint8_t name_size;
   CCMD_RETURN_IF_ERROR(r.ReadU8(&name_size));
@@ -182,6 +206,10 @@ StatusOr<HelloMessage> ParseHello(ByteSpan payload) {
   if (!name_ok.ok()) return Corrupt("hello: " + name_ok.message());
   CCMD_RETURN_IF_ERROR(ReadSessionCamera(&r, &m.camera));
   if (flags & kHelloDistortion) CCMD_RETURN_IF_ERROR(ReadDistortion(&r, &m.camera));
+  if (flags & kHelloDepthNoise) {
+    CCMD_RETURN_IF_ERROR(ReadDepthNoise(&r, &m.camera));
+    if (!m.camera.HasDepthNoise()) return Corrupt("hello: depth noise flagged but zero");
+  }
   Status camera_ok = ValidateSessionCamera(m.camera);
   if (!camera_ok.ok()) return Corrupt("hello: " + camera_ok.message());
   CCMD_RETURN_IF_ERROR(r.ReadU64(&m.first_seq));

@@ -83,25 +83,32 @@ Status ValidateAgentName(std::string_view name);
 // The agent's camera as announced in Hello: pinhole intrinsics of the images it sends (either
 // focal length may be negative: ICL-NUIM's rows run opposite to the camera's y axis), their
 // lens distortion k1 k2 p1 p2 k3 (keypoints arrive undistorted; the server needs it for the
-// RGB-D images, which are sent as recorded), and the depth scale of its sensor (raw depth
-// units per metre, e.g. 5000 for TUM files).
+// RGB-D images, which are sent as recorded), the depth scale of its sensor (raw depth
+// units per metre, e.g. 5000 for TUM files), and its sensor's depth noise, sigma(z) =
+// depth_sigma0 + depth_sigma2 z^2 metres, with which the server weighs the keypoints' depth
+// (both 0: not announced, the server keeps its default).
 struct SessionCamera {
   double fx = 0, fy = 0, cx = 0, cy = 0;
   std::uint32_t width = 0, height = 0;
   double depth_scale = 0;
   std::array<double, 5> distortion{0, 0, 0, 0, 0};
+  double depth_sigma0 = 0, depth_sigma2 = 0;
   bool operator==(const SessionCamera&) const = default;
   bool HasDistortion() const;
+  bool HasDepthNoise() const { return depth_sigma0 != 0 || depth_sigma2 != 0; }
 };
-// Refuses zero focal lengths, a depth scale <= 0, non-finite values and sizes beyond limits.
+// Refuses zero focal lengths, a depth scale <= 0, non-finite values, sizes beyond limits and a
+// depth noise outside 0 < sigma0 <= 1 m, 0 <= sigma2 <= 1 (when announced).
 Status ValidateSessionCamera(const SessionCamera& camera);
 std::string DescribeCamera(const SessionCamera& camera);
 // The camera's fixed fields (fx fy cx cy, width height, depth scale) as Hello and the journal's
-// info record lay them out; distortion travels separately, only when non-zero.
+// info record lay them out; distortion and depth noise travel separately, only when given.
 void PutSessionCamera(const SessionCamera& camera, ByteWriter* w);
 Status ReadSessionCamera(ByteReader* r, SessionCamera* camera);
 void PutDistortion(const SessionCamera& camera, ByteWriter* w);  // 5 x f64
 Status ReadDistortion(ByteReader* r, SessionCamera* camera);
+void PutDepthNoise(const SessionCamera& camera, ByteWriter* w);  // 2 x f64
+Status ReadDepthNoise(ByteReader* r, SessionCamera* camera);
 
 struct HelloMessage {
   std::uint8_t version = kProtocolVersion;

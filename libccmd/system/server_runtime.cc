@@ -58,7 +58,14 @@ void ServerRuntime::OnAgentKnown(const AgentDescription& agent, bool from_journa
     std::lock_guard<std::mutex> lock(names_mutex_);
     names_[agent.id] = agent.name;
   }
-  const Status s = backend_->RegisterAgent(agent.id, agent.name, CameraFromSession(agent.camera));
+  std::optional<DepthNoise> depth_noise;
+  if (agent.camera.HasDepthNoise()) {
+    depth_noise.emplace();
+    depth_noise->sigma_0 = agent.camera.depth_sigma0;
+    depth_noise->sigma_2 = agent.camera.depth_sigma2;
+  }
+  const Status s =
+      backend_->RegisterAgent(agent.id, agent.name, CameraFromSession(agent.camera), depth_noise);
   if (!s.ok()) CCMD_LOG(ERROR) << "agent " << agent.name << ": " << s.ToString();
   CCMD_LOG(INFO) << "agent " << agent.id << " '" << agent.name << "' "
                  << (from_journal ? "restored" : "joined") << " (" << DescribeCamera(agent.camera)

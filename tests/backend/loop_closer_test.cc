@@ -410,7 +410,7 @@ std::vector<ProcessResult> WalkPastTheStart(int cooldown_keyframes) {
                            id < kSteps ? std::nullopt : std::optional<std::uint32_t>(id - 5));
     }
     std::optional<LoopClosure> closure =
-        closer.Process(Kf(1, id), testing::TestCamera(), /*stored=*/false);
+        closer.Process(Kf(1, id), testing::TestCamera(), DepthNoise(), /*stored=*/false);
     ProcessResult r;
     if (closure) r = {true, closure->event, closure->moved.size()};
     results.push_back(r);

@@ -91,6 +91,37 @@ TEST(MapPoseGraphTest, AConsistentMapIsLeftAlone) {
   }
 }
 
+// Each agent's depths are weighed with its own sensor's noise (announced in its handshake),
+// the others' with the fallback.
+TEST(GlobalBaTest, DepthsAreWeighedWithTheirAgentsSensorNoise) {
+  Rng rng(5);
+  const GeneratedWorld world = MakeRingWorld(1500, &rng);
+  constexpr int kSteps = 40;
+  ServerMap map(MapId(1));
+  for (int i = 0; i < 4; ++i) {
+    const AgentId agent(i < 2 ? 1 : 2);
+    AddGeneratedKeyframe(&map, world, agent, i, CirclePose(i, kSteps), CirclePose(i, kSteps), &rng);
+  }
+  const std::map<AgentId, PinholeCamera> cameras = {{AgentId(1), testing::TestCamera()},
+                                                    {AgentId(2), testing::TestCamera()}};
+  AgentDepthNoise noise(DepthNoise{});  // agent 1: the default (1 mm + 2 mm z^2)
+  DepthNoise rendered;
+  rendered.sigma_0 = 0.0005;
+  rendered.sigma_2 = 0;
+  noise.agents[AgentId(2)] = rendered;
+  const GlobalBaProblem g = BuildGlobalBa(map, cameras, noise);
+  int checked[3] = {0, 0, 0};
+  for (const BaObservation& o : g.problem.observations) {
+    if (o.depth <= 0) continue;
+    const AgentId agent = g.keyframes[o.camera].agent;
+    const double sigma = agent == AgentId(2) ? 0.0005 : 0.001 + 0.002 * o.depth * o.depth;
+    EXPECT_NEAR(o.depth_information * sigma * sigma, 1.0, 1e-9);
+    ++checked[agent.value()];
+  }
+  EXPECT_GT(checked[1], 50);
+  EXPECT_GT(checked[2], 50);
+}
+
 TEST(GlobalBaTest, APerturbedKeyframeReturnsAndLateKeyframesFollowTheirNeighbour) {
   Rng rng(23);
   const GeneratedWorld world = MakeRingWorld(2500, &rng);

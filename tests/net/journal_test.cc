@@ -392,5 +392,43 @@ TEST(JournalTest, InfoRecordCarriesDistortion) {
   EXPECT_FALSE(ParseJournalInfo(bytes).ok());
 }
 
+// A resumed server weighs the agent's depths as the live one did: the depth noise is a second
+// trailer (byte 2, sigma0, sigma2), after the distortion's when there is one.
+TEST(JournalTest, InfoRecordCarriesTheDepthNoise) {
+  JournalAgentInfo info{AgentId(2), "icl", nettest::TestCamera()};
+  info.camera.depth_sigma0 = 0.0005;
+  JournalAgentInfo plain = info;
+  plain.camera.depth_sigma0 = 0;
+  const std::size_t base = SerializeJournalInfo(plain).size();
+  Bytes bytes = SerializeJournalInfo(info);
+  ASSERT_EQ(bytes.size(), base + 1 + 16);
+  EXPECT_EQ(bytes[base], 2);
+  StatusOr<JournalAgentInfo> parsed = ParseJournalInfo(bytes);
+  ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+  EXPECT_EQ(parsed->camera, info.camera);
+
+  info.camera.distortion = {0.262383, -0.953104, -0.005358, 0.002628, 1.163314};
+  info.camera.depth_sigma2 = 0.0015;
+  bytes = SerializeJournalInfo(info);
+  ASSERT_EQ(bytes.size(), base + 1 + 40 + 1 + 16);
+  EXPECT_EQ(bytes[base], 1);
+  EXPECT_EQ(bytes[base + 41], 2);
+  parsed = ParseJournalInfo(bytes);
+  ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+  EXPECT_EQ(parsed->camera, info.camera);
+
+  // Trailers out of order, twice, or zero noise are damage.
+  Bytes swapped(bytes.begin(), bytes.begin() + base);
+  swapped.insert(swapped.end(), bytes.begin() + base + 41, bytes.end());
+  swapped.insert(swapped.end(), bytes.begin() + base, bytes.begin() + base + 41);
+  EXPECT_EQ(ParseJournalInfo(swapped).status().code(), StatusCode::kCorrupt);
+  Bytes twice = bytes;
+  twice.insert(twice.end(), bytes.begin() + base + 41, bytes.end());
+  EXPECT_EQ(ParseJournalInfo(twice).status().code(), StatusCode::kCorrupt);
+  Bytes zero(bytes.begin(), bytes.begin() + base + 42);
+  zero.resize(zero.size() + 16, 0);
+  EXPECT_EQ(ParseJournalInfo(zero).status().code(), StatusCode::kCorrupt);
+}
+
 }  // namespace
 }  // namespace ccmd

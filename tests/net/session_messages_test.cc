@@ -82,6 +82,57 @@ TEST(SessionMessagesTest, HelloCarriesNegativeFocalLengthAndDistortion) {
   EXPECT_EQ(ParseHello(flag_only).status().code(), StatusCode::kCorrupt);
 }
 
+// The sensor's depth noise travels with flag bit 2 as 2 x f64 after any distortion, so the
+// server weighs the agent's depths as the agent does (rendered ICL-NUIM depth: 0.5 mm flat).
+TEST(SessionMessagesTest, HelloCarriesTheDepthNoiseAfterTheDistortion) {
+  HelloMessage h = SampleHello();
+  h.camera.depth_sigma0 = 0.0005;
+  Bytes with = SerializeHello(h);
+  ASSERT_EQ(with.size(), SerializeHello(SampleHello()).size() + 16);
+  EXPECT_EQ(with[1], 0x04);
+  Bytes expected(with.begin(), with.begin() + 10 + 48);
+  PutF64(&expected, 0.0005);
+  PutF64(&expected, 0.0);
+  EXPECT_TRUE(std::equal(expected.begin(), expected.end(), with.begin()));
+  StatusOr<HelloMessage> parsed = ParseHello(with);
+  ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+  EXPECT_EQ(parsed->camera, h.camera);
+
+  h.camera.distortion = {0.262383, -0.953104, -0.005358, 0.002628, 1.163314};
+  h.camera.depth_sigma2 = 0.0015;
+  with = SerializeHello(h);
+  EXPECT_EQ(with[1], 0x06);
+  parsed = ParseHello(with);
+  ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+  EXPECT_EQ(parsed->camera, h.camera);
+  EXPECT_NE(DescribeCamera(h.camera).find("depth noise 0.00050 + 0.00150 z^2"), std::string::npos);
+
+  // Nonsense is refused: no sigma0, a negative or non-finite term, metres of noise.
+  for (const auto& [s0, s2] : std::vector<std::pair<double, double>>{{0, 0.002},
+                                                                     {-0.001, 0},
+                                                                     {0.001, -0.002},
+                                                                     {std::nan(""), 0},
+                                                                     {0.001, HUGE_VAL},
+                                                                     {2.0, 0}}) {
+    HelloMessage bad = SampleHello();
+    bad.camera.depth_sigma0 = s0;
+    bad.camera.depth_sigma2 = s2;
+    EXPECT_EQ(ParseHello(SerializeHello(bad)).status().code(), StatusCode::kCorrupt) << s0 << s2;
+  }
+  // The flag with zeros, or without its two values, is refused.
+  Bytes zeros = SerializeHello(SampleHello());
+  zeros[1] |= 0x04;
+  Bytes tail(zeros.begin() + 10 + 48, zeros.end());
+  zeros.resize(10 + 48);
+  PutF64(&zeros, 0.0);
+  PutF64(&zeros, 0.0);
+  zeros.insert(zeros.end(), tail.begin(), tail.end());
+  EXPECT_EQ(ParseHello(zeros).status().code(), StatusCode::kCorrupt);
+  Bytes flag_only = SerializeHello(SampleHello());
+  flag_only[1] |= 0x04;
+  EXPECT_EQ(ParseHello(flag_only).status().code(), StatusCode::kCorrupt);
+}
+
 TEST(SessionMessagesTest, HelloRejectsBadFields) {
   const Bytes good = SerializeHello(SampleHello());
   Bytes version = good;
