@@ -184,26 +184,45 @@ std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& 
   const std::optional<Pose> T_cam_map = SolvePnpRansac(object, image, camera, options);
   if (!T_cam_map) return std::nullopt;
 
-  // Refine with every match (outliers are re-classified) and the measured depths.
+  // Refine with every match (outliers are re-classified) and the measured depths, twice. First
+  // with depth weighed no stricter than a structured-light sensor's: the other map's points
+  // carry their own errors of millimetres, which a precise sensor's model (rendered depth:
+  // 0.5 mm) would count against nearly every true match, so this pass decides whether the
+  // loop holds. Then from that pose with the agent's own model: at least as many matches as
+  // RANSAC needed must agree to the sensor's precision; its pose is the loop's, and only its
+  // inliers are merged later (a merged point the global BA weighs with that precision must be
+  // one point).
   std::vector<PoseObservation> observations;
   for (std::size_t k = 0; k < object.size(); ++k) {
     const ServerKeypoint& kp = query->keypoints[keypoint_index[k]];
     const double inv_sigma2 = std::pow(1.2, -2.0 * kp.octave);
     observations.push_back({points[point_of[keypoint_index[k]]]->World(),
-                            Eigen::Vector2d(kp.pt.x, kp.pt.y), kp.depth, inv_sigma2,
-                            kp.depth > 0 ? options.depth_noise.Information(kp.depth) : 0.0});
+                            Eigen::Vector2d(kp.pt.x, kp.pt.y), kp.depth, inv_sigma2, 0.0});
   }
   const Intrinsics intrinsics{camera.fx, camera.fy, camera.cx, camera.cy};
-  const PoseOptimizationResult refined = OptimizePose(*T_cam_map, observations, intrinsics);
-  if (refined.inliers < options.min_inliers) return std::nullopt;
+  const auto weigh = [&](bool tolerant) {
+    for (PoseObservation& o : observations) {
+      if (o.depth <= 0) continue;
+      o.depth_information = options.depth_noise.Information(o.depth);
+      if (tolerant) {
+        o.depth_information = std::min(o.depth_information, DepthNoise().Information(o.depth));
+      }
+    }
+  };
+  weigh(/*tolerant=*/true);
+  const PoseOptimizationResult held = OptimizePose(*T_cam_map, observations, intrinsics);
+  if (held.inliers < options.min_inliers) return std::nullopt;
+  weigh(/*tolerant=*/false);
+  const PoseOptimizationResult precise = OptimizePose(held.T_cam_world, observations, intrinsics);
+  if (precise.inliers < options.min_ransac_inliers) return std::nullopt;
 
   LoopMatch match;
   match.query = query;
   match.candidate = candidate;
-  match.T_candidate_map_query = refined.T_cam_world.inverse();
-  match.inliers = refined.inliers;
+  match.T_candidate_map_query = precise.T_cam_world.inverse();
+  match.inliers = held.inliers;
   for (std::size_t k = 0; k < observations.size(); ++k) {
-    if (refined.inlier[k])
+    if (precise.inlier[k])
       match.matches.emplace_back(keypoint_index[k], points[point_of[keypoint_index[k]]]);
   }
   return match;

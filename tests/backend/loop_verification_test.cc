@@ -96,6 +96,73 @@ TEST(LoopVerificationTest, NegativeFocalLengthGivesTheSamePose) {
   ExpectQueryPoseRecovered(testing::IclNuimCamera());
 }
 
+// A precise sensor (0.5 mm, rendered depth) against another map whose points carry errors of
+// a few millimetres: the loop holds with every true match (the first pass weighs depth no
+// stricter than a structured-light sensor), and only the matches that agree to the sensor's
+// precision are handed on to be merged.
+TEST(LoopVerificationTest, APreciseSensorsLoopHoldsAndOnlyPreciseMatchesAreMerged) {
+  Rng rng(43);
+  const PinholeCamera camera = Camera();
+  ServerMap map(MapId(1));
+  auto candidate = std::make_unique<ServerKeyframe>();
+  candidate->id = {AgentId(1), KeyframeId(0)};
+  std::vector<Eigen::Vector3d> world;
+  std::vector<Descriptor> descriptors;
+  for (int j = 0; j < 400; ++j) {
+    world.emplace_back(rng.Uniform(-1.5, 1.5), rng.Uniform(-1, 1), rng.Uniform(2, 4));
+    descriptors.push_back(RandomDescriptor(&rng));
+    const Eigen::Vector2d uv = camera.Project(world.back());
+    candidate->AppendKeypoint(
+        {cv::Point2f(uv.x(), uv.y()), 0, static_cast<float>(world.back().z())}, descriptors.back());
+  }
+  ServerKeyframe* cand = map.AddKeyframe(std::move(candidate));
+  std::vector<Eigen::Vector3d> estimated;  // the candidate map's points: 3 mm per axis off
+  for (int j = 0; j < 400; ++j) {
+    estimated.push_back(world[j] +
+                        0.003 * Eigen::Vector3d(rng.Normal(), rng.Normal(), rng.Normal()));
+    ServerMapPoint* point = map.AddPoint(std::make_unique<ServerMapPoint>(
+        GlobalMapPointId{AgentId(1), MapPointId(j)}, cand, estimated.back(), descriptors[j]));
+    map.AddObservation(point, cand, j);
+  }
+  Pose T_map_query = Pose::Identity();
+  T_map_query.linear() = Eigen::AngleAxisd(0.1, Eigen::Vector3d::UnitY()).toRotationMatrix();
+  T_map_query.translation() = Eigen::Vector3d(0.2, 0.05, 0.1);
+  ServerKeyframe query;
+  query.id = {AgentId(2), KeyframeId(3)};
+  int true_matches = 0;
+  for (int j = 0; j < 400; ++j) {
+    const Eigen::Vector3d pc = T_map_query.inverse() * world[j];
+    const Eigen::Vector2d uv = camera.Project(pc);
+    if (!camera.InImage(uv)) {
+      query.AppendKeypoint({cv::Point2f(rng.Uniform(0, 640), rng.Uniform(0, 480)), 0, 2.0f},
+                           RandomDescriptor(&rng));
+      continue;
+    }
+    query.AppendKeypoint({cv::Point2f(uv.x() + 0.3 * rng.Normal(), uv.y() + 0.3 * rng.Normal()), 0,
+                          static_cast<float>(pc.z() + 0.0002 * rng.Normal())},
+                         FlipBits(descriptors[j], 8, &rng));
+    ++true_matches;
+  }
+  LoopVerificationOptions options;
+  options.depth_noise.sigma_0 = 0.0005;
+  options.depth_noise.sigma_2 = 0;
+  const auto match = VerifyLoop(&query, camera, cand, map, options);
+  ASSERT_TRUE(match.has_value());
+  EXPECT_GE(match->inliers, 0.9 * true_matches);  // the first pass keeps every true match
+  EXPECT_LT(TranslationDistance(match->T_candidate_map_query, T_map_query), 0.003);
+  EXPECT_LT(RotationDistance(match->T_candidate_map_query, T_map_query), 0.1 * M_PI / 180);
+  // Merged: only points whose depth from the query agrees within 3 sigma (1.5 mm) and some
+  // more for the pose's own error; most of the 3 mm-per-axis points do not.
+  ASSERT_GT(match->matches.size(), 20u);
+  EXPECT_LT(match->matches.size(), 0.7 * match->inliers);
+  for (const auto& [keypoint, point] : match->matches) {
+    EXPECT_EQ(point->id.point.value(), static_cast<std::uint32_t>(keypoint));
+    const double depth_error =
+        (T_map_query.inverse() * estimated[keypoint]).z() - query.keypoints[keypoint].depth;
+    EXPECT_LT(std::abs(depth_error), 0.003) << keypoint;
+  }
+}
+
 TEST(LoopVerificationTest, UnrelatedViewsAreRejected) {
   Rng rng(42);
   const PinholeCamera camera = Camera();
