@@ -545,7 +545,7 @@ bool LoopCloser::Forget(const GlobalKeyframeId& id) {
 std::optional<LoopCloser::Query> LoopCloser::FindCandidates(const GlobalKeyframeId& id,
                                                             bool stored) {
   std::vector<Descriptor> descriptors;
-  std::vector<PlaceHit> hits;
+  LoopCandidateRule rule;
   Query query;
   {
     MapManager::Guard guard = maps_->CheckOutAgent(id.agent);
@@ -553,13 +553,33 @@ std::optional<LoopCloser::Query> LoopCloser::FindCandidates(const GlobalKeyframe
     if (!keyframe) return std::nullopt;
     query.map = guard->id();
     descriptors = keyframe->Descriptors();
-    const LoopCandidateRule rule =
-        MakeLoopCandidateRule(place_, id, *keyframe, options_.exclude_recent_keyframes);
-    hits = QueryLoopCandidates(place_, descriptors, rule, options_.loop_candidates * 3);
+    rule = MakeLoopCandidateRule(place_, id, *keyframe, options_.exclude_recent_keyframes);
   }
-  query.candidates = SelectLoopCandidates(
-      std::move(hits), cooldown_.Active(id), query.map,
-      [this](AgentId agent) { return maps_->MapOfAgent(agent); }, options_.loop_candidates);
+  const auto map_of = [this](AgentId agent) { return maps_->MapOfAgent(agent); };
+  std::vector<PlaceHit> hits =
+      QueryLoopCandidates(place_, descriptors, rule, options_.loop_candidates * 3);
+  // A map that many agents share holds a place many times over (each agent's recent keyframes
+  // stay), and its copies can fill every slot. While the agent cools down after a loop its own
+  // map's candidates are dropped, and if they filled the list nothing would be left: then the
+  // best hits in the other maps are asked for on their own, so that a fusion is still found.
+  // With 16 agents replaying three streams, the three streams' maps never fused without this.
+  const bool other_found = std::any_of(hits.begin(), hits.end(), [&](const PlaceHit& h) {
+    const auto map = map_of(h.keyframe.agent);
+    return map && *map != query.map;
+  });
+  const bool cooling_down = cooldown_.Active(id);
+  const bool cut_off = static_cast<int>(hits.size()) >= options_.loop_candidates * 3;
+  if (cooling_down && cut_off && !other_found && maps_->Maps().size() > 1) {
+    LoopCandidateRule others = rule;
+    for (const AgentId agent : maps_->Agents()) {
+      if (map_of(agent) == query.map) others.excluded_agents.insert(agent);
+    }
+    const std::vector<PlaceHit> more =
+        QueryLoopCandidates(place_, descriptors, others, options_.loop_candidates);
+    hits.insert(hits.end(), more.begin(), more.end());
+  }
+  query.candidates = SelectLoopCandidates(std::move(hits), cooling_down, query.map, map_of,
+                                          options_.loop_candidates);
   if (!stored) {
     const std::vector<GlobalKeyframeId> late = place_.Add(id, descriptors);
     late_queries_.insert(late_queries_.end(), late.begin(), late.end());

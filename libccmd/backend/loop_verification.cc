@@ -37,7 +37,7 @@ void LoopVerificationOptions::Describe(OptionsWriter* out) const {
 }
 
 bool LoopCandidateRule::Allowed(const GlobalKeyframeId& c) const {
-  if (c == query || connected.count(c)) return false;
+  if (c == query || connected.count(c) || excluded_agents.count(c.agent)) return false;
   return c.agent != query.agent ||
          std::abs(static_cast<long>(c.keyframe.value()) -
                   static_cast<long>(query.keyframe.value())) > exclude_recent;

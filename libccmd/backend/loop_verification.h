@@ -5,6 +5,7 @@
 // covisible keyframes), a 3D-2D RANSAC (PnP) finds the query's pose in the candidate's map,
 // and a robust pose refinement with the query's measured depth keeps the matches that agree.
 
+#include <set>
 #include <vector>
 
 #include "libccmd/backend/place_index.h"
@@ -25,6 +26,7 @@ struct LoopCandidateRule {
   std::map<GlobalKeyframeId, int> connected;
   int exclude_recent = 0;
   double min_score = 0;
+  std::set<AgentId> excluded_agents;  // none of their keyframes is a candidate
   bool Allowed(const GlobalKeyframeId& candidate) const;
 };
 LoopCandidateRule MakeLoopCandidateRule(const PlaceIndex& place, const GlobalKeyframeId& id,

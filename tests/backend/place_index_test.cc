@@ -7,6 +7,7 @@
 
 #include <algorithm>
 
+#include "libccmd/backend/loop_verification.h"
 #include "tests/backend/generated_map.h"
 
 namespace ccmd {
@@ -90,6 +91,48 @@ TEST(PlaceIndexTest, AQueryFindsTheKeyframeOfItsPlaceAndHonoursTheFilter) {
     EXPECT_GT(same, 2 * index.Score(Kf(4), Kf(p))) << p;
   }
   EXPECT_EQ(index.Score(Kf(4), Kf(99)), 0.0);  // not stored
+}
+
+// A map that many agents share holds a place many times over: its copies fill every slot of
+// a query, and the other map's keyframe of the place is found only by a query that leaves the
+// crowded map's agents out (what the loop closer asks when the first query found no other map).
+TEST(PlaceIndexTest, AnotherMapsKeyframeIsFoundWhenTheQuerysAgentsAreLeftOut) {
+  Rng rng(5);
+  const auto places = MakePlaces(&rng);
+  std::vector<cv::Mat> training;
+  for (const auto& place : places) training.push_back(ToMat(View(place, &rng)));
+  VocabularyOptions vocabulary;
+  vocabulary.depth = 3;
+  auto trained = Vocabulary::Train(training, vocabulary);
+  ASSERT_TRUE(trained.ok());
+  PlaceIndexOptions options;
+  options.vocabulary = std::make_shared<const Vocabulary>(std::move(trained).value());
+  options.online_training = false;
+  PlaceIndex index(options);
+  const auto Id = [](int agent, int keyframe) {
+    return GlobalKeyframeId{AgentId(static_cast<std::uint16_t>(agent)),
+                            KeyframeId(static_cast<std::uint32_t>(keyframe))};
+  };
+  // Agents 1-4 (one map) hold place 2 as the query sees it, three keyframes each; agent 5
+  // (another map) holds its own view of it; other places fill the index.
+  const std::vector<Descriptor> seen = View(places[2], &rng);
+  for (int agent = 1; agent <= 4; ++agent) {
+    for (int k = 0; k < 3; ++k) index.Add(Id(agent, k), seen);
+  }
+  index.Add(Id(5, 0), View(places[2], &rng));
+  for (int p = 0; p < kPlaces; ++p) {
+    if (p != 2) index.Add(Id(6, p), View(places[p], &rng));
+  }
+  LoopCandidateRule rule;
+  rule.query = Id(1, 50);
+  const std::vector<PlaceHit> crowded = QueryLoopCandidates(index, seen, rule, 12);
+  ASSERT_EQ(crowded.size(), 12u);
+  for (const PlaceHit& hit : crowded) EXPECT_LE(hit.keyframe.agent.value(), 4) << hit.score;
+  rule.excluded_agents = {AgentId(1), AgentId(2), AgentId(3), AgentId(4)};
+  const std::vector<PlaceHit> others = QueryLoopCandidates(index, seen, rule, 4);
+  ASSERT_FALSE(others.empty());
+  EXPECT_EQ(others[0].keyframe, Id(5, 0));
+  for (const PlaceHit& hit : others) EXPECT_GT(hit.keyframe.agent.value(), 4);
 }
 
 TEST(PlaceIndexTest, OnlineTrainingMakesTheEarlierKeyframesLateQueries) {
