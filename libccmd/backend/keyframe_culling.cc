@@ -44,16 +44,22 @@ double MedianDepth(const ServerKeyframe& kf) {
 }  // namespace
 
 std::vector<ServerKeyframe*> CoveringCandidates(const ServerMap& map, const ServerKeyframe& kf,
-                                                const KeyframeCullingOptions& options) {
+                                                const KeyframeCullingOptions& options,
+                                                const std::vector<GlobalKeyframeId>* kept) {
   const double radius = MedianDepth(kf) / 3;
   const Eigen::Vector3d axis = kf.T_map_cam.linear().col(2);
   const double min_cos = std::cos(options.max_view_angle_deg * M_PI / 180);
   std::vector<std::pair<double, ServerKeyframe*>> near;
-  for (const auto& [id, other] : map.keyframes()) {
-    if (other.get() == &kf || other->culled() || !other->cull_checked) continue;
+  const auto consider = [&](ServerKeyframe* other) {
+    if (!other || other == &kf || other->culled() || !other->cull_checked) return;
     const double distance = (other->camera_center() - kf.camera_center()).norm();
-    if (distance > radius || other->T_map_cam.linear().col(2).dot(axis) < min_cos) continue;
-    near.emplace_back(distance, other.get());
+    if (distance > radius || other->T_map_cam.linear().col(2).dot(axis) < min_cos) return;
+    near.emplace_back(distance, other);
+  };
+  if (kept) {
+    for (const GlobalKeyframeId& id : *kept) consider(map.keyframe(id));
+  } else {
+    for (const auto& [id, other] : map.keyframes()) consider(other.get());
   }
   const std::size_t n = std::min<std::size_t>(near.size(), options.max_covering);
   std::partial_sort(near.begin(), near.begin() + static_cast<std::ptrdiff_t>(n), near.end(),
@@ -134,10 +140,16 @@ bool KeyframeCuller::Check(ServerMap* map, const GlobalKeyframeId& id,
   if (!kf || kf->culled() || kf->cull_checked) return false;
   kf->cull_checked = true;
   ++stats_.checked;
-  if (map->origin() && *map->origin() == id) return false;
+  if (map->origin() && *map->origin() == id) {
+    kept_.push_back(id);
+    return false;
+  }
   const Coverage coverage =
-      MeasureCoverage(*kf, CoveringCandidates(*map, *kf, options_), camera_of, options_);
-  if (coverage.fraction < options_.min_coverage || !coverage.best || !may_cull(id)) return false;
+      MeasureCoverage(*kf, CoveringCandidates(*map, *kf, options_, &kept_), camera_of, options_);
+  if (coverage.fraction < options_.min_coverage || !coverage.best || !may_cull(id)) {
+    kept_.push_back(id);
+    return false;
+  }
   stats_.points_removed += map->Cull(kf, coverage.best);
   ++stats_.culled;
   return true;

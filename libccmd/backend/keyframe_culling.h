@@ -55,9 +55,12 @@ Coverage MeasureCoverage(const ServerKeyframe& kf, const std::vector<ServerKeyfr
 
 // The kept, already looked-at keyframes of `map` nearest to `kf` (at most max_covering), whose
 // centres lie within a third of its median keypoint depth and whose viewing directions are
-// within max_view_angle_deg of its own.
-std::vector<ServerKeyframe*> CoveringCandidates(const ServerMap& map, const ServerKeyframe& kf,
-                                                const KeyframeCullingOptions& options);
+// within max_view_angle_deg of its own. With `kept`, only those keyframes are looked at (the
+// culler's list: a map of many revisits holds far more culled keyframes than kept ones);
+// without, every keyframe of the map.
+std::vector<ServerKeyframe*> CoveringCandidates(
+    const ServerMap& map, const ServerKeyframe& kf, const KeyframeCullingOptions& options,
+    const std::vector<GlobalKeyframeId>* kept = nullptr);
 
 struct CullingStats {
   std::size_t checked = 0, culled = 0, points_removed = 0;
@@ -83,6 +86,8 @@ class KeyframeCuller {
  private:
   KeyframeCullingOptions options_;
   std::map<AgentId, std::deque<GlobalKeyframeId>> recent_;
+  // Keyframes looked at and kept, in every map: as many as the mapped space needs.
+  std::vector<GlobalKeyframeId> kept_;
   CullingStats stats_;
 };
 

@@ -159,6 +159,36 @@ TEST(KeyframeCullingTest, CoverageNeedsTheSameViewAtAboutTheSameDistance) {
   EXPECT_TRUE(CoveringCandidates(map, *near, options).empty());
 }
 
+// The culler's list of kept keyframes gives the candidates a scan of the whole map gives,
+// without walking the culled ones; ids in the list that are not in this map are skipped.
+TEST(KeyframeCullingTest, TheKeptListGivesTheCandidatesTheWholeMapGives) {
+  Rng rng(12);
+  const auto world = MakeRingWorld(3000, &rng);
+  ServerMap map(MapId(1));
+  std::vector<GlobalKeyframeId> kept;
+  for (std::uint32_t i = 0; i < 6; ++i) {
+    Pose T = CirclePose(0, 24);
+    T.translation() += 0.01 * i * T.linear().col(0);
+    ServerKeyframe* kf = AddGeneratedKeyframe(&map, world, kAgent, i, T, T, &rng);
+    kf->cull_checked = true;
+    if (i % 2 == 0) kept.push_back(kf->id);  // the odd ones: looked at, then culled
+  }
+  for (std::uint32_t i = 1; i < 6; i += 2) {
+    ServerKeyframe* kf = map.keyframe({kAgent, KeyframeId(i)});
+    map.Cull(kf, map.keyframe({kAgent, KeyframeId(i - 1)}));
+  }
+  kept.push_back({AgentId(9), KeyframeId(1)});  // another map's
+  Pose T = CirclePose(0, 24);
+  T.translation() += 0.005 * T.linear().col(0);
+  ServerKeyframe* query = AddGeneratedKeyframe(&map, world, kAgent, 10, T, T, &rng);
+  KeyframeCullingOptions options;
+  const std::vector<ServerKeyframe*> all = CoveringCandidates(map, *query, options);
+  const std::vector<ServerKeyframe*> listed = CoveringCandidates(map, *query, options, &kept);
+  ASSERT_EQ(all.size(), 3u);  // keyframes 0, 2, 4, nearest first
+  EXPECT_EQ(all, listed);
+  EXPECT_EQ(all[0]->id.keyframe, KeyframeId(0));
+}
+
 TEST(KeyframeCullingTest, CullKeepsPointsWhereTheyWereAndMovesLoopEdges) {
   Rng rng(5);
   const auto world = MakeRingWorld(2000, &rng);
