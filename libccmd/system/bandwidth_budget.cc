@@ -101,7 +101,7 @@ BandwidthBudget::BandwidthBudget(const BandwidthBudgetOptions& options,
 }
 
 void BandwidthBudget::Observe(const LinkObservation& link) {
-  const double budget = options_.budget_bytes_per_s * options_.payload_share;
+  const double budget = PacedBudget();
   if (!started_) {
     started_ = true;
     start_s_ = last_s_ = link.now_s;
@@ -128,38 +128,40 @@ void BandwidthBudget::Observe(const LinkObservation& link) {
   last_handed_ = link.handed_bytes;
 }
 
-void BandwidthBudget::Refresh(const LinkObservation& link) {
+BudgetDecision BandwidthBudget::Measure(const LinkObservation& link, double* rate) {
   Observe(link);
-  const double budget = options_.budget_bytes_per_s * options_.payload_share;
-  const double rate =
-      link_rate_ >= 0 ? std::max(0.05 * budget, std::min(link_rate_, budget)) : budget;
+  const double budget = PacedBudget();
+  // Queue time at the rate the link gives (a stalled one counts as 5 % of the budget, so its
+  // queue reads as long, not infinite).
+  *rate = link_rate_ >= 0 ? std::max(0.05 * budget, std::min(link_rate_, budget)) : budget;
   BudgetDecision d;
+  d.time_s = link.now_s - start_s_;
+  d.queue_s = link.unacked_bytes / *rate;
   d.credit_s = credit_bytes_ / budget;
-  d.queue_s = link.unacked_bytes / rate;
+  d.link_rate_bytes_per_s = std::max(0.0, link_rate_);
+  return d;
+}
+
+bool BandwidthBudget::RoomForDenser(const BudgetDecision& d) const {
+  return density_ > 0 && d.credit_s > options_.band_s && d.queue_s <= options_.max_queue_s;
+}
+
+void BandwidthBudget::Refresh(const LinkObservation& link) {
+  double rate;
   // Only denser here: thinner needs a keyframe's bytes to show the debt growing.
-  if (density_ > 0 && d.credit_s > options_.band_s && d.queue_s <= options_.max_queue_s) {
-    --density_;
-  }
+  if (RoomForDenser(Measure(link, &rate))) --density_;
 }
 
 const RgbdLevel& BandwidthBudget::Plan(const LinkObservation& link) {
-  Observe(link);
+  double rate;
+  BudgetDecision d = Measure(link, &rate);
   if (last_plan_s_ >= 0 && link.now_s > last_plan_s_) {
     const double interval = link.now_s - last_plan_s_;
     keyframe_interval_s_ =
         keyframe_interval_s_ > 0 ? 0.7 * keyframe_interval_s_ + 0.3 * interval : interval;
   }
   last_plan_s_ = link.now_s;
-  const double budget = options_.budget_bytes_per_s * options_.payload_share;
-  // Queue time at the rate the link gives (a stalled one counts as 5 % of the budget, so its
-  // queue reads as long, not infinite).
-  const double rate =
-      link_rate_ >= 0 ? std::max(0.05 * budget, std::min(link_rate_, budget)) : budget;
-  BudgetDecision d;
-  d.time_s = link.now_s - start_s_;
-  d.queue_s = link.unacked_bytes / rate;
-  d.credit_s = credit_bytes_ / budget;
-  d.link_rate_bytes_per_s = std::max(0.0, link_rate_);
+  const double budget = PacedBudget();
   max_queue_seen_s_ = std::max(max_queue_seen_s_, d.queue_s);
   const int leanest = static_cast<int>(ladder_.size()) - 1;
   // The queue bound holds at least two keyframes' geometry: below that, a small budget could
@@ -212,7 +214,7 @@ void BandwidthBudget::StepDensity(const BudgetDecision& d, double previous_credi
   const bool debt_grows = d.credit_s < -options_.band_s && d.credit_s < previous_credit_s;
   if (level_ == leanest && debt_grows && density_ < thinnest) {
     ++density_;
-  } else if (density_ > 0 && d.credit_s > options_.band_s && d.queue_s <= options_.max_queue_s) {
+  } else if (RoomForDenser(d)) {
     --density_;
   }
 }

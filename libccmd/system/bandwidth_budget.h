@@ -126,6 +126,13 @@ class BandwidthBudget {
 
  private:
   void Observe(const LinkObservation& link);
+  // The budget in message bytes per second (the share of it the pacing leaves for messages).
+  double PacedBudget() const { return options_.budget_bytes_per_s * options_.payload_share; }
+  // Observes the link and fills a decision's time, queue, credit and link rate; `rate` gets
+  // the rate the queue is measured at.
+  BudgetDecision Measure(const LinkObservation& link, double* rate);
+  // The credit is back above the band and the queue within its bound: one step denser.
+  bool RoomForDenser(const BudgetDecision& d) const;
   // One step of keyframe density: thinner while geometry alone overflows at the leanest rung
   // and the debt grows since the last plan, back once the credit is above the band.
   void StepDensity(const BudgetDecision& d, double previous_credit_s);

@@ -30,27 +30,46 @@ PinholeCamera Camera() {
   return c;
 }
 
+// A candidate keyframe at the origin observing 400 points on a wall 2-4 m away, in `map`; its
+// map points lie at the true points plus `point_error` metres per axis (normal).
+struct Wall {
+  ServerKeyframe* candidate = nullptr;
+  std::vector<Eigen::Vector3d> world, estimated;
+  std::vector<Descriptor> descriptors;
+};
+Wall MakeWall(const PinholeCamera& camera, double point_error, Rng* rng, ServerMap* map) {
+  Wall wall;
+  auto candidate = std::make_unique<ServerKeyframe>();
+  candidate->id = {AgentId(1), KeyframeId(0)};
+  for (int j = 0; j < 400; ++j) {
+    wall.world.emplace_back(rng->Uniform(-1.5, 1.5), rng->Uniform(-1, 1), rng->Uniform(2, 4));
+    wall.descriptors.push_back(RandomDescriptor(rng));
+    const Eigen::Vector2d uv = camera.Project(wall.world.back());
+    candidate->AppendKeypoint(
+        {cv::Point2f(uv.x(), uv.y()), 0, static_cast<float>(wall.world.back().z())},
+        wall.descriptors.back());
+  }
+  wall.candidate = map->AddKeyframe(std::move(candidate));
+  for (int j = 0; j < 400; ++j) {
+    Eigen::Vector3d p = wall.world[j];
+    if (point_error > 0) {
+      p += point_error * Eigen::Vector3d(rng->Normal(), rng->Normal(), rng->Normal());
+    }
+    wall.estimated.push_back(p);
+    ServerMapPoint* point = map->AddPoint(std::make_unique<ServerMapPoint>(
+        GlobalMapPointId{AgentId(1), MapPointId(j)}, wall.candidate, p, wall.descriptors[j]));
+    map->AddObservation(point, wall.candidate, j);
+  }
+  return wall;
+}
+
 void ExpectQueryPoseRecovered(const PinholeCamera& camera) {
   Rng rng(41);
   ServerMap map(MapId(1));
-  // Candidate keyframe at the origin observing 400 points on a wall 2-4 m away.
-  auto candidate = std::make_unique<ServerKeyframe>();
-  candidate->id = {AgentId(1), KeyframeId(0)};
-  std::vector<Eigen::Vector3d> world;
-  std::vector<Descriptor> descriptors;
-  for (int j = 0; j < 400; ++j) {
-    world.emplace_back(rng.Uniform(-1.5, 1.5), rng.Uniform(-1, 1), rng.Uniform(2, 4));
-    descriptors.push_back(RandomDescriptor(&rng));
-    const Eigen::Vector2d uv = camera.Project(world.back());
-    candidate->AppendKeypoint(
-        {cv::Point2f(uv.x(), uv.y()), 0, static_cast<float>(world.back().z())}, descriptors.back());
-  }
-  ServerKeyframe* cand = map.AddKeyframe(std::move(candidate));
-  for (int j = 0; j < 400; ++j) {
-    ServerMapPoint* p = map.AddPoint(std::make_unique<ServerMapPoint>(
-        GlobalMapPointId{AgentId(1), MapPointId(j)}, cand, world[j], descriptors[j]));
-    map.AddObservation(p, cand, j);
-  }
+  const Wall wall = MakeWall(camera, 0, &rng, &map);
+  ServerKeyframe* cand = wall.candidate;
+  const std::vector<Eigen::Vector3d>& world = wall.world;
+  const std::vector<Descriptor>& descriptors = wall.descriptors;
   // Query: another agent's keyframe at a known pose, seeing the same points (noisy pixels and
   // depth, descriptors with a few flipped bits); a third of its keypoints are unrelated.
   Pose T_map_query = Pose::Identity();
@@ -104,26 +123,11 @@ TEST(LoopVerificationTest, APreciseSensorsLoopHoldsAndOnlyPreciseMatchesAreMerge
   Rng rng(43);
   const PinholeCamera camera = Camera();
   ServerMap map(MapId(1));
-  auto candidate = std::make_unique<ServerKeyframe>();
-  candidate->id = {AgentId(1), KeyframeId(0)};
-  std::vector<Eigen::Vector3d> world;
-  std::vector<Descriptor> descriptors;
-  for (int j = 0; j < 400; ++j) {
-    world.emplace_back(rng.Uniform(-1.5, 1.5), rng.Uniform(-1, 1), rng.Uniform(2, 4));
-    descriptors.push_back(RandomDescriptor(&rng));
-    const Eigen::Vector2d uv = camera.Project(world.back());
-    candidate->AppendKeypoint(
-        {cv::Point2f(uv.x(), uv.y()), 0, static_cast<float>(world.back().z())}, descriptors.back());
-  }
-  ServerKeyframe* cand = map.AddKeyframe(std::move(candidate));
-  std::vector<Eigen::Vector3d> estimated;  // the candidate map's points: 3 mm per axis off
-  for (int j = 0; j < 400; ++j) {
-    estimated.push_back(world[j] +
-                        0.003 * Eigen::Vector3d(rng.Normal(), rng.Normal(), rng.Normal()));
-    ServerMapPoint* point = map.AddPoint(std::make_unique<ServerMapPoint>(
-        GlobalMapPointId{AgentId(1), MapPointId(j)}, cand, estimated.back(), descriptors[j]));
-    map.AddObservation(point, cand, j);
-  }
+  const Wall wall = MakeWall(camera, 0.003, &rng, &map);  // the other map's points: 3 mm off
+  ServerKeyframe* cand = wall.candidate;
+  const std::vector<Eigen::Vector3d>& world = wall.world;
+  const std::vector<Eigen::Vector3d>& estimated = wall.estimated;
+  const std::vector<Descriptor>& descriptors = wall.descriptors;
   Pose T_map_query = Pose::Identity();
   T_map_query.linear() = Eigen::AngleAxisd(0.1, Eigen::Vector3d::UnitY()).toRotationMatrix();
   T_map_query.translation() = Eigen::Vector3d(0.2, 0.05, 0.1);

@@ -44,6 +44,20 @@ cv::Mat ToMat(const std::vector<Descriptor>& descriptors) {
   return m;
 }
 
+// A fixed vocabulary trained on one view of each place (no online training).
+PlaceIndexOptions TrainedOn(const std::vector<std::vector<Descriptor>>& places, Rng* rng) {
+  std::vector<cv::Mat> training;
+  for (const auto& place : places) training.push_back(ToMat(View(place, rng)));
+  VocabularyOptions vocabulary;
+  vocabulary.depth = 3;
+  auto trained = Vocabulary::Train(training, vocabulary);
+  PlaceIndexOptions options;
+  if (trained.ok())
+    options.vocabulary = std::make_shared<const Vocabulary>(std::move(trained).value());
+  options.online_training = false;
+  return options;
+}
+
 GlobalKeyframeId Kf(int keyframe) {
   return {AgentId(1), KeyframeId(static_cast<std::uint32_t>(keyframe))};
 }
@@ -53,15 +67,8 @@ const auto kAcceptAll = [](const GlobalKeyframeId&) { return true; };
 TEST(PlaceIndexTest, AQueryFindsTheKeyframeOfItsPlaceAndHonoursTheFilter) {
   Rng rng(3);
   const auto places = MakePlaces(&rng);
-  std::vector<cv::Mat> training;
-  for (const auto& place : places) training.push_back(ToMat(View(place, &rng)));
-  VocabularyOptions vocabulary;
-  vocabulary.depth = 3;
-  auto trained = Vocabulary::Train(training, vocabulary);
-  ASSERT_TRUE(trained.ok());
-  PlaceIndexOptions options;
-  options.vocabulary = std::make_shared<const Vocabulary>(std::move(trained).value());
-  options.online_training = false;
+  const PlaceIndexOptions options = TrainedOn(places, &rng);
+  ASSERT_TRUE(options.vocabulary);
   PlaceIndex index(options);
   ASSERT_TRUE(index.ready());
   for (int p = 0; p < kPlaces; ++p) EXPECT_TRUE(index.Add(Kf(p), View(places[p], &rng)).empty());
@@ -99,15 +106,8 @@ TEST(PlaceIndexTest, AQueryFindsTheKeyframeOfItsPlaceAndHonoursTheFilter) {
 TEST(PlaceIndexTest, AnotherMapsKeyframeIsFoundWhenTheQuerysAgentsAreLeftOut) {
   Rng rng(5);
   const auto places = MakePlaces(&rng);
-  std::vector<cv::Mat> training;
-  for (const auto& place : places) training.push_back(ToMat(View(place, &rng)));
-  VocabularyOptions vocabulary;
-  vocabulary.depth = 3;
-  auto trained = Vocabulary::Train(training, vocabulary);
-  ASSERT_TRUE(trained.ok());
-  PlaceIndexOptions options;
-  options.vocabulary = std::make_shared<const Vocabulary>(std::move(trained).value());
-  options.online_training = false;
+  const PlaceIndexOptions options = TrainedOn(places, &rng);
+  ASSERT_TRUE(options.vocabulary);
   PlaceIndex index(options);
   const auto Id = [](int agent, int keyframe) {
     return GlobalKeyframeId{AgentId(static_cast<std::uint16_t>(agent)),

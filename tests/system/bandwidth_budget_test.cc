@@ -131,23 +131,37 @@ TEST(BandwidthBudgetTest, BelowTheGeometryRateKeyframesThinAndTheQueueStaysBound
   }
 }
 
-TEST(BandwidthBudgetTest, DensityComesBackWhenTheLinkHasRoom) {
-  // Thinned at 25 kB/s, then the same agent under a budget its geometry fits easily.
-  BandwidthBudgetOptions options;
-  options.budget_bytes_per_s = 25e3;
-  int start = 0;
-  BandwidthBudget b(options, DefaultBudgetLadder(RgbdEncodeOptions{}, &start), start);
-  double t = 0, handed = 0;
-  for (int k = 0; k < 20; ++k, t += 0.2) {  // 75 kB/s handed over, acknowledged at 24 kB/s
-    const double acked = std::min(handed, 24e3 * t);
-    b.Plan({t, static_cast<std::uint64_t>(handed), static_cast<std::uint64_t>(handed - acked)});
-    b.Record(KeyframeId(static_cast<std::uint32_t>(k)), 15000, 0, false);
-    handed += 15000;
+// A 25 kB/s budget after 4 s of 15 kB keyframes five times a second (75 kB/s handed over,
+// acknowledged at 24 kB/s): its keyframes are thinned.
+struct ThinnedBudget {
+  ThinnedBudget() : b(Make()) {
+    for (; keyframes < 20; ++keyframes, t += 0.2) {
+      const double acked = std::min(handed, 24e3 * t);
+      b.Plan({t, static_cast<std::uint64_t>(handed), static_cast<std::uint64_t>(handed - acked)});
+      b.Record(KeyframeId(static_cast<std::uint32_t>(keyframes)), 15000, 0, false);
+      handed += 15000;
+    }
   }
+  static BandwidthBudget Make() {
+    BandwidthBudgetOptions options;
+    options.budget_bytes_per_s = 25e3;
+    int start = 0;
+    std::vector<RgbdLevel> ladder = DefaultBudgetLadder(RgbdEncodeOptions{}, &start);
+    return BandwidthBudget(options, std::move(ladder), start);
+  }
+  BandwidthBudget b;
+  double t = 0, handed = 0;
+  int keyframes = 0;
+};
+
+TEST(BandwidthBudgetTest, DensityComesBackWhenTheLinkHasRoom) {
+  ThinnedBudget thinned;
+  BandwidthBudget& b = thinned.b;
   EXPECT_LT(b.KeyframeRatioScale(), 1.0);
   // The queue has drained; keyframes come slowly now (1 a second, 15 kB/s): the debt is
-  // repaid in about 25 s, then density steps back once a second.
-  for (int k = 20; k < 120; ++k, t += 1.0) {
+  // repaid in about 25 s, then density steps back.
+  double t = thinned.t, handed = thinned.handed;
+  for (int k = thinned.keyframes; k < 120; ++k, t += 1.0) {
     b.Plan({t, static_cast<std::uint64_t>(handed), 0});
     b.Record(KeyframeId(static_cast<std::uint32_t>(k)), 15000, 0, false);
     handed += 15000;
@@ -156,18 +170,11 @@ TEST(BandwidthBudgetTest, DensityComesBackWhenTheLinkHasRoom) {
 }
 
 TEST(BandwidthBudgetTest, DensityComesBackBetweenKeyframesWhenTheCameraSlowsDown) {
-  // Thinned at 25 kB/s; then no keyframe for 10 s (the camera stops) while the queue drains.
-  BandwidthBudgetOptions options;
-  options.budget_bytes_per_s = 25e3;
-  int start = 0;
-  BandwidthBudget b(options, DefaultBudgetLadder(RgbdEncodeOptions{}, &start), start);
-  double t = 0, handed = 0;
-  for (int k = 0; k < 20; ++k, t += 0.2) {
-    const double acked = std::min(handed, 24e3 * t);
-    b.Plan({t, static_cast<std::uint64_t>(handed), static_cast<std::uint64_t>(handed - acked)});
-    b.Record(KeyframeId(static_cast<std::uint32_t>(k)), 15000, 0, false);
-    handed += 15000;
-  }
+  // Thinned; then no keyframe for a while (the camera stops) while the queue drains.
+  ThinnedBudget state;
+  BandwidthBudget& b = state.b;
+  double t = state.t;
+  const double handed = state.handed;
   const double thinned = b.KeyframeRatioScale();
   ASSERT_LT(thinned, 1.0);
   b.Refresh({t, static_cast<std::uint64_t>(handed), static_cast<std::uint64_t>(handed)});
