@@ -122,6 +122,17 @@ bool LoopCooldown::Active(const GlobalKeyframeId& query) const {
   return it != until_.end() && query.keyframe <= it->second;
 }
 
+void AgentJoins::Add(AgentId a, AgentId b) {
+  if (a == b) return;
+  ++count_[std::minmax(a, b)];
+}
+
+bool AgentJoins::Confirmed(AgentId a, AgentId b) const {
+  if (a == b) return true;
+  const auto it = count_.find(std::minmax(a, b));
+  return it != count_.end() && it->second >= 2;
+}
+
 // ---------------------------------------------------------------- step 3: correction
 
 void MergeLoopMatches(ServerMap* map, const LoopMatch& match) {
@@ -669,7 +680,8 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
                                                    match.T_candidate_map_query)
                      << " mm";
     }
-    if (LoopAlreadyClosed(refined, options)) {
+    if (joins_.Confirmed(match.query->id.agent, match.candidate->id.agent) &&
+        LoopAlreadyClosed(refined, options)) {
       event.already_closed = true;
       map->AddLoopEdge({match.candidate->id, match.query->id, event.T_candidate_query});
       MergeLoopMatches(map, refined);
@@ -696,6 +708,7 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
   }
   event.map = closure.map->id();
   cooldown_.Start(event.query);
+  joins_.Add(event.query.agent, event.candidate.agent);
   CCMD_LOG(INFO) << (event.fusion           ? "maps fused"
                      : event.already_closed ? "loop already closed"
                                             : "loop closed")

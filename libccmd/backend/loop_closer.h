@@ -17,6 +17,7 @@
 #include <functional>
 #include <map>
 #include <optional>
+#include <utility>
 #include <vector>
 
 #include "libccmd/backend/loop_verification.h"
@@ -131,6 +132,20 @@ class LoopCooldown {
   std::map<AgentId, KeyframeId> until_;
 };
 
+// How often each pair of agents has been joined directly, by a fusion or a loop between their
+// keyframes. A fusion rests on one match, and two agents joined only through a third were never
+// compared: until a pair has been joined twice, a loop between them is the first independent
+// check of where the map holds one against the other, and its correction is applied however
+// small (LoopAlreadyClosed is not asked). Bounded: at most two such loops per pair of agents.
+class AgentJoins {
+ public:
+  void Add(AgentId a, AgentId b);
+  bool Confirmed(AgentId a, AgentId b) const;  // joined at least twice (same agent: always)
+
+ private:
+  std::map<std::pair<AgentId, AgentId>, int> count_;
+};
+
 // Step 3 for both kinds of loop: the matched points become one (the query's observation moves
 // to the candidate-side point) and the two keyframes become covisible.
 void MergeLoopMatches(ServerMap* map, const LoopMatch& match);
@@ -139,7 +154,8 @@ void MergeLoopMatches(ServerMap* map, const LoopMatch& match);
 // pose graph. Returns the keyframes the pose graph moved (none if it failed: logged).
 std::vector<ServerKeyframe*> CloseLoopInMap(ServerMap* map, const LoopMatch& match,
                                             const MapPoseGraphOptions& options);
-// Whether a verified loop inside a map is already closed (see min_correction_m).
+// Whether a verified loop inside a map is already closed (see min_correction_m; asked only for
+// loops of an agent with itself or with an agent it was joined to twice, AgentJoins).
 bool LoopAlreadyClosed(const LoopMatch& match, const LoopCloserOptions& options);
 
 // A candidate-side map point found in a query-side keyframe (JoinSeam).
@@ -255,6 +271,7 @@ class LoopCloser {
   const double start_time_;
   LoopConsistency consistency_;
   LoopCooldown cooldown_;
+  AgentJoins joins_;
   std::vector<GlobalKeyframeId> late_queries_;
 };
 

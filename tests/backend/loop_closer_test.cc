@@ -101,6 +101,41 @@ TEST(LoopCooldownTest, HoldsTheAgentsNextKeyframesOnly) {
   EXPECT_TRUE(cooldown.Active(Kf(1, 50)));
 }
 
+TEST(AgentJoinsTest, APairIsConfirmedByItsSecondJoinInEitherOrder) {
+  AgentJoins joins;
+  const AgentId a(1), b(2), c(3);
+  EXPECT_TRUE(joins.Confirmed(a, a));  // an agent's loops with itself are never held back
+  EXPECT_FALSE(joins.Confirmed(a, b));
+  joins.Add(a, b);  // the fusion: one match
+  EXPECT_FALSE(joins.Confirmed(a, b));
+  EXPECT_FALSE(joins.Confirmed(b, a));
+  joins.Add(b, a);  // the first loop between them, from the other side
+  EXPECT_TRUE(joins.Confirmed(a, b));
+  EXPECT_TRUE(joins.Confirmed(b, a));
+  // Joined to b twice says nothing about c, joined to a only through b.
+  joins.Add(b, c);
+  joins.Add(b, c);
+  EXPECT_TRUE(joins.Confirmed(c, b));
+  EXPECT_FALSE(joins.Confirmed(a, c));
+  joins.Add(a, a);  // no effect
+  EXPECT_FALSE(joins.Confirmed(a, c));
+}
+
+TEST(LoopAlreadyClosedTest, BothTheTranslationAndTheRotationMustBeUnderTheThresholds) {
+  ServerKeyframe query;
+  query.T_map_cam = Offset(1.0, 30);
+  LoopMatch match;
+  match.query = &query;
+  const LoopCloserOptions options;  // 5 mm, 0.25 degrees
+  const auto moved_by = [&](double metres, double degrees) {
+    match.T_candidate_map_query = query.T_map_cam * Offset(metres, degrees);
+    return LoopAlreadyClosed(match, options);
+  };
+  EXPECT_TRUE(moved_by(0.003, 0.1));
+  EXPECT_FALSE(moved_by(0.008, 0.1));
+  EXPECT_FALSE(moved_by(0.003, 0.4));
+}
+
 TEST(SelectLoopCandidatesTest, CoolingDownDropsOnlyTheQuerysOwnMap) {
   // Agents 1 and 2 share map 7 (the query's), agent 3 is in map 8, agent 4 in no map.
   const auto map_of = [](AgentId agent) -> std::optional<MapId> {
