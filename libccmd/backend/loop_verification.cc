@@ -103,6 +103,11 @@ std::vector<ServerMapPoint*> LoopWindowPoints(const ServerKeyframe* query,
 
 namespace {
 
+// The loosest depth weighting a loop's first refinement uses: 1 mm + 2 mm per m^2, a third
+// above a Kinect v1's noise at 2-3 m, for the millimetres of error a map's points carry on top
+// of the query's sensor.
+const DepthNoise kTolerantDepthNoise{0.001, 0.002};
+
 // Each query keypoint to its best map point (ratio test), one keypoint per point: the index
 // into `points` per keypoint, -1 for none.
 CCMD_POPCNT_CLONES std::vector<int> MatchKeypoints(const ServerKeyframe& query,
@@ -185,13 +190,12 @@ std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& 
   if (!T_cam_map) return std::nullopt;
 
   // Refine with every match (outliers are re-classified) and the measured depths, twice. First
-  // with depth weighed no stricter than a structured-light sensor's: the other map's points
-  // carry their own errors of millimetres, which a precise sensor's model (rendered depth:
-  // 0.5 mm) would count against nearly every true match, so this pass decides whether the
-  // loop holds. Then from that pose with the agent's own model: at least as many matches as
-  // RANSAC needed must agree to the sensor's precision; its pose is the loop's, and only its
-  // inliers are merged later (a merged point the global BA weighs with that precision must be
-  // one point).
+  // with depth weighed no stricter than kTolerantDepthNoise: the other map's points carry
+  // their own errors of millimetres, which a precise sensor's model (rendered depth: 0.5 mm)
+  // would count against nearly every true match, so this pass decides whether the loop holds. Then
+  // from that pose with the agent's own model: at least as many matches as RANSAC needed must agree
+  // to the sensor's precision; its pose is the loop's, and only its inliers are merged later (a
+  // merged point the global BA weighs with that precision must be one point).
   std::vector<PoseObservation> observations;
   for (std::size_t k = 0; k < object.size(); ++k) {
     const ServerKeypoint& kp = query->keypoints[keypoint_index[k]];
@@ -205,7 +209,8 @@ std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& 
       if (o.depth <= 0) continue;
       o.depth_information = options.depth_noise.Information(o.depth);
       if (tolerant) {
-        o.depth_information = std::min(o.depth_information, DepthNoise().Information(o.depth));
+        o.depth_information =
+            std::min(o.depth_information, kTolerantDepthNoise.Information(o.depth));
       }
     }
   };

@@ -58,13 +58,14 @@ double ReprojectionChi2(const Intrinsics& k, const Eigen::Isometry3d& T_cam_worl
                         double info_px, double info_depth);
 
 // Depth sensor noise: sigma(z) = sigma_0 + sigma_2 * z^2 (metres). A property of the sensor:
-// the default is a structured-light camera's (Kinect v1, ~2 cm at 3 m); a config gives its
-// own (rendered ICL-NUIM depth: its 1 mm rounding at every range). The agent weighs its
-// keypoints' depth with it; the server keeps the default for its keyframes' depth (it lacks the
-// depth slope under each keypoint that makes an exact sensor's sigma usable).
+// the default is a Kinect v1's axial noise (the published structured-light model
+// 1.2 mm + 1.9 mm * (z - 0.4 m)^2 per m^2, as sigma_0 + sigma_2 z^2 over 0.5-3 m: 2 mm at 1 m,
+// 6.5 mm at 2 m, 14 mm at 3 m); a config gives its own (rendered ICL-NUIM depth: its 1 mm
+// rounding at every range). The agent weighs its keypoints' depth with it and announces it to
+// the server, which weighs that agent's keyframes with it.
 struct DepthNoise {
-  double sigma_0 = 0.001;
-  double sigma_2 = 0.002;
+  double sigma_0 = 0.0005;
+  double sigma_2 = 0.0015;
   // How far a keypoint may be from where its depth is read, in its octave's pixel sigmas: the
   // depth slope there times this distance adds to a keypoint's depth sigma (0: sensor only).
   double keypoint_offset = 1.0;

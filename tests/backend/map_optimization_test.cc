@@ -104,7 +104,10 @@ TEST(GlobalBaTest, DepthsAreWeighedWithTheirAgentsSensorNoise) {
   }
   const std::map<AgentId, PinholeCamera> cameras = {{AgentId(1), testing::TestCamera()},
                                                     {AgentId(2), testing::TestCamera()}};
-  AgentDepthNoise noise(DepthNoise{});  // agent 1: the default (1 mm + 2 mm z^2)
+  DepthNoise fallback;  // for agents that announced none, as agent 1 here: 1 mm + 2 mm z^2
+  fallback.sigma_0 = 0.001;
+  fallback.sigma_2 = 0.002;
+  AgentDepthNoise noise(fallback);
   DepthNoise rendered;
   rendered.sigma_0 = 0.0005;
   rendered.sigma_2 = 0;
