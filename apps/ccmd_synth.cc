@@ -6,6 +6,7 @@
 
 #include "apps/app_common.h"
 #include "libccmd/io/config.h"
+#include "libccmd/optim/reprojection.h"
 #include "libccmd/synth/sequence.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/options_writer.h"
@@ -17,7 +18,8 @@ int main(int argc, char** argv) {
       "With --config the images are those the config's camera would record: its size, focal "
       "lengths\n"
       "(a negative fy flips the rows, as in ICL-NUIM), lens distortion, frame rate, depth scale,\n"
-      "colour order, and depth from the Depth block's imager when there is one."};
+      "colour order, depth from the Depth block's imager when there is one, and the depth\n"
+      "noise of the DepthNoise keys when it states them."};
   ccmd::SyntheticSequenceOptions options;
   std::string out, config;
   bool no_noise = false;
@@ -68,13 +70,27 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "ccmd_synth: %s\n", depth.status().ToString().c_str());
       return 1;
     }
+    // The camera's depth noise, when the config states it (DepthNoise keys).
+    auto file = ccmd::ConfigFile::Open(config);
+    ccmd::DepthNoise rendered;
+    rendered.sigma_0 = options.depth_sigma_0;
+    rendered.sigma_2 = options.depth_sigma_2;
+    auto noise = file.ok() ? ccmd::ReadDepthNoise(*file, rendered) : file.status();
+    if (!noise.ok()) {
+      std::fprintf(stderr, "ccmd_synth: %s\n", noise.status().ToString().c_str());
+      return 1;
+    }
+    options.depth_sigma_0 = noise->sigma_0;
+    options.depth_sigma_2 = noise->sigma_2;
     options.camera = *camera;
     options.depth_camera = *depth;
     options.width = camera->width;
     options.height = camera->height;
     options.fps = camera->fps;
-    std::fprintf(stderr, "camera from %s: %s%s\n", config.c_str(), camera->ToString().c_str(),
-                 *depth ? ", depth from the Depth block's imager" : "");
+    std::fprintf(stderr, "camera from %s: %s%s; depth noise %.2g m + %.2g m^-1 z^2\n",
+                 config.c_str(), camera->ToString().c_str(),
+                 *depth ? ", depth from the Depth block's imager" : "", options.depth_sigma_0,
+                 options.depth_sigma_2);
   }
 
   std::fprintf(stderr, "rendering %d frames %dx%d (seed %llu) into %s\n", options.frames,

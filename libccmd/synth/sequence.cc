@@ -54,6 +54,10 @@ Status SyntheticSequenceOptions::Validate() const {
   if (!(noise_scale >= 0) || !std::isfinite(noise_scale)) {
     return InvalidArgument("noise scale must be >= 0");
   }
+  if (!(depth_sigma_0 >= 0 && depth_sigma_2 >= 0 && std::isfinite(depth_sigma_0) &&
+        std::isfinite(depth_sigma_2))) {
+    return InvalidArgument("depth noise sigmas must be >= 0 and finite");
+  }
   if (threads < 0) return InvalidArgument("threads must be >= 0 (0: all cores)");
   CCMD_RETURN_IF_ERROR(room.Validate().WithContext("room"));
   return path.Validate().WithContext("path");
@@ -73,6 +77,8 @@ void SyntheticSequenceOptions::Describe(OptionsWriter* out) const {
   }
   out->Add("seed", seed);
   out->Add("noise", noise);
+  out->Add("depth_sigma_0", depth_sigma_0);
+  out->Add("depth_sigma_2", depth_sigma_2);
   out->Add("noise_scale", noise_scale);
   out->Add("surface_spacing", surface_spacing);
   out->Add("threads", threads);
@@ -124,8 +130,8 @@ PinholeCamera SequenceCamera(const SyntheticSequenceOptions& options) {
 RenderOptions FrameRenderOptions(const SyntheticSequenceOptions& options, int index) {
   RenderOptions render;
   render.noise = options.noise;
-  render.depth.sigma_0 *= options.noise_scale;
-  render.depth.sigma_2 *= options.noise_scale;
+  render.depth.sigma_0 = options.depth_sigma_0 * options.noise_scale;
+  render.depth.sigma_2 = options.depth_sigma_2 * options.noise_scale;
   render.color_sigma *= options.noise_scale;
   render.seed = MixSeed(options.seed, static_cast<std::uint64_t>(index) + 1);
   return render;
@@ -253,6 +259,17 @@ StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
                                           "ground truth of the colour camera, T_world_cam"));
   CCMD_RETURN_IF_ERROR(
       WriteCameraConfig(camera, JoinPath(folder, "camera.yaml"), options.depth_camera));
+  if (options.depth_sigma_0 != DepthSensorModel().sigma_0 ||
+      options.depth_sigma_2 != DepthSensorModel().sigma_2) {
+    // The camera's own depth noise, for the agents that read this file (the default model
+    // needs no keys: it is the agents' default too).
+    CCMD_ASSIGN_OR_RETURN(std::string yaml, ReadFileToString(JoinPath(folder, "camera.yaml")));
+    std::ostringstream keys;
+    keys.precision(9);
+    keys << "DepthNoise.sigma0: " << options.depth_sigma_0
+         << "\nDepthNoise.sigma2: " << options.depth_sigma_2 << "\n";
+    CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "camera.yaml"), yaml + keys.str()));
+  }
   CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "sequence.txt"), DescribeOptions(options)));
 
   VisibilityMarks seen = marks[0];

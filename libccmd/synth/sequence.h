@@ -57,6 +57,11 @@ struct SyntheticSequenceOptions {
   std::optional<DepthToColorCalibration> depth_camera;
   std::uint64_t seed = 1;
   bool noise = true;
+  // The depth sensor's noise sigma(z) = depth_sigma_0 + depth_sigma_2 z^2 (metres, before
+  // noise_scale): by default the renderer's structured-light model; a camera config's
+  // DepthNoise keys give the camera's own (ccmd_synth --config), and camera.yaml then keeps them.
+  double depth_sigma_0 = DepthSensorModel().sigma_0;
+  double depth_sigma_2 = DepthSensorModel().sigma_2;
   double noise_scale = 1.0;       // multiplies depth sigma and colour noise
   double surface_spacing = 0.01;  // ground-truth surface sampling (metres)
   int threads = 0;                // 0: all cores

@@ -2,9 +2,12 @@
 
 #include <gtest/gtest.h>
 
+#include <limits>
+
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
 
+#include "libccmd/io/config.h"
 #include "libccmd/io/ply.h"
 #include "libccmd/io/tum_dataset.h"
 #include "libccmd/sensors/synthetic_source.h"
@@ -95,6 +98,56 @@ TEST(SequenceTest, ConfigCameraRecordsAsThatCameraWould) {
   EXPECT_GT(cv::countNonZero(depth_file), 100);
 }
 
+// Mean |noisy - exact| depth (mm) of a sequence's first frame over pixels valid in both.
+double MeanDepthNoiseMm(const TumSequence& noisy, const TumSequence& exact) {
+  auto a = noisy.LoadFrame(0), b = exact.LoadFrame(0);
+  EXPECT_TRUE(a.ok() && b.ok());
+  double sum = 0;
+  int n = 0;
+  for (int v = 0; v < a->depth_mm.rows; ++v) {
+    for (int u = 0; u < a->depth_mm.cols; ++u) {
+      const int za = a->depth_mm.at<std::uint16_t>(v, u), zb = b->depth_mm.at<std::uint16_t>(v, u);
+      if (za == 0 || zb == 0) continue;
+      sum += std::abs(za - zb);
+      ++n;
+    }
+  }
+  EXPECT_GT(n, 1000);
+  return sum / std::max(n, 1);
+}
+
+// A camera's own depth noise (a config's DepthNoise keys) is what its depth carries, and
+// camera.yaml keeps it for the agents that read it; the default model needs no keys.
+TEST(SequenceTest, ACamerasDepthNoiseIsRenderedAndKeptInItsConfig) {
+  testing::TempDir dir;
+  SyntheticSequenceOptions options = SmallOptions();
+  options.frames = 1;
+  options.noise = false;
+  ASSERT_TRUE(WriteSyntheticSequence(dir.File("exact"), options).ok());
+  options.noise = true;
+  ASSERT_TRUE(WriteSyntheticSequence(dir.File("default"), options).ok());
+  options.depth_sigma_0 = 0.002;
+  options.depth_sigma_2 = 0.008;  // over five times the default at 2 m
+  ASSERT_TRUE(WriteSyntheticSequence(dir.File("stereo"), options).ok());
+  auto exact = TumSequence::Open(dir.File("exact"), std::nullopt);
+  auto kinect = TumSequence::Open(dir.File("default"), std::nullopt);
+  auto stereo = TumSequence::Open(dir.File("stereo"), std::nullopt);
+  ASSERT_TRUE(exact.ok() && kinect.ok() && stereo.ok());
+  const double kinect_mm = MeanDepthNoiseMm(*kinect, *exact);
+  const double stereo_mm = MeanDepthNoiseMm(*stereo, *exact);
+  EXPECT_GT(kinect_mm, 0.5);
+  EXPECT_GT(stereo_mm, 4 * kinect_mm) << kinect_mm;
+
+  auto with_keys = ConfigFile::Open(dir.File("stereo/camera.yaml"));
+  ASSERT_TRUE(with_keys.ok());
+  EXPECT_NEAR(*with_keys->GetDouble("DepthNoise.sigma0", 0), 0.002, 1e-12);
+  EXPECT_NEAR(*with_keys->GetDouble("DepthNoise.sigma2", 0), 0.008, 1e-12);
+  auto without = ConfigFile::Open(dir.File("default/camera.yaml"));
+  ASSERT_TRUE(without.ok());
+  EXPECT_FALSE(without->Has("DepthNoise.sigma0"));
+  EXPECT_FALSE(without->Has("DepthNoise.sigma2"));
+}
+
 TEST(SequenceTest, SurfaceSamplesLieOnTheScenePolygons) {
   testing::TempDir dir;
   SyntheticSequenceOptions options = SmallOptions();
@@ -135,6 +188,11 @@ TEST(SequenceTest, BadOptionsAreRefused) {
   SyntheticSequenceOptions o = SmallOptions();
   o.frames = 0;
   EXPECT_FALSE(WriteSyntheticSequence(dir.path(), o).ok());
+  for (double sigma : {-0.001, std::numeric_limits<double>::quiet_NaN()}) {
+    SyntheticSequenceOptions noisy = SmallOptions();
+    noisy.depth_sigma_2 = sigma;
+    EXPECT_FALSE(noisy.Validate().ok()) << sigma;
+  }
   EXPECT_FALSE(ParseSyntheticSpec("frames=10,colour=2").ok());
   EXPECT_EQ(ParseSyntheticSpec("frames=10,seed=4")->seed, 4u);
 }
