@@ -122,15 +122,12 @@ bool LoopCooldown::Active(const GlobalKeyframeId& query) const {
   return it != until_.end() && query.keyframe <= it->second;
 }
 
-void AgentJoins::Add(AgentId a, AgentId b) {
-  if (a == b) return;
-  ++count_[std::minmax(a, b)];
+void ComparedAgents::Add(AgentId a, AgentId b) {
+  if (a != b) pairs_.insert(std::minmax(a, b));
 }
 
-bool AgentJoins::Confirmed(AgentId a, AgentId b) const {
-  if (a == b) return true;
-  const auto it = count_.find(std::minmax(a, b));
-  return it != count_.end() && it->second >= 2;
+bool ComparedAgents::Compared(AgentId a, AgentId b) const {
+  return a == b || pairs_.count(std::minmax(a, b)) > 0;
 }
 
 // ---------------------------------------------------------------- step 3: correction
@@ -680,8 +677,10 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
                                                    match.T_candidate_map_query)
                      << " mm";
     }
-    if (joins_.Confirmed(match.query->id.agent, match.candidate->id.agent) &&
-        LoopAlreadyClosed(refined, options)) {
+    const AgentId a = match.query->id.agent, b = match.candidate->id.agent;
+    const bool compared = compared_.Compared(a, b);
+    compared_.Add(a, b);
+    if (compared && LoopAlreadyClosed(refined, options)) {
       event.already_closed = true;
       map->AddLoopEdge({match.candidate->id, match.query->id, event.T_candidate_query});
       MergeLoopMatches(map, refined);
@@ -708,7 +707,6 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
   }
   event.map = closure.map->id();
   cooldown_.Start(event.query);
-  joins_.Add(event.query.agent, event.candidate.agent);
   CCMD_LOG(INFO) << (event.fusion           ? "maps fused"
                      : event.already_closed ? "loop already closed"
                                             : "loop closed")

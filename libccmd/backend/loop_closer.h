@@ -17,6 +17,7 @@
 #include <functional>
 #include <map>
 #include <optional>
+#include <set>
 #include <utility>
 #include <vector>
 
@@ -132,18 +133,18 @@ class LoopCooldown {
   std::map<AgentId, KeyframeId> until_;
 };
 
-// How often each pair of agents has been joined directly, by a fusion or a loop between their
-// keyframes. A fusion rests on one match, and two agents joined only through a third were never
-// compared: until a pair has been joined twice, a loop between them is the first independent
-// check of where the map holds one against the other, and its correction is applied however
-// small (LoopAlreadyClosed is not asked). Bounded: at most two such loops per pair of agents.
-class AgentJoins {
+// The pairs of agents that a loop inside a map has compared directly. A fusion rests on one
+// match, and two agents joined only through a third were never compared: the first loop
+// between two agents in one map is the first independent check of where the map holds one
+// against the other, and its correction is applied however small (LoopAlreadyClosed is not
+// asked). Bounded: at most one such loop per pair of agents.
+class ComparedAgents {
  public:
-  void Add(AgentId a, AgentId b);
-  bool Confirmed(AgentId a, AgentId b) const;  // joined at least twice (same agent: always)
+  void Add(AgentId a, AgentId b);             // a loop between them was verified in one map
+  bool Compared(AgentId a, AgentId b) const;  // an agent with itself: always
 
  private:
-  std::map<std::pair<AgentId, AgentId>, int> count_;
+  std::set<std::pair<AgentId, AgentId>> pairs_;
 };
 
 // Step 3 for both kinds of loop: the matched points become one (the query's observation moves
@@ -155,7 +156,7 @@ void MergeLoopMatches(ServerMap* map, const LoopMatch& match);
 std::vector<ServerKeyframe*> CloseLoopInMap(ServerMap* map, const LoopMatch& match,
                                             const MapPoseGraphOptions& options);
 // Whether a verified loop inside a map is already closed (see min_correction_m; asked only for
-// loops of an agent with itself or with an agent it was joined to twice, AgentJoins).
+// loops between agents already compared, ComparedAgents).
 bool LoopAlreadyClosed(const LoopMatch& match, const LoopCloserOptions& options);
 
 // A candidate-side map point found in a query-side keyframe (JoinSeam).
@@ -271,7 +272,7 @@ class LoopCloser {
   const double start_time_;
   LoopConsistency consistency_;
   LoopCooldown cooldown_;
-  AgentJoins joins_;
+  ComparedAgents compared_;
   std::vector<GlobalKeyframeId> late_queries_;
 };
 

@@ -101,24 +101,20 @@ TEST(LoopCooldownTest, HoldsTheAgentsNextKeyframesOnly) {
   EXPECT_TRUE(cooldown.Active(Kf(1, 50)));
 }
 
-TEST(AgentJoinsTest, APairIsConfirmedByItsSecondJoinInEitherOrder) {
-  AgentJoins joins;
+TEST(ComparedAgentsTest, APairIsComparedOnceInEitherOrderAndOnlyItself) {
+  ComparedAgents compared;
   const AgentId a(1), b(2), c(3);
-  EXPECT_TRUE(joins.Confirmed(a, a));  // an agent's loops with itself are never held back
-  EXPECT_FALSE(joins.Confirmed(a, b));
-  joins.Add(a, b);  // the fusion: one match
-  EXPECT_FALSE(joins.Confirmed(a, b));
-  EXPECT_FALSE(joins.Confirmed(b, a));
-  joins.Add(b, a);  // the first loop between them, from the other side
-  EXPECT_TRUE(joins.Confirmed(a, b));
-  EXPECT_TRUE(joins.Confirmed(b, a));
-  // Joined to b twice says nothing about c, joined to a only through b.
-  joins.Add(b, c);
-  joins.Add(b, c);
-  EXPECT_TRUE(joins.Confirmed(c, b));
-  EXPECT_FALSE(joins.Confirmed(a, c));
-  joins.Add(a, a);  // no effect
-  EXPECT_FALSE(joins.Confirmed(a, c));
+  EXPECT_TRUE(compared.Compared(a, a));  // an agent's loops with itself are never held back
+  EXPECT_FALSE(compared.Compared(a, b));
+  compared.Add(b, a);
+  EXPECT_TRUE(compared.Compared(a, b));
+  EXPECT_TRUE(compared.Compared(b, a));
+  // Compared with b says nothing about c, joined to a only through b.
+  compared.Add(b, c);
+  EXPECT_TRUE(compared.Compared(c, b));
+  EXPECT_FALSE(compared.Compared(a, c));
+  compared.Add(a, a);  // no effect
+  EXPECT_FALSE(compared.Compared(a, c));
 }
 
 TEST(LoopAlreadyClosedTest, BothTheTranslationAndTheRotationMustBeUnderTheThresholds) {
