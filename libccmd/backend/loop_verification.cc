@@ -103,7 +103,7 @@ std::vector<ServerMapPoint*> LoopWindowPoints(const ServerKeyframe* query,
 
 namespace {
 
-// The loosest depth weighting a loop's first refinement uses: 1 mm + 2 mm per m^2, a third
+// The loosest depth weighting a loop's first refinement uses: 1 mm + 2 mm per m^2, about 40 %
 // above a Kinect v1's noise at 2-3 m, for the millimetres of error a map's points carry on top
 // of the query's sensor.
 const DepthNoise kTolerantDepthNoise{0.001, 0.002};
@@ -192,10 +192,11 @@ std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& 
   // Refine with every match (outliers are re-classified) and the measured depths, twice. First
   // with depth weighed no stricter than kTolerantDepthNoise: the other map's points carry
   // their own errors of millimetres, which a precise sensor's model (rendered depth: 0.5 mm)
-  // would count against nearly every true match, so this pass decides whether the loop holds. Then
-  // from that pose with the agent's own model: at least as many matches as RANSAC needed must agree
-  // to the sensor's precision; its pose is the loop's, and only its inliers are merged later (a
-  // merged point the global BA weighs with that precision must be one point).
+  // would count against nearly every true match, so this pass decides whether the loop
+  // holds. Then from that pose with the agent's own model: at least as many matches as RANSAC
+  // needed must agree to the sensor's precision; its pose is the loop's, and only its inliers
+  // are merged later (a merged point the global BA weighs with that precision must be one
+  // point).
   std::vector<PoseObservation> observations;
   for (std::size_t k = 0; k < object.size(); ++k) {
     const ServerKeypoint& kp = query->keypoints[keypoint_index[k]];
