@@ -75,12 +75,11 @@ Backend::Backend(const BackendOptions& options)
       start_time_(MonotonicSeconds()),
       loop_closer_(options.loops, options.place, &maps_, start_time_),
       culler_(options.culling),
+      depth_noise_(options.depth_noise),
       ingest_stage_(options.queue_capacity),
       loop_stage_(options.queue_capacity * 4),
       gba_stage_(1, Stage<GbaRequest>::Policy::kLatest),
-      dense_stage_(options.queue_capacity * 4) {
-  depth_noise_ = AgentDepthNoise(options_.depth_noise);
-}
+      dense_stage_(options.queue_capacity * 4) {}
 
 Backend::~Backend() { Shutdown(); }
 
