@@ -1,11 +1,13 @@
 // ccmd_eval: evaluation tools over standard files.
 //   ate    absolute trajectory error (evo_ape tum -a)
 //   rpe    relative pose error
+//   jumps  where a trajectory leaves the line between its neighbouring poses
 //   recon  reconstruction error between two PLY clouds
 //   split  split-replay segments of a sequence
 //   map-pictures  top and perspective pictures of a dense map (what ccmd_replay's report shows)
 
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <cstdio>
 
 #include "apps/app_common.h"
@@ -100,6 +102,48 @@ int RunRpe(const std::string& gt_path, const std::string& est_path, const std::s
     j["delta_frames"] = delta;
     j["translation_m"] = StatsJson(rpe->translation);
     j["rotation_deg"] = StatsJson(rpe->rotation);
+    const ccmd::Status s = ccmd::WriteJsonFile(j, json_path);
+    if (!s.ok()) return Fail(s);
+  }
+  return 0;
+}
+
+int RunJumps(const std::string& path, int top, const std::string& json_path) {
+  auto trajectory = ccmd::ReadTumTrajectory(path);
+  if (!trajectory.ok()) return Fail(trajectory.status());
+  if (trajectory->size() < 3) {
+    return Fail(ccmd::InvalidArgument(path + ": " + std::to_string(trajectory->size()) +
+                                      " poses; jumps need at least 3"));
+  }
+  const std::vector<double> deviations = ccmd::NeighbourDeviations(*trajectory);
+  const ccmd::ErrorStatistics stats =
+      ccmd::ComputeStatistics(std::vector<double>(deviations.begin() + 1, deviations.end() - 1));
+  std::vector<std::size_t> order(deviations.size());
+  for (std::size_t i = 0; i < order.size(); ++i) order[i] = i;
+  std::stable_sort(order.begin(), order.end(),
+                   [&](std::size_t a, std::size_t b) { return deviations[a] > deviations[b]; });
+  order.resize(std::min<std::size_t>(order.size(), static_cast<std::size_t>(top)));
+  std::printf(
+      "off the line between neighbours, %zu poses: median %.2f mm  rmse %.2f mm  "
+      "max %.2f mm\n",
+      deviations.size() - 2, 1e3 * stats.median, 1e3 * stats.rmse, 1e3 * stats.max);
+  for (std::size_t i : order) {
+    std::printf("  pose %6zu  t %.6f  %7.2f mm\n", i, (*trajectory)[i].timestamp,
+                1e3 * deviations[i]);
+  }
+  if (!json_path.empty()) {
+    ccmd::Json j;
+    j["poses"] = deviations.size();
+    j["deviation_m"] = StatsJson(stats);
+    ccmd::Json largest = ccmd::Json::MakeArray();
+    for (std::size_t i : order) {
+      ccmd::Json e;
+      e["index"] = i;
+      e["timestamp"] = (*trajectory)[i].timestamp;
+      e["deviation_m"] = deviations[i];
+      largest.Push(e);
+    }
+    j["largest"] = largest;
     const ccmd::Status s = ccmd::WriteJsonFile(j, json_path);
     if (!s.ok()) return Fail(s);
   }
@@ -240,6 +284,18 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   rpe->add_option("--delta", delta, "Frames between compared poses")->capture_default_str();
 
+  std::string traj;
+  int top = 10;
+  auto* jumps = app.add_subcommand(
+      "jumps",
+      "How far each pose is from the line between its neighbours: where a trajectory (a ground "
+      "truth made by tracking) jumps");
+  jumps->add_option("--traj", traj, "Trajectory (TUM format)")->required();
+  jumps->add_option("--top", top, "How many of the largest to list")
+      ->capture_default_str()
+      ->check(CLI::Range(0, 1000000));
+  jumps->add_option("--json", json, "Write the figures as JSON");
+
   std::string ref, rec, gt_traj, est_traj;
   bool point_to_point = false;
   double completeness_threshold = 0.02;
@@ -283,6 +339,7 @@ int main(int argc, char** argv) {
   if (*pictures) return RunMapPictures(map_path, cameras_path, stats_path, pictures_out);
   if (*ate) return RunAte(gt, est, json, max_diff, scale, aligned_out);
   if (*rpe) return RunRpe(gt, est, json, max_diff, delta);
+  if (*jumps) return RunJumps(traj, top, json);
   if (*recon) {
     return RunRecon(ref, rec, json, gt_traj, est_traj, point_to_point, completeness_threshold);
   }

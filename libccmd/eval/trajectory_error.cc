@@ -152,6 +152,20 @@ StatusOr<RpeResult> ComputeRpe(const Trajectory& groundtruth, const Trajectory& 
   return result;
 }
 
+std::vector<double> NeighbourDeviations(const Trajectory& trajectory) {
+  std::vector<double> deviations(trajectory.size(), 0.0);
+  for (std::size_t i = 1; i + 1 < trajectory.size(); ++i) {
+    const StampedPose& before = trajectory[i - 1];
+    const StampedPose& after = trajectory[i + 1];
+    const double span = after.timestamp - before.timestamp;
+    const double s = span > 0 ? (trajectory[i].timestamp - before.timestamp) / span : 0.5;
+    const Eigen::Vector3d line =
+        (1 - s) * before.T_world_cam.translation() + s * after.T_world_cam.translation();
+    deviations[i] = (trajectory[i].T_world_cam.translation() - line).norm();
+  }
+  return deviations;
+}
+
 Trajectory TransformTrajectory(const Trajectory& trajectory, const Similarity3& transform) {
   Trajectory out = trajectory;
   for (StampedPose& p : out) {

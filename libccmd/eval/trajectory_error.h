@@ -63,6 +63,12 @@ struct RpeResult {
 StatusOr<RpeResult> ComputeRpe(const Trajectory& groundtruth, const Trajectory& estimate,
                                const RpeOptions& options = {});
 
+// How far each position is from the straight line between its two neighbours, interpolated
+// at its timestamp (metres; the first and last pose get 0). A camera carried by hand moves
+// about a millimetre off that line between frames at 30 Hz; a pose that jumps by d and back
+// gives d there and d/2 beside it. Finds where a ground truth made by tracking jumps.
+std::vector<double> NeighbourDeviations(const Trajectory& trajectory);
+
 // Applies a similarity to every pose of a trajectory (positions scaled, rotations kept).
 Trajectory TransformTrajectory(const Trajectory& trajectory, const Similarity3& transform);
 

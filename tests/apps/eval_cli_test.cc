@@ -77,5 +77,45 @@ TEST(EvalCliTest, ReconWritesMeanAndHausdorff) {
   EXPECT_NEAR(json->Get("hausdorff_m")->number(), 0.003, 1e-6);
 }
 
+// A straight path at constant speed with one pose pushed 2 cm aside: that pose comes first,
+// its neighbours next (1 cm each), and a trajectory of two poses is refused by name.
+TEST(EvalCliTest, JumpsListsTheLargestFirst) {
+  testing::TempDir dir;
+  Trajectory t;
+  for (int i = 0; i < 30; ++i) {
+    Pose p = Pose::Identity();
+    p.translation() = Eigen::Vector3d(0.01 * i, 0, 0);
+    if (i == 12) p.translation().y() = 0.02;
+    t.push_back({1.0 + i / 30.0, p});
+  }
+  ASSERT_TRUE(WriteTumTrajectory(t, dir.File("t.txt")).ok());
+  std::string out;
+  ASSERT_EQ(RunCommand(ProgramPath("ccmd_eval") + " jumps --top 3 --traj " + dir.File("t.txt") +
+                           " --json " + dir.File("j.json"),
+                       &out),
+            0)
+      << out;
+  auto json = ReadJsonFile(dir.File("j.json"));
+  ASSERT_TRUE(json.ok());
+  const Json* largest = json->Get("largest");
+  ASSERT_NE(largest, nullptr);
+  ASSERT_EQ(largest->array().size(), 3u);
+  EXPECT_EQ(largest->array()[0].Get("index")->number(), 12);
+  EXPECT_NEAR(largest->array()[0].Get("deviation_m")->number(), 0.02, 1e-6);
+  for (int k : {1, 2}) {
+    const int index = static_cast<int>(largest->array()[k].Get("index")->number());
+    EXPECT_TRUE(index == 11 || index == 13) << index;
+    EXPECT_NEAR(largest->array()[k].Get("deviation_m")->number(), 0.01, 1e-6);
+  }
+  EXPECT_NEAR(json->Get("deviation_m")->Get("max")->number(), 0.02, 1e-6);
+  EXPECT_LT(json->Get("deviation_m")->Get("median")->number(), 1e-6);
+
+  t.resize(2);
+  ASSERT_TRUE(WriteTumTrajectory(t, dir.File("short.txt")).ok());
+  EXPECT_NE(RunCommand(ProgramPath("ccmd_eval") + " jumps --traj " + dir.File("short.txt"), &out),
+            0);
+  EXPECT_NE(out.find("at least 3"), std::string::npos) << out;
+}
+
 }  // namespace
 }  // namespace ccmd

@@ -122,5 +122,37 @@ TEST(StatisticsTest, MedianAndStd) {
   EXPECT_DOUBLE_EQ(s.std, std::sqrt(1.25));
 }
 
+// A camera moving on a parabola at uneven frame times leaves the line between its neighbours
+// by the parabola's sagitta only; one pose pushed 3 cm aside shows there as 3 cm (plus that
+// sagitta) and as about half of it beside it.
+TEST(NeighbourDeviationsTest, FindsTheOnePoseThatJumps) {
+  Trajectory t;
+  const double a = 0.4;  // m/s^2 across the path
+  double time = 10.0;
+  for (int i = 0; i < 40; ++i) {
+    time += (i % 3 == 0) ? 1.0 / 30 : 1.0 / 25;
+    Pose p = Pose::Identity();
+    p.translation() = Eigen::Vector3d(0.3 * time, 0.5 * a * time * time, 0);
+    t.push_back({time, p});
+  }
+  std::vector<double> smooth = NeighbourDeviations(t);
+  ASSERT_EQ(smooth.size(), t.size());
+  EXPECT_EQ(smooth.front(), 0);
+  EXPECT_EQ(smooth.back(), 0);
+  for (std::size_t i = 1; i + 1 < t.size(); ++i) {
+    // Sagitta of a parabola over the span: a/2 * (t - t0)(t1 - t), under a millimetre here.
+    const double t0 = t[i - 1].timestamp, t1 = t[i + 1].timestamp, ti = t[i].timestamp;
+    EXPECT_NEAR(smooth[i], 0.5 * a * (ti - t0) * (t1 - ti), 1e-9) << i;
+  }
+  t[20].T_world_cam.translation().z() += 0.03;
+  const std::vector<double> jumped = NeighbourDeviations(t);
+  EXPECT_NEAR(jumped[20], std::hypot(0.03, smooth[20]), 1e-9);
+  EXPECT_GT(jumped[19], 0.012);
+  EXPECT_LT(jumped[19], 0.018);
+  EXPECT_GT(jumped[21], 0.012);
+  EXPECT_LT(jumped[21], 0.018);
+  EXPECT_NEAR(jumped[10], smooth[10], 1e-12);
+}
+
 }  // namespace
 }  // namespace ccmd
