@@ -335,11 +335,11 @@ std::vector<std::uint8_t> SerializeJournalInfo(const JournalAgentInfo& info) {
   // Distortion is appended only when there is some, as in version 1.
   if (info.camera.HasDistortion()) {
     w.PutU8(kJournalCameraDistortion);
-    PutDistortion(info.camera, &w);
+    PutSessionDistortion(info.camera, &w);
   }
   if (info.camera.HasDepthNoise()) {
     w.PutU8(kJournalCameraDepthNoise);
-    PutDepthNoise(info.camera, &w);
+    PutSessionDepthNoise(info.camera, &w);
   }
   return w.Take();
 }
@@ -385,9 +385,9 @@ StatusOr<JournalAgentInfo> ParseJournalInfo(ByteSpan payload, std::uint8_t versi
     }
     last_extension = extension;
     if (extension == kJournalCameraDistortion) {
-      CCMD_RETURN_IF_ERROR(ReadDistortion(&r, &info.camera));
+      CCMD_RETURN_IF_ERROR(ReadSessionDistortion(&r, &info.camera));
     } else if (extension == kJournalCameraDepthNoise) {
-      CCMD_RETURN_IF_ERROR(ReadDepthNoise(&r, &info.camera));
+      CCMD_RETURN_IF_ERROR(ReadSessionDepthNoise(&r, &info.camera));
       if (!info.camera.HasDepthNoise()) return Corrupt("journal info: zero depth noise");
     } else {
       return Corrupt("journal info: unknown camera extension " + std::to_string(extension) +

@@ -149,21 +149,21 @@ Status ReadSessionCamera(ByteReader* r, SessionCamera* c) {
   return r->ReadF64(&c->depth_scale);
 }
 
-void PutDistortion(const SessionCamera& c, ByteWriter* w) {
+void PutSessionDistortion(const SessionCamera& c, ByteWriter* w) {
   for (const double k : c.distortion) w->PutF64(k);
 }
 
-Status ReadDistortion(ByteReader* r, SessionCamera* c) {
+Status ReadSessionDistortion(ByteReader* r, SessionCamera* c) {
   for (double& k : c->distortion) CCMD_RETURN_IF_ERROR(r->ReadF64(&k));
   return Status::Ok();
 }
 
-void PutDepthNoise(const SessionCamera& c, ByteWriter* w) {
+void PutSessionDepthNoise(const SessionCamera& c, ByteWriter* w) {
   w->PutF64(c.depth_sigma0);
   w->PutF64(c.depth_sigma2);
 }
 
-Status ReadDepthNoise(ByteReader* r, SessionCamera* c) {
+Status ReadSessionDepthNoise(ByteReader* r, SessionCamera* c) {
   CCMD_RETURN_IF_ERROR(r->ReadF64(&c->depth_sigma0));
   return r->ReadF64(&c->depth_sigma2);
 }
@@ -177,8 +177,8 @@ std::vector<std::uint8_t> SerializeHello(const HelloMessage& m) {
   w.PutU8(static_cast<std::uint8_t>(m.name.size()));
   w.PutBytes(m.name.data(), m.name.size());
   PutSessionCamera(m.camera, &w);
-  if (distortion) PutDistortion(m.camera, &w);
-  if (noise) PutDepthNoise(m.camera, &w);
+  if (distortion) PutSessionDistortion(m.camera, &w);
+  if (noise) PutSessionDepthNoise(m.camera, &w);
   w.PutU64(m.first_seq);
   w.PutU64(m.next_seq);
   PutNonce(m.agent_nonce, &w);
@@ -205,9 +205,9 @@ StatusOr<HelloMessage> ParseHello(ByteSpan payload) {
   Status name_ok = ValidateAgentName(m.name);
   if (!name_ok.ok()) return Corrupt("hello: " + name_ok.message());
   CCMD_RETURN_IF_ERROR(ReadSessionCamera(&r, &m.camera));
-  if (flags & kHelloDistortion) CCMD_RETURN_IF_ERROR(ReadDistortion(&r, &m.camera));
+  if (flags & kHelloDistortion) CCMD_RETURN_IF_ERROR(ReadSessionDistortion(&r, &m.camera));
   if (flags & kHelloDepthNoise) {
-    CCMD_RETURN_IF_ERROR(ReadDepthNoise(&r, &m.camera));
+    CCMD_RETURN_IF_ERROR(ReadSessionDepthNoise(&r, &m.camera));
     if (!m.camera.HasDepthNoise()) return Corrupt("hello: depth noise flagged but zero");
   }
   Status camera_ok = ValidateSessionCamera(m.camera);

@@ -105,10 +105,10 @@ std::string DescribeCamera(const SessionCamera& camera);
 // info record lay them out; distortion and depth noise travel separately, only when given.
 void PutSessionCamera(const SessionCamera& camera, ByteWriter* w);
 Status ReadSessionCamera(ByteReader* r, SessionCamera* camera);
-void PutDistortion(const SessionCamera& camera, ByteWriter* w);  // 5 x f64
-Status ReadDistortion(ByteReader* r, SessionCamera* camera);
-void PutDepthNoise(const SessionCamera& camera, ByteWriter* w);  // 2 x f64
-Status ReadDepthNoise(ByteReader* r, SessionCamera* camera);
+void PutSessionDistortion(const SessionCamera& camera, ByteWriter* w);  // 5 x f64
+Status ReadSessionDistortion(ByteReader* r, SessionCamera* camera);
+void PutSessionDepthNoise(const SessionCamera& camera, ByteWriter* w);  // 2 x f64
+Status ReadSessionDepthNoise(ByteReader* r, SessionCamera* camera);
 
 struct HelloMessage {
   std::uint8_t version = kProtocolVersion;
