@@ -254,6 +254,9 @@ int main(int argc, char** argv) {
     }
   }
   if (app.count("--cpu-budget")) tracking.cpu_budget = cpu_budget;
+  // A frame's record is needed only for the trajectory file; without one the agent's memory
+  // does not grow with the frames, however long the mission.
+  tracking.record_frames = !trajectory_path.empty();
   ccmd::UseOpenCvThreadsForBudget(tracking.cpu_budget);
   if (rgbd_every_keyframe) tracking.rgbd_selection.enabled = false;
   if (threshold_scale != 1.0) {

@@ -51,6 +51,7 @@ void TrackingOptions::Describe(OptionsWriter* out) const {
   out->Add("max_keyframes", max_keyframes);
   out->Add("cull_redundant_keyframes", cull_redundant_keyframes);
   out->Add("synchronous_mapping", synchronous_mapping);
+  out->Add("record_frames", record_frames);
   out->Add("max_new_points_per_keyframe", max_new_points_per_keyframe);
   out->Add("send_unlinked_keypoints", send_unlinked_keypoints);
   out->Add("pose_update_min_translation", pose_update_min_translation);
@@ -99,7 +100,7 @@ Trajectory Frontend::FrameTrajectory() {
   Trajectory trajectory;
   for (const Tracker::FrameRecord& r : tracker_->records()) {
     const auto T_world_ref = map_.KeyframePose(r.reference);
-    if (T_world_ref) trajectory.push_back({r.timestamp, *T_world_ref * r.T_ref_cam});
+    if (T_world_ref) trajectory.push_back({r.timestamp, *T_world_ref * r.T_ref_cam()});
   }
   return trajectory;
 }

@@ -68,6 +68,10 @@ struct TrackingOptions {
   bool cull_redundant_keyframes = true;
   // Run local mapping in the tracking thread (deterministic; for tests and measurements).
   bool synchronous_mapping = false;
+  // Keep a record of every tracked frame (40 bytes each) for Frontend::FrameTrajectory. Off,
+  // the front-end's memory does not grow with the frames; ccmd_agent turns it off unless a
+  // trajectory file is asked for.
+  bool record_frames = true;
   // Bandwidth: new map points sent per keyframe (0: all), and whether keypoints without a map
   // point the server knows are sent at all (with their descriptors).
   int max_new_points_per_keyframe = 250;

@@ -25,6 +25,19 @@ const char* TrackingStateName(TrackingState state) {
   return "?";
 }
 
+Tracker::FrameRecord::FrameRecord(double timestamp, KeyframeId reference, const Pose& T_ref_cam)
+    : timestamp(timestamp),
+      reference(reference),
+      q_ref_cam(Eigen::Quaterniond(T_ref_cam.linear()).cast<float>()),
+      t_ref_cam(T_ref_cam.translation().cast<float>()) {}
+
+Pose Tracker::FrameRecord::T_ref_cam() const {
+  Pose T = Pose::Identity();
+  T.linear() = q_ref_cam.cast<double>().normalized().toRotationMatrix();
+  T.translation() = t_ref_cam.cast<double>();
+  return T;
+}
+
 Tracker::Tracker(const PinholeCamera& camera, const TrackingOptions& options, LocalMap* map,
                  const OrbExtractor* orb, MappingQueue* mapping)
     : camera_(camera), options_(options), map_(map), orb_(orb), mapping_(mapping) {
@@ -87,8 +100,10 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
   if (state_ == TrackingState::kOk && current_->has_pose && reference_) {
     const Pose T_world_cam = current_->T_cam_world.inverse();
     result.T_world_cam = T_world_cam;
-    records_.push_back(
-        {current_->timestamp, reference_->id(), reference_->T_cam_world() * T_world_cam});
+    if (options_.record_frames) {
+      records_.emplace_back(current_->timestamp, reference_->id(),
+                            reference_->T_cam_world() * T_world_cam);
+    }
   }
   result.tracked_points = current_->TrackedPoints();
   result.track_ms = watch.ElapsedMillis();

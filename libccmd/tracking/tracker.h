@@ -51,12 +51,18 @@ class Tracker {
   TrackingState state() const { return state_; }
   int frames_since_relocalisation() const { return frames_since_relocalisation_; }
 
-  // Per-frame record for the trajectory: pose relative to the reference keyframe, so the
-  // final trajectory follows the keyframes' optimised poses.
+  // Per-frame record for the trajectory (with options.record_frames): pose relative to the
+  // reference keyframe, so the final trajectory follows the keyframes' optimised poses. Stored
+  // in single precision (40 bytes a frame, 4.3 MB an hour at 30 Hz): relative to a keyframe a
+  // few metres away at most, that is well under a micrometre and a microradian.
   struct FrameRecord {
+    FrameRecord(double timestamp, KeyframeId reference, const Pose& T_ref_cam);
+    Pose T_ref_cam() const;
+
     double timestamp;
     KeyframeId reference;
-    Pose T_ref_cam;
+    Eigen::Quaternion<float, Eigen::DontAlign> q_ref_cam;
+    Eigen::Matrix<float, 3, 1, Eigen::DontAlign> t_ref_cam;
   };
   const std::vector<FrameRecord>& records() const { return records_; }
 

@@ -168,6 +168,39 @@ TEST(FrontendTest, BoundedMapStaysBounded) {
   EXPECT_LT(ate->error.rmse, 0.02);
 }
 
+// Frame records are what the trajectory is made of: without them (a live agent that writes
+// no trajectory) the frames leave nothing behind, and the keyframes are made as before.
+TEST(FrontendTest, WithoutFrameRecordsTheFramesLeaveNothingBehind) {
+  TrackingOptions o = Synchronous();
+  o.record_frames = false;
+  RunResult without, with;
+  RunSequence(40, o, &without);
+  RunSequence(40, Synchronous(), &with);
+  EXPECT_EQ(without.stats.tracked_frames, 40);
+  EXPECT_TRUE(without.trajectory.empty());
+  EXPECT_EQ(with.trajectory.size(), 40u);
+  EXPECT_EQ(without.stats.keyframes, with.stats.keyframes);
+  EXPECT_EQ(without.sink.keyframes.size(), with.sink.keyframes.size());
+}
+
+// A frame's pose is kept in single precision relative to its reference keyframe: a few metres
+// and any rotation come back within a micrometre and a microradian, in 40 bytes.
+TEST(FrameRecordTest, SinglePrecisionKeepsThePose) {
+  static_assert(sizeof(Tracker::FrameRecord) <= 40, "a frame record grows the agent's memory");
+  Pose T = Pose::Identity();
+  T.linear() =
+      Eigen::AngleAxisd(2.7, Eigen::Vector3d(0.3, -1, 0.4).normalized()).toRotationMatrix();
+  T.translation() = Eigen::Vector3d(3.1, -2.2, 0.7);
+  const Tracker::FrameRecord record(12.5, KeyframeId(7), T);
+  const Pose back = record.T_ref_cam();
+  EXPECT_EQ(record.timestamp, 12.5);
+  EXPECT_EQ(record.reference, KeyframeId(7));
+  EXPECT_LT((back.translation() - T.translation()).norm(), 1e-6);
+  EXPECT_LT(Eigen::AngleAxisd(back.linear().transpose() * T.linear()).angle(), 1e-6);
+  EXPECT_LT((back.linear().transpose() * back.linear() - Eigen::Matrix3d::Identity()).norm(),
+            1e-12);
+}
+
 TEST(FrontendTest, BadOptionsAreRefused) {
   TrackingOptions o;
   o.local_ba_window = 0;
