@@ -187,7 +187,9 @@ int main(int argc, char** argv) {
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
   app.add_option("--progress", progress_path, "Rewrite a small progress JSON about once a second");
-  app.add_option("--trajectory", trajectory_path, "Write every tracked frame's pose (TUM format)");
+  app.add_option("--trajectory", trajectory_path,
+                 "Write every tracked frame's pose (TUM format) at the end; the agent keeps 40 "
+                 "bytes a frame for it until then");
   app.add_option("--keyframe-trajectory", keyframe_trajectory_path,
                  "Write keyframe poses (TUM format)");
   app.add_option("--stats", stats_path, "Write run statistics as JSON");
