@@ -93,6 +93,7 @@ ccmd::Json StatsJson(const ccmd::FrontendStats& s, double wall_seconds,
     list.Push(e);
   }
   j["rgbd_decisions"] = list;
+  j["rgbd_decisions_not_recorded"] = m.rgbd_decisions_not_recorded;
   return j;
 }
 
@@ -256,9 +257,9 @@ int main(int argc, char** argv) {
     }
   }
   if (app.count("--cpu-budget")) tracking.cpu_budget = cpu_budget;
-  // A frame's record is needed only for the trajectory file; without one the agent's memory
-  // does not grow with the frames, however long the mission.
-  tracking.record_frames = !trajectory_path.empty();
+  // Frame records and removed keyframes' poses are needed only for the trajectory files;
+  // without them nothing in the agent's memory grows with the frames, however long the mission.
+  tracking.record_trajectory = !trajectory_path.empty() || !keyframe_trajectory_path.empty();
   ccmd::UseOpenCvThreadsForBudget(tracking.cpu_budget);
   if (rgbd_every_keyframe) tracking.rgbd_selection.enabled = false;
   if (threshold_scale != 1.0) {

@@ -51,7 +51,7 @@ void TrackingOptions::Describe(OptionsWriter* out) const {
   out->Add("max_keyframes", max_keyframes);
   out->Add("cull_redundant_keyframes", cull_redundant_keyframes);
   out->Add("synchronous_mapping", synchronous_mapping);
-  out->Add("record_frames", record_frames);
+  out->Add("record_trajectory", record_trajectory);
   out->Add("max_new_points_per_keyframe", max_new_points_per_keyframe);
   out->Add("send_unlinked_keypoints", send_unlinked_keypoints);
   out->Add("pose_update_min_translation", pose_update_min_translation);
@@ -69,6 +69,7 @@ StatusOr<std::unique_ptr<Frontend>> Frontend::Create(const PinholeCamera& camera
 
 Frontend::Frontend(const PinholeCamera& camera, const TrackingOptions& options, KeyframeSink* sink)
     : camera_(camera), options_(options), orb_(options.orb) {
+  map_.set_keep_removed(options_.record_trajectory);
   mapper_ = std::make_unique<LocalMapper>(camera_, options_, &map_, &orb_, sink);
   tracker_ = std::make_unique<Tracker>(camera_, options_, &map_, &orb_, mapper_.get());
 }

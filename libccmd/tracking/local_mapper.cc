@@ -140,7 +140,11 @@ void LocalMapper::Process(const KeyframePtr& keyframe_ptr) {
     stats_.mapping_cpu_ms_total += cpu.ElapsedMillis();
     stats_.pose_updates += static_cast<int>(updates.size());
     stats_.rgbd_transmitted += snapshot.has_rgbd;
-    if (emitted) decisions_.push_back(snapshot.decision);
+    if (emitted && decisions_.size() < kMaxRecordedDecisions) {
+      decisions_.push_back(snapshot.decision);
+    } else if (emitted) {
+      ++stats_.rgbd_decisions_not_recorded;
+    }
   }
   budget_.Spend(cpu.ElapsedMillis());
   if (sink_) {

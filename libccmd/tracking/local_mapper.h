@@ -47,6 +47,7 @@ struct MappingStats {
   int depth_alignments_failed = 0;  // tried and rejected
   double depth_alignment_ms_total = 0;
   int rgbd_transmitted = 0;
+  int rgbd_decisions_not_recorded = 0;  // beyond LocalMapper::kMaxRecordedDecisions
 };
 
 class LocalMapper : public MappingQueue {
@@ -72,6 +73,9 @@ class LocalMapper : public MappingQueue {
   void Finish();
 
   MappingStats stats() const;
+  // The RGB-D decisions of the keyframes sent, for --stats: the first kMaxRecordedDecisions
+  // (a mission's memory must not grow without bound; the rest are counted in the stats).
+  static constexpr std::size_t kMaxRecordedDecisions = 100000;
   std::vector<RgbdDecision> decisions() const;
 
  private:

@@ -221,7 +221,7 @@ void LocalMap::EraseKeyframe(Keyframe* keyframe, bool relative) {
   } else {
     record.T = keyframe->T_world_cam();
   }
-  removed_[keyframe->id()] = record;
+  if (keep_removed_) removed_[keyframe->id()] = record;
 
   for (const auto& [kf, w] : keyframe->ordered_connections_) {
     kf->weights_.erase(keyframe);

@@ -204,6 +204,9 @@ class LocalMap {
   std::size_t num_points() const { return points_.size(); }
   const std::unordered_map<MapPointId, MapPointPtr>& points() const { return points_; }
 
+  // Whether removed keyframes leave their final pose (a KeyframeRecord) for the trajectories;
+  // without, KeyframePose and AllKeyframePoses know only the live keyframes.
+  void set_keep_removed(bool keep) { keep_removed_ = keep; }
   // Final T_world_cam of any keyframe this map ever had (live or removed).
   std::optional<Pose> KeyframePose(KeyframeId id) const;
   // Every keyframe ever created (live or removed) with its current best pose, by id.
@@ -215,6 +218,7 @@ class LocalMap {
   std::map<KeyframeId, KeyframePtr> keyframes_;  // ordered: oldest first
   std::unordered_map<MapPointId, MapPointPtr> points_;
   std::unordered_map<KeyframeId, KeyframeRecord> removed_;
+  bool keep_removed_ = true;
   std::uint32_t next_keyframe_id_ = 0;
   std::uint32_t next_point_id_ = 0;
 };

@@ -68,10 +68,11 @@ struct TrackingOptions {
   bool cull_redundant_keyframes = true;
   // Run local mapping in the tracking thread (deterministic; for tests and measurements).
   bool synchronous_mapping = false;
-  // Keep a record of every tracked frame (40 bytes each) for Frontend::FrameTrajectory. Off,
-  // the front-end's memory does not grow with the frames; ccmd_agent turns it off unless a
-  // trajectory file is asked for.
-  bool record_frames = true;
+  // Keep what the trajectories need (Frontend::FrameTrajectory, KeyframeTrajectory): a record
+  // of every tracked frame (40 bytes) and the final pose of every keyframe that leaves the
+  // map (about 0.2 kB). Off, nothing in the front-end grows with the frames; ccmd_agent turns
+  // it off unless a trajectory file is asked for.
+  bool record_trajectory = true;
   // Bandwidth: new map points sent per keyframe (0: all), and whether keypoints without a map
   // point the server knows are sent at all (with their descriptors).
   int max_new_points_per_keyframe = 250;

@@ -100,7 +100,7 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
   if (state_ == TrackingState::kOk && current_->has_pose && reference_) {
     const Pose T_world_cam = current_->T_cam_world.inverse();
     result.T_world_cam = T_world_cam;
-    if (options_.record_frames) {
+    if (options_.record_trajectory) {
       records_.emplace_back(current_->timestamp, reference_->id(),
                             reference_->T_cam_world() * T_world_cam);
     }

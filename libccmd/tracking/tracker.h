@@ -51,7 +51,7 @@ class Tracker {
   TrackingState state() const { return state_; }
   int frames_since_relocalisation() const { return frames_since_relocalisation_; }
 
-  // Per-frame record for the trajectory (with options.record_frames): pose relative to the
+  // Per-frame record for the trajectory (with options.record_trajectory): pose relative to the
   // reference keyframe, so the final trajectory follows the keyframes' optimised poses. Stored
   // in single precision (40 bytes a frame, 4.3 MB an hour at 30 Hz): relative to a keyframe a
   // few metres away at most, that is well under a micrometre and a microradian.

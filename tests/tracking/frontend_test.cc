@@ -23,7 +23,7 @@ struct Collector : KeyframeSink {
 };
 
 struct RunResult {
-  Trajectory trajectory, ground_truth;
+  Trajectory trajectory, keyframe_trajectory, ground_truth;
   FrontendStats stats;
   Collector sink;
 };
@@ -39,6 +39,7 @@ void RunSequence(int frames, const TrackingOptions& options, RunResult* out) {
   while (source.Read(&frame).ok()) (*frontend)->ProcessFrame(frame);
   (*frontend)->Finish();
   out->trajectory = (*frontend)->FrameTrajectory();
+  out->keyframe_trajectory = (*frontend)->KeyframeTrajectory();
   out->ground_truth = source.GroundTruth();
   out->stats = (*frontend)->stats();
 }
@@ -168,17 +169,24 @@ TEST(FrontendTest, BoundedMapStaysBounded) {
   EXPECT_LT(ate->error.rmse, 0.02);
 }
 
-// Frame records are what the trajectory is made of: without them (a live agent that writes
-// no trajectory) the frames leave nothing behind, and the keyframes are made as before.
-TEST(FrontendTest, WithoutFrameRecordsTheFramesLeaveNothingBehind) {
+// Frame records and the poses of keyframes that left the bounded map are what the
+// trajectories are made of: without them (a live agent that writes no trajectory) the frames
+// and the dropped keyframes leave nothing behind, and the keyframes are made and sent as before.
+TEST(FrontendTest, WithoutTrajectoryRecordsNothingIsLeftBehind) {
   TrackingOptions o = Synchronous();
-  o.record_frames = false;
+  o.local_ba_window = 5;
+  o.max_keyframes = 10;
   RunResult without, with;
-  RunSequence(40, o, &without);
-  RunSequence(40, Synchronous(), &with);
-  EXPECT_EQ(without.stats.tracked_frames, 40);
+  RunSequence(90, o, &with);
+  o.record_trajectory = false;
+  RunSequence(90, o, &without);
+  ASSERT_GT(with.stats.keyframes, with.stats.map_keyframes);  // some left the map
+  EXPECT_EQ(with.trajectory.size(), 90u);
+  EXPECT_EQ(with.keyframe_trajectory.size(), static_cast<std::size_t>(with.stats.keyframes));
+  EXPECT_EQ(without.stats.tracked_frames, 90);
   EXPECT_TRUE(without.trajectory.empty());
-  EXPECT_EQ(with.trajectory.size(), 40u);
+  EXPECT_EQ(without.keyframe_trajectory.size(),
+            static_cast<std::size_t>(without.stats.map_keyframes));
   EXPECT_EQ(without.stats.keyframes, with.stats.keyframes);
   EXPECT_EQ(without.sink.keyframes.size(), with.sink.keyframes.size());
 }
