@@ -204,7 +204,8 @@ StatusOr<std::optional<DepthToColorCalibration>> LoadDepthToColorCalibration(
 }
 
 Status WriteCameraConfig(const PinholeCamera& camera, const std::string& path,
-                         const std::optional<DepthToColorCalibration>& depth) {
+                         const std::optional<DepthToColorCalibration>& depth,
+                         const std::string& extra_keys) {
   char text[1024];
   // ThDepth chosen so that ThDepth * bf / fx reproduces far_depth_m.
   std::snprintf(text, sizeof(text),
@@ -234,7 +235,7 @@ Status WriteCameraConfig(const PinholeCamera& camera, const std::string& path,
                   R(1, 1), R(1, 2), R(2, 0), R(2, 1), R(2, 2), t.x(), t.y(), t.z());
     out += text;
   }
-  return WriteFileAtomic(path, out);
+  return WriteFileAtomic(path, out + extra_keys);
 }
 
 }  // namespace ccmd

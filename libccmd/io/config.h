@@ -72,7 +72,9 @@ StatusOr<std::optional<DepthToColorCalibration>> LoadDepthToColorCalibration(
 
 // Writes a camera (and its depth block, if given) as an ORB-SLAM style YAML file that
 // ReadCamera and ReadDepthToColor read back unchanged (used by ccmd_synth and --record).
+// `extra_keys` (whole lines, e.g. a sensor's DepthNoise keys) are appended as they are.
 Status WriteCameraConfig(const PinholeCamera& camera, const std::string& path,
-                         const std::optional<DepthToColorCalibration>& depth = std::nullopt);
+                         const std::optional<DepthToColorCalibration>& depth = std::nullopt,
+                         const std::string& extra_keys = "");
 
 }  // namespace ccmd

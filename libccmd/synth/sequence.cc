@@ -257,19 +257,17 @@ StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
   CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "depth.txt"), depth_list));
   CCMD_RETURN_IF_ERROR(WriteTumTrajectory(path, JoinPath(folder, "groundtruth.txt"),
                                           "ground truth of the colour camera, T_world_cam"));
-  CCMD_RETURN_IF_ERROR(
-      WriteCameraConfig(camera, JoinPath(folder, "camera.yaml"), options.depth_camera));
+  // The camera's own depth noise, for the agents that read camera.yaml (the default model
+  // needs no keys: it is the agents' default too).
+  std::ostringstream noise_keys;
   if (options.depth_sigma_0 != DepthSensorModel().sigma_0 ||
       options.depth_sigma_2 != DepthSensorModel().sigma_2) {
-    // The camera's own depth noise, for the agents that read this file (the default model
-    // needs no keys: it is the agents' default too).
-    CCMD_ASSIGN_OR_RETURN(std::string yaml, ReadFileToString(JoinPath(folder, "camera.yaml")));
-    std::ostringstream keys;
-    keys.precision(9);
-    keys << "DepthNoise.sigma0: " << options.depth_sigma_0
-         << "\nDepthNoise.sigma2: " << options.depth_sigma_2 << "\n";
-    CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "camera.yaml"), yaml + keys.str()));
+    noise_keys.precision(9);
+    noise_keys << "DepthNoise.sigma0: " << options.depth_sigma_0
+               << "\nDepthNoise.sigma2: " << options.depth_sigma_2 << "\n";
   }
+  CCMD_RETURN_IF_ERROR(WriteCameraConfig(camera, JoinPath(folder, "camera.yaml"),
+                                         options.depth_camera, noise_keys.str()));
   CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "sequence.txt"), DescribeOptions(options)));
 
   VisibilityMarks seen = marks[0];
