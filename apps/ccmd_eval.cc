@@ -30,6 +30,17 @@ int Fail(const ccmd::Status& status) {
   return 1;
 }
 
+// --gt: a TUM trajectory file, or a dataset folder (its groundtruth.txt, or a 7-Scenes
+// sequence's pose files) read as the replay reads it.
+ccmd::StatusOr<ccmd::Trajectory> ReadGroundTruth(const std::string& path) {
+  if (!ccmd::IsDirectory(path)) return ccmd::ReadTumTrajectory(path);
+  ccmd::PinholeCamera any;  // the poses need no camera
+  auto sequence = ccmd::TumSequence::Open(path, any);
+  if (!sequence.ok()) return sequence.status();
+  if (sequence->groundtruth().empty()) return ccmd::NotFound(path + " has no ground truth");
+  return sequence->groundtruth();
+}
+
 ccmd::Json StatsJson(const ccmd::ErrorStatistics& s) {
   ccmd::Json j;
   j["rmse"] = s.rmse;
@@ -43,7 +54,7 @@ ccmd::Json StatsJson(const ccmd::ErrorStatistics& s) {
 
 int RunAte(const std::string& gt_path, const std::string& est_path, const std::string& json_path,
            double max_diff, bool scale, const std::string& aligned_out) {
-  auto gt = ccmd::ReadTumTrajectory(gt_path);
+  auto gt = ReadGroundTruth(gt_path);
   if (!gt.ok()) return Fail(gt.status());
   auto est = ccmd::ReadTumTrajectory(est_path);
   if (!est.ok()) return Fail(est.status());
@@ -81,7 +92,7 @@ int RunAte(const std::string& gt_path, const std::string& est_path, const std::s
 
 int RunRpe(const std::string& gt_path, const std::string& est_path, const std::string& json_path,
            double max_diff, int delta) {
-  auto gt = ccmd::ReadTumTrajectory(gt_path);
+  auto gt = ReadGroundTruth(gt_path);
   if (!gt.ok()) return Fail(gt.status());
   auto est = ccmd::ReadTumTrajectory(est_path);
   if (!est.ok()) return Fail(est.status());
@@ -267,7 +278,10 @@ int main(int argc, char** argv) {
   bool scale = false;
   auto* ate =
       app.add_subcommand("ate", "Absolute trajectory error after rigid alignment (evo_ape tum -a)");
-  ate->add_option("--gt", gt, "Ground-truth trajectory (TUM format)")->required();
+  ate->add_option("--gt", gt,
+                  "Ground-truth trajectory (TUM format), or a dataset folder (its "
+                  "groundtruth.txt, or a 7-Scenes sequence's pose files)")
+      ->required();
   ate->add_option("--est", est, "Estimated trajectory (TUM format)")->required();
   ate->add_option("--json", json, "Write the figures as JSON");
   ate->add_option("--max-diff", max_diff, "Timestamp matching tolerance (s)")
@@ -277,7 +291,8 @@ int main(int argc, char** argv) {
 
   int delta = 1;
   auto* rpe = app.add_subcommand("rpe", "Relative pose error");
-  rpe->add_option("--gt", gt, "Ground-truth trajectory")->required();
+  rpe->add_option("--gt", gt, "Ground-truth trajectory (TUM format), or a dataset folder")
+      ->required();
   rpe->add_option("--est", est, "Estimated trajectory")->required();
   rpe->add_option("--json", json, "Write the figures as JSON");
   rpe->add_option("--max-diff", max_diff, "Timestamp matching tolerance (s)")

@@ -1,7 +1,9 @@
 #include "libccmd/io/tum_dataset.h"
 
+#include <Eigen/SVD>
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <opencv2/imgcodecs.hpp>
 #include <sstream>
 
@@ -128,7 +130,49 @@ Status ReadAssociations(const std::string& path, std::vector<TimedFile>* rgb,
   return Status::Ok();
 }
 
+// 7-Scenes: frame-XXXXXX.{color,depth}.png, .pose.txt.
+std::string SevenScenesFile(const std::string& folder, int index, const char* suffix) {
+  char name[48];
+  std::snprintf(name, sizeof(name), "frame-%06d.%s", index, suffix);
+  return JoinPath(folder, name);
+}
+
+std::string SevenScenesColour(const std::string& folder, int index) {
+  const std::string png = SevenScenesFile(folder, index, "color.png");
+  return FileExists(png) ? png : SevenScenesFile(folder, index, "color.jpg");
+}
+
+// A 4x4 camera-to-world matrix, its rotation made orthonormal (the files keep 6-7 digits).
+StatusOr<Pose> ReadSevenScenesPose(const std::string& path) {
+  CCMD_ASSIGN_OR_RETURN(std::string text, ReadFileToString(path, 1 << 16));
+  std::replace(text.begin(), text.end(), '\n', ' ');
+  const auto fields = SplitWhitespace(text);
+  if (fields.size() != 16) return Corrupt(path + ": expected a 4x4 matrix (16 numbers)");
+  Eigen::Matrix4d m;
+  for (int k = 0; k < 16; ++k) {
+    auto v = ParseDouble(fields[k]);
+    if (!v.ok()) return v.status().WithContext(path);
+    if (!std::isfinite(*v)) return Corrupt(path + ": a pose entry is not finite");
+    m(k / 4, k % 4) = *v;
+  }
+  const Eigen::JacobiSVD<Eigen::Matrix3d> svd(m.topLeftCorner<3, 3>(),
+                                              Eigen::ComputeFullU | Eigen::ComputeFullV);
+  Eigen::Matrix3d R = svd.matrixU() * svd.matrixV().transpose();
+  if (R.determinant() < 0.5 || (m.topLeftCorner<3, 3>() - R).cwiseAbs().maxCoeff() > 0.01) {
+    return Corrupt(path + ": the matrix's rotation is not a rotation");
+  }
+  Pose T = Pose::Identity();
+  T.linear() = R;
+  T.translation() = m.topRightCorner<3, 1>();
+  return T;
+}
+
 }  // namespace
+
+bool TumSequence::IsSevenScenesFolder(const std::string& folder) {
+  return FileExists(SevenScenesColour(folder, 0)) &&
+         FileExists(SevenScenesFile(folder, 0, "depth.png"));
+}
 
 StatusOr<TumSequence> TumSequence::Open(const std::string& folder,
                                         const std::optional<PinholeCamera>& camera,
@@ -144,10 +188,11 @@ StatusOr<TumSequence> TumSequence::Open(const std::string& folder,
     if (!loaded.ok()) return loaded.status();
     sequence.camera_ = *loaded;
   } else {
+    std::string guess =
+        IsSevenScenesFolder(folder) ? "7scenes.yaml" : GuessCameraConfigName(folder);
     return InvalidArgument("no camera for " + folder +
                            ": pass a camera config (--config), e.g. configs/" +
-                           (GuessCameraConfigName(folder).empty() ? std::string("tum_fr1.yaml")
-                                                                  : GuessCameraConfigName(folder)));
+                           (guess.empty() ? std::string("tum_fr1.yaml") : guess));
   }
   sequence.depth_map_factor_ =
       options.depth_map_factor > 0 ? options.depth_map_factor : sequence.camera_.depth_map_factor;
@@ -166,8 +211,27 @@ StatusOr<TumSequence> TumSequence::Open(const std::string& folder,
   } else if (FileExists(JoinPath(folder, "associations.txt"))) {
     CCMD_RETURN_IF_ERROR(ReadAssociations(JoinPath(folder, "associations.txt"), &rgb, &depth));
     for (std::size_t i = 0; i < rgb.size(); ++i) pairs.emplace_back(i, i);
+  } else if (IsSevenScenesFolder(folder)) {
+    sequence.depth_map_factor_ = 1000.0;
+    sequence.no_depth_code_ = 65535;
+    for (int i = 0; FileExists(SevenScenesColour(folder, i)); ++i) {
+      TumFrameInfo info;
+      info.timestamp = info.depth_timestamp = 1.0 + i / 30.0;
+      info.rgb_path = SevenScenesColour(folder, i);
+      info.depth_path = SevenScenesFile(folder, i, "depth.png");
+      const std::string pose = SevenScenesFile(folder, i, "pose.txt");
+      if (FileExists(pose)) {
+        CCMD_ASSIGN_OR_RETURN(const Pose T_world_cam, ReadSevenScenesPose(pose));
+        info.T_world_cam_gt = T_world_cam;
+        sequence.groundtruth_.push_back({info.timestamp, T_world_cam});
+      }
+      sequence.frames_.push_back(std::move(info));
+    }
+    return sequence;
   } else {
-    return NotFound(folder + " has neither rgb.txt + depth.txt nor associations.txt");
+    return NotFound(folder +
+                    " has neither rgb.txt + depth.txt nor associations.txt (nor 7-Scenes' "
+                    "frame-000000.color.png and frame-000000.depth.png)");
   }
   if (pairs.empty()) {
     return Corrupt("no colour/depth pairs in " + folder + " within " +
@@ -229,6 +293,7 @@ StatusOr<RgbdFrame> TumSequence::LoadFrame(std::size_t i) const {
       return Unsupported(info.depth_path + " is not a 16-bit single-channel image");
     }
     frame.depth_mm = DepthToMillimetres(raw_depth, depth_map_factor_);
+    if (no_depth_code_ != 0) frame.depth_mm.setTo(0, raw_depth == no_depth_code_);
     if (!camera_.rgb) frame.bgr = SwapRedBlue(frame.bgr);
   } catch (const cv::Exception& e) {
     return Corrupt("cannot decode frame " + std::to_string(i) + ": " + e.msg);

@@ -10,8 +10,14 @@
 // Folders that only have an associations.txt ("t path t path", as ORB-SLAM's examples and
 // ICL-NUIM's TUM-compatible release ship them; which column is depth is told by the path)
 // are read from it.
+// A 7-Scenes sequence folder as its archives unpack (seq-01/frame-000000.color.png,
+// .depth.png in millimetres with 65535 for no depth, .pose.txt a 4x4 camera-to-world
+// matrix) is read as it is: frames from 0 up to the first one missing, timestamps
+// 1 + index/30 s (7-Scenes has none; the same as the project's converted copies), depth in
+// millimetres whatever the camera's DepthMapFactor, the poses as the ground truth.
 
 #include <cstddef>
+#include <cstdint>
 #include <optional>
 #include <string>
 #include <utility>
@@ -60,6 +66,9 @@ struct TumOptions {
 
 class TumSequence {
  public:
+  // The 7-Scenes frame-per-file layout (see above), frame-000000.color.png or .jpg present.
+  static bool IsSevenScenesFolder(const std::string& folder);
+
   // `camera` comes from a config file; without one, the folder's camera.yaml is used, and
   // without that, the caller must pass a camera (see GuessCameraConfigName()).
   static StatusOr<TumSequence> Open(const std::string& folder,
@@ -75,14 +84,15 @@ class TumSequence {
   const Trajectory& groundtruth() const { return groundtruth_; }
   Trajectory GroundTruthAtFrames() const;
 
-  // Loads colour (BGR) and depth (converted to uint16 mm). Fails with a clear message on
-  // a missing, unreadable or wrongly typed image.
+  // Loads colour (BGR) and depth (converted to uint16 mm, 0 where there is none). Fails with a
+  // clear message on a missing, unreadable or wrongly typed image.
   StatusOr<RgbdFrame> LoadFrame(std::size_t i) const;
 
  private:
   std::string folder_;
   PinholeCamera camera_;
   double depth_map_factor_ = 5000.0;
+  std::uint16_t no_depth_code_ = 0;  // a file value that means no depth, besides 0
   std::vector<TumFrameInfo> frames_;
   Trajectory groundtruth_;
 };

@@ -8,7 +8,7 @@
 
 namespace ccmd {
 
-// Replays a TUM-layout folder (TUM RGB-D, ICL-NUIM TUM release, 7-Scenes converted, or a
+// Replays a TUM-layout folder (TUM RGB-D, ICL-NUIM TUM release, a 7-Scenes sequence, or a
 // ccmd_synth sequence), optionally only a range of its frames (split replay).
 class DatasetSource : public RgbdSource {
  public:

@@ -2,8 +2,12 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
+#include <cstdio>
+
 #include "libccmd/io/ply.h"
 #include "libccmd/io/trajectory.h"
+#include "libccmd/util/file_util.h"
 #include "libccmd/util/json.h"
 #include "tests/support/test_support.h"
 
@@ -52,6 +56,45 @@ TEST(EvalCliTest, AteWritesTheDocumentedJsonFields) {
                        &out),
             0);
   EXPECT_NE(out.find("missing.txt"), std::string::npos) << out;
+}
+
+TEST(EvalCliTest, AteReadsTheGroundTruthOfADatasetFolder) {
+  // A 7-Scenes sequence as unpacked: one 4x4 camera-to-world matrix per frame, frames 1/30 s
+  // apart from t = 1 s; the estimate is the same circle 1 cm above.
+  testing::TempDir dir;
+  const std::string seq = dir.File("seq-01");
+  ASSERT_TRUE(MakeDirectories(seq).ok());
+  Trajectory est;
+  for (int i = 0; i < 40; ++i) {
+    char stem[32];
+    std::snprintf(stem, sizeof(stem), "/frame-%06d.", i);
+    const double x = std::cos(i * 0.1), y = std::sin(i * 0.1);
+    ASSERT_TRUE(WriteFileAtomic(seq + stem + "color.png", "").ok());  // only the names count
+    ASSERT_TRUE(WriteFileAtomic(seq + stem + "depth.png", "").ok());
+    ASSERT_TRUE(WriteFileAtomic(seq + stem + "pose.txt", "1 0 0 " + std::to_string(x) + "\n0 1 0 " +
+                                                             std::to_string(y) +
+                                                             "\n0 0 1 0\n0 0 0 1\n")
+                    .ok());
+    Pose p = Pose::Identity();
+    p.translation() = Eigen::Vector3d(x, y, 0.01);
+    est.push_back({1.0 + i / 30.0, p});
+  }
+  ASSERT_TRUE(WriteTumTrajectory(est, dir.File("est.txt")).ok());
+  std::string out;
+  ASSERT_EQ(RunCommand(ProgramPath("ccmd_eval") + " ate --gt " + seq + " --est " +
+                           dir.File("est.txt") + " --json " + dir.File("ate.json"),
+                       &out),
+            0)
+      << out;
+  auto json = ReadJsonFile(dir.File("ate.json"));
+  ASSERT_TRUE(json.ok());
+  EXPECT_EQ(json->Get("matched")->number(), 40);
+  EXPECT_LT(json->Get("ate_rmse_m")->number(), 1e-5);  // a shift is aligned away
+  EXPECT_NE(RunCommand(ProgramPath("ccmd_eval") + " ate --gt " + dir.path() + " --est " +
+                           dir.File("est.txt"),
+                       &out),
+            0);  // a folder that is no dataset
+  EXPECT_NE(out.find("associations.txt"), std::string::npos) << out;
 }
 
 TEST(EvalCliTest, ReconWritesMeanAndHausdorff) {

@@ -2,6 +2,9 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
+#include <cstdio>
+
 #include <opencv2/imgcodecs.hpp>
 
 #include "libccmd/util/file_util.h"
@@ -98,6 +101,75 @@ TEST(TumDatasetTest, AssociationsOnlyFolderWithDepthFirst) {
   ASSERT_EQ(seq->size(), 2u);
   EXPECT_NE(seq->frame(1).rgb_path.find("rgb/2.png"), std::string::npos);
   EXPECT_EQ(seq->LoadFrame(1)->depth_mm.at<std::uint16_t>(3, 3), 1400);
+}
+
+// A 7-Scenes sequence folder as its archive unpacks: depth in millimetres with 65535 for no
+// depth, a 4x4 camera-to-world matrix per frame written to 6 digits.
+void WriteSevenScenesFolder(const std::string& dir, int frames) {
+  MakeDirectories(dir).IgnoreError();
+  for (int i = 0; i < frames; ++i) {
+    char stem[32];
+    std::snprintf(stem, sizeof(stem), "/frame-%06d.", i);
+    cv::imwrite(dir + stem + "color.png", cv::Mat(6, 8, CV_8UC3, cv::Scalar(10, 20, 30)));
+    cv::Mat d(6, 8, CV_16UC1, cv::Scalar(1500 + 100 * i));
+    d.at<std::uint16_t>(0, 0) = 65535;
+    d.at<std::uint16_t>(0, 1) = 0;
+    cv::imwrite(dir + stem + "depth.png", d);
+    // 10 degrees about z, x = 0.1 * i.
+    const double c = std::cos(10 * M_PI / 180), sn = std::sin(10 * M_PI / 180);
+    char pose[256];
+    std::snprintf(pose, sizeof(pose), "%.6e %.6e 0 %.6e\n%.6e %.6e 0 0\n0 0 1 0\n0 0 0 1\n", c, -sn,
+                  0.1 * i, sn, c);
+    WriteFileAtomic(dir + stem + "pose.txt", pose).IgnoreError();
+  }
+}
+
+TEST(TumDatasetTest, SevenScenesFolderIsReadAsItUnpacks) {
+  testing::TempDir dir;
+  WriteSevenScenesFolder(dir.path(), 3);
+  EXPECT_TRUE(TumSequence::IsSevenScenesFolder(dir.path()));
+  PinholeCamera camera = Camera();
+  camera.depth_map_factor = 5000;  // the converted copies' units: not these files'
+  auto seq = TumSequence::Open(dir.path(), camera);
+  ASSERT_TRUE(seq.ok()) << seq.status().ToString();
+  ASSERT_EQ(seq->size(), 3u);
+  EXPECT_DOUBLE_EQ(seq->frame(0).timestamp, 1.0);
+  EXPECT_NEAR(seq->frame(2).timestamp, 1.0 + 2.0 / 30, 1e-12);
+  auto f = seq->LoadFrame(1);
+  ASSERT_TRUE(f.ok()) << f.status().ToString();
+  EXPECT_EQ(f->depth_mm.at<std::uint16_t>(3, 3), 1600);  // millimetres as written
+  EXPECT_EQ(f->depth_mm.at<std::uint16_t>(0, 0), 0);     // 65535: no depth
+  EXPECT_EQ(f->depth_mm.at<std::uint16_t>(0, 1), 0);
+  ASSERT_EQ(seq->GroundTruthAtFrames().size(), 3u);
+  const Pose& T = *seq->frame(2).T_world_cam_gt;
+  EXPECT_NEAR(T.translation().x(), 0.2, 1e-9);
+  EXPECT_NEAR((T.linear().transpose() * T.linear() - Eigen::Matrix3d::Identity()).norm(), 0, 1e-12);
+  EXPECT_NEAR(Eigen::AngleAxisd(T.linear()).angle(), 10 * M_PI / 180, 1e-6);
+  EXPECT_NEAR(T.linear()(1, 0), std::sin(10 * M_PI / 180), 1e-6);  // camera-to-world, as written
+}
+
+TEST(TumDatasetTest, SevenScenesFolderErrorsNameTheFile) {
+  testing::TempDir dir;
+  WriteSevenScenesFolder(dir.path(), 2);
+  // Without a camera the error points at the 7-Scenes config.
+  const Status no_camera = TumSequence::Open(dir.path(), std::nullopt).status();
+  EXPECT_NE(no_camera.message().find("7scenes.yaml"), std::string::npos) << no_camera.ToString();
+  ASSERT_TRUE(WriteFileAtomic(dir.File("frame-000001.pose.txt"), "1 0 0 0\n0 1 0 0\n0 0 1\n").ok());
+  Status bad = TumSequence::Open(dir.path(), Camera()).status();
+  EXPECT_EQ(bad.code(), StatusCode::kCorrupt);
+  EXPECT_NE(bad.message().find("frame-000001.pose.txt"), std::string::npos) << bad.ToString();
+  ASSERT_TRUE(WriteFileAtomic(dir.File("frame-000001.pose.txt"),
+                              "2 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
+                  .ok());  // a scale, not a rotation
+  EXPECT_EQ(TumSequence::Open(dir.path(), Camera()).status().code(), StatusCode::kCorrupt);
+  std::remove(dir.File("frame-000001.pose.txt").c_str());  // a frame without a pose
+  std::remove(dir.File("frame-000001.depth.png").c_str());
+  auto seq = TumSequence::Open(dir.path(), Camera());
+  ASSERT_TRUE(seq.ok()) << seq.status().ToString();
+  EXPECT_EQ(seq->GroundTruthAtFrames().size(), 1u);
+  auto f = seq->LoadFrame(1);
+  ASSERT_FALSE(f.ok());
+  EXPECT_NE(f.status().message().find("frame-000001.depth.png"), std::string::npos);
 }
 
 TEST(TumDatasetTest, GuessesConfigFromFolderName) {
