@@ -51,7 +51,8 @@ int main(int argc, char** argv) {
   app.add_option("--info", info, "Print what a vocabulary file holds, then exit");
   app.add_option("--images", image_folders, "Folder of .png/.jpg images (repeatable)");
   app.add_option("--dataset", datasets,
-                 "TUM-layout dataset folder: its rgb.txt images (repeatable)");
+                 "Dataset folder (TUM layout, ICL-NUIM, a 7-Scenes sequence): its colour images "
+                 "(repeatable)");
   app.add_option("--synth", synth_specs,
                  "Synthetic sequence rendered in memory: frames=N,seed=S[,step=K,width=,height=,"
                  "noise=,fps=] (repeatable)");

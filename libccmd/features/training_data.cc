@@ -119,12 +119,20 @@ StatusOr<TrainingImages> DescriptorsFromImageFolder(const std::string& folder,
 
 StatusOr<TrainingImages> DescriptorsFromTumDataset(const std::string& folder,
                                                    const TrainingImageOptions& options) {
-  auto list = ReadTimedFileList(JoinPath(folder, "rgb.txt"));
-  if (!list.ok()) return list.status().WithContext("dataset " + folder);
-  if (list->empty()) return NotFound("dataset " + folder + ": rgb.txt lists no images");
-  const std::vector<TimedFile> files = std::move(list).value();
+  std::vector<std::string> files;
+  if (FileExists(JoinPath(folder, "rgb.txt"))) {
+    auto list = ReadTimedFileList(JoinPath(folder, "rgb.txt"));
+    if (!list.ok()) return list.status().WithContext("dataset " + folder);
+    for (const TimedFile& f : *list) files.push_back(JoinPath(folder, f.path));
+  } else {
+    // associations.txt only, or a 7-Scenes sequence: the colour images the reader pairs.
+    auto sequence = TumSequence::Open(folder, PinholeCamera());  // paths only: no camera needed
+    if (!sequence.ok()) return sequence.status().WithContext("dataset " + folder);
+    for (std::size_t i = 0; i < sequence->size(); ++i) files.push_back(sequence->frame(i).rgb_path);
+  }
+  if (files.empty()) return NotFound("dataset " + folder + " lists no colour images");
   return Describe(Selected(static_cast<int>(files.size()), options), options,
-                  [&](int i) { return ReadGray(JoinPath(folder, files[i].path)); });
+                  [&](int i) { return ReadGray(files[i]); });
 }
 
 StatusOr<TrainingImages> DescriptorsFromSynthetic(const std::string& spec,

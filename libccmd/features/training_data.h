@@ -35,8 +35,9 @@ struct TrainingImages {
 StatusOr<TrainingImages> DescriptorsFromImageFolder(const std::string& folder,
                                                     const TrainingImageOptions& options);
 
-// The colour images listed in `folder`/rgb.txt (TUM RGB-D, ICL-NUIM, 7-Scenes converted,
-// ccmd_synth output).
+// The colour images of a dataset folder: those listed in its rgb.txt (TUM RGB-D, ccmd_synth
+// output, converted copies), else those the sequence reader pairs (an associations.txt only,
+// as ICL-NUIM ships it, or a 7-Scenes sequence as unpacked).
 StatusOr<TrainingImages> DescriptorsFromTumDataset(const std::string& folder,
                                                    const TrainingImageOptions& options);
 

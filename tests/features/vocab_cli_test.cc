@@ -2,12 +2,14 @@
 
 #include <gtest/gtest.h>
 
+#include <cstdio>
 #include <fstream>
 
 #include "libccmd/features/bow_vocabulary.h"
 #include "libccmd/synth/sequence.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/json.h"
+#include "libccmd/util/string_util.h"
 #include "tests/support/test_support.h"
 
 namespace ccmd {
@@ -60,6 +62,42 @@ TEST(VocabCliTest, TrainsFromDatasetsAndImageFolders) {
   ASSERT_TRUE(json.ok());
   EXPECT_EQ(json->Get("images")->number(), 10);  // five from rgb.txt, five from the folder
   EXPECT_TRUE(Vocabulary::Load(dir.File("v.bin")).ok());
+}
+
+TEST(VocabCliTest, TrainsFromASevenScenesSequenceAsUnpacked) {
+  // The colour images of frame-XXXXXX.color.png, not the depth PNGs beside them.
+  testing::TempDir dir;
+  SyntheticSequenceOptions options;
+  options.frames = 4;
+  options.width = 320;
+  options.height = 240;
+  options.threads = 1;
+  ASSERT_TRUE(WriteSyntheticSequence(dir.File("seq"), options).ok());
+  auto list = ReadFileToString(dir.File("seq/rgb.txt"));
+  ASSERT_TRUE(list.ok());
+  ASSERT_TRUE(MakeDirectories(dir.File("seq-01")).ok());
+  int i = 0;
+  for (const std::string& line : Split(*list, '\n')) {
+    const auto fields = SplitWhitespace(line);
+    if (fields.size() < 2 || fields[0].front() == '#') continue;
+    char stem[32];
+    std::snprintf(stem, sizeof(stem), "/frame-%06d.", i++);
+    auto colour = ReadFileToString(dir.File("seq/" + std::string(fields[1])));
+    ASSERT_TRUE(colour.ok());
+    ASSERT_TRUE(WriteFileAtomic(dir.File("seq-01") + stem + "color.png", *colour).ok());
+    ASSERT_TRUE(WriteFileAtomic(dir.File("seq-01") + stem + "depth.png", "").ok());
+  }
+  ASSERT_EQ(i, 4);
+  std::string out;
+  ASSERT_EQ(testing::RunCommand(Vocab() + " --out " + dir.File("v.bin") + " --dataset " +
+                                    dir.File("seq-01") + " --k 4 --depth 2 --features 200 --json " +
+                                    dir.File("v.json"),
+                                &out),
+            0)
+      << out;
+  auto json = ReadJsonFile(dir.File("v.json"));
+  ASSERT_TRUE(json.ok());
+  EXPECT_EQ(json->Get("images")->number(), 4);
 }
 
 TEST(VocabCliTest, ErrorsAreReported) {
