@@ -188,8 +188,7 @@ StatusOr<TumSequence> TumSequence::Open(const std::string& folder,
     if (!loaded.ok()) return loaded.status();
     sequence.camera_ = *loaded;
   } else {
-    std::string guess =
-        IsSevenScenesFolder(folder) ? "7scenes.yaml" : GuessCameraConfigName(folder);
+    const std::string guess = GuessCameraConfigName(folder);
     return InvalidArgument("no camera for " + folder +
                            ": pass a camera config (--config), e.g. configs/" +
                            (guess.empty() ? std::string("tum_fr1.yaml") : guess));
@@ -305,6 +304,7 @@ StatusOr<RgbdFrame> TumSequence::LoadFrame(std::size_t i) const {
 }
 
 std::string GuessCameraConfigName(const std::string& folder) {
+  if (TumSequence::IsSevenScenesFolder(folder)) return "7scenes.yaml";
   std::string name = folder;
   while (!name.empty() && name.back() == '/') name.pop_back();
   name = name.substr(name.find_last_of('/') == std::string::npos ? 0 : name.find_last_of('/') + 1);

@@ -104,8 +104,9 @@ cv::Mat DepthToMillimetres(const cv::Mat& raw, double depth_map_factor);
 // files of a camera with Camera.RGB: 0 are read, and how ccmd_synth writes them.
 cv::Mat SwapRedBlue(const cv::Mat& image);
 
-// Name of the shipped config that matches a dataset folder name ("rgbd_dataset_freiburg1_desk"
-// -> "tum_fr1.yaml"), or "" when the name says nothing.
+// Name of the shipped config that matches a dataset folder: by its name
+// ("rgbd_dataset_freiburg1_desk" -> "tum_fr1.yaml"), or by its layout (a 7-Scenes sequence ->
+// "7scenes.yaml"); "" when neither says anything.
 std::string GuessCameraConfigName(const std::string& folder);
 
 }  // namespace ccmd

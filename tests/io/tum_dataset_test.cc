@@ -151,7 +151,8 @@ TEST(TumDatasetTest, SevenScenesFolderIsReadAsItUnpacks) {
 TEST(TumDatasetTest, SevenScenesFolderErrorsNameTheFile) {
   testing::TempDir dir;
   WriteSevenScenesFolder(dir.path(), 2);
-  // Without a camera the error points at the 7-Scenes config.
+  // The layout chooses the 7-Scenes config, and without a camera the error points at it.
+  EXPECT_EQ(GuessCameraConfigName(dir.path()), "7scenes.yaml");
   const Status no_camera = TumSequence::Open(dir.path(), std::nullopt).status();
   EXPECT_NE(no_camera.message().find("7scenes.yaml"), std::string::npos) << no_camera.ToString();
   ASSERT_TRUE(WriteFileAtomic(dir.File("frame-000001.pose.txt"), "1 0 0 0\n0 1 0 0\n0 0 1\n").ok());
