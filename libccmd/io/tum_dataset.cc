@@ -1,12 +1,12 @@
 #include "libccmd/io/tum_dataset.h"
 
-#include <Eigen/SVD>
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <opencv2/imgcodecs.hpp>
 #include <sstream>
 
+#include "libccmd/geometry/pose.h"
 #include "libccmd/io/config.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/string_util.h"
@@ -155,16 +155,14 @@ StatusOr<Pose> ReadSevenScenesPose(const std::string& path) {
     if (!std::isfinite(*v)) return Corrupt(path + ": a pose entry is not finite");
     m(k / 4, k % 4) = *v;
   }
-  const Eigen::JacobiSVD<Eigen::Matrix3d> svd(m.topLeftCorner<3, 3>(),
-                                              Eigen::ComputeFullU | Eigen::ComputeFullV);
-  Eigen::Matrix3d R = svd.matrixU() * svd.matrixV().transpose();
-  if (R.determinant() < 0.5 || (m.topLeftCorner<3, 3>() - R).cwiseAbs().maxCoeff() > 0.01) {
+  Pose T = Pose::Identity();
+  T.linear() = m.topLeftCorner<3, 3>();
+  T.translation() = m.topRightCorner<3, 1>();
+  const Pose rigid = Orthonormalized(T);
+  if ((T.linear() - rigid.linear()).cwiseAbs().maxCoeff() > 0.01) {
     return Corrupt(path + ": the matrix's rotation is not a rotation");
   }
-  Pose T = Pose::Identity();
-  T.linear() = R;
-  T.translation() = m.topRightCorner<3, 1>();
-  return T;
+  return rigid;
 }
 
 }  // namespace
@@ -213,10 +211,11 @@ StatusOr<TumSequence> TumSequence::Open(const std::string& folder,
   } else if (IsSevenScenesFolder(folder)) {
     sequence.depth_map_factor_ = 1000.0;
     sequence.no_depth_code_ = 65535;
-    for (int i = 0; FileExists(SevenScenesColour(folder, i)); ++i) {
+    for (int i = 0;; ++i) {
       TumFrameInfo info;
-      info.timestamp = info.depth_timestamp = 1.0 + i / 30.0;
       info.rgb_path = SevenScenesColour(folder, i);
+      if (!FileExists(info.rgb_path)) break;
+      info.timestamp = info.depth_timestamp = 1.0 + i / 30.0;
       info.depth_path = SevenScenesFile(folder, i, "depth.png");
       const std::string pose = SevenScenesFile(folder, i, "pose.txt");
       if (FileExists(pose)) {

@@ -17,6 +17,16 @@ namespace {
 
 std::string Vocab() { return testing::ProgramPath("ccmd_vocab"); }
 
+// A rendered sequence of `frames` 320x240 frames in the TUM layout.
+Status WriteSmallSequence(const std::string& folder, int frames) {
+  SyntheticSequenceOptions options;
+  options.frames = frames;
+  options.width = 320;
+  options.height = 240;
+  options.threads = 1;
+  return WriteSyntheticSequence(folder, options).status();
+}
+
 TEST(VocabCliTest, TrainsFromASyntheticSpec) {
   testing::TempDir dir;
   std::string out;
@@ -45,12 +55,7 @@ TEST(VocabCliTest, TrainsFromASyntheticSpec) {
 
 TEST(VocabCliTest, TrainsFromDatasetsAndImageFolders) {
   testing::TempDir dir;
-  SyntheticSequenceOptions options;
-  options.frames = 5;
-  options.width = 320;
-  options.height = 240;
-  options.threads = 1;
-  ASSERT_TRUE(WriteSyntheticSequence(dir.File("seq"), options).ok());
+  ASSERT_TRUE(WriteSmallSequence(dir.File("seq"), 5).ok());
   std::string out;
   ASSERT_EQ(testing::RunCommand(Vocab() + " --out " + dir.File("v.bin") + " --dataset " +
                                     dir.File("seq") + " --images " + dir.File("seq/rgb") +
@@ -67,12 +72,7 @@ TEST(VocabCliTest, TrainsFromDatasetsAndImageFolders) {
 TEST(VocabCliTest, TrainsFromASevenScenesSequenceAsUnpacked) {
   // The colour images of frame-XXXXXX.color.png, not the depth PNGs beside them.
   testing::TempDir dir;
-  SyntheticSequenceOptions options;
-  options.frames = 4;
-  options.width = 320;
-  options.height = 240;
-  options.threads = 1;
-  ASSERT_TRUE(WriteSyntheticSequence(dir.File("seq"), options).ok());
+  ASSERT_TRUE(WriteSmallSequence(dir.File("seq"), 4).ok());
   auto list = ReadFileToString(dir.File("seq/rgb.txt"));
   ASSERT_TRUE(list.ok());
   ASSERT_TRUE(MakeDirectories(dir.File("seq-01")).ok());
