@@ -46,6 +46,7 @@ ccmd::Json StatsJson(const ccmd::FrontendStats& s, double wall_seconds,
   j["frames"] = s.frames;
   j["tracked_frames"] = s.tracked_frames;
   j["lost_frames"] = s.lost_frames;
+  j["restarts"] = s.restarts;
   j["keyframes"] = s.keyframes;
   j["map_keyframes"] = s.map_keyframes;
   j["map_points"] = s.map_points;
@@ -422,6 +423,11 @@ int main(int argc, char** argv) {
       stats.frames, seconds, stats.frames / std::max(seconds, 1e-9), cores, stats.tracked_frames,
       stats.lost_frames, stats.keyframes, stats.map_keyframes, stats.map_points);
   const ccmd::MappingStats& m = stats.mapping;
+  if (stats.restarts > 0) {
+    std::printf(
+        "tracking restarted %d time(s) in a new map segment after it could not relocalise\n",
+        stats.restarts);
+  }
   if (m.local_ba_reduced + m.local_ba_skipped_budget > 0) {
     std::printf("CPU budget %.2f cores: %d local BAs reduced and %d skipped to stay within it\n",
                 tracking.cpu_budget, m.local_ba_reduced, m.local_ba_skipped_budget);

@@ -9,7 +9,8 @@ namespace {
 constexpr std::uint8_t kHasParent = 1u << 0;
 constexpr std::uint8_t kHasRgbd = 1u << 1;
 constexpr std::uint8_t kHasDepthLinks = 1u << 2;
-constexpr std::uint8_t kKnownFlags = kHasParent | kHasRgbd | kHasDepthLinks;
+constexpr std::uint8_t kRestart = 1u << 3;
+constexpr std::uint8_t kKnownFlags = kHasParent | kHasRgbd | kHasDepthLinks | kRestart;
 
 constexpr std::size_t kPoseBytes = 7 * 4;
 constexpr std::size_t kDepthLinkBytes = 1 + kPoseBytes + 21 * 4;
@@ -149,7 +150,8 @@ StatusOr<std::vector<std::uint8_t>> SerializeKeyframe(const KeyframeMessage& m,
   };
 
   w.PutU8(static_cast<std::uint8_t>((m.parent ? kHasParent : 0) | (m.rgbd ? kHasRgbd : 0) |
-                                    (m.depth_links.empty() ? 0 : kHasDepthLinks)));
+                                    (m.depth_links.empty() ? 0 : kHasDepthLinks) |
+                                    (m.restart ? kRestart : 0)));
   w.PutVarint(m.id.value());
   w.PutF64(m.timestamp);
   account(&b.other);
@@ -266,6 +268,7 @@ StatusOr<KeyframeMessage> ParseKeyframe(ByteSpan payload, const MessageLimits& l
   CCMD_RETURN_IF_ERROR(r.ReadF64(&m.timestamp));
   if (!std::isfinite(m.timestamp)) return Corrupt("keyframe timestamp is not finite");
   CCMD_RETURN_IF_ERROR(ReadPose(&r, &m.T_world_cam));
+  m.restart = (flags & kRestart) != 0;
   if (flags & kHasParent) {
     std::uint32_t parent;
     CCMD_RETURN_IF_ERROR(ReadDelta(&r, id, "parent keyframe", &parent));

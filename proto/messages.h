@@ -87,6 +87,10 @@ struct KeyframeMessage {
   double timestamp = 0;  // seconds
   WirePose T_world_cam;
   std::optional<KeyframeId> parent;  // spanning-tree parent; empty for an agent's first
+  // Flag bit 3: the first keyframe of a map segment the agent started after losing tracking.
+  // Its pose continues from the last tracked frame's (a guess), and it shares no map points
+  // with the agent's earlier keyframes.
+  bool restart = false;
   std::vector<WireKeypoint> keypoints;
   std::vector<NewMapPoint> new_map_points;
   std::vector<CovisibilityLink> covisibility;

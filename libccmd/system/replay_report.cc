@@ -333,6 +333,7 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
     if (agent_stats.ok()) {
       a["frames"] = Num(&*agent_stats, "frames");
       a["lost_frames"] = Num(&*agent_stats, "lost_frames");
+      a["restarts"] = Num(&*agent_stats, "restarts");
       a["fps"] = Num(&*agent_stats, "fps");
       if (const Json* link = agent_stats->Get("link")) {
         const double k = Num(link, "keyframes_sent");
@@ -567,15 +568,15 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
        << " kept their own maps: their server ATE in the table is in their own map's frame.\n\n";
   }
   md << "| agent | frames | map | server keyframes | ATE RMSE (server, m) | ATE RMSE (agent "
-        "odometry, m) | lost frames |\n"
-        "|---|---|---|---|---|---|---|\n";
+        "odometry, m) | lost frames | restarts |\n"
+        "|---|---|---|---|---|---|---|---|\n";
   for (const Json& a : agents.array()) {
     md << "| " << a.Get("name")->string() << " | " << Num(&a, "first_frame") << "-"
        << Num(&a, "last_frame") << " | " << (a.Get("in_primary_map")->boolean() ? "primary" : "own")
        << " | " << Num(&a, "keyframes") << " | "
        << (a.Has("ate_rmse_m") ? Fmt("%.4f", Num(&a, "ate_rmse_m")) : "-") << " | "
        << (a.Has("agent_frames_ate_rmse_m") ? Fmt("%.4f", Num(&a, "agent_frames_ate_rmse_m")) : "-")
-       << " | " << Num(&a, "lost_frames") << " |\n";
+       << " | " << Num(&a, "lost_frames") << " | " << Num(&a, "restarts") << " |\n";
   }
   if (results.Has("ate_rmse_m")) {
     md << "\nFused trajectory (every keyframe of the primary map: " << JoinNames(primary_agents)

@@ -20,6 +20,8 @@ StatusOr<TrackingOptions> ReadTrackingOptions(const ConfigFile& c, TrackingOptio
       c.GetInt("Tracking.maxFramesBetweenKeyframes", o.max_frames_between_keyframes));
   CCMD_ASSIGN_OR_RETURN(o.keyframe_tracked_ratio,
                         c.GetDouble("Tracking.keyframeTrackedRatio", o.keyframe_tracked_ratio));
+  CCMD_ASSIGN_OR_RETURN(o.relocalisation_seconds,
+                        c.GetDouble("Tracking.relocalisationSeconds", o.relocalisation_seconds));
   CCMD_ASSIGN_OR_RETURN(o.local_ba_window, c.GetInt("Tracking.localBAWindow", o.local_ba_window));
   CCMD_ASSIGN_OR_RETURN(o.local_ba_robust_iterations,
                         c.GetInt("Tracking.localBARobustIterations", o.local_ba_robust_iterations));

@@ -26,6 +26,8 @@ Status TrackingOptions::Validate() const {
   if (max_keyframes < local_ba_window + 5)
     return fail("max keyframes must exceed the local BA window by 5");
   if (max_frames_between_keyframes < 0) return fail("max frames between keyframes must be >= 0");
+  if (!(relocalisation_seconds >= 0 && relocalisation_seconds <= 3600))
+    return fail("relocalisation seconds must be in [0, 3600]");
   if (max_new_points_per_keyframe < 0)
     return fail("max new points per keyframe must be >= 0 (0: all)");
   if (!(keyframe_tracked_ratio > 0 && keyframe_tracked_ratio < 1))
@@ -41,6 +43,7 @@ void TrackingOptions::Describe(OptionsWriter* out) const {
   out->Nested("depth_noise", depth_noise);
   out->Add("max_frames_between_keyframes", max_frames_between_keyframes);
   out->Add("keyframe_tracked_ratio", keyframe_tracked_ratio);
+  out->Add("relocalisation_seconds", relocalisation_seconds);
   out->Add("local_ba_window", local_ba_window);
   out->Add("local_ba_robust_iterations", local_ba_robust_iterations);
   out->Add("local_ba_iterations", local_ba_iterations);
@@ -117,6 +120,7 @@ FrontendStats Frontend::stats() {
   FrontendStats s = stats_;
   s.mapping = mapper_->stats();
   const auto lock = map_.Lock();
+  s.restarts = tracker_->restarts();
   s.keyframes = static_cast<int>(map_.keyframes_created());
   s.map_keyframes = static_cast<int>(map_.keyframes().size());
   s.map_points = map_.num_points();

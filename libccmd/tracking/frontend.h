@@ -22,6 +22,7 @@ struct FrontendStats {
   int frames = 0;
   int tracked_frames = 0;
   int lost_frames = 0;    // frames after initialisation that could not be tracked
+  int restarts = 0;       // map segments started after tracking was lost
   int keyframes = 0;      // keyframes created
   int map_keyframes = 0;  // keyframes in the bounded map now
   std::size_t map_points = 0;

@@ -11,6 +11,7 @@ StatusOr<KeyframeMessage> ToKeyframeMessage(const KeyframeSnapshot& s,
   m.timestamp = s.timestamp;
   m.T_world_cam = PoseToWire(s.T_world_cam);
   m.parent = s.parent;
+  m.restart = s.restart;
   m.keypoints.resize(s.keypoints.size());
   for (std::size_t i = 0; i < s.keypoints.size(); ++i) {
     WireKeypoint& k = m.keypoints[i];

@@ -42,6 +42,7 @@ struct KeyframeSnapshot {
   int frame_index = -1;
   Pose T_world_cam = Pose::Identity();  // in the agent's map
   std::optional<KeyframeId> parent;     // spanning tree
+  bool restart = false;                 // starts a segment after tracking was lost (Keyframe)
 
   std::vector<cv::KeyPoint> keypoints;
   cv::Mat descriptors;                               // N x 32

@@ -327,11 +327,12 @@ void LocalMapper::LocalBundleAdjustment(Keyframe* keyframe, bool reduced) {
 
 void LocalMapper::CullRedundantKeyframes(Keyframe* keyframe) {
   // A neighbour is redundant when 90% of its close points are seen by at least three other
-  // keyframes at the same or a finer scale (ORB-SLAM). The first keyframe stays.
+  // keyframes at the same or a finer scale (ORB-SLAM). The first keyframe stays, and so does
+  // the first of each restarted segment (the server weakens the link before it).
   int culled = 0;
   const std::vector<std::pair<Keyframe*, int>> neighbours = keyframe->connections();
   for (const auto& [kf, weight] : neighbours) {
-    if (kf->bad() || kf->id().value() == 0 || kf == keyframe) continue;
+    if (kf->bad() || kf->id().value() == 0 || kf->restart || kf == keyframe) continue;
     int total = 0, redundant = 0;
     for (int i = 0; i < kf->features().size(); ++i) {
       const MapPointPtr& p = kf->points()[i];
@@ -391,6 +392,7 @@ bool LocalMapper::Emit(Keyframe* keyframe, KeyframeSnapshot* s, std::vector<Pose
   s->frame_index = keyframe->frame_index();
   s->T_world_cam = keyframe->T_world_cam();
   if (Keyframe* parent = keyframe->parent(); parent && parent->emitted) s->parent = parent->id();
+  s->restart = keyframe->restart;
   const FrameFeatures& f = keyframe->features();
   // New map points go to the server at most `max_new_points_per_keyframe` per keyframe:
   // those already seen by several keyframes first (they have survived culling and carry the

@@ -135,6 +135,9 @@ class Keyframe {
   cv::Mat bgr, depth_mm;
   // Reduced depth for dense alignment with later keyframes (kept while in the map).
   std::shared_ptr<const DepthModel> depth_model;
+  // First keyframe of a map segment started after tracking was lost (Tracker::RestartDue):
+  // its pose is the last tracked frame's, a guess, and it shares no points with earlier ones.
+  bool restart = false;
   // Link bookkeeping.
   bool emitted = false;       // sent to the link
   bool rgbd_sent = false;     // its RGB-D data went with it

@@ -45,6 +45,9 @@ struct TrackingOptions {
   // keyframe's map points (ORB-SLAM: 0.75 of the points seen in 3+ observations; here of all
   // of them, which keeps keyframes coming when new points have few observations yet).
   double keyframe_tracked_ratio = 0.5;
+  // Lost for this long without relocalising (seconds of frame time), the tracker starts a new
+  // map segment at the last tracked pose; the server joins it to the rest by loop closure.
+  double relocalisation_seconds = 1.0;
   // Local bundle adjustment window: the new keyframe and this many best covisible keyframes
   // are optimised; keyframes that see their points are held fixed.
   int local_ba_window = 10;

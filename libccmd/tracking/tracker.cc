@@ -59,7 +59,7 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
   const auto lock = map_->Lock();
   bool ok = false;
   if (state_ == TrackingState::kNotInitialized) {
-    ok = Initialize(current_.get());
+    ok = Initialize(current_.get(), Pose::Identity(), /*restart=*/false);
     if (ok) state_ = TrackingState::kOk;
   } else {
     if (state_ == TrackingState::kOk) {
@@ -75,6 +75,7 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
     if (ok) ok = TrackLocalMap();
     if (ok) {
       state_ = TrackingState::kOk;
+      last_T_world_cam_ = current_->T_cam_world.inverse();
       if (last_ && last_->has_pose)
         velocity_ = current_->T_cam_world * last_->T_cam_world.inverse();
       if (NeedNewKeyframe()) {
@@ -89,10 +90,20 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
       if (state_ == TrackingState::kOk) {
         CCMD_LOG(WARNING) << "tracking lost at frame " << current_->index
                           << " (t=" << current_->timestamp << "); relocalising";
+        lost_since_ = current_->timestamp;
       }
       state_ = TrackingState::kLost;
       velocity_.reset();
       current_->has_pose = false;
+      if (RestartDue()) {
+        CCMD_LOG(WARNING) << "no relocalisation since t=" << lost_since_
+                          << "; starting a new map segment at frame " << current_->index
+                          << " from the last tracked pose";
+        if (Initialize(current_.get(), *last_T_world_cam_, /*restart=*/true)) {
+          state_ = TrackingState::kOk;
+          ++restarts_;
+        }
+      }
     }
   }
   ++frames_since_relocalisation_;
@@ -112,31 +123,44 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
   return result;
 }
 
-bool Tracker::Initialize(TrackingFrame* frame) {
+bool Tracker::RestartDue() const {
+  if (!last_T_world_cam_) return false;
+  const std::uint32_t segment_keyframes = map_->NextKeyframeId().value() - segment_start_.value();
+  return segment_keyframes < kYoungSegmentKeyframes ||
+         current_->timestamp - lost_since_ >= options_.relocalisation_seconds;
+}
+
+bool Tracker::Initialize(TrackingFrame* frame, const Pose& T_world_cam, bool restart) {
   int with_depth = 0;
   for (float d : frame->features.depth) with_depth += d > 0;
   if (frame->size() < 300 || with_depth < 100) return false;
-  frame->SetPose(Pose::Identity());
+  // A failed search may have left matches with the old map's points.
+  std::fill(frame->points.begin(), frame->points.end(), nullptr);
+  std::fill(frame->outlier.begin(), frame->outlier.end(), false);
+  frame->SetPose(T_world_cam.inverse());
   auto keyframe =
       std::make_shared<Keyframe>(map_->NextKeyframeId(), frame->timestamp, frame->index,
-                                 frame->features, Pose::Identity(), camera_.width, camera_.height);
+                                 frame->features, T_world_cam, camera_.width, camera_.height);
+  keyframe->restart = restart;
   keyframe->bgr = frame->bgr;
   keyframe->depth_mm = frame->depth_mm;
+  segment_start_ = keyframe->id();
+  last_T_world_cam_ = T_world_cam;
   map_->AddKeyframe(keyframe);
   for (int i = 0; i < frame->size(); ++i) {
     const float z = frame->features.depth[i];
     if (z <= 0) continue;
     const cv::Point2f& pt = frame->features.keypoints[i].pt;
-    auto point =
-        std::make_shared<MapPoint>(map_->NextMapPointId(), camera_.BackProject(pt.x, pt.y, z));
+    auto point = std::make_shared<MapPoint>(map_->NextMapPointId(),
+                                            T_world_cam * camera_.BackProject(pt.x, pt.y, z));
     map_->AddMapPoint(point);
     map_->AddObservation(point, keyframe.get(), i);
     point->UpdateDescriptor();
     point->UpdateNormalAndDepth(*orb_);
     frame->points[i] = point;
   }
-  CCMD_LOG(INFO) << "map initialised with " << map_->num_points() << " points at frame "
-                 << frame->index;
+  CCMD_LOG(INFO) << (restart ? "map segment" : "map") << " initialised with "
+                 << keyframe->TrackedPoints(1) << " points at frame " << frame->index;
   reference_ = keyframe;
   last_keyframe_ = keyframe;
   last_keyframe_frame_ = frame->index;
@@ -212,9 +236,12 @@ bool Tracker::TrackReferenceKeyframe() {
 }
 
 bool Tracker::Relocalize() {
-  // Candidates: every keyframe of the (bounded) map, newest first.
+  // Candidates: every keyframe of the current segment in the (bounded) map, newest first. An
+  // earlier segment's poses are off by the unknown motion while lost: only the server's loop
+  // closure can place the two against each other.
   std::vector<KeyframePtr> candidates;
-  for (auto it = map_->keyframes().rbegin(); it != map_->keyframes().rend(); ++it)
+  for (auto it = map_->keyframes().rbegin();
+       it != map_->keyframes().rend() && it->first >= segment_start_; ++it)
     candidates.push_back(it->second);
   const cv::Mat K =
       (cv::Mat_<double>(3, 3) << camera_.fx, 0, camera_.cx, 0, camera_.fy, camera_.cy, 0, 0, 1);

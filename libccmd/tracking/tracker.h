@@ -50,6 +50,7 @@ class Tracker {
 
   TrackingState state() const { return state_; }
   int frames_since_relocalisation() const { return frames_since_relocalisation_; }
+  int restarts() const { return restarts_; }
 
   // Per-frame record for the trajectory (with options.record_trajectory): pose relative to the
   // reference keyframe, so the final trajectory follows the keyframes' optimised poses. Stored
@@ -67,7 +68,12 @@ class Tracker {
   const std::vector<FrameRecord>& records() const { return records_; }
 
  private:
-  bool Initialize(TrackingFrame* frame);
+  // Starts the map (or, with `restart`, a new segment of it after tracking was lost) at this
+  // frame, placed at `T_world_cam`.
+  bool Initialize(TrackingFrame* frame, const Pose& T_world_cam, bool restart);
+  // Lost, with no relocalisation for options.relocalisation_seconds, or in a segment too
+  // young to relocalise against: the next frame with enough features starts a new segment.
+  bool RestartDue() const;
   bool TrackWithMotionModel();
   bool TrackReferenceKeyframe();
   bool Relocalize();
@@ -83,7 +89,14 @@ class Tracker {
   const OrbExtractor* orb_;
   MappingQueue* mapping_;
 
+  // ORB-SLAM resets a map of at most this many keyframes rather than relocalising in it.
+  static constexpr std::uint32_t kYoungSegmentKeyframes = 5;
+
   TrackingState state_ = TrackingState::kNotInitialized;
+  std::optional<Pose> last_T_world_cam_;  // of the last tracked frame
+  double lost_since_ = 0;                 // timestamp of the first frame not tracked
+  KeyframeId segment_start_{0};           // first keyframe of the current segment
+  int restarts_ = 0;
   std::unique_ptr<TrackingFrame> current_, last_;
   std::optional<Pose> velocity_;  // T_current_last
   KeyframePtr reference_;

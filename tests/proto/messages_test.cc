@@ -325,6 +325,26 @@ TEST(MessagesTest, UnknownFlagsAndBadFieldsAreCorrupt) {
   EXPECT_EQ(ParseKeyframe(rgbd).status().code(), StatusCode::kCorrupt);
 }
 
+// The restart mark is flag bit 3 alone: it costs no byte, comes back as sent, and bits 4-7
+// stay unknown.
+TEST(MessagesTest, TheRestartMarkIsFlagBitThree) {
+  KeyframeMessage m = RandomKeyframe(6, 20);
+  const Bytes plain = *SerializeKeyframe(m);
+  EXPECT_EQ(plain[0] & 0x08, 0);
+  EXPECT_FALSE(ParseKeyframe(plain)->restart);
+  m.restart = true;
+  const Bytes marked = *SerializeKeyframe(m);
+  EXPECT_EQ(marked[0], plain[0] | 0x08);
+  EXPECT_TRUE(std::equal(plain.begin() + 1, plain.end(), marked.begin() + 1, marked.end()));
+  auto back = ParseKeyframe(marked);
+  ASSERT_TRUE(back.ok()) << back.status().ToString();
+  EXPECT_TRUE(back->restart);
+  EXPECT_EQ(back->parent, m.parent);
+  Bytes unknown = marked;
+  unknown[0] |= 0x10;
+  EXPECT_EQ(ParseKeyframe(unknown).status().code(), StatusCode::kCorrupt);
+}
+
 // Depth links: flag bit 2, then a count and per link the keyframe delta, pose and 21 float32s;
 // the values come back as float32, and a keyframe without links has no section at all.
 TEST(MessagesTest, DepthLinksRoundTripAndCostTheirBytes) {

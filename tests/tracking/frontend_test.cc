@@ -169,6 +169,90 @@ TEST(FrontendTest, BoundedMapStaysBounded) {
   EXPECT_LT(ate->error.rmse, 0.02);
 }
 
+// The frames of `parts` (ranges of the 600-frame sequence) one after the other, stamped at the
+// frame rate as if the camera had been carried from one part to the next in an instant: a
+// tracking failure that no relocalisation can mend where the parts do not see the same place.
+void RunParts(const std::vector<FrameRange>& parts, RunResult* out) {
+  SyntheticSequenceOptions synth;
+  synth.frames = 600;
+  synth.seed = 1;
+  auto frontend = Frontend::Create(SyntheticSource(synth, FrameRange{0, 0}).camera(), Synchronous(),
+                                   &out->sink);
+  ASSERT_TRUE(frontend.ok()) << frontend.status().ToString();
+  int k = 0;
+  for (const FrameRange& part : parts) {
+    SyntheticSource source(synth, part);
+    const Trajectory truth = source.GroundTruth();
+    RgbdFrame frame;
+    for (int i = 0; source.Read(&frame).ok(); ++i, ++k) {
+      frame.timestamp = k / synth.fps;
+      out->ground_truth.push_back({frame.timestamp, truth[i].T_world_cam});
+      (*frontend)->ProcessFrame(frame);
+    }
+  }
+  (*frontend)->Finish();
+  out->trajectory = (*frontend)->FrameTrajectory();
+  out->stats = (*frontend)->stats();
+}
+
+// The poses of `trajectory` from time `t0` on.
+Trajectory From(const Trajectory& trajectory, double t0) {
+  Trajectory after;
+  for (const StampedPose& p : trajectory) {
+    if (p.timestamp >= t0 - 1e-9) after.push_back(p);
+  }
+  return after;
+}
+
+// Ten frames make a map of one keyframe, too young to relocalise in (ORB-SLAM resets such a
+// map): the first frame of the other part starts a new segment at once, at the last tracked
+// pose, and tracks the rest of that part as well as any.
+TEST(FrontendTest, ALostYoungMapRestartsAtOnceFromTheLastPose) {
+  RunResult r;
+  RunParts({{0, 9}, {300, 359}}, &r);
+  EXPECT_EQ(r.stats.restarts, 1);
+  EXPECT_EQ(r.stats.lost_frames, 0);
+  EXPECT_EQ(r.stats.tracked_frames, 70);
+  int restarts = 0;
+  for (const KeyframeSnapshot& k : r.sink.keyframes) {
+    if (!k.restart) continue;
+    ++restarts;
+    EXPECT_NEAR(k.timestamp, 10 / 30.0, 1e-9);
+    EXPECT_FALSE(k.parent.has_value());
+    ASSERT_GE(r.trajectory.size(), 10u);
+    EXPECT_LT(TranslationDistance(k.T_world_cam, r.trajectory[9].T_world_cam), 0.001);
+  }
+  EXPECT_EQ(restarts, 1);
+  auto ate = ComputeAte(From(r.ground_truth, 10 / 30.0), From(r.trajectory, 10 / 30.0));
+  ASSERT_TRUE(ate.ok());
+  EXPECT_EQ(ate->matched, 60u);
+  EXPECT_LT(ate->error.rmse, 0.01);
+}
+
+// A map of several keyframes is given the relocalisation time (one second by default) to find
+// the camera again; then a new segment starts.
+TEST(FrontendTest, AnEstablishedMapRestartsAfterTheRelocalisationTime) {
+  RunResult r;
+  RunParts({{0, 89}, {400, 459}}, &r);
+  EXPECT_EQ(r.stats.restarts, 1);
+  EXPECT_GE(r.stats.lost_frames, 29);
+  EXPECT_LE(r.stats.lost_frames, 31);
+  auto ate = ComputeAte(From(r.ground_truth, 121 / 30.0), From(r.trajectory, 121 / 30.0));
+  ASSERT_TRUE(ate.ok());
+  EXPECT_LT(ate->error.rmse, 0.01);
+}
+
+// Where the map does see the place again, relocalisation finds the camera and no segment starts.
+TEST(FrontendTest, ACameraBackInTheMapRelocalisesInsteadOfRestarting) {
+  RunResult r;
+  RunParts({{0, 89}, {30, 89}}, &r);
+  EXPECT_EQ(r.stats.restarts, 0);
+  EXPECT_LE(r.stats.lost_frames, 2);
+  auto ate = ComputeAte(r.ground_truth, r.trajectory);
+  ASSERT_TRUE(ate.ok());
+  EXPECT_LT(ate->error.rmse, 0.01);
+}
+
 // Frame records and the poses of keyframes that left the bounded map are what the
 // trajectories are made of: without them (a live agent that writes no trajectory) the frames
 // and the dropped keyframes leave nothing behind, and the keyframes are made and sent as before.
