@@ -23,6 +23,8 @@ StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent,
     const auto own = map->AgentKeyframes(agent);
     if (!own.empty()) reference = own.back();
   }
+  kf->restart = m.restart;
+  kf->segment = m.restart || !reference ? m.id : reference->segment;
   kf->T_map_cam = reference
                       ? reference->T_map_cam * (reference->T_agent_cam.inverse() * kf->T_agent_cam)
                       : T_map_agent * kf->T_agent_cam;

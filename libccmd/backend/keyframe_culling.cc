@@ -140,7 +140,9 @@ bool KeyframeCuller::Check(ServerMap* map, const GlobalKeyframeId& id,
   if (!kf || kf->culled() || kf->cull_checked) return false;
   kf->cull_checked = true;
   ++stats_.checked;
-  if (map->origin() && *map->origin() == id) {
+  // The map's origin holds its gauge; a restarted segment's first keyframe carries the loose
+  // link to the segment before it (map_optimization.h).
+  if ((map->origin() && *map->origin() == id) || kf->restart) {
     kept_.push_back(id);
     return false;
   }

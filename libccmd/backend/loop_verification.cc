@@ -38,7 +38,7 @@ void LoopVerificationOptions::Describe(OptionsWriter* out) const {
 
 bool LoopCandidateRule::Allowed(const GlobalKeyframeId& c) const {
   if (c == query || connected.count(c) || excluded_agents.count(c.agent)) return false;
-  return c.agent != query.agent ||
+  return c.agent != query.agent || c.keyframe < segment ||
          std::abs(static_cast<long>(c.keyframe.value()) -
                   static_cast<long>(query.keyframe.value())) > exclude_recent;
 }
@@ -49,6 +49,7 @@ LoopCandidateRule MakeLoopCandidateRule(const PlaceIndex& place, const GlobalKey
   rule.query = id;
   rule.connected = query.covisibility;
   rule.exclude_recent = exclude_recent;
+  rule.segment = query.segment;
   double min_score = 1e9;
   for (const auto& [other, weight] : query.covisibility) {
     if (weight >= 30) min_score = std::min(min_score, place.Score(id, other));

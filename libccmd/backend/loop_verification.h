@@ -25,6 +25,9 @@ struct LoopCandidateRule {
   GlobalKeyframeId query;
   std::map<GlobalKeyframeId, int> connected;
   int exclude_recent = 0;
+  // The query's segment (ServerKeyframe::segment): its agent's keyframes before it are
+  // candidates however recent, since only a loop can join the segments.
+  KeyframeId segment{0};
   double min_score = 0;
   std::set<AgentId> excluded_agents;  // none of their keyframes is a candidate
   bool Allowed(const GlobalKeyframeId& candidate) const;

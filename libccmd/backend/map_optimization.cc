@@ -47,8 +47,11 @@ StatusOr<std::vector<ServerKeyframe*>> OptimizeMapPoseGraph(ServerMap* map,
   // Consecutive keyframes of each agent.
   for (std::size_t i = 1; i < keyframes.size(); ++i) {
     if (keyframes[i]->id.agent != keyframes[i - 1]->id.agent) continue;
+    const bool restart = keyframes[i]->restart;
     edges.push_back({static_cast<int>(i - 1), static_cast<int>(i),
-                     relative(keyframes[i - 1], keyframes[i]), odo_r, odo_t});
+                     relative(keyframes[i - 1], keyframes[i]),
+                     restart ? 1.0 / kRestartSigmaRotation : odo_r,
+                     restart ? 1.0 / kRestartSigmaTranslation : odo_t});
   }
   // Strong covisibility links, once per pair.
   for (std::size_t i = 0; i < keyframes.size(); ++i) {
@@ -150,6 +153,26 @@ class GlobalBaBuilder {
     }
   }
 
+  // Each restarted segment's first keyframe, loosely tied at its current place to its
+  // agent's kept keyframe before it: without the tie nothing holds the segment's gauge.
+  void RestartLinks() {
+    Eigen::Matrix<double, 6, 6> sqrt_information = Eigen::Matrix<double, 6, 6>::Zero();
+    sqrt_information.diagonal() << Eigen::Vector3d::Constant(1.0 / kRestartSigmaRotation),
+        Eigen::Vector3d::Constant(1.0 / kRestartSigmaTranslation);
+    const ServerKeyframe* previous = nullptr;
+    for (const auto& [id, kf] : map_.keyframes()) {
+      if (kf->culled()) continue;
+      if (kf->restart && previous && previous->id.agent == id.agent) {
+        const int a = Known(previous), b = Known(kf.get());
+        if (a >= 0 && b >= 0) {
+          g_->problem.relative_poses.push_back(
+              {a, b, kf->T_map_cam.inverse() * previous->T_map_cam, sqrt_information});
+        }
+      }
+      previous = kf.get();
+    }
+  }
+
  private:
   int Known(const ServerKeyframe* kf) const {
     const auto it = camera_index_.find(kf);
@@ -215,6 +238,7 @@ GlobalBaProblem BuildGlobalBa(const ServerMap& map, const std::map<AgentId, Pinh
     for (const ServerMapPoint* p : kf->points) builder.Point(p, window ? &fixed : nullptr);
   }
   builder.DepthLinks();
+  builder.RestartLinks();
   const bool gauge = std::any_of(g.problem.cameras.begin(), g.problem.cameras.end(),
                                  [](const auto& c) { return c.fixed; });
   if (!gauge && !g.problem.cameras.empty()) g.problem.cameras[0].fixed = true;

@@ -31,7 +31,15 @@ struct MapPoseGraphOptions {
   void Describe(OptionsWriter* out) const;
 };
 
-// Nodes: every keyframe not culled; edges: consecutive keyframes of each agent and
+// How loosely a restarted segment's first keyframe (ServerKeyframe::restart) is tied to its
+// agent's keyframe before it, in the pose graph and the global BA: its pose there is the
+// agent's last tracked one, not a measurement, so a loop that joins the two segments moves the
+// gap instead of bending them, and before any loop the tie only holds the segment in place.
+inline constexpr double kRestartSigmaRotation = 1.0;     // radians
+inline constexpr double kRestartSigmaTranslation = 1.0;  // metres
+
+// Nodes: every keyframe not culled; edges: consecutive keyframes of each agent (loose across a
+// restart, kRestartSigma*) and
 // covisibility links (measured as the current relative poses), and the map's loop edges (their
 // measurements). The map's origin keyframe is fixed. Keyframes are moved in place, culled ones
 // with the keyframe they follow; returns those that moved.

@@ -59,6 +59,11 @@ class ServerKeyframe {
   Pose T_map_cam = Pose::Identity();    // in the server map it belongs to
   Pose T_agent_cam = Pose::Identity();  // as its agent last reported it (agent's own frame)
   std::optional<KeyframeId> parent;     // spanning tree, same agent
+  // The agent lost tracking and started a new segment of its map with this keyframe
+  // (KeyframeMessage::restart); `segment` is the first keyframe of this one's segment. Nothing
+  // but a loop measures where a segment lies against the agent's earlier ones.
+  bool restart = false;
+  KeyframeId segment{0};
   std::vector<ServerKeypoint> keypoints;
   std::vector<ServerMapPoint*> points;  // per keypoint, may be null
   // A keypoint's descriptor is its map point's (as the agent sends it); only keypoints without

@@ -11,6 +11,7 @@
 #include "libccmd/synth/sequence.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/json.h"
+#include "libccmd/util/string_util.h"
 #include "tests/apps/replay_test_util.h"
 #include "tests/support/test_support.h"
 
@@ -111,6 +112,39 @@ TEST(ReplayCliTest, ShortSlowSplitStillReportsThePrimaryMap) {
     ASSERT_TRUE(report.ok());
     EXPECT_NE(report->find("Not every map fused"), std::string::npos);
   }
+}
+
+// A recording with a gap (frames 70-139 of a loop left out) throws the agent where its map
+// cannot relocalise it: it starts a new segment at its last pose, its own trajectory is off by
+// the gap from then on, and the server joins the segments when the camera comes round to the
+// start again. The map ends up as one, at the accuracy of a run without the gap.
+TEST(ReplayCliTest, AnAgentThatRestartsIsJoinedByTheServersLoop) {
+  testing::TempDir dir;
+  SyntheticSequenceOptions synth;
+  synth.frames = 280;
+  synth.surface_spacing = 0.02;
+  synth.path.loop_period_s = 8;
+  ASSERT_TRUE(WriteSyntheticSequence(dir.File("seq"), synth).ok());
+  for (const char* list : {"seq/rgb.txt", "seq/depth.txt"}) {
+    auto text = ReadFileToString(dir.File(list));
+    ASSERT_TRUE(text.ok());
+    std::string kept;
+    int frame = 0;
+    for (const std::string& line : Split(*text, '\n')) {
+      if (line.empty()) continue;
+      if (line[0] != '#' && (frame++ / 70) == 1) continue;
+      kept += line + "\n";
+    }
+    ASSERT_TRUE(WriteFileAtomic(dir.File(list), kept).ok());
+  }
+  std::string out;
+  auto results = testing::RunReplay(dir.File("seq"), 1, "", dir.File("run"), &out);
+  ASSERT_TRUE(results.ok()) << results.status().ToString() << "\n" << out;
+  EXPECT_GE(results->Get("loops")->number(), 1);
+  const Json& agent = results->Get("agents")->array().front();
+  EXPECT_EQ(agent.Get("restarts")->number(), 1) << out;
+  EXPECT_GT(agent.Get("agent_frames_ate_rmse_m")->number(), 0.1) << "no gap to close";
+  testing::ExpectFusedWithin(*results, 0.01, 0.01, out);
 }
 
 TEST(ReplayCliTest, RefusesAFolderThatHoldsARun) {

@@ -103,6 +103,20 @@ TEST(KeyframeCullingTest, SecondPassOverAPlaceIsCulledFirstPassKept) {
   }
 }
 
+// A restarted segment's first keyframe carries the loose tie to the segment before it: the
+// culling keeps it even where the rest of its pass goes.
+TEST(KeyframeCullingTest, ARestartedSegmentsFirstKeyframeIsKept) {
+  const int steps = 24;
+  ServerMap map = TwoLaps(steps, 7);
+  map.keyframe({kAgent, KeyframeId(steps + 3)})->restart = true;
+  KeyframeCullingOptions options;
+  options.keep_recent = 5;
+  CullInOrder(&map, options);
+  EXPECT_FALSE(map.keyframe({kAgent, KeyframeId(steps + 3)})->culled());
+  EXPECT_TRUE(map.keyframe({kAgent, KeyframeId(steps + 2)})->culled());
+  EXPECT_TRUE(map.keyframe({kAgent, KeyframeId(steps + 4)})->culled());
+}
+
 TEST(KeyframeCullingTest, DenseKeyframesOfOnePassAreThinnedSparseOnesKept) {
   // 120 keyframes per lap (3 degrees apart): the previous keyframe sees over 90 % of each.
   Rng rng(3);

@@ -194,5 +194,34 @@ TEST(LoopVerificationTest, UnrelatedViewsAreRejected) {
   EXPECT_FALSE(VerifyLoop(&query, camera, cand, map).has_value());
 }
 
+// Its own agent's recent keyframes are no loop candidates for a query (the same pass over the
+// place), except those of an earlier segment: after a restart they share no points with the
+// query's, and only a loop can join the two however close in time they are.
+TEST(LoopCandidateRuleTest, AnEarlierSegmentsRecentKeyframesAreCandidates) {
+  const auto Id = [](int agent, int keyframe) {
+    return GlobalKeyframeId{AgentId(static_cast<std::uint16_t>(agent)),
+                            KeyframeId(static_cast<std::uint32_t>(keyframe))};
+  };
+  LoopCandidateRule rule;
+  rule.query = Id(1, 42);
+  rule.exclude_recent = 25;
+  rule.connected[Id(1, 41)] = 80;
+  EXPECT_FALSE(rule.Allowed(Id(1, 30)));
+  EXPECT_TRUE(rule.Allowed(Id(1, 10)));
+  EXPECT_TRUE(rule.Allowed(Id(2, 40)));
+  rule.segment = KeyframeId(35);  // the agent restarted at keyframe 35
+  EXPECT_TRUE(rule.Allowed(Id(1, 30)));
+  EXPECT_TRUE(rule.Allowed(Id(1, 34)));
+  EXPECT_FALSE(rule.Allowed(Id(1, 35)));
+  EXPECT_FALSE(rule.Allowed(Id(1, 41)));  // covisible
+  EXPECT_FALSE(rule.Allowed(Id(1, 42)));  // itself
+
+  ServerKeyframe query;
+  query.id = Id(1, 42);
+  query.segment = KeyframeId(35);
+  PlaceIndex place{PlaceIndexOptions{}};
+  EXPECT_EQ(MakeLoopCandidateRule(place, query.id, query, 25).segment, KeyframeId(35));
+}
+
 }  // namespace
 }  // namespace ccmd

@@ -91,6 +91,76 @@ TEST(MapPoseGraphTest, AConsistentMapIsLeftAlone) {
   }
 }
 
+// An agent that lost tracking at keyframe 15 restarted there, 30 cm and 8 degrees off, with
+// new points (a map segment of its own, rigid); keyframe 30, back where keyframe 0 is, closes
+// a loop. Across the restart the two keyframes are tied only loosely, so the graph moves the
+// gap and the segment comes back whole; tied as any consecutive pair (the flag ignored), the
+// correction bends both segments and the second stays far off.
+double RestartedSegmentErrorAfterLoop(bool flagged) {
+  Rng rng(25);
+  const GeneratedWorld world = MakeRingWorld(1500, &rng);
+  constexpr int kSteps = 30, kRestart = 15;
+  Pose off = Pose::Identity();
+  off.linear() = Eigen::AngleAxisd(8 * kDegree, Eigen::Vector3d::UnitY()).toRotationMatrix();
+  off.translation() = Eigen::Vector3d(0.3, 0.0, -0.1);
+  ServerMap map(MapId(1));
+  for (int i = 0; i <= kSteps; ++i) {
+    const Pose truth = CirclePose(i % kSteps, kSteps);
+    ServerKeyframe* kf =
+        AddGeneratedKeyframe(&map, world, AgentId(1), i, truth, i < kRestart ? truth : off * truth,
+                             &rng, i < kRestart ? std::nullopt : std::optional<int>(kRestart));
+    kf->restart = flagged && i == kRestart;
+    if (i == kRestart) kf->parent.reset();
+  }
+  map.AddLoopEdge({Kf(0), Kf(kSteps), Pose::Identity()});
+  EXPECT_TRUE(OptimizeMapPoseGraph(&map).ok());
+  double worst = 0;
+  for (int i = kRestart; i <= kSteps; ++i) {
+    worst = std::max(
+        worst, TranslationDistance(map.keyframe(Kf(i))->T_map_cam, CirclePose(i % kSteps, kSteps)));
+  }
+  return worst;
+}
+
+TEST(MapPoseGraphTest, ALoopMovesARestartedSegmentWhole) {
+  const double flagged = RestartedSegmentErrorAfterLoop(true);
+  const double ignored = RestartedSegmentErrorAfterLoop(false);
+  EXPECT_LT(flagged, 0.005) << "ignored: " << ignored;
+  EXPECT_GT(ignored, 0.05);
+}
+
+// Before any loop nothing measures where a restarted segment lies: the global BA's loose tie
+// holds it where the agent put it (no gauge freedom: the solve converges and moves nothing).
+TEST(GlobalBaTest, ARestartedSegmentStaysWhereItsAgentPutIt) {
+  Rng rng(26);
+  const GeneratedWorld world = MakeRingWorld(2500, &rng);
+  constexpr int kSteps = 40, kRestart = 5;
+  Pose off = Pose::Identity();
+  off.translation() = Eigen::Vector3d(0.2, 0.05, 0.0);
+  ServerMap map(MapId(1));
+  for (int i = 0; i < 10; ++i) {
+    const Pose truth = CirclePose(i, kSteps);
+    ServerKeyframe* kf =
+        AddGeneratedKeyframe(&map, world, AgentId(1), i, truth, i < kRestart ? truth : off * truth,
+                             &rng, i < kRestart ? std::nullopt : std::optional<int>(kRestart));
+    kf->restart = i == kRestart;
+  }
+  std::map<AgentId, PinholeCamera> cameras = {{AgentId(1), testing::TestCamera()}};
+  GlobalBaProblem problem = BuildGlobalBa(map, cameras, DepthNoise());
+  ASSERT_EQ(problem.problem.relative_poses.size(), 1u);
+  EXPECT_EQ(problem.problem.relative_poses[0].camera_a, 4);
+  EXPECT_EQ(problem.problem.relative_poses[0].camera_b, 5);
+  BaOptions ba;
+  ba.solver = BaLinearSolver::kSparseSchur;
+  ba.first_iterations = ba.second_iterations = 10;
+  BundleAdjust(&problem.problem, ba);
+  ApplyGlobalBa(&map, problem);
+  for (int i = 0; i < 10; ++i) {
+    const Pose placed = i < kRestart ? CirclePose(i, kSteps) : off * CirclePose(i, kSteps);
+    EXPECT_LT(TranslationDistance(map.keyframe(Kf(i))->T_map_cam, placed), 0.002) << i;
+  }
+}
+
 // Each agent's depths are weighed with its own sensor's noise (announced in its handshake),
 // the others' with the fallback.
 TEST(GlobalBaTest, DepthsAreWeighedWithTheirAgentsSensorNoise) {

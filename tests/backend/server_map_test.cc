@@ -73,6 +73,33 @@ TEST(ServerMapTest, KeyframesFollowTheAgentsRelativeMotionAndPoseUpdates) {
   EXPECT_FALSE(AddKeyframeMessage(&map, agent, Message(1, T1, 0), Pose::Identity()).ok());
 }
 
+// A restarted segment's first keyframe comes without a parent and with the restart flag: it
+// is placed where its agent put it, relative to the agent's latest keyframe (so the server's
+// corrections carry over), and starts a segment that its children join.
+TEST(ServerMapTest, ARestartStartsASegmentPlacedFromTheAgentsLatestKeyframe) {
+  ServerMap map(MapId(1));
+  const AgentId agent(1);
+  const Pose T0 = MakePose(0.1, {1, 2, 0}), T1 = MakePose(0.2, {1.2, 2, 0}),
+             T2 = MakePose(0.25, {1.3, 2.1, 0}), T3 = MakePose(0.3, {1.4, 2.1, 0});
+  ASSERT_TRUE(AddKeyframeMessage(&map, agent, Message(0, T0, std::nullopt), Pose::Identity()).ok());
+  auto k1 = AddKeyframeMessage(&map, agent, Message(1, T1, 0), Pose::Identity());
+  ASSERT_TRUE(k1.ok());
+  const Pose correction = MakePose(0.05, {0.2, 0, 0});
+  (*k1)->T_map_cam = correction * (*k1)->T_map_cam;
+  KeyframeMessage restart = Message(2, T2, std::nullopt);
+  restart.restart = true;
+  auto k2 = AddKeyframeMessage(&map, agent, restart, Pose::Identity());
+  auto k3 = AddKeyframeMessage(&map, agent, Message(3, T3, 2), Pose::Identity());
+  ASSERT_TRUE(k2.ok() && k3.ok());
+  EXPECT_LT(TranslationDistance((*k2)->T_map_cam, (*k1)->T_map_cam * T1.inverse() * T2), 1e-9);
+  EXPECT_FALSE((*k1)->restart);
+  EXPECT_TRUE((*k2)->restart);
+  EXPECT_FALSE((*k3)->restart);
+  EXPECT_EQ((*k1)->segment, KeyframeId(0));
+  EXPECT_EQ((*k2)->segment, KeyframeId(2));
+  EXPECT_EQ((*k3)->segment, KeyframeId(2));
+}
+
 // A keyframe's depth links reach the global BA as relative poses between the right cameras,
 // with the information the agent sent; a link to a keyframe the map does not hold is dropped.
 TEST(ServerMapTest, DepthLinksBecomeRelativePosesInTheGlobalBa) {
