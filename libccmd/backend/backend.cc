@@ -210,6 +210,7 @@ void Backend::Ingest(IngestItem item) {
   {
     std::lock_guard<std::mutex> lock(stats_mutex_);
     stats_.keyframes_received++;
+    stats_.segments_restarted += added && message.restart;
     AppendSample(&timings_.intake_ms, (now - (item.arrived - start_time_)) * 1e3);
     AppendSample(&timings_.intake_at_s, now);
     AppendSample(&timings_.intake_during_gba, static_cast<char>(gba_running_.load()));
@@ -223,7 +224,7 @@ void Backend::QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>&
                              double received) {
   if (!dense_) return;
   for (ServerKeyframe* kf : keyframes) {
-    if (kf->in_dense || !kf->rgbd) continue;
+    if (kf->in_dense || !kf->rgbd || !map->Placed(*kf)) continue;
     DenseTask task;
     task.kind = DenseTask::Kind::kAdd;
     task.to = map->id();
@@ -382,6 +383,7 @@ void Backend::AfterLoop(LoopClosure closure) {
     } else {
       stats_.loops++;
     }
+    stats_.segments_placed += closure.event.placed_segment;
   }
   closure.map = MapManager::Guard();
   // A loop the map already agreed with corrected nothing: there is nothing to optimise.
@@ -496,8 +498,9 @@ bool Backend::AgentInPrimaryMap(AgentId agent) const {
 Trajectory Backend::AgentTrajectory(AgentId agent) {
   Trajectory trajectory;
   MapManager::Guard guard = maps_.CheckOutAgent(agent);
-  for (ServerKeyframe* kf : guard->AgentKeyframes(agent))
-    trajectory.push_back({kf->timestamp, kf->T_map_cam});
+  for (ServerKeyframe* kf : guard->AgentKeyframes(agent)) {
+    if (guard->Placed(*kf)) trajectory.push_back({kf->timestamp, kf->T_map_cam});
+  }
   std::sort(trajectory.begin(), trajectory.end(),
             [](const StampedPose& a, const StampedPose& b) { return a.timestamp < b.timestamp; });
   return trajectory;
@@ -509,8 +512,9 @@ Trajectory Backend::FusedTrajectory() {
   if (!primary) return trajectory;
   MapManager::Guard guard = maps_.CheckOut(*primary);
   if (!guard) return trajectory;
-  for (const auto& [id, kf] : guard->keyframes())
-    trajectory.push_back({kf->timestamp, kf->T_map_cam});
+  for (const auto& [id, kf] : guard->keyframes()) {
+    if (guard->Placed(*kf)) trajectory.push_back({kf->timestamp, kf->T_map_cam});
+  }
   std::stable_sort(
       trajectory.begin(), trajectory.end(),
       [](const StampedPose& a, const StampedPose& b) { return a.timestamp < b.timestamp; });

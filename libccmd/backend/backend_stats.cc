@@ -101,6 +101,7 @@ Json LoopEventsJson(const std::vector<LoopEvent>& loop_events) {
     x["inliers"] = e.inliers;
     x["fusion"] = e.fusion;
     x["already_closed"] = e.already_closed;
+    x["placed_segment"] = e.placed_segment;
     x["map"] = e.map.value();
     events.Push(x);
   }
@@ -134,6 +135,8 @@ Json Backend::StatsJson() {
   j["pose_updates_received"] = s.pose_updates_received;
   j["loops"] = s.loops;
   j["loops_already_closed"] = s.loops_already_closed;
+  j["segments_restarted"] = s.segments_restarted;
+  j["segments_placed"] = s.segments_placed;
   j["fusions"] = s.fusions;
   j["global_ba_runs"] = s.global_ba_runs;
   j["global_ba_windowed"] = s.global_ba_windowed;

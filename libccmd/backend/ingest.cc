@@ -25,6 +25,8 @@ StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent,
   }
   kf->restart = m.restart;
   kf->segment = m.restart || !reference ? m.id : reference->segment;
+  // Only a loop can place a restarted segment against the agent's earlier keyframes.
+  if (m.restart && reference) map->AddUnplacedSegment(id);
   kf->T_map_cam = reference
                       ? reference->T_map_cam * (reference->T_agent_cam.inverse() * kf->T_agent_cam)
                       : T_map_agent * kf->T_agent_cam;

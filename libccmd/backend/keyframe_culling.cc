@@ -50,8 +50,12 @@ std::vector<ServerKeyframe*> CoveringCandidates(const ServerMap& map, const Serv
   const Eigen::Vector3d axis = kf.T_map_cam.linear().col(2);
   const double min_cos = std::cos(options.max_view_angle_deg * M_PI / 180);
   std::vector<std::pair<double, ServerKeyframe*>> near;
+  // Only keyframes whose poses rest on the same measurements: a restarted segment that no loop
+  // has placed yet may lie anywhere against the rest of the map.
+  const std::optional<GlobalKeyframeId> group = map.UnplacedGroup(kf);
   const auto consider = [&](ServerKeyframe* other) {
     if (!other || other == &kf || other->culled() || !other->cull_checked) return;
+    if (map.UnplacedGroup(*other) != group) return;
     const double distance = (other->camera_center() - kf.camera_center()).norm();
     if (distance > radius || other->T_map_cam.linear().col(2).dot(axis) < min_cos) return;
     near.emplace_back(distance, other);

@@ -631,6 +631,10 @@ LoopCloser::Outcome LoopCloser::TryCandidate(const GlobalKeyframeId& id,
   ServerKeyframe* query = query_guard->keyframe(id);
   ServerKeyframe* cand = cmap.keyframe(candidate.keyframe);
   if (!query || !cand) return Outcome::kNextCandidate;
+  // A segment no loop has placed yet rests on its agent's guess: a fusion through it would
+  // carry the guess into the other map.
+  if (!same_map && (!query_guard->Placed(*query) || !cmap.Placed(*cand)))
+    return Outcome::kNextCandidate;
   auto match = VerifyLoop(query, camera, cand, cmap, options.verification);
   if (!match) return Outcome::kNextCandidate;
 
@@ -688,6 +692,14 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
       closure.moved = CloseLoopInMap(map, refined, options.pose_graph);
     }
     if (options.seam.enabled) TieSeam(map, sides, camera, options);
+    // A loop between a placed keyframe and one of a restarted segment places the segment.
+    std::vector<ServerKeyframe*> placed = map->LinkSegments(*match.query, *match.candidate);
+    if (!placed.empty()) {
+      CCMD_LOG(INFO) << "the loop places " << placed.size()
+                     << " keyframes of restarted segments in map " << map->id().value();
+      event.placed_segment = true;
+      if (maps_->primary() == map->id()) closure.joined_primary = std::move(placed);
+    }
     closure.map = std::move(*query_guard);
   } else {
     MapFusion fusion =

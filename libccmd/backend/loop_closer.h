@@ -84,6 +84,7 @@ struct LoopEvent {
   Pose T_candidate_query = Pose::Identity();
   bool fusion = false;          // two maps fused (else a loop inside a map)
   bool already_closed = false;  // inside a map that agreed with it already: nothing corrected
+  bool placed_segment = false;  // it placed an agent's restarted segment (ServerMap::Placed)
   MapId map;                    // the map after the event
 };
 

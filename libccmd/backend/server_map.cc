@@ -1,6 +1,7 @@
 #include "libccmd/backend/server_map.h"
 
 #include <algorithm>
+#include <set>
 
 #include "libccmd/util/logging.h"
 
@@ -222,6 +223,8 @@ void ServerMap::Absorb(ServerMap* other, const Pose& T_this_other) {
   other->newest_.clear();
   other->culled_ = 0;
   loop_edges_.insert(loop_edges_.end(), other->loop_edges_.begin(), other->loop_edges_.end());
+  unplaced_.merge(other->unplaced_);
+  other->unplaced_.clear();
   for (AgentId a : other->agents_) {
     if (std::find(agents_.begin(), agents_.end(), a) == agents_.end()) agents_.push_back(a);
   }
@@ -230,6 +233,35 @@ void ServerMap::Absorb(ServerMap* other, const Pose& T_this_other) {
   other->merged_into_.clear();
   other->loop_edges_.clear();
   other->agents_.clear();
+}
+
+std::vector<ServerKeyframe*> ServerMap::LinkSegments(const ServerKeyframe& a,
+                                                     const ServerKeyframe& b) {
+  std::vector<ServerKeyframe*> placed;
+  const auto ia = unplaced_.find({a.id.agent, a.segment}),
+             ib = unplaced_.find({b.id.agent, b.segment});
+  if (ia == unplaced_.end() && ib == unplaced_.end()) return placed;
+  if (ia != unplaced_.end() && ib != unplaced_.end()) {
+    const GlobalKeyframeId from = ib->second, to = ia->second;
+    for (auto& [segment, group] : unplaced_) {
+      if (group == from) group = to;
+    }
+    return placed;
+  }
+  const GlobalKeyframeId group = (ia != unplaced_.end() ? ia : ib)->second;
+  std::set<GlobalKeyframeId> segments;
+  for (auto it = unplaced_.begin(); it != unplaced_.end();) {
+    if (it->second == group) {
+      segments.insert(it->first);
+      it = unplaced_.erase(it);
+    } else {
+      ++it;
+    }
+  }
+  for (const auto& [id, kf] : keyframes_) {
+    if (segments.count({id.agent, kf->segment})) placed.push_back(kf.get());
+  }
+  return placed;
 }
 
 std::vector<ServerKeyframe*> ServerMap::AgentKeyframes(AgentId agent) const {

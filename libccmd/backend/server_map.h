@@ -162,6 +162,24 @@ class ServerMap {
   // Keyframes of one agent in id order.
   std::vector<ServerKeyframe*> AgentKeyframes(AgentId agent) const;
 
+  // Restarted segments (ServerKeyframe::restart) that no loop has placed against the rest of
+  // the map yet. Their poses rest on the agent's guess, so they stay out of the world-frame
+  // outputs (dense map, trajectories) and out of fusions until a loop inside the map joins
+  // them, directly or through other such segments, to a placed keyframe.
+  bool Placed(const ServerKeyframe& kf) const { return !UnplacedGroup(kf); }
+  // The group of unplaced segments `kf` belongs to (none when it is placed): keyframes of
+  // different groups, or of a group and the placed part, lie anywhere against each other.
+  std::optional<GlobalKeyframeId> UnplacedGroup(const ServerKeyframe& kf) const {
+    if (unplaced_.empty()) return std::nullopt;
+    const auto it = unplaced_.find({kf.id.agent, kf.segment});
+    return it == unplaced_.end() ? std::nullopt : std::optional<GlobalKeyframeId>(it->second);
+  }
+  void AddUnplacedSegment(const GlobalKeyframeId& first) { unplaced_[first] = first; }
+  // Records that a loop links the segments of `a` and `b`: two unplaced ones become one
+  // group; a placed and an unplaced one place the whole group, whose keyframes are returned.
+  std::vector<ServerKeyframe*> LinkSegments(const ServerKeyframe& a, const ServerKeyframe& b);
+  std::size_t num_unplaced_segments() const { return unplaced_.size(); }
+
  private:
   // Forgets merge aliases whose point is gone (removed with a culled keyframe) or that are
   // older than kMergeAliasKeyframes keyframes of their agent.
@@ -181,6 +199,9 @@ class ServerMap {
   std::vector<LoopEdge> loop_edges_;
   std::vector<AgentId> agents_;
   std::optional<GlobalKeyframeId> origin_;
+  // Unplaced segments by their first keyframe, each with its group's label (segments a loop
+  // linked share one).
+  std::map<GlobalKeyframeId, GlobalKeyframeId> unplaced_;
   std::size_t culled_ = 0;
   std::size_t prune_aliases_at_ = 1024;  // merge aliases that start the next sweep
 };

@@ -246,6 +246,8 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   results["loops"] = Num(backend, "loops");
   results["fusions"] = Num(backend, "fusions");
   results["global_ba_runs"] = Num(backend, "global_ba_runs");
+  results["segments_restarted"] = Num(backend, "segments_restarted");
+  results["segments_placed"] = Num(backend, "segments_placed");
 
   // Trajectories: the agents' own odometry, then the primary map's keyframes (every agent's
   // when all fused; otherwise those of the agents in it, named in the results).
@@ -556,6 +558,14 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   md << "Maps left after fusion: " << results["maps_after_fusion"].number() << " (loops "
      << results["loops"].number() << ", fusions " << results["fusions"].number()
      << ", global BA runs " << results["global_ba_runs"].number() << ")\n\n";
+  if (const double restarted = results["segments_restarted"].number(); restarted > 0) {
+    const double unplaced = restarted - results["segments_placed"].number();
+    md << "Agents lost tracking and restarted " << restarted << " time(s) in a new map segment; "
+       << (unplaced > 0 ? Fmt("%.0f", unplaced) +
+                              " segment(s) no loop has placed are left out of the trajectories "
+                              "and the dense map (the agents' own trajectories keep them).\n\n"
+                        : std::string("loops placed every segment.\n\n"));
+  }
   if (results["maps_after_fusion"].number() > 1) {
     std::vector<std::string> others;
     for (int i = 1; i <= info.agents; ++i) {

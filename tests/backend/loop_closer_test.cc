@@ -405,12 +405,15 @@ struct ProcessResult {
   bool closed = false;
   LoopEvent event;
   std::size_t moved = 0;
+  std::size_t joined = 0;    // keyframes the loop brought into the primary map's outputs
+  std::size_t unplaced = 0;  // the map's keyframes not placed after the keyframe
 };
 
 // The whole loop stage on generated data: a vocabulary trained on the wall's descriptors, an
 // agent walking the circle and on past its start (new map points: it does not know it has
-// been there). Returns what each keyframe closed.
-std::vector<ProcessResult> WalkPastTheStart(int cooldown_keyframes) {
+// been there). With `restart_at`, the agent lost tracking there and restarted (new points, a
+// segment 20 cm off). Returns what each keyframe closed.
+std::vector<ProcessResult> WalkPastTheStart(int cooldown_keyframes, int restart_at = -1) {
   Rng rng(11);
   const GeneratedWorld world = MakeRingWorld(4000, &rng);
   // Training images: the wall in 40 parts (one image would give every word a zero weight).
@@ -433,17 +436,32 @@ std::vector<ProcessResult> WalkPastTheStart(int cooldown_keyframes) {
   LoopCloser closer(options, place, &maps, 0.0);
   constexpr int kSteps = 36;
   std::vector<ProcessResult> results;
+  Pose off = Pose::Identity();
+  off.translation() = Eigen::Vector3d(0.2, -0.1, 0);
   for (int id = 0; id < kSteps + 8; ++id) {
+    const bool restarted = restart_at >= 0 && id >= restart_at;
+    std::optional<std::uint32_t> window;
+    if (id >= kSteps) window = id - 5;
+    if (restarted) window = std::max<std::uint32_t>(window.value_or(0), restart_at);
     {
       MapManager::Guard guard = maps.CheckOutAgent(AgentId(1));
-      AddGeneratedKeyframe(guard.get(), world, AgentId(1), id, CirclePose(id % kSteps, kSteps),
-                           Drifted(id, kSteps), &rng,
-                           id < kSteps ? std::nullopt : std::optional<std::uint32_t>(id - 5));
+      ServerKeyframe* kf = AddGeneratedKeyframe(
+          guard.get(), world, AgentId(1), id, CirclePose(id % kSteps, kSteps),
+          (restarted ? off : Pose::Identity()) * Drifted(id, kSteps), &rng, window);
+      if (restarted) kf->segment = KeyframeId(restart_at);
+      if (id == restart_at) {
+        kf->restart = true;
+        kf->parent.reset();
+        guard->AddUnplacedSegment(kf->id);
+      }
     }
     std::optional<LoopClosure> closure =
         closer.Process(Kf(1, id), testing::TestCamera(), DepthNoise(), /*stored=*/false);
     ProcessResult r;
-    if (closure) r = {true, closure->event, closure->moved.size()};
+    if (closure) r = {true, closure->event, closure->moved.size(), closure->joined_primary.size()};
+    closure.reset();  // gives the map back
+    MapManager::Guard guard = maps.CheckOutAgent(AgentId(1));
+    for (const auto& [kid, kf] : guard->keyframes()) r.unplaced += !guard->Placed(*kf);
     results.push_back(r);
   }
   return results;
@@ -473,6 +491,27 @@ TEST(LoopCloserTest, ARevisitIsConfirmedAndClosedThenTheAgentCoolsDown) {
   for (const ProcessResult& r : eager) eager_loops += r.closed;
   EXPECT_TRUE(eager[closed[0]].closed);
   EXPECT_GE(eager_loops, 2);
+}
+
+// An agent restarted at keyframe 20 (new points, 20 cm off) where it had just been: its new
+// segment stays out of the outputs (unplaced) until a loop with the placed part, which its
+// first keyframes may close with the keyframes just before the restart however recent. The
+// second keyframe confirms the loop, which places the segment and hands it over.
+TEST(LoopCloserTest, ALoopWithTheKeyframesBeforeARestartPlacesTheNewSegment) {
+  const std::vector<ProcessResult> results = WalkPastTheStart(10, 20);
+  int closed = -1;
+  for (std::size_t id = 0; id < results.size(); ++id) {
+    if (results[id].closed && closed < 0) closed = static_cast<int>(id);
+  }
+  ASSERT_EQ(closed, 21);
+  const ProcessResult& loop = results[closed];
+  EXPECT_LT(loop.event.candidate.keyframe.value(), 20u);
+  EXPECT_FALSE(loop.event.fusion);
+  EXPECT_TRUE(loop.event.placed_segment);
+  EXPECT_EQ(loop.joined, 2u);
+  EXPECT_EQ(results[19].unplaced, 0u);
+  EXPECT_EQ(results[20].unplaced, 1u);
+  for (std::size_t id = closed; id < results.size(); ++id) EXPECT_EQ(results[id].unplaced, 0u);
 }
 
 }  // namespace

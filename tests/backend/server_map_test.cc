@@ -74,9 +74,10 @@ TEST(ServerMapTest, KeyframesFollowTheAgentsRelativeMotionAndPoseUpdates) {
 }
 
 // A restarted segment's first keyframe comes without a parent and with the restart flag: it
-// is placed where its agent put it, relative to the agent's latest keyframe (so the server's
-// corrections carry over), and starts a segment that its children join.
-TEST(ServerMapTest, ARestartStartsASegmentPlacedFromTheAgentsLatestKeyframe) {
+// is posed where its agent put it, relative to the agent's latest keyframe (so the server's
+// corrections carry over), and starts a segment that its children join and that nothing
+// places against the rest of the map yet.
+TEST(ServerMapTest, ARestartStartsAnUnplacedSegmentPosedFromTheAgentsLatestKeyframe) {
   ServerMap map(MapId(1));
   const AgentId agent(1);
   const Pose T0 = MakePose(0.1, {1, 2, 0}), T1 = MakePose(0.2, {1.2, 2, 0}),
@@ -98,6 +99,38 @@ TEST(ServerMapTest, ARestartStartsASegmentPlacedFromTheAgentsLatestKeyframe) {
   EXPECT_EQ((*k1)->segment, KeyframeId(0));
   EXPECT_EQ((*k2)->segment, KeyframeId(2));
   EXPECT_EQ((*k3)->segment, KeyframeId(2));
+  // Nothing measured places the new segment yet.
+  EXPECT_TRUE(map.Placed(**k1));
+  EXPECT_FALSE(map.Placed(**k2));
+  EXPECT_FALSE(map.Placed(**k3));
+}
+
+// Loops link segments: two unplaced ones become one group, and a loop of either with the
+// placed part places both, returning all their keyframes.
+TEST(ServerMapTest, ALoopWithThePlacedPartPlacesTheWholeGroupOfSegments) {
+  ServerMap map(MapId(1));
+  const AgentId agent(1);
+  std::vector<ServerKeyframe*> k;
+  for (std::uint32_t i = 0; i < 6; ++i) {
+    const bool restart = i == 2 || i == 4;
+    KeyframeMessage m =
+        Message(i, MakePose(0.1 * i, {0.1 * i, 0, 0}),
+                restart || i == 0 ? std::nullopt : std::optional<std::uint32_t>(i - 1));
+    m.restart = restart;
+    auto added = AddKeyframeMessage(&map, agent, m, Pose::Identity());
+    ASSERT_TRUE(added.ok());
+    k.push_back(*added);
+  }
+  ASSERT_EQ(map.num_unplaced_segments(), 2u);  // keyframes 2-3 and 4-5
+  EXPECT_NE(map.UnplacedGroup(*k[3]), map.UnplacedGroup(*k[5]));
+  EXPECT_TRUE(map.LinkSegments(*k[0], *k[1]).empty());  // both placed
+  EXPECT_TRUE(map.LinkSegments(*k[5], *k[3]).empty());  // two unplaced: one group now
+  EXPECT_EQ(map.UnplacedGroup(*k[3]), map.UnplacedGroup(*k[5]));
+  EXPECT_FALSE(map.Placed(*k[2]));
+  const std::vector<ServerKeyframe*> placed = map.LinkSegments(*k[4], *k[1]);
+  EXPECT_EQ(placed, (std::vector<ServerKeyframe*>{k[2], k[3], k[4], k[5]}));
+  for (ServerKeyframe* kf : k) EXPECT_TRUE(map.Placed(*kf));
+  EXPECT_EQ(map.num_unplaced_segments(), 0u);
 }
 
 // A keyframe's depth links reach the global BA as relative poses between the right cameras,
