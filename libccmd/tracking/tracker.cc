@@ -95,14 +95,12 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
       state_ = TrackingState::kLost;
       velocity_.reset();
       current_->has_pose = false;
-      if (RestartDue()) {
+      if (RestartDue() && Initialize(current_.get(), *last_T_world_cam_, /*restart=*/true)) {
         CCMD_LOG(WARNING) << "no relocalisation since t=" << lost_since_
-                          << "; starting a new map segment at frame " << current_->index
+                          << ": a new map segment starts at frame " << current_->index
                           << " from the last tracked pose";
-        if (Initialize(current_.get(), *last_T_world_cam_, /*restart=*/true)) {
-          state_ = TrackingState::kOk;
-          ++restarts_;
-        }
+        state_ = TrackingState::kOk;
+        ++restarts_;
       }
     }
   }
