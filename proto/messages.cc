@@ -10,7 +10,8 @@ constexpr std::uint8_t kHasParent = 1u << 0;
 constexpr std::uint8_t kHasRgbd = 1u << 1;
 constexpr std::uint8_t kHasDepthLinks = 1u << 2;
 constexpr std::uint8_t kRestart = 1u << 3;
-constexpr std::uint8_t kKnownFlags = kHasParent | kHasRgbd | kHasDepthLinks | kRestart;
+constexpr std::uint8_t kReset = 1u << 4;  // only with kRestart
+constexpr std::uint8_t kKnownFlags = kHasParent | kHasRgbd | kHasDepthLinks | kRestart | kReset;
 
 constexpr std::size_t kPoseBytes = 7 * 4;
 constexpr std::size_t kDepthLinkBytes = 1 + kPoseBytes + 21 * 4;
@@ -151,7 +152,8 @@ StatusOr<std::vector<std::uint8_t>> SerializeKeyframe(const KeyframeMessage& m,
 
   w.PutU8(static_cast<std::uint8_t>((m.parent ? kHasParent : 0) | (m.rgbd ? kHasRgbd : 0) |
                                     (m.depth_links.empty() ? 0 : kHasDepthLinks) |
-                                    (m.restart ? kRestart : 0)));
+                                    (m.restart ? kRestart : 0) |
+                                    (m.restart && m.reset ? kReset : 0)));
   w.PutVarint(m.id.value());
   w.PutF64(m.timestamp);
   account(&b.other);
@@ -269,6 +271,8 @@ StatusOr<KeyframeMessage> ParseKeyframe(ByteSpan payload, const MessageLimits& l
   if (!std::isfinite(m.timestamp)) return Corrupt("keyframe timestamp is not finite");
   CCMD_RETURN_IF_ERROR(ReadPose(&r, &m.T_world_cam));
   m.restart = (flags & kRestart) != 0;
+  m.reset = (flags & kReset) != 0;
+  if (m.reset && !m.restart) return Corrupt("keyframe is a reset but no restart");
   if (flags & kHasParent) {
     std::uint32_t parent;
     CCMD_RETURN_IF_ERROR(ReadDelta(&r, id, "parent keyframe", &parent));

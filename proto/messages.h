@@ -82,6 +82,10 @@ struct RgbdPayload {
   std::vector<std::uint8_t> depth;
 };
 
+// A map segment this young is too young to relocalise in (ORB-SLAM resets such a map):
+// KeyframeMessage::restart.
+inline constexpr std::uint32_t kYoungSegmentKeyframes = 5;
+
 struct KeyframeMessage {
   KeyframeId id;
   double timestamp = 0;  // seconds
@@ -91,6 +95,10 @@ struct KeyframeMessage {
   // Its pose continues from the last tracked frame's (a guess), and it shares no map points
   // with the agent's earlier keyframes.
   bool restart = false;
+  // Flag bit 4, only with bit 3: a reset. The segment before was too young to relocalise in
+  // (fewer than kYoungSegmentKeyframes keyframes), so the agent started again at once, at the
+  // frame right after the last one it tracked: the pose is as good as tracking across a frame.
+  bool reset = false;
   std::vector<WireKeypoint> keypoints;
   std::vector<NewMapPoint> new_map_points;
   std::vector<CovisibilityLink> covisibility;

@@ -25,8 +25,24 @@ StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent,
   }
   kf->restart = m.restart;
   kf->segment = m.restart || !reference ? m.id : reference->segment;
-  // Only a loop can place a restarted segment against the agent's earlier keyframes.
-  if (m.restart && reference) map->AddUnplacedSegment(id);
+  // Only a loop can place a restarted segment against the agent's earlier keyframes. A reset
+  // (KeyframeMessage::reset) is posed as well as tracking would: it is placed as the segment
+  // before it is. In a map of fewer keyframes than a young segment, those few are what is
+  // kept apart instead: the new segment is the map from now on.
+  if (m.restart && reference) {
+    if (m.reset) {
+      if (const auto group = map->UnplacedGroup(*reference)) map->AddUnplacedSegment(id, *group);
+    } else if (map->keyframes().size() >= kYoungSegmentKeyframes) {
+      map->AddUnplacedSegment(id);
+    } else {
+      std::optional<GlobalKeyframeId> group;
+      for (const auto& [kid, k] : map->keyframes()) {
+        const GlobalKeyframeId segment{kid.agent, k->segment};
+        if (!group) group = segment;
+        map->AddUnplacedSegment(segment, *group);
+      }
+    }
+  }
   kf->T_map_cam = reference
                       ? reference->T_map_cam * (reference->T_agent_cam.inverse() * kf->T_agent_cam)
                       : T_map_agent * kf->T_agent_cam;

@@ -174,7 +174,11 @@ class ServerMap {
     const auto it = unplaced_.find({kf.id.agent, kf.segment});
     return it == unplaced_.end() ? std::nullopt : std::optional<GlobalKeyframeId>(it->second);
   }
-  void AddUnplacedSegment(const GlobalKeyframeId& first) { unplaced_[first] = first; }
+  // A new unplaced segment starting at `first`, in a group of its own or in `group`.
+  void AddUnplacedSegment(const GlobalKeyframeId& first,
+                          std::optional<GlobalKeyframeId> group = std::nullopt) {
+    unplaced_[first] = group.value_or(first);
+  }
   // Records that a loop links the segments of `a` and `b`: two unplaced ones become one
   // group; a placed and an unplaced one place the whole group, whose keyframes are returned.
   std::vector<ServerKeyframe*> LinkSegments(const ServerKeyframe& a, const ServerKeyframe& b);

@@ -12,6 +12,7 @@ StatusOr<KeyframeMessage> ToKeyframeMessage(const KeyframeSnapshot& s,
   m.T_world_cam = PoseToWire(s.T_world_cam);
   m.parent = s.parent;
   m.restart = s.restart;
+  m.reset = s.reset;
   m.keypoints.resize(s.keypoints.size());
   for (std::size_t i = 0; i < s.keypoints.size(); ++i) {
     WireKeypoint& k = m.keypoints[i];

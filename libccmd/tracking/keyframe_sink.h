@@ -43,6 +43,7 @@ struct KeyframeSnapshot {
   Pose T_world_cam = Pose::Identity();  // in the agent's map
   std::optional<KeyframeId> parent;     // spanning tree
   bool restart = false;                 // starts a segment after tracking was lost (Keyframe)
+  bool reset = false;                   // ... at once, after a young segment
 
   std::vector<cv::KeyPoint> keypoints;
   cv::Mat descriptors;                               // N x 32

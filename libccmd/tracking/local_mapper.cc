@@ -393,6 +393,7 @@ bool LocalMapper::Emit(Keyframe* keyframe, KeyframeSnapshot* s, std::vector<Pose
   s->T_world_cam = keyframe->T_world_cam();
   if (Keyframe* parent = keyframe->parent(); parent && parent->emitted) s->parent = parent->id();
   s->restart = keyframe->restart;
+  s->reset = keyframe->reset;
   const FrameFeatures& f = keyframe->features();
   // New map points go to the server at most `max_new_points_per_keyframe` per keyframe:
   // those already seen by several keyframes first (they have survived culling and carry the

@@ -138,6 +138,7 @@ class Keyframe {
   // First keyframe of a map segment started after tracking was lost (Tracker::RestartDue):
   // its pose is the last tracked frame's, a guess, and it shares no points with earlier ones.
   bool restart = false;
+  bool reset = false;  // a restart at once after a young segment (KeyframeMessage::reset)
   // Link bookkeeping.
   bool emitted = false;       // sent to the link
   bool rgbd_sent = false;     // its RGB-D data went with it

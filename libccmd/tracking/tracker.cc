@@ -76,6 +76,7 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
     if (ok) {
       state_ = TrackingState::kOk;
       last_T_world_cam_ = current_->T_cam_world.inverse();
+      last_tracked_timestamp_ = current_->timestamp;
       if (last_ && last_->has_pose)
         velocity_ = current_->T_cam_world * last_->T_cam_world.inverse();
       if (NeedNewKeyframe()) {
@@ -121,11 +122,13 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
   return result;
 }
 
+bool Tracker::YoungSegment() const {
+  return map_->NextKeyframeId().value() - segment_start_.value() < kYoungSegmentKeyframes;
+}
+
 bool Tracker::RestartDue() const {
   if (!last_T_world_cam_) return false;
-  const std::uint32_t segment_keyframes = map_->NextKeyframeId().value() - segment_start_.value();
-  return segment_keyframes < kYoungSegmentKeyframes ||
-         current_->timestamp - lost_since_ >= options_.relocalisation_seconds;
+  return YoungSegment() || current_->timestamp - lost_since_ >= options_.relocalisation_seconds;
 }
 
 bool Tracker::Initialize(TrackingFrame* frame, const Pose& T_world_cam, bool restart) {
@@ -140,10 +143,14 @@ bool Tracker::Initialize(TrackingFrame* frame, const Pose& T_world_cam, bool res
       std::make_shared<Keyframe>(map_->NextKeyframeId(), frame->timestamp, frame->index,
                                  frame->features, T_world_cam, camera_.width, camera_.height);
   keyframe->restart = restart;
+  // Started again at the frame after the last tracked one, the pose is as good as tracking's.
+  keyframe->reset =
+      restart && YoungSegment() && frame->timestamp - last_tracked_timestamp_ <= 1.5 / camera_.fps;
   keyframe->bgr = frame->bgr;
   keyframe->depth_mm = frame->depth_mm;
   segment_start_ = keyframe->id();
   last_T_world_cam_ = T_world_cam;
+  last_tracked_timestamp_ = frame->timestamp;
   map_->AddKeyframe(keyframe);
   for (int i = 0; i < frame->size(); ++i) {
     const float z = frame->features.depth[i];

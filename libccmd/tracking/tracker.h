@@ -15,6 +15,7 @@
 #include "libccmd/tracking/frame.h"
 #include "libccmd/tracking/map.h"
 #include "libccmd/tracking/options.h"
+#include "proto/messages.h"
 
 namespace ccmd {
 
@@ -74,6 +75,7 @@ class Tracker {
   // Lost, with no relocalisation for options.relocalisation_seconds, or in a segment too
   // young to relocalise against: the next frame with enough features starts a new segment.
   bool RestartDue() const;
+  bool YoungSegment() const;  // fewer than kYoungSegmentKeyframes keyframes
   bool TrackWithMotionModel();
   bool TrackReferenceKeyframe();
   bool Relocalize();
@@ -89,13 +91,11 @@ class Tracker {
   const OrbExtractor* orb_;
   MappingQueue* mapping_;
 
-  // ORB-SLAM resets a map of at most this many keyframes rather than relocalising in it.
-  static constexpr std::uint32_t kYoungSegmentKeyframes = 5;
-
   TrackingState state_ = TrackingState::kNotInitialized;
   std::optional<Pose> last_T_world_cam_;  // of the last tracked frame
-  double lost_since_ = 0;                 // timestamp of the first frame not tracked
-  KeyframeId segment_start_{0};           // first keyframe of the current segment
+  double last_tracked_timestamp_ = 0;
+  double lost_since_ = 0;        // timestamp of the first frame not tracked
+  KeyframeId segment_start_{0};  // first keyframe of the current segment
   int restarts_ = 0;
   std::unique_ptr<TrackingFrame> current_, last_;
   std::optional<Pose> velocity_;  // T_current_last

@@ -73,63 +73,91 @@ TEST(ServerMapTest, KeyframesFollowTheAgentsRelativeMotionAndPoseUpdates) {
   EXPECT_FALSE(AddKeyframeMessage(&map, agent, Message(1, T1, 0), Pose::Identity()).ok());
 }
 
+// Keyframes `first` to `last` of agent 1 at poses along a line, each the child of the one
+// before; `first`, unless it is keyframe 0, starts a restarted segment (no parent), a reset
+// with `reset`.
+std::vector<ServerKeyframe*> AddChain(ServerMap* map, std::uint32_t first, std::uint32_t last,
+                                      bool reset = false) {
+  std::vector<ServerKeyframe*> chain;
+  for (std::uint32_t i = first; i <= last; ++i) {
+    KeyframeMessage m = Message(i, MakePose(0.05 * i, {0.1 * i, 0, 0}),
+                                i == first ? std::nullopt : std::optional<std::uint32_t>(i - 1));
+    m.restart = i == first && first > 0;
+    m.reset = m.restart && reset;
+    auto added = AddKeyframeMessage(map, AgentId(1), m, Pose::Identity());
+    EXPECT_TRUE(added.ok());
+    chain.push_back(added.ok() ? *added : nullptr);
+  }
+  return chain;
+}
+
 // A restarted segment's first keyframe comes without a parent and with the restart flag: it
 // is posed where its agent put it, relative to the agent's latest keyframe (so the server's
 // corrections carry over), and starts a segment that its children join and that nothing
 // places against the rest of the map yet.
 TEST(ServerMapTest, ARestartStartsAnUnplacedSegmentPosedFromTheAgentsLatestKeyframe) {
   ServerMap map(MapId(1));
-  const AgentId agent(1);
-  const Pose T0 = MakePose(0.1, {1, 2, 0}), T1 = MakePose(0.2, {1.2, 2, 0}),
-             T2 = MakePose(0.25, {1.3, 2.1, 0}), T3 = MakePose(0.3, {1.4, 2.1, 0});
-  ASSERT_TRUE(AddKeyframeMessage(&map, agent, Message(0, T0, std::nullopt), Pose::Identity()).ok());
-  auto k1 = AddKeyframeMessage(&map, agent, Message(1, T1, 0), Pose::Identity());
-  ASSERT_TRUE(k1.ok());
+  const std::vector<ServerKeyframe*> before = AddChain(&map, 0, 4);
   const Pose correction = MakePose(0.05, {0.2, 0, 0});
-  (*k1)->T_map_cam = correction * (*k1)->T_map_cam;
-  KeyframeMessage restart = Message(2, T2, std::nullopt);
-  restart.restart = true;
-  auto k2 = AddKeyframeMessage(&map, agent, restart, Pose::Identity());
-  auto k3 = AddKeyframeMessage(&map, agent, Message(3, T3, 2), Pose::Identity());
-  ASSERT_TRUE(k2.ok() && k3.ok());
-  EXPECT_LT(TranslationDistance((*k2)->T_map_cam, (*k1)->T_map_cam * T1.inverse() * T2), 1e-9);
-  EXPECT_FALSE((*k1)->restart);
-  EXPECT_TRUE((*k2)->restart);
-  EXPECT_FALSE((*k3)->restart);
-  EXPECT_EQ((*k1)->segment, KeyframeId(0));
-  EXPECT_EQ((*k2)->segment, KeyframeId(2));
-  EXPECT_EQ((*k3)->segment, KeyframeId(2));
-  // Nothing measured places the new segment yet.
-  EXPECT_TRUE(map.Placed(**k1));
-  EXPECT_FALSE(map.Placed(**k2));
-  EXPECT_FALSE(map.Placed(**k3));
+  before[4]->T_map_cam = correction * before[4]->T_map_cam;
+  const std::vector<ServerKeyframe*> after = AddChain(&map, 5, 6);
+  ASSERT_EQ(after.size(), 2u);
+  EXPECT_LT(TranslationDistance(after[0]->T_map_cam, correction * MakePose(0.25, {0.5, 0, 0})),
+            1e-9);
+  EXPECT_FALSE(before[4]->restart);
+  EXPECT_TRUE(after[0]->restart);
+  EXPECT_FALSE(after[1]->restart);
+  EXPECT_EQ(before[4]->segment, KeyframeId(0));
+  EXPECT_EQ(after[0]->segment, KeyframeId(5));
+  EXPECT_EQ(after[1]->segment, KeyframeId(5));
+  EXPECT_TRUE(map.Placed(*before[4]));
+  EXPECT_FALSE(map.Placed(*after[0]));
+  EXPECT_FALSE(map.Placed(*after[1]));
+}
+
+// A reset (a restart at once after a young segment) is posed as tracking would have: placed as
+// the segment before it is (placed, or in its unplaced group).
+TEST(ServerMapTest, AResetIsPlacedAsTheSegmentBeforeIt) {
+  ServerMap map(MapId(1));
+  AddChain(&map, 0, 4);
+  const std::vector<ServerKeyframe*> reset = AddChain(&map, 5, 6, /*reset=*/true);
+  EXPECT_TRUE(reset[0]->restart);
+  EXPECT_TRUE(map.Placed(*reset[0]) && map.Placed(*reset[1]));
+  EXPECT_EQ(map.num_unplaced_segments(), 0u);
+  const std::vector<ServerKeyframe*> lost = AddChain(&map, 7, 8);
+  const std::vector<ServerKeyframe*> again = AddChain(&map, 9, 10, /*reset=*/true);
+  EXPECT_FALSE(map.Placed(*again[0]));
+  EXPECT_EQ(map.UnplacedGroup(*again[1]), map.UnplacedGroup(*lost[0]));
+}
+
+// Where the map holds fewer keyframes than a young segment, those few are kept apart instead
+// of the restarted segment, which is the map from now on.
+TEST(ServerMapTest, ARestartAfterAnAlmostEmptyMapKeepsTheFewBeforeItApart) {
+  ServerMap map(MapId(1));
+  const std::vector<ServerKeyframe*> before = AddChain(&map, 0, kYoungSegmentKeyframes - 2);
+  const std::vector<ServerKeyframe*> after =
+      AddChain(&map, kYoungSegmentKeyframes - 1, kYoungSegmentKeyframes + 3);
+  EXPECT_TRUE(after[0]->restart);
+  EXPECT_TRUE(map.Placed(*after[0]) && map.Placed(*after[4]));
+  for (ServerKeyframe* kf : before) EXPECT_FALSE(map.Placed(*kf));
 }
 
 // Loops link segments: two unplaced ones become one group, and a loop of either with the
 // placed part places both, returning all their keyframes.
 TEST(ServerMapTest, ALoopWithThePlacedPartPlacesTheWholeGroupOfSegments) {
   ServerMap map(MapId(1));
-  const AgentId agent(1);
-  std::vector<ServerKeyframe*> k;
-  for (std::uint32_t i = 0; i < 6; ++i) {
-    const bool restart = i == 2 || i == 4;
-    KeyframeMessage m =
-        Message(i, MakePose(0.1 * i, {0.1 * i, 0, 0}),
-                restart || i == 0 ? std::nullopt : std::optional<std::uint32_t>(i - 1));
-    m.restart = restart;
-    auto added = AddKeyframeMessage(&map, agent, m, Pose::Identity());
-    ASSERT_TRUE(added.ok());
-    k.push_back(*added);
-  }
-  ASSERT_EQ(map.num_unplaced_segments(), 2u);  // keyframes 2-3 and 4-5
-  EXPECT_NE(map.UnplacedGroup(*k[3]), map.UnplacedGroup(*k[5]));
-  EXPECT_TRUE(map.LinkSegments(*k[0], *k[1]).empty());  // both placed
-  EXPECT_TRUE(map.LinkSegments(*k[5], *k[3]).empty());  // two unplaced: one group now
-  EXPECT_EQ(map.UnplacedGroup(*k[3]), map.UnplacedGroup(*k[5]));
-  EXPECT_FALSE(map.Placed(*k[2]));
-  const std::vector<ServerKeyframe*> placed = map.LinkSegments(*k[4], *k[1]);
-  EXPECT_EQ(placed, (std::vector<ServerKeyframe*>{k[2], k[3], k[4], k[5]}));
-  for (ServerKeyframe* kf : k) EXPECT_TRUE(map.Placed(*kf));
+  const std::vector<ServerKeyframe*> a = AddChain(&map, 0, 4), b = AddChain(&map, 5, 9),
+                                     c = AddChain(&map, 10, 14);
+  ASSERT_EQ(map.num_unplaced_segments(), 2u);
+  EXPECT_NE(map.UnplacedGroup(*b[2]), map.UnplacedGroup(*c[4]));
+  EXPECT_TRUE(map.LinkSegments(*a[0], *a[3]).empty());  // both placed
+  EXPECT_TRUE(map.LinkSegments(*c[4], *b[2]).empty());  // two unplaced: one group now
+  EXPECT_EQ(map.UnplacedGroup(*b[2]), map.UnplacedGroup(*c[4]));
+  EXPECT_FALSE(map.Placed(*b[0]));
+  std::vector<ServerKeyframe*> expected = b;
+  expected.insert(expected.end(), c.begin(), c.end());
+  EXPECT_EQ(map.LinkSegments(*c[0], *a[1]), expected);
+  for (const auto& [id, kf] : map.keyframes()) EXPECT_TRUE(map.Placed(*kf));
   EXPECT_EQ(map.num_unplaced_segments(), 0u);
 }
 

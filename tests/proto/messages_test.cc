@@ -325,8 +325,8 @@ TEST(MessagesTest, UnknownFlagsAndBadFieldsAreCorrupt) {
   EXPECT_EQ(ParseKeyframe(rgbd).status().code(), StatusCode::kCorrupt);
 }
 
-// The restart mark is flag bit 3 alone: it costs no byte, comes back as sent, and bits 4-7
-// stay unknown.
+// The restart mark is flag bit 3, a reset bit 4 with it: they cost no byte, come back as sent,
+// a reset without a restart is corrupt, and bits 5-7 stay unknown.
 TEST(MessagesTest, TheRestartMarkIsFlagBitThree) {
   KeyframeMessage m = RandomKeyframe(6, 20);
   const Bytes plain = *SerializeKeyframe(m);
@@ -339,9 +339,17 @@ TEST(MessagesTest, TheRestartMarkIsFlagBitThree) {
   auto back = ParseKeyframe(marked);
   ASSERT_TRUE(back.ok()) << back.status().ToString();
   EXPECT_TRUE(back->restart);
+  EXPECT_FALSE(back->reset);
   EXPECT_EQ(back->parent, m.parent);
+  m.reset = true;
+  const Bytes reset = *SerializeKeyframe(m);
+  EXPECT_EQ(reset[0], plain[0] | 0x18);
+  EXPECT_TRUE(ParseKeyframe(reset)->reset);
+  Bytes reset_alone = reset;
+  reset_alone[0] &= ~0x08;
+  EXPECT_EQ(ParseKeyframe(reset_alone).status().code(), StatusCode::kCorrupt);
   Bytes unknown = marked;
-  unknown[0] |= 0x10;
+  unknown[0] |= 0x20;
   EXPECT_EQ(ParseKeyframe(unknown).status().code(), StatusCode::kCorrupt);
 }
 

@@ -170,9 +170,10 @@ TEST(FrontendTest, BoundedMapStaysBounded) {
 }
 
 // The frames of `parts` (ranges of the 600-frame sequence) one after the other, stamped at the
-// frame rate as if the camera had been carried from one part to the next in an instant: a
-// tracking failure that no relocalisation can mend where the parts do not see the same place.
-void RunParts(const std::vector<FrameRange>& parts, RunResult* out) {
+// frame rate as if the camera had been carried from one part to the next in an instant (or,
+// with `gap_s`, that much later, as if frames were dropped): a tracking failure that no
+// relocalisation can mend where the parts do not see the same place.
+void RunParts(const std::vector<FrameRange>& parts, RunResult* out, double gap_s = 0) {
   SyntheticSequenceOptions synth;
   synth.frames = 600;
   synth.seed = 1;
@@ -185,7 +186,7 @@ void RunParts(const std::vector<FrameRange>& parts, RunResult* out) {
     const Trajectory truth = source.GroundTruth();
     RgbdFrame frame;
     for (int i = 0; source.Read(&frame).ok(); ++i, ++k) {
-      frame.timestamp = k / synth.fps;
+      frame.timestamp = k / synth.fps + (k >= parts.front().size() ? gap_s : 0.0);
       out->ground_truth.push_back({frame.timestamp, truth[i].T_world_cam});
       (*frontend)->ProcessFrame(frame);
     }
@@ -206,8 +207,15 @@ Trajectory From(const Trajectory& trajectory, double t0) {
 
 // Ten frames make a map of one keyframe, too young to relocalise in (ORB-SLAM resets such a
 // map): the first frame of the other part starts a new segment at once, at the last tracked
-// pose, and tracks the rest of that part as well as any.
+// pose, and tracks the rest of that part as well as any. Made at the next frame, the restart
+// is a reset (its pose as good as tracking's); after a gap in time it is not.
 TEST(FrontendTest, ALostYoungMapRestartsAtOnceFromTheLastPose) {
+  RunResult gap;
+  RunParts({{0, 9}, {300, 309}}, &gap, 5.0);
+  EXPECT_EQ(gap.stats.restarts, 1);
+  EXPECT_EQ(gap.stats.lost_frames, 0);
+  for (const KeyframeSnapshot& k : gap.sink.keyframes) EXPECT_FALSE(k.reset);
+
   RunResult r;
   RunParts({{0, 9}, {300, 359}}, &r);
   EXPECT_EQ(r.stats.restarts, 1);
@@ -217,6 +225,7 @@ TEST(FrontendTest, ALostYoungMapRestartsAtOnceFromTheLastPose) {
   for (const KeyframeSnapshot& k : r.sink.keyframes) {
     if (!k.restart) continue;
     ++restarts;
+    EXPECT_TRUE(k.reset);
     EXPECT_NEAR(k.timestamp, 10 / 30.0, 1e-9);
     EXPECT_FALSE(k.parent.has_value());
     ASSERT_GE(r.trajectory.size(), 10u);
@@ -235,6 +244,7 @@ TEST(FrontendTest, AnEstablishedMapRestartsAfterTheRelocalisationTime) {
   RunResult r;
   RunParts({{0, 89}, {400, 459}}, &r);
   EXPECT_EQ(r.stats.restarts, 1);
+  for (const KeyframeSnapshot& k : r.sink.keyframes) EXPECT_FALSE(k.reset);
   EXPECT_GE(r.stats.lost_frames, 29);
   EXPECT_LE(r.stats.lost_frames, 31);
   auto ate = ComputeAte(From(r.ground_truth, 121 / 30.0), From(r.trajectory, 121 / 30.0));
