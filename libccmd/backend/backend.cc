@@ -204,6 +204,17 @@ void Backend::Ingest(IngestItem item) {
       if (observer_)
         observer_->OnKeyframe(id, guard->id(), (*keyframe)->T_map_cam, item.arrived, primary);
       if (primary) QueueDenseAdds(guard.get(), {*keyframe}, item.arrived - start_time_);
+      // A restart in an almost empty map leaves the few keyframes before it unplaced.
+      if (dense_ && message.restart) {
+        for (const auto& [kid, kf] : guard->keyframes()) {
+          if (!kf->in_dense || guard->Placed(*kf)) continue;
+          kf->in_dense = false;
+          DenseTask task;
+          task.kind = DenseTask::Kind::kRemove;
+          task.keyframe = kid;
+          dense_stage_.Push(std::move(task));
+        }
+      }
     }
   }
   const double now = Now();
@@ -268,6 +279,9 @@ void Backend::UpdateDense(DenseTask task) {
       break;
     case DenseTask::Kind::kMergeMaps:
       status = dense_->MergeMaps(task.from, task.to, Pose::Identity());
+      break;
+    case DenseTask::Kind::kRemove:
+      status = dense_->RemoveKeyframe(task.keyframe);
       break;
   }
   if (!status.ok()) CCMD_LOG(WARNING) << "dense map: " << status.ToString();

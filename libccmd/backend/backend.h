@@ -182,8 +182,16 @@ class Backend {
     double arrived = 0;  // MonotonicSeconds() when the message reached the server
   };
   struct DenseTask {
-    enum class Kind { kAdd, kUpdate, kLoopUpdate, kGlobalUpdate, kMergeMaps } kind = Kind::kAdd;
-    // kAdd: the keyframe's coded RGB-D, decoded by the dense stage.
+    enum class Kind {
+      kAdd,
+      kUpdate,
+      kLoopUpdate,
+      kGlobalUpdate,
+      kMergeMaps,
+      kRemove
+    } kind = Kind::kAdd;
+    // kAdd: the keyframe's coded RGB-D, decoded by the dense stage; kRemove: a keyframe no
+    // longer placed in its map (ServerMap::Placed), whose cloud leaves the dense map.
     GlobalKeyframeId keyframe;
     Pose T_world_cam = Pose::Identity();
     std::shared_ptr<const RgbdPayload> rgbd;

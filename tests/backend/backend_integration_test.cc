@@ -240,6 +240,53 @@ TEST(BackendIntegrationTest, TwoAgentsAreFusedIntoOneAccurateMap) {
   (*backend)->Shutdown();
 }
 
+// An agent tracks ten frames (one keyframe), then its frames resume elsewhere after a gap in
+// time: it restarts in a new segment that nothing measures against that one keyframe. The map
+// held nothing else, so the new segment is the map: the keyframe before it leaves the dense
+// map and the trajectory, and every keyframe after it is there.
+TEST(BackendIntegrationTest, ARestartAfterAYoungStartKeepsTheStartApart) {
+  RecordingObserver observer;
+  auto backend = Backend::Create(BackendOptions(), &observer);
+  ASSERT_TRUE(backend.ok()) << backend.status().ToString();
+  const AgentId agent(1);
+  ASSERT_TRUE((*backend)->RegisterAgent(agent, "agent1", SyntheticCamera()).ok());
+  WireSink sink(agent, backend->get());
+  SyntheticSequenceOptions synth;
+  synth.frames = 600;
+  TrackingOptions tracking;
+  tracking.synchronous_mapping = true;
+  auto frontend = Frontend::Create(SyntheticCamera(), tracking, &sink);
+  ASSERT_TRUE(frontend.ok());
+  for (const FrameRange part : {FrameRange{0, 9}, FrameRange{300, 359}}) {
+    SyntheticSource source(synth, part);
+    RgbdFrame frame;
+    while (source.Read(&frame).ok()) (*frontend)->ProcessFrame(frame);
+  }
+  (*frontend)->Finish();
+  ASSERT_EQ((*frontend)->stats().restarts, 1);
+  (*backend)->WaitIdle();
+  EXPECT_EQ((*backend)->stats().segments_restarted, 1);
+  const double restart_time =
+      SyntheticSource(synth, FrameRange{300, 300}).GroundTruth()[0].timestamp;
+  std::size_t before = 0, after = 0, clouds_after = 0;
+  for (const auto& [id, timestamp] : sink.timestamps_) {
+    const bool cloud = (*backend)->dense()->KeyframeCloud({agent, id}).ok();
+    if (timestamp < restart_time) {
+      ++before;
+      EXPECT_FALSE(cloud) << id.value();  // the first keyframe always carries RGB-D
+    } else {
+      ++after;
+      clouds_after += cloud;
+    }
+  }
+  EXPECT_GE(before, 1u);
+  EXPECT_GE(after, 5u);
+  EXPECT_GE(clouds_after, 2u);
+  const Trajectory fused = (*backend)->FusedTrajectory();
+  ASSERT_EQ(fused.size(), after);
+  EXPECT_GE(fused.front().timestamp, restart_time);
+}
+
 TEST(BackendIntegrationTest, KeyframesBeforeTheCameraOrAfterShutdownAreRefusedCleanly) {
   auto backend = Backend::Create(BackendOptions());
   ASSERT_TRUE(backend.ok());
