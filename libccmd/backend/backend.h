@@ -71,9 +71,10 @@ struct BackendStats {
   std::size_t dense_keyframes = 0;
   int loops_already_closed = 0;  // verified loops that found the map consistent (no correction)
   int global_ba_windowed = 0;    // runs over a window of a larger map
-  // Agents' restarted segments received, and those a loop has placed (the others are left out
-  // of the dense map and the trajectories: ServerMap::Placed).
+  // Agents' restarted segments received, loops that placed segments, and the segments
+  // unplaced now (left out of the dense map and the trajectories: ServerMap::Placed).
   int segments_restarted = 0, segments_placed = 0;
+  std::size_t segments_unplaced = 0;
   // Keyframe culling: keyframes looked at, culled (their poses kept), points removed with them.
   std::size_t culling_checked = 0, keyframes_culled = 0, culled_points = 0;
   // Intake latency: from receipt (the transport's arrival time, else the submission) to the

@@ -56,6 +56,7 @@ BackendStats Backend::stats() {
     if (!guard) continue;
     s.keyframes += guard->keyframes().size();
     s.map_points += guard->num_points();
+    s.segments_unplaced += guard->num_unplaced_segments();
   }
   return s;
 }
@@ -137,6 +138,7 @@ Json Backend::StatsJson() {
   j["loops_already_closed"] = s.loops_already_closed;
   j["segments_restarted"] = s.segments_restarted;
   j["segments_placed"] = s.segments_placed;
+  j["segments_unplaced"] = s.segments_unplaced;
   j["fusions"] = s.fusions;
   j["global_ba_runs"] = s.global_ba_runs;
   j["global_ba_windowed"] = s.global_ba_windowed;

@@ -248,6 +248,7 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   results["global_ba_runs"] = Num(backend, "global_ba_runs");
   results["segments_restarted"] = Num(backend, "segments_restarted");
   results["segments_placed"] = Num(backend, "segments_placed");
+  results["segments_unplaced"] = Num(backend, "segments_unplaced");
 
   // Trajectories: the agents' own odometry, then the primary map's keyframes (every agent's
   // when all fused; otherwise those of the agents in it, named in the results).
@@ -559,7 +560,7 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
      << results["loops"].number() << ", fusions " << results["fusions"].number()
      << ", global BA runs " << results["global_ba_runs"].number() << ")\n\n";
   if (const double restarted = results["segments_restarted"].number(); restarted > 0) {
-    const double unplaced = restarted - results["segments_placed"].number();
+    const double unplaced = results["segments_unplaced"].number();
     md << "Agents lost tracking and restarted " << restarted << " time(s) in a new map segment; "
        << (unplaced > 0 ? Fmt("%.0f", unplaced) +
                               " segment(s) no loop has placed are left out of the trajectories "

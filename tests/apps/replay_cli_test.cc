@@ -144,6 +144,7 @@ TEST(ReplayCliTest, AnAgentThatRestartsIsJoinedByTheServersLoop) {
   const Json& agent = results->Get("agents")->array().front();
   EXPECT_EQ(agent.Get("restarts")->number(), 1) << out;
   EXPECT_EQ(results->Get("segments_placed")->number(), 1) << out;
+  EXPECT_EQ(results->Get("segments_unplaced")->number(), 0) << out;
   EXPECT_GT(agent.Get("agent_frames_ate_rmse_m")->number(), 0.1) << "no gap to close";
   testing::ExpectFusedWithin(*results, 0.01, 0.01, out);
 }

@@ -266,6 +266,7 @@ TEST(BackendIntegrationTest, ARestartAfterAYoungStartKeepsTheStartApart) {
   ASSERT_EQ((*frontend)->stats().restarts, 1);
   (*backend)->WaitIdle();
   EXPECT_EQ((*backend)->stats().segments_restarted, 1);
+  EXPECT_EQ((*backend)->stats().segments_unplaced, 1u);  // the keyframes before the restart
   const double restart_time =
       SyntheticSource(synth, FrameRange{300, 300}).GroundTruth()[0].timestamp;
   std::size_t before = 0, after = 0, clouds_after = 0;
