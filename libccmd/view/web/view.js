@@ -876,9 +876,10 @@
         stats: S.stats, loops: S.loops.length, totalPoints: view.totalPoints, budget: view.budget,
         cloudErrors: S.cloudErrors, pendingClouds: cloudQueue.length + cloudRequests };
     },
-    // Where point i of a keyframe is drawn: its camera-frame millimetres through the matrix
-    // the GPU uses for it.
-    worldPoint: function (a, k, i) {
+    // Point i of a keyframe as the page holds it (camera-frame millimetres, as loaded), where it
+    // draws it (through the matrix the GPU uses for the keyframe) and the keyframe's pose, read
+    // at once.
+    drawnPoint: function (a, k, i) {
       const kf = S.keyframes.get(key(a, k));
       if (!kf || !kf.loaded) return null;
       let n = i, levelIndex = 0;
@@ -894,8 +895,9 @@
       let seen = -1;
       for (let j = 0; j < level.count; ++j) {
         if (slots[j] === kf.slot && ++seen === n) {
-          const p = [pos[3 * j], pos[3 * j + 1], pos[3 * j + 2], 1];
-          return [0, 1, 2].map((r) => { const row = kf.chunk.rows[3 * kf.slot + r]; return row.x * p[0] + row.y * p[1] + row.z * p[2] + row.w; });
+          const p = [pos[3 * j], pos[3 * j + 1], pos[3 * j + 2]];
+          const world = [0, 1, 2].map((r) => { const row = kf.chunk.rows[3 * kf.slot + r]; return row.x * p[0] + row.y * p[1] + row.z * p[2] + row.w; });
+          return { held: p, world: world, T: Array.from(kf.T) };
         }
       }
       return null;
