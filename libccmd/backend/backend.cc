@@ -205,9 +205,13 @@ void Backend::Ingest(IngestItem item) {
         observer_->OnKeyframe(id, guard->id(), (*keyframe)->T_map_cam, item.arrived, primary);
       if (primary) QueueDenseAdds(guard.get(), {*keyframe}, item.arrived - start_time_);
       // A restart in an almost empty map leaves the few keyframes before it unplaced.
-      if (dense_ && message.restart) {
+      std::vector<GlobalKeyframeId> unplaced;
+      if (!guard->Placed(**keyframe)) unplaced.push_back(id);
+      if (message.restart) {
         for (const auto& [kid, kf] : guard->keyframes()) {
-          if (!kf->in_dense || guard->Placed(*kf)) continue;
+          if (guard->Placed(*kf) || kid == id) continue;
+          unplaced.push_back(kid);
+          if (!dense_ || !kf->in_dense) continue;
           kf->in_dense = false;
           DenseTask task;
           task.kind = DenseTask::Kind::kRemove;
@@ -215,6 +219,7 @@ void Backend::Ingest(IngestItem item) {
           dense_stage_.Push(std::move(task));
         }
       }
+      if (observer_ && !unplaced.empty()) observer_->OnPlacement(guard->id(), unplaced, false);
     }
   }
   const double now = Now();
@@ -385,6 +390,8 @@ void Backend::AfterLoop(LoopClosure closure) {
   // The other map's keyframes now feed the dense map.
   QueueDenseAdds(closure.map.get(), closure.joined_primary);
   if (observer_) observer_->OnLoop(closure.event);
+  if (observer_ && !closure.placed.empty())
+    observer_->OnPlacement(closure.event.map, closure.placed, true);
   NotifyPoses(closure.event.fusion ? PoseSource::kFusion : PoseSource::kLoop, closure.event.map,
               closure.moved, MonotonicSeconds());
   {

@@ -227,6 +227,7 @@ struct LoopClosure {
   // Keyframes the pose graph moved, or a fusion brought into the other map's frame.
   std::vector<ServerKeyframe*> moved;
   std::vector<ServerKeyframe*> joined_primary;  // keyframes a fusion brought into the primary map
+  std::vector<GlobalKeyframeId> placed;         // keyframes of restarted segments it placed
   std::optional<MapId> primary_before;          // the primary map, when a fusion absorbed it
 };
 

@@ -61,6 +61,12 @@ class MapObserver {
   virtual void OnLoop(const LoopEvent& /*event*/) {}
   // The keyframe's points are in the dense store (DenseMap::KeyframeCloud can read them).
   virtual void OnDenseKeyframe(const GlobalKeyframeId& /*id*/) {}
+  // Keyframes of `map` became unplaced (an agent's restarted segment that nothing measures
+  // against the rest of the map yet, or the few keyframes a restart keeps apart:
+  // ServerMap::Placed) or, `placed`, were placed by a loop. Unplaced keyframes stay out of the
+  // dense map and the trajectories; a view should not draw them as part of the map.
+  virtual void OnPlacement(MapId /*map*/, const std::vector<GlobalKeyframeId>& /*keyframes*/,
+                           bool /*placed*/) {}
 };
 
 }  // namespace ccmd

@@ -44,6 +44,7 @@ Json ViewModel::KeyframeJson(const ViewKeyframe& kf) {
   j["T"] = PoseJson(kf.T_map_cam);
   j["cloud"] = kf.has_cloud;
   j["moves"] = kf.pose_updates;
+  if (!kf.placed) j["placed"] = false;
   return j;
 }
 
@@ -140,6 +141,28 @@ void ViewModel::OnLoop(const LoopEvent& event) {
   e["m"] = event.map.value();
   e["from"] = std::move(from);
   e["inliers"] = event.inliers;
+  Append(std::move(e));
+}
+
+void ViewModel::OnPlacement(MapId map, const std::vector<GlobalKeyframeId>& keyframes,
+                            bool placed) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  Json list = Json::MakeArray();
+  for (const GlobalKeyframeId& id : keyframes) {
+    const auto it = keyframes_.find(id);
+    if (it == keyframes_.end()) continue;  // never announced
+    it->second.placed = placed;
+    Json item = Json::MakeArray();
+    item.Push(static_cast<int>(id.agent.value()));
+    item.Push(id.keyframe.value());
+    list.Push(std::move(item));
+  }
+  if (list.size() == 0) return;
+  Json e;
+  e["type"] = "placed";
+  e["m"] = map.value();
+  e["placed"] = placed;
+  e["kfs"] = std::move(list);
   Append(std::move(e));
 }
 

@@ -19,6 +19,9 @@
 //                                          fusion); t: when the cause arrived or was computed
 //   loop   {qa, qk, ca, ck, fusion, m, from, inliers}  a loop (or a fusion of the maps in
 //                                          `from` into m)
+//   placed {m, placed, kfs: [[a, k]]}      keyframes became unplaced (placed false: a restarted
+//                                          segment nothing places yet) or were placed by a loop;
+//                                          a keyframe's state says "placed": false while so
 // Thread safety: every method may be called from any thread.
 
 #include <condition_variable>
@@ -50,6 +53,7 @@ struct ViewKeyframe {
   Pose T_map_cam = Pose::Identity();
   bool has_cloud = false;  // in the dense store
   int pose_updates = 0;    // times it moved after it arrived
+  bool placed = true;      // false: an unplaced restarted segment (MapObserver::OnPlacement)
 };
 
 // What WaitEvents hands a stream: the text of the events after `after` (SSE-framed, see
@@ -73,6 +77,7 @@ class ViewModel : public MapObserver {
                double arrived_s) override;
   void OnLoop(const LoopEvent& event) override;
   void OnDenseKeyframe(const GlobalKeyframeId& id) override;
+  void OnPlacement(MapId map, const std::vector<GlobalKeyframeId>& keyframes, bool placed) override;
 
   // The latest statistics (a JSON object, e.g. the view server's summary); streams send it
   // when it changes.

@@ -90,6 +90,10 @@ class RecordingObserver : public MapObserver {
     std::lock_guard<std::mutex> lock(mutex_);
     dense.push_back(id);
   }
+  void OnPlacement(MapId, const std::vector<GlobalKeyframeId>& keyframes, bool is_placed) override {
+    std::lock_guard<std::mutex> lock(mutex_);
+    for (const GlobalKeyframeId& id : keyframes) placed[id] = is_placed;
+  }
 
   // Read after the back-end is idle.
   std::map<AgentId, std::string> names;
@@ -98,6 +102,7 @@ class RecordingObserver : public MapObserver {
   std::map<GlobalKeyframeId, MapId> maps;
   std::map<PoseSource, int> sources;
   std::vector<GlobalKeyframeId> dense;
+  std::map<GlobalKeyframeId, bool> placed;  // the last placement reported
   int fusions = 0;
 
  private:
@@ -275,6 +280,9 @@ TEST(BackendIntegrationTest, ARestartAfterAYoungStartKeepsTheStartApart) {
     if (timestamp < restart_time) {
       ++before;
       EXPECT_FALSE(cloud) << id.value();  // the first keyframe always carries RGB-D
+      const GlobalKeyframeId global{agent, id};
+      EXPECT_EQ(observer.placed.count(global), 1u) << "the observer was not told";
+      EXPECT_FALSE(observer.placed[global]);
     } else {
       ++after;
       clouds_after += cloud;

@@ -91,6 +91,34 @@ TEST(ViewModelTest, TheStateFollowsKeyframesPoseUpdatesAndAFusion) {
   EXPECT_GT(first->Get("t")->number(), 1e12);  // milliseconds since 1970
 }
 
+// An agent's restarted segment is unplaced until a loop places it: the state says so per
+// keyframe, and each change is one event (keyframes never announced are left out).
+TEST(ViewModelTest, PlacementOfRestartedSegmentsIsStateAndEvents) {
+  ViewModel model;
+  model.OnAgent(AgentId(1), "alpha");
+  for (int k = 0; k < 4; ++k) model.OnKeyframe(Id(1, k), MapId(1), Moved(k, 0), 1.0, true);
+  model.OnPlacement(MapId(1), {Id(1, 2), Id(1, 3), Id(1, 9)}, false);
+  Json state = model.StateJson();
+  EXPECT_FALSE(FindKeyframe(state, 1, 1)->Has("placed"));
+  EXPECT_FALSE(FindKeyframe(state, 1, 2)->Get("placed")->boolean());
+  EXPECT_FALSE(FindKeyframe(state, 1, 3)->Get("placed")->boolean());
+  model.OnPlacement(MapId(1), {Id(1, 2), Id(1, 3)}, true);
+  state = model.StateJson();
+  EXPECT_FALSE(FindKeyframe(state, 1, 2)->Has("placed"));
+  model.OnPlacement(MapId(1), {Id(1, 9)}, true);  // unknown only: no event
+
+  const EventBatch batch = model.WaitEvents(0, 0, 1.0);
+  ASSERT_EQ(batch.events.size(), 1u + 4u + 2u);
+  auto unplaced = Json::Parse(batch.events[5].second);
+  ASSERT_TRUE(unplaced.ok());
+  EXPECT_EQ(unplaced->Get("type")->string(), "placed");
+  EXPECT_FALSE(unplaced->Get("placed")->boolean());
+  EXPECT_EQ(unplaced->Get("kfs")->size(), 2u);
+  auto placed = Json::Parse(batch.events[6].second);
+  ASSERT_TRUE(placed.ok());
+  EXPECT_TRUE(placed->Get("placed")->boolean());
+}
+
 TEST(ViewModelTest, PosesOfUnknownKeyframesAreNotEvents) {
   ViewModel model;
   model.OnPoses(PoseSource::kGlobalBa, MapId(1), {{Id(1, 9), Pose::Identity()}}, 1.0);

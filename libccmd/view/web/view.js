@@ -400,6 +400,7 @@
       };
       let map = null;
       for (const kf of list) {
+        if (kf.unplaced) { flush(); map = null; continue; }  // not drawn until a loop places it
         if (map !== null && kf.m !== map) flush();
         map = kf.m;
         run.push(centre(kf));
@@ -430,7 +431,7 @@
     const hi = new THREE.Vector3(-Infinity, -Infinity, -Infinity);
     let n = 0;
     for (const kf of S.keyframes.values()) {
-      if (kf.m !== primary) continue;
+      if (kf.m !== primary || kf.unplaced) continue;
       const p = new THREE.Vector3(kf.T[3], kf.T[7], kf.T[11]);
       const forward = new THREE.Vector3(kf.T[2], kf.T[6], kf.T[10]);
       centre.add(p).addScaledVector(forward, 1.5);
@@ -507,6 +508,8 @@
     kf.m = e.m;
     setPose(kf, e.T, 0);
     kf.moves = e.moves || 0;
+    // An agent's restarted segment that nothing places yet: its poses are a guess.
+    kf.unplaced = e.placed === false;
     // Latency counts from arrival only for keyframes the dense map takes at once (not those
     // that wait for their map to be fused).
     if (e.t && e.primary) kf.arrived = e.t;
@@ -551,6 +554,13 @@
         S.pendingPose.push({ t: e.t, src: e.src });
         markOverlay();
         markFresh();
+        break;
+      case 'placed':
+        for (const item of e.kfs) {
+          const kf = S.keyframes.get(key(item[0], item[1]));
+          if (kf) kf.unplaced = !e.placed;
+        }
+        markOverlay();
         break;
       case 'loop':
         S.loops.push(e);
@@ -863,7 +873,7 @@
       const keyframes = [];
       for (const kf of S.keyframes.values()) {
         keyframes.push({ a: kf.a, k: kf.k, m: kf.m, T: Array.from(kf.T), cloud: kf.cloud, loaded: kf.loaded,
-          drawn: kf.drawn, moves: kf.moves, points: kf.points });
+          drawn: kf.drawn, moves: kf.moves, points: kf.points, placed: !kf.unplaced });
       }
       const panel = [];
       for (const tr of document.querySelectorAll('#agents tbody tr')) {
