@@ -123,7 +123,7 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
 }
 
 bool Tracker::YoungSegment() const {
-  return map_->NextKeyframeId().value() - segment_start_.value() < kYoungSegmentKeyframes;
+  return map_->keyframes_created() - segment_start_.value() < kYoungSegmentKeyframes;
 }
 
 bool Tracker::RestartDue() const {

@@ -244,7 +244,14 @@ TEST(FrontendTest, AnEstablishedMapRestartsAfterTheRelocalisationTime) {
   RunResult r;
   RunParts({{0, 89}, {400, 459}}, &r);
   EXPECT_EQ(r.stats.restarts, 1);
-  for (const KeyframeSnapshot& k : r.sink.keyframes) EXPECT_FALSE(k.reset);
+  for (std::size_t i = 0; i < r.sink.keyframes.size(); ++i) {
+    const KeyframeSnapshot& k = r.sink.keyframes[i];
+    EXPECT_FALSE(k.reset);
+    // The frames while lost make no keyframe and use up no keyframe id.
+    if (k.restart && i > 0) {
+      EXPECT_EQ(k.id.value(), r.sink.keyframes[i - 1].id.value() + 1);
+    }
+  }
   EXPECT_GE(r.stats.lost_frames, 29);
   EXPECT_LE(r.stats.lost_frames, 31);
   auto ate = ComputeAte(From(r.ground_truth, 121 / 30.0), From(r.trajectory, 121 / 30.0));
