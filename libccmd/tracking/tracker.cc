@@ -139,13 +139,15 @@ bool Tracker::Initialize(TrackingFrame* frame, const Pose& T_world_cam, bool res
   std::fill(frame->points.begin(), frame->points.end(), nullptr);
   std::fill(frame->outlier.begin(), frame->outlier.end(), false);
   frame->SetPose(T_world_cam.inverse());
+  // Started again at the frame after the last tracked one, the pose is as good as tracking's
+  // (asked before the new keyframe counts in the segment it leaves).
+  const bool reset =
+      restart && YoungSegment() && frame->timestamp - last_tracked_timestamp_ <= 1.5 / camera_.fps;
   auto keyframe =
       std::make_shared<Keyframe>(map_->NextKeyframeId(), frame->timestamp, frame->index,
                                  frame->features, T_world_cam, camera_.width, camera_.height);
   keyframe->restart = restart;
-  // Started again at the frame after the last tracked one, the pose is as good as tracking's.
-  keyframe->reset =
-      restart && YoungSegment() && frame->timestamp - last_tracked_timestamp_ <= 1.5 / camera_.fps;
+  keyframe->reset = reset;
   keyframe->bgr = frame->bgr;
   keyframe->depth_mm = frame->depth_mm;
   segment_start_ = keyframe->id();
