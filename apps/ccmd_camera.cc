@@ -3,6 +3,8 @@
 //   ccmd_camera --list                                   V4L2 nodes and OpenNI2 devices, modes
 //   ccmd_camera --source SPEC [--config FILE] [--frames N]        per-frame statistics
 //   ccmd_camera --source SPEC --record DIR [--frames N|0]         TUM-layout recording
+//   ccmd_camera --source tum:DIR --config FILE --check-registration  the Depth block's offset
+//   ccmd_camera --source tum:DIR --config FILE --check-ground-truth  whose poses the truth gives
 //
 // SPEC is any source spec (openni2[:URI], v4l2:color=...,depth=..., tum:DIR, synth:...).
 // Ctrl-C ends a recording cleanly: the current frame is finished and the lists closed.
@@ -11,13 +13,17 @@
 #include <signal.h>
 
 #include <CLI/CLI.hpp>
+#include <Eigen/Geometry>
 #include <algorithm>
 #include <atomic>
+#include <cmath>
 #include <cstdio>
+#include <opencv2/imgproc.hpp>
 #include <thread>
 #include <vector>
 
 #include "apps/app_common.h"
+#include "libccmd/eval/depth_agreement.h"
 #include "libccmd/io/tum_recorder.h"
 #include "libccmd/sensors/depth_registration.h"
 #include "libccmd/sensors/pixel_formats.h"
@@ -215,6 +221,112 @@ int CheckRegistration(const std::string& spec, const std::string& config, int fr
   return 0;
 }
 
+// --check-ground-truth: which camera of the rig the recording's ground-truth poses give. Depth
+// of one frame is moved into a later one by the ground-truth motion, with the depth camera
+// placed at s * t_color_depth in the frame the poses give: s = 0 if they are the depth camera's,
+// s = 1 if the colour camera's. Where the view turns, the wrong choice moves the depth camera's
+// centre by the rig's offset and the depths disagree more.
+int CheckGroundTruth(const std::string& spec, const std::string& config) {
+  auto calibration = ccmd::LoadDepthToColorCalibration(config);
+  if (!calibration.ok() || !calibration->has_value()) {
+    std::fprintf(stderr,
+                 "ccmd_camera: --check-ground-truth needs a --config with a Depth block: with one "
+                 "imager there is one camera (%s)\n",
+                 calibration.ok() ? "none found" : calibration.status().ToString().c_str());
+    return 2;
+  }
+  ccmd::SourceOptions options;
+  options.camera_config = config;
+  options.configs_dir = ccmd::app::ConfigDir();
+  options.register_depth = false;  // the depth camera's own images
+  auto opened = ccmd::OpenSource(spec, options);
+  if (!opened.ok()) {
+    std::fprintf(stderr, "ccmd_camera: %s\n", opened.status().ToString().c_str());
+    return 1;
+  }
+  std::unique_ptr<ccmd::RgbdSource> source = std::move(opened).value();
+  const ccmd::Trajectory truth = source->GroundTruth();
+  if (truth.empty()) {
+    std::fprintf(stderr, "ccmd_camera: %s has no ground truth\n", source->Describe().c_str());
+    return 1;
+  }
+  // Half-size depth (nearest: no mixed depths) of every 3rd frame with a ground-truth pose.
+  const ccmd::DepthToColorCalibration& c = **calibration;
+  const ccmd::PinholeCamera depth_camera = c.depth.Resized(c.depth.width / 2, c.depth.height / 2);
+  struct Sample {
+    cv::Mat depth;
+    ccmd::Pose T_world_pose;
+  };
+  std::vector<Sample> samples;
+  ccmd::RgbdFrame frame;
+  for (int i = 0; source->Read(&frame).ok(); ++i) {
+    if (i % 3 != 0) continue;
+    const auto pose = ccmd::InterpolateTrajectory(truth, frame.timestamp, 0.02);
+    if (!pose || frame.depth_mm.cols != c.depth.width || frame.depth_mm.rows != c.depth.height)
+      continue;
+    cv::Mat half;
+    cv::resize(frame.depth_mm, half, cv::Size(depth_camera.width, depth_camera.height), 0, 0,
+               cv::INTER_NEAREST);
+    samples.push_back({half, *pose});
+  }
+  // Pairs whose view turned by 12-40 degrees: the rig's offset shows, the views still overlap.
+  std::vector<std::pair<int, int>> pairs;
+  for (int a = 0; a < static_cast<int>(samples.size()); ++a) {
+    for (int b = a + 1; b < static_cast<int>(samples.size()) && b <= a + 40; ++b) {
+      const double angle = Eigen::AngleAxisd(samples[a].T_world_pose.linear().transpose() *
+                                             samples[b].T_world_pose.linear())
+                               .angle() *
+                           180 / M_PI;
+      if (angle >= 12 && angle <= 40) pairs.push_back({a, b});
+    }
+  }
+  if (pairs.empty()) {
+    std::fprintf(stderr,
+                 "ccmd_camera: no two frames whose view turned by 12-40 degrees: the ground truth "
+                 "cannot tell the rig's cameras apart on this recording\n");
+    return 1;
+  }
+  const int stride = std::max<int>(1, static_cast<int>(pairs.size()) / 300);
+  const Eigen::Vector3d t = c.T_color_depth.translation();
+  std::printf(
+      "ground-truth check on %zu pairs of frames (view turned 12-40 degrees): depth moved from "
+      "one frame into the other, median disagreement (lower is better), with the poses taken as "
+      "those of a camera s x t_color_depth from the depth camera (s = 0: the depth camera, "
+      "s = 1: the colour camera)\n",
+      (pairs.size() + stride - 1) / stride);
+  double best = 1e9, best_s = 0;
+  for (const double s : {-1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0}) {
+    ccmd::Pose T_pose_depth = ccmd::Pose::Identity();
+    T_pose_depth.translation() = s * t;
+    double sum = 0;
+    int n = 0;
+    for (std::size_t k = 0; k < pairs.size(); k += stride) {
+      const Sample& a = samples[pairs[k].first];
+      const Sample& b = samples[pairs[k].second];
+      ccmd::DepthAgreementOptions agreement_options;
+      agreement_options.step = 2;
+      const ccmd::DepthAgreement agreement =
+          ccmd::CompareDepthByGroundTruth(a.depth, b.depth, depth_camera, a.T_world_pose,
+                                          b.T_world_pose, T_pose_depth, agreement_options);
+      if (agreement.compared < 100) continue;
+      sum += agreement.median_error;
+      ++n;
+    }
+    const double mean = n > 0 ? sum / n : 1e9;
+    const char* name = s == 0 ? "  the depth camera" : s == 1 ? "  the colour camera" : "";
+    std::printf("  s %+4.1f  %6.2f mm%s\n", s, 1e3 * mean, name);
+    if (mean < best) {
+      best = mean;
+      best_s = s;
+    }
+  }
+  std::printf(
+      "closest to the %s camera (best s %+.1f): Trajectory.camera: \"%s\" gives "
+      "trajectories comparable with this ground truth\n",
+      best_s < 0.5 ? "depth" : "colour", best_s, best_s < 0.5 ? "depth" : "colour");
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -250,9 +362,20 @@ int main(int argc, char** argv) {
   app.add_flag("--check-registration", check_registration,
                "Score the config's Depth block (depth-to-colour registration) on --frames frames "
                "(default 15, spread over a recording) against sideways offsets of -50..50 mm");
+  bool check_ground_truth = false;
+  app.add_flag("--check-ground-truth", check_ground_truth,
+               "Tell which camera of the config's rig (Depth block) a recording's ground-truth "
+               "poses give, from its depth alone: the value for the config's Trajectory.camera");
   CLI11_PARSE(app, argc, argv);
 
   if (list) return ListDevices();
+  if (check_ground_truth) {
+    if (spec.empty() || config.empty()) {
+      std::fprintf(stderr, "ccmd_camera: --check-ground-truth needs --source and --config\n");
+      return 2;
+    }
+    return CheckGroundTruth(spec, config);
+  }
   if (check_registration) {
     if (spec.empty() || config.empty()) {
       std::fprintf(stderr, "ccmd_camera: --check-registration needs --source and --config\n");

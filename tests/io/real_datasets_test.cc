@@ -8,6 +8,7 @@
 
 #include <opencv2/imgcodecs.hpp>
 
+#include "libccmd/eval/depth_agreement.h"
 #include "libccmd/io/config.h"
 #include "libccmd/io/tum_dataset.h"
 #include "libccmd/util/file_util.h"
@@ -134,31 +135,18 @@ TEST(RealDatasetsTest, SevenScenesAsUnpackedReadsAsTheConvertedCopy) {
 }
 
 // Median distance between frame `a`'s depth, moved by the ground truth into frame `b`, and
-// frame b's own depth where it lands (pixels on a 16-pixel grid, depth within 5 cm).
+// frame b's own depth where it lands (pixels on a 16-pixel grid; within 5 cm: agreeing).
 double MedianReprojectedDepthError(const TumSequence& seq, const PinholeCamera& camera, int a,
                                    int b, int* agreeing) {
   auto fa = seq.LoadFrame(a), fb = seq.LoadFrame(b);
   EXPECT_TRUE(fa.ok() && fb.ok());
-  const Pose T_b_a = seq.frame(b).T_world_cam_gt->inverse() * *seq.frame(a).T_world_cam_gt;
-  std::vector<double> errors;
-  *agreeing = 0;
-  for (int v = 0; v < fa->depth_mm.rows; v += 16) {
-    for (int u = 0; u < fa->depth_mm.cols; u += 16) {
-      const double z = fa->depth_mm.at<std::uint16_t>(v, u) * 1e-3;
-      if (z <= 0) continue;
-      const Eigen::Vector3d p = T_b_a * camera.BackProject(u, v, z);
-      const Eigen::Vector2d uv = camera.Project(p);
-      if (p.z() <= 0 || !camera.InImage(uv)) continue;
-      const double zb =
-          fb->depth_mm.at<std::uint16_t>(static_cast<int>(uv.y()), static_cast<int>(uv.x())) * 1e-3;
-      if (zb <= 0) continue;
-      errors.push_back(std::abs(zb - p.z()));
-      *agreeing += errors.back() < 0.05;
-    }
-  }
-  if (errors.empty()) return 1e9;
-  std::nth_element(errors.begin(), errors.begin() + errors.size() / 2, errors.end());
-  return errors[errors.size() / 2];
+  DepthAgreementOptions options;
+  options.step = 16;
+  const DepthAgreement agreement =
+      CompareDepthByGroundTruth(fa->depth_mm, fb->depth_mm, camera, *seq.frame(a).T_world_cam_gt,
+                                *seq.frame(b).T_world_cam_gt, Pose::Identity(), options);
+  *agreeing = agreement.agreeing;
+  return agreement.compared > 0 ? agreement.median_error : 1e9;
 }
 
 // ICL-NUIM's TUM release: fy < 0 is its convention. With it, depth moved by the ground truth

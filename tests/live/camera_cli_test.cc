@@ -124,6 +124,47 @@ TEST(CameraCliTest, RegistrationCheckFindsTheTrueOffset) {
   EXPECT_NE(output.find("needs a --config with a Depth block"), std::string::npos) << output;
 }
 
+// --check-ground-truth on a rig rendered both ways: a Kinect-like colour camera with a depth
+// imager 25 mm to its side, the ground truth written once for the depth imager
+// (Trajectory.camera: "depth", as 7-Scenes) and once for the colour camera. From the depth and
+// the poses alone, the check names the camera each ground truth gives.
+TEST(CameraCliTest, GroundTruthCheckNamesTheCameraThePosesGive) {
+  testing::TempDir dir;
+  const std::string rig =
+      "%YAML:1.0\nCamera.fx: 262.5\nCamera.fy: 262.5\nCamera.cx: 160.0\nCamera.cy: 120.0\n"
+      "Camera.width: 320\nCamera.height: 240\nCamera.fps: 30.0\nCamera.bf: 20.0\n"
+      "ThDepth: 40.0\nDepthMapFactor: 5000.0\nDepth.fx: 292.5\nDepth.fy: 292.5\n"
+      "Depth.cx: 160.0\nDepth.cy: 120.0\nDepth.width: 320\nDepth.height: 240\n"
+      "Depth.t_color_depth: [-0.025, 0.0, 0.0]\n";
+  for (const bool depth_truth : {true, false}) {
+    const std::string config = dir.File(depth_truth ? "depth.yaml" : "colour.yaml");
+    ASSERT_TRUE(
+        WriteFileAtomic(config, rig + (depth_truth ? "Trajectory.camera: \"depth\"\n" : "")).ok());
+    const std::string folder = dir.File(depth_truth ? "depth_truth" : "colour_truth");
+    std::string output;
+    ASSERT_EQ(
+        testing::RunCommand(testing::ProgramPath("ccmd_synth") + " --config " + config +
+                                " --frames 120 --surface-spacing 0.05 --out " + folder + " 2>&1",
+                            &output),
+        0)
+        << output;
+    ASSERT_EQ(
+        RunCamera("--check-ground-truth --source tum:" + folder + " --config " + config, &output),
+        0)
+        << output;
+    EXPECT_NE(output.find(depth_truth ? "closest to the depth camera (best s +0.0)"
+                                      : "closest to the colour camera (best s +1.0)"),
+              std::string::npos)
+        << output;
+  }
+  // One imager: there is no other camera the poses could give.
+  std::string output;
+  EXPECT_EQ(RunCamera("--check-ground-truth --source synth:frames=3 --config " + dir.File("none"),
+                      &output),
+            2);
+  EXPECT_NE(output.find("needs a --config with a Depth block"), std::string::npos) << output;
+}
+
 TEST(CameraCliTest, RecordsTheOpenNI2TestDriver) {
   testing::TempDir dir;
   const std::string folder = dir.File("rec");
