@@ -190,7 +190,8 @@ int main(int argc, char** argv) {
       ->capture_default_str();
   app.add_option("--progress", progress_path, "Rewrite a small progress JSON about once a second");
   app.add_option("--trajectory", trajectory_path,
-                 "Write every tracked frame's pose (TUM format) at the end; the agent keeps 40 "
+                 "Write every tracked frame's pose (TUM format; of the camera the config's "
+                 "Trajectory.camera names, colour by default) at the end; the agent keeps 40 "
                  "bytes a frame for it until then");
   app.add_option("--keyframe-trajectory", keyframe_trajectory_path,
                  "Write keyframe poses (TUM format)");
@@ -294,6 +295,8 @@ int main(int argc, char** argv) {
     // The server weighs this agent's keypoint depths with the sensor's noise model.
     link_options.camera.depth_sigma0 = tracking.depth_noise.sigma_0;
     link_options.camera.depth_sigma2 = tracking.depth_noise.sigma_2;
+    // The server's trajectories of this agent give the same camera's poses as its own.
+    ccmd::SetSessionTrajectoryCamera((*source)->T_color_trajectory(), &link_options.camera);
     auto psk = ccmd::ResolvePsk(psk_file);
     if (!psk.ok()) return Fail(psk.status().ToString());
     link_options.psk = *psk;
@@ -432,14 +435,21 @@ int main(int argc, char** argv) {
     std::printf("CPU budget %.2f cores: %d local BAs reduced and %d skipped to stay within it\n",
                 tracking.cpu_budget, m.local_ba_reduced, m.local_ba_skipped_budget);
   }
+  const std::string camera_note =
+      (*source)->T_color_trajectory().isApprox(ccmd::Pose::Identity(), 1e-12)
+          ? ""
+          : ", the depth camera's: the config's Trajectory.camera";
   if (!trajectory_path.empty()) {
-    const ccmd::Status s = ccmd::WriteTumTrajectory((*frontend)->FrameTrajectory(), trajectory_path,
-                                                    "ccmd_agent frame trajectory (T_world_cam)");
+    const ccmd::Status s = ccmd::WriteTumTrajectory(
+        ccmd::TrajectoryOfCamera((*frontend)->FrameTrajectory(), (*source)->T_color_trajectory()),
+        trajectory_path, "ccmd_agent frame trajectory (T_world_cam" + camera_note + ")");
     if (!s.ok()) return Fail(s.ToString());
   }
   if (!keyframe_trajectory_path.empty()) {
     const ccmd::Status s = ccmd::WriteTumTrajectory(
-        (*frontend)->KeyframeTrajectory(), keyframe_trajectory_path, "ccmd_agent keyframes");
+        ccmd::TrajectoryOfCamera((*frontend)->KeyframeTrajectory(),
+                                 (*source)->T_color_trajectory()),
+        keyframe_trajectory_path, "ccmd_agent keyframes (T_world_cam" + camera_note + ")");
     if (!s.ok()) return Fail(s.ToString());
   }
   if (!stats_path.empty()) {

@@ -568,14 +568,11 @@ int main(int argc, char** argv) {
     if (!loaded.ok()) return Fail(loaded.status().ToString());
     camera = *loaded;
   }
-  std::optional<DepthToColorCalibration> registration;
   const std::string camera_file =
       !camera_config.empty() ? camera_config : JoinPath(dataset, "camera.yaml");
-  if (FileExists(camera_file)) {
-    auto loaded = LoadDepthToColorCalibration(camera_file);
-    if (!loaded.ok()) return Fail(loaded.status().ToString());
-    registration = *loaded;
-  }
+  ReferenceOptions reference_camera;  // with the Depth block and the ground truth's camera
+  if (const Status s = ReadReferenceCamera(camera_file, &reference_camera); !s.ok())
+    return Fail(s.ToString());
   auto sequence = TumSequence::Open(dataset, camera);
   if (!sequence.ok()) return Fail(sequence.status().ToString());
   auto segments = SplitWithOverlap(static_cast<int>(sequence->size()), agents);
@@ -593,8 +590,8 @@ int main(int argc, char** argv) {
   setup.server_args = server_args;
   setup.sequence = &*sequence;
   setup.segments = *segments;
+  setup.reference = reference_camera;
   setup.reference.reference_ply = reference;
-  setup.reference.registration = registration;
   setup.link = link;
   setup.link_text = link_text;
   setup.view = setup_view;

@@ -82,6 +82,14 @@ int main(int argc, char** argv) {
     }
     options.depth_sigma_0 = noise->sigma_0;
     options.depth_sigma_2 = noise->sigma_2;
+    // The ground truth of the camera the config's trajectories are of (7-Scenes: depth).
+    auto trajectory_camera = ccmd::ReadTrajectoryCamera(*file);
+    if (!trajectory_camera.ok()) {
+      std::fprintf(stderr, "ccmd_synth: %s\n", trajectory_camera.status().ToString().c_str());
+      return 1;
+    }
+    options.ground_truth_of_depth_camera =
+        *depth && !trajectory_camera->isApprox(ccmd::Pose::Identity(), 1e-12);
     options.camera = *camera;
     options.depth_camera = *depth;
     options.width = camera->width;

@@ -103,7 +103,8 @@ void Backend::Shutdown() {
 }
 
 Status Backend::RegisterAgent(AgentId agent, const std::string& name, const PinholeCamera& camera,
-                              const std::optional<DepthNoise>& depth_noise) {
+                              const std::optional<DepthNoise>& depth_noise,
+                              const Pose& T_color_trajectory) {
   CCMD_RETURN_IF_ERROR(camera.Validate().WithContext("agent " + name));
   if (depth_noise) CCMD_RETURN_IF_ERROR(depth_noise->Validate().WithContext("agent " + name));
   std::lock_guard<std::mutex> lock(cameras_mutex_);
@@ -114,6 +115,11 @@ Status Backend::RegisterAgent(AgentId agent, const std::string& name, const Pinh
     depth_noise_.agents.erase(agent);
   }
   names_[agent] = name;
+  if (T_color_trajectory.isApprox(Pose::Identity(), 1e-12)) {
+    trajectory_cameras_.erase(agent);
+  } else {
+    trajectory_cameras_[agent] = T_color_trajectory;
+  }
   if (observer_) observer_->OnAgent(agent, name);
   return Status::Ok();
 }
@@ -516,11 +522,19 @@ bool Backend::AgentInPrimaryMap(AgentId agent) const {
   return map && primary && *map == *primary;
 }
 
+Pose Backend::TrajectoryCameraOf(AgentId agent) const {
+  std::lock_guard<std::mutex> lock(cameras_mutex_);
+  const auto it = trajectory_cameras_.find(agent);
+  return it == trajectory_cameras_.end() ? Pose::Identity() : it->second;
+}
+
 Trajectory Backend::AgentTrajectory(AgentId agent) {
   Trajectory trajectory;
+  const Pose T_color_trajectory = TrajectoryCameraOf(agent);
   MapManager::Guard guard = maps_.CheckOutAgent(agent);
   for (ServerKeyframe* kf : guard->AgentKeyframes(agent)) {
-    if (guard->Placed(*kf)) trajectory.push_back({kf->timestamp, kf->T_map_cam});
+    if (guard->Placed(*kf))
+      trajectory.push_back({kf->timestamp, kf->T_map_cam * T_color_trajectory});
   }
   std::sort(trajectory.begin(), trajectory.end(),
             [](const StampedPose& a, const StampedPose& b) { return a.timestamp < b.timestamp; });
@@ -533,8 +547,17 @@ Trajectory Backend::FusedTrajectory() {
   if (!primary) return trajectory;
   MapManager::Guard guard = maps_.CheckOut(*primary);
   if (!guard) return trajectory;
+  std::map<AgentId, Pose> trajectory_cameras;
+  {
+    std::lock_guard<std::mutex> lock(cameras_mutex_);
+    trajectory_cameras = trajectory_cameras_;
+  }
   for (const auto& [id, kf] : guard->keyframes()) {
-    if (guard->Placed(*kf)) trajectory.push_back({kf->timestamp, kf->T_map_cam});
+    if (!guard->Placed(*kf)) continue;
+    const auto camera = trajectory_cameras.find(id.agent);
+    trajectory.push_back({kf->timestamp, camera == trajectory_cameras.end()
+                                             ? kf->T_map_cam
+                                             : kf->T_map_cam * camera->second});
   }
   std::stable_sort(
       trajectory.begin(), trajectory.end(),

@@ -127,8 +127,12 @@ class Backend {
 
   // An agent's camera (from its handshake); needed before its first keyframe.
   // `depth_noise`: the agent's sensor as its handshake announced it (else options' default).
+  // `T_color_trajectory`: the camera whose poses the agent's trajectories give, in its colour
+  // camera's frame (SessionCamera's trajectory camera); AgentTrajectory and FusedTrajectory
+  // give that camera's poses.
   Status RegisterAgent(AgentId agent, const std::string& name, const PinholeCamera& camera,
-                       const std::optional<DepthNoise>& depth_noise = std::nullopt);
+                       const std::optional<DepthNoise>& depth_noise = std::nullopt,
+                       const Pose& T_color_trajectory = Pose::Identity());
   // Queue work (blocks while the ingest queue is full: back-pressure towards the network).
   // `arrived_s`: MonotonicSeconds() when the message reached the server (0: now); the
   // observer gets it with the change the message causes.
@@ -142,7 +146,8 @@ class Backend {
   void Shutdown();
 
   // Keyframe trajectories (TUM): an agent's in the frame of the map it is in (the world frame
-  // once it is fused into the primary map), and every keyframe of the primary map.
+  // once it is fused into the primary map), and every keyframe of the primary map; poses of
+  // each agent's trajectory camera (RegisterAgent).
   Trajectory AgentTrajectory(AgentId agent);
   Trajectory FusedTrajectory();
   std::optional<MapId> PrimaryMap() const { return maps_.primary(); }
@@ -230,6 +235,7 @@ class Backend {
   void QueueDenseUpdates(const std::vector<ServerKeyframe*>& moved, DenseTask::Kind kind);
   PinholeCamera CameraOf(AgentId agent) const;
   DepthNoise DepthNoiseOf(AgentId agent) const;
+  Pose TrajectoryCameraOf(AgentId agent) const;  // as registered (identity: the colour camera)
   double Now() const;
   // Tells the observer (if any) that `moved` have new poses in `map`.
   void NotifyPoses(PoseSource source, MapId map, const std::vector<ServerKeyframe*>& moved,
@@ -249,6 +255,7 @@ class Backend {
   std::map<AgentId, PinholeCamera> cameras_;
   AgentDepthNoise depth_noise_;
   std::map<AgentId, std::string> names_;
+  std::map<AgentId, Pose> trajectory_cameras_;  // T_color_trajectory, where not identity
 
   // A newer loop or fusion abandons a running global BA of a whole map, a fusion a windowed
   // one; shutdown abandons any.

@@ -203,6 +203,26 @@ StatusOr<std::optional<DepthToColorCalibration>> LoadDepthToColorCalibration(
   return ReadDepthToColor(config);
 }
 
+StatusOr<Pose> ReadTrajectoryCamera(const ConfigFile& config) {
+  CCMD_ASSIGN_OR_RETURN(const std::string camera, config.GetString("Trajectory.camera", "colour"));
+  if (camera == "colour" || camera == "color") return Pose::Identity();
+  if (camera != "depth") {
+    return InvalidArgument(config.path() + ": Trajectory.camera is \"" + camera +
+                           "\"; it must be \"colour\" or \"depth\"");
+  }
+  CCMD_ASSIGN_OR_RETURN(const auto depth, ReadDepthToColor(config));
+  if (!depth) {
+    return InvalidArgument(config.path() +
+                           ": Trajectory.camera is \"depth\" but there is no Depth block");
+  }
+  return depth->T_color_depth;
+}
+
+StatusOr<Pose> LoadTrajectoryCamera(const std::string& path) {
+  CCMD_ASSIGN_OR_RETURN(const ConfigFile config, ConfigFile::Open(path));
+  return ReadTrajectoryCamera(config);
+}
+
 Status WriteCameraConfig(const PinholeCamera& camera, const std::string& path,
                          const std::optional<DepthToColorCalibration>& depth,
                          const std::string& extra_keys) {

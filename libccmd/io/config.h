@@ -70,6 +70,14 @@ StatusOr<std::optional<DepthToColorCalibration>> ReadDepthToColor(const ConfigFi
 StatusOr<std::optional<DepthToColorCalibration>> LoadDepthToColorCalibration(
     const std::string& path);
 
+// Reads Trajectory.camera: the camera whose poses trajectory files give. "colour" (the
+// default; "color" too): the colour camera, whose poses tracking estimates. "depth": the
+// Depth block's camera (which must be there), for recordings whose ground truth gives the
+// depth camera's poses (7-Scenes, posed by dense tracking on its depth images). Returns that
+// camera's pose in the colour camera's frame (T_color_trajectory, identity for "colour").
+StatusOr<Pose> ReadTrajectoryCamera(const ConfigFile& config);
+StatusOr<Pose> LoadTrajectoryCamera(const std::string& path);
+
 // Writes a camera (and its depth block, if given) as an ORB-SLAM style YAML file that
 // ReadCamera and ReadDepthToColor read back unchanged (used by ccmd_synth and --record).
 // `extra_keys` (whole lines, e.g. a sensor's DepthNoise keys) are appended as they are.

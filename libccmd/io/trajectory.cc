@@ -69,6 +69,12 @@ Status WriteTumTrajectory(const Trajectory& trajectory, const std::string& path,
   return WriteFileAtomic(path, FormatTumTrajectory(trajectory, comment));
 }
 
+Trajectory TrajectoryOfCamera(const Trajectory& trajectory, const Pose& T_cam_other) {
+  Trajectory out = trajectory;
+  for (StampedPose& p : out) p.T_world_cam = p.T_world_cam * T_cam_other;
+  return out;
+}
+
 std::optional<Pose> InterpolateTrajectory(const Trajectory& trajectory, double t, double max_gap) {
   if (trajectory.empty()) return std::nullopt;
   const auto after = std::lower_bound(

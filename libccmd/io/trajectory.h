@@ -28,6 +28,9 @@ Status WriteTumTrajectory(const Trajectory& trajectory, const std::string& path,
                           const std::string& comment = "");
 std::string FormatTumTrajectory(const Trajectory& trajectory, const std::string& comment = "");
 
+// The poses of another camera on the same rig: T_world_other = T_world_cam * T_cam_other.
+Trajectory TrajectoryOfCamera(const Trajectory& trajectory, const Pose& T_cam_other);
+
 // The pose at `t`, interpolated between the two samples around it, if both lie within
 // `max_gap` seconds of t. Requires a time-sorted trajectory.
 std::optional<Pose> InterpolateTrajectory(const Trajectory& trajectory, double t, double max_gap);

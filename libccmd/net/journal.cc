@@ -17,9 +17,11 @@ namespace ccmd {
 namespace {
 
 // Optional trailers of the info record, each a byte and its fields, in this order: the
-// camera's 5 distortion coefficients; its depth noise (sigma0, sigma2).
+// camera's 5 distortion coefficients; its depth noise (sigma0, sigma2); its trajectory camera
+// (translation, quaternion).
 constexpr std::uint8_t kJournalCameraDistortion = 1;
 constexpr std::uint8_t kJournalCameraDepthNoise = 2;
+constexpr std::uint8_t kJournalCameraTrajectory = 3;
 
 std::string Errno(const std::string& what) { return what + ": " + std::strerror(errno); }
 
@@ -341,6 +343,10 @@ std::vector<std::uint8_t> SerializeJournalInfo(const JournalAgentInfo& info) {
     w.PutU8(kJournalCameraDepthNoise);
     PutSessionDepthNoise(info.camera, &w);
   }
+  if (info.camera.HasTrajectoryCamera()) {
+    w.PutU8(kJournalCameraTrajectory);
+    PutSessionTrajectoryCamera(info.camera, &w);
+  }
   return w.Take();
 }
 
@@ -389,6 +395,11 @@ StatusOr<JournalAgentInfo> ParseJournalInfo(ByteSpan payload, std::uint8_t versi
     } else if (extension == kJournalCameraDepthNoise) {
       CCMD_RETURN_IF_ERROR(ReadSessionDepthNoise(&r, &info.camera));
       if (!info.camera.HasDepthNoise()) return Corrupt("journal info: zero depth noise");
+    } else if (extension == kJournalCameraTrajectory) {
+      CCMD_RETURN_IF_ERROR(ReadSessionTrajectoryCamera(&r, &info.camera));
+      if (!info.camera.HasTrajectoryCamera()) {
+        return Corrupt("journal info: trajectory camera is the colour camera's");
+      }
     } else {
       return Corrupt("journal info: unknown camera extension " + std::to_string(extension) +
                      " (written by a newer server?)");

@@ -10,8 +10,9 @@ namespace ccmd {
 namespace {
 
 constexpr std::uint8_t kHelloFresh = 1u << 0;
-constexpr std::uint8_t kHelloDistortion = 1u << 1;  // 5 x f64 follow the depth scale
-constexpr std::uint8_t kHelloDepthNoise = 1u << 2;  // 2 x f64 follow (after any distortion)
+constexpr std::uint8_t kHelloDistortion = 1u << 1;        // 5 x f64 follow the depth scale
+constexpr std::uint8_t kHelloDepthNoise = 1u << 2;        // 2 x f64 follow (after any distortion)
+constexpr std::uint8_t kHelloTrajectoryCamera = 1u << 3;  // 7 x f64 follow (after any noise)
 constexpr std::uint32_t kMaxImageSide = 16384;
 
 void PutNonce(const std::array<std::uint8_t, 32>& n, ByteWriter* w) {
@@ -86,6 +87,11 @@ bool SessionCamera::HasDistortion() const {
   return std::any_of(distortion.begin(), distortion.end(), [](double k) { return k != 0; });
 }
 
+bool SessionCamera::HasTrajectoryCamera() const {
+  return trajectory_t != std::array<double, 3>{0, 0, 0} ||
+         trajectory_q != std::array<double, 4>{0, 0, 0, 1};
+}
+
 Status ValidateSessionCamera(const SessionCamera& c) {
   // A negative focal length is a convention (ICL-NUIM), not an error; zero or non-finite is.
   const bool finite = std::isfinite(c.fx) && std::isfinite(c.fy) && std::isfinite(c.cx) &&
@@ -103,6 +109,15 @@ Status ValidateSessionCamera(const SessionCamera& c) {
       !(c.depth_sigma0 > 0 && c.depth_sigma0 <= 1 && c.depth_sigma2 >= 0 && c.depth_sigma2 <= 1)) {
     return InvalidArgument(
         "camera depth noise needs 0 < sigma0 <= 1 m and 0 <= sigma2 <= 1 (finite)");
+  }
+  const auto& t = c.trajectory_t;
+  const auto& q = c.trajectory_q;
+  const double t_norm = std::sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2]);
+  const double q_norm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+  // Written as !(x <= limit) so that NaN fails too.
+  if (!(t_norm <= 1.0) || !(std::fabs(q_norm - 1.0) <= 1e-6)) {
+    return InvalidArgument(
+        "camera trajectory frame needs a translation of at most 1 m and a unit quaternion");
   }
   if (c.width == 0 || c.height == 0 || c.width > kMaxImageSide || c.height > kMaxImageSide) {
     return InvalidArgument("camera image size must be 1.." + std::to_string(kMaxImageSide) +
@@ -124,6 +139,11 @@ std::string DescribeCamera(const SessionCamera& c) {
   if (c.HasDepthNoise()) {
     std::snprintf(text, sizeof(text), " depth noise %.5f + %.5f z^2 m", c.depth_sigma0,
                   c.depth_sigma2);
+    out += text;
+  }
+  if (c.HasTrajectoryCamera()) {
+    std::snprintf(text, sizeof(text), " trajectories of the camera at (%.4f, %.4f, %.4f) m",
+                  c.trajectory_t[0], c.trajectory_t[1], c.trajectory_t[2]);
     out += text;
   }
   return out;
@@ -168,17 +188,30 @@ Status ReadSessionDepthNoise(ByteReader* r, SessionCamera* c) {
   return r->ReadF64(&c->depth_sigma2);
 }
 
+void PutSessionTrajectoryCamera(const SessionCamera& c, ByteWriter* w) {
+  for (const double v : c.trajectory_t) w->PutF64(v);
+  for (const double v : c.trajectory_q) w->PutF64(v);
+}
+
+Status ReadSessionTrajectoryCamera(ByteReader* r, SessionCamera* c) {
+  for (double& v : c->trajectory_t) CCMD_RETURN_IF_ERROR(r->ReadF64(&v));
+  for (double& v : c->trajectory_q) CCMD_RETURN_IF_ERROR(r->ReadF64(&v));
+  return Status::Ok();
+}
+
 std::vector<std::uint8_t> SerializeHello(const HelloMessage& m) {
   ByteWriter w(128);
   w.PutU8(m.version);
-  const bool distortion = m.camera.HasDistortion(), noise = m.camera.HasDepthNoise();
+  const bool distortion = m.camera.HasDistortion(), noise = m.camera.HasDepthNoise(),
+             trajectory = m.camera.HasTrajectoryCamera();
   w.PutU8((m.fresh ? kHelloFresh : 0) | (distortion ? kHelloDistortion : 0) |
-          (noise ? kHelloDepthNoise : 0));
+          (noise ? kHelloDepthNoise : 0) | (trajectory ? kHelloTrajectoryCamera : 0));
   w.PutU8(static_cast<std::uint8_t>(m.name.size()));
   w.PutBytes(m.name.data(), m.name.size());
   PutSessionCamera(m.camera, &w);
   if (distortion) PutSessionDistortion(m.camera, &w);
   if (noise) PutSessionDepthNoise(m.camera, &w);
+  if (trajectory) PutSessionTrajectoryCamera(m.camera, &w);
   w.PutU64(m.first_seq);
   w.PutU64(m.next_seq);
   PutNonce(m.agent_nonce, &w);
@@ -195,7 +228,8 @@ StatusOr<HelloMessage> ParseHello(ByteSpan payload) {
   }
   std::uint8_t flags;
   CCMD_RETURN_IF_ERROR(
-      ReadFlags(&r, kHelloFresh | kHelloDistortion | kHelloDepthNoise, "hello", &flags));
+      ReadFlags(&r, kHelloFresh | kHelloDistortion | kHelloDepthNoise | kHelloTrajectoryCamera,
+                "hello", &flags));
   m.fresh = (flags & kHelloFresh) != 0;
   std::uint8_t name_size;
   CCMD_RETURN_IF_ERROR(r.ReadU8(&name_size));
@@ -209,6 +243,12 @@ StatusOr<HelloMessage> ParseHello(ByteSpan payload) {
   if (flags & kHelloDepthNoise) {
     CCMD_RETURN_IF_ERROR(ReadSessionDepthNoise(&r, &m.camera));
     if (!m.camera.HasDepthNoise()) return Corrupt("hello: depth noise flagged but zero");
+  }
+  if (flags & kHelloTrajectoryCamera) {
+    CCMD_RETURN_IF_ERROR(ReadSessionTrajectoryCamera(&r, &m.camera));
+    if (!m.camera.HasTrajectoryCamera()) {
+      return Corrupt("hello: trajectory camera flagged but the colour camera's");
+    }
   }
   Status camera_ok = ValidateSessionCamera(m.camera);
   if (!camera_ok.ok()) return Corrupt("hello: " + camera_ok.message());

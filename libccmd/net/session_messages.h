@@ -86,19 +86,26 @@ Status ValidateAgentName(std::string_view name);
 // RGB-D images, which are sent as recorded), the depth scale of its sensor (raw depth
 // units per metre, e.g. 5000 for TUM files), and its sensor's depth noise, sigma(z) =
 // depth_sigma0 + depth_sigma2 z^2 metres, with which the server weighs the keypoints' depth
-// (both 0: not announced, the server keeps its default).
+// (both 0: not announced, the server keeps its default), and the trajectory camera: the camera
+// whose poses the agent's trajectories give, in the colour camera's frame (translation in
+// metres, unit quaternion x y z w; the colour camera itself unless the agent's config says
+// otherwise, e.g. 7-Scenes, whose ground truth gives the depth camera's poses).
 struct SessionCamera {
   double fx = 0, fy = 0, cx = 0, cy = 0;
   std::uint32_t width = 0, height = 0;
   double depth_scale = 0;
   std::array<double, 5> distortion{0, 0, 0, 0, 0};
   double depth_sigma0 = 0, depth_sigma2 = 0;
+  std::array<double, 3> trajectory_t{0, 0, 0};
+  std::array<double, 4> trajectory_q{0, 0, 0, 1};
   bool operator==(const SessionCamera&) const = default;
   bool HasDistortion() const;
   bool HasDepthNoise() const { return depth_sigma0 != 0 || depth_sigma2 != 0; }
+  bool HasTrajectoryCamera() const;
 };
-// Refuses zero focal lengths, a depth scale <= 0, non-finite values, sizes beyond limits and a
-// depth noise outside 0 < sigma0 <= 1 m, 0 <= sigma2 <= 1 (when announced).
+// Refuses zero focal lengths, a depth scale <= 0, non-finite values, sizes beyond limits, a
+// depth noise outside 0 < sigma0 <= 1 m, 0 <= sigma2 <= 1 (when announced), and a trajectory
+// camera more than 1 m away or whose quaternion is not of unit length.
 Status ValidateSessionCamera(const SessionCamera& camera);
 std::string DescribeCamera(const SessionCamera& camera);
 // The camera's fixed fields (fx fy cx cy, width height, depth scale) as Hello and the journal's
@@ -109,6 +116,8 @@ void PutSessionDistortion(const SessionCamera& camera, ByteWriter* w);  // 5 x f
 Status ReadSessionDistortion(ByteReader* r, SessionCamera* camera);
 void PutSessionDepthNoise(const SessionCamera& camera, ByteWriter* w);  // 2 x f64
 Status ReadSessionDepthNoise(ByteReader* r, SessionCamera* camera);
+void PutSessionTrajectoryCamera(const SessionCamera& camera, ByteWriter* w);  // 7 x f64
+Status ReadSessionTrajectoryCamera(ByteReader* r, SessionCamera* camera);
 
 struct HelloMessage {
   std::uint8_t version = kProtocolVersion;

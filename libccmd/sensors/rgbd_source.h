@@ -7,6 +7,7 @@
 #include <string>
 
 #include "libccmd/geometry/camera.h"
+#include "libccmd/geometry/pose.h"
 #include "libccmd/io/rgbd_frame.h"
 #include "libccmd/io/trajectory.h"
 #include "libccmd/util/status.h"
@@ -35,6 +36,10 @@ class RgbdSource {
 
   // Ground truth at the frames of this source (empty when unknown).
   virtual Trajectory GroundTruth() const { return {}; }
+
+  // The camera whose poses trajectories of this source's frames give, in the colour camera's
+  // frame (the config's Trajectory.camera, config.h): identity for the colour camera.
+  virtual Pose T_color_trajectory() const { return Pose::Identity(); }
 };
 
 }  // namespace ccmd

@@ -42,8 +42,11 @@ namespace {
 // does live, when the camera config has a Depth block.
 class RegisteredSource : public RgbdSource {
  public:
-  RegisteredSource(std::unique_ptr<RgbdSource> inner, const DepthToColorCalibration& calibration)
-      : inner_(std::move(inner)), calibration_(calibration) {}
+  RegisteredSource(std::unique_ptr<RgbdSource> inner, const DepthToColorCalibration& calibration,
+                   const Pose& T_color_trajectory)
+      : inner_(std::move(inner)),
+        calibration_(calibration),
+        T_color_trajectory_(T_color_trajectory) {}
 
   Status Read(RgbdFrame* frame) override {
     CCMD_RETURN_IF_ERROR(inner_->Read(frame));
@@ -61,10 +64,12 @@ class RegisteredSource : public RgbdSource {
   }
   int FrameCount() const override { return inner_->FrameCount(); }
   Trajectory GroundTruth() const override { return inner_->GroundTruth(); }
+  Pose T_color_trajectory() const override { return T_color_trajectory_; }
 
  private:
   std::unique_ptr<RgbdSource> inner_;
   DepthToColorCalibration calibration_;
+  Pose T_color_trajectory_;
 };
 
 StatusOr<std::optional<FrameRange>> SegmentRange(int frames, const SourceOptions& options) {
@@ -154,8 +159,10 @@ StatusOr<std::unique_ptr<RgbdSource>> OpenSource(const std::string& spec,
     }
     const std::string config_used = !config.empty() ? config : JoinPath(argument, "camera.yaml");
     std::optional<DepthToColorCalibration> registration;
+    Pose T_color_trajectory = Pose::Identity();
     if (options.register_depth && FileExists(config_used)) {
       CCMD_ASSIGN_OR_RETURN(registration, LoadDepthToColorCalibration(config_used));
+      CCMD_ASSIGN_OR_RETURN(T_color_trajectory, LoadTrajectoryCamera(config_used));
     }
     // Open once to count frames, then with the segment range.
     CCMD_ASSIGN_OR_RETURN(std::unique_ptr<RgbdSource> source,
@@ -164,7 +171,10 @@ StatusOr<std::unique_ptr<RgbdSource>> OpenSource(const std::string& spec,
     if (range) {
       CCMD_ASSIGN_OR_RETURN(source, DatasetSource::Open(argument, camera, range));
     }
-    if (registration) source = std::make_unique<RegisteredSource>(std::move(source), *registration);
+    if (registration) {
+      source =
+          std::make_unique<RegisteredSource>(std::move(source), *registration, T_color_trajectory);
+    }
     return source;
   }
   if (kind == "synth") {

@@ -46,6 +46,9 @@ Status SyntheticSequenceOptions::Validate() const {
   if (depth_camera) {
     CCMD_RETURN_IF_ERROR(depth_camera->depth.Validate().WithContext("depth camera"));
   }
+  if (ground_truth_of_depth_camera && !depth_camera) {
+    return InvalidArgument("a ground truth of the depth camera needs a depth camera");
+  }
   if (!camera && (width < 32 || height < 24 || width > 4096 || height > 4096)) {
     return InvalidArgument("image size must be between 32x24 and 4096x4096");
   }
@@ -74,6 +77,7 @@ void SyntheticSequenceOptions::Describe(OptionsWriter* out) const {
     const Eigen::Matrix4d T = depth_camera->T_color_depth.matrix();
     out->Add("depth_camera.T_color_depth",
              std::vector<double>(T.data(), T.data() + 12));  // column-major, top three rows
+    out->Add("ground_truth_of_depth_camera", ground_truth_of_depth_camera);
   }
   out->Add("seed", seed);
   out->Add("noise", noise);
@@ -255,8 +259,14 @@ StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
   }
   CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "rgb.txt"), rgb_list));
   CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "depth.txt"), depth_list));
-  CCMD_RETURN_IF_ERROR(WriteTumTrajectory(path, JoinPath(folder, "groundtruth.txt"),
-                                          "ground truth of the colour camera, T_world_cam"));
+  if (options.ground_truth_of_depth_camera) {
+    CCMD_RETURN_IF_ERROR(WriteTumTrajectory(
+        TrajectoryOfCamera(path, options.depth_camera->T_color_depth),
+        JoinPath(folder, "groundtruth.txt"), "ground truth of the depth camera, T_world_depth"));
+  } else {
+    CCMD_RETURN_IF_ERROR(WriteTumTrajectory(path, JoinPath(folder, "groundtruth.txt"),
+                                            "ground truth of the colour camera, T_world_cam"));
+  }
   // The camera's own depth noise, for the agents that read camera.yaml (the default model
   // needs no keys: it is the agents' default too).
   std::ostringstream noise_keys;
@@ -266,6 +276,7 @@ StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
     noise_keys << "DepthNoise.sigma0: " << options.depth_sigma_0
                << "\nDepthNoise.sigma2: " << options.depth_sigma_2 << "\n";
   }
+  if (options.ground_truth_of_depth_camera) noise_keys << "Trajectory.camera: \"depth\"\n";
   CCMD_RETURN_IF_ERROR(WriteCameraConfig(camera, JoinPath(folder, "camera.yaml"),
                                          options.depth_camera, noise_keys.str()));
   CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "sequence.txt"), DescribeOptions(options)));

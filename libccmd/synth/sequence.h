@@ -55,6 +55,10 @@ struct SyntheticSequenceOptions {
   // A separate depth imager (a config's Depth block): depth images are rendered from it, at
   // its size and pose relative to the colour camera, and readers register them to colour.
   std::optional<DepthToColorCalibration> depth_camera;
+  // The ground truth gives the depth imager's poses instead of the colour camera's, as a
+  // recording posed by tracking its depth does (7-Scenes; the config's Trajectory.camera:
+  // "depth", which camera.yaml then carries). Needs depth_camera.
+  bool ground_truth_of_depth_camera = false;
   std::uint64_t seed = 1;
   bool noise = true;
   // The depth sensor's noise sigma(z) = depth_sigma_0 + depth_sigma_2 z^2 (metres, before

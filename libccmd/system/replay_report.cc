@@ -61,6 +61,15 @@ void ReferenceOptions::Describe(OptionsWriter* out) const {
   out->Add("downsample", downsample);
   out->Add("voxel_m", voxel_m);
   out->Add("registration", registration ? "Depth block" : "none");
+  out->Add("ground_truth_camera_in_colour_m", T_color_trajectory.translation().norm());
+}
+
+Status ReadReferenceCamera(const std::string& camera_file, ReferenceOptions* options) {
+  if (!FileExists(camera_file)) return Status::Ok();
+  CCMD_ASSIGN_OR_RETURN(options->registration, LoadDepthToColorCalibration(camera_file));
+  CCMD_ASSIGN_OR_RETURN(const Pose T_color_trajectory, LoadTrajectoryCamera(camera_file));
+  if (options->registration) options->T_color_trajectory = T_color_trajectory;
+  return Status::Ok();
 }
 
 StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset,
@@ -89,7 +98,7 @@ StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset,
     CCMD_ASSIGN_OR_RETURN(RgbdFrame frame, dataset.LoadFrame(i));
     DenseKeyframe kf;
     kf.id = {AgentId(1), KeyframeId(static_cast<std::uint32_t>(i))};
-    kf.T_world_cam = *dataset.frame(i).T_world_cam_gt;
+    kf.T_world_cam = *dataset.frame(i).T_world_cam_gt * options.T_color_trajectory.inverse();
     cv::Mat depth = frame.depth_mm, bgr = frame.bgr;
     if (options.registration) {
       CCMD_ASSIGN_OR_RETURN(depth, RegisterDepth(depth, *options.registration, dataset.camera()));

@@ -50,10 +50,17 @@ struct ReferenceOptions {
   // Set when the camera config registers depth to colour (a Depth block): the reference's
   // depth goes through the same registration as the agents' frames.
   std::optional<DepthToColorCalibration> registration;
+  // The camera whose poses the ground truth gives, in the colour camera's frame (the config's
+  // Trajectory.camera): the registered depth is placed at ground truth * its inverse.
+  Pose T_color_trajectory = Pose::Identity();
 
   Status Validate() const;
   void Describe(OptionsWriter* out) const;
 };
+
+// Sets `options`' registration and ground-truth camera from a camera config (its Depth block
+// and Trajectory.camera); leaves them when the file does not exist.
+Status ReadReferenceCamera(const std::string& camera_file, ReferenceOptions* options);
 
 // The reference surface for reconstruction error: a given PLY (meshes are sampled), the
 // dataset's surface.ply (synthetic sequences), or a cloud back-projected from the dataset's

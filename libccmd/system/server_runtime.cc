@@ -64,8 +64,8 @@ void ServerRuntime::OnAgentKnown(const AgentDescription& agent, bool from_journa
     depth_noise->sigma_0 = agent.camera.depth_sigma0;
     depth_noise->sigma_2 = agent.camera.depth_sigma2;
   }
-  const Status s =
-      backend_->RegisterAgent(agent.id, agent.name, CameraFromSession(agent.camera), depth_noise);
+  const Status s = backend_->RegisterAgent(agent.id, agent.name, CameraFromSession(agent.camera),
+                                           depth_noise, TrajectoryCameraFromSession(agent.camera));
   if (!s.ok()) CCMD_LOG(ERROR) << "agent " << agent.name << ": " << s.ToString();
   CCMD_LOG(INFO) << "agent " << agent.id << " '" << agent.name << "' "
                  << (from_journal ? "restored" : "joined") << " (" << DescribeCamera(agent.camera)

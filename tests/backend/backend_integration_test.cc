@@ -296,6 +296,43 @@ TEST(BackendIntegrationTest, ARestartAfterAYoungStartKeepsTheStartApart) {
   EXPECT_GE(fused.front().timestamp, restart_time);
 }
 
+// An agent whose trajectories give another camera of its rig (7-Scenes: the depth camera, whose
+// poses its ground truth gives): the server's trajectories of it give that camera's poses too.
+TEST(BackendIntegrationTest, TrajectoriesGiveTheCameraTheAgentAnnounced) {
+  auto backend = Backend::Create(BackendOptions());
+  ASSERT_TRUE(backend.ok()) << backend.status().ToString();
+  const AgentId id(1);
+  ASSERT_TRUE((*backend)->RegisterAgent(id, "agent1", SyntheticCamera()).ok());
+  WireSink sink(id, backend->get());
+  SyntheticSequenceOptions synth;
+  synth.frames = 40;
+  SyntheticSource source(synth, FrameRange{0, 40});
+  auto frontend = Frontend::Create(source.camera(), TrackingOptions(), &sink);
+  ASSERT_TRUE(frontend.ok());
+  RgbdFrame frame;
+  while (source.Read(&frame).ok()) (*frontend)->ProcessFrame(frame);
+  (*frontend)->Finish();
+  (*backend)->WaitIdle();
+  const Trajectory colour = (*backend)->AgentTrajectory(id);
+  ASSERT_GE(colour.size(), 2u);
+
+  Pose T_color_depth = Pose::Identity();
+  T_color_depth.translation() = Eigen::Vector3d(-0.025, 0.003, 0.001);
+  T_color_depth.linear() = Eigen::AngleAxisd(0.02, Eigen::Vector3d::UnitY()).toRotationMatrix();
+  ASSERT_TRUE(
+      (*backend)->RegisterAgent(id, "agent1", SyntheticCamera(), std::nullopt, T_color_depth).ok());
+  for (const Trajectory& depth : {(*backend)->AgentTrajectory(id), (*backend)->FusedTrajectory()}) {
+    ASSERT_EQ(depth.size(), colour.size());
+    for (std::size_t i = 0; i < depth.size(); ++i) {
+      EXPECT_EQ(depth[i].timestamp, colour[i].timestamp);
+      EXPECT_TRUE(depth[i].T_world_cam.isApprox(colour[i].T_world_cam * T_color_depth, 1e-12)) << i;
+      // Not the colour camera's pose: the rig's 25 mm are there.
+      EXPECT_NEAR((depth[i].T_world_cam.translation() - colour[i].T_world_cam.translation()).norm(),
+                  T_color_depth.translation().norm(), 1e-9);
+    }
+  }
+}
+
 TEST(BackendIntegrationTest, KeyframesBeforeTheCameraOrAfterShutdownAreRefusedCleanly) {
   auto backend = Backend::Create(BackendOptions());
   ASSERT_TRUE(backend.ok());

@@ -264,7 +264,8 @@ int main(int argc, char** argv) {
     for (const auto& p : (*source)->GroundTruth()) ground_truth.push_back(p);
     cameras[AgentId(i + 1)] = (*source)->camera();
     (*backend)
-        ->RegisterAgent(AgentId(i + 1), "agent" + std::to_string(i + 1), (*source)->camera())
+        ->RegisterAgent(AgentId(i + 1), "agent" + std::to_string(i + 1), (*source)->camera(),
+                        std::nullopt, (*source)->T_color_trajectory())
         .IgnoreError();
     sources.push_back(std::move(source).value());
   }

@@ -231,7 +231,9 @@ int main(int argc, char** argv) {
     cpu = ProcessCpuSeconds() - cpu0;
   }
   const FrontendStats stats = (*frontend)->stats();
-  Trajectory ours = (*frontend)->FrameTrajectory();
+  // Poses of the camera the ground truth gives (the config's Trajectory.camera).
+  const Pose T_color_trajectory = (*source)->T_color_trajectory();
+  Trajectory ours = TrajectoryOfCamera((*frontend)->FrameTrajectory(), T_color_trajectory);
   // Played backwards, the trajectory is in reverse time order; evaluation matches by time.
   std::sort(ours.begin(), ours.end(),
             [](const auto& a, const auto& b) { return a.timestamp < b.timestamp; });
@@ -281,7 +283,8 @@ int main(int argc, char** argv) {
     }
     if (!skip_baseline && !frames.empty()) {
       double ms = 0;
-      const Trajectory baseline = RgbdOdometryTrajectory(frames, camera, &ms);
+      const Trajectory baseline =
+          TrajectoryOfCamera(RgbdOdometryTrajectory(frames, camera, &ms), T_color_trajectory);
       if (!baseline_path.empty()) WriteTumTrajectory(baseline, baseline_path).IgnoreError();
       auto base_ate = ComputeAte(ground_truth, baseline);
       if (base_ate.ok()) {

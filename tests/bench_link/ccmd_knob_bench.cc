@@ -149,11 +149,8 @@ int main(int argc, char** argv) {
   if (!sequence.ok()) return Fail(sequence.status().ToString());
   ReferenceOptions reference_options;
   const std::string camera_file = !config.empty() ? config : JoinPath(dataset, "camera.yaml");
-  if (FileExists(camera_file)) {
-    auto registration = LoadDepthToColorCalibration(camera_file);
-    if (!registration.ok()) return Fail(registration.status().ToString());
-    reference_options.registration = *registration;
-  }
+  if (const Status s = ReadReferenceCamera(camera_file, &reference_options); !s.ok())
+    return Fail(s.ToString());
   std::string reference_source;
   auto reference = LoadOrBuildReference(*sequence, reference_options, &reference_source);
   if (!reference.ok()) return Fail(reference.status().ToString());

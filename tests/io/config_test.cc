@@ -46,6 +46,40 @@ TEST(ConfigTest, MissingAndWrongKeysAreClearErrors) {
   EXPECT_FALSE(LoadCameraConfig(dir.File("c.yaml")).ok());
 }
 
+TEST(ConfigTest, TrajectoriesAreOfTheColourCameraUnlessTheConfigNamesTheDepthCamera) {
+  testing::TempDir dir;
+  const std::string camera =
+      "%YAML:1.0\nCamera.fx: 525\nCamera.fy: 525\nCamera.cx: 320\nCamera.cy: 240\n"
+      "Camera.width: 640\nCamera.height: 480\n";
+  const std::string depth =
+      "Depth.fx: 585\nDepth.fy: 585\nDepth.cx: 320\nDepth.cy: 240\nDepth.width: 640\n"
+      "Depth.height: 480\nDepth.t_color_depth: [-0.025, 0.0, 0.01]\n";
+  auto write = [&](const std::string& name, const std::string& text) {
+    EXPECT_TRUE(WriteFileAtomic(dir.File(name), text).ok());
+    return dir.File(name);
+  };
+  // Without the key, or naming the colour camera: identity, with a Depth block or not.
+  for (const std::string& text :
+       {camera, camera + depth, camera + depth + "Trajectory.camera: \"colour\"\n",
+        camera + "Trajectory.camera: \"color\"\n"}) {
+    auto T = LoadTrajectoryCamera(write("c.yaml", text));
+    ASSERT_TRUE(T.ok()) << T.status().ToString();
+    EXPECT_TRUE(T->isApprox(Pose::Identity())) << text;
+  }
+  // The depth camera: the Depth block's pose in the colour frame.
+  auto T = LoadTrajectoryCamera(write("d.yaml", camera + depth + "Trajectory.camera: \"depth\"\n"));
+  ASSERT_TRUE(T.ok()) << T.status().ToString();
+  EXPECT_TRUE(T->translation().isApprox(Eigen::Vector3d(-0.025, 0, 0.01)));
+  EXPECT_TRUE(T->linear().isIdentity(1e-12));
+  // "depth" without a Depth block, and any other camera, are errors naming the key.
+  for (const std::string& text : {camera + "Trajectory.camera: \"depth\"\n",
+                                  camera + depth + "Trajectory.camera: \"infrared\"\n"}) {
+    auto bad = LoadTrajectoryCamera(write("e.yaml", text));
+    ASSERT_FALSE(bad.ok()) << text;
+    EXPECT_NE(bad.status().message().find("Trajectory.camera"), std::string::npos);
+  }
+}
+
 TEST(ConfigTest, WrittenConfigReadsBackTheSameCamera) {
   testing::TempDir dir;
   PinholeCamera c;

@@ -394,6 +394,30 @@ TEST(JournalTest, InfoRecordCarriesDistortion) {
 
 // A resumed server weighs the agent's depths as the live one did: the depth noise is a second
 // trailer (byte 2, sigma0, sigma2), after the distortion's when there is one.
+TEST(JournalTest, InfoRecordCarriesTheTrajectoryCamera) {
+  JournalAgentInfo info{AgentId(3), "kitchen", nettest::TestCamera()};
+  const std::size_t base = SerializeJournalInfo(info).size();
+  info.camera.depth_sigma0 = 0.0005;
+  info.camera.trajectory_t = {-0.025, 0, 0};
+  Bytes bytes = SerializeJournalInfo(info);
+  ASSERT_EQ(bytes.size(), base + 1 + 16 + 1 + 56);
+  EXPECT_EQ(bytes[base], 2);
+  EXPECT_EQ(bytes[base + 17], 3);
+  StatusOr<JournalAgentInfo> parsed = ParseJournalInfo(bytes);
+  ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+  EXPECT_EQ(parsed->camera, info.camera);
+
+  // The trailer stating the colour camera itself is damage (a writer leaves it out).
+  Bytes identity(bytes.begin(), bytes.begin() + base + 18);
+  identity.resize(identity.size() + 6 * 8, 0);
+  std::uint64_t one;  // qw = 1.0, little-endian as every f64 of the format
+  const double w = 1.0;
+  std::memcpy(&one, &w, 8);
+  for (int i = 0; i < 8; ++i) identity.push_back(static_cast<std::uint8_t>(one >> (8 * i)));
+  ASSERT_EQ(identity.size(), bytes.size());
+  EXPECT_EQ(ParseJournalInfo(identity).status().code(), StatusCode::kCorrupt);
+}
+
 TEST(JournalTest, InfoRecordCarriesTheDepthNoise) {
   JournalAgentInfo info{AgentId(2), "icl", nettest::TestCamera()};
   info.camera.depth_sigma0 = 0.0005;

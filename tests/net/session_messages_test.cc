@@ -1,6 +1,7 @@
 #include "libccmd/net/session_messages.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstring>
 #include <string>
@@ -130,6 +131,53 @@ TEST(SessionMessagesTest, HelloCarriesTheDepthNoiseAfterTheDistortion) {
   EXPECT_EQ(ParseHello(zeros).status().code(), StatusCode::kCorrupt);
   Bytes flag_only = SerializeHello(SampleHello());
   flag_only[1] |= 0x04;
+  EXPECT_EQ(ParseHello(flag_only).status().code(), StatusCode::kCorrupt);
+}
+
+TEST(SessionMessagesTest, HelloCarriesTheTrajectoryCameraLast) {
+  // 7-Scenes: trajectories of the depth camera, 25 mm to the colour camera's left.
+  HelloMessage h = SampleHello();
+  h.camera.depth_sigma0 = 0.0005;
+  h.camera.trajectory_t = {-0.025, 0, 0};
+  const double half = std::sqrt(0.5);  // 90 degrees about z, for a rotation that shows
+  h.camera.trajectory_q = {0, 0, half, half};
+  const Bytes plain = SerializeHello(SampleHello());
+  const Bytes with = SerializeHello(h);
+  ASSERT_EQ(with.size(), plain.size() + 16 + 56);
+  EXPECT_EQ(with[1], 0x0c);
+  Bytes expected;
+  for (const double v : {-0.025, 0.0, 0.0, 0.0, 0.0, half, half}) PutF64(&expected, v);
+  EXPECT_TRUE(std::equal(expected.begin(), expected.end(), with.begin() + 10 + 48 + 16));
+  StatusOr<HelloMessage> parsed = ParseHello(with);
+  ASSERT_TRUE(parsed.ok()) << parsed.status().ToString();
+  EXPECT_EQ(parsed->camera, h.camera);
+  EXPECT_TRUE(parsed->camera.HasTrajectoryCamera());
+  EXPECT_FALSE(SampleHello().camera.HasTrajectoryCamera());
+  EXPECT_NE(DescribeCamera(h.camera).find("(-0.0250, 0.0000, 0.0000) m"), std::string::npos);
+
+  // A quaternion that is no rotation, a camera metres away, or NaN is refused.
+  for (const auto& [t, q] : std::vector<std::pair<std::array<double, 3>, std::array<double, 4>>>{
+           {{0, 0, 0}, {0, 0, 0, 2}},
+           {{0, 0, 0}, {0, 0, 0, 0}},
+           {{1.5, 0, 0}, {0, 0, 0, 1}},
+           {{std::nan(""), 0, 0}, {0, 0, 0, 1}},
+           {{0, 0, 0}, {std::nan(""), 0, 0, 1}}}) {
+    HelloMessage bad = SampleHello();
+    bad.camera.trajectory_t = t;
+    bad.camera.trajectory_q = q;
+    EXPECT_EQ(ParseHello(SerializeHello(bad)).status().code(), StatusCode::kCorrupt)
+        << t[0] << " " << q[3];
+  }
+  // The flag with the colour camera itself, or without its values, is refused.
+  Bytes identity = SerializeHello(SampleHello());
+  identity[1] |= 0x08;
+  Bytes tail(identity.begin() + 10 + 48, identity.end());
+  identity.resize(10 + 48);
+  for (const double v : {0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0}) PutF64(&identity, v);
+  identity.insert(identity.end(), tail.begin(), tail.end());
+  EXPECT_EQ(ParseHello(identity).status().code(), StatusCode::kCorrupt);
+  Bytes flag_only = SerializeHello(SampleHello());
+  flag_only[1] |= 0x08;
   EXPECT_EQ(ParseHello(flag_only).status().code(), StatusCode::kCorrupt);
 }
 

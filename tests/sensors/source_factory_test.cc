@@ -178,6 +178,50 @@ TEST(SourceFactoryTest, SyntheticDepthImagerIsRegisteredBackToTheColourView) {
   EXPECT_GT(cv::countNonZero(cv::abs(raw.depth_mm - truth.depth_mm) > 50), 0.3 * 320 * 240);
 }
 
+// A recording whose ground truth is the depth camera's (7-Scenes): ccmd_synth writes the depth
+// imager's poses and says so in camera.yaml (Trajectory.camera), and the source read through
+// it gives trajectories of that camera: the colour camera's poses times T_color_depth.
+TEST(SourceFactoryTest, GroundTruthOfTheDepthCameraNamesItsCamera) {
+  testing::TempDir dir;
+  SyntheticSequenceOptions o;
+  o.frames = 3;
+  o.noise = false;
+  o.room.shapes_per_m2 = 20;
+  o.surface_spacing = 0.1;
+  o.camera = SyntheticCamera(160, 120);
+  DepthToColorCalibration depth;
+  depth.depth = SyntheticCamera(160, 120);
+  depth.T_color_depth.translation() = Eigen::Vector3d(-0.025, 0.004, 0);
+  o.depth_camera = depth;
+  o.ground_truth_of_depth_camera = true;
+  ASSERT_TRUE(WriteSyntheticSequence(dir.path(), o).ok());
+  auto source = OpenSource("tum:" + dir.path(), SourceOptions());
+  ASSERT_TRUE(source.ok()) << source.status().ToString();
+  EXPECT_TRUE((*source)->T_color_trajectory().isApprox(depth.T_color_depth));
+  const Trajectory colour_path = MakeLoopPath(3, o.camera->fps, o.path);
+  const Trajectory gt = (*source)->GroundTruth();
+  ASSERT_EQ(gt.size(), 3u);
+  for (int i = 0; i < 3; ++i) {
+    const Pose expected = colour_path[i].T_world_cam * depth.T_color_depth;
+    EXPECT_LT((gt[i].T_world_cam.translation() - expected.translation()).norm(), 1e-5) << i;
+    // 25 mm apart from the colour camera's, as the rig puts them.
+    EXPECT_NEAR((gt[i].T_world_cam.translation() - colour_path[i].T_world_cam.translation()).norm(),
+                depth.T_color_depth.translation().norm(), 1e-5);
+  }
+
+  // The same imager without the flag: the colour camera's ground truth and trajectories.
+  testing::TempDir plain_dir;
+  o.ground_truth_of_depth_camera = false;
+  ASSERT_TRUE(WriteSyntheticSequence(plain_dir.path(), o).ok());
+  auto plain = OpenSource("tum:" + plain_dir.path(), SourceOptions());
+  ASSERT_TRUE(plain.ok());
+  EXPECT_TRUE((*plain)->T_color_trajectory().isApprox(Pose::Identity()));
+  EXPECT_LT(((*plain)->GroundTruth()[1].T_world_cam.translation() -
+             colour_path[1].T_world_cam.translation())
+                .norm(),
+            1e-5);
+}
+
 TEST(SourceFactoryTest, BadSpecsAreExplained) {
   auto unknown = OpenSource("kinect9000", SourceOptions());
   ASSERT_FALSE(unknown.ok());

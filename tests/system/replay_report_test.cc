@@ -72,6 +72,15 @@ TEST(ReplayReportTest, ReferenceCloudUsesTheDepthRegistration) {
   EXPECT_LT(MedianOf(NearestDistances(moved_back, *plain)), 0.004);
   EXPECT_GT(MedianOf(NearestDistances(*registered, *plain)), 0.02);
 
+  // Ground truth of the depth camera (7-Scenes; the config's Trajectory.camera): the registered
+  // depth goes to ground truth * T_color_depth^-1, where the colour camera was, and the cloud is
+  // the depth camera's own view at the ground-truth pose, as the unregistered depth gives it.
+  options.T_color_trajectory = calibration.T_color_depth;
+  auto depth_posed = LoadOrBuildReference(*dataset, options, nullptr);
+  ASSERT_TRUE(depth_posed.ok()) << depth_posed.status().ToString();
+  EXPECT_LT(MedianOf(NearestDistances(*depth_posed, *plain)), 0.004);
+  options.T_color_trajectory = Pose::Identity();
+
   calibration.depth = dataset->camera().Resized(80, 60);
   options.registration = calibration;
   EXPECT_EQ(LoadOrBuildReference(*dataset, options, nullptr).status().code(),
