@@ -25,7 +25,8 @@ DepthAgreement CompareDepthByGroundTruth(const cv::Mat& depth_a_mm, const cv::Ma
       const Eigen::Vector2d uv = depth_camera.Project(p);
       if (!depth_camera.InImage(uv)) continue;
       // The nearest pixel (integer coordinates are pixel centres).
-      const int ub = static_cast<int>(std::lround(uv.x())), vb = static_cast<int>(std::lround(uv.y()));
+      const int ub = static_cast<int>(std::lround(uv.x())),
+                vb = static_cast<int>(std::lround(uv.y()));
       if (ub < 0 || vb < 0 || ub >= depth_b_mm.cols || vb >= depth_b_mm.rows) continue;
       const double zb = depth_b_mm.at<std::uint16_t>(vb, ub) * 1e-3;
       if (zb <= 0) continue;
