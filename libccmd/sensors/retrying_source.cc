@@ -95,6 +95,7 @@ StatusOr<std::unique_ptr<RetryingSource>> RetryingSource::Open(Opener opener,
     source->inner_ = std::move(first).value();
   }
   source->camera_ = source->inner_->camera();
+  source->T_color_trajectory_ = source->inner_->T_color_trajectory();
   source->have_camera_ = true;
   source->description_ = source->inner_->Describe();
   source->frame_count_ = source->inner_->FrameCount();

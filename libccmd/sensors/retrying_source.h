@@ -78,6 +78,7 @@ class RetryingSource : public RgbdSource {
   int FrameCount() const override { return frame_count_; }
   bool IsLive() const override { return live_; }
   Trajectory GroundTruth() const override;
+  Pose T_color_trajectory() const override { return T_color_trajectory_; }  // the first open's
 
   // Ends a wait in progress (from another thread, e.g. on shutdown): that Read and every
   // later one returns Cancelled.
@@ -98,6 +99,7 @@ class RetryingSource : public RgbdSource {
   RetryHooks hooks_;
   std::unique_ptr<RgbdSource> inner_;
   PinholeCamera camera_;
+  Pose T_color_trajectory_ = Pose::Identity();
   bool have_camera_ = false;
   std::string description_;
   int frame_count_ = -1;

@@ -72,6 +72,25 @@ class RegisteredSource : public RgbdSource {
   Pose T_color_trajectory_;
 };
 
+// A live source whose config names the depth camera for its trajectories (Trajectory.camera):
+// everything as the source gives it, and that camera's pose.
+class TrajectoryCameraSource : public RgbdSource {
+ public:
+  TrajectoryCameraSource(std::unique_ptr<RgbdSource> inner, const Pose& T_color_trajectory)
+      : inner_(std::move(inner)), T_color_trajectory_(T_color_trajectory) {}
+  Status Read(RgbdFrame* frame) override { return inner_->Read(frame); }
+  const PinholeCamera& camera() const override { return inner_->camera(); }
+  std::string Describe() const override { return inner_->Describe(); }
+  int FrameCount() const override { return inner_->FrameCount(); }
+  bool IsLive() const override { return inner_->IsLive(); }
+  Trajectory GroundTruth() const override { return inner_->GroundTruth(); }
+  Pose T_color_trajectory() const override { return T_color_trajectory_; }
+
+ private:
+  std::unique_ptr<RgbdSource> inner_;
+  Pose T_color_trajectory_;
+};
+
 StatusOr<std::optional<FrameRange>> SegmentRange(int frames, const SourceOptions& options) {
   if (!options.segment) return std::optional<FrameRange>();
   CCMD_ASSIGN_OR_RETURN(const auto segments,
@@ -113,9 +132,14 @@ StatusOr<std::unique_ptr<RgbdSource>> OpenV4l2(const std::string& argument,
   CCMD_ASSIGN_OR_RETURN(const PinholeCamera camera, LoadCameraConfig(config));
   CCMD_ASSIGN_OR_RETURN(const auto registration, LoadDepthToColorCalibration(config));
   v4l2.config = config;
+  CCMD_ASSIGN_OR_RETURN(const Pose T_color_trajectory, LoadTrajectoryCamera(config));
   CCMD_ASSIGN_OR_RETURN(auto source,
                         V4l2Source::Open(v4l2, camera, OpenLinuxV4l2Device, registration));
-  return std::unique_ptr<RgbdSource>(std::move(source));
+  if (T_color_trajectory.isApprox(Pose::Identity(), 1e-12)) {
+    return std::unique_ptr<RgbdSource>(std::move(source));
+  }
+  return std::unique_ptr<RgbdSource>(
+      new TrajectoryCameraSource(std::move(source), T_color_trajectory));
 }
 #endif
 

@@ -33,6 +33,11 @@ class ScriptedSource : public RgbdSource {
   const PinholeCamera& camera() const override { return camera_; }
   std::string Describe() const override { return "scripted"; }
   bool IsLive() const override { return true; }
+  Pose T_color_trajectory() const override {
+    Pose T = Pose::Identity();
+    T.translation().x() = -0.025;  // a rig whose trajectories give its depth camera
+    return T;
+  }
 
  private:
   std::deque<Step> steps_;
@@ -155,6 +160,23 @@ TEST(RetryingSourceTest, PermanentErrorsAndTheEndPassThroughWithoutReopening) {
   EXPECT_EQ((*source)->Read(&frame).code(), StatusCode::kEndOfStream);
   EXPECT_EQ(opener.calls, 1);
   EXPECT_TRUE(recorder.events.empty());
+}
+
+// The camera whose poses the trajectories give (the config's Trajectory.camera) is the
+// wrapped camera's, through outages too: the agent writes and announces it.
+TEST(RetryingSourceTest, KeepsTheTrajectoryCameraOfTheWrappedSource) {
+  ScriptedOpener opener;
+  opener.entries.push_back({Status::Ok(), {Frame(1.0), Lost()}});
+  opener.entries.push_back({Status::Ok(), {Frame(2.0)}});
+  Recorder recorder;
+  auto source = RetryingSource::Open(opener.Get(), {}, recorder.Hooks());
+  ASSERT_TRUE(source.ok());
+  RgbdFrame frame;
+  ASSERT_TRUE((*source)->Read(&frame).ok());
+  EXPECT_EQ((*source)->Read(&frame).code(), StatusCode::kUnavailable);  // lost
+  ASSERT_TRUE((*source)->Read(&frame).ok());                            // reopened
+  EXPECT_EQ(opener.calls, 2);
+  EXPECT_DOUBLE_EQ((*source)->T_color_trajectory().translation().x(), -0.025);
 }
 
 TEST(RetryingSourceTest, GivesUpAfterMaxAttempts) {
