@@ -32,7 +32,9 @@ namespace ccmd {
 
 struct KeyframeCullingOptions {
   bool enabled = true;
-  int keep_recent = 40;  // an agent's newest keyframes are never culled
+  // An agent's newest keyframes are never culled: as many as its local map holds
+  // (Tracking.maxKeyframes, 60), whose points its tracking may still link.
+  int keep_recent = 60;
   double min_coverage = 0.9;
   double max_scale = 1.25;  // distance ratio, either way
   double max_view_angle_deg = 30;
