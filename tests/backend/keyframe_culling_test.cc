@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include "libccmd/backend/map_optimization.h"
+#include "libccmd/tracking/options.h"
 #include "tests/backend/generated_map.h"
 
 namespace ccmd {
@@ -53,6 +54,13 @@ ServerMap TwoLaps(int steps, std::uint64_t seed) {
     AddGeneratedKeyframe(&map, world, kAgent, static_cast<std::uint32_t>(i), T, T, &rng, window);
   }
   return map;
+}
+
+// An agent links points of every keyframe its local map still holds: the server must not
+// cull (and drop the points of) a keyframe that recent. With a window shorter than the
+// agent's map, 7-Scenes replays lost the agents' later links to culled keyframes' points.
+TEST(KeyframeCullingTest, TheRecentWindowCoversTheAgentsLocalMap) {
+  EXPECT_GE(KeyframeCullingOptions().keep_recent, TrackingOptions().max_keyframes);
 }
 
 TEST(KeyframeCullingTest, SecondPassOverAPlaceIsCulledFirstPassKept) {
