@@ -131,7 +131,7 @@ int main(int argc, char** argv) {
   double flush_timeout = 120.0, budget_kBps = 0,
          max_queue_s = ccmd::BandwidthBudgetOptions{}.max_queue_s, threshold_scale = 1.0;
   ccmd::RgbdEncodeOptions rgbd;
-  bool offline = false, synchronous = false, rgbd_every_keyframe = false;
+  bool offline = false, synchronous = false, asynchronous = false, rgbd_every_keyframe = false;
   double cpu_budget = 1.0;
   int max_frames = 0, record_compression = 1;
   app.add_option("--source", source_spec,
@@ -207,8 +207,14 @@ int main(int argc, char** argv) {
   app.add_option("--record-png-compression", record_compression, "PNG level for --record (0-9)")
       ->check(CLI::Range(0, 9))
       ->capture_default_str();
-  app.add_flag("--synchronous", synchronous,
-               "Run local mapping in the tracking thread (deterministic; slower)");
+  auto* synchronous_flag = app.add_flag(
+      "--synchronous", synchronous,
+      "Run local mapping in the tracking thread: each keyframe is mapped before the next frame "
+      "(deterministic). The default for --offline runs on a recording at --rate max");
+  app.add_flag("--asynchronous", asynchronous,
+               "Run local mapping on its own thread beside tracking, as with a live camera or a "
+               "server (the default there)")
+      ->excludes(synchronous_flag);
   app.add_option(
          "--cpu-budget", cpu_budget,
          "CPU cores the agent may use on average (0: no limit; overrides Tracking.cpuBudget). "
@@ -240,7 +246,15 @@ int main(int argc, char** argv) {
   const ccmd::PinholeCamera camera = (*source)->camera();
 
   ccmd::TrackingOptions tracking;
-  tracking.synchronous_mapping = synchronous;
+  // A recording processed offline as fast as it can has nothing to keep up with: mapping each
+  // keyframe before the next frame is deterministic (the same recording gives the same
+  // trajectory) and, under the CPU budget, no slower than two threads taking turns. A live
+  // camera, a paced replay or a server session maps beside tracking, as a robot does.
+  tracking.synchronous_mapping =
+      synchronous || (!asynchronous && offline && !(*source)->IsLive() && rate == "max");
+  CCMD_LOG(INFO) << "local mapping "
+                 << (tracking.synchronous_mapping ? "in the tracking thread (deterministic)"
+                                                  : "on its own thread");
   tracking.cpu_budget = cpu_budget;
   if (!config_path.empty()) {
     auto config = ccmd::ConfigFile::Open(config_path);
@@ -455,6 +469,7 @@ int main(int argc, char** argv) {
   if (!stats_path.empty()) {
     ccmd::Json json = StatsJson(stats, seconds, (*frontend)->decisions());
     json["cpu_budget"] = tracking.cpu_budget;
+    json["synchronous_mapping"] = tracking.synchronous_mapping;
     json["cpu_cores_used"] = cores;
     json["paced_ms"] = pacer.paced_ms();
     if (link) json["link"] = link_json;

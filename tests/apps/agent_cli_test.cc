@@ -8,6 +8,7 @@
 #include "libccmd/io/trajectory.h"
 #include "libccmd/io/tum_dataset.h"
 #include "libccmd/sensors/synthetic_source.h"
+#include "libccmd/util/file_util.h"
 #include "libccmd/util/json.h"
 #include "tests/support/test_support.h"
 
@@ -16,6 +17,36 @@ namespace {
 
 using testing::ProgramPath;
 using testing::RunCommand;
+
+// A recording processed offline as fast as it goes maps each keyframe before the next frame:
+// the same recording gives the same trajectory, run after run. Paced replays map beside
+// tracking, as a live camera does, and either way can be asked for.
+TEST(AgentCliTest, AnOfflineRecordingIsMappedInTheTrackingThreadByDefault) {
+  testing::TempDir dir;
+  const std::string agent =
+      ProgramPath("ccmd_agent") + " --source synth:frames=30,seed=5 --offline";
+  auto synchronous = [&](const std::string& flags, const std::string& name) {
+    std::string out;
+    EXPECT_EQ(RunCommand(agent + " " + flags + " --trajectory " + dir.File(name + ".txt") +
+                             " --stats " + dir.File(name + ".json"),
+                         &out),
+              0)
+        << out;
+    auto stats = ReadJsonFile(dir.File(name + ".json"));
+    EXPECT_TRUE(stats.ok() && stats->Has("synchronous_mapping")) << out;
+    return stats.ok() && stats->Get("synchronous_mapping")->boolean();
+  };
+  EXPECT_TRUE(synchronous("", "a"));
+  EXPECT_TRUE(synchronous("", "b"));
+  EXPECT_FALSE(synchronous("--asynchronous", "c"));
+  EXPECT_FALSE(synchronous("--rate realtime", "d"));
+  EXPECT_TRUE(synchronous("--rate realtime --synchronous", "e"));
+  auto a = ReadFileToString(dir.File("a.txt")), b = ReadFileToString(dir.File("b.txt"));
+  ASSERT_TRUE(a.ok() && b.ok());
+  EXPECT_EQ(*a, *b);  // deterministic
+  std::string out;
+  EXPECT_NE(RunCommand(agent + " --synchronous --asynchronous", &out), 0);
+}
 
 TEST(AgentCliTest, OfflineRunWritesTrajectoryStatsAndRecording) {
   testing::TempDir dir;
