@@ -19,6 +19,7 @@
 #include <cmath>
 #include <cstdio>
 #include <opencv2/imgproc.hpp>
+#include <optional>
 #include <thread>
 #include <vector>
 
@@ -161,27 +162,43 @@ class StopWatcher {
   std::thread thread_;
 };
 
-// --check-registration: scores the config's depth-to-colour registration on recorded frames
-// against the same registration with the depth camera moved sideways, so a wrong offset or
-// its side shows up as a better score elsewhere (ccmd::EdgeAlignmentScore).
-int CheckRegistration(const std::string& spec, const std::string& config, int frames) {
+// A rig's checks read the config's Depth block and the frames as recorded (depth not
+// registered: each check moves it itself). Prints why not and sets `exit_code` (2: no Depth
+// block, 1: the source) when that fails.
+struct RigSource {
+  ccmd::DepthToColorCalibration calibration;
+  std::unique_ptr<ccmd::RgbdSource> source;
+};
+std::optional<RigSource> OpenRigAsRecorded(const std::string& spec, const std::string& config,
+                                           const char* check, const char* why, int* exit_code) {
   auto calibration = ccmd::LoadDepthToColorCalibration(config);
   if (!calibration.ok() || !calibration->has_value()) {
-    std::fprintf(stderr,
-                 "ccmd_camera: --check-registration needs a --config with a Depth block (%s)\n",
+    std::fprintf(stderr, "ccmd_camera: %s needs a --config with a Depth block%s (%s)\n", check, why,
                  calibration.ok() ? "none found" : calibration.status().ToString().c_str());
-    return 2;
+    *exit_code = 2;
+    return std::nullopt;
   }
   ccmd::SourceOptions options;
   options.camera_config = config;
   options.configs_dir = ccmd::app::ConfigDir();
-  options.register_depth = false;  // the frames as recorded; registered here per variant
+  options.register_depth = false;
   auto opened = ccmd::OpenSource(spec, options);
   if (!opened.ok()) {
     std::fprintf(stderr, "ccmd_camera: %s\n", opened.status().ToString().c_str());
-    return 1;
+    *exit_code = 1;
+    return std::nullopt;
   }
-  std::unique_ptr<ccmd::RgbdSource> source = std::move(opened).value();
+  return RigSource{**calibration, std::move(opened).value()};
+}
+
+// --check-registration: scores the config's depth-to-colour registration on recorded frames
+// against the same registration with the depth camera moved sideways, so a wrong offset or
+// its side shows up as a better score elsewhere (ccmd::EdgeAlignmentScore).
+int CheckRegistration(const std::string& spec, const std::string& config, int frames) {
+  int exit_code = 0;
+  auto rig = OpenRigAsRecorded(spec, config, "--check-registration", "", &exit_code);
+  if (!rig) return exit_code;
+  const std::unique_ptr<ccmd::RgbdSource>& source = rig->source;
   // Frames spread over a recording (every `stride`-th), or the next ones from a live camera.
   const int total = source->FrameCount();
   const int stride = total > frames ? total / frames : 1;
@@ -194,7 +211,7 @@ int CheckRegistration(const std::string& spec, const std::string& config, int fr
     std::fprintf(stderr, "ccmd_camera: no frames read\n");
     return 1;
   }
-  const ccmd::DepthToColorCalibration& c = **calibration;
+  const ccmd::DepthToColorCalibration& c = rig->calibration;
   const ccmd::PinholeCamera& color = source->camera();
   const Eigen::Vector3d t = c.T_color_depth.translation();
   std::printf(
@@ -227,31 +244,18 @@ int CheckRegistration(const std::string& spec, const std::string& config, int fr
 // s = 1 if the colour camera's. Where the view turns, the wrong choice moves the depth camera's
 // centre by the rig's offset and the depths disagree more.
 int CheckGroundTruth(const std::string& spec, const std::string& config) {
-  auto calibration = ccmd::LoadDepthToColorCalibration(config);
-  if (!calibration.ok() || !calibration->has_value()) {
-    std::fprintf(stderr,
-                 "ccmd_camera: --check-ground-truth needs a --config with a Depth block: with one "
-                 "imager there is one camera (%s)\n",
-                 calibration.ok() ? "none found" : calibration.status().ToString().c_str());
-    return 2;
-  }
-  ccmd::SourceOptions options;
-  options.camera_config = config;
-  options.configs_dir = ccmd::app::ConfigDir();
-  options.register_depth = false;  // the depth camera's own images
-  auto opened = ccmd::OpenSource(spec, options);
-  if (!opened.ok()) {
-    std::fprintf(stderr, "ccmd_camera: %s\n", opened.status().ToString().c_str());
-    return 1;
-  }
-  std::unique_ptr<ccmd::RgbdSource> source = std::move(opened).value();
+  int exit_code = 0;
+  auto rig = OpenRigAsRecorded(spec, config, "--check-ground-truth",
+                               ": with one imager there is one camera", &exit_code);
+  if (!rig) return exit_code;
+  const std::unique_ptr<ccmd::RgbdSource>& source = rig->source;
   const ccmd::Trajectory truth = source->GroundTruth();
   if (truth.empty()) {
     std::fprintf(stderr, "ccmd_camera: %s has no ground truth\n", source->Describe().c_str());
     return 1;
   }
   // Half-size depth (nearest: no mixed depths) of every 3rd frame with a ground-truth pose.
-  const ccmd::DepthToColorCalibration& c = **calibration;
+  const ccmd::DepthToColorCalibration& c = rig->calibration;
   const ccmd::PinholeCamera depth_camera = c.depth.Resized(c.depth.width / 2, c.depth.height / 2);
   struct Sample {
     cv::Mat depth;

@@ -115,11 +115,7 @@ Status Backend::RegisterAgent(AgentId agent, const std::string& name, const Pinh
     depth_noise_.agents.erase(agent);
   }
   names_[agent] = name;
-  if (T_color_trajectory.isApprox(Pose::Identity(), 1e-12)) {
-    trajectory_cameras_.erase(agent);
-  } else {
-    trajectory_cameras_[agent] = T_color_trajectory;
-  }
+  trajectory_cameras_[agent] = T_color_trajectory;
   if (observer_) observer_->OnAgent(agent, name);
   return Status::Ok();
 }

@@ -255,7 +255,7 @@ class Backend {
   std::map<AgentId, PinholeCamera> cameras_;
   AgentDepthNoise depth_noise_;
   std::map<AgentId, std::string> names_;
-  std::map<AgentId, Pose> trajectory_cameras_;  // T_color_trajectory, where not identity
+  std::map<AgentId, Pose> trajectory_cameras_;  // T_color_trajectory (RegisterAgent)
 
   // A newer loop or fusion abandons a running global BA of a whole map, a fusion a windowed
   // one; shutdown abandons any.

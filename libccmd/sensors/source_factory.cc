@@ -37,20 +37,23 @@ void SourceOptions::Describe(OptionsWriter* out) const {
 }
 namespace {
 
-// A recorded sequence whose depth is not registered to its colour (7-Scenes, a raw Kinect
-// v1 recording): every frame's depth is moved into the colour camera, as the V4L2 source
-// does live, when the camera config has a Depth block.
-class RegisteredSource : public RgbdSource {
+// A source read through a camera config that asks for more than the source does itself: depth
+// registered into the colour camera (`registration`: a recorded sequence whose depth is not
+// registered, 7-Scenes or a raw Kinect v1 recording, as the V4L2 source does live), and
+// trajectories of another camera of the rig (the config's Trajectory.camera).
+class ConfiguredSource : public RgbdSource {
  public:
-  RegisteredSource(std::unique_ptr<RgbdSource> inner, const DepthToColorCalibration& calibration,
+  ConfiguredSource(std::unique_ptr<RgbdSource> inner,
+                   const std::optional<DepthToColorCalibration>& registration,
                    const Pose& T_color_trajectory)
       : inner_(std::move(inner)),
-        calibration_(calibration),
+        registration_(registration),
         T_color_trajectory_(T_color_trajectory) {}
 
   Status Read(RgbdFrame* frame) override {
     CCMD_RETURN_IF_ERROR(inner_->Read(frame));
-    auto registered = RegisterDepth(frame->depth_mm, calibration_, camera());
+    if (!registration_) return Status::Ok();
+    auto registered = RegisterDepth(frame->depth_mm, *registration_, camera());
     if (!registered.ok()) {
       return InvalidArgument("frame " + std::to_string(frame->index) + ": " +
                              registered.status().message());
@@ -60,27 +63,8 @@ class RegisteredSource : public RgbdSource {
   }
   const PinholeCamera& camera() const override { return inner_->camera(); }
   std::string Describe() const override {
-    return inner_->Describe() + ", depth registered to colour";
+    return inner_->Describe() + (registration_ ? ", depth registered to colour" : "");
   }
-  int FrameCount() const override { return inner_->FrameCount(); }
-  Trajectory GroundTruth() const override { return inner_->GroundTruth(); }
-  Pose T_color_trajectory() const override { return T_color_trajectory_; }
-
- private:
-  std::unique_ptr<RgbdSource> inner_;
-  DepthToColorCalibration calibration_;
-  Pose T_color_trajectory_;
-};
-
-// A live source whose config names the depth camera for its trajectories (Trajectory.camera):
-// everything as the source gives it, and that camera's pose.
-class TrajectoryCameraSource : public RgbdSource {
- public:
-  TrajectoryCameraSource(std::unique_ptr<RgbdSource> inner, const Pose& T_color_trajectory)
-      : inner_(std::move(inner)), T_color_trajectory_(T_color_trajectory) {}
-  Status Read(RgbdFrame* frame) override { return inner_->Read(frame); }
-  const PinholeCamera& camera() const override { return inner_->camera(); }
-  std::string Describe() const override { return inner_->Describe(); }
   int FrameCount() const override { return inner_->FrameCount(); }
   bool IsLive() const override { return inner_->IsLive(); }
   Trajectory GroundTruth() const override { return inner_->GroundTruth(); }
@@ -88,6 +72,7 @@ class TrajectoryCameraSource : public RgbdSource {
 
  private:
   std::unique_ptr<RgbdSource> inner_;
+  std::optional<DepthToColorCalibration> registration_;
   Pose T_color_trajectory_;
 };
 
@@ -139,7 +124,7 @@ StatusOr<std::unique_ptr<RgbdSource>> OpenV4l2(const std::string& argument,
     return std::unique_ptr<RgbdSource>(std::move(source));
   }
   return std::unique_ptr<RgbdSource>(
-      new TrajectoryCameraSource(std::move(source), T_color_trajectory));
+      new ConfiguredSource(std::move(source), std::nullopt, T_color_trajectory));
 }
 #endif
 
@@ -197,7 +182,7 @@ StatusOr<std::unique_ptr<RgbdSource>> OpenSource(const std::string& spec,
     }
     if (registration) {
       source =
-          std::make_unique<RegisteredSource>(std::move(source), *registration, T_color_trajectory);
+          std::make_unique<ConfiguredSource>(std::move(source), registration, T_color_trajectory);
     }
     return source;
   }
