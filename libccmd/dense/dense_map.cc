@@ -35,6 +35,7 @@ Status DenseMapOptions::Validate() const {
   if (window_keyframes < 0 || window_keyframes > 1000) {
     return InvalidArgument("window_keyframes must be within [0, 1000]");
   }
+  if (release_below_points < 0) return InvalidArgument("release_below_points must be >= 0");
   return projection.Validate();
 }
 
@@ -42,6 +43,7 @@ void DenseMapOptions::Describe(OptionsWriter* out) const {
   out->Add("voxel_size_m", voxel_size_m);
   out->Add("window_keyframes", window_keyframes);
   out->Add("compact_keyframes", compact_keyframes);
+  out->Add("release_below_points", release_below_points);
   out->Nested("projection", projection);
 }
 
@@ -183,25 +185,53 @@ Status DenseMap::RemoveKeyframe(const GlobalKeyframeId& id) {
   const std::uint32_t k = id.keyframe.value();
   if (node == nullptr || Find(*node, k) == nullptr)
     return NotFound(IdText(id) + " is not in the dense map");
+  FreeHeld(*Find(*node, k));
+  RemoveLocked(node, k);
+  return Status::Ok();
+}
+
+void DenseMap::FreeHeld(const Entry& entry) {
+  MapNode& map = MapNodeOf(entry.id.agent);
+  if (!entry.compact || map.rebuild_held) return;  // a rebuild marks the others anew
+  entry.stored.Transform(entry.T_held, &decoded_);
+  grid_.Indices(decoded_, &voxels_);
+  for (const VoxelIndex& v : voxels_) map.held.Erase(v);
+}
+
+void DenseMap::RemoveLocked(AgentNode* node, std::uint32_t k) {
   const std::uint32_t start = WindowStart(*node, k);
   const Entry* prev = Prev(*node, k);
   const std::uint32_t prev_id = prev ? prev->id.keyframe.value() : 0;
-  Entry* removed = Find(*node, k);
-  MapNode& map = MapNodeOf(id.agent);
-  if (removed->compact && !map.rebuild_held) {
-    // Frees the voxels it holds.
-    removed->stored.Transform(removed->T_held, &decoded_);
-    grid_.Indices(decoded_, &voxels_);
-    for (const VoxelIndex& v : voxels_) map.held.Erase(v);
-  }
+  // A compacted predecessor's filter is final: only window keyframes need the re-filter.
+  const bool refilter = prev != nullptr && !prev->compact;
   auto segment = node->segments.find(k >> kSegmentShift);
+  pending_.erase(segment->second.slots[k & kSlotMask]->id);
   segment->second.slots[k & kSlotMask].reset();
   if (--segment->second.count == 0) node->segments.erase(segment);
   --node->keyframes;
-  pending_.erase(id);
   // Its predecessors compete with one keyframe further now.
-  if (prev != nullptr) RefilterRange(*node, start, prev_id);
-  return Status::Ok();
+  if (refilter) RefilterRange(*node, start, prev_id);
+}
+
+void DenseMap::Release(const std::vector<GlobalKeyframeId>& ids) {
+  for (const GlobalKeyframeId& id : ids) {
+    AgentNode* node = FindAgent(id.agent);
+    Entry* entry = node ? Find(*node, id.keyframe.value()) : nullptr;
+    if (entry == nullptr) continue;
+    FreeHeld(*entry);
+    released_points_ += entry->stored.size();
+    RemoveLocked(node, id.keyframe.value());
+    ++released_count_;
+    if (released_.size() >= kMaxReleasedQueued) released_.pop_front();
+    released_.push_back(id);
+  }
+}
+
+std::vector<GlobalKeyframeId> DenseMap::TakeReleased() {
+  std::lock_guard<std::mutex> lock(mutex_);
+  std::vector<GlobalKeyframeId> taken(released_.begin(), released_.end());
+  released_.clear();
+  return taken;
 }
 
 Status DenseMap::SetAgentMap(AgentId agent, MapId map) {
@@ -230,21 +260,17 @@ Status DenseMap::SetAgentMap(AgentId agent, MapId map) {
 Status DenseMap::UpdateKeyframePose(const GlobalKeyframeId& id, const Pose& T_world_cam) {
   CCMD_RETURN_IF_ERROR(CheckPose(T_world_cam).WithContext(IdText(id)));
   std::lock_guard<std::mutex> lock(mutex_);
-  const AgentNode* node = FindAgent(id.agent);
-  Entry* entry = node ? Find(*node, id.keyframe.value()) : nullptr;
-  if (entry == nullptr) return NotFound(IdText(id) + " is not in the dense map");
-  SetPose(entry, T_world_cam);
+  if (Entry* entry = EntriesOf({{id, T_world_cam}}).front()) SetPose(entry, T_world_cam);
   return Status::Ok();
 }
 
-StatusOr<std::vector<DenseMap::Entry*>> DenseMap::EntriesOf(
-    const std::vector<KeyframePose>& poses) const {
+std::vector<DenseMap::Entry*> DenseMap::EntriesOf(const std::vector<KeyframePose>& poses) {
   std::vector<Entry*> entries;
   entries.reserve(poses.size());
   for (const KeyframePose& p : poses) {
     const AgentNode* node = FindAgent(p.id.agent);
     Entry* entry = node ? Find(*node, p.id.keyframe.value()) : nullptr;
-    if (entry == nullptr) return NotFound(IdText(p.id) + " is not in the dense map");
+    absent_updates_ += entry == nullptr;
     entries.push_back(entry);
   }
   return entries;
@@ -255,8 +281,9 @@ Status DenseMap::UpdateLoopPoses(const std::vector<KeyframePose>& poses) {
     CCMD_RETURN_IF_ERROR(CheckPose(p.T_world_cam).WithContext(IdText(p.id)));
   }
   std::lock_guard<std::mutex> lock(mutex_);
-  CCMD_ASSIGN_OR_RETURN(const std::vector<Entry*> entries, EntriesOf(poses));
+  const std::vector<Entry*> entries = EntriesOf(poses);
   for (std::size_t i = 0; i < poses.size(); ++i) {
+    if (!entries[i]) continue;
     SetPose(entries[i], poses[i].T_world_cam);
     // Compacted keyframes moved relative to each other: what they hold is redone.
     if (entries[i]->compact) MapNodeOf(poses[i].id.agent).rebuild_held = true;
@@ -270,9 +297,10 @@ StatusOr<std::size_t> DenseMap::UpdateGlobalPoses(const std::vector<KeyframePose
     CCMD_RETURN_IF_ERROR(CheckPose(p.T_world_cam).WithContext(IdText(p.id)));
   }
   std::lock_guard<std::mutex> lock(mutex_);
-  CCMD_ASSIGN_OR_RETURN(const std::vector<Entry*> entries, EntriesOf(poses));
+  const std::vector<Entry*> entries = EntriesOf(poses);
   std::size_t moved = 0;
   for (std::size_t i = 0; i < poses.size(); ++i) {
+    if (!entries[i]) continue;
     const Eigen::Matrix<double, 3, 4> delta =
         (poses[i].T_world_cam.matrix() - entries[i]->T_world_cam.matrix()).topRows<3>();
     if (delta.cwiseAbs().maxCoeff() <= 1e-9) continue;

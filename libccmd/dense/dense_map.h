@@ -27,6 +27,11 @@
 // neighbour cannot bring back a point the filter or the held voxels dropped), so the map equals
 // a from-scratch build with the final poses within the voxel size rather than exactly
 // (docs/benchmarks/dense.md measures it after a large loop correction).
+// A compacted keyframe left with (almost) nothing to store (every voxel it saw but a few at
+// the edges is held by an earlier one: a place seen again) is released: its entry and those
+// few points leave the store, so a camera circling a room for hours costs the store nothing
+// per pass beyond the keyframes still in the window (release_below_points).
+// Pose updates name keyframes the store may have released; those are skipped (and counted).
 //
 // Voxel filter over a sliding window of keyframe indices. Within an agent, a point of
 // keyframe k is kept iff it is the first point of k in its voxel and none of the next W stored
@@ -59,6 +64,7 @@
 
 #include <array>
 #include <cstdint>
+#include <deque>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -95,6 +101,11 @@ struct DenseMapOptions {
   // back-projected point is kept for the run, and the store equals a from-scratch build with
   // the final poses exactly (about 30 bytes a point).
   bool compact_keyframes = true;
+  // A compacted keyframe that stores fewer points than this is released (with them): its entry
+  // (about 0.4 kB) would cost more than its points, which on a place seen again are the few
+  // voxels that depth noise reaches beyond what the map holds (a 320x240 keyframe back-projects
+  // 20-75 thousand points; a new piece of surface is hundreds). 0: only empty ones.
+  int release_below_points = 32;
   BackProjectionOptions projection;
 
   Status Validate() const;
@@ -141,13 +152,16 @@ struct DenseMapStats {
   std::size_t agents = 0;
   std::size_t segments = 0;
   std::size_t keyframes = 0;
-  std::size_t points = 0;             // stored points (all of a keyframe in the window)
-  std::size_t kept_points = 0;        // kept by the sliding-window filter (all compacted ones)
-  std::size_t compact_keyframes = 0;  // keyframes that have left the window
-  std::size_t compact_points = 0;     // points they store
-  std::size_t pending_keyframes = 0;  // pose updates awaiting their window re-filter
-  std::size_t held_bytes = 0;         // the maps' held-voxel sets
-  std::size_t memory_bytes = 0;       // everything the store allocates, scratch included
+  std::size_t points = 0;              // stored points (all of a keyframe in the window)
+  std::size_t kept_points = 0;         // kept by the sliding-window filter (all compacted ones)
+  std::size_t compact_keyframes = 0;   // keyframes that have left the window
+  std::size_t compact_points = 0;      // points they store
+  std::size_t pending_keyframes = 0;   // pose updates awaiting their window re-filter
+  std::size_t held_bytes = 0;          // the maps' held-voxel sets
+  std::size_t released_keyframes = 0;  // compacted keyframes released (release_below_points)
+  std::size_t released_points = 0;     // the points they took with them
+  std::size_t absent_updates = 0;      // pose updates of keyframes not in the store (skipped)
+  std::size_t memory_bytes = 0;        // everything the store allocates, scratch included
 };
 
 inline constexpr int kSegmentKeyframes = 64;
@@ -174,10 +188,11 @@ class DenseMap {
   // Places an agent in a map without moving its points (the back-end's map of that agent).
   Status SetAgentMap(AgentId agent, MapId map);
 
+  // Pose updates: a keyframe the store does not hold (released, or never added) is skipped and
+  // counted (DenseMapStats::absent_updates); an invalid pose is an error and changes nothing.
   // Local BA: one keyframe moved. See the header comment for the deferred window re-filter.
   Status UpdateKeyframePose(const GlobalKeyframeId& id, const Pose& T_world_cam);
   // Pose graph after a loop: every keyframe listed moved; their windows are re-filtered now.
-  // All ids are checked first: on error nothing changes.
   Status UpdateLoopPoses(const std::vector<KeyframePose>& poses);
   // Global BA: new poses for any number of keyframes; those equal to the stored pose (within
   // 1e-9) are skipped, the rest updated and re-filtered. Returns how many moved.
@@ -190,6 +205,12 @@ class DenseMap {
 
   // Runs the window re-filters that pose updates left pending. Returns keyframes re-filtered.
   std::size_t Maintain();
+
+  // The keyframes released since the last call (see the header comment), for an owner that
+  // tells others (the live view). At most kMaxReleasedQueued wait; older ones are dropped
+  // from the queue (DenseMapStats::released_keyframes counts every release).
+  std::vector<GlobalKeyframeId> TakeReleased();
+  static constexpr std::size_t kMaxReleasedQueued = 1 << 16;
 
   // Points of a part of the tree in its map's frame, with colours and labels. Runs Maintain()
   // first. NotFound for an unknown map or agent.
@@ -255,8 +276,8 @@ class DenseMap {
   const AgentNode* FindAgent(AgentId agent) const;
   AgentNode& AgentOrCreate(AgentId agent);
   static Entry* Find(const AgentNode& agent, std::uint32_t id);
-  // Every keyframe of `poses`, or NotFound for the first that is not in the map (lock held).
-  StatusOr<std::vector<Entry*>> EntriesOf(const std::vector<KeyframePose>& poses) const;
+  // The entry of each of `poses` (null for a keyframe the store does not hold; counted).
+  std::vector<Entry*> EntriesOf(const std::vector<KeyframePose>& poses);
   static Entry* Next(const AgentNode& agent, std::uint32_t id);
   static Entry* Prev(const AgentNode& agent, std::uint32_t id);
   // The id W keyframes before `id` (or the first one), `id` itself if it has no predecessor.
@@ -278,11 +299,20 @@ class DenseMap {
   void FilterAppended(const AgentNode& agent, Entry* entry);
   // Compacts every window keyframe of the agent with id in [first, last] that has W successors.
   void CompactSettled(AgentId agent, std::uint32_t first, std::uint32_t last);
-  void Compact(MapNode* map, Entry* entry);
+  // Returns whether it keeps too few points to stay (the caller releases it).
+  bool Compact(MapNode* map, Entry* entry);
+  bool TooFewToKeep(const Entry& entry) const;
+  // Frees the voxels a compacted entry holds in its map's held set.
+  void FreeHeld(const Entry& entry);
+  // Removes an entry (lock held); its predecessors still in the window are re-filtered.
+  void RemoveLocked(AgentNode* node, std::uint32_t id);
+  // Removes compacted entries that store too few points, and the voxels those hold, and
+  // queues their ids (TakeReleased).
+  void Release(const std::vector<GlobalKeyframeId>& ids);
   // Moves a compacted keyframe's held voxels from T_held to its pose.
   void MoveHeld(MapNode* map, Entry* entry);
   // Marks every compacted keyframe of the map again, oldest first, dropping points whose voxel
-  // an older one holds.
+  // an older one holds; releases those left with none.
   void RebuildHeld(MapNode* map);
   std::size_t MaintainLocked();
   void MarkPending(const Entry& entry);
@@ -293,13 +323,17 @@ class DenseMap {
   const VoxelGrid grid_;
 
   mutable std::mutex mutex_;
-  std::map<MapId, MapNode> maps_;       // guarded by mutex_
-  std::map<AgentId, MapId> agent_map_;  // guarded by mutex_
-  std::set<GlobalKeyframeId> pending_;  // guarded by mutex_
-  VoxelSet occupied_;                   // guarded by mutex_; scratch of FilterAppended
-  VoxelBricks<std::uint16_t> nearest_;  // guarded by mutex_; scratch of RefilterRange
-  std::vector<VoxelIndex> voxels_;      // guarded by mutex_; scratch: voxels of one keyframe
-  std::vector<std::uint32_t> indices_;  // guarded by mutex_; scratch: a kept list being built
+  std::map<MapId, MapNode> maps_;          // guarded by mutex_
+  std::map<AgentId, MapId> agent_map_;     // guarded by mutex_
+  std::set<GlobalKeyframeId> pending_;     // guarded by mutex_
+  std::deque<GlobalKeyframeId> released_;  // guarded by mutex_; not yet taken
+  std::size_t released_count_ = 0;         // guarded by mutex_
+  std::size_t released_points_ = 0;        // guarded by mutex_
+  std::size_t absent_updates_ = 0;         // guarded by mutex_
+  VoxelSet occupied_;                      // guarded by mutex_; scratch of FilterAppended
+  VoxelBricks<std::uint16_t> nearest_;     // guarded by mutex_; scratch of RefilterRange
+  std::vector<VoxelIndex> voxels_;         // guarded by mutex_; scratch: voxels of one keyframe
+  std::vector<std::uint32_t> indices_;     // guarded by mutex_; scratch: a kept list being built
   mutable std::vector<Eigen::Vector3f> decoded_;  // guarded by mutex_; scratch: compacted points
 };
 

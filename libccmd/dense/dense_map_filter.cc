@@ -71,6 +71,7 @@ void DenseMap::CompactSettled(AgentId agent_id, std::uint32_t first, std::uint32
   if (agent == nullptr) return;
   Entry* e = Find(*agent, first);
   if (e == nullptr) e = Next(*agent, first);
+  std::vector<GlobalKeyframeId> release;
   for (; e != nullptr && e->id.keyframe.value() <= last; e = Next(*agent, e->id.keyframe.value())) {
     if (e->compact) continue;
     int successors = 0;
@@ -83,11 +84,12 @@ void DenseMap::CompactSettled(AgentId agent_id, std::uint32_t first, std::uint32
     if (!pending_.empty()) MaintainLocked();
     MapNode& map = MapNodeOf(agent_id);
     if (map.rebuild_held) RebuildHeld(&map);
-    Compact(&map, e);
+    if (Compact(&map, e)) release.push_back(e->id);
   }
+  Release(release);
 }
 
-void DenseMap::Compact(MapNode* map, Entry* entry) {
+bool DenseMap::Compact(MapNode* map, Entry* entry) {
   grid_.Indices(entry->world, &voxels_);
   indices_.clear();
   for (const std::uint32_t i : entry->kept) {
@@ -100,6 +102,12 @@ void DenseMap::Compact(MapNode* map, Entry* entry) {
   entry->cloud = CameraCloud();
   std::vector<Eigen::Vector3f>().swap(entry->world);
   std::vector<std::uint32_t>().swap(entry->kept);
+  return TooFewToKeep(*entry);
+}
+
+bool DenseMap::TooFewToKeep(const Entry& entry) const {
+  return entry.compact &&
+         entry.stored.size() < std::max<std::size_t>(1, options_.release_below_points);
 }
 
 void DenseMap::MoveHeld(MapNode* map, Entry* entry) {
@@ -114,6 +122,7 @@ void DenseMap::MoveHeld(MapNode* map, Entry* entry) {
 
 void DenseMap::RebuildHeld(MapNode* map) {
   map->held.Clear();
+  std::vector<GlobalKeyframeId> release;
   for (auto& [agent, node] : map->agents) {
     for (auto& [index, segment] : node.segments) {
       for (auto& entry : segment.slots) {
@@ -126,10 +135,12 @@ void DenseMap::RebuildHeld(MapNode* map) {
         }
         if (indices_.size() < voxels_.size()) entry->stored.Keep(indices_);
         entry->T_held = entry->T_world_cam;
+        if (TooFewToKeep(*entry)) release.push_back(entry->id);
       }
     }
   }
   map->rebuild_held = false;
+  Release(release);
 }
 
 std::size_t DenseMap::RefilterRange(const AgentNode& agent, std::uint32_t first,

@@ -194,10 +194,13 @@ DenseMapStats DenseMap::Stats() const {
   stats.maps = maps_.size();
   stats.agents = agent_map_.size();
   stats.pending_keyframes = pending_.size();
-  std::size_t bytes = sizeof(*this) + occupied_.MemoryBytes() + nearest_.MemoryBytes() +
-                      voxels_.capacity() * sizeof(VoxelIndex) +
-                      indices_.capacity() * sizeof(std::uint32_t) +
-                      decoded_.capacity() * sizeof(Eigen::Vector3f);
+  stats.released_keyframes = released_count_;
+  stats.released_points = released_points_;
+  stats.absent_updates = absent_updates_;
+  std::size_t bytes =
+      sizeof(*this) + occupied_.MemoryBytes() + nearest_.MemoryBytes() +
+      voxels_.capacity() * sizeof(VoxelIndex) + indices_.capacity() * sizeof(std::uint32_t) +
+      decoded_.capacity() * sizeof(Eigen::Vector3f) + released_.size() * sizeof(GlobalKeyframeId);
   bytes += (agent_map_.size() + pending_.size() + maps_.size()) * kTreeNodeOverhead;
   for (const auto& [map, node] : maps_) {
     stats.held_bytes += node.held.MemoryBytes();

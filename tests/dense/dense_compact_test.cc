@@ -27,6 +27,9 @@ constexpr double kVoxel = 0.05;  // TestOptions
 DenseMapOptions CompactOptions() {
   DenseMapOptions o = TestOptions(3);
   o.compact_keyframes = true;
+  // These keyframes back-project about 700 points (a 320x240 one, tens of thousands): only
+  // empty ones are released unless a test asks for more.
+  o.release_below_points = 0;
   return o;
 }
 
@@ -147,6 +150,89 @@ TEST(DenseCompactTest, RevisitingAPlaceAddsAlmostNothing) {
   AddStrip(full.get(), 16, 32, image, pose);
   EXPECT_LT(compact->Stats().points, 1.15 * compact_after_two);
   EXPECT_GT(full->Stats().kept_points, 2.5 * full_after_two);
+}
+
+// A camera going back and forth over the same views, recording the same images again: once
+// compacted, a keyframe whose every voxel an earlier one holds has nothing to store and leaves
+// the store, so the keyframes kept stop growing with the passes while the map covers what a
+// store keeping everything covers.
+TEST(DenseCompactTest, KeyframesLeftWithNothingToStoreAreReleased) {
+  auto compact = MakeMap(CompactOptions());
+  auto full = MakeMap(TestOptions(3));
+  std::vector<DenseKeyframe> views;
+  for (std::uint32_t v = 0; v < 8; ++v) views.push_back(PlaneKeyframe(kAgent, v, StripPose(v), 31));
+  const auto add = [&](int first, int n) {
+    for (int i = first; i < first + n; ++i) {
+      DenseKeyframe k = views[(i / 8) % 2 == 0 ? i % 8 : 7 - i % 8];
+      k.id = {kAgent, KeyframeId(static_cast<std::uint32_t>(i))};
+      ASSERT_TRUE(compact->AddKeyframe(k).ok());
+      ASSERT_TRUE(full->AddKeyframe(k).ok());
+    }
+  };
+  add(0, 16);
+  const std::size_t after_two = compact->Stats().keyframes;
+  compact->TakeReleased();
+  add(16, 32);
+  const DenseMapStats stats = compact->Stats();
+  EXPECT_LE(stats.keyframes, after_two + 1);
+  EXPECT_EQ(stats.keyframes + stats.released_keyframes, 48u);
+  EXPECT_EQ(stats.released_points, 0u);
+  const std::vector<GlobalKeyframeId> released = compact->TakeReleased();
+  EXPECT_GT(released.size(), 25u);
+  EXPECT_TRUE(compact->TakeReleased().empty());
+  for (const GlobalKeyframeId& id : released) {
+    EXPECT_EQ(compact->ExtractKeyframe(id).status().code(), StatusCode::kNotFound);
+  }
+  // The newest W keyframes are still in the window: none of them is released.
+  for (std::uint32_t id = 45; id < 48; ++id)
+    EXPECT_TRUE(compact->ExtractKeyframe({kAgent, KeyframeId(id)}).ok());
+  auto map_c = compact->Extract(DenseSelection::Global());
+  auto map_f = full->Extract(DenseSelection::Global());
+  ASSERT_TRUE(map_c.ok() && map_f.ok());
+  const std::set<std::uint64_t> vc = Voxels(*map_c), vf = Voxels(*map_f);
+  std::size_t differ = 0;
+  for (std::uint64_t v : vf) differ += !vc.count(v);
+  for (std::uint64_t v : vc) differ += !vf.count(v);
+  EXPECT_LE(differ, vf.size() / 500) << vf.size();
+  // A loop correction naming a released keyframe moves the others.
+  std::vector<KeyframePose> loop;
+  for (const GlobalKeyframeId& id : {released[0], GlobalKeyframeId{kAgent, KeyframeId(46)}}) {
+    Pose p = *compact->KeyframePoseOf({kAgent, KeyframeId(46)});
+    p.translation().x() += 0.02;
+    loop.push_back({id, p});
+  }
+  ASSERT_TRUE(compact->UpdateLoopPoses(loop).ok());
+  EXPECT_EQ(compact->Stats().absent_updates, 1u);
+  EXPECT_LT(TranslationDistance(*compact->KeyframePoseOf(loop[1].id), loop[1].T_world_cam), 1e-12);
+}
+
+// Images recorded again carry new depth noise, which reaches a few voxels beyond what the map
+// holds on every pass: keyframes storing fewer points than release_below_points release them,
+// and the map loses at most those points' voxels.
+TEST(DenseCompactTest, KeyframesWithFewerPointsThanTheThresholdAreReleasedWithThem) {
+  DenseMapOptions options = CompactOptions();
+  options.release_below_points = 30;
+  auto compact = MakeMap(options);
+  auto full = MakeMap(TestOptions(3));
+  const auto image = [](int i) { return (i / 8) % 2 == 0 ? i % 8 : 7 - i % 8; };
+  const auto pose = [&](int i) { return StripPose(image(i)); };
+  AddStrip(compact.get(), 0, 48, image, pose);
+  AddStrip(full.get(), 0, 48, image, pose);
+  const DenseMapStats stats = compact->Stats();
+  EXPECT_GT(stats.released_keyframes, 5u);
+  EXPECT_GT(stats.released_points, 0u);
+  EXPECT_EQ(stats.keyframes + stats.released_keyframes, 48u);
+  for (std::uint32_t id = 0; id < 45; ++id) {  // the compacted ones that stay hold enough
+    auto stored = compact->ExtractKeyframe({kAgent, KeyframeId(id)});
+    if (stored.ok()) EXPECT_GE(stored->size(), 30u) << id;
+  }
+  auto map_c = compact->Extract(DenseSelection::Global());
+  auto map_f = full->Extract(DenseSelection::Global());
+  ASSERT_TRUE(map_c.ok() && map_f.ok());
+  const std::set<std::uint64_t> vc = Voxels(*map_c), vf = Voxels(*map_f);
+  std::size_t missing = 0;
+  for (std::uint64_t v : vf) missing += !vc.count(v);
+  EXPECT_LE(missing, stats.released_points + vf.size() / 500);
 }
 
 TEST(DenseCompactTest, PoseUpdatesMoveCompactedPointsExactly) {

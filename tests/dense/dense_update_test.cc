@@ -226,26 +226,40 @@ TEST(DenseUpdateTest, MergeMapsMovesEveryAgentOfTheSourceMap) {
   EXPECT_EQ(store->MergeMaps(MapId(2), MapId(1), t).code(), StatusCode::kNotFound);
 }
 
-TEST(DenseUpdateTest, BadUpdatesAreErrorsAndChangeNothing) {
+TEST(DenseUpdateTest, BadPosesAreErrorsAndChangeNothing) {
   std::vector<Pose> p1 = StripPoses(0);
   auto store = Build(p1, {});
   const PointCloud before = *store->Extract(DenseSelection::Global(), DenseFilter::kNone);
-  EXPECT_EQ(store->UpdateKeyframePose({kAgent1, KeyframeId(77)}, p1[0]).code(),
-            StatusCode::kNotFound);
-  EXPECT_EQ(store->UpdateKeyframePose({kAgent2, KeyframeId(0)}, p1[0]).code(),
-            StatusCode::kNotFound);
   Pose scaled = p1[0];
   scaled.linear() *= 1.01;
   EXPECT_EQ(store->UpdateKeyframePose({kAgent1, KeyframeId(0)}, scaled).code(),
             StatusCode::kInvalidArgument);
-  // One unknown id in a loop update: nothing moves.
+  // One bad pose in a loop update: nothing moves.
   const std::vector<KeyframePose> loop = {{{kAgent1, KeyframeId(1)}, Perturbed(p1[1], 5)},
-                                          {{kAgent1, KeyframeId(50)}, p1[0]}};
-  EXPECT_EQ(store->UpdateLoopPoses(loop).code(), StatusCode::kNotFound);
-  EXPECT_EQ(store->UpdateGlobalPoses(loop).status().code(), StatusCode::kNotFound);
+                                          {{kAgent1, KeyframeId(2)}, scaled}};
+  EXPECT_EQ(store->UpdateLoopPoses(loop).code(), StatusCode::kInvalidArgument);
+  EXPECT_EQ(store->UpdateGlobalPoses(loop).status().code(), StatusCode::kInvalidArgument);
   EXPECT_EQ(store->TransformAgent(kAgent2, Pose::Identity()).code(), StatusCode::kNotFound);
   EXPECT_TRUE(SameCloud(*store->Extract(DenseSelection::Global(), DenseFilter::kNone), before));
   EXPECT_EQ(store->Stats().pending_keyframes, 0u);
+}
+
+// The back-end names keyframes the store may have released (DenseMap::TakeReleased): those
+// are skipped and counted, the others move as they would alone.
+TEST(DenseUpdateTest, UpdatesOfKeyframesNotHeldAreSkipped) {
+  std::vector<Pose> p1 = StripPoses(0);
+  auto store = Build(p1, {});
+  auto reference = Build(p1, {});
+  const Pose moved = Perturbed(p1[1], 5);
+  EXPECT_TRUE(store->UpdateKeyframePose({kAgent1, KeyframeId(77)}, p1[0]).ok());
+  EXPECT_TRUE(store->UpdateKeyframePose({kAgent2, KeyframeId(0)}, p1[0]).ok());
+  const std::vector<KeyframePose> loop = {{{kAgent1, KeyframeId(1)}, moved},
+                                          {{kAgent1, KeyframeId(50)}, p1[0]}};
+  EXPECT_TRUE(store->UpdateLoopPoses(loop).ok());
+  ASSERT_TRUE(reference->UpdateLoopPoses({loop[0]}).ok());
+  EXPECT_EQ(*store->UpdateGlobalPoses(loop), 0u);  // keyframe 1 is there already
+  EXPECT_EQ(store->Stats().absent_updates, 4u);
+  ExpectSameStore(*store, *reference);
 }
 
 }  // namespace
