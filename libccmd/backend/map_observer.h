@@ -61,6 +61,13 @@ class MapObserver {
   virtual void OnLoop(const LoopEvent& /*event*/) {}
   // The keyframe's points are in the dense store (DenseMap::KeyframeCloud can read them).
   virtual void OnDenseKeyframe(const GlobalKeyframeId& /*id*/) {}
+  // The dense store released these keyframes' clouds: every point they had is held by an
+  // earlier keyframe (DenseMap::TakeReleased). Nothing of them is left to draw.
+  virtual void OnDenseReleased(const std::vector<GlobalKeyframeId>& /*ids*/) {}
+  // A keyframe of `map` was culled as redundant (keyframe_culling.h): it is no longer part of
+  // the sparse map; its pose follows a kept keyframe's, and the trajectories keep it, but a
+  // view need not draw it as a place the agent went. Its cloud stays until released.
+  virtual void OnCulled(MapId /*map*/, const GlobalKeyframeId& /*id*/) {}
   // Keyframes of `map` became unplaced (an agent's restarted segment that nothing measures
   // against the rest of the map yet, or the few keyframes a restart keeps apart:
   // ServerMap::Placed) or, `placed`, were placed by a loop. Unplaced keyframes stay out of the

@@ -1,5 +1,6 @@
 #include "libccmd/view/view_model.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 
@@ -45,7 +46,21 @@ Json ViewModel::KeyframeJson(const ViewKeyframe& kf) {
   j["cloud"] = kf.has_cloud;
   j["moves"] = kf.pose_updates;
   if (!kf.placed) j["placed"] = false;
+  if (kf.culled) j["culled"] = true;
   return j;
+}
+
+Json ViewModel::IdJson(const GlobalKeyframeId& id) {
+  Json item = Json::MakeArray();
+  item.Push(static_cast<int>(id.agent.value()));
+  item.Push(id.keyframe.value());
+  return item;
+}
+
+void ViewModel::DropLoopsOf(const GlobalKeyframeId& id) {
+  loops_.erase(std::remove_if(loops_.begin(), loops_.end(),
+                              [&](const Loop& l) { return l.query == id || l.candidate == id; }),
+               loops_.end());
 }
 
 void ViewModel::Append(Json event) {
@@ -152,10 +167,7 @@ void ViewModel::OnPlacement(MapId map, const std::vector<GlobalKeyframeId>& keyf
     const auto it = keyframes_.find(id);
     if (it == keyframes_.end()) continue;  // never announced
     it->second.placed = placed;
-    Json item = Json::MakeArray();
-    item.Push(static_cast<int>(id.agent.value()));
-    item.Push(id.keyframe.value());
-    list.Push(std::move(item));
+    list.Push(IdJson(id));
   }
   if (list.size() == 0) return;
   Json e;
@@ -177,6 +189,43 @@ void ViewModel::OnDenseKeyframe(const GlobalKeyframeId& id) {
   e["a"] = static_cast<int>(id.agent.value());
   e["k"] = id.keyframe.value();
   e["t"] = t;
+  Append(std::move(e));
+}
+
+void ViewModel::OnDenseReleased(const std::vector<GlobalKeyframeId>& ids) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  Json list = Json::MakeArray();
+  for (const GlobalKeyframeId& id : ids) {
+    const auto it = keyframes_.find(id);
+    if (it == keyframes_.end()) continue;
+    it->second.has_cloud = false;
+    if (it->second.culled) keyframes_.erase(it);
+    list.Push(IdJson(id));
+  }
+  if (list.size() == 0) return;
+  Json e;
+  e["type"] = "released";
+  e["kfs"] = std::move(list);
+  Append(std::move(e));
+}
+
+void ViewModel::OnCulled(MapId map, const GlobalKeyframeId& id) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  const auto it = keyframes_.find(id);
+  if (it == keyframes_.end()) return;
+  // Off its agent's path, with its loops; kept while it has a cloud to draw.
+  DropLoopsOf(id);
+  if (it->second.has_cloud) {
+    it->second.culled = true;
+  } else {
+    keyframes_.erase(it);
+  }
+  Json list = Json::MakeArray();
+  list.Push(IdJson(id));
+  Json e;
+  e["type"] = "culled";
+  e["m"] = map.value();
+  e["kfs"] = std::move(list);
   Append(std::move(e));
 }
 

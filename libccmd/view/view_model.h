@@ -5,9 +5,8 @@
 // dense store, the loops and fusions, and the latest per-agent statistics; plus the numbered
 // stream of changes (events) that a browser follows after it has read the whole state once.
 //
-// The state grows with the keyframes (like the server's maps). The event log is a ring bounded
-// in count and bytes: a browser that falls further behind than the ring is told to reload the
-// state ("reset") instead of the server keeping every change forever.
+// The event log is a ring bounded in count and bytes: a browser that falls further behind than the
+// ring is told to reload the state ("reset") instead of the server keeping every change forever.
 //
 // Events are JSON objects with a "type" (docs/view.md lists them):
 //   agent  {a, name}                       an agent registered
@@ -22,6 +21,16 @@
 //   placed {m, placed, kfs: [[a, k]]}      keyframes became unplaced (placed false: a restarted
 //                                          segment nothing places yet) or were placed by a loop;
 //                                          a keyframe's state says "placed": false while so
+//   culled {m, kfs: [[a, k]]}              keyframes culled as redundant: no longer drawn on
+//                                          their agent's path (nor their loops); one without a
+//                                          cloud leaves the state, one with a cloud stays
+//                                          ("culled": true) until the cloud is released
+//   released {kfs: [[a, k]]}               the dense store released their clouds (every point
+//                                          held by an earlier keyframe): nothing to draw; a
+//                                          culled keyframe leaves the state
+// The state keeps a keyframe while it is kept by the server or has a cloud in the dense
+// store, and the loops between kept keyframes, so it follows the mapped space: a camera
+// circling a mapped room adds keyframes that are culled and clouds that are released.
 // Thread safety: every method may be called from any thread.
 
 #include <condition_variable>
@@ -54,6 +63,7 @@ struct ViewKeyframe {
   bool has_cloud = false;  // in the dense store
   int pose_updates = 0;    // times it moved after it arrived
   bool placed = true;      // false: an unplaced restarted segment (MapObserver::OnPlacement)
+  bool culled = false;     // culled by the server, kept here for its cloud
 };
 
 // What WaitEvents hands a stream: the text of the events after `after` (SSE-framed, see
@@ -78,6 +88,8 @@ class ViewModel : public MapObserver {
   void OnLoop(const LoopEvent& event) override;
   void OnDenseKeyframe(const GlobalKeyframeId& id) override;
   void OnPlacement(MapId map, const std::vector<GlobalKeyframeId>& keyframes, bool placed) override;
+  void OnDenseReleased(const std::vector<GlobalKeyframeId>& ids) override;
+  void OnCulled(MapId map, const GlobalKeyframeId& id) override;
 
   // The latest statistics (a JSON object, e.g. the view server's summary); streams send it
   // when it changes.
@@ -108,7 +120,9 @@ class ViewModel : public MapObserver {
     MapId map;
   };
 
-  void Append(Json event);  // mutex held
+  void Append(Json event);                       // mutex held
+  void DropLoopsOf(const GlobalKeyframeId& id);  // mutex held
+  static Json IdJson(const GlobalKeyframeId& id);
   static Json KeyframeJson(const ViewKeyframe& kf);
 
   const ViewModelOptions options_;

@@ -119,6 +119,47 @@ TEST(ViewModelTest, PlacementOfRestartedSegmentsIsStateAndEvents) {
   EXPECT_TRUE(placed->Get("placed")->boolean());
 }
 
+// A camera circling a mapped room: its new keyframes are culled by the server and their clouds
+// released by the dense store. The state keeps a keyframe only while the server keeps it or its
+// cloud is drawn, and only the loops between kept keyframes, so it does not grow with passes.
+TEST(ViewModelTest, CulledKeyframesLeaveTheStateOnceTheyHaveNoCloud) {
+  ViewModel model;
+  model.OnAgent(AgentId(1), "alpha");
+  for (int k = 0; k < 4; ++k) model.OnKeyframe(Id(1, k), MapId(1), Moved(k, 0), 1.0, true);
+  for (int k : {1, 2}) model.OnDenseKeyframe(Id(1, k));
+  LoopEvent loop;
+  loop.query = Id(1, 3);
+  loop.candidate = Id(1, 0);
+  loop.map = MapId(1);
+  model.OnLoop(loop);
+  model.OnCulled(MapId(1), Id(1, 3));  // no cloud: gone, with its loop
+  model.OnCulled(MapId(1), Id(1, 2));  // a cloud: stays for it, off the path
+  Json state = model.StateJson();
+  EXPECT_EQ(state.Get("keyframes")->size(), 3u);
+  EXPECT_EQ(FindKeyframe(state, 1, 3), nullptr);
+  EXPECT_TRUE(FindKeyframe(state, 1, 2)->Get("culled")->boolean());
+  EXPECT_FALSE(FindKeyframe(state, 1, 1)->Has("culled"));
+  EXPECT_EQ(state.Get("loops")->size(), 0u);
+  // Released clouds: a culled keyframe leaves the state, a kept one stays without its cloud.
+  model.OnDenseReleased({Id(1, 2), Id(1, 1), Id(1, 9)});
+  state = model.StateJson();
+  EXPECT_EQ(state.Get("keyframes")->size(), 2u);
+  EXPECT_EQ(FindKeyframe(state, 1, 2), nullptr);
+  EXPECT_FALSE(FindKeyframe(state, 1, 1)->Get("cloud")->boolean());
+  model.OnCulled(MapId(1), Id(1, 7));  // never announced: no event
+  model.OnDenseReleased({Id(1, 8)});   // nor here
+
+  const EventBatch batch = model.WaitEvents(0, 0, 1.0);
+  std::vector<std::string> types;
+  for (const auto& [seq, text] : batch.events)
+    types.push_back(Json::Parse(text)->Get("type")->string());
+  EXPECT_EQ(types, (std::vector<std::string>{"agent", "kf", "kf", "kf", "kf", "cloud", "cloud",
+                                             "loop", "culled", "culled", "released"}));
+  auto released = Json::Parse(batch.events.back().second);
+  ASSERT_TRUE(released.ok());
+  EXPECT_EQ(released->Get("kfs")->size(), 2u);  // the unknown one left out
+}
+
 TEST(ViewModelTest, PosesOfUnknownKeyframesAreNotEvents) {
   ViewModel model;
   model.OnPoses(PoseSource::kGlobalBa, MapId(1), {{Id(1, 9), Pose::Identity()}}, 1.0);

@@ -122,6 +122,7 @@
     'varying vec3 vColour;',
     'void main() {',
     '  int i = int(slot) * 3;',
+    '  if (poses[i] == vec4(0.0)) { gl_Position = vec4(2.0, 2.0, 2.0, 1.0); return; }',  // released
     '  vec4 p = vec4(position, 1.0);',
     '  vec4 w = vec4(dot(poses[i], p), dot(poses[i + 1], p), dot(poses[i + 2], p), 1.0);',
     '  gl_Position = projectionMatrix * (modelViewMatrix * w);',
@@ -211,6 +212,10 @@
       this.rows[3 * slot + r].set(T[4 * r] * 1e-3, T[4 * r + 1] * 1e-3, T[4 * r + 2] * 1e-3, T[4 * r + 3]);
     }
   };
+  // A released cloud: its slot's pose is zero, which the vertex shader clips.
+  Chunk.prototype.hide = function (slot) {
+    for (let r = 0; r < 3; ++r) this.rows[3 * slot + r].set(0, 0, 0, 0);
+  };
   Chunk.prototype.dispose = function () {
     for (const level of this.levels) if (level.points) level.points.geometry.dispose();
     this.material.dispose();
@@ -241,6 +246,17 @@
     kf.fetched = nowMs();
     if (kf.told) S.latency.fetch.push(kf.fetched - kf.told);
     view.totalPoints += n;
+    markFresh();
+  }
+
+  // The dense store released the keyframe's cloud: nothing of it is drawn any more.
+  function dropCloud(kf) {
+    if (kf.chunk) kf.chunk.hide(kf.slot);
+    kf.chunk = null;
+    kf.slot = -1;
+    view.totalPoints -= kf.points;
+    kf.points = 0;
+    kf.loaded = kf.cloud = false;
     markFresh();
   }
 
@@ -400,6 +416,7 @@
       };
       let map = null;
       for (const kf of list) {
+        if (kf.culled) continue;  // redundant: the server keeps it only for its cloud
         if (kf.unplaced) { flush(); map = null; continue; }  // not drawn until a loop places it
         if (map !== null && kf.m !== map) flush();
         map = kf.m;
@@ -495,7 +512,8 @@
       const kf = S.keyframes.get(key(a, k));
       if (!kf) continue;
       kf.fetching = false;
-      if (found && !kf.loaded) addCloud(kf, positions, colours, n);
+      // (not after a release that overtook the request)
+      if (found && !kf.loaded && kf.cloud) addCloud(kf, positions, colours, n);
     }
   }
 
@@ -510,6 +528,7 @@
     kf.moves = e.moves || 0;
     // An agent's restarted segment that nothing places yet: its poses are a guess.
     kf.unplaced = e.placed === false;
+    kf.culled = e.culled === true;
     // Latency counts from arrival only for keyframes the dense map takes at once (not those
     // that wait for their map to be fused).
     if (e.t && e.primary) kf.arrived = e.t;
@@ -561,6 +580,25 @@
           if (kf) kf.unplaced = !e.placed;
         }
         markOverlay();
+        break;
+      case 'culled':
+        for (const item of e.kfs) {
+          const id = key(item[0], item[1]), kf = S.keyframes.get(id);
+          if (!kf) continue;
+          kf.culled = true;
+          if (!kf.cloud) S.keyframes.delete(id);  // nothing left to draw
+        }
+        S.loops = S.loops.filter((l) => S.keyframes.has(key(l.qa, l.qk)) && S.keyframes.has(key(l.ca, l.ck)) &&
+          !S.keyframes.get(key(l.qa, l.qk)).culled && !S.keyframes.get(key(l.ca, l.ck)).culled);
+        markOverlay();
+        break;
+      case 'released':
+        for (const item of e.kfs) {
+          const id = key(item[0], item[1]), kf = S.keyframes.get(id);
+          if (!kf) continue;
+          dropCloud(kf);
+          if (kf.culled) S.keyframes.delete(id);
+        }
         break;
       case 'loop':
         S.loops.push(e);
