@@ -149,7 +149,10 @@ void Backend::NotifyPoses(PoseSource source, MapId map, const std::vector<Server
   if (!observer_ || moved.empty()) return;
   std::vector<KeyframePose> poses;
   poses.reserve(moved.size());
-  for (const ServerKeyframe* kf : moved) poses.push_back({kf->id, kf->T_map_cam});
+  for (const ServerKeyframe* kf : moved) {
+    poses.push_back({kf->id, kf->T_map_cam});
+    for (const CulledKeyframe& f : kf->followers) poses.push_back({f.id, kf->FollowerPose(f)});
+  }
   observer_->OnPoses(source, map, poses, arrived_s);
 }
 
@@ -174,6 +177,7 @@ void Backend::Ingest(IngestItem item) {
     QueueDenseUpdates(moved, DenseTask::Kind::kUpdate);
     std::lock_guard<std::mutex> lock(stats_mutex_);
     stats_.pose_updates_received++;
+    stats_.pose_updates_of_culled += pose_update->entries.size() - moved.size();
     return;
   }
   if (!item.keyframe) return;
@@ -210,15 +214,22 @@ void Backend::Ingest(IngestItem item) {
       std::vector<GlobalKeyframeId> unplaced;
       if (!guard->Placed(**keyframe)) unplaced.push_back(id);
       if (message.restart) {
+        const auto remove_from_dense = [&](const GlobalKeyframeId& k, bool* in_dense) {
+          if (!dense_ || !*in_dense) return;
+          *in_dense = false;
+          DenseTask task;
+          task.kind = DenseTask::Kind::kRemove;
+          task.keyframe = k;
+          dense_stage_.Push(std::move(task));
+        };
         for (const auto& [kid, kf] : guard->keyframes()) {
           if (guard->Placed(*kf) || kid == id) continue;
           unplaced.push_back(kid);
-          if (!dense_ || !kf->in_dense) continue;
-          kf->in_dense = false;
-          DenseTask task;
-          task.kind = DenseTask::Kind::kRemove;
-          task.keyframe = kid;
-          dense_stage_.Push(std::move(task));
+          remove_from_dense(kid, &kf->in_dense);
+          for (CulledKeyframe& f : kf->followers) {
+            unplaced.push_back(f.id);
+            remove_from_dense(f.id, &f.in_dense);
+          }
         }
       }
       if (observer_ && !unplaced.empty()) observer_->OnPlacement(guard->id(), unplaced, false);
@@ -241,18 +252,24 @@ void Backend::Ingest(IngestItem item) {
 void Backend::QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>& keyframes,
                              double received) {
   if (!dense_) return;
-  for (ServerKeyframe* kf : keyframes) {
-    if (kf->in_dense || !kf->rgbd || !map->Placed(*kf)) continue;
+  const auto add = [&](const GlobalKeyframeId& id, const Pose& T_map_cam,
+                       std::shared_ptr<const RgbdPayload>* rgbd, bool* in_dense) {
+    if (*in_dense || !*rgbd) return;
     DenseTask task;
     task.kind = DenseTask::Kind::kAdd;
     task.to = map->id();
-    task.keyframe = kf->id;
-    task.T_world_cam = kf->T_map_cam;
-    task.rgbd = std::move(kf->rgbd);  // the dense map keeps its own copy of the points
-    task.camera = CameraOf(kf->id.agent);
+    task.keyframe = id;
+    task.T_world_cam = T_map_cam;
+    task.rgbd = std::move(*rgbd);  // the dense map keeps its own copy of the points
+    task.camera = CameraOf(id.agent);
     task.received = received;
-    kf->in_dense = true;
+    *in_dense = true;
     dense_stage_.Push(std::move(task));
+  };
+  for (ServerKeyframe* kf : keyframes) {
+    if (!map->Placed(*kf)) continue;
+    add(kf->id, kf->T_map_cam, &kf->rgbd, &kf->in_dense);
+    for (CulledKeyframe& f : kf->followers) add(f.id, kf->FollowerPose(f), &f.rgbd, &f.in_dense);
   }
 }
 
@@ -260,8 +277,11 @@ void Backend::QueueDenseUpdates(const std::vector<ServerKeyframe*>& moved, Dense
   if (!dense_) return;
   DenseTask task;
   task.kind = kind;
-  for (ServerKeyframe* kf : moved) {
+  for (const ServerKeyframe* kf : moved) {
     if (kf->in_dense) task.poses.push_back({kf->id, kf->T_map_cam});
+    for (const CulledKeyframe& f : kf->followers) {
+      if (f.in_dense) task.poses.push_back({f.id, kf->FollowerPose(f)});
+    }
   }
   if (!task.poses.empty()) dense_stage_.Push(std::move(task));
 }
@@ -289,9 +309,15 @@ void Backend::UpdateDense(DenseTask task) {
       break;
     case DenseTask::Kind::kRemove:
       status = dense_->RemoveKeyframe(task.keyframe);
+      // Released already: it held no point.
+      if (status.code() == StatusCode::kNotFound) status = Status::Ok();
       break;
   }
   if (!status.ok()) CCMD_LOG(WARNING) << "dense map: " << status.ToString();
+  if (observer_) {
+    const std::vector<GlobalKeyframeId> released = dense_->TakeReleased();
+    if (!released.empty()) observer_->OnDenseReleased(released);
+  }
   if (dense_stage_.backlog() == 0) {
     dense_->Maintain();  // deferred re-filters when idle
     // Keyframes that left the window freed their full clouds: give the pages back now and then.
@@ -371,8 +397,10 @@ void Backend::CullIfRedundant(const GlobalKeyframeId& id) {
   };
   {
     MapManager::Guard guard = maps_.CheckOutAgent(id.agent);
-    culler_.Check(guard.get(), id, camera_of,
-                  [&](const GlobalKeyframeId& k) { return loop_closer_.Forget(k); });
+    const bool culled = culler_.Check(guard.get(), id, camera_of, [&](const GlobalKeyframeId& k) {
+      return loop_closer_.Forget(k);
+    });
+    if (culled && observer_) observer_->OnCulled(guard->id(), id);
   }
   std::lock_guard<std::mutex> lock(stats_mutex_);
   stats_.culling_checked = culler_.stats().checked;
@@ -528,9 +556,8 @@ Trajectory Backend::AgentTrajectory(AgentId agent) {
   Trajectory trajectory;
   const Pose T_color_trajectory = TrajectoryCameraOf(agent);
   MapManager::Guard guard = maps_.CheckOutAgent(agent);
-  for (ServerKeyframe* kf : guard->AgentKeyframes(agent)) {
-    if (guard->Placed(*kf))
-      trajectory.push_back({kf->timestamp, kf->T_map_cam * T_color_trajectory});
+  for (const ServerMap::KeyframeSample& kf : guard->AllKeyframes(agent)) {
+    if (kf.placed) trajectory.push_back({kf.timestamp, kf.T_map_cam * T_color_trajectory});
   }
   std::sort(trajectory.begin(), trajectory.end(),
             [](const StampedPose& a, const StampedPose& b) { return a.timestamp < b.timestamp; });
@@ -548,13 +575,14 @@ Trajectory Backend::FusedTrajectory() {
     std::lock_guard<std::mutex> lock(cameras_mutex_);
     trajectory_cameras = trajectory_cameras_;
   }
-  for (const auto& [id, kf] : guard->keyframes()) {
-    if (!guard->Placed(*kf)) continue;
-    const auto camera = trajectory_cameras.find(id.agent);
-    trajectory.push_back({kf->timestamp, camera == trajectory_cameras.end()
-                                             ? kf->T_map_cam
-                                             : kf->T_map_cam * camera->second});
+  for (const ServerMap::KeyframeSample& kf : guard->AllKeyframes()) {
+    if (!kf.placed) continue;
+    const auto camera = trajectory_cameras.find(kf.id.agent);
+    trajectory.push_back({kf.timestamp, camera == trajectory_cameras.end()
+                                            ? kf.T_map_cam
+                                            : kf.T_map_cam * camera->second});
   }
+  // Ties in time stay in id order.
   std::stable_sort(
       trajectory.begin(), trajectory.end(),
       [](const StampedPose& a, const StampedPose& b) { return a.timestamp < b.timestamp; });

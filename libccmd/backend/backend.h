@@ -65,6 +65,9 @@ struct BackendOptions {
 struct BackendStats {
   std::size_t agents = 0, maps = 0, keyframes = 0, map_points = 0;
   std::size_t keyframes_received = 0, pose_updates_received = 0;
+  // Pose-update entries for keyframes the map does not keep (culled: their poses follow their
+  // leaders'), skipped.
+  std::size_t pose_updates_of_culled = 0;
   int loops = 0, fusions = 0;
   int global_ba_runs = 0, global_ba_aborted = 0;
   double global_ba_seconds = 0;

@@ -54,7 +54,7 @@ BackendStats Backend::stats() {
   for (MapId id : maps_.Maps()) {
     MapManager::Guard guard = maps_.CheckOut(id);
     if (!guard) continue;
-    s.keyframes += guard->keyframes().size();
+    s.keyframes += guard->keyframes().size() + guard->num_culled();
     s.map_points += guard->num_points();
     s.segments_unplaced += guard->num_unplaced_segments();
   }
@@ -134,6 +134,7 @@ Json Backend::StatsJson() {
   j["map_points"] = s.map_points;
   j["keyframes_received"] = s.keyframes_received;
   j["pose_updates_received"] = s.pose_updates_received;
+  j["pose_updates_of_culled"] = s.pose_updates_of_culled;
   j["loops"] = s.loops;
   j["loops_already_closed"] = s.loops_already_closed;
   j["segments_restarted"] = s.segments_restarted;
@@ -177,6 +178,9 @@ Json Backend::MemoryJson() {
     dense["compact_keyframes"] = d.compact_keyframes;
     dense["points"] = d.points;
     dense["compact_points"] = d.compact_points;
+    dense["released_keyframes"] = d.released_keyframes;
+    dense["released_points"] = d.released_points;
+    dense["absent_updates"] = d.absent_updates;
     dense["held_bytes"] = d.held_bytes;
     dense["bytes"] = d.memory_bytes;
     dense["bytes_per_point"] = d.points ? static_cast<double>(d.memory_bytes) / d.points : 0.0;

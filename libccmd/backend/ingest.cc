@@ -9,8 +9,14 @@ namespace ccmd {
 StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent,
                                              const KeyframeMessage& m, const Pose& T_map_agent) {
   const GlobalKeyframeId id{agent, m.id};
-  if (map->keyframe(id))
-    return InvalidArgument("keyframe " + std::to_string(m.id.value()) + " already known");
+  // An agent's keyframe ids only grow: an id not newer than its newest was received before
+  // (and may have been culled since, leaving only its pose).
+  const std::optional<KeyframeId> newest = map->NewestKeyframeOf(agent);
+  if (newest && m.id <= *newest) {
+    return InvalidArgument("keyframe " + std::to_string(m.id.value()) +
+                           " already known (the agent's newest is " +
+                           std::to_string(newest->value()) + ")");
+  }
   auto kf = std::make_unique<ServerKeyframe>();
   kf->id = id;
   kf->timestamp = m.timestamp;
@@ -117,10 +123,8 @@ std::vector<ServerKeyframe*> ApplyPoseUpdates(ServerMap* map, AgentId agent,
     const Pose change = kf->T_agent_cam.inverse() * T_agent_new;
     kf->T_map_cam = kf->T_map_cam * change;
     kf->T_agent_cam = T_agent_new;
-    if (kf->culled()) kf->T_follows_this = kf->T_follows_this * change;
     moved.push_back(kf);
   }
-  map->CarryFollowers(&moved);
   return moved;
 }
 

@@ -54,7 +54,7 @@ std::vector<ServerKeyframe*> CoveringCandidates(const ServerMap& map, const Serv
   // has placed yet may lie anywhere against the rest of the map.
   const std::optional<GlobalKeyframeId> group = map.UnplacedGroup(kf);
   const auto consider = [&](ServerKeyframe* other) {
-    if (!other || other == &kf || other->culled() || !other->cull_checked) return;
+    if (!other || other == &kf || !other->cull_checked) return;
     if (map.UnplacedGroup(*other) != group) return;
     const double distance = (other->camera_center() - kf.camera_center()).norm();
     if (distance > radius || other->T_map_cam.linear().col(2).dot(axis) < min_cos) return;
@@ -141,7 +141,7 @@ bool KeyframeCuller::Check(ServerMap* map, const GlobalKeyframeId& id,
                            const std::function<const PinholeCamera*(AgentId)>& camera_of,
                            const std::function<bool(const GlobalKeyframeId&)>& may_cull) {
   ServerKeyframe* kf = map->keyframe(id);
-  if (!kf || kf->culled() || kf->cull_checked) return false;
+  if (!kf || kf->cull_checked) return false;
   kf->cull_checked = true;
   ++stats_.checked;
   // The map's origin holds its gauge; a restarted segment's first keyframe carries the loose

@@ -698,7 +698,10 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
       CCMD_LOG(INFO) << "the loop places " << placed.size()
                      << " keyframes of restarted segments in map " << map->id().value();
       event.placed_segment = true;
-      for (const ServerKeyframe* kf : placed) closure.placed.push_back(kf->id);
+      for (const ServerKeyframe* kf : placed) {
+        closure.placed.push_back(kf->id);
+        for (const CulledKeyframe& f : kf->followers) closure.placed.push_back(f.id);
+      }
       if (maps_->primary() == map->id()) closure.joined_primary = std::move(placed);
     }
     closure.map = std::move(*query_guard);

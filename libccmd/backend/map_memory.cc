@@ -63,9 +63,15 @@ Json SparseMemory::ToJson() const {
 SparseMemory MeasureSparseMemory(const ServerMap& map) {
   SparseMemory m;
   for (const auto& [id, kf] : map.keyframes()) {
-    ++m.keyframes;
-    m.culled_keyframes += kf->culled();
+    m.keyframes += 1 + kf->followers.size();
+    m.culled_keyframes += kf->followers.size();
     m.follower_bytes += Capacity(kf->followers);
+    for (const CulledKeyframe& f : kf->followers) {
+      if (f.rgbd) {
+        m.rgbd_coded_bytes +=
+            sizeof(RgbdPayload) + f.rgbd->colour_jpeg.capacity() + f.rgbd->depth.capacity();
+      }
+    }
     m.keyframe_bytes += sizeof(ServerKeyframe) + kTreeNode + sizeof(id) + sizeof(kf);
     m.keypoint_bytes += Capacity(kf->keypoints);
     m.descriptor_bytes += Capacity(kf->own_descriptors);

@@ -12,11 +12,11 @@
 namespace ccmd {
 
 struct SparseMemory {
-  std::size_t keyframes = 0;
-  std::size_t culled_keyframes = 0;  // of `keyframes`: only their poses are kept
+  std::size_t keyframes = 0;         // kept and culled
+  std::size_t culled_keyframes = 0;  // of `keyframes`: only their poses are kept (followers)
   std::size_t map_points = 0;
-  std::size_t keyframe_bytes = 0;    // the keyframe objects and the map's index of them
-  std::size_t follower_bytes = 0;    // the leaders' lists of their culled followers
+  std::size_t keyframe_bytes = 0;    // the kept keyframe objects and the map's index of them
+  std::size_t follower_bytes = 0;    // the culled keyframes (CulledKeyframe, in their leaders)
   std::size_t keypoint_bytes = 0;    // positions, octaves, angles, depths
   std::size_t descriptor_bytes = 0;  // one per keypoint
   std::size_t point_link_bytes = 0;  // keypoint to map point

@@ -32,7 +32,6 @@ StatusOr<std::vector<ServerKeyframe*>> OptimizeMapPoseGraph(ServerMap* map,
   std::map<GlobalKeyframeId, int> index;
   std::vector<PoseGraphNode> nodes;
   for (const auto& [id, kf] : map->keyframes()) {
-    if (kf->culled()) continue;  // follows a keyframe of the graph
     index[id] = static_cast<int>(keyframes.size());
     keyframes.push_back(kf.get());
     nodes.push_back({kf->T_map_cam, map->origin() && id == *map->origin()});
@@ -82,7 +81,6 @@ StatusOr<std::vector<ServerKeyframe*>> OptimizeMapPoseGraph(ServerMap* map,
       moved.push_back(keyframes[i]);
     }
   }
-  map->CarryFollowers(&moved);
   return moved;
 }
 
@@ -161,7 +159,6 @@ class GlobalBaBuilder {
         Eigen::Vector3d::Constant(1.0 / kRestartSigmaTranslation);
     const ServerKeyframe* previous = nullptr;
     for (const auto& [id, kf] : map_.keyframes()) {
-      if (kf->culled()) continue;
       if (kf->restart && previous && previous->id.agent == id.agent) {
         const int a = Known(previous), b = Known(kf.get());
         if (a >= 0 && b >= 0) {
@@ -227,7 +224,6 @@ GlobalBaProblem BuildGlobalBa(const ServerMap& map, const std::map<AgentId, Pinh
   GlobalBaProblem g;
   GlobalBaBuilder builder(map, cameras, depth_noise, &g);
   for (const auto& [id, kf] : map.keyframes()) {
-    if (kf->culled()) continue;  // nothing to adjust: it follows a keyframe of the problem
     if (!window || window->count(id)) builder.Camera(kf.get(), /*fixed=*/false);
   }
   std::set<const ServerKeyframe*> fixed;
@@ -252,7 +248,6 @@ std::set<GlobalKeyframeId> SelectGlobalBaWindow(const ServerMap& map,
   std::size_t observations = 0;
   // Adds a keyframe if both bounds allow it.
   const auto admit = [&](const ServerKeyframe* kf) {
-    if (kf->culled()) return false;
     std::size_t own = 0;
     for (const ServerMapPoint* p : kf->points) own += p && p->observations.size() >= 2;
     if (static_cast<int>(window.size()) >= max_keyframes ||
@@ -298,7 +293,7 @@ std::vector<ServerKeyframe*> ApplyGlobalBa(ServerMap* map, const GlobalBaProblem
   std::map<AgentId, std::map<KeyframeId, Pose>> corrections;
   for (std::size_t c = 0; c < g.keyframes.size(); ++c) {
     ServerKeyframe* kf = map->keyframe(g.keyframes[c]);
-    if (!kf || kf->culled()) continue;  // culled during the solve: it follows its leader
+    if (!kf) continue;  // culled during the solve: it follows its leader
     const Pose before = g.T_map_cam_before.at(g.keyframes[c]);
     const Pose after = g.problem.cameras[c].T_cam_world.inverse();
     corrections[kf->id.agent][kf->id.keyframe] = after * before.inverse();
@@ -322,7 +317,6 @@ std::vector<ServerKeyframe*> ApplyGlobalBa(ServerMap* map, const GlobalBaProblem
     kf->T_map_cam = Orthonormalized(it->second * kf->T_map_cam);
     moved.push_back(kf.get());
   }
-  map->CarryFollowers(&moved);
   // Points last: their anchors have their final poses now.
   for (std::size_t j = 0; j < g.points.size(); ++j) {
     if (ServerMapPoint* p = map->point(g.points[j])) p->SetWorld(g.problem.points[j].position);

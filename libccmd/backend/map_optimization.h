@@ -38,11 +38,11 @@ struct MapPoseGraphOptions {
 inline constexpr double kRestartSigmaRotation = 1.0;     // radians
 inline constexpr double kRestartSigmaTranslation = 1.0;  // metres
 
-// Nodes: every keyframe not culled; edges: consecutive keyframes of each agent (loose across a
-// restart, kRestartSigma*) and
+// Nodes: the map's keyframes (culled ones follow theirs: ServerKeyframe::followers); edges:
+// consecutive keyframes of each agent (loose across a restart, kRestartSigma*) and
 // covisibility links (measured as the current relative poses), and the map's loop edges (their
-// measurements). The map's origin keyframe is fixed. Keyframes are moved in place, culled ones
-// with the keyframe they follow; returns those that moved.
+// measurements). The map's origin keyframe is fixed. Keyframes are moved in place; returns
+// those that moved.
 StatusOr<std::vector<ServerKeyframe*>> OptimizeMapPoseGraph(
     ServerMap* map, const MapPoseGraphOptions& options = {});
 
@@ -67,8 +67,7 @@ struct GlobalBaProblem {
   std::map<GlobalKeyframeId, Pose> T_map_cam_before;
   std::map<AgentId, KeyframeId> last_keyframe;  // each agent's newest keyframe when built
 };
-// Every keyframe not culled and every point with at least two observations; the origin is
-// fixed. With a
+// Every keyframe and every point with at least two observations; the origin is fixed. With a
 // `window`, only its keyframes are optimised: the points they observe (at least twice in the
 // map) with every observation, keyframes outside the window that observe them held fixed (and
 // the first of the window if none does, to fix the gauge).
@@ -86,8 +85,8 @@ std::set<GlobalKeyframeId> SelectGlobalBaWindow(const ServerMap& map,
                                                 std::size_t max_observations = SIZE_MAX);
 // Writes the result back: optimised keyframes get their new poses; keyframes added since the
 // problem was built move with the correction of the nearest optimised keyframe of their agent
-// (keyframes left out of a window stay); optimised points get their new positions; culled
-// keyframes follow theirs. Returns the keyframes that moved.
+// (keyframes left out of a window stay); optimised points get their new positions. Returns
+// the keyframes that moved (their culled followers move with them).
 std::vector<ServerKeyframe*> ApplyGlobalBa(ServerMap* map, const GlobalBaProblem& result);
 
 }  // namespace ccmd

@@ -44,6 +44,24 @@ void ServerKeyframe::KeepOwnDescriptor(std::size_t i, const Descriptor& d) {
   }
 }
 
+Pose CulledKeyframe::T_leader_this() const {
+  Pose T = Pose::Identity();
+  T.linear() =
+      Eigen::Quaterniond(q_leader_this[3], q_leader_this[0], q_leader_this[1], q_leader_this[2])
+          .normalized()
+          .toRotationMatrix();
+  T.translation() = Eigen::Vector3d(t_leader_this[0], t_leader_this[1], t_leader_this[2]);
+  return T;
+}
+
+void CulledKeyframe::SetT_leader_this(const Pose& T) {
+  const Eigen::Quaterniond q(T.linear());
+  q_leader_this = {static_cast<float>(q.x()), static_cast<float>(q.y()), static_cast<float>(q.z()),
+                   static_cast<float>(q.w())};
+  t_leader_this = {static_cast<float>(T.translation().x()), static_cast<float>(T.translation().y()),
+                   static_cast<float>(T.translation().z())};
+}
+
 Eigen::Vector3d ServerMapPoint::World() const { return anchor->T_map_cam * p_anchor; }
 
 void ServerMapPoint::SetWorld(const Eigen::Vector3d& p_world) {
@@ -129,8 +147,29 @@ KeyframeId ServerMap::NewestKeyframe(AgentId agent) const {
   return it == newest_.end() ? KeyframeId(0) : it->second;
 }
 
+std::optional<KeyframeId> ServerMap::NewestKeyframeOf(AgentId agent) const {
+  const auto it = newest_.find(agent);
+  if (it == newest_.end()) return std::nullopt;
+  return it->second;
+}
+
+void ServerMap::AddLoopEdge(const LoopEdge& edge) {
+  for (LoopEdge& e : loop_edges_) {
+    if (e.a == edge.a && e.b == edge.b) {
+      e = edge;
+      return;
+    }
+    if (e.a == edge.b && e.b == edge.a) {
+      e = {edge.b, edge.a, edge.T_a_b.inverse()};
+      return;
+    }
+  }
+  loop_edges_.push_back(edge);
+}
+
 std::size_t ServerMap::Cull(ServerKeyframe* kf, ServerKeyframe* follow) {
-  CCMD_CHECK(kf != follow && !kf->culled() && !follow->culled() && kf->followers.empty());
+  CCMD_CHECK(kf != follow && keyframe(kf->id) == kf && keyframe(follow->id) == follow &&
+             kf->followers.empty());
   std::size_t removed = 0;
   for (ServerMapPoint* p : kf->points) {
     if (!p) continue;
@@ -151,7 +190,14 @@ std::size_t ServerMap::Cull(ServerKeyframe* kf, ServerKeyframe* follow) {
     if (ServerKeyframe* o = keyframe(other)) o->covisibility.erase(kf->id);
   }
   const Pose T_follow_kf = follow->T_map_cam.inverse() * kf->T_map_cam;
-  for (LoopEdge& edge : loop_edges_) {
+  std::vector<LoopEdge> moved;
+  for (auto it = loop_edges_.begin(); it != loop_edges_.end();) {
+    if (it->a != kf->id && it->b != kf->id) {
+      ++it;
+      continue;
+    }
+    LoopEdge edge = *it;
+    it = loop_edges_.erase(it);
     if (edge.a == kf->id) {
       edge.a = follow->id;
       edge.T_a_b = T_follow_kf * edge.T_a_b;
@@ -160,25 +206,52 @@ std::size_t ServerMap::Cull(ServerKeyframe* kf, ServerKeyframe* follow) {
       edge.b = follow->id;
       edge.T_a_b = edge.T_a_b * T_follow_kf.inverse();
     }
+    if (edge.a != edge.b) moved.push_back(edge);
   }
-  loop_edges_.erase(std::remove_if(loop_edges_.begin(), loop_edges_.end(),
-                                   [](const LoopEdge& e) { return e.a == e.b; }),
-                    loop_edges_.end());
-  // Give the memory back (clear() would keep the capacity).
-  std::vector<ServerKeypoint>().swap(kf->keypoints);
-  std::vector<ServerMapPoint*>().swap(kf->points);
-  std::vector<std::pair<std::uint32_t, Descriptor>>().swap(kf->own_descriptors);
-  std::vector<ServerKeyframe::DepthLink>().swap(kf->depth_links);
-  kf->covisibility.clear();
+  // One edge per pair: the pair's own measurement stays, the composed one is dropped.
+  for (const LoopEdge& edge : moved) {
+    const bool known = std::any_of(loop_edges_.begin(), loop_edges_.end(), [&](const LoopEdge& e) {
+      return (e.a == edge.a && e.b == edge.b) || (e.a == edge.b && e.b == edge.a);
+    });
+    if (!known) loop_edges_.push_back(edge);
+  }
+  CulledKeyframe record;
+  record.id = kf->id;
+  record.timestamp = kf->timestamp;
+  record.SetT_leader_this(T_follow_kf);
+  record.in_dense = kf->in_dense;
   // Coded RGB-D still waiting for its map to join the primary map goes when the leader has
   // its own: the leader's view covers this one, and a map that never fuses must not hold
   // every culled keyframe's images.
-  if (kf->rgbd && (follow->rgbd || follow->in_dense)) kf->rgbd.reset();
-  kf->follows = follow;
-  kf->T_follows_this = T_follow_kf;
-  follow->followers.push_back(kf);
+  if (kf->rgbd && !(follow->rgbd || follow->in_dense)) record.rgbd = std::move(kf->rgbd);
+  follow->followers.push_back(std::move(record));
+  keyframes_.erase(kf->id);
   ++culled_;
   return removed;
+}
+
+const ServerKeyframe* ServerMap::LeaderOf(const GlobalKeyframeId& id) const {
+  for (const auto& [kid, kf] : keyframes_) {
+    for (const CulledKeyframe& f : kf->followers) {
+      if (f.id == id) return kf.get();
+    }
+  }
+  return nullptr;
+}
+
+std::vector<ServerMap::KeyframeSample> ServerMap::AllKeyframes(std::optional<AgentId> agent) const {
+  std::vector<KeyframeSample> samples;
+  for (const auto& [id, kf] : keyframes_) {
+    const bool placed = Placed(*kf);
+    if (!agent || id.agent == *agent) samples.push_back({id, kf->timestamp, kf->T_map_cam, placed});
+    for (const CulledKeyframe& f : kf->followers) {
+      if (!agent || f.id.agent == *agent)
+        samples.push_back({f.id, f.timestamp, kf->FollowerPose(f), placed});
+    }
+  }
+  std::sort(samples.begin(), samples.end(),
+            [](const KeyframeSample& a, const KeyframeSample& b) { return a.id < b.id; });
+  return samples;
 }
 
 void ServerMap::PruneMergeAliases() {
@@ -188,17 +261,6 @@ void ServerMap::PruneMergeAliases() {
     it = age <= kMergeAliasKeyframes && point(it->first) ? std::next(it) : merged_into_.erase(it);
   }
   prune_aliases_at_ = 2 * merged_into_.size() + 1024;
-}
-
-void ServerMap::CarryFollowers(std::vector<ServerKeyframe*>* moved) const {
-  const std::size_t leaders = moved->size();
-  for (std::size_t i = 0; i < leaders; ++i) {
-    const ServerKeyframe* leader = (*moved)[i];
-    for (ServerKeyframe* f : leader->followers) {
-      f->T_map_cam = leader->T_map_cam * f->T_follows_this;
-      moved->push_back(f);
-    }
-  }
 }
 
 void ServerMap::AddCovisibility(ServerKeyframe* a, ServerKeyframe* b, int weight) {
@@ -222,7 +284,7 @@ void ServerMap::Absorb(ServerMap* other, const Pose& T_this_other) {
   }
   other->newest_.clear();
   other->culled_ = 0;
-  loop_edges_.insert(loop_edges_.end(), other->loop_edges_.begin(), other->loop_edges_.end());
+  for (const LoopEdge& edge : other->loop_edges_) AddLoopEdge(edge);
   unplaced_.merge(other->unplaced_);
   other->unplaced_.clear();
   for (AgentId a : other->agents_) {

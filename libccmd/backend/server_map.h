@@ -7,6 +7,7 @@
 // graph or a fusion transform — carries its points along; global BA writes positions back in
 // the anchor's frame.
 
+#include <array>
 #include <map>
 #include <memory>
 #include <optional>
@@ -52,6 +53,26 @@ struct ServerKeypoint {
   float depth = 0;  // metres, 0 = none
 };
 
+// What the server keeps of a keyframe the culling removed (ServerMap::Cull): what the
+// trajectories and the dense map still need of it, held by the kept keyframe whose pose it
+// follows (its leader): T_map_cam = leader.T_map_cam * T_leader_this. About 64 bytes where
+// the keyframe object, its sparse data gone, took 0.7 kB: a camera circling a mapped room
+// for hours adds no more than its trajectory.
+struct CulledKeyframe {
+  GlobalKeyframeId id;
+  double timestamp = 0;
+  // T_leader_this in single precision: the two are within a metre of each other, so the
+  // rounding is under a micrometre and a microradian.
+  std::array<float, 4> q_leader_this{0, 0, 0, 1};  // x y z w
+  std::array<float, 3> t_leader_this{0, 0, 0};
+  bool in_dense = false;  // its cloud went to the dense map (which may release it since)
+  // Coded RGB-D waiting for its map to join the primary map (as ServerKeyframe::rgbd).
+  std::shared_ptr<const RgbdPayload> rgbd;
+
+  Pose T_leader_this() const;
+  void SetT_leader_this(const Pose& T);
+};
+
 class ServerKeyframe {
  public:
   GlobalKeyframeId id;
@@ -93,15 +114,13 @@ class ServerKeyframe {
   std::shared_ptr<const RgbdPayload> rgbd;
   bool in_dense = false;
 
-  // Keyframe culling (keyframe_culling.h). A culled keyframe keeps its id, poses, parent and
-  // place in the dense map, nothing of its sparse data (keypoints, points, links): its pose
-  // follows a kept keyframe of the same map that sees the same place,
-  // T_map_cam = follows->T_map_cam * T_follows_this. A keyframe the culling has kept stays.
-  ServerKeyframe* follows = nullptr;
-  Pose T_follows_this = Pose::Identity();
-  std::vector<ServerKeyframe*> followers;  // culled keyframes that follow this one
-  bool cull_checked = false;               // the culling has looked at it
-  bool culled() const { return follows != nullptr; }
+  // Keyframe culling (keyframe_culling.h). The keyframes culled because this one sees what
+  // they saw; their poses follow this one's (CulledKeyframe). A keyframe the culling has
+  // kept stays.
+  std::vector<CulledKeyframe> followers;
+  bool cull_checked = false;  // the culling has looked at it
+  // A follower's pose in the map.
+  Pose FollowerPose(const CulledKeyframe& f) const { return T_map_cam * f.T_leader_this(); }
 
   Eigen::Vector3d camera_center() const { return T_map_cam.translation(); }
 };
@@ -137,23 +156,40 @@ class ServerMap {
   std::optional<GlobalKeyframeId> origin() const { return origin_; }
 
   ServerKeyframe* AddKeyframe(std::unique_ptr<ServerKeyframe> keyframe);
+  // The agent's newest keyframe id in this map, kept or culled (none: no keyframe yet).
+  std::optional<KeyframeId> NewestKeyframeOf(AgentId agent) const;
   ServerMapPoint* AddPoint(std::unique_ptr<ServerMapPoint> point);
   void AddObservation(ServerMapPoint* point, ServerKeyframe* keyframe, int keypoint);
   // Fuses `from` into `into` (observations move over; ids of `from` resolve to `into`).
   void MergePoints(ServerMapPoint* from, ServerMapPoint* into);
-  void AddLoopEdge(const LoopEdge& edge) { loop_edges_.push_back(edge); }
+  // A loop edge between two keyframes replaces the one they had (the newer measurement): an
+  // agent passing a place again closes the same loop again, and the edges must not grow
+  // with the passes.
+  void AddLoopEdge(const LoopEdge& edge);
   void AddCovisibility(ServerKeyframe* a, ServerKeyframe* b, int weight);
 
-  // Culls `kf` (see ServerKeyframe::follows): its observations leave their points (a point
-  // anchored to it moves its anchor to another observer; a point nobody else sees is removed),
-  // its covisibility and depth links go, its loop edges move to `follow` (composed with their
-  // relative pose), its coded RGB-D not yet in the dense map goes if `follow` has RGB-D, and
-  // from now on its pose follows `follow`, a kept keyframe of this map.
-  // Returns the number of points removed.
+  // Culls `kf`: its observations leave their points (a point anchored to it moves its anchor
+  // to another observer; a point nobody else sees is removed), its covisibility links go, its
+  // loop edges move to `follow` (composed with their relative pose), its coded RGB-D not yet in
+  // the dense map goes if `follow` has RGB-D, and it leaves the map's keyframes: what remains
+  // of it is a CulledKeyframe among `follow`'s followers, whose pose follows `follow`, a kept
+  // keyframe of this map. `kf` is destroyed. Returns the number of points removed.
   std::size_t Cull(ServerKeyframe* kf, ServerKeyframe* follow);
-  // Gives the culled followers of the keyframes in `moved` their poses and appends them.
-  void CarryFollowers(std::vector<ServerKeyframe*>* moved) const;
   std::size_t num_culled() const { return culled_; }
+  // The kept keyframe a culled keyframe follows (null if `id` is not a culled keyframe of
+  // this map). Looks through every kept keyframe: for tests and tools.
+  const ServerKeyframe* LeaderOf(const GlobalKeyframeId& id) const;
+
+  // Every keyframe of the map, kept and culled (of one agent, with `agent`), with its pose in
+  // the map and whether it is placed (a culled keyframe is placed as its leader is), in id
+  // order: what the trajectories are written from.
+  struct KeyframeSample {
+    GlobalKeyframeId id;
+    double timestamp = 0;
+    Pose T_map_cam = Pose::Identity();
+    bool placed = true;
+  };
+  std::vector<KeyframeSample> AllKeyframes(std::optional<AgentId> agent = std::nullopt) const;
 
   // Moves every keyframe and point of `other` into this map, `other`'s poses premultiplied by
   // T_this_other. `other` is left empty.

@@ -94,6 +94,14 @@ class RecordingObserver : public MapObserver {
     std::lock_guard<std::mutex> lock(mutex_);
     for (const GlobalKeyframeId& id : keyframes) placed[id] = is_placed;
   }
+  void OnCulled(MapId, const GlobalKeyframeId& id) override {
+    std::lock_guard<std::mutex> lock(mutex_);
+    culled.push_back(id);
+  }
+  void OnDenseReleased(const std::vector<GlobalKeyframeId>& ids) override {
+    std::lock_guard<std::mutex> lock(mutex_);
+    released.insert(released.end(), ids.begin(), ids.end());
+  }
 
   // Read after the back-end is idle.
   std::map<AgentId, std::string> names;
@@ -103,6 +111,7 @@ class RecordingObserver : public MapObserver {
   std::map<PoseSource, int> sources;
   std::vector<GlobalKeyframeId> dense;
   std::map<GlobalKeyframeId, bool> placed;  // the last placement reported
+  std::vector<GlobalKeyframeId> culled, released;
   int fusions = 0;
 
  private:
@@ -294,6 +303,67 @@ TEST(BackendIntegrationTest, ARestartAfterAYoungStartKeepsTheStartApart) {
   const Trajectory fused = (*backend)->FusedTrajectory();
   ASSERT_EQ(fused.size(), after);
   EXPECT_GE(fused.front().timestamp, restart_time);
+}
+
+// An agent circling a room twice: its second lap's keyframes are culled (the first lap's
+// keyframes see what they see) and what remains of each is its pose, through a kept keyframe.
+// Every keyframe stays in the trajectories where the agent and the server put it, and every
+// pose change reaches the observer, the culled keyframes' included.
+TEST(BackendIntegrationTest, CulledKeyframesKeepTheirPlaceInTheTrajectories) {
+  BackendOptions options;
+  options.culling.keep_recent = 20;  // the agent's local map below holds as many
+  RecordingObserver observer;
+  auto backend = Backend::Create(options, &observer);
+  ASSERT_TRUE(backend.ok()) << backend.status().ToString();
+  const AgentId agent(1);
+  SyntheticSequenceOptions synth;
+  synth.frames = 400;
+  synth.width = 320;
+  synth.height = 240;
+  synth.path.loop_period_s = 8;  // 240 frames a lap
+  const PinholeCamera camera = SyntheticCamera(320, 240);
+  ASSERT_TRUE((*backend)->RegisterAgent(agent, "agent1", camera).ok());
+  WireSink sink(agent, backend->get());
+  TrackingOptions tracking;
+  tracking.synchronous_mapping = true;
+  tracking.max_keyframes = 20;
+  auto frontend = Frontend::Create(camera, tracking, &sink);
+  ASSERT_TRUE(frontend.ok());
+  SyntheticSource source(synth, FrameRange{0, synth.frames - 1});
+  const Trajectory ground_truth = source.GroundTruth();
+  RgbdFrame frame;
+  while (source.Read(&frame).ok()) (*frontend)->ProcessFrame(frame);
+  (*frontend)->Finish();
+  (*backend)->WaitIdle();
+
+  const BackendStats stats = (*backend)->stats();
+  ASSERT_GE(stats.keyframes_culled, 10u);
+  EXPECT_EQ(stats.keyframes, sink.timestamps_.size());
+  EXPECT_EQ(observer.culled.size(), stats.keyframes_culled);
+  const SparseMemory memory = (*backend)->SparseMemoryUsage();
+  EXPECT_EQ(memory.culled_keyframes, stats.keyframes_culled);
+  EXPECT_LE(memory.follower_bytes, 100 * memory.culled_keyframes);
+
+  const Trajectory fused = (*backend)->FusedTrajectory();
+  ASSERT_EQ(fused.size(), sink.timestamps_.size());
+  for (const auto& [id, timestamp] : sink.timestamps_) {
+    const auto it = std::find_if(fused.begin(), fused.end(),
+                                 [&](const StampedPose& p) { return p.timestamp == timestamp; });
+    ASSERT_NE(it, fused.end()) << id.value();
+    // What the observer was last told is where the server has it.
+    const Pose& told = observer.poses.at({agent, id});
+    EXPECT_LT(TranslationDistance(told, it->T_world_cam), 1e-5) << id.value();
+    EXPECT_LT(RotationDistance(told, it->T_world_cam), 1e-5) << id.value();
+  }
+  auto ate = ComputeAte(ground_truth, fused);
+  ASSERT_TRUE(ate.ok()) << ate.status().ToString();
+  EXPECT_LT(ate->error.rmse, 0.01);
+  // Each released cloud is out of the store, and was in it.
+  for (const GlobalKeyframeId& id : observer.released) {
+    EXPECT_FALSE((*backend)->dense()->KeyframeCloud(id).ok());
+    EXPECT_NE(std::find(observer.dense.begin(), observer.dense.end(), id), observer.dense.end());
+  }
+  EXPECT_EQ((*backend)->dense()->Stats().released_keyframes, observer.released.size());
 }
 
 // An agent whose trajectories give another camera of its rig (7-Scenes: the depth camera, whose

@@ -70,20 +70,23 @@ TEST(KeyframeCullingTest, SecondPassOverAPlaceIsCulledFirstPassKept) {
   KeyframeCullingOptions options;
   options.keep_recent = 5;
   const CullingStats stats = CullInOrder(&map, options);
+  // A culled keyframe leaves the map's keyframes; its leader holds what remains of it.
+  const auto culled = [&](int i) {
+    return map.keyframe({kAgent, KeyframeId(static_cast<std::uint32_t>(i))}) == nullptr;
+  };
   int first_culled = 0, second_culled = 0, second_checked = 0;
-  for (const auto& [id, kf] : map.keyframes()) {
-    const int i = static_cast<int>(id.keyframe.value());
+  for (int i = 0; i < 2 * steps; ++i) {
     if (i < steps) {
-      if (i < steps - 1) first_culled += kf->culled();
-    } else if (kf->cull_checked || kf->culled()) {
+      if (i < steps - 1) first_culled += culled(i);
+    } else if (culled(i) || map.keyframe({kAgent, KeyframeId(i)})->cull_checked) {
       ++second_checked;
-      second_culled += kf->culled();
+      second_culled += culled(i);
     }
   }
   EXPECT_EQ(first_culled, 0);
   // The first lap's last keyframe lies between its predecessor and the first keyframe, which
   // see all of it together: the lap has closed.
-  EXPECT_TRUE(map.keyframe({kAgent, KeyframeId(steps - 1)})->culled());
+  EXPECT_TRUE(culled(steps - 1));
   ASSERT_EQ(second_checked, steps - options.keep_recent);
   // The second lap sees exactly what the first saw, from the same places.
   EXPECT_EQ(second_culled, second_checked);
@@ -93,22 +96,49 @@ TEST(KeyframeCullingTest, SecondPassOverAPlaceIsCulledFirstPassKept) {
   EXPECT_GT(stats.points_removed, 0u);
   EXPECT_EQ(map.num_points(), points_before - stats.points_removed);
   EXPECT_EQ(map.num_culled(), stats.culled);
-  for (const auto& [id, kf] : map.keyframes()) {
-    if (!kf->culled()) continue;
-    EXPECT_TRUE(kf->keypoints.empty() && kf->points.empty() && kf->covisibility.empty());
-    ASSERT_NE(kf->follows, nullptr);
-    EXPECT_FALSE(kf->follows->culled());
-    EXPECT_LT(kf->follows->id.keyframe.value(), static_cast<std::uint32_t>(steps));
+  EXPECT_EQ(map.keyframes().size() + map.num_culled(), static_cast<std::size_t>(2 * steps));
+  for (int i = 0; i < 2 * steps; ++i) {
+    if (!culled(i)) continue;
+    const ServerKeyframe* leader = map.LeaderOf({kAgent, KeyframeId(i)});
+    ASSERT_NE(leader, nullptr);
+    EXPECT_LT(leader->id.keyframe.value(), static_cast<std::uint32_t>(steps));
   }
-  // No map point refers to a culled keyframe, and every remaining point is observed.
+  // Every remaining point is observed, by kept keyframes only.
   for (const auto& [id, kf] : map.keyframes()) {
     for (const ServerMapPoint* p : kf->points) {
       if (!p) continue;
       ASSERT_FALSE(p->observations.empty());
-      EXPECT_FALSE(p->anchor->culled());
-      for (const auto& o : p->observations) EXPECT_FALSE(o.keyframe->culled());
+      EXPECT_EQ(map.keyframe(p->anchor->id), p->anchor);
+      for (const auto& o : p->observations) EXPECT_EQ(map.keyframe(o.keyframe->id), o.keyframe);
     }
   }
+}
+
+// The trajectories are written from every keyframe, culled ones through their leaders: the
+// culling must not move or lose any.
+TEST(KeyframeCullingTest, EveryKeyframeKeepsItsPoseAndTime) {
+  const int steps = 24;
+  ServerMap map = TwoLaps(steps, 7);
+  std::map<GlobalKeyframeId, std::pair<double, Pose>> before;
+  for (auto& [id, kf] : map.keyframes()) {
+    kf->timestamp = 1.0 + 0.1 * id.keyframe.value();
+    before[id] = {kf->timestamp, kf->T_map_cam};
+  }
+  KeyframeCullingOptions options;
+  options.keep_recent = 5;
+  ASSERT_GT(CullInOrder(&map, options).culled, 10u);
+  const std::vector<ServerMap::KeyframeSample> all = map.AllKeyframes();
+  ASSERT_EQ(all.size(), before.size());
+  for (std::size_t i = 0; i < all.size(); ++i) {
+    const auto& [timestamp, T] = before.at(all[i].id);
+    EXPECT_EQ(all[i].id.keyframe.value(), i);  // in id order
+    EXPECT_EQ(all[i].timestamp, timestamp);
+    EXPECT_TRUE(all[i].placed);
+    // A culled one's pose is its leader's times a single-precision relative pose.
+    EXPECT_LT(TranslationDistance(all[i].T_map_cam, T), 1e-6);
+    EXPECT_LT(RotationDistance(all[i].T_map_cam, T), 1e-6);
+  }
+  EXPECT_EQ(map.AllKeyframes(AgentId(2)).size(), 0u);
 }
 
 // A restarted segment's first keyframe carries the loose tie to the segment before it: the
@@ -120,9 +150,9 @@ TEST(KeyframeCullingTest, ARestartedSegmentsFirstKeyframeIsKept) {
   KeyframeCullingOptions options;
   options.keep_recent = 5;
   CullInOrder(&map, options);
-  EXPECT_FALSE(map.keyframe({kAgent, KeyframeId(steps + 3)})->culled());
-  EXPECT_TRUE(map.keyframe({kAgent, KeyframeId(steps + 2)})->culled());
-  EXPECT_TRUE(map.keyframe({kAgent, KeyframeId(steps + 4)})->culled());
+  EXPECT_NE(map.keyframe({kAgent, KeyframeId(steps + 3)}), nullptr);
+  EXPECT_EQ(map.keyframe({kAgent, KeyframeId(steps + 2)}), nullptr);
+  EXPECT_EQ(map.keyframe({kAgent, KeyframeId(steps + 4)}), nullptr);
 }
 
 TEST(KeyframeCullingTest, DenseKeyframesOfOnePassAreThinnedSparseOnesKept) {
@@ -236,12 +266,18 @@ TEST(KeyframeCullingTest, CullKeepsPointsWhereTheyWereAndMovesLoopEdges) {
     anchored += p->anchor == victim;
   }
   ASSERT_GT(anchored, 0);  // points first seen by the victim (the ring turns into view)
+  const GlobalKeyframeId victim_id = victim->id;
+  const Pose victim_before = victim->T_map_cam;
   map.Cull(victim, leader);
-  EXPECT_EQ(victim->rgbd, nullptr);  // the leader's RGB-D covers its view
+  EXPECT_EQ(map.keyframe(victim_id), nullptr);
+  ASSERT_EQ(leader->followers.size(), 1u);
+  const CulledKeyframe& record = leader->followers[0];
+  EXPECT_EQ(record.id, victim_id);
+  EXPECT_EQ(record.rgbd, nullptr);  // the leader's RGB-D covers its view
   for (const auto& [id, world_before] : before) {
     const ServerMapPoint* p = map.point(id);
     ASSERT_NE(p, nullptr);  // all are still seen by a neighbour
-    EXPECT_NE(p->anchor, victim);
+    EXPECT_NE(p->anchor->id, victim_id);
     EXPECT_LT((p->World() - world_before).norm(), 1e-9);
   }
   ASSERT_EQ(map.loop_edges().size(), 1u);
@@ -249,23 +285,49 @@ TEST(KeyframeCullingTest, CullKeepsPointsWhereTheyWereAndMovesLoopEdges) {
   EXPECT_EQ(edge.b, leader->id);
   EXPECT_LT(TranslationDistance(edge.T_a_b, kfs[3]->T_map_cam.inverse() * leader->T_map_cam), 1e-9);
   // The victim follows its leader from now on.
+  EXPECT_LT(TranslationDistance(leader->FollowerPose(record), victim_before), 1e-6);
   Pose correction = Pose::Identity();
   correction.translation() = Eigen::Vector3d(0.3, -0.1, 0.05);
   correction.linear() = Eigen::AngleAxisd(0.1, Eigen::Vector3d::UnitZ()).toRotationMatrix();
-  const Pose victim_before = victim->T_map_cam;
   const Pose leader_before = leader->T_map_cam;
   leader->T_map_cam = correction * leader->T_map_cam;
-  std::vector<ServerKeyframe*> moved = {leader};
-  map.CarryFollowers(&moved);
-  ASSERT_EQ(moved.size(), 2u);
-  EXPECT_EQ(moved[1], victim);
-  EXPECT_LT(TranslationDistance(victim->T_map_cam,
-                                leader->T_map_cam * leader_before.inverse() * victim_before),
-            1e-9);
+  const Pose expected = leader->T_map_cam * leader_before.inverse() * victim_before;
+  EXPECT_LT(TranslationDistance(leader->FollowerPose(record), expected), 1e-6);
+  EXPECT_LT(RotationDistance(leader->FollowerPose(record), expected), 1e-6);
   // Under a leader without RGB-D a culled keyframe keeps its own.
   kfs[2]->rgbd = std::make_shared<const RgbdPayload>();
   map.Cull(kfs[2], kfs[3]);
-  EXPECT_NE(kfs[2]->rgbd, nullptr);
+  ASSERT_EQ(kfs[3]->followers.size(), 1u);
+  EXPECT_NE(kfs[3]->followers[0].rgbd, nullptr);
+}
+
+// An agent passing a place again closes the same loop again; the loop edges (the pose graph's
+// constraints) must not grow with the passes, also when culling moves edges to a leader.
+TEST(KeyframeCullingTest, APairOfKeyframesHasOneLoopEdge) {
+  Rng rng(5);
+  const auto world = MakeRingWorld(2000, &rng);
+  ServerMap map(MapId(1));
+  std::vector<ServerKeyframe*> kfs;
+  for (int i = 0; i < 4; ++i) {
+    const Pose T = CirclePose(i, 120);
+    kfs.push_back(
+        AddGeneratedKeyframe(&map, world, kAgent, static_cast<std::uint32_t>(i), T, T, &rng));
+  }
+  const auto relative = [](const ServerKeyframe* a, const ServerKeyframe* b) {
+    return a->T_map_cam.inverse() * b->T_map_cam;
+  };
+  Pose measured = relative(kfs[3], kfs[0]);
+  measured.translation().x() += 0.01;
+  map.AddLoopEdge({kfs[3]->id, kfs[0]->id, relative(kfs[3], kfs[0])});
+  map.AddLoopEdge({kfs[0]->id, kfs[3]->id, measured.inverse()});  // the same pair, measured again
+  ASSERT_EQ(map.loop_edges().size(), 1u);
+  EXPECT_LT(TranslationDistance(map.loop_edges()[0].T_a_b, measured), 1e-9);  // the newer one
+  // Culling keyframe 1 into keyframe 0 would give keyframe 0 a second edge with keyframe 3.
+  map.AddLoopEdge({kfs[3]->id, kfs[1]->id, relative(kfs[3], kfs[1])});
+  ASSERT_EQ(map.loop_edges().size(), 2u);
+  map.Cull(kfs[1], kfs[0]);
+  ASSERT_EQ(map.loop_edges().size(), 1u);
+  EXPECT_LT(TranslationDistance(map.loop_edges()[0].T_a_b, measured), 1e-9);  // its own stays
 }
 
 TEST(KeyframeCullingTest, AliasesOfRemovedPointsAreForgotten) {
@@ -354,9 +416,14 @@ TEST(KeyframeCullingTest, PoseGraphAndGlobalBaCarryCulledKeyframes) {
   KeyframeCullingOptions options;
   options.keep_recent = 5;
   ASSERT_GT(CullInOrder(&map, options).culled, 5u);
-  std::map<GlobalKeyframeId, Pose> relative;  // culled keyframes in their leader's frame
+  // Culled keyframes in the map before, and their leaders' poses then.
+  std::map<GlobalKeyframeId, std::pair<const ServerKeyframe*, Pose>> leader_before;
+  std::map<GlobalKeyframeId, Pose> culled_before;
   for (const auto& [id, kf] : map.keyframes()) {
-    if (kf->culled()) relative[id] = kf->follows->T_map_cam.inverse() * kf->T_map_cam;
+    for (const CulledKeyframe& f : kf->followers) {
+      leader_before[f.id] = {kf.get(), kf->T_map_cam};
+      culled_before[f.id] = kf->FollowerPose(f);
+    }
   }
   // A loop edge that disagrees with the map by 10 cm bends it.
   const ServerKeyframe* last = map.keyframes().rbegin()->second.get();
@@ -366,17 +433,26 @@ TEST(KeyframeCullingTest, PoseGraphAndGlobalBaCarryCulledKeyframes) {
   map.AddLoopEdge({first->id, last->id, T_first_last});
   auto moved = OptimizeMapPoseGraph(&map);
   ASSERT_TRUE(moved.ok());
-  int culled_moved = 0;
-  for (const ServerKeyframe* kf : *moved) culled_moved += kf->culled();
-  EXPECT_GT(culled_moved, 0);
-  for (const auto& [id, kf] : map.keyframes()) {
-    if (!kf->culled()) continue;
-    EXPECT_LT(TranslationDistance(kf->T_map_cam, kf->follows->T_map_cam * relative.at(id)), 1e-9);
-    EXPECT_LT(RotationDistance(kf->T_map_cam, kf->follows->T_map_cam * relative.at(id)), 1e-9);
+  int leaders_moved = 0;
+  for (const ServerKeyframe* kf : *moved) {
+    EXPECT_EQ(map.keyframe(kf->id), kf);
+    leaders_moved += !kf->followers.empty();
+  }
+  EXPECT_GT(leaders_moved, 0);
+  // Each culled keyframe moved rigidly with its leader.
+  for (const auto& [id, before] : culled_before) {
+    const auto& [leader, T_leader_before] = leader_before.at(id);
+    const Pose expected = leader->T_map_cam * T_leader_before.inverse() * before;
+    const auto record = std::find_if(leader->followers.begin(), leader->followers.end(),
+                                     [&](const CulledKeyframe& f) { return f.id == id; });
+    ASSERT_NE(record, leader->followers.end());
+    EXPECT_LT(TranslationDistance(leader->FollowerPose(*record), expected), 1e-6);
+    EXPECT_LT(RotationDistance(leader->FollowerPose(*record), expected), 1e-6);
   }
   const std::map<AgentId, PinholeCamera> cameras = {{kAgent, TestCamera()}};
   const GlobalBaProblem problem = BuildGlobalBa(map, cameras, DepthNoise());
-  for (const GlobalKeyframeId& id : problem.keyframes) EXPECT_FALSE(map.keyframe(id)->culled());
+  for (const GlobalKeyframeId& id : problem.keyframes) EXPECT_NE(map.keyframe(id), nullptr);
+  EXPECT_EQ(problem.keyframes.size(), map.keyframes().size());
 }
 
 }  // namespace
