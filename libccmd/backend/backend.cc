@@ -344,7 +344,7 @@ Status Backend::AddToDense(const DenseTask& task) {
   keyframe.camera = task.camera.Resized(decoded->depth_mm.cols, decoded->depth_mm.rows);
   CCMD_RETURN_IF_ERROR(dense_->SetAgentMap(task.keyframe.agent, task.to));
   CCMD_RETURN_IF_ERROR(dense_->AddKeyframe(keyframe));
-  if (observer_) observer_->OnDenseKeyframe(keyframe.id);
+  if (observer_) observer_->OnDenseKeyframe(keyframe.id, task.to, keyframe.T_world_cam);
   const double now = Now();
   std::lock_guard<std::mutex> lock(stats_mutex_);
   stats_.dense_keyframes++;

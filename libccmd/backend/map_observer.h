@@ -59,8 +59,11 @@ class MapObserver {
                        const std::vector<KeyframePose>& /*poses*/, double /*arrived_s*/) {}
   // A loop was accepted (before the poses it moves are reported with OnPoses).
   virtual void OnLoop(const LoopEvent& /*event*/) {}
-  // The keyframe's points are in the dense store (DenseMap::KeyframeCloud can read them).
-  virtual void OnDenseKeyframe(const GlobalKeyframeId& /*id*/) {}
+  // The keyframe's points are in the dense store (DenseMap::KeyframeCloud can read them),
+  // placed at T_map_cam in `map`. A culled keyframe's cloud can arrive after its culling (its
+  // map fused with the primary map later).
+  virtual void OnDenseKeyframe(const GlobalKeyframeId& /*id*/, MapId /*map*/,
+                               const Pose& /*T_map_cam*/) {}
   // The dense store released these keyframes' clouds: every point they had is held by an
   // earlier keyframe (DenseMap::TakeReleased). Nothing of them is left to draw.
   virtual void OnDenseReleased(const std::vector<GlobalKeyframeId>& /*ids*/) {}

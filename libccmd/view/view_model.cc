@@ -178,11 +178,25 @@ void ViewModel::OnPlacement(MapId map, const std::vector<GlobalKeyframeId>& keyf
   Append(std::move(e));
 }
 
-void ViewModel::OnDenseKeyframe(const GlobalKeyframeId& id) {
+void ViewModel::OnDenseKeyframe(const GlobalKeyframeId& id, MapId map, const Pose& T_map_cam) {
   const double t = EpochMillis(MonotonicSeconds());
   std::lock_guard<std::mutex> lock(mutex_);
-  const auto it = keyframes_.find(id);
-  if (it == keyframes_.end()) return;
+  auto it = keyframes_.find(id);
+  if (it == keyframes_.end()) {
+    // A keyframe culled (and forgotten here) before its map fused with the world map, whose
+    // cloud came with the fusion: back, for its cloud only.
+    ViewKeyframe kf;
+    kf.id = id;
+    kf.map = map;
+    kf.T_map_cam = T_map_cam;
+    kf.culled = true;
+    it = keyframes_.emplace(id, kf).first;
+    Json e = KeyframeJson(kf);
+    e["type"] = "kf";
+    e["t"] = t;
+    e["primary"] = true;
+    Append(std::move(e));
+  }
   it->second.has_cloud = true;
   Json e;
   e["type"] = "cloud";

@@ -86,7 +86,7 @@ class ViewModel : public MapObserver {
   void OnPoses(PoseSource source, MapId map, const std::vector<KeyframePose>& poses,
                double arrived_s) override;
   void OnLoop(const LoopEvent& event) override;
-  void OnDenseKeyframe(const GlobalKeyframeId& id) override;
+  void OnDenseKeyframe(const GlobalKeyframeId& id, MapId map, const Pose& T_map_cam) override;
   void OnPlacement(MapId map, const std::vector<GlobalKeyframeId>& keyframes, bool placed) override;
   void OnDenseReleased(const std::vector<GlobalKeyframeId>& ids) override;
   void OnCulled(MapId map, const GlobalKeyframeId& id) override;

@@ -86,7 +86,7 @@ class RecordingObserver : public MapObserver {
       }
     }
   }
-  void OnDenseKeyframe(const GlobalKeyframeId& id) override {
+  void OnDenseKeyframe(const GlobalKeyframeId& id, MapId, const Pose&) override {
     std::lock_guard<std::mutex> lock(mutex_);
     dense.push_back(id);
   }

@@ -351,7 +351,7 @@ int RunFps(std::size_t points, int frames, const Common& common) {
     if (auto s = (*dense)->AddKeyframeCloud(id, PatchPose(k, keyframes), WallPatch(k)); !s.ok())
       return Fail(s.ToString());
     model.OnKeyframe(id, MapId(1), PatchPose(k, keyframes), MonotonicSeconds(), true);
-    model.OnDenseKeyframe(id);
+    model.OnDenseKeyframe(id, MapId(1), PatchPose(k, keyframes));
   }
   ViewServerOptions options;
   options.web_dir = app::WebDir();

@@ -52,7 +52,7 @@ TEST(ViewModelTest, TheStateFollowsKeyframesPoseUpdatesAndAFusion) {
   model.OnLoop(fusion);
   model.OnPoses(PoseSource::kFusion, MapId(1000),
                 {{Id(2, 0), Moved(7, 0.2)}, {Id(2, 1), Moved(8, 0.3)}}, 3.0);
-  model.OnDenseKeyframe(Id(1, 0));
+  model.OnDenseKeyframe(Id(1, 0), MapId(1), Moved(0, 0));
 
   const Json state = model.StateJson();
   EXPECT_EQ(state.Get("seq")->number(), 2 + 5 + 1 + 1 + 1 + 1);
@@ -126,7 +126,7 @@ TEST(ViewModelTest, CulledKeyframesLeaveTheStateOnceTheyHaveNoCloud) {
   ViewModel model;
   model.OnAgent(AgentId(1), "alpha");
   for (int k = 0; k < 4; ++k) model.OnKeyframe(Id(1, k), MapId(1), Moved(k, 0), 1.0, true);
-  for (int k : {1, 2}) model.OnDenseKeyframe(Id(1, k));
+  for (int k : {1, 2}) model.OnDenseKeyframe(Id(1, k), MapId(1), Moved(k, 0));
   LoopEvent loop;
   loop.query = Id(1, 3);
   loop.candidate = Id(1, 0);
@@ -163,9 +163,30 @@ TEST(ViewModelTest, CulledKeyframesLeaveTheStateOnceTheyHaveNoCloud) {
 TEST(ViewModelTest, PosesOfUnknownKeyframesAreNotEvents) {
   ViewModel model;
   model.OnPoses(PoseSource::kGlobalBa, MapId(1), {{Id(1, 9), Pose::Identity()}}, 1.0);
-  model.OnDenseKeyframe(Id(1, 9));
   EXPECT_EQ(model.last_seq(), 0u);
   EXPECT_EQ(model.WaitEvents(0, 0, 0.01).kind, EventBatch::Kind::kTimeout);
+}
+
+// A keyframe culled before its map fused with the world map has no cloud then and leaves the
+// state; its cloud comes with the fusion, and brings it back, culled, where the cloud is.
+TEST(ViewModelTest, ACloudAfterTheCullingBringsTheKeyframeBack) {
+  ViewModel model;
+  model.OnKeyframe(Id(2, 4), MapId(2), Moved(1, 0), 1.0, false);
+  model.OnCulled(MapId(2), Id(2, 4));
+  ASSERT_EQ(model.StateJson().Get("keyframes")->size(), 0u);
+  model.OnDenseKeyframe(Id(2, 4), MapId(1), Moved(3, 0.2));
+  const Json state = model.StateJson();
+  const Json* kf = FindKeyframe(state, 2, 4);
+  ASSERT_NE(kf, nullptr);
+  EXPECT_TRUE(kf->Get("culled")->boolean());
+  EXPECT_TRUE(kf->Get("cloud")->boolean());
+  EXPECT_EQ(kf->Get("m")->number(), 1);
+  ExpectPose(*kf->Get("T"), Moved(3, 0.2));
+  const EventBatch batch = model.WaitEvents(0, 0, 1.0);
+  std::vector<std::string> types;
+  for (const auto& [seq, text] : batch.events)
+    types.push_back(Json::Parse(text)->Get("type")->string());
+  EXPECT_EQ(types, (std::vector<std::string>{"kf", "culled", "kf", "cloud"}));
 }
 
 TEST(ViewModelTest, TheLogIsBoundedAndABrowserTooFarBehindReloads) {

@@ -67,7 +67,7 @@ class ViewServerTest : public ::testing::Test {
       ASSERT_TRUE(dense_->SetAgentMap(AgentId(static_cast<std::uint16_t>(a)), MapId(1)).ok());
       ASSERT_TRUE(dense_->AddKeyframeCloud(Id(a, k), PoseOf(a, k), PlaneCloud(a, k)).ok());
       model_->OnKeyframe(Id(a, k), MapId(1), PoseOf(a, k), 1.0, true);
-      model_->OnDenseKeyframe(Id(a, k));
+      model_->OnDenseKeyframe(Id(a, k), MapId(1), PoseOf(a, k));
     }
   }
 
