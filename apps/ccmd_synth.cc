@@ -48,6 +48,10 @@ int main(int argc, char** argv) {
                  "Ground-truth surface sampling in metres")
       ->check(CLI::Range(0.002, 1.0))
       ->capture_default_str();
+  app.add_option("--texture-density", options.room.shapes_per_m2,
+                 "Texture shapes per square metre of surface (fewer: plainer walls, fewer corners)")
+      ->check(CLI::Range(0.0, 10000.0))
+      ->capture_default_str();
   app.add_option("--loop-period", options.path.loop_period_s, "Seconds per loop of the camera path")
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
