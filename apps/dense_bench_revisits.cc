@@ -34,6 +34,7 @@ Status AddPass(DenseMap* store, const std::vector<DenseKeyframe>& keyframes, int
 
 struct MapFigures {
   std::size_t points = 0, stored = 0;
+  std::size_t keyframes = 0, released = 0;  // entries held, and released (too few points)
   double memory_mb = 0;
   ReconstructionError surface;  // against the sequence's surface
   ReconstructionError
@@ -47,6 +48,8 @@ StatusOr<MapFigures> Measure(DenseMap* store, const PointCloud& surface, const P
   const DenseMapStats stats = store->Stats();
   f.points = map.size();
   f.stored = stats.points;
+  f.keyframes = stats.keyframes;
+  f.released = stats.released_keyframes;
   f.memory_mb = stats.memory_bytes / 1e6;
   CCMD_ASSIGN_OR_RETURN(f.surface, ComputeReconstructionError(surface, map));
   if (scratch) {
@@ -62,6 +65,8 @@ Json FiguresJson(const MapFigures& f) {
   Json j;
   j["map_points"] = f.points;
   j["stored_points"] = f.stored;
+  j["keyframes"] = f.keyframes;
+  j["released_keyframes"] = f.released;
   j["memory_mb"] = f.memory_mb;
   j["mean_m"] = f.surface.mean;
   j["median_m"] = f.surface.median;
@@ -74,11 +79,12 @@ Json FiguresJson(const MapFigures& f) {
 }
 
 void PrintRow(const std::string& what, const MapFigures& f) {
-  std::printf(
-      "| %s | %zu | %zu | %.1f | %.2f | %.2f | %.3f | %s |\n", what.c_str(), f.points, f.stored,
-      f.memory_mb, f.surface.mean * 1e3, f.surface.median * 1e3, f.surface.completeness,
-      f.scratch.reference_points > 0 ? std::to_string(f.scratch.completeness).substr(0, 5).c_str()
-                                     : "-");
+  std::printf("| %s | %zu | %zu | %zu (%zu) | %.1f | %.2f | %.2f | %.3f | %s |\n", what.c_str(),
+              f.points, f.stored, f.keyframes, f.released, f.memory_mb, f.surface.mean * 1e3,
+              f.surface.median * 1e3, f.surface.completeness,
+              f.scratch.reference_points > 0
+                  ? std::to_string(f.scratch.completeness).substr(0, 5).c_str()
+                  : "-");
 }
 
 // The poses of a loop that drifted: keyframe i of n turned about the vertical through the
@@ -102,9 +108,9 @@ StatusOr<Json> RunRevisits(const std::vector<DenseKeyframe>& keyframes, const Po
                            double voxel, int passes, double drift_deg) {
   Json json;
   std::printf(
-      "| store | map points | stored points | memory MB | mean mm | median mm | completeness 2 cm "
-      "| "
-      "covers the exact build within a voxel |\n|---|---|---|---|---|---|---|---|\n");
+      "| store | map points | stored points | keyframes held (released) | memory MB | mean mm | "
+      "median mm | completeness 2 cm | covers the exact build within a voxel |\n"
+      "|---|---|---|---|---|---|---|---|---|\n");
   // The reference: every point kept, true poses.
   auto exact = MakeStore(voxel, false);
   CCMD_RETURN_IF_ERROR(AddPass(exact.get(), keyframes, 0));
