@@ -114,6 +114,11 @@ int main(int argc, char** argv) {
   app.add_flag("--no-culling", no_culling,
                "Keep every keyframe's sparse data (no keyframe culling: the sparse maps then grow "
                "with the time spent in a place, not with the place)");
+  app.add_option("--culling-keep-recent", runtime.backend.culling.keep_recent,
+                 "An agent's newest keyframes never culled: at least as many as the agents' local "
+                 "maps hold (Tracking.maxKeyframes), whose points they may still link")
+      ->check(CLI::Range(1, 100000))
+      ->capture_default_str();
   app.add_option("--snapshot-interval", runtime.snapshot_period_s,
                  "Seconds between dense-map snapshots (0: only at the end)")
       ->capture_default_str();

@@ -564,6 +564,11 @@ Trajectory Backend::AgentTrajectory(AgentId agent) {
   return trajectory;
 }
 
+std::size_t Backend::AgentKeyframeCount(AgentId agent) {
+  MapManager::Guard guard = maps_.CheckOutAgent(agent);
+  return guard->CountPlacedKeyframes(agent);
+}
+
 Trajectory Backend::FusedTrajectory() {
   Trajectory trajectory;
   const auto primary = maps_.primary();

@@ -153,6 +153,8 @@ class Backend {
   // each agent's trajectory camera (RegisterAgent).
   Trajectory AgentTrajectory(AgentId agent);
   Trajectory FusedTrajectory();
+  // How many keyframes AgentTrajectory(agent) holds, without making it.
+  std::size_t AgentKeyframeCount(AgentId agent);
   std::optional<MapId> PrimaryMap() const { return maps_.primary(); }
   std::vector<MapId> Maps() const { return maps_.Maps(); }
   std::vector<AgentId> Agents() const { return maps_.Agents(); }

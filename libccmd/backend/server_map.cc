@@ -239,6 +239,16 @@ const ServerKeyframe* ServerMap::LeaderOf(const GlobalKeyframeId& id) const {
   return nullptr;
 }
 
+std::size_t ServerMap::CountPlacedKeyframes(AgentId agent) const {
+  std::size_t count = 0;
+  for (const auto& [id, kf] : keyframes_) {
+    if (!Placed(*kf)) continue;
+    count += id.agent == agent;
+    for (const CulledKeyframe& f : kf->followers) count += f.id.agent == agent;
+  }
+  return count;
+}
+
 std::vector<ServerMap::KeyframeSample> ServerMap::AllKeyframes(std::optional<AgentId> agent) const {
   std::vector<KeyframeSample> samples;
   for (const auto& [id, kf] : keyframes_) {

@@ -190,6 +190,8 @@ class ServerMap {
     bool placed = true;
   };
   std::vector<KeyframeSample> AllKeyframes(std::optional<AgentId> agent = std::nullopt) const;
+  // How many of those are placed (AllKeyframes(agent) with `placed`), without their poses.
+  std::size_t CountPlacedKeyframes(AgentId agent) const;
 
   // Moves every keyframe and point of `other` into this map, `other`'s poses premultiplied by
   // T_this_other. `other` is left empty.

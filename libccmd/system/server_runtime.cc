@@ -296,7 +296,7 @@ ViewStats ServerRuntime::CollectViewStats() {
     a.name = name;
     // Only agents the back-end has a map for: asking about another would create its map.
     if (std::find(mapped.begin(), mapped.end(), id) != mapped.end()) {
-      a.keyframes = backend_->AgentTrajectory(id).size();
+      a.keyframes = backend_->AgentKeyframeCount(id);
       a.map = backend_->MapOf(id);
       if (a.map && maps.count(*a.map)) {
         maps[*a.map].keyframes += a.keyframes;

@@ -139,6 +139,8 @@ TEST(KeyframeCullingTest, EveryKeyframeKeepsItsPoseAndTime) {
     EXPECT_LT(RotationDistance(all[i].T_map_cam, T), 1e-6);
   }
   EXPECT_EQ(map.AllKeyframes(AgentId(2)).size(), 0u);
+  EXPECT_EQ(map.CountPlacedKeyframes(kAgent), all.size());
+  EXPECT_EQ(map.CountPlacedKeyframes(AgentId(2)), 0u);
 }
 
 // A restarted segment's first keyframe carries the loose tie to the segment before it: the

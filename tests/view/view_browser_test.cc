@@ -221,5 +221,87 @@ TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
   EXPECT_EQ(gone.Get("keyframes")->size(), on_page.size());  // the last map stays on screen
 }
 
+// One agent circling a room twice against a server that culls keyframes soon after they
+// arrive: the second lap's keyframes are culled, and the page holds what the server's state
+// holds (a culled keyframe only while its cloud is in the dense store, marked culled), draws
+// every cloud the state has and none it released.
+TEST(ViewBrowserTest, ThePageLetsCulledKeyframesGoAsTheServerDoes) {
+  testing::TempDir dir;
+  SyntheticSequenceOptions synth;
+  synth.frames = 400;
+  synth.width = 320;
+  synth.height = 240;
+  synth.path.loop_period_s = 8;  // 240 frames a lap
+  synth.threads = 2;
+  ASSERT_TRUE(WriteSyntheticSequence(dir.File("seq"), synth).ok());
+  auto server = testing::StartServerWithView(testing::ProgramPath("ccmd_server"), dir.path(),
+                                             {"--culling-keep-recent", "20"});
+  ASSERT_TRUE(server.ok()) << server.status().ToString();
+  testing::BrowserOptions browser_options;
+  browser_options.log_path = dir.File("chromium.log");
+  auto browser = testing::HeadlessBrowser::Launch(browser_options);
+  ASSERT_TRUE(browser.ok()) << browser.status().ToString();
+  testing::HeadlessBrowser& page = **browser;
+  ASSERT_TRUE(page.Open(server->url).ok()) << page.PageLog();
+  auto script = [&](const std::string& js, double timeout_s = 120) {
+    auto r = page.Evaluate(js, timeout_s);
+    EXPECT_TRUE(r.ok()) << js << ": " << r.status().ToString() << "\n" << page.PageLog();
+    return r.ok() ? *r : Json();
+  };
+  script("ccmdView.whenConnection('live')");
+  auto agent =
+      Subprocess::Start({testing::ProgramPath("ccmd_agent"), "--source", "tum:" + dir.File("seq"),
+                         "--server", "127.0.0.1:" + std::to_string(server->port), "--name",
+                         "agent1", "--spill-dir", dir.File("spill")},
+                        dir.File("agent.out"), dir.File("agent.log"));
+  ASSERT_TRUE(agent.ok());
+  EXPECT_EQ(agent->Wait().exit_code, 0);
+
+  const std::uint16_t view = server->view_port;
+  Json state, shown;
+  const double deadline = MonotonicSeconds() + 240;
+  while (true) {
+    state = Get(view, "/api/state");
+    const long seq = static_cast<long>(state.Get("seq")->number());
+    shown = script("ccmdView.whenSettled(" + std::to_string(seq) + ").then(() => ccmdView.state())",
+                   240);
+    if (static_cast<long>(Get(view, "/api/state").Get("seq")->number()) == seq &&
+        static_cast<long>(shown.Get("seq")->number()) == seq) {
+      break;
+    }
+    ASSERT_LT(MonotonicSeconds(), deadline) << "the server never stopped changing";
+  }
+  std::map<std::string, const Json*> on_page;
+  for (const Json& kf : shown.Get("keyframes")->array()) on_page[Key(kf)] = &kf;
+  ASSERT_EQ(on_page.size(), state.Get("keyframes")->size());
+  int culled_with_cloud = 0;
+  for (const Json& kf : state.Get("keyframes")->array()) {
+    ASSERT_EQ(on_page.count(Key(kf)), 1u) << Key(kf);
+    const Json& p = *on_page[Key(kf)];
+    const bool culled = kf.Has("culled") && kf.Get("culled")->boolean();
+    EXPECT_EQ(p.Get("culled")->boolean(), culled) << Key(kf);
+    EXPECT_EQ(p.Get("drawn")->boolean(), kf.Get("cloud")->boolean()) << Key(kf);
+    culled_with_cloud += culled;
+  }
+  // The server culled keyframes: those without a cloud (a third or so send RGB-D) left the
+  // page, those with one stay, off the path, until their cloud is released.
+  const Json summary = Get(view, "/api/summary");
+  const double held = summary.Get("keyframes")->number();
+  ASSERT_TRUE(server->process.Signal(SIGINT).ok());
+  EXPECT_EQ(server->process.Wait().exit_code, 0);
+  auto text = ReadFileToString(dir.File("results/server_stats.json"));
+  ASSERT_TRUE(text.ok());
+  auto stats = Json::Parse(*text);
+  ASSERT_TRUE(stats.ok());
+  const double culled = stats->Get("backend")->Get("keyframes_culled")->number();
+  EXPECT_GE(culled, 10);
+  EXPECT_GT(culled_with_cloud, 0);
+  EXPECT_LT(culled_with_cloud, culled);
+  EXPECT_EQ(static_cast<double>(on_page.size()), held - culled + culled_with_cloud);
+  auto trajectory = ReadTumTrajectory(dir.File("results/trajectory_agent1.txt"));
+  ASSERT_TRUE(trajectory.ok());
+  EXPECT_EQ(static_cast<double>(trajectory->size()), held);  // the trajectory keeps them all
+}
+
 }  // namespace
 }  // namespace ccmd

@@ -256,7 +256,7 @@
     kf.slot = -1;
     view.totalPoints -= kf.points;
     kf.points = 0;
-    kf.loaded = kf.cloud = false;
+    kf.loaded = kf.cloud = kf.drawn = false;
     markFresh();
   }
 
@@ -911,7 +911,7 @@
       const keyframes = [];
       for (const kf of S.keyframes.values()) {
         keyframes.push({ a: kf.a, k: kf.k, m: kf.m, T: Array.from(kf.T), cloud: kf.cloud, loaded: kf.loaded,
-          drawn: kf.drawn, moves: kf.moves, points: kf.points, placed: !kf.unplaced });
+          drawn: kf.drawn, moves: kf.moves, points: kf.points, placed: !kf.unplaced, culled: !!kf.culled });
       }
       const panel = [];
       for (const tr of document.querySelectorAll('#agents tbody tr')) {
