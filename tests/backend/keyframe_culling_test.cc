@@ -56,6 +56,19 @@ ServerMap TwoLaps(int steps, std::uint64_t seed) {
   return map;
 }
 
+// Four keyframes 3 degrees apart on the circle, each seeing most of what the next sees.
+std::vector<ServerKeyframe*> FourNeighbours(ServerMap* map) {
+  Rng rng(5);
+  const auto world = MakeRingWorld(2000, &rng);
+  std::vector<ServerKeyframe*> kfs;
+  for (int i = 0; i < 4; ++i) {
+    const Pose T = CirclePose(i, 120);
+    kfs.push_back(
+        AddGeneratedKeyframe(map, world, kAgent, static_cast<std::uint32_t>(i), T, T, &rng));
+  }
+  return kfs;
+}
+
 // An agent links points of every keyframe its local map still holds: the server must not
 // cull (and drop the points of) a keyframe that recent. With a window shorter than the
 // agent's map, 7-Scenes replays lost the agents' later links to culled keyframes' points.
@@ -244,15 +257,8 @@ TEST(KeyframeCullingTest, TheKeptListGivesTheCandidatesTheWholeMapGives) {
 }
 
 TEST(KeyframeCullingTest, CullKeepsPointsWhereTheyWereAndMovesLoopEdges) {
-  Rng rng(5);
-  const auto world = MakeRingWorld(2000, &rng);
   ServerMap map(MapId(1));
-  std::vector<ServerKeyframe*> kfs;
-  for (int i = 0; i < 4; ++i) {
-    const Pose T = CirclePose(i, 120);
-    kfs.push_back(
-        AddGeneratedKeyframe(&map, world, kAgent, static_cast<std::uint32_t>(i), T, T, &rng));
-  }
+  const std::vector<ServerKeyframe*> kfs = FourNeighbours(&map);
   ServerKeyframe* victim = kfs[1];
   ServerKeyframe* leader = kfs[0];
   // Both wait with their coded RGB-D for their map to join the primary map.
@@ -306,15 +312,8 @@ TEST(KeyframeCullingTest, CullKeepsPointsWhereTheyWereAndMovesLoopEdges) {
 // An agent passing a place again closes the same loop again; the loop edges (the pose graph's
 // constraints) must not grow with the passes, also when culling moves edges to a leader.
 TEST(KeyframeCullingTest, APairOfKeyframesHasOneLoopEdge) {
-  Rng rng(5);
-  const auto world = MakeRingWorld(2000, &rng);
   ServerMap map(MapId(1));
-  std::vector<ServerKeyframe*> kfs;
-  for (int i = 0; i < 4; ++i) {
-    const Pose T = CirclePose(i, 120);
-    kfs.push_back(
-        AddGeneratedKeyframe(&map, world, kAgent, static_cast<std::uint32_t>(i), T, T, &rng));
-  }
+  const std::vector<ServerKeyframe*> kfs = FourNeighbours(&map);
   const auto relative = [](const ServerKeyframe* a, const ServerKeyframe* b) {
     return a->T_map_cam.inverse() * b->T_map_cam;
   };

@@ -74,6 +74,18 @@ std::set<std::uint64_t> Voxels(const PointCloud& cloud) {
   return voxels;
 }
 
+// The maps of two stores cover the same voxels, but for one in 500.
+void ExpectSameVoxels(DenseMap* a, DenseMap* b) {
+  auto map_a = a->Extract(DenseSelection::Global());
+  auto map_b = b->Extract(DenseSelection::Global());
+  ASSERT_TRUE(map_a.ok() && map_b.ok());
+  const std::set<std::uint64_t> va = Voxels(*map_a), vb = Voxels(*map_b);
+  std::size_t differ = 0;
+  for (std::uint64_t v : vb) differ += !va.count(v);
+  for (std::uint64_t v : va) differ += !vb.count(v);
+  EXPECT_LE(differ, vb.size() / 500) << vb.size();
+}
+
 // Share of `a`'s points with a point of `b` closer than `distance`.
 double Covered(const PointCloud& a, const PointCloud& b, double distance) {
   std::size_t covered = 0;
@@ -122,14 +134,7 @@ TEST(DenseCompactTest, KeyframesThatLeftTheWindowKeepOnlyWhatTheMapNeeds) {
     EXPECT_GT(Covered(*stored, *all, 1e-3), 0.999) << id;
   }
   // The map covers the same voxels: a point is dropped only where another stored point is.
-  auto map_c = compact->Extract(DenseSelection::Global());
-  auto map_f = full->Extract(DenseSelection::Global());
-  ASSERT_TRUE(map_c.ok() && map_f.ok());
-  const std::set<std::uint64_t> vc = Voxels(*map_c), vf = Voxels(*map_f);
-  std::size_t differ = 0;
-  for (std::uint64_t v : vf) differ += !vc.count(v);
-  for (std::uint64_t v : vc) differ += !vf.count(v);
-  EXPECT_LE(differ, vf.size() / 500) << vf.size();
+  ExpectSameVoxels(compact.get(), full.get());
   // In camera frame, with colours, for viewers.
   auto cloud = compact->KeyframeCloud({kAgent, KeyframeId(2)});
   ASSERT_TRUE(cloud.ok());
@@ -186,14 +191,7 @@ TEST(DenseCompactTest, KeyframesLeftWithNothingToStoreAreReleased) {
   // The newest W keyframes are still in the window: none of them is released.
   for (std::uint32_t id = 45; id < 48; ++id)
     EXPECT_TRUE(compact->ExtractKeyframe({kAgent, KeyframeId(id)}).ok());
-  auto map_c = compact->Extract(DenseSelection::Global());
-  auto map_f = full->Extract(DenseSelection::Global());
-  ASSERT_TRUE(map_c.ok() && map_f.ok());
-  const std::set<std::uint64_t> vc = Voxels(*map_c), vf = Voxels(*map_f);
-  std::size_t differ = 0;
-  for (std::uint64_t v : vf) differ += !vc.count(v);
-  for (std::uint64_t v : vc) differ += !vf.count(v);
-  EXPECT_LE(differ, vf.size() / 500) << vf.size();
+  ExpectSameVoxels(compact.get(), full.get());
   // A loop correction naming a released keyframe moves the others.
   std::vector<KeyframePose> loop;
   for (const GlobalKeyframeId& id : {released[0], GlobalKeyframeId{kAgent, KeyframeId(46)}}) {
@@ -224,7 +222,9 @@ TEST(DenseCompactTest, KeyframesWithFewerPointsThanTheThresholdAreReleasedWithTh
   EXPECT_EQ(stats.keyframes + stats.released_keyframes, 48u);
   for (std::uint32_t id = 0; id < 45; ++id) {  // the compacted ones that stay hold enough
     auto stored = compact->ExtractKeyframe({kAgent, KeyframeId(id)});
-    if (stored.ok()) EXPECT_GE(stored->size(), 30u) << id;
+    if (stored.ok()) {
+      EXPECT_GE(stored->size(), 30u) << id;
+    }
   }
   auto map_c = compact->Extract(DenseSelection::Global());
   auto map_f = full->Extract(DenseSelection::Global());

@@ -13,7 +13,10 @@
 
 #include <cstdlib>
 #include <map>
+#include <memory>
 #include <opencv2/imgcodecs.hpp>
+#include <optional>
+#include <utility>
 
 #include "libccmd/io/trajectory.h"
 #include "libccmd/synth/sequence.h"
@@ -46,69 +49,95 @@ std::string Key(const Json& kf) {
          std::to_string(static_cast<long>(kf.Get("k")->number()));
 }
 
-TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
-  testing::TempDir dir;
+// A ccmd_server with its view in a folder of the test's, and headless Chromium on its page.
+class ViewBrowserTest : public ::testing::Test {
+ protected:
+  // Starts both (call ASSERT_NO_FATAL_FAILURE on it).
+  void Open(const std::vector<std::string>& server_args) {
+    auto server =
+        testing::StartServerWithView(testing::ProgramPath("ccmd_server"), dir_.path(), server_args);
+    ASSERT_TRUE(server.ok()) << server.status().ToString();
+    server_.emplace(std::move(server).value());
+    browser_options_.log_path = dir_.File("chromium.log");
+    auto browser = testing::HeadlessBrowser::Launch(browser_options_);
+    ASSERT_TRUE(browser.ok()) << browser.status().ToString();
+    browser_ = std::move(browser).value();
+    ASSERT_TRUE(browser_->Open(server_->url).ok()) << browser_->PageLog();
+  }
+
+  Json Script(const std::string& js, double timeout_s = 120) {
+    auto r = browser_->Evaluate(js, timeout_s);
+    EXPECT_TRUE(r.ok()) << js << ": " << r.status().ToString() << "\n" << browser_->PageLog();
+    return r.ok() ? *r : Json();
+  }
+
+  Subprocess StartAgent(const std::string& name, const std::vector<std::string>& extra) {
+    std::vector<std::string> args = {testing::ProgramPath("ccmd_agent"), "--source",
+                                     "tum:" + dir_.File("seq"), "--server",
+                                     "127.0.0.1:" + std::to_string(server_->port), "--name", name,
+                                     // Its own spill folder (and identity file): the default
+                                     // one in /tmp is shared with any other agent of that name
+                                     // on the machine, such as another test's.
+                                     "--spill-dir", dir_.File("spill-" + name)};
+    args.insert(args.end(), extra.begin(), extra.end());
+    auto agent = Subprocess::Start(args, dir_.File(name + ".out"), dir_.File(name + ".log"));
+    EXPECT_TRUE(agent.ok()) << agent.status().ToString();
+    return std::move(agent).value();
+  }
+
+  // Once the server stops changing, the page holds the same state: the server's event number
+  // is the same before and after the page has applied it and drawn every cloud. Returns the
+  // server's state and the page's at that number.
+  std::pair<Json, Json> Settled() {
+    Json state, shown;
+    const double deadline = MonotonicSeconds() + 240;
+    while (true) {
+      state = Get(server_->view_port, "/api/state");
+      const long seq = static_cast<long>(state.Get("seq")->number());
+      shown = Script(
+          "ccmdView.whenSettled(" + std::to_string(seq) + ").then(() => ccmdView.state())", 240);
+      if (static_cast<long>(Get(server_->view_port, "/api/state").Get("seq")->number()) == seq &&
+          static_cast<long>(shown.Get("seq")->number()) == seq) {
+        return {state, shown};
+      }
+      EXPECT_LT(MonotonicSeconds(), deadline) << "the server never stopped changing";
+      if (MonotonicSeconds() > deadline) return {state, shown};
+    }
+  }
+
+  testing::TempDir dir_;
+  std::optional<testing::ServerWithView> server_;
+  testing::BrowserOptions browser_options_;
+  std::unique_ptr<testing::HeadlessBrowser> browser_;
+};
+
+TEST_F(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
   SyntheticSequenceOptions synth;
   synth.frames = 200;
   synth.width = 320;
   synth.height = 240;
   synth.threads = 2;
-  ASSERT_TRUE(WriteSyntheticSequence(dir.File("seq"), synth).ok());
+  ASSERT_TRUE(WriteSyntheticSequence(dir_.File("seq"), synth).ok());
 
   // Every point kept: the page keeps a keyframe's cloud as it first loaded it, and does not yet
   // reload it when the dense store compacts the keyframe (its points then differ).
-  auto server = testing::StartServerWithView(testing::ProgramPath("ccmd_server"), dir.path(),
-                                             {"--dense-every-point"});
-  ASSERT_TRUE(server.ok()) << server.status().ToString();
-  testing::BrowserOptions browser_options;
-  browser_options.log_path = dir.File("chromium.log");
-  auto browser = testing::HeadlessBrowser::Launch(browser_options);
-  ASSERT_TRUE(browser.ok()) << browser.status().ToString();
-  testing::HeadlessBrowser& page = **browser;
-  ASSERT_TRUE(page.Open(server->url).ok()) << page.PageLog();
-  auto script = [&](const std::string& js, double timeout_s = 120) {
-    auto r = page.Evaluate(js, timeout_s);
-    EXPECT_TRUE(r.ok()) << js << ": " << r.status().ToString() << "\n" << page.PageLog();
-    return r.ok() ? *r : Json();
-  };
+  ASSERT_NO_FATAL_FAILURE(Open({"--dense-every-point"}));
   // Before any agent: connected, and it says there is no map yet.
-  const Json waiting = script("ccmdView.whenConnection('live').then(() => ccmdView.state())");
+  const Json waiting = Script("ccmdView.whenConnection('live').then(() => ccmdView.state())");
   ASSERT_TRUE(waiting.Get("status"));
   EXPECT_NE(waiting.Get("status")->string().find("No map yet"), std::string::npos)
       << waiting.Dump();
 
   std::vector<Subprocess> agents;
   for (int i = 1; i <= 2; ++i) {
-    auto agent = Subprocess::Start(
-        {testing::ProgramPath("ccmd_agent"), "--source", "tum:" + dir.File("seq"), "--segment",
-         std::to_string(i) + "/2", "--server", "127.0.0.1:" + std::to_string(server->port),
-         "--name", "agent" + std::to_string(i), "--rgbd-every-keyframe",  // more clouds to check
-         // Its own spill folder (and identity file): the default one in /tmp is shared with any
-         // other agent of that name on the machine, such as another test's.
-         "--spill-dir", dir.File("spill" + std::to_string(i))},
-        dir.File("agent" + std::to_string(i) + ".out"),
-        dir.File("agent" + std::to_string(i) + ".log"));
-    ASSERT_TRUE(agent.ok());
-    agents.push_back(std::move(agent).value());
+    agents.push_back(StartAgent(
+        "agent" + std::to_string(i),
+        {"--segment", std::to_string(i) + "/2", "--rgbd-every-keyframe"}));  // more clouds to check
   }
   for (Subprocess& a : agents) EXPECT_EQ(a.Wait().exit_code, 0);
-
-  // Once the server stops changing, the page holds the same state: the server's event number
-  // is the same before and after the page has applied it and drawn every cloud.
-  const std::uint16_t view = server->view_port;
-  Json state, shown;
   const double deadline = MonotonicSeconds() + 240;
-  while (true) {
-    state = Get(view, "/api/state");
-    const long seq = static_cast<long>(state.Get("seq")->number());
-    shown = script("ccmdView.whenSettled(" + std::to_string(seq) + ").then(() => ccmdView.state())",
-                   240);
-    if (static_cast<long>(Get(view, "/api/state").Get("seq")->number()) == seq &&
-        static_cast<long>(shown.Get("seq")->number()) == seq) {
-      break;
-    }
-    ASSERT_LT(MonotonicSeconds(), deadline) << "the server never stopped changing";
-  }
+  const auto [state, shown] = Settled();
+  const std::uint16_t view = server_->view_port;
 
   // Every keyframe of the server, where the server has it, every cloud drawn.
   std::map<std::string, const Json*> on_page;
@@ -149,7 +178,7 @@ TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
     ASSERT_TRUE(cloud.ok() && cloud->size() == 1 && !cloud->front().points_mm.empty());
     for (std::size_t j : {std::size_t{0}, cloud->front().points_mm.size() - 1}) {
       const Json point =
-          script("ccmdView.drawnPoint(" + std::to_string(static_cast<int>(kf.Get("a")->number())) +
+          Script("ccmdView.drawnPoint(" + std::to_string(static_cast<int>(kf.Get("a")->number())) +
                  ", " + std::to_string(static_cast<long>(kf.Get("k")->number())) + ", " +
                  std::to_string(j) + ")");
       ASSERT_TRUE(point.Has("held") && point.Has("world") && point.Has("T")) << Key(kf);
@@ -183,18 +212,18 @@ TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
     if (panel == counts) break;
     ASSERT_LT(MonotonicSeconds(), deadline) << "the panel never showed the server's counts";
     panel_state =
-        script("ccmdView.whenStats(" +
+        Script("ccmdView.whenStats(" +
                std::to_string(static_cast<long>(panel_state.Get("statsVersion")->number())) +
                ").then(() => ccmdView.state())");
   }
 
   // A picture of it: the 3D view (left of the panel) is not empty.
-  script("ccmdView.whenRested()");
-  auto png = page.Screenshot();
+  Script("ccmdView.whenRested()");
+  auto png = browser_->Screenshot();
   ASSERT_TRUE(png.ok());
   const cv::Mat image =
       cv::imdecode(std::vector<uchar>(png->begin(), png->end()), cv::IMREAD_COLOR);
-  ASSERT_EQ(image.cols, browser_options.width);
+  ASSERT_EQ(image.cols, browser_options_.width);
   int drawn_pixels = 0;
   for (int v = 0; v < image.rows; ++v) {
     for (int u = 0; u < image.cols - 380; ++u) {
@@ -208,14 +237,14 @@ TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
   }
 
   // The server stops: it writes what the page showed, and the page says it is gone.
-  ASSERT_TRUE(server->process.Signal(SIGINT).ok());
-  EXPECT_EQ(server->process.Wait().exit_code, 0);
+  ASSERT_TRUE(server_->process.Signal(SIGINT).ok());
+  EXPECT_EQ(server_->process.Wait().exit_code, 0);
   for (const auto& [name, n] : counts) {
-    auto trajectory = ReadTumTrajectory(dir.File("results/trajectory_" + name + ".txt"));
+    auto trajectory = ReadTumTrajectory(dir_.File("results/trajectory_" + name + ".txt"));
     ASSERT_TRUE(trajectory.ok());
     EXPECT_EQ(static_cast<double>(trajectory->size()), n) << name;
   }
-  const Json gone = script("ccmdView.whenConnection('gone').then(() => ccmdView.state())");
+  const Json gone = Script("ccmdView.whenConnection('gone').then(() => ccmdView.state())");
   EXPECT_NE(gone.Get("status")->string().find("Server gone"), std::string::npos)
       << gone.Get("status")->string();
   EXPECT_EQ(gone.Get("keyframes")->size(), on_page.size());  // the last map stays on screen
@@ -225,52 +254,18 @@ TEST(ViewBrowserTest, ThePageDrawsWhatTheServerHoldsDuringASplitReplay) {
 // arrive: the second lap's keyframes are culled, and the page holds what the server's state
 // holds (a culled keyframe only while its cloud is in the dense store, marked culled), draws
 // every cloud the state has and none it released.
-TEST(ViewBrowserTest, ThePageLetsCulledKeyframesGoAsTheServerDoes) {
-  testing::TempDir dir;
+TEST_F(ViewBrowserTest, ThePageLetsCulledKeyframesGoAsTheServerDoes) {
   SyntheticSequenceOptions synth;
   synth.frames = 400;
   synth.width = 320;
   synth.height = 240;
   synth.path.loop_period_s = 8;  // 240 frames a lap
   synth.threads = 2;
-  ASSERT_TRUE(WriteSyntheticSequence(dir.File("seq"), synth).ok());
-  auto server = testing::StartServerWithView(testing::ProgramPath("ccmd_server"), dir.path(),
-                                             {"--culling-keep-recent", "20"});
-  ASSERT_TRUE(server.ok()) << server.status().ToString();
-  testing::BrowserOptions browser_options;
-  browser_options.log_path = dir.File("chromium.log");
-  auto browser = testing::HeadlessBrowser::Launch(browser_options);
-  ASSERT_TRUE(browser.ok()) << browser.status().ToString();
-  testing::HeadlessBrowser& page = **browser;
-  ASSERT_TRUE(page.Open(server->url).ok()) << page.PageLog();
-  auto script = [&](const std::string& js, double timeout_s = 120) {
-    auto r = page.Evaluate(js, timeout_s);
-    EXPECT_TRUE(r.ok()) << js << ": " << r.status().ToString() << "\n" << page.PageLog();
-    return r.ok() ? *r : Json();
-  };
-  script("ccmdView.whenConnection('live')");
-  auto agent =
-      Subprocess::Start({testing::ProgramPath("ccmd_agent"), "--source", "tum:" + dir.File("seq"),
-                         "--server", "127.0.0.1:" + std::to_string(server->port), "--name",
-                         "agent1", "--spill-dir", dir.File("spill")},
-                        dir.File("agent.out"), dir.File("agent.log"));
-  ASSERT_TRUE(agent.ok());
-  EXPECT_EQ(agent->Wait().exit_code, 0);
-
-  const std::uint16_t view = server->view_port;
-  Json state, shown;
-  const double deadline = MonotonicSeconds() + 240;
-  while (true) {
-    state = Get(view, "/api/state");
-    const long seq = static_cast<long>(state.Get("seq")->number());
-    shown = script("ccmdView.whenSettled(" + std::to_string(seq) + ").then(() => ccmdView.state())",
-                   240);
-    if (static_cast<long>(Get(view, "/api/state").Get("seq")->number()) == seq &&
-        static_cast<long>(shown.Get("seq")->number()) == seq) {
-      break;
-    }
-    ASSERT_LT(MonotonicSeconds(), deadline) << "the server never stopped changing";
-  }
+  ASSERT_TRUE(WriteSyntheticSequence(dir_.File("seq"), synth).ok());
+  ASSERT_NO_FATAL_FAILURE(Open({"--culling-keep-recent", "20"}));
+  Script("ccmdView.whenConnection('live')");
+  EXPECT_EQ(StartAgent("agent1", {}).Wait().exit_code, 0);
+  const auto [state, shown] = Settled();
   std::map<std::string, const Json*> on_page;
   for (const Json& kf : shown.Get("keyframes")->array()) on_page[Key(kf)] = &kf;
   ASSERT_EQ(on_page.size(), state.Get("keyframes")->size());
@@ -285,11 +280,11 @@ TEST(ViewBrowserTest, ThePageLetsCulledKeyframesGoAsTheServerDoes) {
   }
   // The server culled keyframes: those without a cloud (a third or so send RGB-D) left the
   // page, those with one stay, off the path, until their cloud is released.
-  const Json summary = Get(view, "/api/summary");
+  const Json summary = Get(server_->view_port, "/api/summary");
   const double held = summary.Get("keyframes")->number();
-  ASSERT_TRUE(server->process.Signal(SIGINT).ok());
-  EXPECT_EQ(server->process.Wait().exit_code, 0);
-  auto text = ReadFileToString(dir.File("results/server_stats.json"));
+  ASSERT_TRUE(server_->process.Signal(SIGINT).ok());
+  EXPECT_EQ(server_->process.Wait().exit_code, 0);
+  auto text = ReadFileToString(dir_.File("results/server_stats.json"));
   ASSERT_TRUE(text.ok());
   auto stats = Json::Parse(*text);
   ASSERT_TRUE(stats.ok());
@@ -298,7 +293,7 @@ TEST(ViewBrowserTest, ThePageLetsCulledKeyframesGoAsTheServerDoes) {
   EXPECT_GT(culled_with_cloud, 0);
   EXPECT_LT(culled_with_cloud, culled);
   EXPECT_EQ(static_cast<double>(on_page.size()), held - culled + culled_with_cloud);
-  auto trajectory = ReadTumTrajectory(dir.File("results/trajectory_agent1.txt"));
+  auto trajectory = ReadTumTrajectory(dir_.File("results/trajectory_agent1.txt"));
   ASSERT_TRUE(trajectory.ok());
   EXPECT_EQ(static_cast<double>(trajectory->size()), held);  // the trajectory keeps them all
 }
