@@ -314,8 +314,11 @@ std::string GuessCameraConfigName(const std::string& folder) {
     return "tum_fr2.yaml";
   if (name.find("freiburg3") != std::string::npos || name.find("fr3") != std::string::npos)
     return "tum_fr3.yaml";
+  // ICL-NUIM's TUM-compatible archives are <scene>_traj<N>_frei_png (the office room's just
+  // traj<N>_frei_png).
   if (name.find("living_room") != std::string::npos ||
-      name.find("office_room") != std::string::npos || name.find("icl") != std::string::npos)
+      name.find("office_room") != std::string::npos || name.find("icl") != std::string::npos ||
+      name.find("frei_png") != std::string::npos)
     return "icl_nuim.yaml";
   if (name.find("7scenes") != std::string::npos || name.find("redkitchen") != std::string::npos)
     return "7scenes.yaml";

@@ -177,6 +177,9 @@ TEST(TumDatasetTest, GuessesConfigFromFolderName) {
   EXPECT_EQ(GuessCameraConfigName("/d/rgbd_dataset_freiburg1_desk/"), "tum_fr1.yaml");
   EXPECT_EQ(GuessCameraConfigName("rgbd_dataset_freiburg3_long_office_household"), "tum_fr3.yaml");
   EXPECT_EQ(GuessCameraConfigName("/x/living_room_traj2_frei_png"), "icl_nuim.yaml");
+  // The office room's archives unpack as traj<N>_frei_png.
+  EXPECT_EQ(GuessCameraConfigName("/x/traj0_frei_png"), "icl_nuim.yaml");
+  EXPECT_EQ(GuessCameraConfigName("/x/office_room_traj0_frei_png"), "icl_nuim.yaml");
   EXPECT_EQ(GuessCameraConfigName("/x/7scenes_redkitchen_0000_0599"), "7scenes.yaml");
   EXPECT_EQ(GuessCameraConfigName("/x/my_recording"), "");
 }
