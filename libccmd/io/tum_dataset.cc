@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <opencv2/imgcodecs.hpp>
 #include <sstream>
 
@@ -165,6 +166,37 @@ StatusOr<Pose> ReadSevenScenesPose(const std::string& path) {
   return rigid;
 }
 
+// ICL-NUIM's release numbers its frames (0, 1, 2, ...) where timestamps go, in its
+// associations and in its ground truth alike: consecutive whole numbers.
+bool FrameNumbers(const std::vector<TimedFile>& files) {
+  if (files.size() < 2) return false;
+  for (std::size_t i = 0; i < files.size(); ++i) {
+    if (files[i].timestamp != std::floor(files[i].timestamp)) return false;
+    if (i > 0 && files[i].timestamp != files[i - 1].timestamp + 1) return false;
+  }
+  return true;
+}
+
+// The ground truth of a folder: groundtruth.txt, else the one *.gt.freiburg ICL-NUIM's
+// release puts beside its frames ("" when there is neither, or several).
+std::string GroundTruthFile(const std::string& folder) {
+  const std::string tum = JoinPath(folder, "groundtruth.txt");
+  if (FileExists(tum)) return tum;
+  std::string found;
+  std::error_code error;
+  for (const auto& entry : std::filesystem::directory_iterator(folder, error)) {
+    const std::string name = entry.path().filename().string();
+    const std::string suffix = ".gt.freiburg";
+    if (name.size() <= suffix.size() ||
+        name.compare(name.size() - suffix.size(), suffix.size(), suffix) != 0) {
+      continue;
+    }
+    if (!found.empty()) return "";  // which one is meant is not clear
+    found = entry.path().string();
+  }
+  return found;
+}
+
 }  // namespace
 
 bool TumSequence::IsSevenScenesFolder(const std::string& folder) {
@@ -198,6 +230,7 @@ StatusOr<TumSequence> TumSequence::Open(const std::string& folder,
   const std::string rgb_list = JoinPath(folder, "rgb.txt");
   const std::string depth_list = JoinPath(folder, "depth.txt");
   std::vector<std::pair<std::size_t, std::size_t>> pairs;
+  double frame_numbers_per_second = 0;  // the lists number frames instead of timing them
   if (FileExists(rgb_list) && FileExists(depth_list)) {
     CCMD_ASSIGN_OR_RETURN(rgb, ReadTimedFileList(rgb_list));
     CCMD_ASSIGN_OR_RETURN(depth, ReadTimedFileList(depth_list));
@@ -208,6 +241,14 @@ StatusOr<TumSequence> TumSequence::Open(const std::string& folder,
   } else if (FileExists(JoinPath(folder, "associations.txt"))) {
     CCMD_RETURN_IF_ERROR(ReadAssociations(JoinPath(folder, "associations.txt"), &rgb, &depth));
     for (std::size_t i = 0; i < rgb.size(); ++i) pairs.emplace_back(i, i);
+    // Frame numbers become seconds at the camera's rate (the release renders at 30 Hz), and
+    // so do the ground truth's below.
+    if (FrameNumbers(rgb) && FrameNumbers(depth) && sequence.camera_.fps > 0) {
+      frame_numbers_per_second = sequence.camera_.fps;
+      for (auto* files : {&rgb, &depth}) {
+        for (TimedFile& f : *files) f.timestamp /= frame_numbers_per_second;
+      }
+    }
   } else if (IsSevenScenesFolder(folder)) {
     sequence.depth_map_factor_ = 1000.0;
     sequence.no_depth_code_ = 65535;
@@ -236,9 +277,12 @@ StatusOr<TumSequence> TumSequence::Open(const std::string& folder,
                    std::to_string(options.max_time_difference) + " s");
   }
 
-  const std::string gt_path = JoinPath(folder, "groundtruth.txt");
-  if (FileExists(gt_path)) {
+  const std::string gt_path = GroundTruthFile(folder);
+  if (!gt_path.empty()) {
     CCMD_ASSIGN_OR_RETURN(sequence.groundtruth_, ReadTumTrajectory(gt_path));
+    if (frame_numbers_per_second > 0) {
+      for (StampedPose& p : sequence.groundtruth_) p.timestamp /= frame_numbers_per_second;
+    }
   }
   for (const auto& [i, j] : pairs) {
     TumFrameInfo info;

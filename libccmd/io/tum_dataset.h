@@ -9,7 +9,10 @@
 // a tolerance (default 20 ms), taken greedily from the closest, each file used once.
 // Folders that only have an associations.txt ("t path t path", as ORB-SLAM's examples and
 // ICL-NUIM's TUM-compatible release ship them; which column is depth is told by the path)
-// are read from it.
+// are read from it. ICL-NUIM's release numbers its frames where timestamps go (0, 1, 2, ...,
+// in its ground truth too): such consecutive whole numbers are read as frames at the camera's
+// rate (index / fps seconds). Without a groundtruth.txt, the one *.gt.freiburg file of the
+// folder (ICL-NUIM's) is the ground truth.
 // A 7-Scenes sequence folder as its archives unpack (seq-01/frame-000000.color.png,
 // .depth.png in millimetres with 65535 for no depth, .pose.txt a 4x4 camera-to-world
 // matrix) is read as it is: frames from 0 up to the first one missing, timestamps

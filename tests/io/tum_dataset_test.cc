@@ -103,6 +103,42 @@ TEST(TumDatasetTest, AssociationsOnlyFolderWithDepthFirst) {
   EXPECT_EQ(seq->LoadFrame(1)->depth_mm.at<std::uint16_t>(3, 3), 1400);
 }
 
+// ICL-NUIM's release as it unpacks: frames numbered where timestamps go, in associations.txt
+// and in its ground truth (traj0.gt.freiburg, no pose for frame 0), no groundtruth.txt. Read
+// as frames at the camera's 30 Hz, as fetch_icl_nuim.sh converts them, ground truth included.
+TEST(TumDatasetTest, IclNuimReleaseAsItUnpacksIsReadAtTheCamerasRate) {
+  testing::TempDir dir;
+  WriteFolder(dir.path());
+  for (const char* f : {"/rgb.txt", "/depth.txt", "/groundtruth.txt"})
+    std::remove((dir.path() + f).c_str());
+  ASSERT_TRUE(WriteFileAtomic(dir.File("associations.txt"),
+                              "0 depth/0.png 0 rgb/0.png\n1 depth/1.png 1 rgb/1.jpg\n"
+                              "2 depth/2.png 2 rgb/2.png\n")
+                  .ok());
+  ASSERT_TRUE(
+      WriteFileAtomic(dir.File("traj0.gt.freiburg"), "1 0.1 0 -2.5 0 0 0 1\n2 0.2 0 -2.5 0 0 0 1\n")
+          .ok());
+  auto seq = TumSequence::Open(dir.path(), Camera());
+  ASSERT_TRUE(seq.ok()) << seq.status().ToString();
+  ASSERT_EQ(seq->size(), 3u);
+  EXPECT_NEAR(seq->frame(1).timestamp, 1.0 / 30, 1e-12);
+  EXPECT_NEAR(seq->frame(2).depth_timestamp, 2.0 / 30, 1e-12);
+  ASSERT_EQ(seq->groundtruth().size(), 2u);
+  EXPECT_NEAR(seq->groundtruth().back().timestamp, 2.0 / 30, 1e-12);
+  EXPECT_FALSE(seq->frame(0).T_world_cam_gt.has_value());
+  ASSERT_TRUE(seq->frame(2).T_world_cam_gt.has_value());
+  EXPECT_NEAR(seq->frame(2).T_world_cam_gt->translation().x(), 0.2, 1e-12);
+
+  // Two ground-truth files: which one is meant is not clear, so neither is taken.
+  ASSERT_TRUE(WriteFileAtomic(dir.File("traj1.gt.freiburg"), "1 0 0 0 0 0 0 1\n").ok());
+  EXPECT_TRUE(TumSequence::Open(dir.path(), Camera())->groundtruth().empty());
+  // Times that are not consecutive frame numbers stay times.
+  ASSERT_TRUE(WriteFileAtomic(dir.File("associations.txt"),
+                              "10 depth/0.png 10 rgb/0.png\n12 depth/1.png 12 rgb/1.jpg\n")
+                  .ok());
+  EXPECT_EQ(TumSequence::Open(dir.path(), Camera())->frame(1).timestamp, 12.0);
+}
+
 // A 7-Scenes sequence folder as its archive unpacks: depth in millimetres with 65535 for no
 // depth, a 4x4 camera-to-world matrix per frame written to 6 digits.
 void WriteSevenScenesFolder(const std::string& dir, int frames) {
