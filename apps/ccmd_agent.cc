@@ -256,7 +256,11 @@ int main(int argc, char** argv) {
                  << (tracking.synchronous_mapping ? "in the tracking thread (deterministic)"
                                                   : "on its own thread");
   tracking.cpu_budget = cpu_budget;
+  // A recording's config gives the tracking and sensor options with its camera, whether it was
+  // given, is the folder's camera.yaml or is the shipped one the folder's name points to.
+  config_path = ccmd::SourceConfigPath(source_spec, source_options);
   if (!config_path.empty()) {
+    CCMD_LOG(INFO) << "tracking options from " << config_path;
     auto config = ccmd::ConfigFile::Open(config_path);
     if (!config.ok()) return Fail(config.status().ToString());
     auto options = ccmd::ReadTrackingOptions(*config, tracking);

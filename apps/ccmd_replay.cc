@@ -21,6 +21,7 @@
 #include "libccmd/io/split.h"
 #include "libccmd/io/tum_dataset.h"
 #include "libccmd/netsim/netns_link.h"
+#include "libccmd/sensors/source_factory.h"
 #include "libccmd/system/link_report.h"
 #include "libccmd/system/replay_report.h"
 #include "libccmd/util/file_util.h"
@@ -558,20 +559,18 @@ int main(int argc, char** argv) {
 
   // The dataset: frame count, camera, ground truth.
   std::optional<PinholeCamera> camera;
-  std::string camera_config = config;
-  if (camera_config.empty() && !FileExists(JoinPath(dataset, "camera.yaml"))) {
-    const std::string guess = GuessCameraConfigName(dataset);
-    if (!guess.empty()) camera_config = JoinPath(app::ConfigDir(), guess);
-  }
+  SourceOptions source_options;
+  source_options.camera_config = config;
+  source_options.configs_dir = app::ConfigDir();
+  // The agents get it as --config: camera, tracking and sensor options from one file.
+  const std::string camera_config = DatasetConfigPath(dataset, source_options);
   if (!camera_config.empty()) {
     auto loaded = LoadCameraConfig(camera_config);
     if (!loaded.ok()) return Fail(loaded.status().ToString());
     camera = *loaded;
   }
-  const std::string camera_file =
-      !camera_config.empty() ? camera_config : JoinPath(dataset, "camera.yaml");
   ReferenceOptions reference_camera;  // with the Depth block and the ground truth's camera
-  if (const Status s = ReadReferenceCamera(camera_file, &reference_camera); !s.ok())
+  if (const Status s = ReadReferenceCamera(camera_config, &reference_camera); !s.ok())
     return Fail(s.ToString());
   auto sequence = TumSequence::Open(dataset, camera);
   if (!sequence.ok()) return Fail(sequence.status().ToString());

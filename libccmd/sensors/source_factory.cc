@@ -145,6 +145,24 @@ StatusOr<std::unique_ptr<RgbdSource>> OpenSourceWithRetry(const std::string& spe
   return std::unique_ptr<RgbdSource>(std::move(source));
 }
 
+std::string DatasetConfigPath(const std::string& folder, const SourceOptions& options) {
+  if (!options.camera_config.empty()) return options.camera_config;
+  const std::string own = JoinPath(folder, "camera.yaml");
+  if (FileExists(own)) return own;
+  const std::string guess = GuessCameraConfigName(folder);
+  if (guess.empty() || options.configs_dir.empty()) return "";
+  return JoinPath(options.configs_dir, guess);
+}
+
+std::string SourceConfigPath(const std::string& spec, const SourceOptions& options) {
+  const auto colon = spec.find(':');
+  const std::string kind = spec.substr(0, colon);
+  if ((kind == "tum" || kind == "dataset") && colon != std::string::npos) {
+    return DatasetConfigPath(spec.substr(colon + 1), options);
+  }
+  return options.camera_config;
+}
+
 StatusOr<std::unique_ptr<RgbdSource>> OpenSource(const std::string& spec,
                                                  const SourceOptions& options) {
   CCMD_RETURN_IF_ERROR(options.Validate());
@@ -155,21 +173,17 @@ StatusOr<std::unique_ptr<RgbdSource>> OpenSource(const std::string& spec,
   if (kind == "tum" || kind == "dataset") {
     if (argument.empty()) return InvalidArgument("tum: needs a folder, e.g. tum:/data/fr1_desk");
     std::optional<PinholeCamera> camera;
-    std::string config = options.camera_config;
-    if (config.empty() && !FileExists(JoinPath(argument, "camera.yaml"))) {
-      const std::string guess = GuessCameraConfigName(argument);
-      if (!guess.empty() && !options.configs_dir.empty()) {
-        config = JoinPath(options.configs_dir, guess);
-        CCMD_LOG(INFO) << "camera config not given; using " << config << " for " << argument;
-      }
+    const std::string config_used = DatasetConfigPath(argument, options);
+    if (options.camera_config.empty() && !config_used.empty() &&
+        config_used != JoinPath(argument, "camera.yaml")) {
+      CCMD_LOG(INFO) << "camera config not given; using " << config_used << " for " << argument;
     }
-    if (!config.empty()) {
-      CCMD_ASSIGN_OR_RETURN(camera, LoadCameraConfig(config));
+    if (!config_used.empty()) {
+      CCMD_ASSIGN_OR_RETURN(camera, LoadCameraConfig(config_used));
     }
-    const std::string config_used = !config.empty() ? config : JoinPath(argument, "camera.yaml");
     std::optional<DepthToColorCalibration> registration;
     Pose T_color_trajectory = Pose::Identity();
-    if (options.register_depth && FileExists(config_used)) {
+    if (options.register_depth && !config_used.empty()) {
       CCMD_ASSIGN_OR_RETURN(registration, LoadDepthToColorCalibration(config_used));
       CCMD_ASSIGN_OR_RETURN(T_color_trajectory, LoadTrajectoryCamera(config_used));
     }

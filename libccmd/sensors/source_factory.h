@@ -42,6 +42,16 @@ struct SourceOptions {
 StatusOr<std::unique_ptr<RgbdSource>> OpenSource(const std::string& spec,
                                                  const SourceOptions& options);
 
+// The config file a recorded sequence (tum:DIR, or DIR itself) is read with: the one given
+// (options.camera_config), else the folder's camera.yaml, else the shipped config its name or
+// layout points to (GuessCameraConfigName, in options.configs_dir); "" when there is none.
+// Its camera is the source's, and the programs take their tracking and sensor options (depth
+// noise, ...) from the same file, so a guessed config counts as a given one.
+std::string DatasetConfigPath(const std::string& folder, const SourceOptions& options);
+// The config file the source of `spec` is opened with: DatasetConfigPath for a recorded
+// sequence, options.camera_config for anything else.
+std::string SourceConfigPath(const std::string& spec, const SourceOptions& options);
+
 // Like OpenSource, but a live camera comes wrapped in a RetryingSource (retrying_source.h):
 // when it fails with Unavailable it is reopened with backoff instead of ending the run.
 // Datasets and synthetic sources are returned as they are.

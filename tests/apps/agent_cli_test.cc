@@ -2,6 +2,8 @@
 
 #include <gtest/gtest.h>
 
+#include <cstdio>
+
 #include <opencv2/core.hpp>
 
 #include "libccmd/eval/trajectory_error.h"
@@ -46,6 +48,50 @@ TEST(AgentCliTest, AnOfflineRecordingIsMappedInTheTrackingThreadByDefault) {
   EXPECT_EQ(*a, *b);  // deterministic
   std::string out;
   EXPECT_NE(RunCommand(agent + " --synchronous --asynchronous", &out), 0);
+}
+
+// A recording's config gives the sensor's and tracking options with the camera, whether it is
+// given with --config, is the folder's camera.yaml (ccmd_synth writes one) or is the shipped
+// config the folder's name points to: the runs are the same. Before, only the camera came from
+// the two last, and an ICL-NUIM folder was tracked with a Kinect's depth noise.
+TEST(AgentCliTest, AGuessedOrOwnConfigGivesTheTrackingOptionsTooAsAGivenOne) {
+  testing::TempDir dir;
+  std::string out;
+  const std::string icl = std::string(CCMD_CONFIG_DIR) + "/icl_nuim.yaml";
+  ASSERT_EQ(RunCommand(ProgramPath("ccmd_synth") + " --out " + dir.File("seq") +
+                           " --frames 60 --surface-spacing 0.05 --config " + icl,
+                       &out),
+            0)
+      << out;
+  const auto run = [&](const std::string& folder, const std::string& flags,
+                       const std::string& name) {
+    std::string log;
+    EXPECT_EQ(RunCommand(ProgramPath("ccmd_agent") + " --source tum:" + folder +
+                             " --offline --trajectory " + dir.File(name) + " " + flags,
+                         &log),
+              0)
+        << log;
+    auto text = ReadFileToString(dir.File(name));
+    return text.ok() ? *text : std::string();
+  };
+  // Its own camera.yaml (the config's camera and depth noise).
+  const std::string given = run(dir.File("seq"), "--config " + icl, "given.txt");
+  ASSERT_FALSE(given.empty());
+  EXPECT_EQ(run(dir.File("seq"), "", "own.txt"), given);
+  // No camera.yaml, a folder named as ICL-NUIM's archives: the shipped icl_nuim.yaml.
+  ASSERT_EQ(std::rename(dir.File("seq").c_str(), dir.File("traj0_frei_png").c_str()), 0);
+  std::remove(dir.File("traj0_frei_png/camera.yaml").c_str());
+  EXPECT_EQ(run(dir.File("traj0_frei_png"), "", "guessed.txt"), given);
+  // And the options matter here: the same camera with a Kinect's depth noise tracks otherwise.
+  const std::string kinect = dir.File("kinect.yaml");
+  std::string text = *ReadFileToString(icl);
+  for (const char* key : {"DepthNoise.sigma0", "DepthNoise.sigma2"}) {
+    const std::size_t at = text.find(key);
+    ASSERT_NE(at, std::string::npos) << key;
+    text = text.substr(0, at) + "# " + text.substr(at);
+  }
+  ASSERT_TRUE(WriteFileAtomic(kinect, text).ok());
+  EXPECT_NE(run(dir.File("traj0_frei_png"), "--config " + kinect, "kinect.txt"), given);
 }
 
 TEST(AgentCliTest, OfflineRunWritesTrajectoryStatsAndRecording) {

@@ -17,9 +17,7 @@
 namespace ccmd {
 namespace {
 
-void Write(const std::string& path, const std::string& text) {
-  std::ofstream(path) << text;
-}
+void Write(const std::string& path, const std::string& text) { std::ofstream(path) << text; }
 
 // Runs the script with the release's site replaced by `site` (file://).
 ProcessResult Fetch(const testing::TempDir& dir, const std::string& site,
@@ -49,9 +47,8 @@ void MakeRelease(const testing::TempDir& dir, const std::string& archive, const 
   }
   Write(root + "/associations.txt", associations.str());
   Write(gt_inside ? root + "/" + gt : dir.File("site/VaFRIC/" + gt), poses.str());
-  auto tar = Subprocess::Start({"/usr/bin/tar", "-czf", dir.File("site/" + archive + ".tar.gz"),
-                                "-C", root, "."},
-                               "", "");
+  auto tar = Subprocess::Start(
+      {"/usr/bin/tar", "-czf", dir.File("site/" + archive + ".tar.gz"), "-C", root, "."}, "", "");
   ASSERT_TRUE(tar.ok());
   ASSERT_EQ(tar->Wait().exit_code, 0);
 }
@@ -59,8 +56,8 @@ void MakeRelease(const testing::TempDir& dir, const std::string& archive, const 
 TEST(FetchScriptTest, TheOfficeRoomBecomesATumFolderMatchedByIndex) {
   testing::TempDir dir;
   ASSERT_NO_FATAL_FAILURE(MakeRelease(dir, "traj0_frei_png", "traj0.gt.freiburg", true));
-  const ProcessResult r = Fetch(dir, dir.File("site"), {"--dest", dir.File("out"), "--scene",
-                                                       "office", "0"});
+  const ProcessResult r =
+      Fetch(dir, dir.File("site"), {"--dest", dir.File("out"), "--scene", "office", "0"});
   ASSERT_EQ(r.exit_code, 0) << *ReadFileToString(dir.File("fetch.err"));
   const std::string folder = dir.File("out/office_room_traj0_frei_png");
   EXPECT_EQ(GuessCameraConfigName(folder), "icl_nuim.yaml");
@@ -74,7 +71,7 @@ TEST(FetchScriptTest, TheOfficeRoomBecomesATumFolderMatchedByIndex) {
   ASSERT_EQ(gt->size(), 3u);
   EXPECT_NEAR(gt->front().timestamp, 1.0 / 30, 1e-6);
   EXPECT_NEAR(gt->back().T_world_cam.translation().x(), 0.3, 1e-9);  // frame 3's pose
-  EXPECT_FALSE(FileExists(dir.File("out/traj0_frei_png.tar.gz")));  // the archive is gone
+  EXPECT_FALSE(FileExists(dir.File("out/traj0_frei_png.tar.gz")));   // the archive is gone
 }
 
 TEST(FetchScriptTest, ALivingRoomGroundTruthPublishedBesideTheArchiveIsFetched) {
@@ -90,8 +87,8 @@ TEST(FetchScriptTest, ALivingRoomGroundTruthPublishedBesideTheArchiveIsFetched) 
 
 TEST(FetchScriptTest, AnUnknownSceneIsRefused) {
   testing::TempDir dir;
-  const ProcessResult r = Fetch(dir, dir.File("site"), {"--dest", dir.File("out"), "--scene",
-                                                       "kitchen", "0"});
+  const ProcessResult r =
+      Fetch(dir, dir.File("site"), {"--dest", dir.File("out"), "--scene", "kitchen", "0"});
   EXPECT_NE(r.exit_code, 0);
   EXPECT_NE(ReadFileToString(dir.File("fetch.err"))->find("unknown scene kitchen"),
             std::string::npos);

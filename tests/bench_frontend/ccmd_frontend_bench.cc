@@ -149,6 +149,7 @@ int main(int argc, char** argv) {
   }
   const PinholeCamera camera = (*source)->camera();
   TrackingOptions options;
+  config_path = SourceConfigPath(source_spec, source_options);  // as ccmd_agent reads it
   if (!config_path.empty()) {
     auto config = ConfigFile::Open(config_path);
     if (!config.ok()) return 1;
