@@ -312,7 +312,7 @@ class DenseMap {
   // Moves a compacted keyframe's held voxels from T_held to its pose.
   void MoveHeld(MapNode* map, Entry* entry);
   // Marks every compacted keyframe of the map again, oldest first, dropping points whose voxel
-  // an older one holds; releases those left with none.
+  // an older one holds; releases those left with too few (release_below_points).
   void RebuildHeld(MapNode* map);
   std::size_t MaintainLocked();
   void MarkPending(const Entry& entry);
