@@ -277,6 +277,9 @@ int main(int argc, char** argv) {
     }
   }
   if (app.count("--cpu-budget")) tracking.cpu_budget = cpu_budget;
+  // A recording mapped in the tracking thread keeps to the budget by its pace alone (one
+  // thread uses at most one core, and the pacer below waits under a smaller budget).
+  tracking.mapping_follows_budget = !tracking.synchronous_mapping || (*source)->IsLive();
   // Frame records and removed keyframes' poses are needed only for the trajectory files;
   // without them nothing in the agent's memory grows with the frames, however long the mission.
   tracking.record_trajectory = !trajectory_path.empty() || !keyframe_trajectory_path.empty();

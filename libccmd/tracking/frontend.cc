@@ -49,6 +49,7 @@ void TrackingOptions::Describe(OptionsWriter* out) const {
   out->Add("local_ba_iterations", local_ba_iterations);
   out->Add("local_ba_function_tolerance", local_ba_function_tolerance);
   out->Add("cpu_budget", cpu_budget);
+  out->Add("mapping_follows_budget", mapping_follows_budget);
   out->Add("depth_alignment_neighbours", depth_alignment_neighbours);
   out->Add("depth_alignment_weight", depth_alignment_weight);
   out->Add("max_keyframes", max_keyframes);

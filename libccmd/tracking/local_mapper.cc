@@ -21,7 +21,7 @@ LocalMapper::LocalMapper(const PinholeCamera& camera, const TrackingOptions& opt
       orb_(orb),
       sink_(sink),
       selector_(options.rgbd_selection),
-      budget_(options.cpu_budget, camera.fps) {
+      budget_(options.mapping_follows_budget ? options.cpu_budget : 0.0, camera.fps) {
   if (!options_.synchronous_mapping) thread_ = std::thread([this] { Run(); });
 }
 

@@ -60,6 +60,10 @@ struct TrackingOptions {
   // gets the rest of cores / fps per frame and shrinks its local BA (half the window and the
   // iterations) while over, or skips it when far over (cpu_budget.h).
   double cpu_budget = 0;
+  // Whether local mapping keeps to `cpu_budget` by shrinking its BA. A recording mapped in the
+  // tracking thread has no sensor to keep up with: ccmd_agent paces it to the budget instead
+  // and keeps every BA whole, so its trajectory does not depend on the machine's speed.
+  bool mapping_follows_budget = true;
   // Dense depth alignment (depth_alignment.h): each new keyframe's depth is aligned with that
   // of this many best covisible keyframes, and the local BA weighs each alignment by its
   // information times `depth_alignment_weight` (0 turns it off).

@@ -167,6 +167,8 @@ void ViewModel::OnPlacement(MapId map, const std::vector<GlobalKeyframeId>& keyf
     const auto it = keyframes_.find(id);
     if (it == keyframes_.end()) continue;  // never announced
     it->second.placed = placed;
+    // Unplaced keyframes are out of the dense map (the few a restart keeps apart leave it).
+    if (!placed) it->second.has_cloud = false;
     list.Push(IdJson(id));
   }
   if (list.size() == 0) return;

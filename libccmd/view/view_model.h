@@ -19,8 +19,9 @@
 //   loop   {qa, qk, ca, ck, fusion, m, from, inliers}  a loop (or a fusion of the maps in
 //                                          `from` into m)
 //   placed {m, placed, kfs: [[a, k]]}      keyframes became unplaced (placed false: a restarted
-//                                          segment nothing places yet) or were placed by a loop;
-//                                          a keyframe's state says "placed": false while so
+//                                          segment nothing places yet; the dense map holds no
+//                                          cloud of it) or were placed by a loop; a keyframe's
+//                                          state says "placed": false while so
 //   culled {m, kfs: [[a, k]]}              keyframes culled as redundant: no longer drawn on
 //                                          their agent's path (nor their loops); one without a
 //                                          cloud leaves the state, one with a cloud stays

@@ -66,10 +66,13 @@ TEST(AgentCliTest, AGuessedOrOwnConfigGivesTheTrackingOptionsTooAsAGivenOne) {
   const auto run = [&](const std::string& folder, const std::string& flags,
                        const std::string& name) {
     std::string log;
-    EXPECT_EQ(RunCommand(ProgramPath("ccmd_agent") + " --source tum:" + folder +
-                             " --offline --trajectory " + dir.File(name) + " " + flags,
-                         &log),
-              0)
+    // No CPU budget: its account follows the machine's load, and a reduced local BA would
+    // make runs differ that the options do not.
+    EXPECT_EQ(
+        RunCommand(ProgramPath("ccmd_agent") + " --source tum:" + folder +
+                       " --offline --cpu-budget 0 --trajectory " + dir.File(name) + " " + flags,
+                   &log),
+        0)
         << log;
     auto text = ReadFileToString(dir.File(name));
     return text.ok() ? *text : std::string();
@@ -92,6 +95,32 @@ TEST(AgentCliTest, AGuessedOrOwnConfigGivesTheTrackingOptionsTooAsAGivenOne) {
   }
   ASSERT_TRUE(WriteFileAtomic(kinect, text).ok());
   EXPECT_NE(run(dir.File("traj0_frei_png"), "--config " + kinect, "kinect.txt"), given);
+}
+
+// A recording mapped in the tracking thread keeps to the CPU budget by its pace: every local
+// BA stays whole however slow the machine, so the trajectory does not depend on its speed.
+// Mapping beside tracking (as a live camera's) still shrinks its BA when over the budget.
+TEST(AgentCliTest, AnOfflineRecordingKeepsEveryLocalBaWholeUnderASmallBudget) {
+  testing::TempDir dir;
+  const auto shrunk = [&](const std::string& flags) {
+    std::string out;
+    EXPECT_EQ(RunCommand(ProgramPath("ccmd_agent") +
+                             " --source synth:frames=30,seed=5 --offline --cpu-budget 0.3 " +
+                             flags + " --stats " + dir.File("s.json"),
+                         &out),
+              0)
+        << out;
+    auto stats = ReadJsonFile(dir.File("s.json"));
+    EXPECT_TRUE(stats.ok()) << out;
+    if (!stats.ok()) return -1.0;
+    EXPECT_GT(stats->Get("local_ba_runs")->number() + stats->Get("local_ba_reduced")->number() +
+                  stats->Get("local_ba_skipped_budget")->number(),
+              0);
+    return stats->Get("local_ba_reduced")->number() +
+           stats->Get("local_ba_skipped_budget")->number();
+  };
+  EXPECT_EQ(shrunk(""), 0);
+  EXPECT_GT(shrunk("--asynchronous"), 0);
 }
 
 TEST(AgentCliTest, OfflineRunWritesTrajectoryStatsAndRecording) {

@@ -97,8 +97,11 @@ TEST(ViewModelTest, PlacementOfRestartedSegmentsIsStateAndEvents) {
   ViewModel model;
   model.OnAgent(AgentId(1), "alpha");
   for (int k = 0; k < 4; ++k) model.OnKeyframe(Id(1, k), MapId(1), Moved(k, 0), 1.0, true);
+  model.OnDenseKeyframe(Id(1, 2), MapId(1), Moved(2, 0));
   model.OnPlacement(MapId(1), {Id(1, 2), Id(1, 3), Id(1, 9)}, false);
   Json state = model.StateJson();
+  // Unplaced keyframes are out of the dense map: a restart keeps the few before it apart.
+  EXPECT_FALSE(FindKeyframe(state, 1, 2)->Get("cloud")->boolean());
   EXPECT_FALSE(FindKeyframe(state, 1, 1)->Has("placed"));
   EXPECT_FALSE(FindKeyframe(state, 1, 2)->Get("placed")->boolean());
   EXPECT_FALSE(FindKeyframe(state, 1, 3)->Get("placed")->boolean());
@@ -108,13 +111,13 @@ TEST(ViewModelTest, PlacementOfRestartedSegmentsIsStateAndEvents) {
   model.OnPlacement(MapId(1), {Id(1, 9)}, true);  // unknown only: no event
 
   const EventBatch batch = model.WaitEvents(0, 0, 1.0);
-  ASSERT_EQ(batch.events.size(), 1u + 4u + 2u);
-  auto unplaced = Json::Parse(batch.events[5].second);
+  ASSERT_EQ(batch.events.size(), 1u + 4u + 1u + 2u);
+  auto unplaced = Json::Parse(batch.events[6].second);
   ASSERT_TRUE(unplaced.ok());
   EXPECT_EQ(unplaced->Get("type")->string(), "placed");
   EXPECT_FALSE(unplaced->Get("placed")->boolean());
   EXPECT_EQ(unplaced->Get("kfs")->size(), 2u);
-  auto placed = Json::Parse(batch.events[6].second);
+  auto placed = Json::Parse(batch.events[7].second);
   ASSERT_TRUE(placed.ok());
   EXPECT_TRUE(placed->Get("placed")->boolean());
 }

@@ -577,7 +577,9 @@
       case 'placed':
         for (const item of e.kfs) {
           const kf = S.keyframes.get(key(item[0], item[1]));
-          if (kf) kf.unplaced = !e.placed;
+          if (!kf) continue;
+          kf.unplaced = !e.placed;
+          if (kf.unplaced && kf.cloud) dropCloud(kf);  // out of the dense map while so
         }
         markOverlay();
         break;
