@@ -63,7 +63,7 @@ TEST(CpuPacerTest, HoldsTheProcessToItsBudget) {
   EXPECT_EQ(CpuPacer(0).Pace(), 0);
 }
 
-FrontendStats RunWithBudget(double cores) {
+FrontendStats RunWithBudget(double cores, bool mapping_follows_budget = true) {
   SyntheticSequenceOptions synth;
   synth.frames = 40;
   synth.seed = 1;
@@ -71,6 +71,7 @@ FrontendStats RunWithBudget(double cores) {
   TrackingOptions options;
   options.synchronous_mapping = true;
   options.cpu_budget = cores;
+  options.mapping_follows_budget = mapping_follows_budget;
   auto frontend = Frontend::Create(source.camera(), options, nullptr);
   EXPECT_TRUE(frontend.ok());
   RgbdFrame frame;
@@ -93,6 +94,15 @@ TEST(CpuBudgetTest, MappingDegradesAndTrackingGoesOn) {
   EXPECT_EQ(ample.tracked_frames, 40);
   EXPECT_EQ(ample.mapping.local_ba_skipped_budget + ample.mapping.local_ba_reduced, 0);
   EXPECT_EQ(ample.mapping.local_ba_runs, ample.mapping.keyframes);
+}
+
+// A recording paced to its budget (ccmd_agent offline) tells the mapper not to follow it:
+// under the same impossible budget every local BA stays whole.
+TEST(CpuBudgetTest, AMapperNotFollowingTheBudgetKeepsEveryBundleAdjustment) {
+  const FrontendStats whole = RunWithBudget(0.001, /*mapping_follows_budget=*/false);
+  EXPECT_EQ(whole.tracked_frames, 40);
+  EXPECT_EQ(whole.mapping.local_ba_skipped_budget + whole.mapping.local_ba_reduced, 0);
+  EXPECT_EQ(whole.mapping.local_ba_runs, whole.mapping.keyframes);
 }
 
 }  // namespace
