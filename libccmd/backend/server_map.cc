@@ -143,8 +143,7 @@ void ServerMap::MergePoints(ServerMapPoint* from, ServerMapPoint* into) {
 }
 
 KeyframeId ServerMap::NewestKeyframe(AgentId agent) const {
-  const auto it = newest_.find(agent);
-  return it == newest_.end() ? KeyframeId(0) : it->second;
+  return NewestKeyframeOf(agent).value_or(KeyframeId(0));
 }
 
 std::optional<KeyframeId> ServerMap::NewestKeyframeOf(AgentId agent) const {
@@ -153,18 +152,20 @@ std::optional<KeyframeId> ServerMap::NewestKeyframeOf(AgentId agent) const {
   return it->second;
 }
 
+std::vector<LoopEdge>::iterator ServerMap::FindLoopEdge(const GlobalKeyframeId& a,
+                                                        const GlobalKeyframeId& b) {
+  return std::find_if(loop_edges_.begin(), loop_edges_.end(), [&](const LoopEdge& e) {
+    return (e.a == a && e.b == b) || (e.a == b && e.b == a);
+  });
+}
+
 void ServerMap::AddLoopEdge(const LoopEdge& edge) {
-  for (LoopEdge& e : loop_edges_) {
-    if (e.a == edge.a && e.b == edge.b) {
-      e = edge;
-      return;
-    }
-    if (e.a == edge.b && e.b == edge.a) {
-      e = {edge.b, edge.a, edge.T_a_b.inverse()};
-      return;
-    }
+  const auto known = FindLoopEdge(edge.a, edge.b);
+  if (known == loop_edges_.end()) {
+    loop_edges_.push_back(edge);
+  } else {
+    *known = known->a == edge.a ? edge : LoopEdge{edge.b, edge.a, edge.T_a_b.inverse()};
   }
-  loop_edges_.push_back(edge);
 }
 
 std::size_t ServerMap::Cull(ServerKeyframe* kf, ServerKeyframe* follow) {
@@ -210,10 +211,7 @@ std::size_t ServerMap::Cull(ServerKeyframe* kf, ServerKeyframe* follow) {
   }
   // One edge per pair: the pair's own measurement stays, the composed one is dropped.
   for (const LoopEdge& edge : moved) {
-    const bool known = std::any_of(loop_edges_.begin(), loop_edges_.end(), [&](const LoopEdge& e) {
-      return (e.a == edge.a && e.b == edge.b) || (e.a == edge.b && e.b == edge.a);
-    });
-    if (!known) loop_edges_.push_back(edge);
+    if (FindLoopEdge(edge.a, edge.b) == loop_edges_.end()) loop_edges_.push_back(edge);
   }
   CulledKeyframe record;
   record.id = kf->id;

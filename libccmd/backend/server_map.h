@@ -227,6 +227,9 @@ class ServerMap {
   // older than kMergeAliasKeyframes keyframes of their agent.
   void PruneMergeAliases();
   KeyframeId NewestKeyframe(AgentId agent) const;
+  // The edge between a and b, either way round (end() if none).
+  std::vector<LoopEdge>::iterator FindLoopEdge(const GlobalKeyframeId& a,
+                                               const GlobalKeyframeId& b);
 
   struct MergeAlias {
     GlobalMapPointId into;

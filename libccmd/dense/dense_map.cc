@@ -260,19 +260,21 @@ Status DenseMap::SetAgentMap(AgentId agent, MapId map) {
 Status DenseMap::UpdateKeyframePose(const GlobalKeyframeId& id, const Pose& T_world_cam) {
   CCMD_RETURN_IF_ERROR(CheckPose(T_world_cam).WithContext(IdText(id)));
   std::lock_guard<std::mutex> lock(mutex_);
-  if (Entry* entry = EntriesOf({{id, T_world_cam}}).front()) SetPose(entry, T_world_cam);
+  if (Entry* entry = UpdatedEntry(id)) SetPose(entry, T_world_cam);
   return Status::Ok();
+}
+
+DenseMap::Entry* DenseMap::UpdatedEntry(const GlobalKeyframeId& id) {
+  const AgentNode* node = FindAgent(id.agent);
+  Entry* entry = node ? Find(*node, id.keyframe.value()) : nullptr;
+  absent_updates_ += entry == nullptr;
+  return entry;
 }
 
 std::vector<DenseMap::Entry*> DenseMap::EntriesOf(const std::vector<KeyframePose>& poses) {
   std::vector<Entry*> entries;
   entries.reserve(poses.size());
-  for (const KeyframePose& p : poses) {
-    const AgentNode* node = FindAgent(p.id.agent);
-    Entry* entry = node ? Find(*node, p.id.keyframe.value()) : nullptr;
-    absent_updates_ += entry == nullptr;
-    entries.push_back(entry);
-  }
+  for (const KeyframePose& p : poses) entries.push_back(UpdatedEntry(p.id));
   return entries;
 }
 

@@ -276,7 +276,9 @@ class DenseMap {
   const AgentNode* FindAgent(AgentId agent) const;
   AgentNode& AgentOrCreate(AgentId agent);
   static Entry* Find(const AgentNode& agent, std::uint32_t id);
-  // The entry of each of `poses` (null for a keyframe the store does not hold; counted).
+  // The entry a pose update names: null for a keyframe the store does not hold (counted in
+  // absent_updates_). EntriesOf: the same for each of `poses`.
+  Entry* UpdatedEntry(const GlobalKeyframeId& id);
   std::vector<Entry*> EntriesOf(const std::vector<KeyframePose>& poses);
   static Entry* Next(const AgentNode& agent, std::uint32_t id);
   static Entry* Prev(const AgentNode& agent, std::uint32_t id);

@@ -21,6 +21,7 @@
 #include "libccmd/eval/reconstruction_error.h"
 #include "libccmd/io/config.h"
 #include "libccmd/io/tum_dataset.h"
+#include "libccmd/sensors/source_factory.h"
 #include "libccmd/system/replay_report.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/json.h"
@@ -135,10 +136,10 @@ int main(int argc, char** argv) {
   app.add_option("--json", json_path, "Write the rows as JSON");
   CLI11_PARSE(app, argc, argv);
 
-  if (config.empty() && !FileExists(JoinPath(dataset, "camera.yaml"))) {
-    const std::string guess = GuessCameraConfigName(dataset);
-    if (!guess.empty()) config = JoinPath(CCMD_CONFIG_DIR, guess);
-  }
+  SourceOptions source_options;
+  source_options.camera_config = config;
+  source_options.configs_dir = CCMD_CONFIG_DIR;
+  config = DatasetConfigPath(dataset, source_options);
   std::optional<PinholeCamera> camera;
   if (!config.empty()) {
     auto loaded = LoadCameraConfig(config);
@@ -148,8 +149,7 @@ int main(int argc, char** argv) {
   auto sequence = TumSequence::Open(dataset, camera);
   if (!sequence.ok()) return Fail(sequence.status().ToString());
   ReferenceOptions reference_options;
-  const std::string camera_file = !config.empty() ? config : JoinPath(dataset, "camera.yaml");
-  if (const Status s = ReadReferenceCamera(camera_file, &reference_options); !s.ok())
+  if (const Status s = ReadReferenceCamera(config, &reference_options); !s.ok())
     return Fail(s.ToString());
   std::string reference_source;
   auto reference = LoadOrBuildReference(*sequence, reference_options, &reference_source);

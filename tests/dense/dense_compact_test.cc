@@ -74,16 +74,24 @@ std::set<std::uint64_t> Voxels(const PointCloud& cloud) {
   return voxels;
 }
 
+// The voxels of a store's map.
+std::set<std::uint64_t> MapVoxels(DenseMap* store) {
+  auto map = store->Extract(DenseSelection::Global());
+  EXPECT_TRUE(map.ok());
+  return map.ok() ? Voxels(*map) : std::set<std::uint64_t>();
+}
+
+// How many voxels of `of` are not in `in`.
+std::size_t Missing(const std::set<std::uint64_t>& of, const std::set<std::uint64_t>& in) {
+  std::size_t missing = 0;
+  for (std::uint64_t v : of) missing += !in.count(v);
+  return missing;
+}
+
 // The maps of two stores cover the same voxels, but for one in 500.
 void ExpectSameVoxels(DenseMap* a, DenseMap* b) {
-  auto map_a = a->Extract(DenseSelection::Global());
-  auto map_b = b->Extract(DenseSelection::Global());
-  ASSERT_TRUE(map_a.ok() && map_b.ok());
-  const std::set<std::uint64_t> va = Voxels(*map_a), vb = Voxels(*map_b);
-  std::size_t differ = 0;
-  for (std::uint64_t v : vb) differ += !va.count(v);
-  for (std::uint64_t v : va) differ += !vb.count(v);
-  EXPECT_LE(differ, vb.size() / 500) << vb.size();
+  const std::set<std::uint64_t> va = MapVoxels(a), vb = MapVoxels(b);
+  EXPECT_LE(Missing(vb, va) + Missing(va, vb), vb.size() / 500) << vb.size();
 }
 
 // Share of `a`'s points with a point of `b` closer than `distance`.
@@ -226,13 +234,8 @@ TEST(DenseCompactTest, KeyframesWithFewerPointsThanTheThresholdAreReleasedWithTh
       EXPECT_GE(stored->size(), 30u) << id;
     }
   }
-  auto map_c = compact->Extract(DenseSelection::Global());
-  auto map_f = full->Extract(DenseSelection::Global());
-  ASSERT_TRUE(map_c.ok() && map_f.ok());
-  const std::set<std::uint64_t> vc = Voxels(*map_c), vf = Voxels(*map_f);
-  std::size_t missing = 0;
-  for (std::uint64_t v : vf) missing += !vc.count(v);
-  EXPECT_LE(missing, stats.released_points + vf.size() / 500);
+  const std::set<std::uint64_t> vc = MapVoxels(compact.get()), vf = MapVoxels(full.get());
+  EXPECT_LE(Missing(vf, vc), stats.released_points + vf.size() / 500);
 }
 
 TEST(DenseCompactTest, PoseUpdatesMoveCompactedPointsExactly) {
