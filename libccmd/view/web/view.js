@@ -9,7 +9,9 @@
 // even subsample, the next 1/256 another, then 1/128, 1/64, ... 1/2. While the camera
 // moves, the view draws the coarsest levels that fit a point budget that adapts to hold
 // 30 frames per second; when it stops, the remaining levels are added frame by frame on top
-// of the same image until every point is drawn.
+// of the same image until every point is drawn. A released cloud is hidden at once and leaves
+// the buffers when its chunk is compacted (see Chunk): they follow the clouds drawn, not the
+// clouds ever loaded.
 (function () {
   'use strict';
 
@@ -75,7 +77,8 @@
     fresh: true,          // the next frame starts a new image
     refine: [],           // slices still to draw on the current image: [level, first, count]
     budget: 400000,       // points per fresh frame
-    totalPoints: 0,
+    totalPoints: 0,       // points of the drawn clouds
+    loadedPoints: 0,      // points loaded since the page read the state (released ones too)
     drawnLevels: 0,
     drawnPoints: 0,
     byAgent: false,
@@ -143,13 +146,29 @@
   }
   Level.prototype.reserve = function (n) {
     if (this.count + n <= this.capacity) return;
-    const capacity = Math.max(4096, this.capacity * 2, this.count + n);
+    this.rebuild(Math.max(4096, this.capacity * 2, this.count + n), null);
+  };
+  // New arrays of `capacity` points with this level's points, in their order, but those of the
+  // slots flagged in `drop` (null: all of them). The old arrays leave the GPU and the page.
+  Level.prototype.rebuild = function (capacity, drop) {
     const pos = new Int16Array(capacity * 3), col = new Uint8Array(capacity * 3), slot = new Uint16Array(capacity);
+    let count = 0;
     if (this.points) {
       const g = this.points.geometry;
-      pos.set(g.attributes.position.array.subarray(0, this.count * 3));
-      col.set(g.attributes.color.array.subarray(0, this.count * 3));
-      slot.set(g.attributes.slot.array.subarray(0, this.count));
+      const oldPos = g.attributes.position.array, oldCol = g.attributes.color.array, oldSlot = g.attributes.slot.array;
+      // A keyframe's points are one run in a level: copy runs of kept points at once.
+      for (let i = 0; i < this.count;) {
+        let j = i;
+        while (j < this.count && !(drop && drop[oldSlot[j]])) ++j;
+        if (j > i) {
+          pos.set(oldPos.subarray(i * 3, j * 3), count * 3);
+          col.set(oldCol.subarray(i * 3, j * 3), count * 3);
+          slot.set(oldSlot.subarray(i, j), count);
+          count += j - i;
+        }
+        i = j;
+        while (i < this.count && drop && drop[oldSlot[i]]) ++i;
+      }
       this.chunk.group.remove(this.points);
       g.dispose();
     }
@@ -157,12 +176,13 @@
     g.setAttribute('position', new THREE.BufferAttribute(pos, 3));
     g.setAttribute('color', new THREE.BufferAttribute(col, 3, true));
     g.setAttribute('slot', new THREE.BufferAttribute(slot, 1));
-    g.setDrawRange(0, this.count);
+    g.setDrawRange(0, count);
     this.points = new THREE.Points(g, this.chunk.material);
     this.points.frustumCulled = false;
     this.points.matrixAutoUpdate = false;
     this.chunk.group.add(this.points);
     this.capacity = capacity;
+    this.count = count;
   };
   Level.prototype.append = function (positions, colours, first, last, slotIndex) {
     const n = last - first;
@@ -187,10 +207,35 @@
     g.setDrawRange(0, this.count);
   };
 
-  // Up to SLOTS keyframes of one agent.
+  // Drops the points of the slots flagged in `drop`; the level keeps room for half as many
+  // again, and an emptied level frees its buffer.
+  Level.prototype.compact = function (drop) {
+    if (!this.points) return;
+    const slots = this.points.geometry.attributes.slot.array;
+    let kept = 0;
+    for (let i = 0; i < this.count; ++i) kept += drop[slots[i]] ? 0 : 1;
+    if (kept === this.count) return;
+    if (kept > 0) {
+      this.rebuild(Math.max(4096, Math.ceil(kept * 1.5)), drop);
+      return;
+    }
+    this.chunk.group.remove(this.points);
+    this.points.geometry.dispose();
+    this.points = null;
+    this.capacity = this.count = 0;
+  };
+
+  // Up to SLOTS keyframes of one agent. A released keyframe's slot is first hidden (its points
+  // stay in the levels, clipped); once the hidden points are more than half of the chunk's,
+  // the levels are rebuilt without them and the slots are free for new clouds. The slots of
+  // drawn keyframes and their poses stay as they are: nothing on screen changes.
   function Chunk(agent) {
     this.agent = agent;
-    this.used = 0;
+    this.used = 0;                         // slots handed out so far
+    this.free = [];                        // slots with no point left in the levels
+    this.live = 0;                         // slots whose cloud is drawn
+    this.hidden = 0;                       // points of released slots still in the levels
+    this.released = new Uint8Array(SLOTS);  // 1: released, its points still in the levels
     this.rows = [];
     for (let i = 0; i < 3 * SLOTS; ++i) this.rows.push(new THREE.Vector4(0, 0, 0, 0));
     this.material = new THREE.RawShaderMaterial({
@@ -206,15 +251,43 @@
     scene.add(this.group);
     this.levels = LEVEL_ENDS.map(() => new Level(this));
   }
+  Chunk.prototype.hasRoom = function () { return this.free.length > 0 || this.used < SLOTS; };
+  Chunk.prototype.take = function () {
+    this.live++;
+    return this.free.length ? this.free.pop() : this.used++;
+  };
+  // Points held in the levels, drawn or not.
+  Chunk.prototype.stored = function () {
+    let n = 0;
+    for (const level of this.levels) n += level.count;
+    return n;
+  };
   Chunk.prototype.setPose = function (slot, T) {
     for (let r = 0; r < 3; ++r) {
       // Points are in millimetres: the scale goes into the rotation part.
       this.rows[3 * slot + r].set(T[4 * r] * 1e-3, T[4 * r + 1] * 1e-3, T[4 * r + 2] * 1e-3, T[4 * r + 3]);
     }
   };
-  // A released cloud: its slot's pose is zero, which the vertex shader clips.
-  Chunk.prototype.hide = function (slot) {
+  // A released cloud of n points: its slot's pose is zero, which the vertex shader clips, until
+  // the levels are compacted.
+  Chunk.prototype.release = function (slot, n) {
     for (let r = 0; r < 3; ++r) this.rows[3 * slot + r].set(0, 0, 0, 0);
+    this.live--;
+    if (n > 0) {
+      this.released[slot] = 1;
+      this.hidden += n;
+    } else {
+      this.free.push(slot);  // nothing of it in the levels
+    }
+  };
+  // Rebuilds the levels without the released slots' points; those slots become free.
+  Chunk.prototype.compact = function () {
+    for (const level of this.levels) level.compact(this.released);
+    for (let slot = 0; slot < this.used; ++slot) {
+      if (this.released[slot]) this.free.push(slot);
+    }
+    this.released.fill(0);
+    this.hidden = 0;
   };
   Chunk.prototype.dispose = function () {
     for (const level of this.levels) if (level.points) level.points.geometry.dispose();
@@ -223,17 +296,24 @@
   };
 
   const chunks = [];
-  const openChunk = new Map();  // agent -> chunk with free slots
+  const openChunk = new Map();  // agent -> the chunk its last cloud went to
+
+  // A chunk of the agent with a free slot: the last one used, else any, else a new one.
+  function chunkFor(a) {
+    let chunk = openChunk.get(a);
+    if (!chunk || !chunk.hasRoom()) chunk = chunks.find((c) => c.agent === a && c.hasRoom());
+    if (!chunk) {
+      chunk = new Chunk(a);
+      chunks.push(chunk);
+    }
+    openChunk.set(a, chunk);
+    return chunk;
+  }
 
   function addCloud(kf, positions, colours, n) {
-    let chunk = openChunk.get(kf.a);
-    if (!chunk || chunk.used >= SLOTS) {
-      chunk = new Chunk(kf.a);
-      chunks.push(chunk);
-      openChunk.set(kf.a, chunk);
-    }
+    const chunk = chunkFor(kf.a);
     kf.chunk = chunk;
-    kf.slot = chunk.used++;
+    kf.slot = chunk.take();
     kf.points = n;
     chunk.setPose(kf.slot, kf.T);
     let first = 0;
@@ -246,12 +326,26 @@
     kf.fetched = nowMs();
     if (kf.told) S.latency.fetch.push(kf.fetched - kf.told);
     view.totalPoints += n;
+    view.loadedPoints += n;
     markFresh();
   }
 
-  // The dense store released the keyframe's cloud: nothing of it is drawn any more.
+  // The dense store released the keyframe's cloud (or the keyframe left the dense map): nothing
+  // of it is drawn any more, and its points leave the page with the next compaction of its
+  // chunk (a chunk left with no cloud at once). A cloud loaded again later (the keyframe back
+  // in the dense map) takes a new slot: the old copy goes with the compaction.
   function dropCloud(kf) {
-    if (kf.chunk) kf.chunk.hide(kf.slot);
+    const chunk = kf.chunk;
+    if (chunk) {
+      chunk.release(kf.slot, kf.points);
+      if (chunk.live === 0) {
+        chunk.dispose();
+        chunks.splice(chunks.indexOf(chunk), 1);
+        if (openChunk.get(chunk.agent) === chunk) openChunk.delete(chunk.agent);
+      } else if (2 * chunk.hidden > chunk.stored()) {
+        chunk.compact();
+      }
+    }
     kf.chunk = null;
     kf.slot = -1;
     view.totalPoints -= kf.points;
@@ -265,6 +359,7 @@
     chunks.length = 0;
     openChunk.clear();
     view.totalPoints = 0;
+    view.loadedPoints = 0;
   }
 
   // ------------------------------------------------------------------ level of detail
@@ -924,7 +1019,10 @@
         maps: Array.from(document.querySelectorAll('#maps li')).map((li) => li.textContent),
         status: document.getElementById('status').textContent, statsVersion: S.statsVersion,
         stats: S.stats, loops: S.loops.length, totalPoints: view.totalPoints, budget: view.budget,
-        cloudErrors: S.cloudErrors, pendingClouds: cloudQueue.length + cloudRequests };
+        cloudErrors: S.cloudErrors, pendingClouds: cloudQueue.length + cloudRequests,
+        // What the buffers hold: drawn clouds and released ones not compacted yet.
+        bufferedPoints: chunks.reduce((n, c) => n + c.stored(), 0), loadedPoints: view.loadedPoints,
+        chunks: chunks.length };
     },
     // Point i of a keyframe as the page holds it (camera-frame millimetres, as loaded), where it
     // draws it (through the matrix the GPU uses for the keyframe) and the keyframe's pose, read
