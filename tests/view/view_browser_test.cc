@@ -3,7 +3,9 @@
 // (window.ccmdView) the test checks that every keyframe the server holds is there with the
 // server's pose, that every cloud is drawn, that keyframes that moved are drawn where the
 // server says, that the agents' panel shows the server's counts, and that the page says so
-// when the server is gone. Every wait is on the page's or the server's state.
+// when the server is gone. A long mission fed to the view in the test's process checks that
+// the page frees the clouds the server releases. Every wait is on the page's or the server's
+// state.
 //
 // CCMD_VIEW_SCREENSHOT=path.png keeps the screenshot (docs/view.md uses one).
 
@@ -11,7 +13,10 @@
 
 #include <signal.h>
 
+#include <algorithm>
+#include <cmath>
 #include <cstdlib>
+#include <deque>
 #include <map>
 #include <memory>
 #include <opencv2/imgcodecs.hpp>
@@ -23,6 +28,8 @@
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/timer.h"
 #include "libccmd/view/view_cloud.h"
+#include "libccmd/view/view_model.h"
+#include "libccmd/view/view_server.h"
 #include "tests/support/headless_browser.h"
 #include "tests/support/server_with_view.h"
 #include "tests/support/test_support.h"
@@ -49,6 +56,39 @@ std::string Key(const Json& kf) {
          std::to_string(static_cast<long>(kf.Get("k")->number()));
 }
 
+// The page as the build copies it for ccmd_server: $CCMD_WEB_DIR, else share/ccmd/web beside
+// the programs' bin/ folder.
+std::string WebDir() {
+  if (const char* env = std::getenv("CCMD_WEB_DIR")) return env;
+  return testing::ProgramPath("../share/ccmd/web");
+}
+
+// Place p of kPlaces around a room: a camera 0.5 m from the centre looking out at the wall,
+// which fills its view as 50 x 40 points 3 cm apart, 1.5 m ahead (one per cube of the view's
+// 2 cm thinning: the page gets all 2000).
+constexpr int kPlaces = 40;
+
+Pose PlacePose(int p) {
+  const double yaw = 2 * M_PI * p / kPlaces;
+  Pose T = Pose::Identity();
+  T.linear() = Eigen::AngleAxisd(-yaw, Eigen::Vector3d::UnitY()).toRotationMatrix();
+  T.translation() = Eigen::Vector3d(0.5 * std::sin(yaw), 0, 0.5 * std::cos(yaw));
+  return T;
+}
+
+CameraCloud PlaceCloud(int p) {
+  CameraCloud cloud;
+  for (int i = 0; i < 50; ++i) {
+    for (int j = 0; j < 40; ++j) {
+      cloud.points.emplace_back(-0.735f + 0.03f * i, -0.585f + 0.03f * j,
+                                1.5f + 0.002f * static_cast<float>((i + j + p) % 5));
+      cloud.colors.push_back({static_cast<std::uint8_t>(6 * p), static_cast<std::uint8_t>(5 * i),
+                              static_cast<std::uint8_t>(6 * j)});
+    }
+  }
+  return cloud;
+}
+
 // A ccmd_server with its view in a folder of the test's, and headless Chromium on its page.
 class ViewBrowserTest : public ::testing::Test {
  protected:
@@ -58,11 +98,16 @@ class ViewBrowserTest : public ::testing::Test {
         testing::StartServerWithView(testing::ProgramPath("ccmd_server"), dir_.path(), server_args);
     ASSERT_TRUE(server.ok()) << server.status().ToString();
     server_.emplace(std::move(server).value());
+    ASSERT_NO_FATAL_FAILURE(OpenPage(server_->url));
+  }
+
+  // Headless Chromium on the page at `url`.
+  void OpenPage(const std::string& url) {
     browser_options_.log_path = dir_.File("chromium.log");
     auto browser = testing::HeadlessBrowser::Launch(browser_options_);
     ASSERT_TRUE(browser.ok()) << browser.status().ToString();
     browser_ = std::move(browser).value();
-    ASSERT_TRUE(browser_->Open(server_->url).ok()) << browser_->PageLog();
+    ASSERT_TRUE(browser_->Open(url).ok()) << browser_->PageLog();
   }
 
   Json Script(const std::string& js, double timeout_s = 120) {
@@ -296,6 +341,154 @@ TEST_F(ViewBrowserTest, ThePageLetsCulledKeyframesGoAsTheServerDoes) {
   auto trajectory = ReadTumTrajectory(dir_.File("results/trajectory_agent1.txt"));
   ASSERT_TRUE(trajectory.ok());
   EXPECT_EQ(static_cast<double>(trajectory->size()), held);  // the trajectory keeps them all
+}
+
+// A long mission, fed to the view as the back-end tells it (ccmd_server on the synthetic room
+// releases no cloud in a run of a few laps: every keyframe of a place seen again still stores
+// hundreds of new voxels, docs/benchmarks/dense.md). One agent maps a room with kPlaces
+// keyframes, then circles it again: each later keyframe is a place seen again, culled, and its
+// cloud released once 4 newer ones follow (the dense store's filter window). 600 keyframes pass
+// through the page, more than two chunks' slots, and it loads every cloud before it is
+// released. The page's buffers hold at most twice the points it draws at any time, in one
+// chunk; a cloud announced again is not loaded twice; a cloud that leaves the dense map and
+// comes back is loaded again without keeping the old copy; the room's keyframes are drawn with
+// the server's points through all of it; and once every cloud is released, nothing is left.
+// (Without the page's compaction the buffers keep every point loaded: 1.2 million here.)
+TEST_F(ViewBrowserTest, ThePageFreesTheCloudsTheServerReleases) {
+  constexpr int kKeyframes = 600, kBatch = 20, kWindow = 4;
+  const AgentId agent(1);
+  const MapId map(1);
+  DenseMapOptions dense_options;
+  dense_options.compact_keyframes = false;  // releases come from the test only
+  auto created = DenseMap::Create(dense_options);
+  ASSERT_TRUE(created.ok());
+  std::unique_ptr<DenseMap> dense = std::move(created).value();
+  ASSERT_TRUE(dense->SetAgentMap(agent, map).ok());
+  ViewModel model;
+  model.OnAgent(agent, "agent1");
+  ViewServerOptions options;
+  options.web_dir = WebDir();
+  auto started = ViewServer::Start(options, &model, dense.get(), [&] {
+    ViewStats s;
+    s.keyframes = model.Keyframes().size();
+    s.maps.push_back({map, s.keyframes, true, {agent}});
+    ViewAgentStats a;
+    a.id = agent;
+    a.name = "agent1";
+    a.keyframes = s.keyframes;
+    a.map = map;
+    s.agents.push_back(a);
+    return s;
+  });
+  ASSERT_TRUE(started.ok()) << started.status().ToString();
+  std::unique_ptr<ViewServer> server = std::move(started).value();
+  ASSERT_NO_FATAL_FAILURE(OpenPage(server->url()));
+  Script("ccmdView.whenConnection('live')");
+
+  // Only the test changes the model: once the page has applied its last event, loaded every
+  // cloud and drawn a frame, it holds the model's state.
+  const auto settled = [&] {
+    return Script("ccmdView.whenSettled(" + std::to_string(model.last_seq()) +
+                  ").then(() => ccmdView.state())");
+  };
+  const auto id_of = [&](int k) { return GlobalKeyframeId{agent, KeyframeId(k)}; };
+  const auto add = [&](int k) {
+    const Pose T = PlacePose(k % kPlaces);
+    ASSERT_TRUE(dense->AddKeyframeCloud(id_of(k), T, PlaceCloud(k % kPlaces)).ok());
+    model.OnKeyframe(id_of(k), map, T, MonotonicSeconds(), true);
+    model.OnDenseKeyframe(id_of(k), map, T);
+  };
+  const auto release = [&](const std::vector<GlobalKeyframeId>& ids) {
+    for (const GlobalKeyframeId& id : ids) ASSERT_TRUE(dense->RemoveKeyframe(id).ok());
+    model.OnDenseReleased(ids);
+  };
+  const auto number = [](const Json& state, const char* name) { return state.Get(name)->number(); };
+
+  std::deque<GlobalKeyframeId> revisits;  // places seen again whose cloud is held, oldest first
+  double loaded_points = 0;
+  for (int k = 0; k < kKeyframes; ++k) {
+    ASSERT_NO_FATAL_FAILURE(add(k));
+    if (k >= kPlaces) revisits.push_back(id_of(k));
+    if ((k + 1) % kBatch != 0) continue;
+    // Every cloud so far drawn; then the revisits with kWindow newer ones are culled and
+    // their clouds released.
+    const Json loaded = settled();
+    ASSERT_EQ(loaded.Get("keyframes")->size(),
+              static_cast<std::size_t>(std::min(k + 1, kPlaces)) + revisits.size());
+    std::vector<GlobalKeyframeId> released;
+    while (revisits.size() > kWindow) {
+      released.push_back(revisits.front());
+      revisits.pop_front();
+      model.OnCulled(map, released.back());
+    }
+    ASSERT_NO_FATAL_FAILURE(release(released));
+    const Json shown = settled();
+    const double drawn = number(shown, "totalPoints"), held = number(shown, "bufferedPoints");
+    loaded_points = number(shown, "loadedPoints");
+    EXPECT_EQ(drawn, 2000.0 * static_cast<double>(shown.Get("keyframes")->size())) << k;
+    EXPECT_GE(held, drawn) << k;
+    EXPECT_LE(held, 2 * drawn) << "after keyframe " << k << ": the buffers keep released clouds ("
+                               << number(shown, "loadedPoints") << " points loaded)";
+    EXPECT_EQ(number(shown, "chunks"), 1) << k;  // the keyframes drawn fit one chunk's slots
+  }
+  EXPECT_EQ(loaded_points, 2000.0 * kKeyframes);  // every cloud went through the buffers
+  EXPECT_EQ(number(settled(), "cloudErrors"), 0);
+
+  // A second cloud event for a cloud the page holds loads nothing.
+  const Json before = settled();
+  model.OnDenseKeyframe(id_of(0), map, PlacePose(0));
+  const Json again = settled();
+  EXPECT_EQ(number(again, "loadedPoints"), number(before, "loadedPoints"));
+  EXPECT_EQ(number(again, "bufferedPoints"), number(before, "bufferedPoints"));
+  // A keyframe whose cloud leaves the dense map and comes back (a restarted segment's, unplaced
+  // then placed by a loop): the page loads it once more, into a new slot, and the old copy,
+  // hidden, goes with the chunk's next compaction.
+  model.OnPlacement(map, {id_of(1)}, false);
+  ASSERT_TRUE(dense->RemoveKeyframe(id_of(1)).ok());
+  EXPECT_EQ(number(settled(), "totalPoints"), number(again, "totalPoints") - 2000);
+  model.OnPlacement(map, {id_of(1)}, true);
+  ASSERT_TRUE(dense->AddKeyframeCloud(id_of(1), PlacePose(1), PlaceCloud(1)).ok());
+  model.OnDenseKeyframe(id_of(1), map, PlacePose(1));
+  const Json back = settled();
+  EXPECT_EQ(number(back, "totalPoints"), number(again, "totalPoints"));
+  EXPECT_EQ(number(back, "loadedPoints"), number(again, "loadedPoints") + 2000);
+  EXPECT_LE(number(back, "bufferedPoints"), 2 * number(back, "totalPoints"));
+
+  // The room's keyframes are drawn as at first, through every compaction: their first and last
+  // points are the server's, drawn through their pose.
+  httplib::Client client("127.0.0.1", server->port());
+  for (int p = 0; p < kPlaces; ++p) {
+    auto r = client.Get(("/api/clouds?ids=1:" + std::to_string(p)).c_str());
+    ASSERT_TRUE(r && r->status == 200);
+    auto cloud = ParseViewClouds(r->body);
+    ASSERT_TRUE(cloud.ok() && cloud->size() == 1 && cloud->front().points_mm.size() == 2000);
+    for (std::size_t j : {std::size_t{0}, std::size_t{1999}}) {
+      const Json point =
+          Script("ccmdView.drawnPoint(1, " + std::to_string(p) + ", " + std::to_string(j) + ")");
+      ASSERT_TRUE(point.Has("held") && point.Has("world")) << p;
+      const Eigen::Vector4d held(point.Get("held")->at(0).number() * 1e-3,
+                                 point.Get("held")->at(1).number() * 1e-3,
+                                 point.Get("held")->at(2).number() * 1e-3, 1);
+      const Eigen::Vector3d expected = PlacePose(p).matrix().topRows<3>() * held;
+      for (int a = 0; a < 3; ++a) {
+        EXPECT_EQ(point.Get("held")->at(a).number(), cloud->front().points_mm[j][a]) << p;
+        EXPECT_NEAR(point.Get("world")->at(a).number(), expected(a), 1e-6) << p;
+      }
+    }
+  }
+
+  // Every cloud released (the last revisits culled): the room's keyframes stay without one,
+  // and the buffers are empty.
+  std::vector<GlobalKeyframeId> all(revisits.begin(), revisits.end());
+  for (const GlobalKeyframeId& id : all) model.OnCulled(map, id);
+  for (int p = 0; p < kPlaces; ++p) all.push_back(id_of(p));
+  ASSERT_NO_FATAL_FAILURE(release(all));
+  const Json empty = settled();
+  EXPECT_EQ(empty.Get("keyframes")->size(), static_cast<std::size_t>(kPlaces));
+  EXPECT_EQ(number(empty, "totalPoints"), 0);
+  EXPECT_EQ(number(empty, "bufferedPoints"), 0);
+  EXPECT_EQ(number(empty, "chunks"), 0);
+  server->Stop();
 }
 
 }  // namespace
