@@ -422,6 +422,8 @@ void Backend::AfterLoop(LoopClosure closure) {
   if (observer_) observer_->OnLoop(closure.event);
   if (observer_ && !closure.placed.empty())
     observer_->OnPlacement(closure.event.map, closure.placed, true);
+  if (observer_ && !closure.unplaced.empty())
+    observer_->OnPlacement(closure.event.map, closure.unplaced, false);
   NotifyPoses(closure.event.fusion ? PoseSource::kFusion : PoseSource::kLoop, closure.event.map,
               closure.moved, MonotonicSeconds());
   {

@@ -522,8 +522,29 @@ MapFusion FuseMapsByLoop(MapManager* maps, MapManager::Guard* query_map,
   // Both keyframes are in one frame now: the loop edge is their current relative pose.
   fused->AddLoopEdge({match.candidate->id, match.query->id,
                       match.candidate->T_map_cam.inverse() * match.query->T_map_cam});
+  // Through a segment placed by its agent's guess only, the moved map's placed part now lies
+  // where that guess put it: it waits for a loop, as the segment did. (The moved map is never
+  // the primary one, so none of its keyframes is in the dense map.)
+  if (!fused->Placed(*match.query) || !fused->Placed(*match.candidate)) {
+    fusion.unplaced = fused->UnplaceTogether(fusion.moved);
+    fusion.placed = fused->LinkSegments(*match.query, *match.candidate);
+  }
   return fusion;
 }
+
+namespace {
+
+// The ids of `keyframes` and of the culled keyframes each leads.
+std::vector<GlobalKeyframeId> WithFollowers(const std::vector<ServerKeyframe*>& keyframes) {
+  std::vector<GlobalKeyframeId> ids;
+  for (const ServerKeyframe* kf : keyframes) {
+    ids.push_back(kf->id);
+    for (const CulledKeyframe& f : kf->followers) ids.push_back(f.id);
+  }
+  return ids;
+}
+
+}  // namespace
 
 // ---------------------------------------------------------------- the three steps in order
 
@@ -631,10 +652,6 @@ LoopCloser::Outcome LoopCloser::TryCandidate(const GlobalKeyframeId& id,
   ServerKeyframe* query = query_guard->keyframe(id);
   ServerKeyframe* cand = cmap.keyframe(candidate.keyframe);
   if (!query || !cand) return Outcome::kNextCandidate;
-  // A segment no loop has placed yet rests on its agent's guess: a fusion through it would
-  // carry the guess into the other map.
-  if (!same_map && (!query_guard->Placed(*query) || !cmap.Placed(*cand)))
-    return Outcome::kNextCandidate;
   auto match = VerifyLoop(query, camera, cand, cmap, options.verification);
   if (!match) return Outcome::kNextCandidate;
 
@@ -698,10 +715,7 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
       CCMD_LOG(INFO) << "the loop places " << placed.size()
                      << " keyframes of restarted segments in map " << map->id().value();
       event.placed_segment = true;
-      for (const ServerKeyframe* kf : placed) {
-        closure.placed.push_back(kf->id);
-        for (const CulledKeyframe& f : kf->followers) closure.placed.push_back(f.id);
-      }
+      closure.placed = WithFollowers(placed);
       if (maps_->primary() == map->id()) closure.joined_primary = std::move(placed);
     }
     closure.map = std::move(*query_guard);
@@ -716,6 +730,14 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
                    << ": query moved " << 1000 * seam.shift_m << " mm, "
                    << RotationDistance(Pose::Identity(), seam.correction) * 180 / M_PI << " deg; "
                    << seam.merged << " points tied";
+    if (!fusion.placed.empty() || !fusion.unplaced.empty()) {
+      CCMD_LOG(INFO) << "the fusion went through a restarted segment: " << fusion.placed.size()
+                     << " keyframes placed, " << fusion.unplaced.size()
+                     << " of the moved map wait for a loop";
+    }
+    event.placed_segment = !fusion.placed.empty();
+    closure.placed = WithFollowers(fusion.placed);
+    closure.unplaced = WithFollowers(fusion.unplaced);
     closure.map = std::move(fusion.map);
     closure.moved = std::move(fusion.moved);
     closure.joined_primary = std::move(fusion.joined_primary);

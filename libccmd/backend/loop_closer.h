@@ -208,13 +208,19 @@ struct MapFusion {
   std::vector<ServerKeyframe*> moved;           // keyframes that entered the other map's frame
   std::vector<ServerKeyframe*> joined_primary;  // keyframes that entered the primary map
   std::optional<MapId> primary_before;          // the primary map, if it took part
+  // A fusion through an unplaced segment: the segments it placed, and the moved map's
+  // keyframes that were placed before and now rest on a guess (ServerMap::UnplaceTogether).
+  std::vector<ServerKeyframe*> placed, unplaced;
   SeamJoin seam;
 };
 
 // Step 3 between two maps: they are fused into a new map in the primary map's frame if one of
 // them is primary, else in the candidate's; with `options`, the seam is refined and tied
 // (JoinSeam, through the query's `query_camera`); the loop becomes a loop edge and the matches
-// are merged. The guards become empty; the result holds the fused map.
+// are merged. When either loop keyframe is in an unplaced segment, the loop relates the maps
+// only through that segment's guessed pose: the kept map's placed part stays placed, the
+// moved map's becomes an unplaced group, and the loop links the segments on its two sides
+// (ServerMap::LinkSegments). The guards become empty; the result holds the fused map.
 MapFusion FuseMapsByLoop(MapManager* maps, MapManager::Guard* query_map,
                          MapManager::Guard* candidate_map, const LoopMatch& match,
                          const LoopCloserOptions* options = nullptr,
@@ -228,6 +234,7 @@ struct LoopClosure {
   std::vector<ServerKeyframe*> moved;
   std::vector<ServerKeyframe*> joined_primary;  // keyframes a fusion brought into the primary map
   std::vector<GlobalKeyframeId> placed;         // keyframes of restarted segments it placed
+  std::vector<GlobalKeyframeId> unplaced;       // keyframes a fusion left at a guess
   std::optional<MapId> primary_before;          // the primary map, when a fusion absorbed it
 };
 

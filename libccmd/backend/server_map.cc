@@ -334,6 +334,20 @@ std::vector<ServerKeyframe*> ServerMap::LinkSegments(const ServerKeyframe& a,
   return placed;
 }
 
+std::vector<ServerKeyframe*> ServerMap::UnplaceTogether(
+    const std::vector<ServerKeyframe*>& keyframes) {
+  std::vector<ServerKeyframe*> placed;
+  std::set<GlobalKeyframeId> segments;
+  for (ServerKeyframe* kf : keyframes) {
+    if (!Placed(*kf)) continue;
+    placed.push_back(kf);
+    segments.insert({kf->id.agent, kf->segment});
+  }
+  // The label is one of the group's own segments: no other group can have it.
+  for (const GlobalKeyframeId& segment : segments) AddUnplacedSegment(segment, *segments.begin());
+  return placed;
+}
+
 std::vector<ServerKeyframe*> ServerMap::AgentKeyframes(AgentId agent) const {
   std::vector<ServerKeyframe*> result;
   for (const auto& [id, kf] : keyframes_) {

@@ -220,6 +220,10 @@ class ServerMap {
   // Records that a loop links the segments of `a` and `b`: two unplaced ones become one
   // group; a placed and an unplaced one place the whole group, whose keyframes are returned.
   std::vector<ServerKeyframe*> LinkSegments(const ServerKeyframe& a, const ServerKeyframe& b);
+  // Makes the segments of the placed keyframes among `keyframes` one unplaced group (a fusion
+  // through an unplaced segment leaves the other map's placed part where its agent's guess put
+  // it). Returns the keyframes that were placed.
+  std::vector<ServerKeyframe*> UnplaceTogether(const std::vector<ServerKeyframe*>& keyframes);
   std::size_t num_unplaced_segments() const { return unplaced_.size(); }
 
  private:

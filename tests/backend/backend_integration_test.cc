@@ -305,6 +305,74 @@ TEST(BackendIntegrationTest, ARestartAfterAYoungStartKeepsTheStartApart) {
   EXPECT_GE(fused.front().timestamp, restart_time);
 }
 
+// Agent 2 maps a part of the room agent 1 never saw, loses tracking, and restarts where agent
+// 1 has been. Its new segment has no place in its own map (nothing measured the gap), but it
+// does in agent 1's: the fusion through it places it there, and agent 2's first segment,
+// which only the agent's guess relates to the second, waits unplaced for a loop.
+TEST(BackendIntegrationTest, ARestartedSegmentFusesWithAnotherAgentsMap) {
+  RecordingObserver observer;
+  auto backend = Backend::Create(BackendOptions(), &observer);
+  ASSERT_TRUE(backend.ok()) << backend.status().ToString();
+  SyntheticSequenceOptions synth;
+  synth.frames = 320;
+  synth.width = 320;
+  synth.height = 240;
+  synth.path.loop_period_s = 8;  // 240 frames a lap; the camera looks outwards
+  const PinholeCamera camera = SyntheticCamera(320, 240);
+  TrackingOptions tracking;
+  tracking.synchronous_mapping = true;
+  std::vector<std::unique_ptr<WireSink>> sinks;
+  for (int i = 0; i < 2; ++i) {
+    const AgentId id(i + 1);
+    sinks.push_back(std::make_unique<WireSink>(id, backend->get()));
+    ASSERT_TRUE((*backend)->RegisterAgent(id, "agent" + std::to_string(i + 1), camera).ok());
+  }
+  // Agent 1 (the primary map): the first quarter lap. Agent 2: the third quarter, then the
+  // first again.
+  const std::vector<std::vector<FrameRange>> parts = {{{0, 59}}, {{120, 179}, {240, 314}}};
+  for (int i = 0; i < 2; ++i) {
+    auto frontend = Frontend::Create(camera, tracking, sinks[i].get());
+    ASSERT_TRUE(frontend.ok());
+    for (const FrameRange& part : parts[i]) {
+      SyntheticSource source(synth, part);
+      RgbdFrame frame;
+      while (source.Read(&frame).ok()) (*frontend)->ProcessFrame(frame);
+    }
+    (*frontend)->Finish();
+    ASSERT_EQ((*frontend)->stats().restarts, i);
+    (*backend)->WaitIdle();
+  }
+  const BackendStats stats = (*backend)->stats();
+  EXPECT_EQ((*backend)->Maps().size(), 1u);
+  EXPECT_GE(stats.fusions, 1);
+  EXPECT_EQ(stats.segments_placed, 1);
+  EXPECT_EQ(stats.segments_unplaced, 1u);  // agent 2's first segment
+
+  const double restart_time =
+      SyntheticSource(synth, FrameRange{240, 240}).GroundTruth()[0].timestamp;
+  const Trajectory fused = (*backend)->FusedTrajectory();
+  std::size_t second_segment = 0;
+  for (const auto& [id, timestamp] : sinks[1]->timestamps_) {
+    const GlobalKeyframeId global{AgentId(2), id};
+    const bool in_trajectory = std::any_of(
+        fused.begin(), fused.end(), [&](const StampedPose& p) { return p.timestamp == timestamp; });
+    const bool cloud = (*backend)->dense()->KeyframeCloud(global).ok();
+    if (timestamp < restart_time) {
+      EXPECT_FALSE(in_trajectory) << id.value();
+      EXPECT_FALSE(cloud) << id.value();
+      ASSERT_EQ(observer.placed.count(global), 1u) << "the observer was not told";
+      EXPECT_FALSE(observer.placed[global]) << id.value();
+    } else {
+      second_segment += in_trajectory;
+    }
+  }
+  EXPECT_GE(second_segment, 3u);
+  auto ate =
+      ComputeAte(SyntheticSource(synth, FrameRange{0, synth.frames - 1}).GroundTruth(), fused);
+  ASSERT_TRUE(ate.ok()) << ate.status().ToString();
+  EXPECT_LT(ate->error.rmse, 0.01);
+}
+
 // An agent circling a room twice: its second lap's keyframes are culled (the first lap's
 // keyframes see what they see) and what remains of each is its pose, through a kept keyframe.
 // Every keyframe stays in the trajectories where the agent and the server put it, and every

@@ -7,6 +7,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <set>
 
 #include "libccmd/features/bow_vocabulary.h"
 #include "tests/backend/generated_map.h"
@@ -295,6 +296,113 @@ TEST(LoopCorrectionTest, FusingTwoMapsThatAreNotPrimaryKeepsTheCandidatesFrame) 
   EXPECT_EQ(maps.primary(), MapId(1));
   EXPECT_LT(TranslationDistance(query->T_map_cam, T_map2 * CirclePose(1, 24)),
             1e-6);  // candidate's frame
+}
+
+// Keyframes 0-7 of `agent` on steps first..first+7 of a 24-step circle, in `map` at
+// T_map * true pose; 4-7 are a restarted segment that the agent's guess put `guess` further
+// off, unplaced.
+void AddRestartedWalk(ServerMap* map, const GeneratedWorld& world, AgentId agent, int first,
+                      const Pose& T_map, const Pose& guess, Rng* rng) {
+  for (int i = 0; i < 8; ++i) {
+    const Pose T_true = CirclePose(first + i, 24);
+    ServerKeyframe* kf = AddGeneratedKeyframe(
+        map, world, agent, i, T_true, (i >= 4 ? guess : Pose::Identity()) * T_map * T_true, rng,
+        i >= 4 ? std::optional<std::uint32_t>(4) : std::nullopt);
+    if (i < 4) continue;
+    kf->segment = KeyframeId(4);
+    if (i == 4) {
+      kf->restart = true;
+      map->AddUnplacedSegment(kf->id);
+    }
+  }
+}
+
+std::set<GlobalKeyframeId> Ids(const std::vector<ServerKeyframe*>& keyframes) {
+  std::set<GlobalKeyframeId> ids;
+  for (const ServerKeyframe* kf : keyframes) ids.insert(kf->id);
+  return ids;
+}
+
+// An agent restarted in a map of its own and its new segment sees the primary map's places:
+// the fusion places that segment in the primary map's frame, and the agent's earlier
+// keyframes, which only its guess relates to the segment, wait unplaced for a loop.
+TEST(LoopCorrectionTest, AFusionThroughARestartedSegmentPlacesItAndUnplacesTheGuess) {
+  Rng rng(12);
+  const GeneratedWorld world = MakeRingWorld(2000, &rng);
+  MapManager maps;
+  {
+    MapManager::Guard first = maps.CheckOutAgent(AgentId(1));  // the primary map, world frame
+    for (int i = 0; i < 6; ++i)
+      AddGeneratedKeyframe(first.get(), world, AgentId(1), i, CirclePose(10 + i, 24),
+                           CirclePose(10 + i, 24), &rng);
+  }
+  const Pose T_map2 = Offset(1.5, 50);
+  {
+    MapManager::Guard second = maps.CheckOutAgent(AgentId(2));
+    AddRestartedWalk(second.get(), world, AgentId(2), 8, T_map2, Offset(0.4, 20), &rng);
+  }
+  auto [query_guard, candidate_guard] = maps.CheckOutPair(MapId(2), MapId(1));
+  ServerKeyframe* query = query_guard->keyframe(Kf(2, 5));  // step 13, unplaced
+  ServerKeyframe* candidate = candidate_guard->keyframe(Kf(1, 3));
+  ASSERT_FALSE(query_guard->Placed(*query));
+  MapFusion fusion = FuseMapsByLoop(&maps, &query_guard, &candidate_guard,
+                                    TrueMatch(query, candidate, Pose::Identity()));
+  ASSERT_TRUE(fusion.map);
+  EXPECT_EQ(maps.primary(), fusion.map->id());
+  const std::set<GlobalKeyframeId> segment = {Kf(2, 4), Kf(2, 5), Kf(2, 6), Kf(2, 7)},
+                                   before = {Kf(2, 0), Kf(2, 1), Kf(2, 2), Kf(2, 3)};
+  EXPECT_EQ(Ids(fusion.placed), segment);
+  EXPECT_EQ(Ids(fusion.unplaced), before);
+  for (int i = 0; i < 8; ++i) {
+    const ServerKeyframe* kf = fusion.map->keyframe(Kf(2, i));
+    EXPECT_EQ(fusion.map->Placed(*kf), i >= 4) << i;
+    if (i >= 4) EXPECT_LT(TranslationDistance(kf->T_map_cam, CirclePose(8 + i, 24)), 1e-6) << i;
+  }
+  // A later loop between the earlier keyframes and the primary map's places them too.
+  const std::vector<ServerKeyframe*> placed =
+      fusion.map->LinkSegments(*fusion.map->keyframe(Kf(2, 2)), *fusion.map->keyframe(Kf(1, 0)));
+  EXPECT_EQ(Ids(placed), before);
+}
+
+// The other way round: the primary map's agent restarted and another agent's map sees only
+// its new segment. The fusion keeps the primary map's placed part as it was; the other map
+// joins the segment's group, and a loop that places either places both.
+TEST(LoopCorrectionTest, AFusionWithTheKeptMapsRestartedSegmentJoinsItsGroup) {
+  Rng rng(13);
+  const GeneratedWorld world = MakeRingWorld(2000, &rng);
+  MapManager maps;
+  {
+    MapManager::Guard first = maps.CheckOutAgent(AgentId(1));  // the primary map
+    AddRestartedWalk(first.get(), world, AgentId(1), 0, Pose::Identity(), Offset(0.3, -15), &rng);
+  }
+  const Pose T_map2 = Offset(-1.0, 35);
+  {
+    MapManager::Guard second = maps.CheckOutAgent(AgentId(2));
+    for (int i = 0; i < 5; ++i)
+      AddGeneratedKeyframe(second.get(), world, AgentId(2), i, CirclePose(5 + i, 24),
+                           T_map2 * CirclePose(5 + i, 24), &rng);
+  }
+  auto [query_guard, candidate_guard] = maps.CheckOutPair(MapId(2), MapId(1));
+  ServerKeyframe* query = query_guard->keyframe(Kf(2, 1));          // step 6
+  ServerKeyframe* candidate = candidate_guard->keyframe(Kf(1, 6));  // step 6, unplaced
+  MapFusion fusion = FuseMapsByLoop(&maps, &query_guard, &candidate_guard,
+                                    TrueMatch(query, candidate, Pose::Identity()));
+  ASSERT_TRUE(fusion.map);
+  ServerMap& map = *fusion.map;
+  EXPECT_TRUE(fusion.placed.empty());
+  EXPECT_EQ(fusion.unplaced.size(), 5u);
+  for (int i = 0; i < 4; ++i) EXPECT_TRUE(map.Placed(*map.keyframe(Kf(1, i)))) << i;
+  const auto group = map.UnplacedGroup(*map.keyframe(Kf(1, 4)));
+  ASSERT_TRUE(group.has_value());
+  for (int i = 0; i < 5; ++i) EXPECT_EQ(map.UnplacedGroup(*map.keyframe(Kf(2, i))), group) << i;
+  // Agent 2's keyframes lie where the segment's guess put them, together with it.
+  EXPECT_LT(
+      TranslationDistance(map.keyframe(Kf(2, 1))->T_map_cam, map.keyframe(Kf(1, 6))->T_map_cam),
+      1e-6);
+  const std::vector<ServerKeyframe*> placed =
+      map.LinkSegments(*map.keyframe(Kf(2, 4)), *map.keyframe(Kf(1, 0)));
+  EXPECT_EQ(placed.size(), 9u);
+  EXPECT_EQ(map.num_unplaced_segments(), 0u);
 }
 
 // Two maps of the ring seen by two agents: agent 1's (the primary map, true poses) and agent
