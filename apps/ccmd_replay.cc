@@ -655,7 +655,7 @@ int main(int argc, char** argv) {
       "\nmaps after fusion: %.0f   fused ATE RMSE: %.4f m   reconstruction mean %.4f m, Hausdorff "
       "%.4f m\n",
       num("maps_after_fusion"), num("ate_rmse_m"), num("recon_mean_m"), num("recon_hausdorff_m"));
-  if (num("maps_after_fusion") > 1) {
+  if (r.Get("all_maps_fused") && !r.Get("all_maps_fused")->boolean()) {
     std::string members;
     if (const Json* names = r.Get("primary_map_agents")) {
       for (const Json& n : names->array()) members += (members.empty() ? "" : ", ") + n.string();

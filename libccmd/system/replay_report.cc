@@ -164,19 +164,26 @@ PlotSeries Projected(const Trajectory& t, const Eigen::Matrix<double, 2, 3>& P,
 }
 
 // Which map each agent's keyframes ended in, from server_stats.json ("agent_maps"; runs
-// written before it only say how many maps there were).
+// written before it only say how many maps there were), and how many of them are placed
+// ("agent_placed_keyframes"): an agent whose keyframes all wait unplaced in the primary map
+// (a fusion through a restarted segment) is in none of its outputs.
 struct MapMembership {
   int primary = -1;
   std::map<std::string, int> map_of;
+  std::map<std::string, int> placed;
 
   bool InPrimary(const std::string& agent) const {
     const auto it = map_of.find(agent);
-    return it != map_of.end() && it->second == primary;
+    return it != map_of.end() && it->second == primary && !Unplaced(agent);
+  }
+  bool Unplaced(const std::string& agent) const {
+    const auto it = placed.find(agent);
+    return it != placed.end() && it->second == 0;
   }
   std::vector<std::string> PrimaryAgents() const {
     std::vector<std::string> names;
     for (const auto& [name, map] : map_of) {
-      if (map == primary) names.push_back(name);
+      if (InPrimary(name)) names.push_back(name);
     }
     return names;
   }
@@ -189,6 +196,8 @@ MapMembership ReadMembership(const Json& stats, int agents) {
     for (int i = 1; i <= agents; ++i) {
       const std::string name = "agent" + std::to_string(i);
       if (maps->Has(name)) m.map_of[name] = static_cast<int>(Num(maps, name));
+      if (const Json* placed = stats.Get("agent_placed_keyframes"); placed && placed->Has(name))
+        m.placed[name] = static_cast<int>(Num(placed, name));
     }
   } else if (Num(stats.Get("backend"), "maps", -1) == 1) {
     for (int i = 1; i <= agents; ++i) m.map_of["agent" + std::to_string(i)] = m.primary;
@@ -266,7 +275,10 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   Json primary_names = Json::MakeArray();
   for (const std::string& n : primary_agents) primary_names.Push(n);
   results["primary_map_agents"] = primary_names;
-  results["all_maps_fused"] = results["maps_after_fusion"].number() == 1;
+  bool all_fused = results["maps_after_fusion"].number() == 1;
+  for (int i = 1; i <= info.agents; ++i)
+    all_fused = all_fused && !membership.Unplaced("agent" + std::to_string(i));
+  results["all_maps_fused"] = all_fused;
   std::optional<AteResult> fused_ate;
   auto read_fused = ReadTumTrajectory(JoinPath(server_dir, "trajectory_fused.txt"));
   // The dense map is put in the ground truth's frame by the alignment fitted to the keyframes'
@@ -576,23 +588,38 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
                               "and the dense map (the agents' own trajectories keep them).\n\n"
                         : std::string("loops placed every segment.\n\n"));
   }
-  if (results["maps_after_fusion"].number() > 1) {
-    std::vector<std::string> others;
+  if (!results["all_maps_fused"].boolean()) {
+    std::vector<std::string> others, unplaced;
     for (int i = 1; i <= info.agents; ++i) {
-      if (!membership.InPrimary("agent" + std::to_string(i)))
-        others.push_back("agent" + std::to_string(i));
+      const std::string name = "agent" + std::to_string(i);
+      if (membership.Unplaced(name)) {
+        unplaced.push_back(name);
+      } else if (!membership.InPrimary(name)) {
+        others.push_back(name);
+      }
     }
     md << "**Not every map fused.** The fused trajectory and the dense map below are the primary "
           "map's, which holds "
-       << JoinNames(primary_agents) << "; " << JoinNames(others)
-       << " kept their own maps: their server ATE in the table is in their own map's frame.\n\n";
+       << JoinNames(primary_agents);
+    if (!others.empty()) {
+      md << "; " << JoinNames(others)
+         << " kept their own maps: their server ATE in the table is in their own map's frame";
+    }
+    if (!unplaced.empty()) {
+      md << "; the keyframes of " << JoinNames(unplaced)
+         << " wait unplaced in it (they joined through a restarted segment no loop has placed)";
+    }
+    md << ".\n\n";
   }
   md << "| agent | frames | map | server keyframes | ATE RMSE (server, m) | ATE RMSE (agent "
         "odometry, m) | lost frames | restarts |\n"
         "|---|---|---|---|---|---|---|---|\n";
   for (const Json& a : agents.array()) {
     md << "| " << a.Get("name")->string() << " | " << Num(&a, "first_frame") << "-"
-       << Num(&a, "last_frame") << " | " << (a.Get("in_primary_map")->boolean() ? "primary" : "own")
+       << Num(&a, "last_frame") << " | "
+       << (a.Get("in_primary_map")->boolean()             ? "primary"
+           : membership.Unplaced(a.Get("name")->string()) ? "unplaced"
+                                                          : "own")
        << " | " << Num(&a, "keyframes") << " | "
        << (a.Has("ate_rmse_m") ? Fmt("%.4f", Num(&a, "ate_rmse_m")) : "-") << " | "
        << (a.Has("agent_frames_ate_rmse_m") ? Fmt("%.4f", Num(&a, "agent_frames_ate_rmse_m")) : "-")

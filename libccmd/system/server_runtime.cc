@@ -112,18 +112,23 @@ Json ServerRuntime::StatsJson() {
   Json j;
   if (server_) j["transport"] = server_->StatsJson();
   if (backend_) j["backend"] = backend_->StatsJson();
-  Json agents, agent_maps;
+  Json agents, agent_maps, agent_placed;
   {
     std::lock_guard<std::mutex> lock(names_mutex_);
     for (const auto& [id, name] : names_) {
       agents[name] = Json(static_cast<int>(id.value()));
-      // Which map each agent's keyframes are in: the evaluation names the primary map's agents.
+      // Which map each agent's keyframes are in, and how many of them are placed: the
+      // evaluation names the primary map's agents.
       const auto map = backend_ ? backend_->MapOf(id) : std::nullopt;
-      if (map) agent_maps[name] = Json(static_cast<int>(map->value()));
+      if (map) {
+        agent_maps[name] = Json(static_cast<int>(map->value()));
+        agent_placed[name] = Json(static_cast<int>(backend_->AgentKeyframeCount(id)));
+      }
     }
   }
   j["agent_ids"] = agents;
   j["agent_maps"] = agent_maps;
+  j["agent_placed_keyframes"] = agent_placed;
   if (backend_ && backend_->PrimaryMap())
     j["primary_map"] = static_cast<int>(backend_->PrimaryMap()->value());
   j["malformed_messages"] = malformed_messages_.load();

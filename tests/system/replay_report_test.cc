@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <cstdio>
+#include <optional>
 
 #include "libccmd/eval/reconstruction_error.h"
 #include "libccmd/io/trajectory.h"
@@ -87,11 +88,12 @@ TEST(ReplayReportTest, ReferenceCloudUsesTheDepthRegistration) {
             StatusCode::kInvalidArgument);
 }
 
-// What the server leaves when two agents did not fuse (a short excerpt of a slow camera, as
+// The files a server leaves when two agents did not fuse (a short excerpt of a slow camera, as
 // TUM fr2/desk in 50 frames): the primary map is agent2's with two keyframes close together,
 // agent1 kept a map of its own with one. The primary map's frame is not the ground truth's.
-TEST(ReplayReportTest, UnfusedRunStillReportsThePrimaryMapAndNamesItsAgents) {
-  testing::TempDir dir;
+// `stats` is its server_stats.json; the evaluation's results go to `results`.
+void EvaluateTwoAgentRun(const testing::TempDir& dir, const Json& stats,
+                         std::optional<StatusOr<Json>>* results) {
   SyntheticSequenceOptions o;
   o.frames = 8;
   o.width = 160;
@@ -132,17 +134,25 @@ TEST(ReplayReportTest, UnfusedRunStillReportsThePrimaryMapAndNamesItsAgents) {
     }
   }
   ASSERT_TRUE(WritePly(map, JoinPath(run, "map.ply")).ok());
+  ASSERT_TRUE(WriteJsonFile(stats, JoinPath(run, "server_stats.json")).ok());
+  ReplayRunInfo info;
+  info.agents = 2;
+  info.segments = {{0, 4}, {4, 7}};
+  results->emplace(EvaluateReplay(run, *dataset, info, ReferenceOptions()));
+}
+
+TEST(ReplayReportTest, UnfusedRunStillReportsThePrimaryMapAndNamesItsAgents) {
+  testing::TempDir dir;
   Json stats;
   stats["backend"]["maps"] = 2;
   stats["primary_map"] = 1;
   stats["agent_maps"]["agent1"] = 2;
   stats["agent_maps"]["agent2"] = 1;
-  ASSERT_TRUE(WriteJsonFile(stats, JoinPath(run, "server_stats.json")).ok());
-
-  ReplayRunInfo info;
-  info.agents = 2;
-  info.segments = {{0, 4}, {4, 7}};
-  auto results = EvaluateReplay(run, *dataset, info, ReferenceOptions());
+  std::optional<StatusOr<Json>> evaluated;
+  EvaluateTwoAgentRun(dir, stats, &evaluated);
+  ASSERT_TRUE(evaluated.has_value());
+  StatusOr<Json>& results = *evaluated;
+  const std::string run = dir.File("run");
   ASSERT_TRUE(results.ok()) << results.status().ToString();
   // Two keyframes 4 mm apart cannot fix a rotation by their positions: aligned by their poses,
   // the exact trajectory comes out exact, and the map within the depth's whole millimetres and
@@ -165,6 +175,34 @@ TEST(ReplayReportTest, UnfusedRunStillReportsThePrimaryMapAndNamesItsAgents) {
   EXPECT_NE(report->find("Not every map fused"), std::string::npos) << *report;
   EXPECT_NE(report->find("which holds agent2; agent1 kept"), std::string::npos) << *report;
   EXPECT_NE(report->find("| agent1 | 0-4 | own |"), std::string::npos) << *report;
+}
+
+// One map, but agent1's keyframes all wait unplaced in it (its map fused with the primary one
+// through a restarted segment no loop placed): it is in none of the primary map's outputs, and
+// the report must not say that every map fused.
+TEST(ReplayReportTest, AnAgentWaitingUnplacedInThePrimaryMapIsNotCountedAsFused) {
+  testing::TempDir dir;
+  Json stats;
+  stats["backend"]["maps"] = 1;
+  stats["primary_map"] = 1;
+  stats["agent_maps"]["agent1"] = 1;
+  stats["agent_maps"]["agent2"] = 1;
+  stats["agent_placed_keyframes"]["agent1"] = 0;
+  stats["agent_placed_keyframes"]["agent2"] = 2;
+  std::optional<StatusOr<Json>> evaluated;
+  EvaluateTwoAgentRun(dir, stats, &evaluated);
+  ASSERT_TRUE(evaluated.has_value());
+  const StatusOr<Json>& results = *evaluated;
+  ASSERT_TRUE(results.ok()) << results.status().ToString();
+  EXPECT_FALSE(results->Get("all_maps_fused")->boolean(true));
+  ASSERT_EQ(results->Get("primary_map_agents")->size(), 1u);
+  EXPECT_EQ(results->Get("primary_map_agents")->array()[0].string(), "agent2");
+  EXPECT_FALSE(results->Get("agents")->array()[0].Get("in_primary_map")->boolean(true));
+  auto report = ReadFileToString(JoinPath(dir.File("run"), "report.md"));
+  ASSERT_TRUE(report.ok());
+  EXPECT_NE(report->find("the keyframes of agent1 wait unplaced"), std::string::npos) << *report;
+  EXPECT_EQ(report->find("kept their own maps"), std::string::npos) << *report;
+  EXPECT_NE(report->find("| agent1 | 0-4 | unplaced |"), std::string::npos) << *report;
 }
 
 TEST(ReplayReportTest, AblationTableAddsRowsWithRatiosToTheFullRun) {
