@@ -607,8 +607,12 @@
       const kf = S.keyframes.get(key(a, k));
       if (!kf) continue;
       kf.fetching = false;
-      // (not after a release that overtook the request)
-      if (found && !kf.loaded && kf.cloud) addCloud(kf, positions, colours, n);
+      if (kf.loaded || !kf.cloud) continue;  // a release overtook the request
+      if (found) {
+        addCloud(kf, positions, colours, n);
+      } else {
+        wantCloud(kf);  // released and announced again while the request was out
+      }
     }
   }
 
