@@ -173,7 +173,8 @@ void LocalMap::UpdateConnections(Keyframe* keyframe) {
   });
 
   // Drop links to keyframes no longer connected, both ways.
-  for (const auto& [old_kf, w] : keyframe->ordered_connections_) {
+  for (const auto& link : keyframe->ordered_connections_) {
+    const auto& old_kf = link.first;  // a plain name: clang 14 cannot capture bindings
     const bool still = std::any_of(connected.begin(), connected.end(),
                                    [&](const auto& c) { return c.first == old_kf; });
     if (still) continue;
