@@ -53,7 +53,9 @@ std::string FormatTumTrajectory(const Trajectory& trajectory, const std::string&
   out.reserve(trajectory.size() * 96 + comment.size() + 64);
   if (!comment.empty()) out += "# " + comment + "\n";
   out += "# timestamp tx ty tz qx qy qz qw\n";
-  char line[256];
+  // Room for the longest finite doubles (%.9f prints up to 320 characters): a line cut
+  // short would lose its pose and run into the next one.
+  char line[8 * 330];
   for (const StampedPose& sample : trajectory) {
     const Eigen::Vector3d t = sample.T_world_cam.translation();
     const Eigen::Quaterniond q = QuaternionOf(sample.T_world_cam);

@@ -28,6 +28,23 @@ TEST(TrajectoryTest, WriteThenReadKeepsPosesAndMicroseconds) {
   }
 }
 
+// Found by fuzzing: a line read with a huge (finite) number was written cut short.
+TEST(TrajectoryTest, HugeNumbersAreWrittenWhole) {
+  const std::string text =
+      "2.2e216 0.1 0 0 0 1 0 0\n"
+      "3 -1e300 1e300 -1.5e308 0 0 0 1\n"
+      "4 1 2 3 0 0 0 1\n";
+  auto t = ParseTumTrajectory(text, "huge");
+  ASSERT_TRUE(t.ok()) << t.status().ToString();
+  auto again = ParseTumTrajectory(FormatTumTrajectory(*t), "again");
+  ASSERT_TRUE(again.ok()) << again.status().ToString();
+  ASSERT_EQ(again->size(), 3u);
+  for (std::size_t i = 0; i < 3; ++i) {
+    EXPECT_EQ((*again)[i].timestamp, (*t)[i].timestamp);
+    EXPECT_EQ((*again)[i].T_world_cam.translation(), (*t)[i].T_world_cam.translation());
+  }
+}
+
 TEST(TrajectoryTest, BadLinesReportFileAndLine) {
   auto r = ParseTumTrajectory("# c\n1 0 0 0 0 0 0 1\n2 0 0 0 0 0 1\n", "gt.txt");
   ASSERT_FALSE(r.ok());
