@@ -233,6 +233,16 @@ void Backend::Ingest(IngestItem item) {
         }
       }
       if (observer_ && !unplaced.empty()) observer_->OnPlacement(guard->id(), unplaced, false);
+      // Past the young map's size no restart keeps keyframes apart: what QueueDenseAdds kept
+      // of the first keyframes' coded images goes (those kept apart keep theirs for a loop).
+      if (guard->keyframes().size() == kYoungSegmentKeyframes) {
+        for (const auto& [kid, kf] : guard->keyframes()) {
+          if (kf->in_dense) kf->rgbd.reset();
+          for (CulledKeyframe& f : kf->followers) {
+            if (f.in_dense) f.rgbd.reset();
+          }
+        }
+      }
     }
   }
   const double now = Now();
@@ -252,6 +262,11 @@ void Backend::Ingest(IngestItem item) {
 void Backend::QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>& keyframes,
                              double received) {
   if (!dense_) return;
+  // The dense map keeps its own copy of the points, so the coded images go with the task;
+  // in a map too young for a restart to place its new segment against them, a restart keeps
+  // these keyframes apart (they leave the dense map), and a loop may place them again later:
+  // their coded images stay until the map has grown past that (AddKeyframe).
+  const bool keep_coded = map->keyframes().size() < kYoungSegmentKeyframes;
   const auto add = [&](const GlobalKeyframeId& id, const Pose& T_map_cam,
                        std::shared_ptr<const RgbdPayload>* rgbd, bool* in_dense) {
     if (*in_dense || !*rgbd) return;
@@ -260,7 +275,7 @@ void Backend::QueueDenseAdds(ServerMap* map, const std::vector<ServerKeyframe*>&
     task.to = map->id();
     task.keyframe = id;
     task.T_world_cam = T_map_cam;
-    task.rgbd = std::move(*rgbd);  // the dense map keeps its own copy of the points
+    task.rgbd = keep_coded ? *rgbd : std::move(*rgbd);
     task.camera = CameraOf(id.agent);
     task.received = received;
     *in_dense = true;

@@ -373,6 +373,49 @@ TEST(BackendIntegrationTest, ARestartedSegmentFusesWithAnotherAgentsMap) {
   EXPECT_LT(ate->error.rmse, 0.01);
 }
 
+// The same start, but the camera comes round to it again: the loop that places the keyframe
+// kept apart brings its cloud back to the dense map (its coded images were kept for that).
+TEST(BackendIntegrationTest, AKeyframeKeptApartReturnsToTheDenseMapWhenALoopPlacesIt) {
+  RecordingObserver observer;
+  auto backend = Backend::Create(BackendOptions(), &observer);
+  ASSERT_TRUE(backend.ok()) << backend.status().ToString();
+  const AgentId agent(1);
+  SyntheticSequenceOptions synth;
+  synth.frames = 330;
+  synth.width = 320;
+  synth.height = 240;
+  synth.path.loop_period_s = 8;  // 240 frames a lap: frames 240-330 see frames 0-90 again
+  const PinholeCamera camera = SyntheticCamera(320, 240);
+  ASSERT_TRUE((*backend)->RegisterAgent(agent, "agent1", camera).ok());
+  WireSink sink(agent, backend->get());
+  TrackingOptions tracking;
+  tracking.synchronous_mapping = true;
+  auto frontend = Frontend::Create(camera, tracking, &sink);
+  ASSERT_TRUE(frontend.ok());
+  for (const FrameRange part : {FrameRange{0, 9}, FrameRange{120, 329}}) {
+    SyntheticSource source(synth, part);
+    RgbdFrame frame;
+    while (source.Read(&frame).ok()) (*frontend)->ProcessFrame(frame);
+  }
+  (*frontend)->Finish();
+  ASSERT_EQ((*frontend)->stats().restarts, 1);
+  (*backend)->WaitIdle();
+  const BackendStats stats = (*backend)->stats();
+  EXPECT_EQ(stats.segments_restarted, 1);
+  EXPECT_EQ(stats.segments_placed, 1);
+  EXPECT_EQ(stats.segments_unplaced, 0u);
+  const GlobalKeyframeId first{agent, sink.timestamps_.begin()->first};
+  ASSERT_EQ(observer.placed.count(first), 1u);
+  EXPECT_TRUE(observer.placed[first]);
+  EXPECT_TRUE((*backend)->dense()->KeyframeCloud(first).ok());
+  const Trajectory fused = (*backend)->FusedTrajectory();
+  EXPECT_EQ(fused.size(), sink.timestamps_.size());
+  auto ate =
+      ComputeAte(SyntheticSource(synth, FrameRange{0, synth.frames - 1}).GroundTruth(), fused);
+  ASSERT_TRUE(ate.ok()) << ate.status().ToString();
+  EXPECT_LT(ate->error.rmse, 0.01);
+}
+
 // An agent circling a room twice: its second lap's keyframes are culled (the first lap's
 // keyframes see what they see) and what remains of each is its pose, through a kept keyframe.
 // Every keyframe stays in the trajectories where the agent and the server put it, and every
