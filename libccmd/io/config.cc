@@ -25,6 +25,14 @@ StatusOr<ConfigFile> ConfigFile::Open(const std::string& path) {
   } catch (const cv::Exception& e) {
     return Corrupt("cannot parse config file " + path + ": " + e.msg);
   }
+  // Looking a key up throws unless the top level maps keys to values (a list such as "- 1"
+  // does not): found out here, so that the getters need no exception handling.
+  try {
+    (void)(*config.storage_)["Camera.fx"];
+  } catch (const cv::Exception&) {
+    return Corrupt("config file " + path +
+                   ": the top level must be keys with values (\"Camera.fx: 525.0\"), not a list");
+  }
   return config;
 }
 

@@ -46,6 +46,22 @@ TEST(ConfigTest, MissingAndWrongKeysAreClearErrors) {
   EXPECT_FALSE(LoadCameraConfig(dir.File("c.yaml")).ok());
 }
 
+// Found by fuzzing: a file whose top level is a list, not keys, made the first key lookup
+// throw (cv::Exception), which nothing caught.
+TEST(ConfigTest, TopLevelListIsAClearError) {
+  testing::TempDir dir;
+  for (const std::string text :
+       {"%YAML:1.0\n- 1\n", "%YAML:1.0\n- Camera.fx: 500\n  Camera.fy: 500\n",
+        "%YAML:1.0\n[1, 2]\n", "%YAML:1.0\n.type: \"Pin \n-H\xba\n"}) {
+    ASSERT_TRUE(WriteFileAtomic(dir.File("l.yaml"), text).ok());
+    auto c = LoadCameraConfig(dir.File("l.yaml"));
+    ASSERT_FALSE(c.ok()) << text;
+    EXPECT_EQ(c.status().code(), StatusCode::kCorrupt) << c.status().ToString();
+    EXPECT_FALSE(LoadDepthToColorCalibration(dir.File("l.yaml")).ok());
+    EXPECT_FALSE(LoadTrajectoryCamera(dir.File("l.yaml")).ok());
+  }
+}
+
 TEST(ConfigTest, TrajectoriesAreOfTheColourCameraUnlessTheConfigNamesTheDepthCamera) {
   testing::TempDir dir;
   const std::string camera =
