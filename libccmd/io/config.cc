@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <limits>
 #include <opencv2/core.hpp>
 
 #include "libccmd/util/file_util.h"
@@ -54,8 +55,12 @@ StatusOr<int> ConfigFile::GetInt(const std::string& key, int fallback) const {
   if (node.empty() || node.isNone()) return fallback;
   if (node.isInt()) return static_cast<int>(node);
   if (node.isReal()) {
+    // Range first: converting NaN, infinities or numbers beyond int is undefined.
     const double value = node.real();
-    if (value == static_cast<int>(value)) return static_cast<int>(value);
+    if (value >= std::numeric_limits<int>::min() && value <= std::numeric_limits<int>::max() &&
+        value == std::trunc(value)) {
+      return static_cast<int>(value);
+    }
   }
   return InvalidArgument(path_ + ": " + key + " must be an integer");
 }

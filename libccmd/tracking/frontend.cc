@@ -10,9 +10,10 @@ Status TrackingOptions::Validate() const {
   CCMD_RETURN_IF_ERROR(depth_noise.Validate());
   if (local_ba_window < 1 || local_ba_window > 100)
     return fail("local BA window must be in [1, 100]");
+  // Bounds before the sum, which could overflow.
   if (local_ba_robust_iterations < 0 || local_ba_iterations < 0 ||
-      local_ba_robust_iterations + local_ba_iterations < 1 || local_ba_robust_iterations > 100 ||
-      local_ba_iterations > 100) {
+      local_ba_robust_iterations > 100 || local_ba_iterations > 100 ||
+      local_ba_robust_iterations + local_ba_iterations < 1) {
     return fail("local BA iterations must be in [0, 100], at least one in all");
   }
   if (!(local_ba_function_tolerance >= 0 && local_ba_function_tolerance < 1)) {

@@ -62,6 +62,26 @@ TEST(ConfigTest, TopLevelListIsAClearError) {
   }
 }
 
+// Found by fuzzing (UBSan): a real where an integer belongs was converted before its range
+// was checked. Out of range, NaN or infinite, it is an error naming the key.
+TEST(ConfigTest, IntegerKeysOutsideIntAreClearErrors) {
+  testing::TempDir dir;
+  const std::string camera =
+      "%YAML:1.0\nCamera.fx: 500\nCamera.fy: 500\nCamera.cx: 320\n"
+      "Camera.cy: 240\nCamera.height: 480\n";
+  for (const std::string value : {"1e30", "-3e9", "2147483648.0", ".nan", "-.inf"}) {
+    ASSERT_TRUE(WriteFileAtomic(dir.File("w.yaml"), camera + "Camera.width: " + value + "\n").ok());
+    auto c = LoadCameraConfig(dir.File("w.yaml"));
+    ASSERT_FALSE(c.ok()) << value;
+    EXPECT_NE(c.status().message().find("Camera.width must be an integer"), std::string::npos)
+        << value << ": " << c.status().ToString();
+  }
+  ASSERT_TRUE(WriteFileAtomic(dir.File("w.yaml"), camera + "Camera.width: 640.0\n").ok());
+  auto c = LoadCameraConfig(dir.File("w.yaml"));
+  ASSERT_TRUE(c.ok()) << c.status().ToString();
+  EXPECT_EQ(c->width, 640);
+}
+
 TEST(ConfigTest, TrajectoriesAreOfTheColourCameraUnlessTheConfigNamesTheDepthCamera) {
   testing::TempDir dir;
   const std::string camera =
