@@ -69,6 +69,9 @@ Bytes Mutate(const Bytes& seed, const std::vector<Bytes>& seeds, ccmd::Rng& rng)
 
 }  // namespace
 
+// The default for targets without regression inputs (fuzz_target.h).
+__attribute__((weak)) std::vector<Bytes> ccmd::fuzz::FuzzRegressions() { return {}; }
+
 int main(int argc, char** argv) {
   long iterations = 20000;
   std::uint64_t seed = 1;
@@ -87,14 +90,20 @@ int main(int argc, char** argv) {
     }
   }
   const std::vector<Bytes> seeds = ccmd::fuzz::FuzzSeeds();
+  const std::vector<Bytes> regressions = ccmd::fuzz::FuzzRegressions();
   if (!write_seeds.empty()) {
-    for (std::size_t k = 0; k < seeds.size(); ++k) {
-      std::ofstream out(write_seeds + "/seed_" + std::to_string(k), std::ios::binary);
-      out.write(reinterpret_cast<const char*>(seeds[k].data()),
-                static_cast<std::streamsize>(seeds[k].size()));
+    auto write = [&](const std::string& name, const Bytes& bytes) {
+      std::ofstream out(write_seeds + "/" + name, std::ios::binary);
+      out.write(reinterpret_cast<const char*>(bytes.data()),
+                static_cast<std::streamsize>(bytes.size()));
+    };
+    for (std::size_t k = 0; k < seeds.size(); ++k) write("seed_" + std::to_string(k), seeds[k]);
+    for (std::size_t k = 0; k < regressions.size(); ++k) {
+      write("regression_" + std::to_string(k), regressions[k]);
     }
     return 0;
   }
+  for (const Bytes& r : regressions) LLVMFuzzerTestOneInput(r.data(), r.size());
   for (const Bytes& s : seeds) LLVMFuzzerTestOneInput(s.data(), s.size());
   ccmd::Rng rng(seed);
   for (long i = 0; i < iterations; ++i) {
@@ -107,6 +116,7 @@ int main(int argc, char** argv) {
     for (auto& b : noise) b = static_cast<std::uint8_t>(rng.Next());
     LLVMFuzzerTestOneInput(noise.data(), noise.size());
   }
-  std::printf("%s: %ld mutated inputs and 200 random ones, no failure\n", argv[0], iterations);
+  std::printf("%s: %zu regression inputs, %ld mutated inputs and 200 random ones, no failure\n",
+              argv[0], regressions.size(), iterations);
   return 0;
 }

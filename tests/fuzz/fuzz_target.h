@@ -18,6 +18,12 @@ namespace ccmd::fuzz {
 
 std::vector<std::vector<std::uint8_t>> FuzzSeeds();
 
+// Inputs that once made the target fail (optional; fuzz_driver.cc has an empty default).
+// The driver runs them before its mutations, and --write-seeds writes them into the corpus
+// too, so that scripts/fuzz.sh replays them under AddressSanitizer and UBSan: undefined
+// behaviour that a release build happens to survive is caught there.
+std::vector<std::vector<std::uint8_t>> FuzzRegressions();
+
 [[noreturn]] inline void FuzzFail(const char* what) {
   std::fprintf(stderr, "fuzz invariant failed: %s\n", what);
   std::abort();
