@@ -8,7 +8,8 @@
 #   CCMD_FUZZ_BUILD_DIR=dir scripts/fuzz.sh  (default build-fuzz)
 #   CCMD_FUZZ_TARGETS="depth lz77" scripts/fuzz.sh
 #
-# A target fails on a crash, a sanitizer report, an input taking more than 10 s, or an
+# A target with a dictionary (tests/fuzz/<target>.dict: tokens such as config keys) is given
+# it. A target fails on a crash, a sanitizer report, an input taking more than 10 s, or an
 # allocation above 512 MB. The log of each run is kept in the build folder; the last lines
 # say how many inputs were executed.
 set -euo pipefail
@@ -16,7 +17,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 SECONDS_EACH=${1:-60}
 BUILD_DIR=${CCMD_FUZZ_BUILD_DIR:-build-fuzz}
-TARGETS=${CCMD_FUZZ_TARGETS:-frame keyframe depth lz77 session auth}
+TARGETS=${CCMD_FUZZ_TARGETS:-frame keyframe depth lz77 session auth config trajectory}
 JOBS=$(( $(nproc) < 2 ? $(nproc) : 2 ))
 
 if ! command -v clang++ >/dev/null; then
@@ -49,7 +50,9 @@ for t in $TARGETS; do
     budget="-max_total_time=$SECONDS_EACH"
     echo "== fuzz_$t for ${SECONDS_EACH}s"
   fi
-  if "$BUILD_DIR/tests/fuzz_$t" "$budget" -timeout=10 \
+  dict=()
+  if [ -f "tests/fuzz/$t.dict" ]; then dict=("-dict=tests/fuzz/$t.dict"); fi
+  if "$BUILD_DIR/tests/fuzz_$t" "$budget" ${dict[@]+"${dict[@]}"} -timeout=10 \
       -rss_limit_mb=2048 -malloc_limit_mb=512 -print_final_stats=1 \
       -artifact_prefix="$BUILD_DIR/fuzz_${t}_" "$corpus" >"$log" 2>&1; then
     runs=$(grep -o 'stat::number_of_executed_units: *[0-9]*' "$log" | grep -o '[0-9]*$' || echo "?")
