@@ -31,10 +31,13 @@ StatusOr<Trajectory> ParseTumTrajectory(const std::string& text, const std::stri
       }
       v[i] = *value;
     }
-    const Eigen::Quaterniond q(v[7], v[4], v[5], v[6]);
-    if (q.norm() < 1e-6) {
+    const Eigen::Quaterniond raw(v[7], v[4], v[5], v[6]);
+    if (raw.norm() < 1e-6) {
       return Corrupt(name + ":" + std::to_string(line_number) + ": zero quaternion");
     }
+    // Scaled by its largest component before normalising: the norm of components near 1e200
+    // overflows, and dividing by it gave zeros, read as the identity.
+    const Eigen::Quaterniond q(Eigen::Vector4d(raw.coeffs() / raw.coeffs().cwiseAbs().maxCoeff()));
     trajectory.push_back({v[0], PoseFromTranslationQuaternion({v[1], v[2], v[3]}, q)});
   }
   std::stable_sort(

@@ -31,7 +31,10 @@ std::vector<std::vector<std::uint8_t>> FuzzRegressions() {
       "5394458184466971582916854330727764322063860176656917233895232311625817425963310197322329"
       "62418954028142435256673045427706134528 0.1 0 0 0 0 0 1\n"
       "3 -1e300 1e300 -1.5e308 0 0 0 1\n";
-  return {std::vector<std::uint8_t>(text.begin(), text.end())};
+  // A quaternion whose norm overflows: it was read as the identity.
+  const std::string quaternion = "0 0 0 0 0 1e200 0 1e200\n";
+  return {std::vector<std::uint8_t>(text.begin(), text.end()),
+          std::vector<std::uint8_t>(quaternion.begin(), quaternion.end())};
 }
 
 namespace {

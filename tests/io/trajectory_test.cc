@@ -45,6 +45,15 @@ TEST(TrajectoryTest, HugeNumbersAreWrittenWhole) {
   }
 }
 
+// Found by fuzzing: a quaternion with huge components was read as the identity.
+TEST(TrajectoryTest, HugeQuaternionsGiveTheirRotation) {
+  auto t = ParseTumTrajectory("0 0 0 0 0 1e200 0 1e200\n1 0 0 0 0 1 0 1\n", "huge");
+  ASSERT_TRUE(t.ok()) << t.status().ToString();
+  ASSERT_EQ(t->size(), 2u);
+  EXPECT_NEAR(RotationAngle((*t)[0].T_world_cam), M_PI / 2, 1e-12);
+  EXPECT_LT(RotationDistance((*t)[0].T_world_cam, (*t)[1].T_world_cam), 1e-12);
+}
+
 TEST(TrajectoryTest, BadLinesReportFileAndLine) {
   auto r = ParseTumTrajectory("# c\n1 0 0 0 0 0 0 1\n2 0 0 0 0 0 1\n", "gt.txt");
   ASSERT_FALSE(r.ok());
