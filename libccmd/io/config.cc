@@ -239,7 +239,9 @@ StatusOr<Pose> LoadTrajectoryCamera(const std::string& path) {
 Status WriteCameraConfig(const PinholeCamera& camera, const std::string& path,
                          const std::optional<DepthToColorCalibration>& depth,
                          const std::string& extra_keys) {
-  char text[1024];
+  // Room for the longest finite doubles (%.6f prints up to 317 characters): a file cut short
+  // would be read back with defaults for the keys it lost.
+  char text[8192];
   // ThDepth chosen so that ThDepth * bf / fx reproduces far_depth_m.
   std::snprintf(text, sizeof(text),
                 "%%YAML:1.0\n"

@@ -132,6 +132,37 @@ TEST(ConfigTest, WrittenConfigReadsBackTheSameCamera) {
   EXPECT_EQ(r->depth_map_factor, 1000);
 }
 
+// Every value of an accepted camera is written whole, however long it prints: the file was
+// cut at 1 kB, and read back with defaults for the keys after the cut.
+TEST(ConfigTest, HugeValuesAreWrittenWhole) {
+  testing::TempDir dir;
+  PinholeCamera c;
+  c.fx = 1e300;
+  c.fy = -1e300;
+  c.cx = -1.5e300;
+  c.cy = 2e300;
+  c.width = 123;
+  c.height = 45;
+  c.depth_map_factor = 1000;
+  DepthToColorCalibration depth;
+  depth.depth = c;
+  depth.depth.width = 67;
+  depth.depth.height = 89;
+  ASSERT_TRUE(WriteCameraConfig(c, dir.File("w.yaml"), depth).ok());
+  auto r = LoadCameraConfig(dir.File("w.yaml"));
+  ASSERT_TRUE(r.ok()) << r.status().ToString();
+  EXPECT_EQ(r->fx, 1e300);
+  EXPECT_EQ(r->cy, 2e300);
+  EXPECT_EQ(r->width, 123);
+  EXPECT_EQ(r->height, 45);
+  EXPECT_EQ(r->depth_map_factor, 1000);
+  auto d = LoadDepthToColorCalibration(dir.File("w.yaml"));
+  ASSERT_TRUE(d.ok()) << d.status().ToString();
+  ASSERT_TRUE(d->has_value());
+  EXPECT_EQ((*d)->depth.width, 67);
+  EXPECT_EQ((*d)->depth.height, 89);
+}
+
 TEST(ConfigTest, EveryShippedConfigLoads) {
   int count = 0;
   for (const auto& entry : std::filesystem::directory_iterator(CCMD_CONFIG_DIR)) {
