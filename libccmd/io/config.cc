@@ -14,8 +14,36 @@ ConfigFile::~ConfigFile() = default;
 ConfigFile::ConfigFile(ConfigFile&&) noexcept = default;
 ConfigFile& ConfigFile::operator=(ConfigFile&&) noexcept = default;
 
+namespace {
+
+// cv::FileStorage parses nested collections recursively, so a file nesting some 20 000 levels
+// ("[[[[...", "- - - ...", "a: a: a: ...") overflows the stack. Every level needs a bracket
+// or a block indicator ("- ", ": "), so their count bounds the depth: a config holds a few
+// dozen keys, and more than kMaxConfigTokens of them all is refused before parsing.
+constexpr int kMaxConfigTokens = 4096;
+constexpr std::uint64_t kMaxConfigBytes = 16 << 20;
+
+int CountNestingTokens(const std::string& text) {
+  int count = 0;
+  for (std::size_t i = 0; i < text.size(); ++i) {
+    const char c = text[i];
+    // Followed by a space, a line end, any control character or the end: counted.
+    const auto next = i + 1 < text.size() ? static_cast<unsigned char>(text[i + 1]) : 0;
+    if (c == '[' || c == '{' || ((c == '-' || c == ':') && next <= ' ')) ++count;
+  }
+  return count;
+}
+
+}  // namespace
+
 StatusOr<ConfigFile> ConfigFile::Open(const std::string& path) {
   if (!FileExists(path)) return NotFound("config file " + path + " does not exist");
+  CCMD_ASSIGN_OR_RETURN(const std::string text, ReadFileToString(path, kMaxConfigBytes));
+  if (const int tokens = CountNestingTokens(text); tokens > kMaxConfigTokens) {
+    return Corrupt("config file " + path + " has " + std::to_string(tokens) +
+                   " keys, list items and brackets; a config has at most " +
+                   std::to_string(kMaxConfigTokens));
+  }
   ConfigFile config;
   config.path_ = path;
   config.storage_ = std::make_unique<cv::FileStorage>();

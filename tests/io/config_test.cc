@@ -62,6 +62,22 @@ TEST(ConfigTest, TopLevelListIsAClearError) {
   }
 }
 
+// Nesting deep enough to overflow cv::FileStorage's recursive parser (some 20 000 levels in a
+// release build, fewer under AddressSanitizer) is refused before parsing.
+TEST(ConfigTest, DeepNestingIsAClearError) {
+  testing::TempDir dir;
+  for (const std::string level : {"[", "{a: ", "- ", "a: "}) {
+    std::string text = "%YAML:1.0\nCamera.fx: ";
+    for (int i = 0; i < 100000; ++i) text += level;
+    ASSERT_TRUE(WriteFileAtomic(dir.File("n.yaml"), text + "1\n").ok());
+    auto c = LoadCameraConfig(dir.File("n.yaml"));
+    ASSERT_FALSE(c.ok()) << level;
+    EXPECT_EQ(c.status().code(), StatusCode::kCorrupt) << c.status().ToString();
+    EXPECT_NE(c.status().message().find("keys, list items and brackets"), std::string::npos)
+        << c.status().ToString();
+  }
+}
+
 // Found by fuzzing (UBSan): a real where an integer belongs was converted before its range
 // was checked. Out of range, NaN or infinite, it is an error naming the key.
 TEST(ConfigTest, IntegerKeysOutsideIntAreClearErrors) {
