@@ -55,10 +55,17 @@ int main(int argc, char** argv) {
   app.add_option("--loop-period", options.path.loop_period_s, "Seconds per loop of the camera path")
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
+  double exposure_ms = 0;
+  app.add_option("--exposure", exposure_ms,
+                 "Motion blur: each colour image averages the views over this exposure (ms, "
+                 "centred on the frame's time, at most a frame interval; depth stays sharp)")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
   app.add_option("--threads", options.threads, "Render threads (0 = all cores)")
       ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   if (no_noise || options.noise_scale == 0.0) options.noise = false;
+  options.exposure_s = exposure_ms * 1e-3;
   if (!config.empty()) {
     for (const char* fixed : {"--width", "--height", "--fps"}) {
       if (app.count(fixed) > 0) {

@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <mutex>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 #include <sstream>
 #include <thread>
 
@@ -62,6 +63,9 @@ Status SyntheticSequenceOptions::Validate() const {
     return InvalidArgument("depth noise sigmas must be >= 0 and finite");
   }
   if (threads < 0) return InvalidArgument("threads must be >= 0 (0: all cores)");
+  if (!(exposure_s >= 0 && exposure_s <= 1.0 / (camera ? camera->fps : fps))) {
+    return InvalidArgument("exposure must be between 0 and one frame interval");
+  }
   CCMD_RETURN_IF_ERROR(room.Validate().WithContext("room"));
   return path.Validate().WithContext("path");
 }
@@ -85,6 +89,7 @@ void SyntheticSequenceOptions::Describe(OptionsWriter* out) const {
   out->Add("depth_sigma_2", depth_sigma_2);
   out->Add("noise_scale", noise_scale);
   out->Add("surface_spacing", surface_spacing);
+  out->Add("exposure_s", exposure_s);
   out->Add("threads", threads);
   out->Nested("room", room);
   out->Nested("path", path);
@@ -92,24 +97,28 @@ void SyntheticSequenceOptions::Describe(OptionsWriter* out) const {
 
 Trajectory MakeLoopPath(int num_frames, double fps, const LoopPathOptions& o) {
   Trajectory trajectory;
-  const double deg = M_PI / 180.0;
   for (int i = 0; i < num_frames; ++i) {
     const double t = i / fps;
-    const double phase = 2 * M_PI * t / o.loop_period_s;
-    const Eigen::Vector3d eye(o.radius_x * std::cos(phase), o.radius_y * std::sin(phase),
-                              o.height + o.height_amplitude * std::sin(3.0 * phase + 0.4));
-    const double yaw = phase + o.yaw_ahead_deg * deg;
-    const double pitch = (o.pitch_deg + o.pitch_amplitude_deg * std::sin(2.0 * phase + 1.0)) * deg;
-    const double roll = o.roll_amplitude_deg * deg * std::sin(5.0 * phase);
-    // Camera axes: z forward (yaw/pitch), x right, y down; then roll about z.
-    const Eigen::Vector3d forward(std::cos(pitch) * std::cos(yaw), std::cos(pitch) * std::sin(yaw),
-                                  std::sin(pitch));
-    Pose pose = LookAt(eye, eye + forward, Eigen::Vector3d::UnitZ());
-    pose.linear() =
-        pose.linear() * Eigen::AngleAxisd(roll, Eigen::Vector3d::UnitZ()).toRotationMatrix();
-    trajectory.push_back({o.start_time + t, pose});
+    trajectory.push_back({o.start_time + t, LoopPathPose(t, o)});
   }
   return trajectory;
+}
+
+Pose LoopPathPose(double t, const LoopPathOptions& o) {
+  const double deg = M_PI / 180.0;
+  const double phase = 2 * M_PI * t / o.loop_period_s;
+  const Eigen::Vector3d eye(o.radius_x * std::cos(phase), o.radius_y * std::sin(phase),
+                            o.height + o.height_amplitude * std::sin(3.0 * phase + 0.4));
+  const double yaw = phase + o.yaw_ahead_deg * deg;
+  const double pitch = (o.pitch_deg + o.pitch_amplitude_deg * std::sin(2.0 * phase + 1.0)) * deg;
+  const double roll = o.roll_amplitude_deg * deg * std::sin(5.0 * phase);
+  // Camera axes: z forward (yaw/pitch), x right, y down; then roll about z.
+  const Eigen::Vector3d forward(std::cos(pitch) * std::cos(yaw), std::cos(pitch) * std::sin(yaw),
+                                std::sin(pitch));
+  Pose pose = LookAt(eye, eye + forward, Eigen::Vector3d::UnitZ());
+  pose.linear() =
+      pose.linear() * Eigen::AngleAxisd(roll, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+  return pose;
 }
 
 PinholeCamera SyntheticCamera(int width, int height) {
@@ -157,6 +166,7 @@ std::string DescribeOptions(const SyntheticSequenceOptions& o) {
     << o.noise_scale << "\nsurface_spacing " << o.surface_spacing << "\nroom " << o.room.size_x
     << " x " << o.room.size_y << " x " << o.room.height << "\nloop_period_s "
     << o.path.loop_period_s << "\n";
+  if (o.exposure_s > 0) s << "exposure_s " << o.exposure_s << "\n";
   if (o.camera) s << "camera " << o.camera->ToString() << "\n";
   if (o.depth_camera) {
     const Eigen::Vector3d t = o.depth_camera->T_color_depth.translation();
@@ -172,14 +182,35 @@ struct RecordedFrame {
   cv::Mat colour, depth;
 };
 
+// The colour image over the exposure: the mean of kBlurSamples views spread evenly over it
+// (each with the frame's own noise, so the noise is not averaged away).
+constexpr int kBlurSamples = 8;
+
+cv::Mat BlurredColour(const SyntheticScene& scene, const SyntheticSequenceOptions& options,
+                      const PinholeCamera& camera, double t, const RenderOptions& render) {
+  cv::Mat sum(camera.height, camera.width, CV_32FC3, cv::Scalar::all(0));
+  for (int k = 0; k < kBlurSamples; ++k) {
+    const double t_k = t + options.exposure_s * ((k + 0.5) / kBlurSamples - 0.5);
+    const RenderedFrame view = RenderFrame(scene, camera, LoopPathPose(t_k, options.path), render);
+    cv::accumulate(view.bgr, sum);
+  }
+  cv::Mat bgr;
+  sum.convertTo(bgr, CV_8UC3, 1.0 / kBlurSamples);
+  return bgr;
+}
+
+// Frame `index`, `t` seconds into the path, at the camera's pose then.
 RecordedFrame RenderRecordedFrame(const SyntheticScene& scene,
                                   const SyntheticSequenceOptions& options,
-                                  const PinholeCamera& camera, const Pose& T_world_cam, int index,
+                                  const PinholeCamera& camera, double t, int index,
                                   VisibilityMarks* marks) {
   const RenderOptions render = FrameRenderOptions(options, index);
+  const Pose T_world_cam = LoopPathPose(t, options.path);
   const RenderedFrame frame = RenderFrame(scene, camera, T_world_cam, render, marks);
+  const cv::Mat bgr =
+      options.exposure_s > 0 ? BlurredColour(scene, options, camera, t, render) : frame.bgr;
   RecordedFrame out;
-  out.colour = camera.rgb ? frame.bgr : SwapRedBlue(frame.bgr);
+  out.colour = camera.rgb ? bgr : SwapRedBlue(bgr);
   cv::Mat depth_mm = frame.depth_mm;
   if (options.depth_camera) {
     const Pose T_world_depth = T_world_cam * options.depth_camera->T_color_depth;
@@ -220,7 +251,7 @@ StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
       if (i >= options.frames) break;
       const Stopwatch watch;
       const RecordedFrame frame =
-          RenderRecordedFrame(scene, options, camera, path[i].T_world_cam, i, &marks[id]);
+          RenderRecordedFrame(scene, options, camera, i / fps, i, &marks[id]);
       double expected = render_seconds.load();
       while (!render_seconds.compare_exchange_weak(expected, expected + watch.ElapsedSeconds())) {
       }

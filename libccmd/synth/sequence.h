@@ -39,6 +39,8 @@ struct LoopPathOptions {
 };
 
 Trajectory MakeLoopPath(int num_frames, double fps, const LoopPathOptions& options = {});
+// The path's pose `t` seconds after its start (MakeLoopPath samples it at the frame times).
+Pose LoopPathPose(double t, const LoopPathOptions& options = {});
 
 // The camera of synthetic sequences at a resolution (fx = fy = 525 at 640x480, scaled).
 PinholeCamera SyntheticCamera(int width = 640, int height = 480);
@@ -68,8 +70,12 @@ struct SyntheticSequenceOptions {
   double depth_sigma_2 = DepthSensorModel().sigma_2;
   double noise_scale = 1.0;       // multiplies depth sigma and colour noise
   double surface_spacing = 0.01;  // ground-truth surface sampling (metres)
-  int threads = 0;                // 0: all cores
-  RoomSceneOptions room;          // room.seed is overridden by seed
+  // Motion blur: each colour image is the mean of the views over this exposure (seconds,
+  // centred on the frame's time, at most a frame interval); depth and the ground truth are
+  // those of the frame's time. 0: sharp images.
+  double exposure_s = 0;
+  int threads = 0;        // 0: all cores
+  RoomSceneOptions room;  // room.seed is overridden by seed
   LoopPathOptions path;
 
   Status Validate() const;

@@ -6,6 +6,7 @@
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "libccmd/io/config.h"
 #include "libccmd/io/ply.h"
@@ -183,6 +184,55 @@ TEST(SequenceTest, PathRevisitsItsStartAfterOneLoop) {
   }
 }
 
+// Motion blur: a colour image exposed while the camera turns is the mean of the views over
+// the exposure. Against the sharp sequence it loses contrast along the motion (fewer strong
+// gradients), while the depth and the ground truth stay those of the frame's time.
+TEST(SequenceTest, AnExposureBlursColourByTheMotionOnly) {
+  testing::TempDir dir;
+  SyntheticSequenceOptions sharp = SmallOptions();
+  sharp.frames = 3;
+  sharp.width = 320;
+  sharp.height = 240;
+  sharp.path.loop_period_s = 5;  // 72 degrees a second: 1.4 degrees in a 20 ms exposure
+  SyntheticSequenceOptions blurred = sharp;
+  blurred.exposure_s = 0.02;
+  ASSERT_TRUE(WriteSyntheticSequence(dir.File("sharp"), sharp).ok());
+  ASSERT_TRUE(WriteSyntheticSequence(dir.File("blurred"), blurred).ok());
+  auto a = TumSequence::Open(dir.File("sharp"), std::nullopt);
+  auto b = TumSequence::Open(dir.File("blurred"), std::nullopt);
+  ASSERT_TRUE(a.ok() && b.ok());
+  // The mean absolute image gradient: blur lowers it.
+  const auto gradient = [](const cv::Mat& bgr) {
+    cv::Mat grey, gx, gy;
+    cv::cvtColor(bgr, grey, cv::COLOR_BGR2GRAY);
+    grey.convertTo(grey, CV_32F);
+    cv::Sobel(grey, gx, CV_32F, 1, 0);
+    cv::Sobel(grey, gy, CV_32F, 0, 1);
+    return cv::mean(cv::abs(gx) + cv::abs(gy))[0];
+  };
+  for (std::size_t i = 0; i < 3; ++i) {
+    auto fa = a->LoadFrame(i);
+    auto fb = b->LoadFrame(i);
+    ASSERT_TRUE(fa.ok() && fb.ok());
+    EXPECT_EQ(cv::norm(fa->depth_mm, fb->depth_mm, cv::NORM_INF), 0) << i;
+    EXPECT_LT(TranslationDistance(*a->frame(i).T_world_cam_gt, *b->frame(i).T_world_cam_gt), 1e-9);
+    EXPECT_GT(cv::norm(fa->bgr, fb->bgr, cv::NORM_L1) / fa->bgr.total(), 3.0) << i;
+    EXPECT_LT(gradient(fb->bgr), 0.8 * gradient(fa->bgr)) << i;
+  }
+  // A still camera gives the sharp image whatever the exposure.
+  SyntheticSequenceOptions still = sharp;
+  still.frames = 1;
+  still.path.loop_period_s = 1e9;
+  SyntheticSequenceOptions still_blurred = still;
+  still_blurred.exposure_s = 0.02;
+  ASSERT_TRUE(WriteSyntheticSequence(dir.File("still"), still).ok());
+  ASSERT_TRUE(WriteSyntheticSequence(dir.File("still_blurred"), still_blurred).ok());
+  auto c = TumSequence::Open(dir.File("still"), std::nullopt);
+  auto d = TumSequence::Open(dir.File("still_blurred"), std::nullopt);
+  ASSERT_TRUE(c.ok() && d.ok());
+  EXPECT_LE(cv::norm(c->LoadFrame(0)->bgr, d->LoadFrame(0)->bgr, cv::NORM_INF), 1);
+}
+
 TEST(SequenceTest, BadOptionsAreRefused) {
   testing::TempDir dir;
   SyntheticSequenceOptions o = SmallOptions();
@@ -193,6 +243,9 @@ TEST(SequenceTest, BadOptionsAreRefused) {
     noisy.depth_sigma_2 = sigma;
     EXPECT_FALSE(noisy.Validate().ok()) << sigma;
   }
+  SyntheticSequenceOptions long_exposure = SmallOptions();
+  long_exposure.exposure_s = 0.05;  // longer than a frame at 30 Hz
+  EXPECT_FALSE(long_exposure.Validate().ok());
   EXPECT_FALSE(ParseSyntheticSpec("frames=10,colour=2").ok());
   EXPECT_EQ(ParseSyntheticSpec("frames=10,seed=4")->seed, 4u);
 }
