@@ -254,6 +254,36 @@ TEST(BackendIntegrationTest, TwoAgentsAreFusedIntoOneAccurateMap) {
   (*backend)->Shutdown();
 }
 
+// Feeds the parts of a synthetic sequence to a front-end in order and finishes it: where one
+// part ends and the next starts elsewhere, the camera jumps and tracking is lost.
+void TrackParts(Frontend* frontend, const SyntheticSequenceOptions& synth,
+                const std::vector<FrameRange>& parts) {
+  for (const FrameRange& part : parts) {
+    SyntheticSource source(synth, part);
+    RgbdFrame frame;
+    while (source.Read(&frame).ok()) frontend->ProcessFrame(frame);
+  }
+  frontend->Finish();
+}
+
+// The synthetic room at 320x240 with a 240-frame lap (8 s).
+SyntheticSequenceOptions QuickLaps(int frames) {
+  SyntheticSequenceOptions synth;
+  synth.frames = frames;
+  synth.width = 320;
+  synth.height = 240;
+  synth.path.loop_period_s = 8;
+  return synth;
+}
+
+// The server's trajectory is within a centimetre of the sequence's ground truth.
+void ExpectOnThePath(const SyntheticSequenceOptions& synth, const Trajectory& trajectory) {
+  auto ate =
+      ComputeAte(SyntheticSource(synth, FrameRange{0, synth.frames - 1}).GroundTruth(), trajectory);
+  ASSERT_TRUE(ate.ok()) << ate.status().ToString();
+  EXPECT_LT(ate->error.rmse, 0.01);
+}
+
 // An agent tracks ten frames (one keyframe), then its frames resume elsewhere after a gap in
 // time: it restarts in a new segment that nothing measures against that one keyframe. The map
 // held nothing else, so the new segment is the map: the keyframe before it leaves the dense
@@ -271,12 +301,7 @@ TEST(BackendIntegrationTest, ARestartAfterAYoungStartKeepsTheStartApart) {
   tracking.synchronous_mapping = true;
   auto frontend = Frontend::Create(SyntheticCamera(), tracking, &sink);
   ASSERT_TRUE(frontend.ok());
-  for (const FrameRange part : {FrameRange{0, 9}, FrameRange{300, 359}}) {
-    SyntheticSource source(synth, part);
-    RgbdFrame frame;
-    while (source.Read(&frame).ok()) (*frontend)->ProcessFrame(frame);
-  }
-  (*frontend)->Finish();
+  TrackParts(frontend->get(), synth, {{0, 9}, {300, 359}});
   ASSERT_EQ((*frontend)->stats().restarts, 1);
   (*backend)->WaitIdle();
   EXPECT_EQ((*backend)->stats().segments_restarted, 1);
@@ -313,11 +338,7 @@ TEST(BackendIntegrationTest, ARestartedSegmentFusesWithAnotherAgentsMap) {
   RecordingObserver observer;
   auto backend = Backend::Create(BackendOptions(), &observer);
   ASSERT_TRUE(backend.ok()) << backend.status().ToString();
-  SyntheticSequenceOptions synth;
-  synth.frames = 320;
-  synth.width = 320;
-  synth.height = 240;
-  synth.path.loop_period_s = 8;  // 240 frames a lap; the camera looks outwards
+  const SyntheticSequenceOptions synth = QuickLaps(320);  // the camera looks outwards
   const PinholeCamera camera = SyntheticCamera(320, 240);
   TrackingOptions tracking;
   tracking.synchronous_mapping = true;
@@ -333,12 +354,7 @@ TEST(BackendIntegrationTest, ARestartedSegmentFusesWithAnotherAgentsMap) {
   for (int i = 0; i < 2; ++i) {
     auto frontend = Frontend::Create(camera, tracking, sinks[i].get());
     ASSERT_TRUE(frontend.ok());
-    for (const FrameRange& part : parts[i]) {
-      SyntheticSource source(synth, part);
-      RgbdFrame frame;
-      while (source.Read(&frame).ok()) (*frontend)->ProcessFrame(frame);
-    }
-    (*frontend)->Finish();
+    TrackParts(frontend->get(), synth, parts[i]);
     ASSERT_EQ((*frontend)->stats().restarts, i);
     (*backend)->WaitIdle();
   }
@@ -367,10 +383,7 @@ TEST(BackendIntegrationTest, ARestartedSegmentFusesWithAnotherAgentsMap) {
     }
   }
   EXPECT_GE(second_segment, 3u);
-  auto ate =
-      ComputeAte(SyntheticSource(synth, FrameRange{0, synth.frames - 1}).GroundTruth(), fused);
-  ASSERT_TRUE(ate.ok()) << ate.status().ToString();
-  EXPECT_LT(ate->error.rmse, 0.01);
+  ExpectOnThePath(synth, fused);
 }
 
 // The same start, but the camera comes round to it again: the loop that places the keyframe
@@ -380,11 +393,7 @@ TEST(BackendIntegrationTest, AKeyframeKeptApartReturnsToTheDenseMapWhenALoopPlac
   auto backend = Backend::Create(BackendOptions(), &observer);
   ASSERT_TRUE(backend.ok()) << backend.status().ToString();
   const AgentId agent(1);
-  SyntheticSequenceOptions synth;
-  synth.frames = 330;
-  synth.width = 320;
-  synth.height = 240;
-  synth.path.loop_period_s = 8;  // 240 frames a lap: frames 240-330 see frames 0-90 again
+  const SyntheticSequenceOptions synth = QuickLaps(330);  // frames 240-329 see 0-89 again
   const PinholeCamera camera = SyntheticCamera(320, 240);
   ASSERT_TRUE((*backend)->RegisterAgent(agent, "agent1", camera).ok());
   WireSink sink(agent, backend->get());
@@ -392,12 +401,7 @@ TEST(BackendIntegrationTest, AKeyframeKeptApartReturnsToTheDenseMapWhenALoopPlac
   tracking.synchronous_mapping = true;
   auto frontend = Frontend::Create(camera, tracking, &sink);
   ASSERT_TRUE(frontend.ok());
-  for (const FrameRange part : {FrameRange{0, 9}, FrameRange{120, 329}}) {
-    SyntheticSource source(synth, part);
-    RgbdFrame frame;
-    while (source.Read(&frame).ok()) (*frontend)->ProcessFrame(frame);
-  }
-  (*frontend)->Finish();
+  TrackParts(frontend->get(), synth, {{0, 9}, {120, 329}});
   ASSERT_EQ((*frontend)->stats().restarts, 1);
   (*backend)->WaitIdle();
   const BackendStats stats = (*backend)->stats();
@@ -410,10 +414,7 @@ TEST(BackendIntegrationTest, AKeyframeKeptApartReturnsToTheDenseMapWhenALoopPlac
   EXPECT_TRUE((*backend)->dense()->KeyframeCloud(first).ok());
   const Trajectory fused = (*backend)->FusedTrajectory();
   EXPECT_EQ(fused.size(), sink.timestamps_.size());
-  auto ate =
-      ComputeAte(SyntheticSource(synth, FrameRange{0, synth.frames - 1}).GroundTruth(), fused);
-  ASSERT_TRUE(ate.ok()) << ate.status().ToString();
-  EXPECT_LT(ate->error.rmse, 0.01);
+  ExpectOnThePath(synth, fused);
 }
 
 // An agent circling a room twice: its second lap's keyframes are culled (the first lap's
@@ -427,11 +428,7 @@ TEST(BackendIntegrationTest, CulledKeyframesKeepTheirPlaceInTheTrajectories) {
   auto backend = Backend::Create(options, &observer);
   ASSERT_TRUE(backend.ok()) << backend.status().ToString();
   const AgentId agent(1);
-  SyntheticSequenceOptions synth;
-  synth.frames = 400;
-  synth.width = 320;
-  synth.height = 240;
-  synth.path.loop_period_s = 8;  // 240 frames a lap
+  const SyntheticSequenceOptions synth = QuickLaps(400);
   const PinholeCamera camera = SyntheticCamera(320, 240);
   ASSERT_TRUE((*backend)->RegisterAgent(agent, "agent1", camera).ok());
   WireSink sink(agent, backend->get());

@@ -3,6 +3,9 @@
 #include <gtest/gtest.h>
 
 #include <limits>
+#include <string>
+#include <tuple>
+#include <vector>
 
 #include <opencv2/core.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -184,23 +187,43 @@ TEST(SequenceTest, PathRevisitsItsStartAfterOneLoop) {
   }
 }
 
+// Frames of a sequence written with `options`, and of the same with a 20 ms exposure.
+struct SharpAndBlurred {
+  std::vector<RgbdFrame> sharp, blurred;
+  std::vector<Pose> sharp_truth, blurred_truth;
+};
+void RenderSharpAndBlurred(const testing::TempDir& dir, const std::string& name,
+                           const SyntheticSequenceOptions& options, SharpAndBlurred* out) {
+  SyntheticSequenceOptions blurred = options;
+  blurred.exposure_s = 0.02;
+  for (const auto& [suffix, o, frames, truth] :
+       {std::tuple{"_sharp", options, &out->sharp, &out->sharp_truth},
+        std::tuple{"_blurred", blurred, &out->blurred, &out->blurred_truth}}) {
+    ASSERT_TRUE(WriteSyntheticSequence(dir.File(name + suffix), o).ok());
+    auto sequence = TumSequence::Open(dir.File(name + suffix), std::nullopt);
+    ASSERT_TRUE(sequence.ok()) << sequence.status().ToString();
+    for (std::size_t i = 0; i < sequence->size(); ++i) {
+      auto frame = sequence->LoadFrame(i);
+      ASSERT_TRUE(frame.ok()) << frame.status().ToString();
+      frames->push_back(*frame);
+      truth->push_back(*sequence->frame(i).T_world_cam_gt);
+    }
+  }
+}
+
 // Motion blur: a colour image exposed while the camera turns is the mean of the views over
 // the exposure. Against the sharp sequence it loses contrast along the motion (fewer strong
 // gradients), while the depth and the ground truth stay those of the frame's time.
 TEST(SequenceTest, AnExposureBlursColourByTheMotionOnly) {
   testing::TempDir dir;
-  SyntheticSequenceOptions sharp = SmallOptions();
-  sharp.frames = 3;
-  sharp.width = 320;
-  sharp.height = 240;
-  sharp.path.loop_period_s = 5;  // 72 degrees a second: 1.4 degrees in a 20 ms exposure
-  SyntheticSequenceOptions blurred = sharp;
-  blurred.exposure_s = 0.02;
-  ASSERT_TRUE(WriteSyntheticSequence(dir.File("sharp"), sharp).ok());
-  ASSERT_TRUE(WriteSyntheticSequence(dir.File("blurred"), blurred).ok());
-  auto a = TumSequence::Open(dir.File("sharp"), std::nullopt);
-  auto b = TumSequence::Open(dir.File("blurred"), std::nullopt);
-  ASSERT_TRUE(a.ok() && b.ok());
+  SyntheticSequenceOptions moving = SmallOptions();
+  moving.frames = 3;
+  moving.width = 320;
+  moving.height = 240;
+  moving.path.loop_period_s = 5;  // 72 degrees a second: 1.4 degrees in a 20 ms exposure
+  SharpAndBlurred r;
+  RenderSharpAndBlurred(dir, "moving", moving, &r);
+  ASSERT_FALSE(HasFatalFailure());
   // The mean absolute image gradient: blur lowers it.
   const auto gradient = [](const cv::Mat& bgr) {
     cv::Mat grey, gx, gy;
@@ -210,27 +233,23 @@ TEST(SequenceTest, AnExposureBlursColourByTheMotionOnly) {
     cv::Sobel(grey, gy, CV_32F, 0, 1);
     return cv::mean(cv::abs(gx) + cv::abs(gy))[0];
   };
+  ASSERT_EQ(r.blurred.size(), 3u);
   for (std::size_t i = 0; i < 3; ++i) {
-    auto fa = a->LoadFrame(i);
-    auto fb = b->LoadFrame(i);
-    ASSERT_TRUE(fa.ok() && fb.ok());
-    EXPECT_EQ(cv::norm(fa->depth_mm, fb->depth_mm, cv::NORM_INF), 0) << i;
-    EXPECT_LT(TranslationDistance(*a->frame(i).T_world_cam_gt, *b->frame(i).T_world_cam_gt), 1e-9);
-    EXPECT_GT(cv::norm(fa->bgr, fb->bgr, cv::NORM_L1) / fa->bgr.total(), 3.0) << i;
-    EXPECT_LT(gradient(fb->bgr), 0.8 * gradient(fa->bgr)) << i;
+    const RgbdFrame &a = r.sharp[i], &b = r.blurred[i];
+    EXPECT_EQ(cv::norm(a.depth_mm, b.depth_mm, cv::NORM_INF), 0) << i;
+    EXPECT_LT(TranslationDistance(r.sharp_truth[i], r.blurred_truth[i]), 1e-9);
+    EXPECT_GT(cv::norm(a.bgr, b.bgr, cv::NORM_L1) / a.bgr.total(), 3.0) << i;
+    EXPECT_LT(gradient(b.bgr), 0.8 * gradient(a.bgr)) << i;
   }
   // A still camera gives the sharp image whatever the exposure.
-  SyntheticSequenceOptions still = sharp;
+  SyntheticSequenceOptions still = moving;
   still.frames = 1;
   still.path.loop_period_s = 1e9;
-  SyntheticSequenceOptions still_blurred = still;
-  still_blurred.exposure_s = 0.02;
-  ASSERT_TRUE(WriteSyntheticSequence(dir.File("still"), still).ok());
-  ASSERT_TRUE(WriteSyntheticSequence(dir.File("still_blurred"), still_blurred).ok());
-  auto c = TumSequence::Open(dir.File("still"), std::nullopt);
-  auto d = TumSequence::Open(dir.File("still_blurred"), std::nullopt);
-  ASSERT_TRUE(c.ok() && d.ok());
-  EXPECT_LE(cv::norm(c->LoadFrame(0)->bgr, d->LoadFrame(0)->bgr, cv::NORM_INF), 1);
+  SharpAndBlurred s;
+  RenderSharpAndBlurred(dir, "still", still, &s);
+  ASSERT_FALSE(HasFatalFailure());
+  ASSERT_EQ(s.blurred.size(), 1u);
+  EXPECT_LE(cv::norm(s.sharp[0].bgr, s.blurred[0].bgr, cv::NORM_INF), 1);
 }
 
 TEST(SequenceTest, BadOptionsAreRefused) {

@@ -141,13 +141,19 @@ void EvaluateTwoAgentRun(const testing::TempDir& dir, const Json& stats,
   results->emplace(EvaluateReplay(run, *dataset, info, ReferenceOptions()));
 }
 
+// The server's word on its maps: how many, map 1 primary, and which map each agent is in.
+Json MapStats(int maps, int map_of_agent1, int map_of_agent2) {
+  Json stats;
+  stats["backend"]["maps"] = maps;
+  stats["primary_map"] = 1;
+  stats["agent_maps"]["agent1"] = map_of_agent1;
+  stats["agent_maps"]["agent2"] = map_of_agent2;
+  return stats;
+}
+
 TEST(ReplayReportTest, UnfusedRunStillReportsThePrimaryMapAndNamesItsAgents) {
   testing::TempDir dir;
-  Json stats;
-  stats["backend"]["maps"] = 2;
-  stats["primary_map"] = 1;
-  stats["agent_maps"]["agent1"] = 2;
-  stats["agent_maps"]["agent2"] = 1;
+  const Json stats = MapStats(2, 2, 1);
   std::optional<StatusOr<Json>> evaluated;
   EvaluateTwoAgentRun(dir, stats, &evaluated);
   ASSERT_TRUE(evaluated.has_value());
@@ -182,11 +188,7 @@ TEST(ReplayReportTest, UnfusedRunStillReportsThePrimaryMapAndNamesItsAgents) {
 // the report must not say that every map fused.
 TEST(ReplayReportTest, AnAgentWaitingUnplacedInThePrimaryMapIsNotCountedAsFused) {
   testing::TempDir dir;
-  Json stats;
-  stats["backend"]["maps"] = 1;
-  stats["primary_map"] = 1;
-  stats["agent_maps"]["agent1"] = 1;
-  stats["agent_maps"]["agent2"] = 1;
+  Json stats = MapStats(1, 1, 1);
   stats["agent_placed_keyframes"]["agent1"] = 0;
   stats["agent_placed_keyframes"]["agent2"] = 2;
   std::optional<StatusOr<Json>> evaluated;
