@@ -356,7 +356,9 @@ TEST(LoopCorrectionTest, AFusionThroughARestartedSegmentPlacesItAndUnplacesTheGu
   for (int i = 0; i < 8; ++i) {
     const ServerKeyframe* kf = fusion.map->keyframe(Kf(2, i));
     EXPECT_EQ(fusion.map->Placed(*kf), i >= 4) << i;
-    if (i >= 4) EXPECT_LT(TranslationDistance(kf->T_map_cam, CirclePose(8 + i, 24)), 1e-6) << i;
+    if (i >= 4) {
+      EXPECT_LT(TranslationDistance(kf->T_map_cam, CirclePose(8 + i, 24)), 1e-6) << i;
+    }
   }
   // A later loop between the earlier keyframes and the primary map's places them too.
   const std::vector<ServerKeyframe*> placed =
