@@ -1,8 +1,11 @@
 #include "libccmd/io/config.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
+#include <fstream>
 #include <limits>
 #include <opencv2/core.hpp>
 
@@ -34,11 +37,36 @@ int CountNestingTokens(const std::string& text) {
   return count;
 }
 
+// The file's text, at most kMaxConfigBytes of it. Only a regular file: a program reads its
+// config more than once (camera, depth block, tracking options), and a pipe (a shell's
+// <(...)) would be empty the second time, or block.
+StatusOr<std::string> ReadConfigText(const std::string& path) {
+  std::error_code ec;
+  if (!std::filesystem::is_regular_file(path, ec)) {
+    return InvalidArgument("config file " + path +
+                           " is not a regular file (a config is read more than once: give a "
+                           "file, not a pipe)");
+  }
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return NotFound("cannot open config file " + path);
+  std::string text;
+  std::array<char, 1 << 16> chunk;
+  while (in.read(chunk.data(), chunk.size()) || in.gcount() > 0) {
+    text.append(chunk.data(), static_cast<std::size_t>(in.gcount()));
+    if (text.size() > kMaxConfigBytes) {
+      return OutOfRange("config file " + path + " is larger than " +
+                        std::to_string(kMaxConfigBytes >> 20) + " MB: not a camera config");
+    }
+  }
+  if (in.bad()) return IoError("cannot read config file " + path);
+  return text;
+}
+
 }  // namespace
 
 StatusOr<ConfigFile> ConfigFile::Open(const std::string& path) {
   if (!FileExists(path)) return NotFound("config file " + path + " does not exist");
-  CCMD_ASSIGN_OR_RETURN(const std::string text, ReadFileToString(path, kMaxConfigBytes));
+  CCMD_ASSIGN_OR_RETURN(const std::string text, ReadConfigText(path));
   if (const int tokens = CountNestingTokens(text); tokens > kMaxConfigTokens) {
     return Corrupt("config file " + path + " has " + std::to_string(tokens) +
                    " keys, list items and brackets; a config has at most " +
@@ -48,7 +76,10 @@ StatusOr<ConfigFile> ConfigFile::Open(const std::string& path) {
   config.path_ = path;
   config.storage_ = std::make_unique<cv::FileStorage>();
   try {
-    if (!config.storage_->open(path, cv::FileStorage::READ | cv::FileStorage::FORMAT_YAML)) {
+    // Parsed from the text read above: the file is read once, and what was checked is what
+    // is parsed.
+    if (!config.storage_->open(
+            text, cv::FileStorage::READ | cv::FileStorage::MEMORY | cv::FileStorage::FORMAT_YAML)) {
       return Corrupt("cannot parse config file " + path);
     }
   } catch (const cv::Exception& e) {

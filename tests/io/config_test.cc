@@ -5,6 +5,8 @@
 #include <cmath>
 #include <filesystem>
 
+#include <sys/stat.h>
+
 #include "libccmd/util/file_util.h"
 #include "tests/support/test_support.h"
 
@@ -177,6 +179,19 @@ TEST(ConfigTest, HugeValuesAreWrittenWhole) {
   ASSERT_TRUE(d->has_value());
   EXPECT_EQ((*d)->depth.width, 67);
   EXPECT_EQ((*d)->depth.height, 89);
+}
+
+// A config given through a pipe, as a shell's --config <(...) gives it: the programs read a
+// config more than once, so a pipe would be empty or block the second time. It is refused at
+// once with a clear error (nothing opens it: opening a pipe with no writer would block).
+TEST(ConfigTest, AConfigThroughAPipeIsAClearError) {
+  testing::TempDir dir;
+  const std::string fifo = dir.File("config.fifo");
+  ASSERT_EQ(::mkfifo(fifo.c_str(), 0600), 0);
+  auto c = LoadCameraConfig(fifo);
+  ASSERT_FALSE(c.ok());
+  EXPECT_NE(c.status().message().find("not a regular file"), std::string::npos)
+      << c.status().ToString();
 }
 
 TEST(ConfigTest, EveryShippedConfigLoads) {
