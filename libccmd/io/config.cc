@@ -1,11 +1,9 @@
 #include "libccmd/io/config.h"
 
 #include <algorithm>
-#include <array>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
-#include <fstream>
 #include <limits>
 #include <opencv2/core.hpp>
 
@@ -47,19 +45,7 @@ StatusOr<std::string> ReadConfigText(const std::string& path) {
                            " is not a regular file (a config is read more than once: give a "
                            "file, not a pipe)");
   }
-  std::ifstream in(path, std::ios::binary);
-  if (!in) return NotFound("cannot open config file " + path);
-  std::string text;
-  std::array<char, 1 << 16> chunk;
-  while (in.read(chunk.data(), chunk.size()) || in.gcount() > 0) {
-    text.append(chunk.data(), static_cast<std::size_t>(in.gcount()));
-    if (text.size() > kMaxConfigBytes) {
-      return OutOfRange("config file " + path + " is larger than " +
-                        std::to_string(kMaxConfigBytes >> 20) + " MB: not a camera config");
-    }
-  }
-  if (in.bad()) return IoError("cannot read config file " + path);
-  return text;
+  return ReadFileToString(path, kMaxConfigBytes);
 }
 
 }  // namespace

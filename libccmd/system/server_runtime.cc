@@ -112,18 +112,22 @@ Json ServerRuntime::StatsJson() {
   Json j;
   if (server_) j["transport"] = server_->StatsJson();
   if (backend_) j["backend"] = backend_->StatsJson();
-  Json agents, agent_maps, agent_placed;
+  std::map<AgentId, std::string> names;
   {
     std::lock_guard<std::mutex> lock(names_mutex_);
-    for (const auto& [id, name] : names_) {
-      agents[name] = Json(static_cast<int>(id.value()));
-      // Which map each agent's keyframes are in, and how many of them are placed: the
-      // evaluation names the primary map's agents.
-      const auto map = backend_ ? backend_->MapOf(id) : std::nullopt;
-      if (map) {
-        agent_maps[name] = Json(static_cast<int>(map->value()));
-        agent_placed[name] = Json(static_cast<int>(backend_->AgentKeyframeCount(id)));
-      }
+    names = names_;
+  }
+  // Counting an agent's placed keyframes checks its map out, which waits for the loop stage:
+  // not under the names' lock, which sessions take when agents join.
+  Json agents, agent_maps, agent_placed;
+  for (const auto& [id, name] : names) {
+    agents[name] = Json(static_cast<int>(id.value()));
+    // Which map each agent's keyframes are in, and how many of them are placed: the
+    // evaluation names the primary map's agents.
+    const auto map = backend_ ? backend_->MapOf(id) : std::nullopt;
+    if (map) {
+      agent_maps[name] = Json(static_cast<int>(map->value()));
+      agent_placed[name] = Json(static_cast<int>(backend_->AgentKeyframeCount(id)));
     }
   }
   j["agent_ids"] = agents;

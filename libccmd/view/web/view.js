@@ -78,7 +78,7 @@
     refine: [],           // slices still to draw on the current image: [level, first, count]
     budget: 400000,       // points per fresh frame
     totalPoints: 0,       // points of the drawn clouds
-    loadedPoints: 0,      // points loaded since the page read the state (released ones too)
+    loadedPoints: 0,      // points loaded since the page last loaded the server's state (released ones too)
     drawnLevels: 0,
     drawnPoints: 0,
     byAgent: false,
