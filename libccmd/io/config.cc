@@ -2,12 +2,12 @@
 
 #include <algorithm>
 #include <cmath>
-#include <cstdio>
 #include <filesystem>
 #include <limits>
 #include <opencv2/core.hpp>
 
 #include "libccmd/util/file_util.h"
+#include "libccmd/util/string_util.h"
 
 namespace ccmd {
 
@@ -284,36 +284,43 @@ StatusOr<Pose> LoadTrajectoryCamera(const std::string& path) {
 Status WriteCameraConfig(const PinholeCamera& camera, const std::string& path,
                          const std::optional<DepthToColorCalibration>& depth,
                          const std::string& extra_keys) {
-  // Room for the longest finite doubles (%.6f prints up to 317 characters): a file cut short
-  // would be read back with defaults for the keys it lost.
-  char text[8192];
+  // Every real as the shortest text that reads back as the same double, so a camera written
+  // and read again is the same camera, however large or small its values.
+  std::string out = "%YAML:1.0\nCamera.type: \"PinHole\"\n";
+  const auto key = [&out](const char* name, double value) {
+    out += std::string(name) + ": " + ExactNumber(value) + "\n";
+  };
+  key("Camera.fx", camera.fx);
+  key("Camera.fy", camera.fy);
+  key("Camera.cx", camera.cx);
+  key("Camera.cy", camera.cy);
+  const char* distortion_keys[] = {"Camera.k1", "Camera.k2", "Camera.p1", "Camera.p2", "Camera.k3"};
+  for (int i = 0; i < 5; ++i) key(distortion_keys[i], camera.distortion[i]);
+  out += "Camera.width: " + std::to_string(camera.width) + "\n";
+  out += "Camera.height: " + std::to_string(camera.height) + "\n";
+  key("Camera.fps", camera.fps);
+  key("Camera.bf", camera.bf);
   // ThDepth chosen so that ThDepth * bf / fx reproduces far_depth_m.
-  std::snprintf(text, sizeof(text),
-                "%%YAML:1.0\n"
-                "Camera.type: \"PinHole\"\n"
-                "Camera.fx: %.6f\nCamera.fy: %.6f\nCamera.cx: %.6f\nCamera.cy: %.6f\n"
-                "Camera.k1: %.6f\nCamera.k2: %.6f\nCamera.p1: %.6f\nCamera.p2: %.6f\n"
-                "Camera.k3: %.6f\n"
-                "Camera.width: %d\nCamera.height: %d\nCamera.fps: %.3f\n"
-                "Camera.bf: %.6f\nThDepth: %.6f\nDepthMapFactor: %.3f\nCamera.RGB: %d\n",
-                camera.fx, camera.fy, camera.cx, camera.cy, camera.distortion[0],
-                camera.distortion[1], camera.distortion[2], camera.distortion[3],
-                camera.distortion[4], camera.width, camera.height, camera.fps, camera.bf,
-                camera.far_depth_m * std::fabs(camera.fx) / camera.bf, camera.depth_map_factor,
-                camera.rgb ? 1 : 0);
-  std::string out = text;
+  key("ThDepth", camera.far_depth_m * std::fabs(camera.fx) / camera.bf);
+  key("DepthMapFactor", camera.depth_map_factor);
+  out += std::string("Camera.RGB: ") + (camera.rgb ? "1" : "0") + "\n";
   if (depth) {
     const PinholeCamera& d = depth->depth;
-    const Eigen::Matrix3d R = depth->T_color_depth.linear();
+    key("Depth.fx", d.fx);
+    key("Depth.fy", d.fy);
+    key("Depth.cx", d.cx);
+    key("Depth.cy", d.cy);
+    out += "Depth.width: " + std::to_string(d.width) + "\n";
+    out += "Depth.height: " + std::to_string(d.height) + "\n";
+    const auto list = [](const double* values, int count) {
+      std::string text = "[";
+      for (int i = 0; i < count; ++i) text += (i ? ", " : "") + ExactNumber(values[i]);
+      return text + "]\n";
+    };
+    const Eigen::Matrix<double, 3, 3, Eigen::RowMajor> R = depth->T_color_depth.linear();
     const Eigen::Vector3d t = depth->T_color_depth.translation();
-    std::snprintf(text, sizeof(text),
-                  "Depth.fx: %.6f\nDepth.fy: %.6f\nDepth.cx: %.6f\nDepth.cy: %.6f\n"
-                  "Depth.width: %d\nDepth.height: %d\n"
-                  "Depth.R_color_depth: [%.9f, %.9f, %.9f, %.9f, %.9f, %.9f, %.9f, %.9f, %.9f]\n"
-                  "Depth.t_color_depth: [%.9f, %.9f, %.9f]\n",
-                  d.fx, d.fy, d.cx, d.cy, d.width, d.height, R(0, 0), R(0, 1), R(0, 2), R(1, 0),
-                  R(1, 1), R(1, 2), R(2, 0), R(2, 1), R(2, 2), t.x(), t.y(), t.z());
-    out += text;
+    out += "Depth.R_color_depth: " + list(R.data(), 9);
+    out += "Depth.t_color_depth: " + list(t.data(), 3);
   }
   return WriteFileAtomic(path, out + extra_keys);
 }

@@ -1,6 +1,7 @@
 #include "libccmd/util/string_util.h"
 
 #include <cerrno>
+#include <charconv>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
@@ -53,6 +54,12 @@ StatusOr<double> ParseDouble(std::string_view text) {
     return InvalidArgument("not a finite number: '" + s + "'");
   }
   return value;
+}
+
+std::string ExactNumber(double value) {
+  char text[32];
+  const auto result = std::to_chars(text, text + sizeof(text), value);
+  return std::string(text, result.ptr);
 }
 
 StatusOr<long long> ParseInt(std::string_view text) {

@@ -21,6 +21,10 @@ bool StartsWith(std::string_view text, std::string_view prefix);
 StatusOr<double> ParseDouble(std::string_view text);
 StatusOr<long long> ParseInt(std::string_view text);
 
+// The shortest decimal text that reads back as exactly `value` ("481.2", "1e-07"), for files
+// that other programs read again (configs).
+std::string ExactNumber(double value);
+
 // Human-readable byte count: "1.5 MB".
 std::string FormatBytes(double bytes);
 

@@ -150,6 +150,40 @@ TEST(ConfigTest, WrittenConfigReadsBackTheSameCamera) {
   EXPECT_EQ(r->depth_map_factor, 1000);
 }
 
+// A written camera reads back as the same doubles, however many digits they need: the file
+// held six decimals, so a small distortion term or a calibrated focal length came back changed.
+TEST(ConfigTest, WrittenConfigKeepsEveryDigit) {
+  testing::TempDir dir;
+  PinholeCamera c;
+  c.fx = 616.3745727539062;
+  c.fy = -615.9876543210987;
+  c.cx = 319.50000000000006;
+  c.cy = 241.1234567;
+  c.distortion = {0.2624 + 1.2345678901234e-7, -0.9531, -0.0054 + 1e-9, 3e-12, 1.1633};
+  c.depth_map_factor = 5208.3;
+  DepthToColorCalibration depth;
+  depth.depth = c;
+  depth.depth.fx = 585.0000001;
+  depth.T_color_depth = Eigen::Translation3d(-0.025, 1e-9, 0.0) *
+                        Eigen::AngleAxisd(0.0123456789, Eigen::Vector3d(0.6, 0.8, 0.0));
+  ASSERT_TRUE(WriteCameraConfig(c, dir.File("w.yaml"), depth).ok());
+  auto r = LoadCameraConfig(dir.File("w.yaml"));
+  ASSERT_TRUE(r.ok()) << r.status().ToString();
+  EXPECT_EQ(r->fx, c.fx);
+  EXPECT_EQ(r->fy, c.fy);
+  EXPECT_EQ(r->cx, c.cx);
+  EXPECT_EQ(r->cy, c.cy);
+  for (int i = 0; i < 5; ++i) {
+    EXPECT_EQ(r->distortion[i], c.distortion[i]) << i;
+  }
+  EXPECT_EQ(r->depth_map_factor, c.depth_map_factor);
+  auto d = LoadDepthToColorCalibration(dir.File("w.yaml"));
+  ASSERT_TRUE(d.ok() && d->has_value()) << d.status().ToString();
+  EXPECT_EQ((*d)->depth.fx, depth.depth.fx);
+  EXPECT_EQ((*d)->T_color_depth.translation(), depth.T_color_depth.translation());
+  EXPECT_TRUE((*d)->T_color_depth.linear().isApprox(depth.T_color_depth.linear(), 1e-15));
+}
+
 // Every value of an accepted camera is written whole, however long it prints: the file was
 // cut at 1 kB, and read back with defaults for the keys after the cut.
 TEST(ConfigTest, HugeValuesAreWrittenWhole) {
