@@ -300,6 +300,9 @@ int main(int argc, char** argv) {
     // Live cameras must not stall tracking: encode on a writer thread behind a queue.
     record_options.queue_frames = 16;
     record_options.drop_when_full = (*source)->IsLive();
+    // The recording replays with this sensor's depth noise, as without it the agent would
+    // take the default (a Kinect's) for a folder read without --config.
+    record_options.config_keys = ccmd::DepthNoiseConfigKeys(tracking.depth_noise);
     auto created = ccmd::TumRecorder::Create(record_dir, camera, record_options);
     if (!created.ok()) return Fail(created.status().ToString());
     recorder = std::move(created).value();

@@ -26,6 +26,7 @@
 #include "apps/app_common.h"
 #include "libccmd/eval/depth_agreement.h"
 #include "libccmd/io/tum_recorder.h"
+#include "libccmd/optim/reprojection.h"
 #include "libccmd/sensors/depth_registration.h"
 #include "libccmd/sensors/pixel_formats.h"
 #include "libccmd/sensors/source_factory.h"
@@ -425,6 +426,19 @@ int main(int argc, char** argv) {
     recorder_options.png_compression = png_compression;
     recorder_options.queue_frames = 16;  // PNG encoding off the capture loop
     recorder_options.writer_threads = 2;
+    // The sensor's depth noise from the config the camera was opened with travels with the
+    // recording, so that it replays without --config as it would with it.
+    ccmd::DepthNoise noise;
+    if (const std::string path = ccmd::SourceConfigPath(spec, options); !path.empty()) {
+      auto file = ccmd::ConfigFile::Open(path);
+      auto read = file.ok() ? ccmd::ReadDepthNoise(*file) : file.status();
+      if (!read.ok()) {
+        std::fprintf(stderr, "ccmd_camera: %s\n", read.status().ToString().c_str());
+        return 1;
+      }
+      noise = *read;
+    }
+    recorder_options.config_keys = ccmd::DepthNoiseConfigKeys(noise);
     ccmd::LogOptions("record", recorder_options);
     auto created = ccmd::TumRecorder::Create(record, camera, recorder_options);
     if (!created.ok()) {

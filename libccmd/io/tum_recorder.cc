@@ -70,7 +70,8 @@ StatusOr<std::unique_ptr<TumRecorder>> TumRecorder::Create(const std::string& fo
   // depth already registered to colour, so the file says so whatever the source's config.
   PinholeCamera written = camera;
   written.rgb = true;
-  CCMD_RETURN_IF_ERROR(WriteCameraConfig(written, JoinPath(folder, "camera.yaml")));
+  CCMD_RETURN_IF_ERROR(WriteCameraConfig(written, JoinPath(folder, "camera.yaml"), std::nullopt,
+                                         options.config_keys));
 
   std::unique_ptr<TumRecorder> recorder(new TumRecorder());
   recorder->folder_ = folder;

@@ -5,7 +5,8 @@
 //   rgb/<t>.png     8-bit colour, exactly as delivered (PNG is lossless)
 //   depth/<t>.png   16-bit depth in the camera's DepthMapFactor units per metre
 //   rgb.txt, depth.txt   "timestamp path" lines with TUM's comment header
-//   camera.yaml     the camera (WriteCameraConfig), read back by TumSequence
+//   camera.yaml     the camera (WriteCameraConfig), read back by TumSequence, and the
+//                   sensor's keys given in the options (its depth noise)
 // TumSequence reads the folder back frame for frame: same timestamps, same colour, same
 // millimetres (exact whenever DepthMapFactor >= 1000, i.e. file units of 1 mm or finer).
 //
@@ -40,6 +41,9 @@ struct TumRecorderOptions {
   int queue_frames = 0;         // 0: write in Write(); N > 0: writer threads behind N frames
   int writer_threads = 1;       // with a queue
   bool drop_when_full = false;  // with a queue: drop (and count) rather than wait when full
+  // Config lines appended to camera.yaml: the sensor's own keys (DepthNoise.*) of the config
+  // the camera was opened with, so that the recording replays as that config tracked it.
+  std::string config_keys;
 
   Status Validate() const;
   void Describe(OptionsWriter* out) const;

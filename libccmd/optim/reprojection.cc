@@ -2,6 +2,8 @@
 
 #include <cmath>
 
+#include "libccmd/util/string_util.h"
+
 namespace ccmd {
 
 Status DepthNoise::Validate() const {
@@ -21,6 +23,12 @@ StatusOr<DepthNoise> ReadDepthNoise(const ConfigFile& c, DepthNoise n) {
                         c.GetDouble("DepthNoise.keypointOffset", n.keypoint_offset));
   if (const Status s = n.Validate(); !s.ok()) return InvalidArgument(c.path() + ": " + s.message());
   return n;
+}
+
+std::string DepthNoiseConfigKeys(const DepthNoise& n) {
+  return "DepthNoise.sigma0: " + ExactNumber(n.sigma_0) +
+         "\nDepthNoise.sigma2: " + ExactNumber(n.sigma_2) +
+         "\nDepthNoise.keypointOffset: " + ExactNumber(n.keypoint_offset) + "\n";
 }
 
 double ReprojectionChi2(const Intrinsics& k, const Eigen::Isometry3d& T_cam_world,

@@ -9,6 +9,7 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
+#include <string>
 
 #include "libccmd/io/config.h"
 #include "libccmd/util/options_writer.h"
@@ -78,6 +79,9 @@ struct DepthNoise {
 // Reads DepthNoise.sigma0, DepthNoise.sigma2 and DepthNoise.keypointOffset; absent keys keep
 // `defaults`. Invalid values are errors naming the file.
 StatusOr<DepthNoise> ReadDepthNoise(const ConfigFile& config, DepthNoise defaults = {});
+
+// The config lines ReadDepthNoise reads back as `noise`, exactly.
+std::string DepthNoiseConfigKeys(const DepthNoise& noise);
 
 // Chi-square thresholds at 95%: 2 and 3 degrees of freedom.
 constexpr double kChi2Mono = 5.991;

@@ -14,8 +14,10 @@
 
 #include "libccmd/io/config.h"
 #include "libccmd/io/tum_dataset.h"
+#include "libccmd/optim/reprojection.h"
 #include "libccmd/sensors/synthetic_source.h"
 #include "libccmd/util/file_util.h"
+#include "libccmd/util/string_util.h"
 #include "tests/support/test_support.h"
 
 namespace ccmd {
@@ -88,6 +90,57 @@ TEST(CameraCliTest, RecordingReplaysFrameForFrame) {
     EXPECT_EQ(cv::norm(loaded->depth_mm, expected.depth_mm, cv::NORM_INF), 0) << i;
   }
   EXPECT_EQ(sequence->GroundTruthAtFrames().size(), 4u);
+}
+
+// A recording carries the depth noise of the config its camera was opened with (a D435's,
+// here), so that replaying the folder without --config tracks with the same sensor model:
+// before, its camera.yaml held the camera only, and the replay fell back to a Kinect's noise.
+TEST(CameraCliTest, ARecordingKeepsTheSensorsDepthNoise) {
+  testing::TempDir dir;
+  const auto recorded_noise = [&dir](const std::string& folder) -> StatusOr<DepthNoise> {
+    CCMD_ASSIGN_OR_RETURN(const ConfigFile file,
+                          ConfigFile::Open(dir.File(folder + "/camera.yaml")));
+    return ReadDepthNoise(file, DepthNoise{0.1, 0.1, 9});
+  };
+  std::string output;
+  ASSERT_EQ(RunCamera("--source synth:frames=3,width=64,height=48 --frames 3 --record " +
+                          dir.File("first"),
+                      &output),
+            0)
+      << output;
+  // A camera opened without a config: the recording states the default the agent tracks with.
+  auto first = recorded_noise("first");
+  ASSERT_TRUE(first.ok()) << first.status().ToString();
+  EXPECT_EQ(first->sigma_0, DepthNoise().sigma_0);
+  EXPECT_EQ(first->sigma_2, DepthNoise().sigma_2);
+
+  // The same camera with a D435's noise in its config.
+  auto text = ReadFileToString(dir.File("first/camera.yaml"));
+  ASSERT_TRUE(text.ok());
+  std::string config;
+  for (const std::string& line : Split(*text, '\n')) {
+    if (!line.empty() && !StartsWith(line, "DepthNoise.")) config += line + "\n";
+  }
+  config += "DepthNoise.sigma0: 0.001\nDepthNoise.sigma2: 0.004\nDepthNoise.keypointOffset: 0.5\n";
+  ASSERT_TRUE(WriteFileAtomic(dir.File("d435.yaml"), config).ok());
+  ASSERT_EQ(RunCamera("--source tum:" + dir.File("first") + " --config " + dir.File("d435.yaml") +
+                          " --frames 3 --record " + dir.File("second"),
+                      &output),
+            0)
+      << output;
+  // And that recording replayed without --config, recorded again: the noise goes along.
+  ASSERT_EQ(
+      RunCamera("--source tum:" + dir.File("second") + " --frames 3 --record " + dir.File("third"),
+                &output),
+      0)
+      << output;
+  for (const char* folder : {"second", "third"}) {
+    auto noise = recorded_noise(folder);
+    ASSERT_TRUE(noise.ok()) << folder << ": " << noise.status().ToString();
+    EXPECT_EQ(noise->sigma_0, 0.001) << folder;
+    EXPECT_EQ(noise->sigma_2, 0.004) << folder;
+    EXPECT_EQ(noise->keypoint_offset, 0.5) << folder;
+  }
 }
 
 // --check-registration on rendered frames, whose depth and colour are exactly registered: with a
