@@ -2,6 +2,7 @@
 //   ate    absolute trajectory error (evo_ape tum -a)
 //   rpe    relative pose error
 //   jumps  where a trajectory leaves the line between its neighbouring poses
+//   shared how much of two estimates' errors against one ground truth they share
 //   recon  reconstruction error between two PLY clouds
 //   split  split-replay segments of a sequence
 //   map-pictures  top and perspective pictures of a dense map (what ccmd_replay's report shows)
@@ -10,6 +11,8 @@
 #include <algorithm>
 #include <cstdio>
 #include <limits>
+#include <string>
+#include <vector>
 
 #include "apps/app_common.h"
 #include "libccmd/eval/map_picture.h"
@@ -114,6 +117,44 @@ int RunRpe(const std::string& gt_path, const std::string& est_path, const std::s
     j["delta_frames"] = delta;
     j["translation_m"] = StatsJson(rpe->translation);
     j["rotation_deg"] = StatsJson(rpe->rotation);
+    const ccmd::Status s = ccmd::WriteJsonFile(j, json_path);
+    if (!s.ok()) return Fail(s);
+  }
+  return 0;
+}
+
+int RunShared(const std::string& gt_path, const std::vector<std::string>& est_paths,
+              const std::string& json_path, double max_diff) {
+  if (est_paths.size() != 2) {
+    return Fail(ccmd::InvalidArgument("shared compares two estimates: give --est twice"));
+  }
+  auto gt = ReadGroundTruth(gt_path);
+  if (!gt.ok()) return Fail(gt.status());
+  auto a = ccmd::ReadTumTrajectory(est_paths[0]);
+  if (!a.ok()) return Fail(a.status());
+  auto b = ccmd::ReadTumTrajectory(est_paths[1]);
+  if (!b.ok()) return Fail(b.status());
+  ccmd::AteOptions options;
+  options.max_time_difference = max_diff;
+  ccmd::LogOptions("ate", options);
+  auto shared = ccmd::ComputeSharedError(*gt, *a, *b, options);
+  if (!shared.ok()) return Fail(shared.status());
+  std::printf("%zu ground-truth poses matched by both estimates, each aligned on its own\n",
+              shared->matched);
+  std::printf("     ATE rmse  first %.2f mm  second %.2f mm\n", shared->rmse_a * 1e3,
+              shared->rmse_b * 1e3);
+  std::printf(
+      "     shared (a + b) / 2 rmse %.2f mm  apart (a - b) / 2 rmse %.2f mm  "
+      "correlation %.2f\n",
+      shared->shared_rmse * 1e3, shared->apart_rmse * 1e3, shared->correlation);
+  if (!json_path.empty()) {
+    ccmd::Json j;
+    j["matched"] = shared->matched;
+    j["ate_rmse_first_m"] = shared->rmse_a;
+    j["ate_rmse_second_m"] = shared->rmse_b;
+    j["shared_rmse_m"] = shared->shared_rmse;
+    j["apart_rmse_m"] = shared->apart_rmse;
+    j["correlation"] = shared->correlation;
     const ccmd::Status s = ccmd::WriteJsonFile(j, json_path);
     if (!s.ok()) return Fail(s);
   }
@@ -316,6 +357,19 @@ int main(int argc, char** argv) {
       ->check(CLI::Range(0, 1000000));
   jumps->add_option("--json", json, "Write the figures as JSON");
 
+  std::vector<std::string> ests;
+  auto* shared = app.add_subcommand(
+      "shared",
+      "How much of two estimates' errors they share (e.g. runs on the frames forwards and "
+      "backwards): what is shared is fixed to the frames (the reference's own error, or the "
+      "sensor's), what is apart is the runs' own");
+  shared->add_option("--gt", gt, "Ground-truth trajectory (TUM format), or a dataset folder")
+      ->required();
+  shared->add_option("--est", ests, "An estimated trajectory (TUM format); give two")->required();
+  shared->add_option("--json", json, "Write the figures as JSON");
+  shared->add_option("--max-diff", max_diff, "Timestamp matching tolerance (s)")
+      ->capture_default_str();
+
   std::string ref, rec, gt_traj, est_traj;
   bool point_to_point = false;
   double completeness_threshold = 0.02;
@@ -360,6 +414,7 @@ int main(int argc, char** argv) {
   if (*ate) return RunAte(gt, est, json, max_diff, scale, aligned_out);
   if (*rpe) return RunRpe(gt, est, json, max_diff, delta);
   if (*jumps) return RunJumps(traj, top, json);
+  if (*shared) return RunShared(gt, ests, json, max_diff);
   if (*recon) {
     return RunRecon(ref, rec, json, gt_traj, est_traj, point_to_point, completeness_threshold);
   }

@@ -122,9 +122,57 @@ StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& 
   }
   result.matched = matches.size();
   for (std::size_t i = 0; i < est.size(); ++i) {
-    result.errors.push_back((result.alignment * est[i] - gt[i]).norm());
+    result.error_vectors.push_back(result.alignment * est[i] - gt[i]);
+    result.errors.push_back(result.error_vectors.back().norm());
   }
   result.error = ComputeStatistics(result.errors);
+  return result;
+}
+
+StatusOr<SharedErrorResult> ComputeSharedError(const Trajectory& groundtruth, const Trajectory& a,
+                                               const Trajectory& b, const AteOptions& options) {
+  CCMD_ASSIGN_OR_RETURN(const AteResult ate_a, ComputeAte(groundtruth, a, options));
+  CCMD_ASSIGN_OR_RETURN(const AteResult ate_b, ComputeAte(groundtruth, b, options));
+  // The ground-truth pose each matched estimate pose was compared with.
+  const auto by_groundtruth = [&](const Trajectory& estimate, const AteResult& ate) {
+    std::vector<std::pair<std::size_t, Eigen::Vector3d>> errors;
+    std::size_t k = 0;
+    for (const auto& [ie, ig] : MatchByTime(groundtruth, estimate, options.max_time_difference)) {
+      errors.emplace_back(ig, ate.error_vectors[k++]);
+    }
+    std::sort(errors.begin(), errors.end(),
+              [](const auto& x, const auto& y) { return x.first < y.first; });
+    return errors;
+  };
+  const auto errors_a = by_groundtruth(a, ate_a);
+  const auto errors_b = by_groundtruth(b, ate_b);
+  double aa = 0, bb = 0, ab = 0, shared = 0, apart = 0;
+  SharedErrorResult result;
+  for (std::size_t i = 0, j = 0; i < errors_a.size() && j < errors_b.size();) {
+    if (errors_a[i].first < errors_b[j].first) {
+      ++i;
+    } else if (errors_b[j].first < errors_a[i].first) {
+      ++j;
+    } else {
+      const Eigen::Vector3d& ea = errors_a[i++].second;
+      const Eigen::Vector3d& eb = errors_b[j++].second;
+      aa += ea.squaredNorm();
+      bb += eb.squaredNorm();
+      ab += ea.dot(eb);
+      shared += (0.5 * (ea + eb)).squaredNorm();
+      apart += (0.5 * (ea - eb)).squaredNorm();
+      ++result.matched;
+    }
+  }
+  if (result.matched == 0) {
+    return InvalidArgument("the two estimates match no ground-truth pose in common");
+  }
+  const double n = static_cast<double>(result.matched);
+  result.rmse_a = std::sqrt(aa / n);
+  result.rmse_b = std::sqrt(bb / n);
+  result.shared_rmse = std::sqrt(shared / n);
+  result.apart_rmse = std::sqrt(apart / n);
+  result.correlation = aa > 0 && bb > 0 ? ab / std::sqrt(aa * bb) : 0;
   return result;
 }
 

@@ -36,15 +36,33 @@ struct AteOptions {
 
 struct AteResult {
   std::size_t matched = 0;
-  ErrorStatistics error;           // metres
-  Similarity3 alignment;           // maps the estimate into the ground-truth frame
-  std::vector<double> timestamps;  // matched estimate timestamps
-  std::vector<double> errors;      // per matched pose, metres
-  bool aligned_by_poses = false;   // see AteOptions::pose_alignment_below_spread_m
+  ErrorStatistics error;                       // metres
+  Similarity3 alignment;                       // maps the estimate into the ground-truth frame
+  std::vector<double> timestamps;              // matched estimate timestamps
+  std::vector<double> errors;                  // per matched pose, metres
+  std::vector<Eigen::Vector3d> error_vectors;  // aligned estimate minus ground truth, metres
+  bool aligned_by_poses = false;               // see AteOptions::pose_alignment_below_spread_m
 };
 
 StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& estimate,
                                const AteOptions& options = {});
+
+// How much of two estimates' errors against one ground truth they share: each estimate is
+// aligned to the ground truth on its own (as ComputeAte does), and at the ground-truth poses
+// both matched, their error vectors a and b split into the shared (a + b) / 2 and the apart
+// (a - b) / 2. Runs of one method in different orders (frames forwards, backwards, every
+// other one) drift differently; what they share is fixed to the frames: the reference's own
+// error, or a systematic error of the sensor that every run reads alike.
+struct SharedErrorResult {
+  std::size_t matched = 0;
+  double rmse_a = 0, rmse_b = 0;  // metres, over the poses both matched
+  double shared_rmse = 0;         // rms of (a + b) / 2
+  double apart_rmse = 0;          // rms of (a - b) / 2
+  double correlation = 0;         // sum a.b / sqrt(sum |a|^2 sum |b|^2), in [-1, 1]
+};
+
+StatusOr<SharedErrorResult> ComputeSharedError(const Trajectory& groundtruth, const Trajectory& a,
+                                               const Trajectory& b, const AteOptions& options = {});
 
 struct RpeOptions {
   double max_time_difference = 0.01;

@@ -2,6 +2,8 @@
 
 #include <gtest/gtest.h>
 
+#include <functional>
+
 namespace ccmd {
 namespace {
 
@@ -78,6 +80,58 @@ TEST(AteTest, KnownPerturbationGivesItsMagnitude) {
   EXPECT_NEAR(ate->error.rmse, d, 1e-4);
   EXPECT_NEAR(ate->error.mean, d, 1e-4);
   EXPECT_NEAR(ate->error.max, d, 2e-4);
+}
+
+// Two estimates with known error patterns along z, each uncorrelated with the circle so that
+// alignment removes none of it: p alternates +-d frame by frame, q goes +d, +d, -d, -d
+// (orthogonal to p over the whole circle). Each estimate is moved rigidly on its own, so
+// the split is between the errors after each one's alignment.
+TEST(SharedErrorTest, SplitsTwoEstimatesErrorsIntoSharedAndApart) {
+  const Trajectory gt = Circle(400);
+  const double d = 0.02;
+  const auto with_error = [&](const std::function<double(std::size_t)>& dz, double turn) {
+    Pose T = Pose::Identity();
+    T.linear() = Eigen::AngleAxisd(turn, Eigen::Vector3d(1, -2, 1).normalized()).toRotationMatrix();
+    T.translation() = Eigen::Vector3d(turn, 1, -2);
+    Trajectory est = gt;
+    for (std::size_t i = 0; i < est.size(); ++i) {
+      est[i].T_world_cam.translation().z() += dz(i);
+      est[i].T_world_cam = T * est[i].T_world_cam;
+    }
+    return est;
+  };
+  const auto p = [&](std::size_t i) { return i % 2 ? d : -d; };
+  const auto q = [&](std::size_t i) { return i % 4 < 2 ? d : -d; };
+  // The same error in both: all of it shared.
+  auto same = ComputeSharedError(gt, with_error(p, 0.3), with_error(p, -1.2));
+  ASSERT_TRUE(same.ok()) << same.status().ToString();
+  EXPECT_EQ(same->matched, 400u);
+  EXPECT_NEAR(same->rmse_a, d, 1e-4);
+  EXPECT_NEAR(same->shared_rmse, d, 1e-4);
+  EXPECT_NEAR(same->apart_rmse, 0, 1e-4);
+  EXPECT_NEAR(same->correlation, 1, 1e-3);
+  // Opposite errors: none shared.
+  auto opposite = ComputeSharedError(gt, with_error(p, 0.3),
+                                     with_error([&](std::size_t i) { return -p(i); }, 2));
+  ASSERT_TRUE(opposite.ok());
+  EXPECT_NEAR(opposite->shared_rmse, 0, 1e-4);
+  EXPECT_NEAR(opposite->apart_rmse, d, 1e-4);
+  EXPECT_NEAR(opposite->correlation, -1, 1e-3);
+  // Unrelated errors of the same size: half of each error's energy either way.
+  auto unrelated = ComputeSharedError(gt, with_error(p, 0.3), with_error(q, 0.7));
+  ASSERT_TRUE(unrelated.ok());
+  EXPECT_NEAR(unrelated->shared_rmse, d / std::sqrt(2.0), 1e-4);
+  EXPECT_NEAR(unrelated->apart_rmse, d / std::sqrt(2.0), 1e-4);
+  EXPECT_NEAR(unrelated->correlation, 0, 1e-2);
+  // Only the ground-truth poses both estimates matched count.
+  Trajectory part = with_error(p, 0.3);
+  part.erase(part.begin() + 100, part.end());
+  auto common = ComputeSharedError(gt, part, with_error(p, 0.1));
+  ASSERT_TRUE(common.ok());
+  EXPECT_EQ(common->matched, 100u);
+  Trajectory elsewhere = gt;
+  for (auto& pose : elsewhere) pose.timestamp += 1000;
+  EXPECT_FALSE(ComputeSharedError(gt, gt, elsewhere).ok());
 }
 
 TEST(AteTest, WithoutAlignmentAnOffsetCountsFully) {
