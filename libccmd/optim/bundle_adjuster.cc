@@ -3,6 +3,8 @@
 #include <ceres/ceres.h>
 
 #include <cmath>
+#include <deque>
+#include <memory>
 
 #include <Eigen/Eigenvalues>
 
@@ -104,22 +106,26 @@ struct Parameters {
   std::vector<Eigen::Vector3d> t;
 };
 
-// The Ceres problem, built once for both passes: the robust kernels are swapped out and the
-// outliers removed in between.
+// The Ceres problem of one pass. The first pass has robust kernels; the second is built
+// again without them and without the first pass's outliers: removing residual blocks from a
+// built problem needs Ceres' fast-removal index, three hash-set entries per observation,
+// which with the cost functions' own allocations (now held here, a few large blocks instead
+// of three small allocations per observation) took a fifth of a global BA's memory.
 class CeresBundle {
  public:
-  CeresBundle(BaProblem* problem, Parameters* x)
-      : huber_mono_(new ceres::HuberLoss(std::sqrt(kChi2Mono)), ceres::TAKE_OWNERSHIP),
-        huber_stereo_(new ceres::HuberLoss(std::sqrt(kChi2Stereo)), ceres::TAKE_OWNERSHIP),
-        ceres_(MakeOptions()),
-        ordering_(std::make_shared<ceres::ParameterBlockOrdering>()),
-        blocks_(problem->observations.size(), nullptr) {
+  // `skip`: observations left out (empty: none). `robust`: Huber kernels on reprojections.
+  CeresBundle(BaProblem* problem, Parameters* x, const std::vector<bool>& skip, bool robust)
+      : ceres_(MakeOptions()), ordering_(std::make_shared<ceres::ParameterBlockOrdering>()) {
+    if (robust) {
+      huber_mono_ = std::make_unique<ceres::HuberLoss>(std::sqrt(kChi2Mono));
+      huber_stereo_ = std::make_unique<ceres::HuberLoss>(std::sqrt(kChi2Stereo));
+    }
     std::vector<bool> camera_added(problem->cameras.size(), false);
     std::vector<bool> point_added(problem->points.size(), false);
     auto add_camera = [&](int c) {
       if (camera_added[c]) return;
       camera_added[c] = true;
-      ceres_.AddParameterBlock(x->q[c].coeffs().data(), 4, new ceres::EigenQuaternionManifold);
+      ceres_.AddParameterBlock(x->q[c].coeffs().data(), 4, &quaternion_);
       ceres_.AddParameterBlock(x->t[c].data(), 3);
       if (problem->cameras[c].fixed) {
         ceres_.SetParameterBlockConstant(x->q[c].coeffs().data());
@@ -129,30 +135,31 @@ class CeresBundle {
       ordering_->AddElementToGroup(x->t[c].data(), 1);
     };
     for (std::size_t i = 0; i < problem->observations.size(); ++i) {
+      if (!skip.empty() && skip[i]) continue;
       const BaObservation& o = problem->observations[i];
       const Intrinsics& k = problem->calibrations[problem->cameras[o.camera].calibration];
-      const ReprojectionResidual residual(k, o.uv, o.depth, std::sqrt(o.information),
-                                          std::sqrt(o.depth_information));
       double* p = problem->points[o.point].position.data();
       add_camera(o.camera);
       if (!point_added[o.point]) {
         point_added[o.point] = true;
         ordering_->AddElementToGroup(p, 0);  // eliminated first (Schur complement)
       }
-      blocks_[i] =
-          ceres_.AddResidualBlock(new ceres::AutoDiffCostFunction<PaddedReprojection, 3, 4, 3, 3>(
-                                      new PaddedReprojection(residual)),
-                                  o.depth > 0 ? &huber_stereo_ : &huber_mono_,
-                                  x->q[o.camera].coeffs().data(), x->t[o.camera].data(), p);
+      reprojections_.emplace_back(ReprojectionResidual(k, o.uv, o.depth, std::sqrt(o.information),
+                                                       std::sqrt(o.depth_information)));
+      reprojection_costs_.emplace_back(&reprojections_.back(), ceres::DO_NOT_TAKE_OWNERSHIP);
+      ceres_.AddResidualBlock(&reprojection_costs_.back(),
+                              o.depth > 0 ? huber_stereo_.get() : huber_mono_.get(),
+                              x->q[o.camera].coeffs().data(), x->t[o.camera].data(), p);
+      ++observations_;
     }
     for (const BaRelativePose& r : problem->relative_poses) {
       if (problem->cameras[r.camera_a].fixed && problem->cameras[r.camera_b].fixed) continue;
       add_camera(r.camera_a);
       add_camera(r.camera_b);
-      ceres_.AddResidualBlock(new ceres::AutoDiffCostFunction<RelativePoseResidual, 6, 4, 3, 4, 3>(
-                                  new RelativePoseResidual(r.T_b_a, r.sqrt_information)),
-                              nullptr, x->q[r.camera_a].coeffs().data(), x->t[r.camera_a].data(),
-                              x->q[r.camera_b].coeffs().data(), x->t[r.camera_b].data());
+      relative_costs_.emplace_back(new RelativePoseResidual(r.T_b_a, r.sqrt_information));
+      ceres_.AddResidualBlock(&relative_costs_.back(), nullptr, x->q[r.camera_a].coeffs().data(),
+                              x->t[r.camera_a].data(), x->q[r.camera_b].coeffs().data(),
+                              x->t[r.camera_b].data());
     }
   }
 
@@ -160,33 +167,26 @@ class CeresBundle {
   ceres::Problem* problem() { return &ceres_; }
   const std::shared_ptr<ceres::ParameterBlockOrdering>& ordering() const { return ordering_; }
 
-  // Second pass: no robust kernel, and the outliers of the first pass left out.
-  void DropKernelsAndOutliers(const std::vector<bool>& outlier) {
-    huber_mono_.Reset(nullptr, ceres::TAKE_OWNERSHIP);
-    huber_stereo_.Reset(nullptr, ceres::TAKE_OWNERSHIP);
-    for (std::size_t i = 0; i < blocks_.size(); ++i) {
-      if (outlier[i] && blocks_[i]) {
-        ceres_.RemoveResidualBlock(blocks_[i]);
-        blocks_[i] = nullptr;
-      }
-    }
-    observations_ = 0;
-    for (const auto* b : blocks_) observations_ += b != nullptr;
-  }
-
  private:
   static ceres::Problem::Options MakeOptions() {
     ceres::Problem::Options o;
-    o.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;  // the two kernels below
-    o.enable_fast_removal = true;
+    // Everything below outlives the problem (declared before it).
+    o.cost_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
+    o.loss_function_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
+    o.manifold_ownership = ceres::DO_NOT_TAKE_OWNERSHIP;
     return o;
   }
 
-  ceres::LossFunctionWrapper huber_mono_, huber_stereo_;
+  using ReprojectionCost = ceres::AutoDiffCostFunction<PaddedReprojection, 3, 4, 3, 3>;
+  using RelativePoseCost = ceres::AutoDiffCostFunction<RelativePoseResidual, 6, 4, 3, 4, 3>;
+  std::unique_ptr<ceres::LossFunction> huber_mono_, huber_stereo_;
+  ceres::EigenQuaternionManifold quaternion_;
+  std::deque<PaddedReprojection> reprojections_;  // deques: elements never move
+  std::deque<ReprojectionCost> reprojection_costs_;
+  std::deque<RelativePoseCost> relative_costs_;  // each owns its functor
   ceres::Problem ceres_;
   std::shared_ptr<ceres::ParameterBlockOrdering> ordering_;
-  std::vector<ceres::ResidualBlockId> blocks_;  // per observation; null once removed
-  int observations_ = static_cast<int>(blocks_.size());
+  int observations_ = 0;
 };
 
 ceres::Solver::Options SolverOptions(const BaOptions& options, int iterations) {
@@ -227,14 +227,15 @@ BaSummary BundleAdjust(BaProblem* problem, const BaOptions& options) {
         << "camera without calibration";
   }
   Parameters x(*problem);
-  CeresBundle bundle(problem, &x);
   IterationRecorder recorder(options.abort);
   double radius = 0;
 
   for (int pass = 0; pass < 2; ++pass) {
     const int iterations = pass == 0 ? options.first_iterations : options.second_iterations;
     if (iterations <= 0) continue;
-    if (pass == 1) bundle.DropKernelsAndOutliers(summary.outlier);
+    // The second pass: no robust kernel, and the outliers of the first pass left out.
+    CeresBundle bundle(problem, &x, pass == 1 ? summary.outlier : std::vector<bool>(),
+                       /*robust=*/pass == 0);
     if (bundle.observations() == 0) break;
     ceres::Solver::Options solver = SolverOptions(options, iterations);
     solver.linear_solver_ordering = bundle.ordering();
