@@ -87,23 +87,30 @@ class IterationRecorder : public ceres::IterationCallback {
   double radius_ = 0;
 };
 
-// Camera and point parameters of a problem, in Ceres' layout.
+// Camera parameters of a problem, in Ceres' layout: per camera its quaternion (x y z w) and
+// then its translation, all cameras in one array. Ceres orders the blocks of an elimination
+// group by their addresses, so this keeps the cameras in their order whatever the heap
+// looks like; with the quaternions and translations in two arrays, which came first
+// depended on where the allocator put them, and an offline run's trajectory changed in the
+// last digits with, for instance, the length of a path given on the command line.
 struct Parameters {
-  explicit Parameters(const BaProblem& problem)
-      : q(problem.cameras.size()), t(problem.cameras.size()) {
+  explicit Parameters(const BaProblem& problem) : values(7 * problem.cameras.size()) {
     for (std::size_t c = 0; c < problem.cameras.size(); ++c) {
-      q[c] = Eigen::Quaterniond(problem.cameras[c].T_cam_world.linear()).normalized();
-      t[c] = problem.cameras[c].T_cam_world.translation();
+      const int i = static_cast<int>(c);
+      q(i) = Eigen::Quaterniond(problem.cameras[c].T_cam_world.linear()).normalized();
+      t(i) = problem.cameras[c].T_cam_world.translation();
     }
   }
+  Eigen::Map<Eigen::Quaterniond> q(int c) { return Eigen::Map<Eigen::Quaterniond>(&values[7 * c]); }
+  Eigen::Map<Eigen::Vector3d> t(int c) { return Eigen::Map<Eigen::Vector3d>(&values[7 * c + 4]); }
   Pose T_cam_world(int c) const {
     Pose T = Pose::Identity();
-    T.linear() = q[c].normalized().toRotationMatrix();
-    T.translation() = t[c];
+    T.linear() =
+        Eigen::Map<const Eigen::Quaterniond>(&values[7 * c]).normalized().toRotationMatrix();
+    T.translation() = Eigen::Map<const Eigen::Vector3d>(&values[7 * c + 4]);
     return T;
   }
-  std::vector<Eigen::Quaterniond> q;
-  std::vector<Eigen::Vector3d> t;
+  std::vector<double> values;
 };
 
 // The Ceres problem of one pass. The first pass has robust kernels; the second is built
@@ -125,14 +132,14 @@ class CeresBundle {
     auto add_camera = [&](int c) {
       if (camera_added[c]) return;
       camera_added[c] = true;
-      ceres_.AddParameterBlock(x->q[c].coeffs().data(), 4, &quaternion_);
-      ceres_.AddParameterBlock(x->t[c].data(), 3);
+      ceres_.AddParameterBlock(x->q(c).coeffs().data(), 4, &quaternion_);
+      ceres_.AddParameterBlock(x->t(c).data(), 3);
       if (problem->cameras[c].fixed) {
-        ceres_.SetParameterBlockConstant(x->q[c].coeffs().data());
-        ceres_.SetParameterBlockConstant(x->t[c].data());
+        ceres_.SetParameterBlockConstant(x->q(c).coeffs().data());
+        ceres_.SetParameterBlockConstant(x->t(c).data());
       }
-      ordering_->AddElementToGroup(x->q[c].coeffs().data(), 1);
-      ordering_->AddElementToGroup(x->t[c].data(), 1);
+      ordering_->AddElementToGroup(x->q(c).coeffs().data(), 1);
+      ordering_->AddElementToGroup(x->t(c).data(), 1);
     };
     for (std::size_t i = 0; i < problem->observations.size(); ++i) {
       if (!skip.empty() && skip[i]) continue;
@@ -149,7 +156,7 @@ class CeresBundle {
       reprojection_costs_.emplace_back(&reprojections_.back(), ceres::DO_NOT_TAKE_OWNERSHIP);
       ceres_.AddResidualBlock(&reprojection_costs_.back(),
                               o.depth > 0 ? huber_stereo_.get() : huber_mono_.get(),
-                              x->q[o.camera].coeffs().data(), x->t[o.camera].data(), p);
+                              x->q(o.camera).coeffs().data(), x->t(o.camera).data(), p);
       ++observations_;
     }
     for (const BaRelativePose& r : problem->relative_poses) {
@@ -157,9 +164,9 @@ class CeresBundle {
       add_camera(r.camera_a);
       add_camera(r.camera_b);
       relative_costs_.emplace_back(new RelativePoseResidual(r.T_b_a, r.sqrt_information));
-      ceres_.AddResidualBlock(&relative_costs_.back(), nullptr, x->q[r.camera_a].coeffs().data(),
-                              x->t[r.camera_a].data(), x->q[r.camera_b].coeffs().data(),
-                              x->t[r.camera_b].data());
+      ceres_.AddResidualBlock(&relative_costs_.back(), nullptr, x->q(r.camera_a).coeffs().data(),
+                              x->t(r.camera_a).data(), x->q(r.camera_b).coeffs().data(),
+                              x->t(r.camera_b).data());
     }
   }
 
