@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <limits>
 #include <opencv2/core.hpp>
@@ -300,8 +302,21 @@ Status WriteCameraConfig(const PinholeCamera& camera, const std::string& path,
   out += "Camera.height: " + std::to_string(camera.height) + "\n";
   key("Camera.fps", camera.fps);
   key("Camera.bf", camera.bf);
-  // ThDepth chosen so that ThDepth * bf / fx reproduces far_depth_m.
-  key("ThDepth", camera.far_depth_m * std::fabs(camera.fx) / camera.bf);
+  // ThDepth: the shortest value that the reader's ThDepth * bf / |fx| turns back into
+  // far_depth_m exactly (a config's ThDepth: 100 must not come back as 99.99999999999999,
+  // whose far depth differs in the last bit).
+  const double th_depth = camera.far_depth_m * std::fabs(camera.fx) / camera.bf;
+  std::string th_text = ExactNumber(th_depth);
+  for (int digits = 1; digits <= 17; ++digits) {
+    char text[40];
+    std::snprintf(text, sizeof(text), "%.*g", digits, th_depth);
+    const double rounded = std::strtod(text, nullptr);
+    if (rounded * camera.bf / std::fabs(camera.fx) == camera.far_depth_m) {
+      th_text = ExactNumber(rounded);  // "100", not "1e+02"
+      break;
+    }
+  }
+  out += "ThDepth: " + th_text + "\n";
   key("DepthMapFactor", camera.depth_map_factor);
   out += std::string("Camera.RGB: ") + (camera.rgb ? "1" : "0") + "\n";
   if (depth) {

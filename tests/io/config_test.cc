@@ -177,11 +177,31 @@ TEST(ConfigTest, WrittenConfigKeepsEveryDigit) {
     EXPECT_EQ(r->distortion[i], c.distortion[i]) << i;
   }
   EXPECT_EQ(r->depth_map_factor, c.depth_map_factor);
+  EXPECT_EQ(r->far_depth_m, c.far_depth_m);
   auto d = LoadDepthToColorCalibration(dir.File("w.yaml"));
   ASSERT_TRUE(d.ok() && d->has_value()) << d.status().ToString();
   EXPECT_EQ((*d)->depth.fx, depth.depth.fx);
   EXPECT_EQ((*d)->T_color_depth.translation(), depth.T_color_depth.translation());
   EXPECT_TRUE((*d)->T_color_depth.linear().isApprox(depth.T_color_depth.linear(), 1e-15));
+}
+
+// The far depth, which the file gives as ThDepth * bf / |fx|, reads back to the last bit
+// where a ThDepth can give it: printed in full (4.17 * 455.6 / 40 = 47.496300000000005),
+// ThDepth gave it back one bit off; 47.4963 gives it exactly.
+TEST(ConfigTest, WrittenConfigKeepsTheFarDepth) {
+  testing::TempDir dir;
+  PinholeCamera c;
+  c.fx = 455.6;
+  c.bf = 40;
+  c.far_depth_m = 4.17;
+  c.depth_map_factor = 5000;
+  ASSERT_TRUE(WriteCameraConfig(c, dir.File("w.yaml")).ok());
+  auto r = LoadCameraConfig(dir.File("w.yaml"));
+  ASSERT_TRUE(r.ok()) << r.status().ToString();
+  EXPECT_EQ(r->far_depth_m, 4.17);
+  auto text = ReadFileToString(dir.File("w.yaml"));
+  ASSERT_TRUE(text.ok());
+  EXPECT_NE(text->find("ThDepth: 47.4963\n"), std::string::npos) << *text;
 }
 
 // Every value of an accepted camera is written whole, however long it prints: the file was
