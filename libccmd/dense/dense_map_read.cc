@@ -45,35 +45,69 @@ void DenseMap::AppendPoints(const Entry& entry, DenseFilter filter, PointCloud* 
   cloud->labels.resize(cloud->labels.size() + entry.kept.size(), entry.label);
 }
 
+StatusOr<std::vector<const DenseMap::AgentNode*>> DenseMap::SelectedAgentsLocked(
+    const DenseSelection& selection) const {
+  std::vector<const AgentNode*> agents;
+  switch (selection.kind) {
+    case DenseSelection::Kind::kGlobal:
+      for (const auto& [map, node] : maps_) {
+        for (const auto& [agent, agent_node] : node.agents) agents.push_back(&agent_node);
+      }
+      break;
+    case DenseSelection::Kind::kMap: {
+      const auto it = maps_.find(selection.map);
+      if (it == maps_.end()) {
+        return NotFound("map " + std::to_string(selection.map.value()) + " has no dense map");
+      }
+      for (const auto& [agent, agent_node] : it->second.agents) agents.push_back(&agent_node);
+      break;
+    }
+    case DenseSelection::Kind::kAgent: {
+      const AgentNode* node = FindAgent(selection.agent);
+      if (node == nullptr) {
+        return NotFound("agent " + std::to_string(selection.agent.value()) + " has no dense map");
+      }
+      agents.push_back(node);
+      break;
+    }
+  }
+  return agents;
+}
+
+template <typename Visit>
+void DenseMap::ForEachPointLocked(const std::vector<const AgentNode*>& agents, DenseFilter filter,
+                                  Visit&& visit) const {
+  for (const AgentNode* node : agents) {
+    for (const auto& [index, segment] : node->segments) {
+      for (const auto& slot : segment.slots) {
+        if (!slot) continue;
+        const Entry& entry = *slot;
+        if (entry.compact) {  // whatever the filter, as AppendPoints
+          entry.stored.Transform(entry.T_world_cam, &decoded_);
+          for (std::size_t i = 0; i < decoded_.size(); ++i) {
+            visit(decoded_[i], entry.stored.colors()[i], entry.label);
+          }
+        } else if (filter == DenseFilter::kNone) {
+          for (std::size_t i = 0; i < entry.world.size(); ++i) {
+            visit(entry.world[i], entry.cloud.colors[i], entry.label);
+          }
+        } else {
+          for (const std::uint32_t i : entry.kept) {
+            visit(entry.world[i], entry.cloud.colors[i], entry.label);
+          }
+        }
+      }
+    }
+  }
+}
+
 StatusOr<PointCloud> DenseMap::Extract(const DenseSelection& selection, DenseFilter filter) {
   PointCloud cloud;
   {
     std::lock_guard<std::mutex> lock(mutex_);
     MaintainLocked();
-    std::vector<const AgentNode*> agents;
-    switch (selection.kind) {
-      case DenseSelection::Kind::kGlobal:
-        for (const auto& [map, node] : maps_) {
-          for (const auto& [agent, agent_node] : node.agents) agents.push_back(&agent_node);
-        }
-        break;
-      case DenseSelection::Kind::kMap: {
-        const auto it = maps_.find(selection.map);
-        if (it == maps_.end()) {
-          return NotFound("map " + std::to_string(selection.map.value()) + " has no dense map");
-        }
-        for (const auto& [agent, agent_node] : it->second.agents) agents.push_back(&agent_node);
-        break;
-      }
-      case DenseSelection::Kind::kAgent: {
-        const AgentNode* node = FindAgent(selection.agent);
-        if (node == nullptr) {
-          return NotFound("agent " + std::to_string(selection.agent.value()) + " has no dense map");
-        }
-        agents.push_back(node);
-        break;
-      }
-    }
+    CCMD_ASSIGN_OR_RETURN(const std::vector<const AgentNode*> agents,
+                          SelectedAgentsLocked(selection));
     std::size_t count = 0;
     for (const AgentNode* node : agents) {
       for (const auto& [index, segment] : node->segments) {
@@ -99,8 +133,55 @@ StatusOr<PointCloud> DenseMap::Extract(const DenseSelection& selection, DenseFil
 
 Status DenseMap::ExportPly(const std::string& path, const DenseSelection& selection,
                            DenseFilter filter) {
-  CCMD_ASSIGN_OR_RETURN(const PointCloud cloud, Extract(selection, filter));
-  return WritePly(cloud, path);
+  std::lock_guard<std::mutex> lock(mutex_);
+  MaintainLocked();
+  CCMD_ASSIGN_OR_RETURN(const std::vector<const AgentNode*> agents,
+                        SelectedAgentsLocked(selection));
+  const PlyVertexWriter::Layout layout{/*normals=*/false, /*colors=*/true, /*labels=*/true};
+  if (filter != DenseFilter::kGlobal) {
+    std::size_t count = 0;
+    for (const AgentNode* node : agents) {
+      for (const auto& [index, segment] : node->segments) {
+        for (const auto& entry : segment.slots) {
+          if (entry) count += PointsOf(*entry, filter);
+        }
+      }
+    }
+    CCMD_ASSIGN_OR_RETURN(std::unique_ptr<PlyVertexWriter> writer,
+                          PlyVertexWriter::Open(path, count, layout));
+    ForEachPointLocked(agents, filter,
+                       [&](const Eigen::Vector3f& p, const auto& color, std::uint32_t label) {
+                         writer->Add(p, nullptr, &color, label);
+                       });
+    return writer->Finish();
+  }
+  // The voxel filter of Extract (VoxelFilterLargestLabel): in each voxel the first point with
+  // the voxel's largest label. First pass: each voxel's largest label.
+  VoxelBricks<std::uint32_t> ordinals;  // 1 + the voxel's ordinal; 0: empty
+  std::vector<std::uint32_t> largest;   // per ordinal
+  ForEachPointLocked(agents, filter,
+                     [&](const Eigen::Vector3f& p, const auto&, std::uint32_t label) {
+                       std::uint32_t& ordinal = ordinals.At(grid_.Index(p));
+                       if (ordinal == 0) {
+                         largest.push_back(label);
+                         ordinal = static_cast<std::uint32_t>(largest.size());
+                       } else if (label > largest[ordinal - 1]) {
+                         largest[ordinal - 1] = label;
+                       }
+                     });
+  // Second pass: each voxel's first point with that label.
+  CCMD_ASSIGN_OR_RETURN(std::unique_ptr<PlyVertexWriter> writer,
+                        PlyVertexWriter::Open(path, largest.size(), layout));
+  std::vector<bool> written(largest.size(), false);
+  ForEachPointLocked(agents, filter,
+                     [&](const Eigen::Vector3f& p, const auto& color, std::uint32_t label) {
+                       const std::uint32_t ordinal = ordinals.Get(grid_.Index(p)) - 1;
+                       if (label == largest[ordinal] && !written[ordinal]) {
+                         written[ordinal] = true;
+                         writer->Add(p, nullptr, &color, label);
+                       }
+                     });
+  return writer->Finish();
 }
 
 StatusOr<PointCloud> DenseMap::ExtractKeyframe(const GlobalKeyframeId& id) const {

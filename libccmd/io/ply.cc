@@ -42,49 +42,88 @@ void Append(std::vector<char>* buffer, T value) {
 
 }  // namespace
 
-Status WritePly(const PointCloud& cloud, const std::string& path) {
-  if (!cloud.IsConsistent()) return InvalidArgument("point cloud attributes differ in length");
+StatusOr<std::unique_ptr<PlyVertexWriter>> PlyVertexWriter::Open(const std::string& path,
+                                                                 std::size_t count, Layout layout) {
+  std::unique_ptr<PlyVertexWriter> writer(new PlyVertexWriter());
+  writer->path_ = path;
+  writer->temp_ = TemporaryPathFor(path);
+  writer->layout_ = layout;
+  writer->count_ = count;
+  writer->file_ = std::fopen(writer->temp_.c_str(), "wb");
+  if (writer->file_ == nullptr) {
+    return IoError("cannot create " + writer->temp_ + ": " + std::strerror(errno));
+  }
   std::ostringstream header;
   header << "ply\nformat binary_little_endian 1.0\ncomment written by ccmd\n"
-         << "element vertex " << cloud.size() << "\n"
+         << "element vertex " << count << "\n"
          << "property float x\nproperty float y\nproperty float z\n";
-  if (cloud.HasNormals()) header << "property float nx\nproperty float ny\nproperty float nz\n";
-  if (cloud.HasColors()) {
-    header << "property uchar red\nproperty uchar green\nproperty uchar blue\n";
-  }
-  if (cloud.HasLabels()) header << "property uint label\n";
+  if (layout.normals) header << "property float nx\nproperty float ny\nproperty float nz\n";
+  if (layout.colors) header << "property uchar red\nproperty uchar green\nproperty uchar blue\n";
+  if (layout.labels) header << "property uint label\n";
   header << "end_header\n";
+  const std::string h = header.str();
+  writer->buffer_.assign(h.begin(), h.end());
+  return writer;
+}
 
-  return WriteFileAtomicWith(path, [&](const std::string& temp) -> Status {
-    std::unique_ptr<std::FILE, int (*)(std::FILE*)> file(std::fopen(temp.c_str(), "wb"),
-                                                         &std::fclose);
-    if (!file) return IoError("cannot create " + temp + ": " + std::strerror(errno));
-    const std::string h = header.str();
-    bool good = std::fwrite(h.data(), 1, h.size(), file.get()) == h.size();
-    std::vector<char> buffer;
-    constexpr std::size_t kChunk = 1 << 16;
-    for (std::size_t begin = 0; begin < cloud.size() && good; begin += kChunk) {
-      const std::size_t end = std::min(cloud.size(), begin + kChunk);
-      buffer.clear();
-      for (std::size_t i = begin; i < end; ++i) {
-        for (int k = 0; k < 3; ++k) Append(&buffer, cloud.points[i][k]);
-        if (cloud.HasNormals()) {
-          for (int k = 0; k < 3; ++k) Append(&buffer, cloud.normals[i][k]);
-        }
-        if (cloud.HasColors()) {
-          for (int k = 0; k < 3; ++k) Append(&buffer, cloud.colors[i][k]);
-        }
-        if (cloud.HasLabels()) Append(&buffer, cloud.labels[i]);
-      }
-      good = std::fwrite(buffer.data(), 1, buffer.size(), file.get()) == buffer.size();
+PlyVertexWriter::~PlyVertexWriter() {
+  if (file_ != nullptr) {
+    std::fclose(file_);
+    std::remove(temp_.c_str());
+  }
+}
+
+void PlyVertexWriter::Add(const Eigen::Vector3f& point, const Eigen::Vector3f* normal,
+                          const std::array<std::uint8_t, 3>* color, std::uint32_t label) {
+  for (int k = 0; k < 3; ++k) Append(&buffer_, point[k]);
+  if (layout_.normals) {
+    for (int k = 0; k < 3; ++k) Append(&buffer_, (*normal)[k]);
+  }
+  if (layout_.colors) {
+    for (int k = 0; k < 3; ++k) Append(&buffer_, (*color)[k]);
+  }
+  if (layout_.labels) Append(&buffer_, label);
+  ++added_;
+  if (buffer_.size() >= (1u << 20)) failed_ |= !Flush().ok();
+}
+
+Status PlyVertexWriter::Flush() {
+  if (!buffer_.empty() && std::fwrite(buffer_.data(), 1, buffer_.size(), file_) != buffer_.size()) {
+    return IoError("write failed for " + temp_);
+  }
+  buffer_.clear();
+  return Status::Ok();
+}
+
+Status PlyVertexWriter::Finish() {
+  if (file_ == nullptr) return Internal(path_ + ": already finished");
+  const bool complete = added_ == count_;
+  const bool good = complete && !failed_ && Flush().ok();
+  const bool closed = std::fclose(file_) == 0;
+  file_ = nullptr;
+  if (!good || !closed) {
+    std::remove(temp_.c_str());
+    if (!complete) {
+      return Internal(path_ + ": " + std::to_string(added_) + " vertices written, " +
+                      std::to_string(count_) + " announced");
     }
-    if (std::fclose(file.release()) != 0) good = false;
-    if (!good) {
-      std::remove(temp.c_str());
-      return IoError("write failed for " + temp);
-    }
-    return Status::Ok();
-  });
+    return IoError("write failed for " + temp_);
+  }
+  return CommitTemporaryFile(temp_, path_);
+}
+
+Status WritePly(const PointCloud& cloud, const std::string& path) {
+  if (!cloud.IsConsistent()) return InvalidArgument("point cloud attributes differ in length");
+  CCMD_ASSIGN_OR_RETURN(
+      std::unique_ptr<PlyVertexWriter> writer,
+      PlyVertexWriter::Open(path, cloud.size(),
+                            {cloud.HasNormals(), cloud.HasColors(), cloud.HasLabels()}));
+  for (std::size_t i = 0; i < cloud.size(); ++i) {
+    writer->Add(cloud.points[i], cloud.HasNormals() ? &cloud.normals[i] : nullptr,
+                cloud.HasColors() ? &cloud.colors[i] : nullptr,
+                cloud.HasLabels() ? cloud.labels[i] : 0);
+  }
+  return writer->Finish();
 }
 
 namespace {

@@ -7,6 +7,8 @@
 
 #include <array>
 #include <cstdint>
+#include <cstdio>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -42,6 +44,39 @@ struct PlyReadOptions {
 };
 
 Status WritePly(const PointCloud& cloud, const std::string& path);
+
+// Writes the vertices of a binary PLY, as WritePly does, one at a time: for clouds made on
+// the fly and too large to hold twice. The count is stated first; Finish checks it and puts
+// the file in place atomically (a writer destroyed unfinished leaves nothing behind).
+class PlyVertexWriter {
+ public:
+  struct Layout {
+    bool normals = false;
+    bool colors = false;
+    bool labels = false;
+  };
+  static StatusOr<std::unique_ptr<PlyVertexWriter>> Open(const std::string& path, std::size_t count,
+                                                         Layout layout);
+  ~PlyVertexWriter();
+  PlyVertexWriter(const PlyVertexWriter&) = delete;
+  PlyVertexWriter& operator=(const PlyVertexWriter&) = delete;
+
+  // The attributes the layout names are read; the others may be null.
+  void Add(const Eigen::Vector3f& point, const Eigen::Vector3f* normal,
+           const std::array<std::uint8_t, 3>* color, std::uint32_t label);
+  Status Finish();
+
+ private:
+  PlyVertexWriter() = default;
+  Status Flush();
+
+  std::string path_, temp_;
+  std::FILE* file_ = nullptr;
+  Layout layout_;
+  std::size_t count_ = 0, added_ = 0;
+  std::vector<char> buffer_;
+  bool failed_ = false;
+};
 StatusOr<PointCloud> ReadPly(const std::string& path, const PlyReadOptions& options = {});
 
 }  // namespace ccmd

@@ -2,6 +2,8 @@
 
 #include <gtest/gtest.h>
 
+#include <filesystem>
+
 #include "libccmd/util/file_util.h"
 #include "tests/support/test_support.h"
 
@@ -45,6 +47,42 @@ TEST(PlyTest, HeaderIsTheStandardOneOtherToolsRead) {
   EXPECT_NE(header.find("property uint label"), std::string::npos);
   // 3 floats + 3 floats + 3 bytes + 4 bytes per vertex after the header line.
   EXPECT_EQ(data.size() - (data.find("end_header") + 11), 1000u * (12 + 12 + 3 + 4));
+}
+
+// The streaming writer writes what WritePly writes, checks the count it announced, and
+// leaves nothing behind when it is not finished (a failed export keeps the previous file).
+TEST(PlyTest, AVertexWriterChecksItsCountAndLeavesNothingUnfinished) {
+  testing::TempDir dir;
+  PointCloud cloud;
+  for (int i = 0; i < 70000; ++i) {  // over one write buffer
+    cloud.points.emplace_back(0.001f * i, -0.5f * i, 3.25f);
+    cloud.colors.push_back({static_cast<std::uint8_t>(i), 7, static_cast<std::uint8_t>(i / 3)});
+    cloud.labels.push_back(static_cast<std::uint32_t>(i * 31));
+  }
+  ASSERT_TRUE(WritePly(cloud, dir.File("whole.ply")).ok());
+  auto writer = PlyVertexWriter::Open(dir.File("streamed.ply"), cloud.size(), {false, true, true});
+  ASSERT_TRUE(writer.ok());
+  for (std::size_t i = 0; i < cloud.size(); ++i) {
+    (*writer)->Add(cloud.points[i], nullptr, &cloud.colors[i], cloud.labels[i]);
+  }
+  ASSERT_TRUE((*writer)->Finish().ok());
+  EXPECT_EQ(*ReadFileToString(dir.File("streamed.ply")), *ReadFileToString(dir.File("whole.ply")));
+
+  ASSERT_TRUE(WriteFileAtomic(dir.File("kept.ply"), "previous").ok());
+  auto short_one = PlyVertexWriter::Open(dir.File("kept.ply"), 3, {false, true, true});
+  ASSERT_TRUE(short_one.ok());
+  (*short_one)->Add(cloud.points[0], nullptr, &cloud.colors[0], 1);
+  EXPECT_EQ((*short_one)->Finish().code(), StatusCode::kInternal);
+  {
+    auto abandoned = PlyVertexWriter::Open(dir.File("kept.ply"), 1, {false, true, true});
+    ASSERT_TRUE(abandoned.ok());
+    (*abandoned)->Add(cloud.points[0], nullptr, &cloud.colors[0], 1);
+  }
+  EXPECT_EQ(*ReadFileToString(dir.File("kept.ply")), "previous");
+  std::size_t files = 0;
+  for ([[maybe_unused]] const auto& entry : std::filesystem::directory_iterator(dir.path()))
+    ++files;
+  EXPECT_EQ(files, 3u);  // whole.ply, streamed.ply, kept.ply: no temporary left
 }
 
 TEST(PlyTest, ReadsAsciiWithFacesAndOtherPropertyOrder) {
