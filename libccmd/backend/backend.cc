@@ -377,7 +377,10 @@ Status Backend::ExportDenseMap(const std::string& path) {
   const auto primary = maps_.primary();
   if (!primary) return NotFound("no map yet");
   const auto transient = LockLargeTransient();
-  return dense_->ExportPly(path, DenseSelection::Map(*primary));
+  // At shutdown (WriteResults): no agent waits for the dense map, so the export may hold its
+  // lock while it writes and take less memory.
+  return dense_->ExportPly(path, DenseSelection::Map(*primary), DenseFilter::kGlobal,
+                           DenseExportMode::kStreamed);
 }
 
 // ---------------------------------------------------------------- loops

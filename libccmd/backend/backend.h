@@ -170,6 +170,8 @@ class Backend {
     return wait ? std::unique_lock<std::mutex>(large_transient_mutex_)
                 : std::unique_lock<std::mutex>(large_transient_mutex_, std::try_to_lock);
   }
+  // The primary map's dense cloud as PLY, for the end of a run: it holds the dense map's lock
+  // while it writes (DenseExportMode::kStreamed).
   Status ExportDenseMap(const std::string& path);
 
   BackendStats stats();

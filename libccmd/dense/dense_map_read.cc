@@ -132,7 +132,11 @@ StatusOr<PointCloud> DenseMap::Extract(const DenseSelection& selection, DenseFil
 }
 
 Status DenseMap::ExportPly(const std::string& path, const DenseSelection& selection,
-                           DenseFilter filter) {
+                           DenseFilter filter, DenseExportMode mode) {
+  if (mode == DenseExportMode::kCopy) {
+    CCMD_ASSIGN_OR_RETURN(const PointCloud cloud, Extract(selection, filter));
+    return WritePly(cloud, path);
+  }
   std::lock_guard<std::mutex> lock(mutex_);
   MaintainLocked();
   CCMD_ASSIGN_OR_RETURN(const std::vector<const AgentNode*> agents,

@@ -35,16 +35,17 @@ StatusOr<bool> DenseSnapshotWriter::Tick(double now_s) {
   return true;
 }
 
-Status DenseSnapshotWriter::WriteNow() {
+Status DenseSnapshotWriter::WriteNow(DenseExportMode mode) {
   if (options_.folder.empty()) return InvalidArgument("snapshot folder is not set");
   CCMD_RETURN_IF_ERROR(MakeDirectories(options_.folder));
-  CCMD_RETURN_IF_ERROR(map_->ExportPly(GlobalPath(), DenseSelection::Global(), options_.filter));
+  CCMD_RETURN_IF_ERROR(
+      map_->ExportPly(GlobalPath(), DenseSelection::Global(), options_.filter, mode));
   if (options_.per_map) {
     const std::string folder = JoinPath(options_.folder, "maps");
     CCMD_RETURN_IF_ERROR(MakeDirectories(folder));
     for (const MapId map : map_->Maps()) {
       const std::string path = JoinPath(folder, "map_" + std::to_string(map.value()) + ".ply");
-      const Status s = map_->ExportPly(path, DenseSelection::Map(map), options_.filter);
+      const Status s = map_->ExportPly(path, DenseSelection::Map(map), options_.filter, mode);
       // A map merged away between listing and export is not an error.
       if (!s.ok() && s.code() != StatusCode::kNotFound) return s;
     }
@@ -54,7 +55,8 @@ Status DenseSnapshotWriter::WriteNow() {
     CCMD_RETURN_IF_ERROR(MakeDirectories(folder));
     for (const AgentId agent : map_->Agents()) {
       const std::string path = JoinPath(folder, "agent_" + std::to_string(agent.value()) + ".ply");
-      CCMD_RETURN_IF_ERROR(map_->ExportPly(path, DenseSelection::Agent(agent), options_.filter));
+      CCMD_RETURN_IF_ERROR(
+          map_->ExportPly(path, DenseSelection::Agent(agent), options_.filter, mode));
     }
   }
   ++written_;

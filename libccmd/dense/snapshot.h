@@ -40,9 +40,10 @@ class DenseSnapshotWriter {
   bool Due(double now_s) const {
     return !has_last_ || (options_.period_s > 0 && now_s - last_s_ >= options_.period_s);
   }
-  // Writes a snapshot now (the final one at shutdown, or one on request).
-  Status WriteNow();
-  Status WriteFinal() { return WriteNow(); }
+  // Writes a snapshot now (one on request, or the final one at shutdown, which no writer
+  // waits for: it takes the export's lock longer for less memory).
+  Status WriteNow(DenseExportMode mode = DenseExportMode::kCopy);
+  Status WriteFinal() { return WriteNow(DenseExportMode::kStreamed); }
 
   int snapshots_written() const { return written_; }
   std::string GlobalPath() const;
