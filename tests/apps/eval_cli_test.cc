@@ -200,5 +200,42 @@ TEST(EvalCliTest, JumpsListsTheLargestFirst) {
   EXPECT_NE(out.find("at least 3"), std::string::npos) << out;
 }
 
+// Two estimates whose errors along z are the same pattern: all of it shared, none apart;
+// one estimate alone is refused with what to give.
+TEST(EvalCliTest, SharedSplitsTwoEstimatesErrors) {
+  testing::TempDir dir;
+  Trajectory gt, a, b;
+  for (int i = 0; i < 120; ++i) {
+    Pose p = Pose::Identity();
+    p.translation() = Eigen::Vector3d(std::cos(i * 0.05), std::sin(i * 0.05), 0);
+    gt.push_back({1.0 + i / 30.0, p});
+    p.translation().z() += (i % 2 ? 0.01 : -0.01);
+    a.push_back({1.0 + i / 30.0, p});
+    p.translation().x() += 1.5;  // the same error, the estimate elsewhere: alignment removes it
+    b.push_back({1.0 + i / 30.0, p});
+  }
+  ASSERT_TRUE(WriteTumTrajectory(gt, dir.File("gt.txt")).ok());
+  ASSERT_TRUE(WriteTumTrajectory(a, dir.File("a.txt")).ok());
+  ASSERT_TRUE(WriteTumTrajectory(b, dir.File("b.txt")).ok());
+  std::string out;
+  ASSERT_EQ(RunCommand(ProgramPath("ccmd_eval") + " shared --gt " + dir.File("gt.txt") + " --est " +
+                           dir.File("a.txt") + " --est " + dir.File("b.txt") + " --json " +
+                           dir.File("s.json"),
+                       &out),
+            0)
+      << out;
+  auto json = ReadJsonFile(dir.File("s.json"));
+  ASSERT_TRUE(json.ok());
+  EXPECT_EQ(json->Get("matched")->number(), 120);
+  EXPECT_NEAR(json->Get("shared_rmse_m")->number(), 0.01, 1e-4);
+  EXPECT_NEAR(json->Get("apart_rmse_m")->number(), 0, 1e-4);
+  EXPECT_NEAR(json->Get("correlation")->number(), 1, 1e-3);
+  EXPECT_NE(RunCommand(ProgramPath("ccmd_eval") + " shared --gt " + dir.File("gt.txt") + " --est " +
+                           dir.File("a.txt"),
+                       &out),
+            0);
+  EXPECT_NE(out.find("give --est twice"), std::string::npos) << out;
+}
+
 }  // namespace
 }  // namespace ccmd
