@@ -335,6 +335,9 @@ class DenseMap {
   void AppendPoints(const Entry& entry, DenseFilter filter, PointCloud* cloud) const;
   // The agents of a selection; NotFound for an unknown map or agent.
   StatusOr<std::vector<const AgentNode*>> SelectedAgentsLocked(const DenseSelection& s) const;
+  // How many points Extract would give before its voxel filter.
+  std::size_t CountPointsLocked(const std::vector<const AgentNode*>& agents,
+                                DenseFilter filter) const;
   // Calls visit(point, colour, label) for every point Extract would give before its voxel
   // filter, in the same order.
   template <typename Visit>

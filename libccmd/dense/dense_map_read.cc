@@ -74,6 +74,19 @@ StatusOr<std::vector<const DenseMap::AgentNode*>> DenseMap::SelectedAgentsLocked
   return agents;
 }
 
+std::size_t DenseMap::CountPointsLocked(const std::vector<const AgentNode*>& agents,
+                                        DenseFilter filter) const {
+  std::size_t count = 0;
+  for (const AgentNode* node : agents) {
+    for (const auto& [index, segment] : node->segments) {
+      for (const auto& entry : segment.slots) {
+        if (entry) count += PointsOf(*entry, filter);
+      }
+    }
+  }
+  return count;
+}
+
 template <typename Visit>
 void DenseMap::ForEachPointLocked(const std::vector<const AgentNode*>& agents, DenseFilter filter,
                                   Visit&& visit) const {
@@ -108,14 +121,7 @@ StatusOr<PointCloud> DenseMap::Extract(const DenseSelection& selection, DenseFil
     MaintainLocked();
     CCMD_ASSIGN_OR_RETURN(const std::vector<const AgentNode*> agents,
                           SelectedAgentsLocked(selection));
-    std::size_t count = 0;
-    for (const AgentNode* node : agents) {
-      for (const auto& [index, segment] : node->segments) {
-        for (const auto& entry : segment.slots) {
-          if (entry) count += PointsOf(*entry, filter);
-        }
-      }
-    }
+    const std::size_t count = CountPointsLocked(agents, filter);
     cloud.points.reserve(count);
     cloud.colors.reserve(count);
     cloud.labels.reserve(count);
@@ -143,16 +149,8 @@ Status DenseMap::ExportPly(const std::string& path, const DenseSelection& select
                         SelectedAgentsLocked(selection));
   const PlyVertexWriter::Layout layout{/*normals=*/false, /*colors=*/true, /*labels=*/true};
   if (filter != DenseFilter::kGlobal) {
-    std::size_t count = 0;
-    for (const AgentNode* node : agents) {
-      for (const auto& [index, segment] : node->segments) {
-        for (const auto& entry : segment.slots) {
-          if (entry) count += PointsOf(*entry, filter);
-        }
-      }
-    }
     CCMD_ASSIGN_OR_RETURN(std::unique_ptr<PlyVertexWriter> writer,
-                          PlyVertexWriter::Open(path, count, layout));
+                          PlyVertexWriter::Open(path, CountPointsLocked(agents, filter), layout));
     ForEachPointLocked(agents, filter,
                        [&](const Eigen::Vector3f& p, const auto& color, std::uint32_t label) {
                          writer->Add(p, nullptr, &color, label);

@@ -102,6 +102,7 @@ StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& 
     est.push_back(estimate[ie].T_world_cam.translation());
     gt.push_back(groundtruth[ig].T_world_cam.translation());
     result.timestamps.push_back(estimate[ie].timestamp);
+    result.groundtruth_indices.push_back(ig);
   }
   if (options.align) {
     result.aligned_by_poses =
@@ -133,36 +134,24 @@ StatusOr<SharedErrorResult> ComputeSharedError(const Trajectory& groundtruth, co
                                                const Trajectory& b, const AteOptions& options) {
   CCMD_ASSIGN_OR_RETURN(const AteResult ate_a, ComputeAte(groundtruth, a, options));
   CCMD_ASSIGN_OR_RETURN(const AteResult ate_b, ComputeAte(groundtruth, b, options));
-  // The ground-truth pose each matched estimate pose was compared with.
-  const auto by_groundtruth = [&](const Trajectory& estimate, const AteResult& ate) {
-    std::vector<std::pair<std::size_t, Eigen::Vector3d>> errors;
-    std::size_t k = 0;
-    for (const auto& [ie, ig] : MatchByTime(groundtruth, estimate, options.max_time_difference)) {
-      errors.emplace_back(ig, ate.error_vectors[k++]);
-    }
-    std::sort(errors.begin(), errors.end(),
-              [](const auto& x, const auto& y) { return x.first < y.first; });
-    return errors;
-  };
-  const auto errors_a = by_groundtruth(a, ate_a);
-  const auto errors_b = by_groundtruth(b, ate_b);
+  // Where each ground-truth pose stands among b's matched poses (-1: not matched).
+  std::vector<std::ptrdiff_t> in_b(groundtruth.size(), -1);
+  for (std::size_t k = 0; k < ate_b.groundtruth_indices.size(); ++k) {
+    in_b[ate_b.groundtruth_indices[k]] = static_cast<std::ptrdiff_t>(k);
+  }
   double aa = 0, bb = 0, ab = 0, shared = 0, apart = 0;
   SharedErrorResult result;
-  for (std::size_t i = 0, j = 0; i < errors_a.size() && j < errors_b.size();) {
-    if (errors_a[i].first < errors_b[j].first) {
-      ++i;
-    } else if (errors_b[j].first < errors_a[i].first) {
-      ++j;
-    } else {
-      const Eigen::Vector3d& ea = errors_a[i++].second;
-      const Eigen::Vector3d& eb = errors_b[j++].second;
-      aa += ea.squaredNorm();
-      bb += eb.squaredNorm();
-      ab += ea.dot(eb);
-      shared += (0.5 * (ea + eb)).squaredNorm();
-      apart += (0.5 * (ea - eb)).squaredNorm();
-      ++result.matched;
-    }
+  for (std::size_t k = 0; k < ate_a.groundtruth_indices.size(); ++k) {
+    const std::ptrdiff_t j = in_b[ate_a.groundtruth_indices[k]];
+    if (j < 0) continue;
+    const Eigen::Vector3d& ea = ate_a.error_vectors[k];
+    const Eigen::Vector3d& eb = ate_b.error_vectors[j];
+    aa += ea.squaredNorm();
+    bb += eb.squaredNorm();
+    ab += ea.dot(eb);
+    shared += (0.5 * (ea + eb)).squaredNorm();
+    apart += (0.5 * (ea - eb)).squaredNorm();
+    ++result.matched;
   }
   if (result.matched == 0) {
     return InvalidArgument("the two estimates match no ground-truth pose in common");

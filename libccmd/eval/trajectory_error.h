@@ -36,12 +36,13 @@ struct AteOptions {
 
 struct AteResult {
   std::size_t matched = 0;
-  ErrorStatistics error;                       // metres
-  Similarity3 alignment;                       // maps the estimate into the ground-truth frame
-  std::vector<double> timestamps;              // matched estimate timestamps
-  std::vector<double> errors;                  // per matched pose, metres
-  std::vector<Eigen::Vector3d> error_vectors;  // aligned estimate minus ground truth, metres
-  bool aligned_by_poses = false;               // see AteOptions::pose_alignment_below_spread_m
+  ErrorStatistics error;                         // metres
+  Similarity3 alignment;                         // maps the estimate into the ground-truth frame
+  std::vector<double> timestamps;                // matched estimate timestamps
+  std::vector<std::size_t> groundtruth_indices;  // the ground-truth pose each was compared with
+  std::vector<double> errors;                    // per matched pose, metres
+  std::vector<Eigen::Vector3d> error_vectors;    // aligned estimate minus ground truth, metres
+  bool aligned_by_poses = false;                 // see AteOptions::pose_alignment_below_spread_m
 };
 
 StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& estimate,
