@@ -230,6 +230,10 @@ int RunRecon(const std::string& ref_path, const std::string& rec_path, const std
     std::printf("aligned the reconstruction with the trajectory's poses (ATE rmse %.4f m)\n",
                 ate->error.rmse);
   }
+  if (!point_to_point && !ref->HasNormals() && ref->triangles.empty()) {
+    ccmd::EstimateNormals(&*ref);
+    std::printf("the reference has no normals: fitted to its points' 12 nearest neighbours\n");
+  }
   ccmd::ReconstructionOptions options;
   options.point_to_plane = !point_to_point;
   options.completeness_threshold = completeness_threshold;
@@ -241,6 +245,8 @@ int RunRecon(const std::string& ref_path, const std::string& rec_path, const std
               error->point_to_plane ? "point-to-plane" : "point-to-point");
   std::printf("  rec->ref mean %.4f m  median %.4f m  p95 %.4f m  max %.4f m\n", error->mean,
               error->median, error->p95, error->max);
+  std::printf("  rec->ref mean to the nearest reference point %.4f m\n",
+              error->mean_point_to_point);
   std::printf("  ref->rec mean %.4f m  max %.4f m  completeness %.1f%% within %.3f m\n",
               error->mean_reverse, error->max_reverse, 100 * error->completeness,
               completeness_threshold);
@@ -248,6 +254,7 @@ int RunRecon(const std::string& ref_path, const std::string& rec_path, const std
   if (!json_path.empty()) {
     ccmd::Json j;
     j["mean_m"] = error->mean;
+    j["mean_point_to_point_m"] = error->mean_point_to_point;
     j["median_m"] = error->median;
     j["rmse_m"] = error->rmse;
     j["p95_m"] = error->p95;

@@ -4,6 +4,8 @@
 #include <cmath>
 #include <thread>
 
+#include <Eigen/Eigenvalues>
+
 #include "libccmd/eval/trajectory_error.h"
 #include "libccmd/geometry/kdtree.h"
 #include "libccmd/util/random.h"
@@ -58,6 +60,32 @@ double EstimateSpacing(const PointCloud& cloud, const PointKdTree& tree) {
 
 }  // namespace
 
+void EstimateNormals(PointCloud* cloud, const NormalEstimationOptions& options) {
+  const std::size_t n = cloud->size();
+  cloud->normals.assign(n, Eigen::Vector3f::Zero());
+  const std::size_t k = static_cast<std::size_t>(std::max(3, options.neighbours));
+  if (n < k) return;
+  const PointKdTree tree(cloud->points);
+  ParallelFor(n, ThreadCount(options.threads), [&](std::size_t i) {
+    std::vector<std::uint32_t> index(k);
+    std::vector<float> d2(k);
+    const std::size_t found = tree.Nearest(cloud->points[i], k, index.data(), d2.data());
+    if (found < k) return;
+    Eigen::Vector3d mean = Eigen::Vector3d::Zero();
+    for (std::size_t j = 0; j < found; ++j) mean += cloud->points[index[j]].cast<double>();
+    mean /= static_cast<double>(found);
+    Eigen::Matrix3d covariance = Eigen::Matrix3d::Zero();
+    for (std::size_t j = 0; j < found; ++j) {
+      const Eigen::Vector3d d = cloud->points[index[j]].cast<double>() - mean;
+      covariance += d * d.transpose();
+    }
+    const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eigen(covariance);
+    const double total = eigen.eigenvalues().sum();
+    if (!(total > 0) || eigen.eigenvalues()(0) > options.max_surface_variation * total) return;
+    cloud->normals[i] = eigen.eigenvectors().col(0).cast<float>();  // ascending eigenvalues
+  });
+}
+
 std::vector<double> NearestDistances(const PointCloud& from, const PointCloud& to, int threads) {
   std::vector<double> distances(from.size(), 0.0);
   if (to.size() == 0) return distances;
@@ -84,12 +112,13 @@ StatusOr<ReconstructionError> ComputeReconstructionError(const PointCloud& refer
 
   const PointKdTree reference_tree(reference.points);
   const double tangential_limit = 1.5 * EstimateSpacing(reference, reference_tree);
-  std::vector<double> accuracy(reconstruction.size());
+  std::vector<double> accuracy(reconstruction.size()), point_distance(reconstruction.size());
   ParallelFor(reconstruction.size(), threads, [&](std::size_t i) {
     float d2 = 0;
     const std::uint32_t j = reference_tree.Nearest(reconstruction.points[i], &d2);
     double d = std::sqrt(d2);
-    if (result.point_to_plane) {
+    point_distance[i] = d;
+    if (result.point_to_plane && reference.normals[j].squaredNorm() > 0) {
       const Eigen::Vector3f offset = reconstruction.points[i] - reference.points[j];
       const double normal_part = std::abs(offset.dot(reference.normals[j].normalized()));
       const double tangential =
@@ -105,6 +134,7 @@ StatusOr<ReconstructionError> ComputeReconstructionError(const PointCloud& refer
   result.median = a.median;
   result.rmse = a.rmse;
   result.max = a.max;
+  result.mean_point_to_point = ComputeStatistics(point_distance).mean;
   std::vector<double> sorted = accuracy;
   const std::size_t k95 =
       std::min(sorted.size() - 1, static_cast<std::size_t>(0.95 * sorted.size()));

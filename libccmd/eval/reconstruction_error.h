@@ -5,7 +5,10 @@
 // of the other cloud (KD-tree). When the reference has normals (a sampled surface, as
 // ccmd_synth writes), the reconstruction-to-reference distance is measured to the local
 // plane of the nearest reference sample, so the reference's own sampling spacing does not
-// inflate the error; points beyond the sampled surface's edge fall back to point distance.
+// inflate the error; points beyond the sampled surface's edge, and points whose nearest sample
+// has no normal (a zero one: not on a flat patch), fall back to point distance. A reference
+// without normals (a cloud back-projected from depth) gets them from its own points
+// (EstimateNormals), as CloudCompare's "local model" fits a plane to the nearest neighbours.
 
 #include <vector>
 
@@ -30,6 +33,9 @@ struct ReconstructionError {
   bool point_to_plane = false;
   // Reconstruction -> reference (accuracy): the paper's "average distance".
   double mean = 0, median = 0, rmse = 0, p95 = 0, max = 0;
+  // The same mean as distances to the nearest reference point, normals or not: it includes
+  // the reference's sampling (about 0.4 of its spacing for a map on the surface itself).
+  double mean_point_to_point = 0;
   // Reference -> reconstruction (completeness).
   double mean_reverse = 0, max_reverse = 0;
   double completeness = 0;  // fraction of reference points within completeness_threshold
@@ -40,6 +46,19 @@ struct ReconstructionError {
 StatusOr<ReconstructionError> ComputeReconstructionError(const PointCloud& reference,
                                                          const PointCloud& reconstruction,
                                                          const ReconstructionOptions& options = {});
+
+struct NormalEstimationOptions {
+  int neighbours = 12;  // the point and its nearest others
+  // Flatness: the smallest eigenvalue of the neighbourhood's covariance over their sum (0 on a
+  // plane; 1/3 for an isotropic blob; 0.05-0.2 across an edge). Above it the normal is zero.
+  double max_surface_variation = 0.05;
+  int threads = 0;  // 0: all cores
+};
+
+// Gives every point of `cloud` the normal of the plane fitted to its neighbours (principal
+// component analysis), or a zero normal where they are not flat or too few. Replaces any
+// normals the cloud had. Orientation is arbitrary: the metric uses |offset . n|.
+void EstimateNormals(PointCloud* cloud, const NormalEstimationOptions& options = {});
 
 // Directed nearest-neighbour distances from every point of `from` to the cloud `to`
 // (point-to-point). Exposed for tests and other metrics.

@@ -44,7 +44,8 @@ struct ReplayRunInfo {
 
 struct ReferenceOptions {
   std::string reference_ply;  // "" = surface.ply in the dataset, else built from ground truth
-  int stride = 10;            // ground-truth build: every stride-th frame
+  int first = 0;              // ground-truth build: from this frame
+  int stride = 10;            // every stride-th frame
   int downsample = 2;         // and at 1/downsample resolution
   double voxel_m = 0.01;
   // Set when the camera config registers depth to colour (a Depth block): the reference's
