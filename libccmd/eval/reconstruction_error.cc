@@ -100,7 +100,8 @@ std::vector<double> NearestDistances(const PointCloud& from, const PointCloud& t
 
 StatusOr<ReconstructionError> ComputeReconstructionError(const PointCloud& reference,
                                                          const PointCloud& reconstruction,
-                                                         const ReconstructionOptions& options) {
+                                                         const ReconstructionOptions& options,
+                                                         std::vector<double>* per_point) {
   CCMD_RETURN_IF_ERROR(options.Validate());
   if (reference.size() == 0) return InvalidArgument("the reference cloud is empty");
   if (reconstruction.size() == 0) return InvalidArgument("the reconstructed cloud is empty");
@@ -135,6 +136,7 @@ StatusOr<ReconstructionError> ComputeReconstructionError(const PointCloud& refer
   result.rmse = a.rmse;
   result.max = a.max;
   result.mean_point_to_point = ComputeStatistics(point_distance).mean;
+  if (per_point) *per_point = accuracy;
   std::vector<double> sorted = accuracy;
   const std::size_t k95 =
       std::min(sorted.size() - 1, static_cast<std::size_t>(0.95 * sorted.size()));

@@ -43,9 +43,12 @@ struct ReconstructionError {
   double hausdorff = 0;
 };
 
+// `per_point`, when given, receives each reconstruction point's distance (what `mean`
+// averages), in the reconstruction's order.
 StatusOr<ReconstructionError> ComputeReconstructionError(const PointCloud& reference,
                                                          const PointCloud& reconstruction,
-                                                         const ReconstructionOptions& options = {});
+                                                         const ReconstructionOptions& options = {},
+                                                         std::vector<double>* per_point = nullptr);
 
 struct NormalEstimationOptions {
   int neighbours = 12;  // the point and its nearest others

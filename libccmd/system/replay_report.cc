@@ -10,6 +10,7 @@
 #include <sstream>
 
 #include "libccmd/dense/dense_map.h"
+#include "libccmd/dense/label.h"
 #include "libccmd/eval/map_picture.h"
 #include "libccmd/eval/plot.h"
 #include "libccmd/eval/reconstruction_error.h"
@@ -255,6 +256,57 @@ bool WriteMapPlots(const std::string& server_dir, const std::string& plots_dir,
   return s.ok();
 }
 
+// Reconstruction error of the server's map.ply, moved into the ground truth's frame by
+// `alignment`, into `results`; returns each agent's mean error by its id (the points' labels:
+// which keyframe, so which agent, each came from), empty without a map or a reference.
+std::map<std::uint32_t, double> EvaluateMap(const std::string& run_dir, const TumSequence& dataset,
+                                            const ReferenceOptions& reference,
+                                            const Similarity3& alignment, Json* results) {
+  std::map<std::uint32_t, double> by_agent;
+  const std::string map_path = JoinPath(run_dir, "map.ply");
+  if (!FileExists(map_path)) return by_agent;
+  std::string source;
+  auto ref = LoadOrBuildReference(dataset, reference, &source);
+  if (!ref.ok()) {
+    CCMD_LOG(WARNING) << "no reference cloud: " << ref.status().ToString();
+    return by_agent;
+  }
+  // A reference built here is kept, so that the map can be compared again (ccmd_eval recon).
+  if (reference.reference_ply.empty() && !FileExists(JoinPath(dataset.folder(), "surface.ply"))) {
+    const Status kept = WritePly(*ref, JoinPath(run_dir, "reference.ply"));
+    if (!kept.ok()) CCMD_LOG(WARNING) << kept.ToString();
+  }
+  auto rec = ReadPly(map_path);
+  if (!rec.ok() || rec->size() == 0) return by_agent;
+  for (auto& p : rec->points) p = (alignment * p.cast<double>()).cast<float>();
+  std::vector<double> per_point;
+  auto error = ComputeReconstructionError(*ref, *rec, {}, &per_point);
+  if (!error.ok()) return by_agent;
+  Json& r = *results;
+  r["recon_mean_m"] = error->mean;
+  r["recon_mean_point_to_point_m"] = error->mean_point_to_point;
+  r["recon_median_m"] = error->median;
+  r["recon_p95_m"] = error->p95;
+  r["recon_hausdorff_m"] = error->hausdorff;
+  r["recon_max_map_to_reference_m"] = error->max;
+  r["recon_max_reference_to_map_m"] = error->max_reverse;
+  r["recon_completeness"] = error->completeness;
+  r["map_points"] = rec->size();
+  r["reference"] = source;
+  r["reference_points"] = ref->size();
+  if (rec->HasLabels()) {
+    std::map<std::uint32_t, std::pair<double, std::size_t>> sums;
+    for (std::size_t i = 0; i < rec->size(); ++i) {
+      auto& [sum, count] = sums[rec->labels[i] >> kLabelKeyframeBits];
+      sum += per_point[i];
+      ++count;
+    }
+    for (const auto& [agent, sum_count] : sums)
+      by_agent[agent] = sum_count.first / static_cast<double>(sum_count.second);
+  }
+  return by_agent;
+}
+
 }  // namespace
 
 StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dataset,
@@ -310,6 +362,10 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
       results["ate_aligned_by"] = fused_ate->aligned_by_poses ? "poses" : "positions";
     }
   }
+  const std::map<std::uint32_t, double> map_error_of_agent =
+      map_alignment ? EvaluateMap(run_dir, dataset, reference, *map_alignment, &results)
+                    : std::map<std::uint32_t, double>{};
+  const Json* agent_ids = server_stats.Get("agent_ids");
   Json agents = Json::MakeArray();
   std::vector<Trajectory> agent_trajectories;
   double atps_sum = 0, akfs_sum = 0, akfr_sum = 0;
@@ -329,6 +385,10 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
     auto t = ReadTumTrajectory(JoinPath(server_dir, "trajectory_" + name + ".txt"));
     agent_trajectories.push_back(t.ok() ? *t : Trajectory{});
     a["in_primary_map"] = membership.InPrimary(name);
+    if (const Json* id = agent_ids ? agent_ids->Get(name) : nullptr) {
+      const auto found = map_error_of_agent.find(static_cast<std::uint32_t>(id->number()));
+      if (found != map_error_of_agent.end()) a["map_mean_error_m"] = found->second;
+    }
     if (t.ok()) {
       const auto ate = MapAte(gt, *t);
       if (ate) a["ate_rmse_m"] = ate->error.rmse;
@@ -456,39 +516,6 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   results["keyframes_sent"] = keyframes_total;
   results["colour_bytes"] = static_cast<double>(parts_total.colour);
   results["depth_bytes"] = static_cast<double>(parts_total.depth);
-
-  // Reconstruction error of the dense map, in the ground truth's frame.
-  const std::string map_path = JoinPath(server_dir, "map.ply");
-  if (FileExists(map_path) && map_alignment) {
-    std::string source;
-    auto ref = LoadOrBuildReference(dataset, reference, &source);
-    auto rec = ReadPly(map_path);
-    // A reference built here is kept, so that the map can be compared again (ccmd_eval recon).
-    if (ref.ok() && reference.reference_ply.empty() &&
-        !FileExists(JoinPath(dataset.folder(), "surface.ply"))) {
-      const Status kept = WritePly(*ref, JoinPath(run_dir, "reference.ply"));
-      if (!kept.ok()) CCMD_LOG(WARNING) << kept.ToString();
-    }
-    if (ref.ok() && rec.ok() && rec->size() > 0) {
-      for (auto& p : rec->points) p = (*map_alignment * p.cast<double>()).cast<float>();
-      auto error = ComputeReconstructionError(*ref, *rec);
-      if (error.ok()) {
-        results["recon_mean_m"] = error->mean;
-        results["recon_mean_point_to_point_m"] = error->mean_point_to_point;
-        results["recon_median_m"] = error->median;
-        results["recon_p95_m"] = error->p95;
-        results["recon_hausdorff_m"] = error->hausdorff;
-        results["recon_max_map_to_reference_m"] = error->max;
-        results["recon_max_reference_to_map_m"] = error->max_reverse;
-        results["recon_completeness"] = error->completeness;
-        results["map_points"] = rec->size();
-        results["reference"] = source;
-        results["reference_points"] = ref->size();
-      }
-    } else if (!ref.ok()) {
-      CCMD_LOG(WARNING) << "no reference cloud: " << ref.status().ToString();
-    }
-  }
 
   // Plots.
   const bool map_plots = WriteMapPlots(server_dir, plots_dir, server_stats, info.agents);
@@ -624,8 +651,8 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
     md << ".\n\n";
   }
   md << "| agent | frames | map | server keyframes | ATE RMSE (server, m) | ATE RMSE (agent "
-        "odometry, m) | lost frames | restarts |\n"
-        "|---|---|---|---|---|---|---|---|\n";
+        "odometry, m) | its map points' mean error (m) | lost frames | restarts |\n"
+        "|---|---|---|---|---|---|---|---|---|\n";
   for (const Json& a : agents.array()) {
     md << "| " << a.Get("name")->string() << " | " << Num(&a, "first_frame") << "-"
        << Num(&a, "last_frame") << " | "
@@ -635,6 +662,7 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
        << " | " << Num(&a, "keyframes") << " | "
        << (a.Has("ate_rmse_m") ? Fmt("%.4f", Num(&a, "ate_rmse_m")) : "-") << " | "
        << (a.Has("agent_frames_ate_rmse_m") ? Fmt("%.4f", Num(&a, "agent_frames_ate_rmse_m")) : "-")
+       << " | " << (a.Has("map_mean_error_m") ? Fmt("%.4f", Num(&a, "map_mean_error_m")) : "-")
        << " | " << Num(&a, "lost_frames") << " | " << Num(&a, "restarts") << " |\n";
   }
   if (results.Has("ate_rmse_m")) {

@@ -67,6 +67,22 @@ TEST(ReplayCliTest, TwoAgentsFuseAndTheReportMatchesTheFiles) {
   ASSERT_TRUE(recon.ok());
   EXPECT_NEAR(results->Get("recon_mean_m")->number(), recon->mean, 1e-9);
   EXPECT_LT(recon->mean, 0.01);
+  // Each agent's map error is that of the points its keyframes gave (the labels' top byte is
+  // the agent's id, as the server numbered it); both agents gave points.
+  auto ids = ReadJsonFile(dir.File("run/server_stats.json"));
+  ASSERT_TRUE(ids.ok() && map->HasLabels());
+  for (const Json& a : results->Get("agents")->array()) {
+    const std::string name = a.Get("name")->string();
+    const auto id = static_cast<std::uint32_t>(ids->Get("agent_ids")->Get(name)->number());
+    PointCloud own;
+    for (std::size_t i = 0; i < map->size(); ++i) {
+      if (map->labels[i] >> 24 == id) own.points.push_back(map->points[i]);
+    }
+    ASSERT_GT(own.size(), 0u) << name;
+    auto own_error = ComputeReconstructionError(*reference, own);
+    ASSERT_TRUE(own_error.ok() && a.Has("map_mean_error_m")) << name;
+    EXPECT_NEAR(a.Get("map_mean_error_m")->number(), own_error->mean, 1e-9) << name;
+  }
   // Bandwidth: the agents' bytes add up to what the server counted per agent.
   auto stats = ReadJsonFile(dir.File("run/server_stats.json"));
   ASSERT_TRUE(stats.ok());
