@@ -232,7 +232,8 @@ int RunRecon(const std::string& ref_path, const std::string& rec_path, const std
   }
   if (!point_to_point && !ref->HasNormals() && ref->triangles.empty()) {
     ccmd::EstimateNormals(&*ref);
-    std::printf("the reference has no normals: fitted to its points' 12 nearest neighbours\n");
+    std::printf("the reference has no normals: fitted to each point's %d nearest neighbours\n",
+                ccmd::NormalEstimationOptions().neighbours);
   }
   ccmd::ReconstructionOptions options;
   options.point_to_plane = !point_to_point;

@@ -1,6 +1,7 @@
 #include "libccmd/eval/reconstruction_error.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <thread>
 
@@ -63,12 +64,13 @@ double EstimateSpacing(const PointCloud& cloud, const PointKdTree& tree) {
 void EstimateNormals(PointCloud* cloud, const NormalEstimationOptions& options) {
   const std::size_t n = cloud->size();
   cloud->normals.assign(n, Eigen::Vector3f::Zero());
-  const std::size_t k = static_cast<std::size_t>(std::max(3, options.neighbours));
+  constexpr int kMaxNeighbours = 64;
+  const auto k = static_cast<std::size_t>(std::clamp(options.neighbours, 3, kMaxNeighbours));
   if (n < k) return;
   const PointKdTree tree(cloud->points);
   ParallelFor(n, ThreadCount(options.threads), [&](std::size_t i) {
-    std::vector<std::uint32_t> index(k);
-    std::vector<float> d2(k);
+    std::array<std::uint32_t, kMaxNeighbours> index;
+    std::array<float, kMaxNeighbours> d2;
     const std::size_t found = tree.Nearest(cloud->points[i], k, index.data(), d2.data());
     if (found < k) return;
     Eigen::Vector3d mean = Eigen::Vector3d::Zero();

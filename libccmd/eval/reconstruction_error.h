@@ -51,7 +51,7 @@ StatusOr<ReconstructionError> ComputeReconstructionError(const PointCloud& refer
                                                          std::vector<double>* per_point = nullptr);
 
 struct NormalEstimationOptions {
-  int neighbours = 12;  // the point and its nearest others
+  int neighbours = 12;  // the point and its nearest others (3..64)
   // Flatness: the smallest eigenvalue of the neighbourhood's covariance over their sum (0 on a
   // plane; 1/3 for an isotropic blob; 0.05-0.2 across an edge). Above it the normal is zero.
   double max_surface_variation = 0.05;

@@ -90,7 +90,10 @@ StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset,
     if (source) *source = path;
     if (!cloud.HasNormals()) {
       EstimateNormals(&cloud);
-      if (source) *source += " (normals from 12 neighbours)";
+      if (source) {
+        *source += " (normals from " + std::to_string(NormalEstimationOptions().neighbours) +
+                   " neighbours)";
+      }
     }
     return cloud;
   }
@@ -128,10 +131,11 @@ StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset,
     *source = "back-projected from " + std::to_string(added) + " ground-truth frames (every " +
               std::to_string(options.stride) + "th, 1/" + std::to_string(factor) + " resolution, " +
               std::to_string(static_cast<int>(options.voxel_m * 1000)) +
-              " mm voxels, normals from 12 neighbours)";
+              " mm voxels, normals from " + std::to_string(NormalEstimationOptions().neighbours) +
+              " neighbours)";
   }
-  // With normals the map's error is measured to the reference's local plane: the 1 cm
-  // sampling alone puts a map lying on the true surface 0.4 cm from the nearest sample.
+  // With normals the map's error is measured to the reference's local plane: the voxel
+  // sampling alone puts a map lying on the true surface 0.4 voxel from the nearest sample.
   CCMD_ASSIGN_OR_RETURN(PointCloud cloud, dense->Extract(DenseSelection::Global()));
   EstimateNormals(&cloud);
   return cloud;
