@@ -382,12 +382,18 @@ int main(int argc, char** argv) {
   bool point_to_point = false;
   double completeness_threshold = 0.02;
   auto* recon = app.add_subcommand("recon", "Reconstruction error between two PLY clouds");
-  recon->add_option("--ref", ref, "Reference cloud (e.g. surface.ply)")->required();
+  recon
+      ->add_option("--ref", ref,
+                   "Reference cloud (e.g. surface.ply, or a run's reference.ply); the map's error "
+                   "is measured to the plane of the nearest reference point, its normal fitted to "
+                   "the reference's neighbours when the file has none")
+      ->required();
   recon->add_option("--rec", rec, "Reconstructed cloud (e.g. map.ply)")->required();
   recon->add_option("--json", json, "Write the figures as JSON");
   recon->add_option("--gt-traj", gt_traj, "Ground-truth trajectory, to align the map first");
   recon->add_option("--est-traj", est_traj, "Estimated trajectory the map was built with");
-  recon->add_flag("--point-to-point", point_to_point, "Ignore reference normals");
+  recon->add_flag("--point-to-point", point_to_point,
+                  "Distance to the nearest reference point only (no normals)");
   recon
       ->add_option("--completeness-threshold", completeness_threshold,
                    "Distance (m) within which a reference point counts as covered")
