@@ -1,6 +1,7 @@
 #include "libccmd/io/config.h"
 
 #include <algorithm>
+#include <cctype>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
@@ -62,6 +63,7 @@ StatusOr<ConfigFile> ConfigFile::Open(const std::string& path) {
   }
   ConfigFile config;
   config.path_ = path;
+  config.text_ = text;
   config.storage_ = std::make_unique<cv::FileStorage>();
   try {
     // Parsed from the text read above: the file is read once, and what was checked is what
@@ -88,11 +90,41 @@ bool ConfigFile::Has(const std::string& key) const {
   return !(*storage_)[key].empty() && !(*storage_)[key].isNone();
 }
 
+std::optional<double> ConfigFile::DecimalLiteral(const std::string& key) const {
+  std::size_t at = 0;
+  while ((at = text_.find(key, at)) != std::string::npos) {
+    const std::size_t line = text_.rfind('\n', at);
+    const std::size_t start = line == std::string::npos ? 0 : line + 1;
+    const bool indented_only =
+        text_.find_first_not_of(" \t", start) == at;  // the key opens its line
+    std::size_t i = at + key.size();
+    at = i;
+    if (!indented_only) continue;
+    while (i < text_.size() && (text_[i] == ' ' || text_[i] == '\t')) ++i;
+    if (i >= text_.size() || text_[i] != ':') continue;
+    ++i;
+    while (i < text_.size() && (text_[i] == ' ' || text_[i] == '\t')) ++i;
+    std::size_t end = i;
+    if (end < text_.size() && (text_[end] == '-' || text_[end] == '+')) ++end;
+    const std::size_t digits = end;
+    while (end < text_.size() && std::isdigit(static_cast<unsigned char>(text_[end]))) ++end;
+    if (end == digits) return std::nullopt;
+    const std::size_t after = text_.find_first_not_of(" \t\r", end);
+    if (after != std::string::npos && text_[after] != '\n' && text_[after] != '#')
+      return std::nullopt;
+    return std::strtod(text_.substr(i, end - i).c_str(), nullptr);
+  }
+  return std::nullopt;
+}
+
 StatusOr<double> ConfigFile::GetDouble(const std::string& key, double fallback) const {
   const cv::FileNode node = (*storage_)[key];
   if (node.empty() || node.isNone()) return fallback;
   if (!node.isReal() && !node.isInt()) {
     return InvalidArgument(path_ + ": " + key + " must be a number");
+  }
+  if (node.isInt()) {
+    if (const auto literal = DecimalLiteral(key)) return *literal;
   }
   return static_cast<double>(node.real());
 }
@@ -100,8 +132,11 @@ StatusOr<double> ConfigFile::GetDouble(const std::string& key, double fallback) 
 StatusOr<int> ConfigFile::GetInt(const std::string& key, int fallback) const {
   const cv::FileNode node = (*storage_)[key];
   if (node.empty() || node.isNone()) return fallback;
-  if (node.isInt()) return static_cast<int>(node);
-  if (node.isReal()) {
+  if (node.isInt()) {
+    const int value = static_cast<int>(node);
+    const auto literal = DecimalLiteral(key);
+    if (!literal || *literal == value) return value;
+  } else if (node.isReal()) {
     // Range first: converting NaN, infinities or numbers beyond int is undefined.
     const double value = node.real();
     if (value >= std::numeric_limits<int>::min() && value <= std::numeric_limits<int>::max() &&
@@ -109,7 +144,7 @@ StatusOr<int> ConfigFile::GetInt(const std::string& key, int fallback) const {
       return static_cast<int>(value);
     }
   }
-  return InvalidArgument(path_ + ": " + key + " must be an integer");
+  return InvalidArgument(path_ + ": " + key + " must be an integer from -2147483648 to 2147483647");
 }
 
 StatusOr<std::string> ConfigFile::GetString(const std::string& key,

@@ -41,7 +41,13 @@ class ConfigFile {
 
  private:
   ConfigFile() = default;
+  // The number a YAML integer at `key` was written as, when the file gives it as one plain
+  // decimal literal on the key's own line: OpenCV reads such a literal into an int and wraps
+  // one beyond int's range ("4294967936" reads as 640), so the text says what was meant.
+  std::optional<double> DecimalLiteral(const std::string& key) const;
+
   std::string path_;
+  std::string text_;
   std::unique_ptr<cv::FileStorage> storage_;
 };
 

@@ -87,7 +87,9 @@ TEST(ConfigTest, IntegerKeysOutsideIntAreClearErrors) {
   const std::string camera =
       "%YAML:1.0\nCamera.fx: 500\nCamera.fy: 500\nCamera.cx: 320\n"
       "Camera.cy: 240\nCamera.height: 480\n";
-  for (const std::string value : {"1e30", "-3e9", "2147483648.0", ".nan", "-.inf"}) {
+  // Integer literals beyond int too: OpenCV wraps them ("4294967936" would read as 640).
+  for (const std::string value : {"1e30", "-3e9", "2147483648.0", ".nan", "-.inf", "2147483648",
+                                  "4294967936", "-4294967296", "99999999999999999999999"}) {
     ASSERT_TRUE(WriteFileAtomic(dir.File("w.yaml"), camera + "Camera.width: " + value + "\n").ok());
     auto c = LoadCameraConfig(dir.File("w.yaml"));
     ASSERT_FALSE(c.ok()) << value;
@@ -98,6 +100,25 @@ TEST(ConfigTest, IntegerKeysOutsideIntAreClearErrors) {
   auto c = LoadCameraConfig(dir.File("w.yaml"));
   ASSERT_TRUE(c.ok()) << c.status().ToString();
   EXPECT_EQ(c->width, 640);
+}
+
+// A number key given as an integer beyond int is read as written, not wrapped; a comment or
+// another key that names it is not taken for it.
+TEST(ConfigTest, LargeIntegerLiteralsAreReadAsWritten) {
+  testing::TempDir dir;
+  ASSERT_TRUE(WriteFileAtomic(dir.File("c.yaml"),
+                              "%YAML:1.0\n# DepthMapFactor: 1\nDepthMapFactor2: 3\n"
+                              "DepthMapFactor: 4294972296  # far beyond int\nSmall: -7\n")
+                  .ok());
+  auto config = ConfigFile::Open(dir.File("c.yaml"));
+  ASSERT_TRUE(config.ok()) << config.status().ToString();
+  auto factor = config->GetDouble("DepthMapFactor", 0);
+  ASSERT_TRUE(factor.ok());
+  EXPECT_EQ(*factor, 4294972296.0);
+  auto small = config->GetInt("Small", 0);
+  ASSERT_TRUE(small.ok());
+  EXPECT_EQ(*small, -7);
+  EXPECT_FALSE(config->GetInt("DepthMapFactor", 0).ok());
 }
 
 TEST(ConfigTest, TrajectoriesAreOfTheColourCameraUnlessTheConfigNamesTheDepthCamera) {
