@@ -230,7 +230,12 @@ int RunRecon(const std::string& ref_path, const std::string& rec_path, const std
     std::printf("aligned the reconstruction with the trajectory's poses (ATE rmse %.4f m)\n",
                 ate->error.rmse);
   }
-  if (!point_to_point && !ref->HasNormals() && ref->triangles.empty()) {
+  if (!ref->triangles.empty()) {
+    // A mesh (e.g. ICL-NUIM's living room model): its surface, not its vertices, is the
+    // reference, as ccmd_replay --reference takes it.
+    *ref = ccmd::SampleMesh(*ref, 0.005);
+    std::printf("the reference is a mesh: sampled every 5 mm with its faces' normals\n");
+  } else if (!point_to_point && !ref->HasNormals()) {
     ccmd::EstimateNormals(&*ref);
     std::printf("the reference has no normals: fitted to each point's %d nearest neighbours\n",
                 ccmd::NormalEstimationOptions().neighbours);
@@ -384,9 +389,9 @@ int main(int argc, char** argv) {
   auto* recon = app.add_subcommand("recon", "Reconstruction error between two PLY clouds");
   recon
       ->add_option("--ref", ref,
-                   "Reference cloud (e.g. surface.ply, or a run's reference.ply); the map's error "
-                   "is measured to the plane of the nearest reference point, its normal fitted to "
-                   "the reference's neighbours when the file has none")
+                   "Reference cloud or mesh (e.g. surface.ply, a run's reference.ply, a dataset's "
+                   "model); the map's error is measured to the plane of the nearest reference "
+                   "point, its normal fitted to the reference's neighbours when the file has none")
       ->required();
   recon->add_option("--rec", rec, "Reconstructed cloud (e.g. map.ply)")->required();
   recon->add_option("--json", json, "Write the figures as JSON");

@@ -63,6 +63,10 @@ struct NormalEstimationOptions {
 // normals the cloud had. Orientation is arbitrary: the metric uses |offset . n|.
 void EstimateNormals(PointCloud* cloud, const NormalEstimationOptions& options = {});
 
+// Points sampled on a triangle mesh at about `spacing` metres (each face gets area / spacing^2
+// of them, the fraction drawn at random), with the faces' normals. Deterministic.
+PointCloud SampleMesh(const PointCloud& mesh, double spacing);
+
 // Directed nearest-neighbour distances from every point of `from` to the cloud `to`
 // (point-to-point). Exposed for tests and other metrics.
 std::vector<double> NearestDistances(const PointCloud& from, const PointCloud& to, int threads = 0);

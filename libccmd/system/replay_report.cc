@@ -19,33 +19,9 @@
 #include "libccmd/system/report_format.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/logging.h"
-#include "libccmd/util/random.h"
 #include "proto/messages.h"
 
 namespace ccmd {
-
-PointCloud SampleMesh(const PointCloud& mesh, double spacing) {
-  PointCloud out;
-  Rng rng(17);
-  for (const auto& t : mesh.triangles) {
-    const Eigen::Vector3f a = mesh.points[t[0]], b = mesh.points[t[1]], c = mesh.points[t[2]];
-    const Eigen::Vector3f cross = (b - a).cross(c - a);
-    const double area = 0.5 * cross.norm();
-    if (area <= 0) continue;
-    const Eigen::Vector3f normal = cross.normalized();
-    // Expected count area / spacing^2, the fraction drawn at random so small faces count too.
-    const double expected = area / (spacing * spacing);
-    int n = static_cast<int>(expected);
-    if (rng.Uniform() < expected - n) ++n;
-    for (int i = 0; i < n; ++i) {
-      double u = rng.Uniform(), v = rng.Uniform();
-      if (u + v > 1) u = 1 - u, v = 1 - v;
-      out.points.push_back(a + static_cast<float>(u) * (b - a) + static_cast<float>(v) * (c - a));
-      out.normals.push_back(normal);
-    }
-  }
-  return out;
-}
 
 Status ReferenceOptions::Validate() const {
   if (stride < 1) return InvalidArgument("reference stride must be at least 1");

@@ -69,8 +69,6 @@ Status ReadReferenceCamera(const std::string& camera_file, ReferenceOptions* opt
 StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset,
                                           const ReferenceOptions& options, std::string* source);
 
-// Points sampled on a triangle mesh at about `spacing` metres, with the faces' normals.
-PointCloud SampleMesh(const PointCloud& mesh, double spacing);
 
 // Reads the run folder (the server's results, agents/) and computes every figure; writes
 // results.json, report.md and plots/ there. Returns the results.
