@@ -69,7 +69,6 @@ Status ReadReferenceCamera(const std::string& camera_file, ReferenceOptions* opt
 StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset,
                                           const ReferenceOptions& options, std::string* source);
 
-
 // Reads the run folder (the server's results, agents/) and computes every figure; writes
 // results.json, report.md and plots/ there. Returns the results.
 StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dataset,
