@@ -230,15 +230,12 @@ int RunRecon(const std::string& ref_path, const std::string& rec_path, const std
     std::printf("aligned the reconstruction with the trajectory's poses (ATE rmse %.4f m)\n",
                 ate->error.rmse);
   }
-  if (!ref->triangles.empty()) {
-    // A mesh (e.g. ICL-NUIM's living room model): its surface, not its vertices, is the
-    // reference, as ccmd_replay --reference takes it.
-    *ref = ccmd::SampleMesh(*ref, 0.005);
-    std::printf("the reference is a mesh: sampled every 5 mm with its faces' normals\n");
-  } else if (!point_to_point && !ref->HasNormals()) {
-    ccmd::EstimateNormals(&*ref);
-    std::printf("the reference has no normals: fitted to each point's %d nearest neighbours\n",
-                ccmd::NormalEstimationOptions().neighbours);
+  // A mesh (e.g. ICL-NUIM's living room model) is its surface, not its vertices, as
+  // ccmd_replay --reference takes it; point to point needs no normals fitted.
+  if (!point_to_point || !ref->triangles.empty()) {
+    std::string how;
+    *ref = ccmd::AsReferenceSurface(std::move(*ref), &how);
+    if (!how.empty()) std::printf("the reference: %s\n", how.c_str());
   }
   ccmd::ReconstructionOptions options;
   options.point_to_plane = !point_to_point;

@@ -115,6 +115,19 @@ PointCloud SampleMesh(const PointCloud& mesh, double spacing) {
   return out;
 }
 
+PointCloud AsReferenceSurface(PointCloud reference, std::string* how) {
+  std::string done;
+  if (!reference.triangles.empty()) {
+    reference = SampleMesh(reference, 0.005);
+    done = "mesh, sampled every 5 mm";
+  } else if (!reference.HasNormals()) {
+    EstimateNormals(&reference);
+    done = "normals from " + std::to_string(NormalEstimationOptions().neighbours) + " neighbours";
+  }
+  if (how) *how = done;
+  return reference;
+}
+
 std::vector<double> NearestDistances(const PointCloud& from, const PointCloud& to, int threads) {
   std::vector<double> distances(from.size(), 0.0);
   if (to.size() == 0) return distances;

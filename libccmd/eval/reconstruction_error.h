@@ -10,6 +10,7 @@
 // without normals (a cloud back-projected from depth) gets them from its own points
 // (EstimateNormals), as CloudCompare's "local model" fits a plane to the nearest neighbours.
 
+#include <string>
 #include <vector>
 
 #include "libccmd/io/ply.h"
@@ -66,6 +67,11 @@ void EstimateNormals(PointCloud* cloud, const NormalEstimationOptions& options =
 // Points sampled on a triangle mesh at about `spacing` metres (each face gets area / spacing^2
 // of them, the fraction drawn at random), with the faces' normals. Deterministic.
 PointCloud SampleMesh(const PointCloud& mesh, double spacing);
+
+// A reference as the metric takes it: a mesh sampled every 5 mm with its faces' normals, a
+// cloud without normals given them (EstimateNormals), a cloud with normals as it is.
+// `how`, when given, says which was done ("" for nothing).
+PointCloud AsReferenceSurface(PointCloud reference, std::string* how = nullptr);
 
 // Directed nearest-neighbour distances from every point of `from` to the cloud `to`
 // (point-to-point). Exposed for tests and other metrics.

@@ -59,18 +59,9 @@ StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset,
     path = JoinPath(dataset.folder(), "surface.ply");
   if (!path.empty()) {
     CCMD_ASSIGN_OR_RETURN(PointCloud cloud, ReadPly(path));
-    if (!cloud.triangles.empty()) {
-      if (source) *source = path + " (mesh, sampled every 5 mm)";
-      return SampleMesh(cloud, 0.005);
-    }
-    if (source) *source = path;
-    if (!cloud.HasNormals()) {
-      EstimateNormals(&cloud);
-      if (source) {
-        *source += " (normals from " + std::to_string(NormalEstimationOptions().neighbours) +
-                   " neighbours)";
-      }
-    }
+    std::string how;
+    cloud = AsReferenceSurface(std::move(cloud), &how);
+    if (source) *source = how.empty() ? path : path + " (" + how + ")";
     return cloud;
   }
   // Ground-truth poses and the same depth: the best map the depth can make.
@@ -103,17 +94,16 @@ StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset,
     ++added;
   }
   if (added == 0) return NotFound("no frames with ground truth to build a reference cloud from");
-  if (source) {
-    *source = "back-projected from " + std::to_string(added) + " ground-truth frames (every " +
-              std::to_string(options.stride) + "th, 1/" + std::to_string(factor) + " resolution, " +
-              std::to_string(static_cast<int>(options.voxel_m * 1000)) +
-              " mm voxels, normals from " + std::to_string(NormalEstimationOptions().neighbours) +
-              " neighbours)";
-  }
   // With normals the map's error is measured to the reference's local plane: the voxel
   // sampling alone puts a map lying on the true surface 0.4 voxel from the nearest sample.
   CCMD_ASSIGN_OR_RETURN(PointCloud cloud, dense->Extract(DenseSelection::Global()));
-  EstimateNormals(&cloud);
+  std::string how;
+  cloud = AsReferenceSurface(std::move(cloud), &how);
+  if (source) {
+    *source = "back-projected from " + std::to_string(added) + " ground-truth frames (every " +
+              std::to_string(options.stride) + "th, 1/" + std::to_string(factor) + " resolution, " +
+              std::to_string(static_cast<int>(options.voxel_m * 1000)) + " mm voxels, " + how + ")";
+  }
   return cloud;
 }
 
@@ -277,7 +267,7 @@ std::map<std::uint32_t, double> EvaluateMap(const std::string& run_dir, const Tu
   if (rec->HasLabels()) {
     std::map<std::uint32_t, std::pair<double, std::size_t>> sums;
     for (std::size_t i = 0; i < rec->size(); ++i) {
-      auto& [sum, count] = sums[rec->labels[i] >> kLabelKeyframeBits];
+      auto& [sum, count] = sums[DecodeLabel(rec->labels[i]).agent.value()];
       sum += per_point[i];
       ++count;
     }
