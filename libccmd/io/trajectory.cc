@@ -2,7 +2,6 @@
 
 #include <algorithm>
 #include <cstdio>
-#include <sstream>
 
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/string_util.h"
@@ -11,35 +10,21 @@ namespace ccmd {
 
 StatusOr<Trajectory> ParseTumTrajectory(const std::string& text, const std::string& name) {
   Trajectory trajectory;
-  std::istringstream in(text);
-  std::string line;
-  int line_number = 0;
-  while (std::getline(in, line)) {
-    ++line_number;
-    const std::string_view content = Trim(line);
-    if (content.empty() || content.front() == '#') continue;
-    const auto fields = SplitWhitespace(content);
-    if (fields.size() != 8) {
-      return Corrupt(name + ":" + std::to_string(line_number) + ": expected 8 numbers, found " +
-                     std::to_string(fields.size()));
-    }
+  CCMD_RETURN_IF_ERROR(ForEachDataLine(text, name, [&](const auto& fields) -> Status {
+    if (fields.size() != 8)
+      return Corrupt("expected 8 numbers, found " + std::to_string(fields.size()));
     double v[8];
     for (int i = 0; i < 8; ++i) {
-      auto value = ParseDouble(fields[i]);
-      if (!value.ok()) {
-        return value.status().WithContext(name + ":" + std::to_string(line_number));
-      }
-      v[i] = *value;
+      CCMD_ASSIGN_OR_RETURN(v[i], ParseDouble(fields[i]));
     }
     const Eigen::Quaterniond raw(v[7], v[4], v[5], v[6]);
-    if (raw.norm() < 1e-6) {
-      return Corrupt(name + ":" + std::to_string(line_number) + ": zero quaternion");
-    }
+    if (raw.norm() < 1e-6) return Corrupt("zero quaternion");
     // Scaled by its largest component before normalising: the norm of components near 1e200
     // overflows, and dividing by it gave zeros, read as the identity.
     const Eigen::Quaterniond q(Eigen::Vector4d(raw.coeffs() / raw.coeffs().cwiseAbs().maxCoeff()));
     trajectory.push_back({v[0], PoseFromTranslationQuaternion({v[1], v[2], v[3]}, q)});
-  }
+    return Status::Ok();
+  }));
   std::stable_sort(
       trajectory.begin(), trajectory.end(),
       [](const StampedPose& a, const StampedPose& b) { return a.timestamp < b.timestamp; });

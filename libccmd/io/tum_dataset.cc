@@ -5,7 +5,6 @@
 #include <cstdio>
 #include <filesystem>
 #include <opencv2/imgcodecs.hpp>
-#include <sstream>
 
 #include "libccmd/geometry/pose.h"
 #include "libccmd/io/config.h"
@@ -36,21 +35,12 @@ void TumOptions::Describe(OptionsWriter* out) const {
 StatusOr<std::vector<TimedFile>> ReadTimedFileList(const std::string& path) {
   CCMD_ASSIGN_OR_RETURN(const std::string text, ReadFileToString(path, 1ull << 30));
   std::vector<TimedFile> files;
-  std::istringstream in(text);
-  std::string line;
-  int line_number = 0;
-  while (std::getline(in, line)) {
-    ++line_number;
-    const std::string_view content = Trim(line);
-    if (content.empty() || content.front() == '#') continue;
-    const auto fields = SplitWhitespace(content);
-    if (fields.size() < 2) {
-      return Corrupt(path + ":" + std::to_string(line_number) + ": expected 'timestamp path'");
-    }
-    auto t = ParseDouble(fields[0]);
-    if (!t.ok()) return t.status().WithContext(path + ":" + std::to_string(line_number));
-    files.push_back({*t, std::string(fields[1])});
-  }
+  CCMD_RETURN_IF_ERROR(ForEachDataLine(text, path, [&](const auto& fields) -> Status {
+    if (fields.size() < 2) return Corrupt("expected 'timestamp path'");
+    CCMD_ASSIGN_OR_RETURN(const double t, ParseDouble(fields[0]));
+    files.push_back({t, std::string(fields[1])});
+    return Status::Ok();
+  }));
   std::stable_sort(files.begin(), files.end(), [](const TimedFile& a, const TimedFile& b) {
     return a.timestamp < b.timestamp;
   });
@@ -107,28 +97,18 @@ bool LooksLikeDepthPath(const std::string& path) { return path.find("depth") != 
 Status ReadAssociations(const std::string& path, std::vector<TimedFile>* rgb,
                         std::vector<TimedFile>* depth) {
   CCMD_ASSIGN_OR_RETURN(const std::string text, ReadFileToString(path, 1ull << 30));
-  std::istringstream in(text);
-  std::string line;
-  int line_number = 0;
-  while (std::getline(in, line)) {
-    ++line_number;
-    const std::string_view content = Trim(line);
-    if (content.empty() || content.front() == '#') continue;
-    const auto fields = SplitWhitespace(content);
-    const std::string where = path + ":" + std::to_string(line_number);
-    if (fields.size() < 4) return Corrupt(where + ": expected 't path t path'");
-    auto t1 = ParseDouble(fields[0]);
-    auto t2 = ParseDouble(fields[2]);
-    if (!t1.ok()) return t1.status().WithContext(where);
-    if (!t2.ok()) return t2.status().WithContext(where);
-    TimedFile first{*t1, std::string(fields[1])};
-    TimedFile second{*t2, std::string(fields[3])};
+  return ForEachDataLine(text, path, [&](const auto& fields) -> Status {
+    if (fields.size() < 4) return Corrupt("expected 't path t path'");
+    CCMD_ASSIGN_OR_RETURN(const double t1, ParseDouble(fields[0]));
+    CCMD_ASSIGN_OR_RETURN(const double t2, ParseDouble(fields[2]));
+    TimedFile first{t1, std::string(fields[1])};
+    TimedFile second{t2, std::string(fields[3])};
     if (LooksLikeDepthPath(first.path) && !LooksLikeDepthPath(second.path))
       std::swap(first, second);
     rgb->push_back(first);
     depth->push_back(second);
-  }
-  return Status::Ok();
+    return Status::Ok();
+  });
 }
 
 // 7-Scenes: frame-XXXXXX.{color,depth}.png, .pose.txt.

@@ -40,6 +40,22 @@ std::vector<std::string> Split(std::string_view text, char separator) {
   return parts;
 }
 
+Status ForEachDataLine(
+    std::string_view text, const std::string& name,
+    const std::function<Status(const std::vector<std::string_view>& fields)>& line) {
+  int number = 0;
+  while (!text.empty()) {
+    const std::size_t end = text.find('\n');
+    const std::string_view content = Trim(text.substr(0, end));
+    text = end == std::string_view::npos ? std::string_view() : text.substr(end + 1);
+    ++number;
+    if (content.empty() || content.front() == '#') continue;
+    const Status status = line(SplitWhitespace(content));
+    if (!status.ok()) return status.WithContext(name + ":" + std::to_string(number));
+  }
+  return Status::Ok();
+}
+
 bool StartsWith(std::string_view text, std::string_view prefix) {
   return text.substr(0, prefix.size()) == prefix;
 }

@@ -1,5 +1,6 @@
 #pragma once
 
+#include <functional>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -14,6 +15,13 @@ std::string_view Trim(std::string_view text);
 std::vector<std::string_view> SplitWhitespace(std::string_view text);
 
 std::vector<std::string> Split(std::string_view text, char separator);
+
+// Calls `line` with the whitespace-separated fields of each line of `text` that is neither
+// blank nor a '#' comment, and with "NAME:LINE" for its messages; the first error it returns
+// stops the walk and is returned with that location added.
+Status ForEachDataLine(
+    std::string_view text, const std::string& name,
+    const std::function<Status(const std::vector<std::string_view>& fields)>& line);
 
 bool StartsWith(std::string_view text, std::string_view prefix);
 
