@@ -103,12 +103,8 @@ void Frontend::Finish() { mapper_->Finish(); }
 
 Trajectory Frontend::FrameTrajectory() {
   const auto lock = map_.Lock();
-  Trajectory trajectory;
-  for (const Tracker::FrameRecord& r : tracker_->records()) {
-    const auto T_world_ref = map_.KeyframePose(r.reference);
-    if (T_world_ref) trajectory.push_back({r.timestamp, *T_world_ref * r.T_ref_cam()});
-  }
-  return trajectory;
+  return FrameTrajectoryOf(tracker_->records(), tracker_->keyframe_records(),
+                           [&](KeyframeId id) { return map_.KeyframePose(id); });
 }
 
 Trajectory Frontend::KeyframeTrajectory() {

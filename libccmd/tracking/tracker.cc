@@ -80,8 +80,16 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
       if (last_ && last_->has_pose)
         velocity_ = current_->T_cam_world * last_->T_cam_world.inverse();
       if (NeedNewKeyframe()) {
+        const KeyframePtr tracked_against = reference_;
         CreateKeyframe();
         result.new_keyframe = true;
+        if (options_.record_trajectory && tracked_against) {
+          const Pose T_ref_cam = tracked_against->T_cam_world() * *last_T_world_cam_;
+          keyframe_records_.push_back(
+              {reference_->id(), tracked_since_keyframe_, records_.size(),
+               FrameRecord(current_->timestamp, tracked_against->id(), T_ref_cam)});
+        }
+        tracked_since_keyframe_ = true;
       }
       // Outliers do not carry over to the next frame's motion-model search.
       for (int i = 0; i < current_->size(); ++i) {
@@ -94,6 +102,7 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
         lost_since_ = current_->timestamp;
       }
       state_ = TrackingState::kLost;
+      tracked_since_keyframe_ = false;
       velocity_.reset();
       current_->has_pose = false;
       if (RestartDue() && Initialize(current_.get(), *last_T_world_cam_, /*restart=*/true)) {
@@ -172,6 +181,12 @@ bool Tracker::Initialize(TrackingFrame* frame, const Pose& T_world_cam, bool res
   last_keyframe_ = keyframe;
   last_keyframe_frame_ = frame->index;
   frame->reference = keyframe;
+  if (options_.record_trajectory) {
+    // Placed, not tracked: nothing links it to the keyframe before.
+    keyframe_records_.push_back({keyframe->id(), false, records_.size(),
+                                 FrameRecord(frame->timestamp, keyframe->id(), Pose::Identity())});
+  }
+  tracked_since_keyframe_ = true;
   mapping_->Insert(keyframe);
   return true;
 }
@@ -465,6 +480,42 @@ void Tracker::CreateKeyframe() {
   last_keyframe_ = keyframe;
   last_keyframe_frame_ = current_->index;
   mapping_->Insert(keyframe);
+}
+
+Trajectory FrameTrajectoryOf(const std::vector<Tracker::FrameRecord>& records,
+                             const std::vector<Tracker::KeyframeRecord>& keyframes,
+                             const std::function<std::optional<Pose>(KeyframeId)>& keyframe_pose) {
+  std::vector<std::optional<Pose>> poses(records.size());
+  for (std::size_t i = 0; i < records.size(); ++i) {
+    const auto T_world_ref = keyframe_pose(records[i].reference);
+    if (T_world_ref) poses[i] = *T_world_ref * records[i].T_ref_cam();
+  }
+  // A frame is tracked against the map as it was, and tracking drifts until the next keyframe,
+  // whose local BA (with its depth alignments) then moves it by what the drift was. Each
+  // keyframe's move, from where tracking put it to where it is now, is spread over the frames
+  // since the keyframe before in proportion to their number: the frame right after a keyframe
+  // keeps its pose, the one before the next keyframe takes nearly all of that keyframe's move.
+  for (std::size_t k = 1; k < keyframes.size(); ++k) {
+    const Tracker::KeyframeRecord &kf = keyframes[k], &before = keyframes[k - 1];
+    if (!kf.continuous || kf.record <= before.record + 1 || kf.record > poses.size()) continue;
+    const auto T_world_ref = keyframe_pose(kf.tracked.reference);
+    const auto T_world_kf = keyframe_pose(kf.keyframe);
+    if (!T_world_ref || !T_world_kf) continue;
+    const Pose tracked = *T_world_ref * kf.tracked.T_ref_cam();
+    const Pose move = tracked.inverse() * *T_world_kf;  // in the tracked keyframe's frame
+    for (std::size_t i = before.record + 1; i < kf.record; ++i) {
+      if (!poses[i]) continue;
+      const double alpha =
+          static_cast<double>(i - before.record) / static_cast<double>(kf.record - before.record);
+      *poses[i] =
+          tracked * InterpolatePose(Pose::Identity(), move, alpha) * tracked.inverse() * *poses[i];
+    }
+  }
+  Trajectory trajectory;
+  for (std::size_t i = 0; i < records.size(); ++i) {
+    if (poses[i]) trajectory.push_back({records[i].timestamp, *poses[i]});
+  }
+  return trajectory;
 }
 
 }  // namespace ccmd

@@ -6,12 +6,14 @@
 // relocalisation with PnP RANSAC), refines the pose against the local map, and decides
 // whether the frame becomes a keyframe, which it hands to the local mapper.
 
+#include <functional>
 #include <memory>
 #include <optional>
 #include <vector>
 
 #include "libccmd/geometry/camera.h"
 #include "libccmd/io/rgbd_frame.h"
+#include "libccmd/io/trajectory.h"
 #include "libccmd/tracking/frame.h"
 #include "libccmd/tracking/map.h"
 #include "libccmd/tracking/options.h"
@@ -68,6 +70,19 @@ class Tracker {
   };
   const std::vector<FrameRecord>& records() const { return records_; }
 
+  // Per keyframe the tracker made (with options.record_trajectory), in order: where tracking
+  // put it, relative to the keyframe it was tracked against (`tracked`), before local BA moved
+  // it. The frames tracked since the keyframe before take a share of that move
+  // (Frontend::FrameTrajectory). `continuous`: no frame was lost since the keyframe before, so
+  // tracking links the two. `record`: its frame's index in records().
+  struct KeyframeRecord {
+    KeyframeId keyframe;
+    bool continuous;
+    std::size_t record;
+    FrameRecord tracked;
+  };
+  const std::vector<KeyframeRecord>& keyframe_records() const { return keyframe_records_; }
+
  private:
   // Starts the map (or, with `restart`, a new segment of it after tracking was lost) at this
   // frame, placed at `T_world_cam`.
@@ -108,6 +123,15 @@ class Tracker {
   std::vector<KeyframePtr> local_keyframes_;
   std::vector<MapPointPtr> local_points_;
   std::vector<FrameRecord> records_;
+  std::vector<KeyframeRecord> keyframe_records_;
+  bool tracked_since_keyframe_ = false;  // every frame since the last keyframe was tracked
 };
+
+// The frames' trajectory: each record's pose relative to its reference keyframe, at that
+// keyframe's current pose (`keyframe_pose`: nullopt for a keyframe it does not know), with each
+// keyframe's move since tracking placed it spread over the frames since the keyframe before.
+Trajectory FrameTrajectoryOf(const std::vector<Tracker::FrameRecord>& records,
+                             const std::vector<Tracker::KeyframeRecord>& keyframes,
+                             const std::function<std::optional<Pose>(KeyframeId)>& keyframe_pose);
 
 }  // namespace ccmd
