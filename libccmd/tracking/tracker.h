@@ -73,7 +73,7 @@ class Tracker {
   // Per keyframe the tracker made (with options.record_trajectory), in order: where tracking
   // put it, relative to the keyframe it was tracked against (`tracked`), before local BA moved
   // it. The frames tracked since the keyframe before take a share of that move
-  // (Frontend::FrameTrajectory). `continuous`: no frame was lost since the keyframe before, so
+  // (FrameTrajectoryOf). `continuous`: no frame was lost since the keyframe before, so
   // tracking links the two. `record`: its frame's index in records().
   struct KeyframeRecord {
     KeyframeId keyframe;
