@@ -282,6 +282,14 @@ int main(int argc, char** argv) {
       std::printf("  ATE rmse %.4f m (max %.4f m, %zu poses)\n", ate->error.rmse, ate->error.max,
                   ate->matched);
     }
+    // The keyframes alone, as local mapping left them: what the server receives.
+    const auto keyframe_ate = ComputeAte(
+        ground_truth, TrajectoryOfCamera((*frontend)->KeyframeTrajectory(), T_color_trajectory));
+    if (keyframe_ate.ok()) {
+      result["keyframe_ate_rmse_m"] = keyframe_ate->error.rmse;
+      std::printf("  keyframes alone: ATE rmse %.4f m (%zu keyframes)\n", keyframe_ate->error.rmse,
+                  keyframe_ate->matched);
+    }
     if (!skip_baseline && !frames.empty()) {
       double ms = 0;
       const Trajectory baseline =
