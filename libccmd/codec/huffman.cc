@@ -116,6 +116,62 @@ std::vector<int> HuffmanCodeLengths(const std::uint32_t* counts, int alphabet, i
   return lengths;
 }
 
+namespace {
+
+// Writes a code table (the largest value, then the code lengths two to a byte) and returns
+// each value's code and length in one word, code | length << 24. A table of one value gives
+// it no bits at all.
+std::array<std::uint32_t, kAlphabet> WriteCodeTable(const std::uint32_t* counts, ByteWriter* w) {
+  int largest = kAlphabet - 1;
+  while (largest > 0 && counts[largest] == 0) --largest;
+  std::vector<int> lengths = HuffmanCodeLengths(counts, kAlphabet, kHuffmanMaxBits);
+  int distinct = 0;
+  for (int v = 0; v < kAlphabet; ++v) distinct += counts[v] > 0;
+  if (distinct <= 1) std::fill(lengths.begin(), lengths.end(), 0);
+  w->PutU8(static_cast<std::uint8_t>(largest));
+  for (int v = 0; v <= largest; v += 2) {
+    const int high = v + 1 <= largest ? lengths[v + 1] : 0;
+    w->PutU8(static_cast<std::uint8_t>(lengths[v] | (high << 4)));
+  }
+  const std::array<std::uint32_t, kAlphabet> codes = CanonicalCodes(lengths);
+  std::array<std::uint32_t, kAlphabet> packed{};
+  for (int v = 0; v < kAlphabet; ++v) {
+    packed[v] = codes[v] | (static_cast<std::uint32_t>(lengths[v]) << 24);
+  }
+  return packed;
+}
+
+// One stream of `count` symbols, `code_of(i)` the packed code of the i-th, written least
+// significant bit first through a 64-bit accumulator.
+template <typename CodeOf>
+std::vector<std::uint8_t> PackStream(std::size_t count, const CodeOf& code_of) {
+  std::vector<std::uint8_t> bytes(count * kHuffmanMaxBits / 8 + 16);
+  std::uint8_t* p = bytes.data();
+  std::size_t pos = 0;
+  std::uint64_t acc = 0;
+  int bits = 0;
+  for (std::size_t i = 0; i < count; ++i) {
+    const std::uint32_t c = code_of(i);
+    acc |= static_cast<std::uint64_t>(c & 0xFFFFFF) << bits;
+    bits += static_cast<int>(c >> 24);
+    std::memcpy(p + pos, &acc, 8);
+    pos += static_cast<std::size_t>(bits >> 3);
+    acc >>= bits & ~7;
+    bits &= 7;
+  }
+  if (bits > 0) p[pos++] = static_cast<std::uint8_t>(acc);
+  bytes.resize(pos);
+  return bytes;
+}
+
+// The sizes of all streams but the last, then the streams.
+void WriteStreams(const std::array<std::vector<std::uint8_t>, kStreams>& streams, ByteWriter* w) {
+  for (int k = 0; k + 1 < kStreams; ++k) w->PutVarint(streams[k].size());
+  for (const auto& stream : streams) w->PutBytes(stream.data(), stream.size());
+}
+
+}  // namespace
+
 void HuffmanEncode(std::span<const std::uint8_t> in, std::vector<std::uint8_t>* out) {
   ByteWriter w;
   w.PutVarint(in.size());
@@ -125,50 +181,16 @@ void HuffmanEncode(std::span<const std::uint8_t> in, std::vector<std::uint8_t>* 
   }
   std::array<std::uint32_t, kAlphabet> counts{};
   for (std::uint8_t b : in) ++counts[b];
-  int largest = kAlphabet - 1;
-  while (counts[largest] == 0) --largest;
-  std::vector<int> lengths = HuffmanCodeLengths(counts.data(), kAlphabet, kHuffmanMaxBits);
-  int distinct = 0;
-  for (std::uint32_t c : counts) distinct += c > 0;
-  if (distinct == 1) lengths[largest] = 0;  // one value: no bits at all
-  w.PutU8(static_cast<std::uint8_t>(largest));
-  for (int s = 0; s <= largest; s += 2) {
-    const int high = s + 1 <= largest ? lengths[s + 1] : 0;
-    w.PutU8(static_cast<std::uint8_t>(lengths[s] | (high << 4)));
-  }
-  const std::array<std::uint32_t, kAlphabet> codes = CanonicalCodes(lengths);
-  // Code and length per value in one word: code | length << 24.
-  std::array<std::uint32_t, kAlphabet> packed{};
-  for (int s = 0; s < kAlphabet; ++s) {
-    packed[s] = codes[s] | (static_cast<std::uint32_t>(lengths[s]) << 24);
-  }
-
+  const std::array<std::uint32_t, kAlphabet> packed = WriteCodeTable(counts.data(), &w);
   const std::array<std::size_t, kStreams> sizes = Quarters(in.size());
   std::array<std::vector<std::uint8_t>, kStreams> streams;
   std::size_t begin = 0;
   for (int k = 0; k < kStreams; ++k) {
-    std::vector<std::uint8_t>& bytes = streams[k];
-    bytes.resize(sizes[k] * kHuffmanMaxBits / 8 + 16);
-    std::uint8_t* p = bytes.data();
-    std::size_t pos = 0;
-    std::uint64_t acc = 0;
-    int count = 0;
     const std::uint8_t* src = in.data() + begin;
-    for (std::size_t i = 0; i < sizes[k]; ++i) {
-      const std::uint32_t c = packed[src[i]];
-      acc |= static_cast<std::uint64_t>(c & 0xFFFFFF) << count;
-      count += static_cast<int>(c >> 24);
-      std::memcpy(p + pos, &acc, 8);
-      pos += static_cast<std::size_t>(count >> 3);
-      acc >>= count & ~7;
-      count &= 7;
-    }
-    if (count > 0) p[pos++] = static_cast<std::uint8_t>(acc);
-    bytes.resize(pos);
+    streams[k] = PackStream(sizes[k], [&](std::size_t i) { return packed[src[i]]; });
     begin += sizes[k];
   }
-  for (int k = 0; k + 1 < kStreams; ++k) w.PutVarint(streams[k].size());
-  for (const auto& s : streams) w.PutBytes(s.data(), s.size());
+  WriteStreams(streams, &w);
   out->insert(out->end(), w.data(), w.data() + w.size());
 }
 
@@ -391,48 +413,20 @@ void HuffmanEncodeImage(std::span<const std::uint8_t> in, int width, int height,
   // code | length << 24 per (context, value)
   std::vector<std::uint32_t> packed(kContexts * kAlphabet, 0);
   for (int c = 0; c < kContexts; ++c) {
-    const std::uint32_t* cc = &counts[c * kAlphabet];
-    int largest = kAlphabet - 1;
-    while (largest > 0 && cc[largest] == 0) --largest;
-    std::vector<int> lengths = HuffmanCodeLengths(cc, kAlphabet, kHuffmanMaxBits);
-    int distinct = 0;
-    for (int v = 0; v < kAlphabet; ++v) distinct += cc[v] > 0;
-    if (distinct <= 1) std::fill(lengths.begin(), lengths.end(), 0);
-    w.PutU8(static_cast<std::uint8_t>(largest));
-    for (int v = 0; v <= largest; v += 2) {
-      const int high = v + 1 <= largest ? lengths[v + 1] : 0;
-      w.PutU8(static_cast<std::uint8_t>(lengths[v] | (high << 4)));
-    }
-    const std::array<std::uint32_t, kAlphabet> codes = CanonicalCodes(lengths);
-    for (int v = 0; v < kAlphabet; ++v) {
-      packed[c * kAlphabet + v] = codes[v] | (static_cast<std::uint32_t>(lengths[v]) << 24);
-    }
+    const std::array<std::uint32_t, kAlphabet> table = WriteCodeTable(&counts[c * kAlphabet], &w);
+    std::copy(table.begin(), table.end(), packed.begin() + c * kAlphabet);
   }
   std::array<std::vector<std::uint8_t>, kStreams> streams;
   std::size_t begin = 0;
   for (int k = 0; k < kStreams; ++k) {
     const std::size_t count = static_cast<std::size_t>(bands[k]) * width;
-    std::vector<std::uint8_t>& bytes = streams[k];
-    bytes.resize(count * kHuffmanMaxBits / 8 + 16);
-    std::uint8_t* p = bytes.data();
-    std::size_t pos = 0;
-    std::uint64_t acc = 0;
-    int bits = 0;
-    for (std::size_t i = begin; i < begin + count; ++i) {
-      const std::uint32_t c = packed[contexts[i] * kAlphabet + in[i]];
-      acc |= static_cast<std::uint64_t>(c & 0xFFFFFF) << bits;
-      bits += static_cast<int>(c >> 24);
-      std::memcpy(p + pos, &acc, 8);
-      pos += static_cast<std::size_t>(bits >> 3);
-      acc >>= bits & ~7;
-      bits &= 7;
-    }
-    if (bits > 0) p[pos++] = static_cast<std::uint8_t>(acc);
-    bytes.resize(pos);
+    const std::uint8_t* ctx = contexts.data() + begin;
+    const std::uint8_t* src = in.data() + begin;
+    streams[k] =
+        PackStream(count, [&](std::size_t i) { return packed[ctx[i] * kAlphabet + src[i]]; });
     begin += count;
   }
-  for (int k = 0; k + 1 < kStreams; ++k) w.PutVarint(streams[k].size());
-  for (const auto& s : streams) w.PutBytes(s.data(), s.size());
+  WriteStreams(streams, &w);
   out->insert(out->end(), w.data(), w.data() + w.size());
 }
 
