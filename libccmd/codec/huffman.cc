@@ -205,6 +205,17 @@ struct Reader {
   int count;
 };
 
+// Every stream must end where its symbols did (within its last byte).
+Status CheckStreamsUsed(const std::array<Reader, kStreams>& readers) {
+  for (const Reader& rd : readers) {
+    const std::uint64_t used = 8 * static_cast<std::uint64_t>(rd.pos) - rd.count;
+    if (used > 8 * static_cast<std::uint64_t>(rd.size) || (used + 7) / 8 != rd.size) {
+      return Corrupt("Huffman stream length does not match its symbols");
+    }
+  }
+  return Status::Ok();
+}
+
 // The streams that follow the sizes of all but the last (which takes the rest of the input),
 // copied into `padded` with 8 zero bytes after each, so refills may load 8 bytes at a clamped
 // position.
@@ -335,12 +346,7 @@ Status HuffmanDecode(std::span<const std::uint8_t> in, std::size_t max_output,
       if (i < sizes[k]) decode_one(readers[k], dst[k] + i);
     }
   }
-  for (const Reader& rd : readers) {
-    const std::uint64_t used = 8 * static_cast<std::uint64_t>(rd.pos) - rd.count;
-    if (used > 8 * static_cast<std::uint64_t>(rd.size) || (used + 7) / 8 != rd.size) {
-      return Corrupt("Huffman stream length does not match its symbols");
-    }
-  }
+  CCMD_RETURN_IF_ERROR(CheckStreamsUsed(readers));
   if (consumed) *consumed = r.position();
   return Status::Ok();
 }
@@ -542,12 +548,7 @@ Status HuffmanDecodeImage(std::span<const std::uint8_t> in, int width, int heigh
       }
     }
   }
-  for (const Reader& rd : readers) {
-    const std::uint64_t used = 8 * static_cast<std::uint64_t>(rd.pos) - rd.count;
-    if (used > 8 * static_cast<std::uint64_t>(rd.size) || (used + 7) / 8 != rd.size) {
-      return Corrupt("Huffman stream length does not match its symbols");
-    }
-  }
+  CCMD_RETURN_IF_ERROR(CheckStreamsUsed(readers));
   if (consumed) *consumed = r.position();
   return Status::Ok();
 }
