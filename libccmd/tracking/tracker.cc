@@ -131,11 +131,12 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
   return result;
 }
 
-void Tracker::AddMapPoint(TrackingFrame* frame, Keyframe* keyframe, int i) {
+void Tracker::AddMapPoint(TrackingFrame* frame, Keyframe* keyframe, const Pose& T_world_cam,
+                          int i) {
   const cv::Point2f& pt = frame->features.keypoints[i].pt;
   auto point = std::make_shared<MapPoint>(
       map_->NextMapPointId(),
-      keyframe->T_world_cam() * camera_.BackProject(pt.x, pt.y, frame->features.depth[i]));
+      T_world_cam * camera_.BackProject(pt.x, pt.y, frame->features.depth[i]));
   map_->AddMapPoint(point);
   map_->AddObservation(point, keyframe, i);
   point->UpdateDescriptor();
@@ -177,7 +178,7 @@ bool Tracker::Initialize(TrackingFrame* frame, const Pose& T_world_cam, bool res
   last_tracked_timestamp_ = frame->timestamp;
   map_->AddKeyframe(keyframe);
   for (int i = 0; i < frame->size(); ++i) {
-    if (frame->features.depth[i] > 0) AddMapPoint(frame, keyframe.get(), i);
+    if (frame->features.depth[i] > 0) AddMapPoint(frame, keyframe.get(), T_world_cam, i);
   }
   CCMD_LOG(INFO) << (restart ? "map segment" : "map") << " initialised with "
                  << keyframe->TrackedPoints(1) << " points at frame " << frame->index;
@@ -462,9 +463,10 @@ void Tracker::CreateKeyframe() {
     if (current_->features.depth[i] > 0) by_depth.emplace_back(current_->features.depth[i], i);
   }
   std::sort(by_depth.begin(), by_depth.end());
+  const Pose T_world_cam = keyframe->T_world_cam();
   int considered = 0;
   for (const auto& [z, i] : by_depth) {
-    if (!keyframe->point(i)) AddMapPoint(current_.get(), keyframe.get(), i);
+    if (!keyframe->point(i)) AddMapPoint(current_.get(), keyframe.get(), T_world_cam, i);
     // Far points only while fewer than 100 points have been considered in all.
     if (++considered > 100 && z > camera_.far_depth_m) break;
   }

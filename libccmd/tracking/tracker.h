@@ -88,8 +88,8 @@ class Tracker {
   // frame, placed at `T_world_cam`.
   bool Initialize(TrackingFrame* frame, const Pose& T_world_cam, bool restart);
   // A new map point from keypoint i of `frame` (which has depth), observed by `keyframe` made
-  // from that frame, and matched to the keypoint.
-  void AddMapPoint(TrackingFrame* frame, Keyframe* keyframe, int i);
+  // from that frame (at `T_world_cam`), and matched to the keypoint.
+  void AddMapPoint(TrackingFrame* frame, Keyframe* keyframe, const Pose& T_world_cam, int i);
   // Lost, with no relocalisation for options.relocalisation_seconds, or in a segment too
   // young to relocalise against: the next frame with enough features starts a new segment.
   bool RestartDue() const;

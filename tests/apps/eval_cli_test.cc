@@ -17,6 +17,17 @@ namespace {
 using testing::ProgramPath;
 using testing::RunCommand;
 
+// Runs `ccmd_eval recon ARGS` on the folder's ref.ply and rec.ply: the JSON it wrote, or the
+// error (with the program's output) when it failed.
+StatusOr<Json> RunRecon(const testing::TempDir& dir, const std::string& args, std::string* out) {
+  const int status =
+      RunCommand(ProgramPath("ccmd_eval") + " recon " + args + " --ref " + dir.File("ref.ply") +
+                     " --rec " + dir.File("rec.ply") + " --json " + dir.File("r.json"),
+                 out);
+  if (status != 0) return Internal("ccmd_eval recon exited with " + std::to_string(status));
+  return ReadJsonFile(dir.File("r.json"));
+}
+
 TEST(EvalCliTest, SplitPrintsFirstLastPerSegment) {
   std::string out;
   ASSERT_EQ(RunCommand(ProgramPath("ccmd_eval") + " split --frames 600 --agents 3", &out), 0)
@@ -109,13 +120,8 @@ TEST(EvalCliTest, ReconWritesMeanAndHausdorff) {
   ASSERT_TRUE(WritePly(ref, dir.File("ref.ply")).ok());
   ASSERT_TRUE(WritePly(rec, dir.File("rec.ply")).ok());
   std::string out;
-  ASSERT_EQ(RunCommand(ProgramPath("ccmd_eval") + " recon --ref " + dir.File("ref.ply") +
-                           " --rec " + dir.File("rec.ply") + " --json " + dir.File("r.json"),
-                       &out),
-            0)
-      << out;
-  auto json = ReadJsonFile(dir.File("r.json"));
-  ASSERT_TRUE(json.ok());
+  const auto json = RunRecon(dir, "", &out);
+  ASSERT_TRUE(json.ok()) << json.status().ToString() << "\n" << out;
   EXPECT_NEAR(json->Get("mean_m")->number(), 0.003, 1e-6);
   EXPECT_NEAR(json->Get("hausdorff_m")->number(), 0.003, 1e-6);
 }
@@ -136,13 +142,8 @@ TEST(EvalCliTest, ReconTakesAMeshAsItsSurface) {
   }
   ASSERT_TRUE(WritePly(rec, dir.File("rec.ply")).ok());
   std::string out;
-  ASSERT_EQ(RunCommand(ProgramPath("ccmd_eval") + " recon --ref " + dir.File("ref.ply") +
-                           " --rec " + dir.File("rec.ply") + " --json " + dir.File("r.json"),
-                       &out),
-            0)
-      << out;
-  auto json = ReadJsonFile(dir.File("r.json"));
-  ASSERT_TRUE(json.ok());
+  const auto json = RunRecon(dir, "", &out);
+  ASSERT_TRUE(json.ok()) << json.status().ToString() << "\n" << out;
   EXPECT_NEAR(json->Get("mean_m")->number(), 0.003, 1e-4) << out;
   EXPECT_GT(json->Get("reference_points")->number(), 10000);  // sampled every 5 mm
 }
@@ -175,15 +176,11 @@ TEST(EvalCliTest, ReconAlignsTheMapByTheTrajectorysWholePoses) {
   ASSERT_TRUE(WritePly(ref, dir.File("ref.ply")).ok());
   ASSERT_TRUE(WritePly(rec, dir.File("rec.ply")).ok());
   std::string out;
-  ASSERT_EQ(
-      RunCommand(ProgramPath("ccmd_eval") + " recon --point-to-point --ref " + dir.File("ref.ply") +
-                     " --rec " + dir.File("rec.ply") + " --gt-traj " + dir.File("gt.txt") +
-                     " --est-traj " + dir.File("est.txt") + " --json " + dir.File("r.json"),
-                 &out),
-      0)
-      << out;
-  auto json = ReadJsonFile(dir.File("r.json"));
-  ASSERT_TRUE(json.ok());
+  const auto json = RunRecon(
+      dir,
+      "--point-to-point --gt-traj " + dir.File("gt.txt") + " --est-traj " + dir.File("est.txt"),
+      &out);
+  ASSERT_TRUE(json.ok()) << json.status().ToString() << "\n" << out;
   EXPECT_LT(json->Get("mean_m")->number(), 0.001) << out;
 }
 
