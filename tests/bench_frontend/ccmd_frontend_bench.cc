@@ -315,11 +315,15 @@ int main(int argc, char** argv) {
         raw_options.register_depth = false;
         auto raw_source = OpenSource(source_spec, raw_options);
         if (raw_source.ok()) {
+          // The same frames in the same order as the run above (--first, --step, --reverse).
+          frames.clear();  // memory: one copy of the sequence at a time
           std::vector<RgbdFrame> raw_frames;
           RgbdFrame f;
-          while (raw_frames.size() < frames.size() && (*raw_source)->Read(&f).ok())
+          const int needed = order.FramesNeeded();
+          while ((needed == 0 || static_cast<int>(raw_frames.size()) < needed) &&
+                 (*raw_source)->Read(&f).ok())
             raw_frames.push_back(f);
-          frames.clear();  // memory: one copy of the sequence at a time
+          raw_frames = ReorderFrames(std::move(raw_frames), order);
           double raw_ms = 0;
           const Trajectory raw =
               RgbdOdometryTrajectory(raw_frames, (*registration)->depth, &raw_ms);
