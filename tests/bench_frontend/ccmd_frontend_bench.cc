@@ -96,6 +96,17 @@ std::vector<RgbdFrame> ReorderFrames(std::vector<RgbdFrame> frames, const FrameO
   return out;
 }
 
+// Reads the frames `order` selects from `source`, in that order.
+std::vector<RgbdFrame> ReadFrames(RgbdSource& source, const FrameOrder& order) {
+  std::vector<RgbdFrame> frames;
+  RgbdFrame frame;
+  const int needed = order.FramesNeeded();
+  while ((needed == 0 || static_cast<int>(frames.size()) < needed) && source.Read(&frame).ok()) {
+    frames.push_back(frame);
+  }
+  return ReorderFrames(std::move(frames), order);
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -203,14 +214,8 @@ int main(int argc, char** argv) {
     wall = total.ElapsedSeconds();
     result["windows"] = windows;
   } else {
-    RgbdFrame frame;
     order.count = max_frames;
-    const int needed = order.FramesNeeded();
-    while ((*source)->Read(&frame).ok() &&
-           (needed == 0 || static_cast<int>(frames.size()) < needed)) {
-      frames.push_back(frame);
-    }
-    frames = ReorderFrames(std::move(frames), order);
+    frames = ReadFrames(**source, order);
     if (stage != "frontend") {
       // Alone, three alternating passes; before a whole run, one.
       const bench::ExtractionSpeed extraction =
@@ -317,13 +322,7 @@ int main(int argc, char** argv) {
         if (raw_source.ok()) {
           // The same frames in the same order as the run above (--first, --step, --reverse).
           frames.clear();  // memory: one copy of the sequence at a time
-          std::vector<RgbdFrame> raw_frames;
-          RgbdFrame f;
-          const int needed = order.FramesNeeded();
-          while ((needed == 0 || static_cast<int>(raw_frames.size()) < needed) &&
-                 (*raw_source)->Read(&f).ok())
-            raw_frames.push_back(f);
-          raw_frames = ReorderFrames(std::move(raw_frames), order);
+          const std::vector<RgbdFrame> raw_frames = ReadFrames(**raw_source, order);
           double raw_ms = 0;
           const Trajectory raw =
               RgbdOdometryTrajectory(raw_frames, (*registration)->depth, &raw_ms);
