@@ -29,6 +29,8 @@ Status TrackingOptions::Validate() const {
   if (max_frames_between_keyframes < 0) return fail("max frames between keyframes must be >= 0");
   if (!(relocalisation_seconds >= 0 && relocalisation_seconds <= 3600))
     return fail("relocalisation seconds must be in [0, 3600]");
+  if (!(triangulation_neighbours >= 0 && triangulation_neighbours <= 100))
+    return fail("triangulation neighbours must be in [0, 100] (0: off)");
   if (max_new_points_per_keyframe < 0)
     return fail("max new points per keyframe must be >= 0 (0: all)");
   if (!(keyframe_tracked_ratio > 0 && keyframe_tracked_ratio < 1))
@@ -53,6 +55,7 @@ void TrackingOptions::Describe(OptionsWriter* out) const {
   out->Add("mapping_follows_budget", mapping_follows_budget);
   out->Add("depth_alignment_neighbours", depth_alignment_neighbours);
   out->Add("depth_alignment_weight", depth_alignment_weight);
+  out->Add("triangulation_neighbours", triangulation_neighbours);
   out->Add("max_keyframes", max_keyframes);
   out->Add("cull_redundant_keyframes", cull_redundant_keyframes);
   out->Add("synchronous_mapping", synchronous_mapping);

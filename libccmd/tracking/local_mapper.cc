@@ -1,6 +1,7 @@
 #include "libccmd/tracking/local_mapper.h"
 
 #include <algorithm>
+#include <cmath>
 #include <unordered_map>
 #include <unordered_set>
 
@@ -115,6 +116,7 @@ void LocalMapper::Process(const KeyframePtr& keyframe_ptr) {
     }
     map_->UpdateConnections(keyframe);
     CullRecentPoints(*keyframe);
+    TriangulateWithNeighbours(keyframe);
     FuseWithNeighbours(keyframe);
   }
   AlignWithNeighbours(keyframe);
@@ -172,6 +174,95 @@ void LocalMapper::CullRecentPoints(const Keyframe& keyframe) {
   recent_points_ = std::move(kept);
   std::lock_guard<std::mutex> lock(stats_mutex_);
   stats_.culled_points += culled;
+}
+
+void LocalMapper::TriangulateWithNeighbours(Keyframe* keyframe) {
+  if (options_.triangulation_neighbours <= 0) return;
+  const FrameFeatures& f1 = keyframe->features();
+  const Eigen::Vector3d c1 = keyframe->camera_center();
+  const Eigen::Matrix3d R1 = keyframe->T_world_cam().linear();
+  const double baseline_rgbd = camera_.bf / camera_.fx;  // the depth sensor's virtual baseline
+  const std::vector<float>& scale = orb_->scale();
+  const float scale_ratio_margin = 1.5f * orb_->options().scale_factor;
+  // Parallax of a depth measurement: the angle the virtual stereo baseline spans at that depth.
+  const auto depth_parallax_cos = [&](float z) {
+    return z > 0 ? std::cos(2.0 * std::atan2(baseline_rgbd / 2, z)) : 2.0;
+  };
+  // Whether the point is seen where keypoint i of kf is, within the 95 % gate.
+  const auto consistent = [&](const Keyframe& kf, int i, const Eigen::Vector3d& p_world) {
+    const Eigen::Vector3d pc = kf.T_cam_world() * p_world;
+    if (pc.z() < options_.min_depth || pc.z() > options_.max_depth) return false;
+    const cv::KeyPoint& kp = kf.features().keypoints[i];
+    const Eigen::Vector2d uv = camera_.Project(pc);
+    const double eu = uv.x() - kp.pt.x, ev = uv.y() - kp.pt.y;
+    double e2 = eu * eu + ev * ev;
+    double gate = kChi2Mono;
+    if (kf.features().u_right[i] >= 0) {
+      const double er = uv.x() - camera_.bf / pc.z() - kf.features().u_right[i];
+      e2 += er * er;
+      gate = kChi2Stereo;
+    }
+    return e2 * orb_->inv_sigma2()[kp.octave] <= gate;
+  };
+  int created = 0;
+  for (Keyframe* neighbour : keyframe->BestCovisible(options_.triangulation_neighbours)) {
+    const Eigen::Vector3d c2 = neighbour->camera_center();
+    if ((c2 - c1).norm() < baseline_rgbd) continue;  // too close to add to what depth gives
+    const FrameFeatures& f2 = neighbour->features();
+    const Eigen::Matrix3d R2 = neighbour->T_world_cam().linear();
+    for (const auto& [i, j] : SearchForTriangulation(*keyframe, *neighbour, *orb_, camera_)) {
+      if (keyframe->point(i) || neighbour->point(j)) continue;
+      const cv::Point2f &u1 = f1.keypoints[i].pt, &u2 = f2.keypoints[j].pt;
+      const Eigen::Vector3d ray1 = R1 * camera_.BackProject(u1.x, u1.y, 1.0).normalized();
+      const Eigen::Vector3d ray2 = R2 * camera_.BackProject(u2.x, u2.y, 1.0).normalized();
+      const double rays_cos = ray1.dot(ray2);
+      const double depth1_cos = depth_parallax_cos(f1.depth[i]);
+      const double depth2_cos = depth_parallax_cos(f2.depth[j]);
+      // The rays' intersection where they part more than a depth measurement would, else the
+      // better measured depth; without either, too little parallax to place the point.
+      Eigen::Vector3d p;
+      if (rays_cos > 0 && rays_cos < std::min({depth1_cos, depth2_cos, 0.9998})) {
+        // Midpoint of the closest approach of the two rays.
+        const Eigen::Vector3d w = c1 - c2;
+        const double b = ray1.dot(ray2), d = ray1.dot(w), e = ray2.dot(w);
+        const double denom = 1 - b * b;
+        const double s = (b * e - d) / denom, t = (e - b * d) / denom;
+        if (s <= 0 || t <= 0) continue;
+        p = 0.5 * ((c1 + s * ray1) + (c2 + t * ray2));
+        // From the rays alone only where they place the point at least as precisely as the
+        // sensor's depth would: a parallax wider than its baseline spans at that distance.
+        if (f1.depth[i] <= 0 && f2.depth[j] <= 0 &&
+            rays_cos >= depth_parallax_cos(static_cast<float>((p - c1).norm()))) {
+          continue;
+        }
+      } else if (f1.depth[i] > 0 && depth1_cos <= depth2_cos) {
+        p = keyframe->T_world_cam() * camera_.BackProject(u1.x, u1.y, f1.depth[i]);
+      } else if (f2.depth[j] > 0) {
+        p = neighbour->T_world_cam() * camera_.BackProject(u2.x, u2.y, f2.depth[j]);
+      } else {
+        continue;
+      }
+      if (!consistent(*keyframe, i, p) || !consistent(*neighbour, j, p)) continue;
+      // Scale consistency: the distance ratio must agree with the octaves' scale ratio.
+      const float distance_ratio =
+          static_cast<float>((p - c2).norm() / std::max((p - c1).norm(), 1e-9));
+      const float octave_ratio = scale[f1.keypoints[i].octave] / scale[f2.keypoints[j].octave];
+      if (distance_ratio * scale_ratio_margin < octave_ratio ||
+          distance_ratio > octave_ratio * scale_ratio_margin) {
+        continue;
+      }
+      auto point = std::make_shared<MapPoint>(map_->NextMapPointId(), p);
+      map_->AddMapPoint(point);
+      map_->AddObservation(point, keyframe, i);
+      map_->AddObservation(point, neighbour, j);
+      point->UpdateDescriptor();
+      point->UpdateNormalAndDepth(*orb_);
+      recent_points_.push_back(point);
+      ++created;
+    }
+  }
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  stats_.triangulated_points += created;
 }
 
 void LocalMapper::FuseWithNeighbours(Keyframe* keyframe) {

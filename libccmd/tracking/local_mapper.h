@@ -42,6 +42,7 @@ struct MappingStats {
   int evicted_keyframes = 0;
   int culled_points = 0;
   int fused_points = 0;
+  int triangulated_points = 0;
   int pose_updates = 0;
   int depth_alignments = 0;         // accepted keyframe-to-keyframe depth alignments
   int depth_alignments_failed = 0;  // tried and rejected
@@ -82,6 +83,10 @@ class LocalMapper : public MappingQueue {
   void Run();
   void Process(const KeyframePtr& keyframe);
   void CullRecentPoints(const Keyframe& keyframe);
+  // New points from keypoints without depth (or whose partner has none), matched along the
+  // epipolar lines of the best covisible keyframes and triangulated (ORB-SLAM's
+  // CreateNewMapPoints).
+  void TriangulateWithNeighbours(Keyframe* keyframe);
   void FuseWithNeighbours(Keyframe* keyframe);
   // Aligns the keyframe's depth with its best covisible neighbours' (depth_edges_).
   void AlignWithNeighbours(Keyframe* keyframe);

@@ -265,4 +265,64 @@ CCMD_POPCNT_CLONES int FusePoints(LocalMap* map, Keyframe* keyframe,
   return fused;
 }
 
+CCMD_POPCNT_CLONES std::vector<std::pair<int, int>> SearchForTriangulation(
+    const Keyframe& a, const Keyframe& b, const OrbExtractor& orb, const PinholeCamera& camera,
+    float ratio) {
+  // Fundamental matrix from a's pixels to b's: F = K^-T [t]x R K^-1, with X_b = R X_a + t.
+  const Pose T_b_a = b.T_cam_world() * a.T_world_cam();
+  const Eigen::Vector3d& t = T_b_a.translation();
+  Eigen::Matrix3d t_cross;
+  t_cross << 0, -t.z(), t.y(), t.z(), 0, -t.x(), -t.y(), t.x(), 0;
+  const Eigen::Matrix3d K_inv = camera.K().inverse();
+  const Eigen::Matrix3d F = K_inv.transpose() * t_cross * T_b_a.linear() * K_inv;
+
+  const FrameFeatures& fa = a.features();
+  const FrameFeatures& fb = b.features();
+  std::vector<int> candidates_b;
+  for (int j = 0; j < fb.size(); ++j) {
+    if (!b.point(j)) candidates_b.push_back(j);
+  }
+  // Best claim on each keypoint of b: (distance, keypoint of a).
+  std::vector<std::pair<int, int>> claim(fb.size(), {std::numeric_limits<int>::max(), -1});
+  for (int i = 0; i < fa.size(); ++i) {
+    if (a.point(i)) continue;
+    const cv::Point2f& pa = fa.keypoints[i].pt;
+    const Eigen::Vector3d line = F * Eigen::Vector3d(pa.x, pa.y, 1.0);
+    const double norm2 = line.x() * line.x() + line.y() * line.y();
+    if (norm2 <= 0) continue;
+    const uchar* da = fa.descriptors.ptr<uchar>(i);
+    Candidate c;
+    for (int j : candidates_b) {
+      if (fa.depth[i] > 0 && fb.depth[j] > 0) continue;
+      const cv::KeyPoint& kb = fb.keypoints[j];
+      const double e = line.x() * kb.pt.x + line.y() * kb.pt.y + line.z();
+      if (e * e > 3.84 * orb.sigma2()[kb.octave] * norm2) continue;
+      const int d = HammingDistance(da, fb.descriptors.ptr<uchar>(j));
+      if (d < c.distance) {
+        c.second = c.distance;
+        c.distance = d;
+        c.index = j;
+      } else if (d < c.second) {
+        c.second = d;
+      }
+    }
+    if (c.index < 0 || c.distance > kMatchLow || c.distance > ratio * c.second) continue;
+    if (c.distance < claim[c.index].first) claim[c.index] = {c.distance, i};
+  }
+  std::vector<std::pair<int, int>> pairs;
+  std::vector<float> rotations;
+  for (int j = 0; j < fb.size(); ++j) {
+    if (claim[j].second < 0) continue;
+    pairs.emplace_back(claim[j].second, j);
+    rotations.push_back(fa.keypoints[claim[j].second].angle - fb.keypoints[j].angle);
+  }
+  std::vector<bool> drop(pairs.size(), false);
+  for (int k : RotationOutliers(rotations)) drop[k] = true;
+  std::vector<std::pair<int, int>> kept;
+  for (std::size_t k = 0; k < pairs.size(); ++k) {
+    if (!drop[k]) kept.push_back(pairs[k]);
+  }
+  return kept;
+}
+
 }  // namespace ccmd

@@ -5,6 +5,7 @@
 // pass a threshold and a ratio test, and matches whose orientation change disagrees with the
 // dominant rotation are dropped.
 
+#include <utility>
 #include <vector>
 
 #include "libccmd/geometry/camera.h"
@@ -36,6 +37,16 @@ int SearchByDescriptor(TrackingFrame* current, const Keyframe& keyframe, float r
 // Returns the number of fused or added observations.
 int FusePoints(LocalMap* map, Keyframe* keyframe, const std::vector<MapPointPtr>& points,
                const OrbExtractor& orb, const PinholeCamera& camera, float radius = 3.0f);
+
+// Pairs of keypoints in two keyframes that neither links to a map point and at least one has
+// no depth for, that show the same point: descriptor distance within kMatchLow and below
+// `ratio` times the next candidate's, the keypoint in `b` within the 95 % gate of the epipolar
+// line of the one in `a`, one keypoint of `b` per pair, rotations consistent with the dominant
+// one. Returns (keypoint in a, keypoint in b) pairs, for triangulation.
+std::vector<std::pair<int, int>> SearchForTriangulation(const Keyframe& a, const Keyframe& b,
+                                                        const OrbExtractor& orb,
+                                                        const PinholeCamera& camera,
+                                                        float ratio = 0.6f);
 
 // Keeps the matches whose rotation (angle difference) falls in the three most populated
 // histogram bins. `rotations[i]` in degrees; returns the indices to drop.

@@ -69,6 +69,11 @@ struct TrackingOptions {
   // information times `depth_alignment_weight` (0 turns it off).
   int depth_alignment_neighbours = 3;
   double depth_alignment_weight = 0.1;
+  // Keypoints without a map point and without depth at one end are matched with this many
+  // best covisible keyframes along epipolar lines and triangulated into new points (ORB-SLAM's
+  // CreateNewMapPoints; 0: off). Off by default: it gains on exact depth and loses on
+  // Kinect v1 data (docs/benchmarks/frontend.md#points-without-depth-triangulated).
+  int triangulation_neighbours = 0;
   // Bounded local map: keyframes beyond this many (oldest first, outside the current local
   // window) are dropped from the agent's memory, so memory and CPU stay flat.
   int max_keyframes = 60;
