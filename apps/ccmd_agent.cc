@@ -73,6 +73,9 @@ ccmd::Json StatsJson(const ccmd::FrontendStats& s, double wall_seconds,
   j["culled_keyframes"] = m.culled_keyframes;
   j["evicted_keyframes"] = m.evicted_keyframes;
   j["pose_updates"] = m.pose_updates;
+  j["triangulated_points"] = m.triangulated_points;
+  j["culled_points"] = m.culled_points;
+  j["fused_points"] = m.fused_points;
   j["depth_alignments"] = m.depth_alignments;
   j["depth_alignments_failed"] = m.depth_alignments_failed;
   j["depth_alignment_ms_mean"] = m.keyframes ? m.depth_alignment_ms_total / m.keyframes : 0.0;

@@ -274,7 +274,13 @@ int main(int argc, char** argv) {
   result["depth_alignment_ms_mean"] =
       stats.mapping.keyframes ? stats.mapping.depth_alignment_ms_total / stats.mapping.keyframes
                               : 0.0;
+  result["triangulated_points"] = stats.mapping.triangulated_points;
+  result["local_ba_runs"] = stats.mapping.local_ba_runs;
+  result["local_ba_iterations"] = stats.mapping.local_ba_iterations;
+  result["culled_points"] = stats.mapping.culled_points;
   bench::ReportStages(stats, &result);
+  std::printf("  points: %d triangulated without depth, %d new points culled\n",
+              stats.mapping.triangulated_points, stats.mapping.culled_points);
   std::printf("  depth alignment: %d accepted, %d rejected, %.1f ms per keyframe\n",
               stats.mapping.depth_alignments, stats.mapping.depth_alignments_failed,
               result["depth_alignment_ms_mean"].number());
