@@ -192,17 +192,8 @@ void LocalMapper::TriangulateWithNeighbours(Keyframe* keyframe) {
   const auto consistent = [&](const Keyframe& kf, int i, const Eigen::Vector3d& p_world) {
     const Eigen::Vector3d pc = kf.T_cam_world() * p_world;
     if (pc.z() < options_.min_depth || pc.z() > options_.max_depth) return false;
-    const cv::KeyPoint& kp = kf.features().keypoints[i];
     const Eigen::Vector2d uv = camera_.Project(pc);
-    const double eu = uv.x() - kp.pt.x, ev = uv.y() - kp.pt.y;
-    double e2 = eu * eu + ev * ev;
-    double gate = kChi2Mono;
-    if (kf.features().u_right[i] >= 0) {
-      const double er = uv.x() - camera_.bf / pc.z() - kf.features().u_right[i];
-      e2 += er * er;
-      gate = kChi2Stereo;
-    }
-    return e2 * orb_->inv_sigma2()[kp.octave] <= gate;
+    return WithinReprojectionGate(kf.features(), i, uv, uv.x() - camera_.bf / pc.z(), *orb_);
   };
   int created = 0;
   for (Keyframe* neighbour : keyframe->BestCovisible(options_.triangulation_neighbours)) {

@@ -205,6 +205,20 @@ CCMD_POPCNT_CLONES int SearchByDescriptor(TrackingFrame* current, const Keyframe
   return matches;
 }
 
+bool WithinReprojectionGate(const FrameFeatures& features, int i, const Eigen::Vector2d& uv,
+                            double u_right_predicted, const OrbExtractor& orb) {
+  const cv::KeyPoint& kp = features.keypoints[i];
+  const double eu = uv.x() - kp.pt.x, ev = uv.y() - kp.pt.y;
+  double e2 = eu * eu + ev * ev;
+  double gate = kChi2Mono;
+  if (features.u_right[i] >= 0) {
+    const double er = u_right_predicted - features.u_right[i];
+    e2 += er * er;
+    gate = kChi2Stereo;
+  }
+  return e2 * orb.inv_sigma2()[kp.octave] <= gate;
+}
+
 CCMD_POPCNT_CLONES int FusePoints(LocalMap* map, Keyframe* keyframe,
                                   const std::vector<MapPointPtr>& points, const OrbExtractor& orb,
                                   const PinholeCamera& camera, float radius) {
@@ -230,16 +244,7 @@ CCMD_POPCNT_CLONES int FusePoints(LocalMap* map, Keyframe* keyframe,
     for (int j : area) {
       const cv::KeyPoint& kp = keyframe->features().keypoints[j];
       if (kp.octave < level - 1 || kp.octave > level) continue;
-      // Reprojection error gate at 95% (chi-square with 2 or 3 dof).
-      const double eu = uv.x() - kp.pt.x, ev = uv.y() - kp.pt.y;
-      double e2 = eu * eu + ev * ev;
-      double gate = kChi2Mono;
-      if (keyframe->features().u_right[j] >= 0) {
-        const double er = u_right_predicted - keyframe->features().u_right[j];
-        e2 += er * er;
-        gate = kChi2Stereo;
-      }
-      if (e2 * orb.inv_sigma2()[kp.octave] > gate) continue;
+      if (!WithinReprojectionGate(keyframe->features(), j, uv, u_right_predicted, orb)) continue;
       const int d = HammingDistance(point->descriptor().data(),
                                     keyframe->features().descriptors.ptr<uchar>(j));
       if (d < best) {

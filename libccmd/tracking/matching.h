@@ -38,6 +38,12 @@ int SearchByDescriptor(TrackingFrame* current, const Keyframe& keyframe, float r
 int FusePoints(LocalMap* map, Keyframe* keyframe, const std::vector<MapPointPtr>& points,
                const OrbExtractor& orb, const PinholeCamera& camera, float radius = 3.0f);
 
+// Whether keypoint i lies where a point predicted at pixel `uv`, with virtual right coordinate
+// `u_right_predicted`, would be seen: the reprojection error, in its octave's sigmas, within
+// the 95 % chi-square gate (2 dof, or 3 where the keypoint has depth).
+bool WithinReprojectionGate(const FrameFeatures& features, int i, const Eigen::Vector2d& uv,
+                            double u_right_predicted, const OrbExtractor& orb);
+
 // Pairs of keypoints in two keyframes that neither links to a map point and at least one has
 // no depth for, that show the same point: descriptor distance within kMatchLow and below
 // `ratio` times the next candidate's, the keypoint in `b` within the 95 % gate of the epipolar
