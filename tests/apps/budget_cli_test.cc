@@ -50,12 +50,14 @@ TEST(BudgetCliTest, AgentUnderABudgetStaysWithinItAndSendsEveryKeyframe) {
       port = line->substr(line->find_last_of(':') + 1);
   }
   server->DrainStdoutTo(dir.File("server.out"));
-  // 30 kB/s is below what the synthetic room's keyframes need (their geometry alone is more
-  // at 30 frames a second): the agent must adapt and its link must pace.
+  // 10 kB/s is below what the synthetic room's keyframes need (their geometry alone is more
+  // than that unless the tracker runs at a third of the camera's rate or slower; the first
+  // keyframe, with RGB-D, is 40 kB): the agent must adapt and its link must pace. At 30 kB/s
+  // a loaded machine tracked so slowly that the geometry fitted and nothing needed thinning.
   std::string out;
   ASSERT_EQ(RunCommand(ProgramPath("ccmd_agent") +
-                           " --source synth:frames=60,seed=3 --rate realtime --server 127.0.0.1:" +
-                           port + " --name budgeted --bandwidth-budget 30 --spill-dir " +
+                           " --source synth:frames=50,seed=3 --rate realtime --server 127.0.0.1:" +
+                           port + " --name budgeted --bandwidth-budget 10 --spill-dir " +
                            dir.File("spill") + " --stats " + dir.File("agent.json"),
                        &out),
             0)
@@ -68,17 +70,32 @@ TEST(BudgetCliTest, AgentUnderABudgetStaysWithinItAndSendsEveryKeyframe) {
   const Json* traffic = ServerAgent(*stats, "budgeted");
   ASSERT_NE(traffic, nullptr);
   const double keyframes_sent = agent->Get("link")->Get("keyframes_sent")->number();
-  EXPECT_GT(keyframes_sent, 3);
+  EXPECT_GE(keyframes_sent, 3);
   // Geometry is never dropped: every keyframe reached the server.
   EXPECT_EQ(traffic->Get("messages")->Get("keyframe")->Get("count")->number(), keyframes_sent);
-  EXPECT_LE(ServerSideRate(*traffic), 1.1 * 30e3);
+  EXPECT_LE(ServerSideRate(*traffic), 1.1 * 10e3);
   // The budget's decisions, one per keyframe.
   const Json* budget = agent->Get("link")->Get("budget");
   ASSERT_NE(budget, nullptr);
   EXPECT_EQ(budget->Get("decisions")->size(), static_cast<std::size_t>(keyframes_sent));
-  EXPECT_EQ(budget->Get("budget_kBps")->number(), 30);
-  // The geometry alone is more than 30 kB/s at the tracker's own keyframe density: the
-  // tracker made keyframes at the thinner densities the budget asked for.
+  EXPECT_EQ(budget->Get("budget_kBps")->number(), 10);
+  // The geometry alone is more than the budget at the tracker's own keyframe density: the
+  // tracker made keyframes at the thinner densities the budget asked for. That holds only if
+  // the keyframes came faster than the budget carries their geometry, seen between the first
+  // two (the density can change only after the second); on a machine so loaded that they did
+  // not, there was nothing to thin.
+  const Json* decisions = budget->Get("decisions");
+  ASSERT_GE(decisions->size(), 2u);
+  const Json& second = decisions->at(1);
+  const double first_interval_s = second.Get("t")->number();
+  if (second.Get("bytes")->number() - second.Get("rgbd_bytes")->number() <=
+      10e3 * first_interval_s) {
+    std::printf(
+        "notice: the second keyframe came %.2f s after the first, its geometry fitted "
+        "in the budget; the thinning is not checked on this run\n",
+        first_interval_s);
+    return;
+  }
   const Json* densities = budget->Get("keyframes_per_density");
   ASSERT_NE(densities, nullptr);
   double thinned = 0;
