@@ -44,7 +44,8 @@ struct SeamOptions {
   double merge_depth_m = 0.02;   // ... and after the refinement (plus 3 depth sigmas)
   int max_hamming = 50;
   int min_pairs = 20;  // 3D pairs (depth on the query side) needed to refine the transform
-  // A refinement larger than this is not trusted (the verified loop was wrong, or the matches).
+  // A refinement larger than this is not trusted on its own (the verified loop was wrong, or the
+  // matches): a fusion takes it only if the search repeated from it agrees (JoinSeam).
   double max_correction_m = 0.05;
   double max_correction_deg = 2.0;
 
@@ -189,6 +190,8 @@ struct SeamJoin {
   int searched = 0;      // matches found before the refinement
   int pair_inliers = 0;  // 3D pairs that agreed with the refinement
   bool corrected = false;
+  // The first refinement was larger than trusted and a second search from it agreed.
+  bool confirmed_by_refit = false;
   Pose correction = Pose::Identity();  // D (AlignSeam): the query side onto the candidate side
   double shift_m = 0;  // how far the query's camera moved relative to the other side
   int merged = 0;      // points merged or observations added after it
@@ -197,7 +200,8 @@ struct SeamJoin {
 // points (LoopVerificationOptions::window_keyframes) are searched in the query's keyframe and
 // its strongest covisible neighbours of the same agent (SeamOptions::keyframes); the transform
 // is refined on them (AlignSeam) and applied to the keyframes in `moved` (the side that
-// entered the other's frame); then they are searched again, tighter, and merged, and the
+// entered the other's frame; a refinement larger than SeamOptions::max_correction_* only if
+// the search repeated from it agrees); then they are searched again, tighter, and merged, and the
 // keyframes become covisible with the candidate side.
 SeamJoin JoinSeam(ServerMap* fused, const LoopMatch& match, const PinholeCamera& query_camera,
                   const std::vector<ServerKeyframe*>& moved, const LoopCloserOptions& options);

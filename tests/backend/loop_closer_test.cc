@@ -500,6 +500,24 @@ TEST(SeamTest, AFusionRefinesThePoorlyVerifiedTransformOnTheSeamAndTiesBothSides
   EXPECT_FALSE(without.fusion.seam.corrected);
 }
 
+TEST(SeamTest, ALargerRefinementIsTakenWhenASecondSearchFromItAgrees) {
+  // 6 cm off (more than SeamOptions::max_correction_m, within the search's reach):
+  // the first fit is not trusted on its own; searched again from it, the seam is found where
+  // the fit put it, so the map ends within a millimetre of the truth.
+  LoopCloserOptions options;
+  SeamCase c;
+  FuseWithError(Offset(0.06, 0), &options, &c);
+  EXPECT_TRUE(c.fusion.seam.corrected);
+  EXPECT_TRUE(c.fusion.seam.confirmed_by_refit);
+  EXPECT_LT(c.worst_m, 0.001);
+  EXPECT_LT(c.worst_deg, 0.03);
+  SeamCase reverse;
+  FuseWithError(Offset(0.06, 0), &options, &reverse, /*query_in_primary=*/true);
+  EXPECT_TRUE(reverse.fusion.seam.confirmed_by_refit);
+  EXPECT_LT(reverse.worst_m, 0.001);
+  EXPECT_LT(reverse.worst_deg, 0.03);
+}
+
 TEST(SeamTest, ARefinementLargerThanTrustedKeepsTheVerifiedTransform) {
   // 10 cm off (more than SeamOptions::max_correction_m): the projected points are searched
   // too far from where they are; whatever is found is not trusted to move the map.
