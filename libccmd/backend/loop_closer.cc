@@ -92,7 +92,8 @@ std::vector<PlaceHit> SelectLoopCandidates(
 // ---------------------------------------------------------------- step 2: consistency
 
 bool LoopConsistency::Confirm(const GlobalKeyframeId& query, MapId candidate_map,
-                              const Pose& T_candidate_map_query_map, int* count) {
+                              const Pose& T_candidate_map_query_map, int* count,
+                              const GlobalKeyframeId& candidate, std::vector<Pair>* earlier) {
   Pending& pending = pending_[query.agent];
   // Ids compared as unsigned: a query older than the last one (a late query) never confirms.
   const bool consistent =
@@ -104,11 +105,17 @@ bool LoopConsistency::Confirm(const GlobalKeyframeId& query, MapId candidate_map
       RotationDistance(pending.T_candidate_map_query_map, T_candidate_map_query_map) <
           options_.consistency_rotation_deg * M_PI / 180;
   pending.count = consistent ? pending.count + 1 : 1;
+  if (!consistent) pending.loops.clear();
   pending.candidate_map = candidate_map;
   pending.T_candidate_map_query_map = T_candidate_map_query_map;
   pending.last_query = query.keyframe;
   if (count) *count = pending.count;
-  if (pending.count < options_.loop_consistency) return false;
+  if (pending.count < options_.loop_consistency) {
+    pending.loops.emplace_back(query, candidate);
+    return false;
+  }
+  if (earlier) *earlier = std::move(pending.loops);
+  pending.loops.clear();
   pending.count = 0;
   return true;
 }
@@ -684,15 +691,41 @@ LoopCloser::Outcome LoopCloser::TryCandidate(const GlobalKeyframeId& id,
   if (!match) return Outcome::kNextCandidate;
 
   int count = 0;
-  const bool accepted = consistency_.Confirm(
-      id, cmap.id(), match->T_candidate_map_query * query->T_map_cam.inverse(), &count);
+  std::vector<LoopConsistency::Pair> earlier;
+  const bool accepted =
+      consistency_.Confirm(id, cmap.id(), match->T_candidate_map_query * query->T_map_cam.inverse(),
+                           &count, cand->id, &earlier);
   CCMD_LOG(INFO) << "loop candidate: agent " << id.agent.value() << " keyframe "
                  << id.keyframe.value() << " ~ agent " << cand->id.agent.value() << " keyframe "
                  << cand->id.keyframe.value() << " (" << match->inliers << " inliers, " << count
                  << "/" << options_.loop_consistency << " consistent)";
   if (!accepted) return Outcome::kDone;
   *closure = Correct(&query_guard, same_map ? nullptr : &candidate_guard, *match, camera, options);
+  if ((*closure)->event.fusion) TieEarlierLoops(earlier, camera, options, (*closure)->map.get());
   return Outcome::kClosed;
+}
+
+void LoopCloser::TieEarlierLoops(const std::vector<LoopConsistency::Pair>& loops,
+                                 const PinholeCamera& camera, const LoopCloserOptions& options,
+                                 ServerMap* fused) {
+  // The loops that confirmed a fusion may join other places than the one it was made at (an
+  // overlap, and a place the other agent came back to later): the fusion's transform and seam
+  // come from the last one only, and whatever either agent drifted between the places would
+  // stay between the maps there. Verified again in the fused map, their matches are merged
+  // too, so that the global BA that follows holds the maps together at every place.
+  for (const auto& [query_id, candidate_id] : loops) {
+    ServerKeyframe* query = fused->keyframe(query_id);
+    ServerKeyframe* candidate = fused->keyframe(candidate_id);
+    if (!query || !candidate) continue;
+    const std::optional<LoopMatch> match =
+        VerifyLoop(query, camera, candidate, *fused, options.verification);
+    if (!match) continue;
+    MergeLoopMatches(fused, *match);
+    CCMD_LOG(INFO) << "fusion also tied at agent " << query_id.agent.value() << " keyframe "
+                   << query_id.keyframe.value() << " ~ agent " << candidate_id.agent.value()
+                   << " keyframe " << candidate_id.keyframe.value() << " (" << match->inliers
+                   << " inliers)";
+  }
 }
 
 LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guard* candidate_guard,

@@ -105,10 +105,14 @@ std::vector<PlaceHit> SelectLoopCandidates(
 class LoopConsistency {
  public:
   explicit LoopConsistency(const LoopCloserOptions& options) : options_(options) {}
+  // A verified loop: its query and candidate keyframes.
+  using Pair = std::pair<GlobalKeyframeId, GlobalKeyframeId>;
   // Records a verified loop; true if it completes the rule. `count` receives how many
-  // consecutive agreeing loops there are with this one (for the log).
+  // consecutive agreeing loops there are with this one (for the log); on acceptance `earlier`
+  // receives the agreeing loops before it (`candidate` is this loop's candidate keyframe).
   bool Confirm(const GlobalKeyframeId& query, MapId candidate_map,
-               const Pose& T_candidate_map_query_map, int* count = nullptr);
+               const Pose& T_candidate_map_query_map, int* count = nullptr,
+               const GlobalKeyframeId& candidate = {}, std::vector<Pair>* earlier = nullptr);
 
  private:
   struct Pending {
@@ -116,6 +120,7 @@ class LoopConsistency {
     Pose T_candidate_map_query_map = Pose::Identity();
     KeyframeId last_query;
     int count = 0;
+    std::vector<Pair> loops;  // the agreeing loops so far
   };
   LoopCloserOptions options_;
   std::map<AgentId, Pending> pending_;
@@ -270,6 +275,10 @@ class LoopCloser {
   };
   std::optional<Query> FindCandidates(const GlobalKeyframeId& id, bool stored);
   enum class Outcome { kNextCandidate, kDone, kClosed };
+  // After a fusion: the earlier loops of its consistency group verified again in the fused
+  // map and their matches merged.
+  void TieEarlierLoops(const std::vector<LoopConsistency::Pair>& loops, const PinholeCamera& camera,
+                       const LoopCloserOptions& options, ServerMap* fused);
   // Verifies one candidate; on acceptance corrects and fills `closure`.
   // `options`: the closer's, with the query agent's depth noise.
   Outcome TryCandidate(const GlobalKeyframeId& id, const PinholeCamera& camera,

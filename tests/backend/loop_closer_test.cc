@@ -50,6 +50,29 @@ TEST(LoopConsistencyTest, TwoAgreeingKeyframesCloseALoopAndTheCountStartsAgain) 
   EXPECT_TRUE(rule.Confirm(Kf(1, 15), MapId(2), T));
 }
 
+TEST(LoopConsistencyTest, AnAcceptedLoopNamesTheAgreeingLoopsBeforeIt) {
+  // A fusion ties the maps at every place its group joined (LoopCloser::TieEarlierLoops):
+  // the rule hands over the earlier loops of the group, and only those.
+  LoopCloserOptions options;
+  options.loop_consistency = 3;
+  LoopConsistency rule{options};
+  const Pose T = Offset(0.8, 20);
+  std::vector<LoopConsistency::Pair> earlier = {{Kf(9, 9), Kf(9, 9)}};
+  EXPECT_FALSE(rule.Confirm(Kf(1, 5), MapId(2), Offset(0.5, 0), nullptr, Kf(2, 1), &earlier));
+  // A disagreeing loop starts the group again: keyframe 5's loop is not in it.
+  EXPECT_FALSE(rule.Confirm(Kf(1, 6), MapId(2), T, nullptr, Kf(2, 3), &earlier));
+  EXPECT_FALSE(rule.Confirm(Kf(1, 7), MapId(2), T, nullptr, Kf(2, 40), &earlier));
+  EXPECT_TRUE(rule.Confirm(Kf(1, 8), MapId(2), T, nullptr, Kf(2, 41), &earlier));
+  const std::vector<LoopConsistency::Pair> expected = {{Kf(1, 6), Kf(2, 3)}, {Kf(1, 7), Kf(2, 40)}};
+  EXPECT_EQ(earlier, expected);
+  // The next group starts empty.
+  EXPECT_FALSE(rule.Confirm(Kf(1, 9), MapId(2), T, nullptr, Kf(2, 42), &earlier));
+  EXPECT_FALSE(rule.Confirm(Kf(1, 10), MapId(2), T, nullptr, Kf(2, 43), &earlier));
+  EXPECT_TRUE(rule.Confirm(Kf(1, 11), MapId(2), T, nullptr, Kf(2, 44), &earlier));
+  const std::vector<LoopConsistency::Pair> next = {{Kf(1, 9), Kf(2, 42)}, {Kf(1, 10), Kf(2, 43)}};
+  EXPECT_EQ(earlier, next);
+}
+
 TEST(LoopConsistencyTest, DisagreeingGappedOrOtherMapLoopsDoNotConfirm) {
   const Pose T = Offset(0.8, 20);
   struct Case {
