@@ -716,7 +716,8 @@ void LoopCloser::TieEarlierLoops(const std::vector<LoopConsistency::Pair>& loops
   for (const auto& [query_id, candidate_id] : loops) {
     ServerKeyframe* query = fused->keyframe(query_id);
     ServerKeyframe* candidate = fused->keyframe(candidate_id);
-    if (!query || !candidate) continue;
+    // A keyframe of a segment still at a guess is not where it is: nothing to tie it to.
+    if (!query || !candidate || !fused->Placed(*query) || !fused->Placed(*candidate)) continue;
     const std::optional<LoopMatch> match =
         VerifyLoop(query, camera, candidate, *fused, options.verification);
     if (!match) continue;
