@@ -700,8 +700,8 @@ LoopCloser::Outcome LoopCloser::TryCandidate(const GlobalKeyframeId& id,
                  << cand->id.keyframe.value() << " (" << match->inliers << " inliers, " << count
                  << "/" << options_.loop_consistency << " consistent)";
   if (!accepted) return Outcome::kDone;
-  *closure = Correct(&query_guard, same_map ? nullptr : &candidate_guard, *match, camera, options);
-  if ((*closure)->event.fusion) TieEarlierLoops(earlier, camera, options, (*closure)->map.get());
+  *closure = Correct(&query_guard, same_map ? nullptr : &candidate_guard, *match, camera, options,
+                     earlier);
   return Outcome::kClosed;
 }
 
@@ -731,7 +731,8 @@ void LoopCloser::TieEarlierLoops(const std::vector<LoopConsistency::Pair>& loops
 
 LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guard* candidate_guard,
                                 const LoopMatch& match, const PinholeCamera& camera,
-                                const LoopCloserOptions& options) {
+                                const LoopCloserOptions& options,
+                                const std::vector<LoopConsistency::Pair>& earlier) {
   LoopClosure closure;
   LoopEvent& event = closure.event;
   event.server_time = MonotonicSeconds() - start_time_;
@@ -794,6 +795,7 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
                    << ": query moved " << 1000 * seam.shift_m << " mm, "
                    << RotationDistance(Pose::Identity(), seam.correction) * 180 / M_PI << " deg; "
                    << seam.merged << " points tied";
+    TieEarlierLoops(earlier, camera, options, fusion.map.get());
     if (!fusion.placed.empty() || !fusion.unplaced.empty()) {
       CCMD_LOG(INFO) << "the fusion went through a restarted segment: " << fusion.placed.size()
                      << " keyframes placed, " << fusion.unplaced.size()

@@ -284,9 +284,11 @@ class LoopCloser {
   Outcome TryCandidate(const GlobalKeyframeId& id, const PinholeCamera& camera,
                        const LoopCloserOptions& options, const PlaceHit& candidate, MapId query_map,
                        std::optional<LoopClosure>* closure);
+  // `earlier`: the loops of the consistency group before `match` (a fusion ties them too).
   LoopClosure Correct(MapManager::Guard* query_guard, MapManager::Guard* candidate_guard,
                       const LoopMatch& match, const PinholeCamera& camera,
-                      const LoopCloserOptions& options);
+                      const LoopCloserOptions& options,
+                      const std::vector<LoopConsistency::Pair>& earlier);
 
   const LoopCloserOptions options_;
   PlaceIndex place_;
