@@ -4,11 +4,13 @@
 
 #include "libccmd/netsim/netns_link.h"
 
+#include <fcntl.h>
 #include <gtest/gtest.h>
 #include <netinet/in.h>
 #include <poll.h>
 #include <signal.h>
 #include <sys/socket.h>
+#include <sys/stat.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -249,7 +251,7 @@ TEST(NetnsLinkTest, LossIsWhatWasAsked) {
 TEST(NetnsLinkTest, WatchdogRemovesEverythingWhenTheOwnerIsKilled) {
   CCMD_REQUIRE_ROOT();
   int fds[2];
-  ASSERT_EQ(::pipe(fds), 0);
+  ASSERT_EQ(::pipe2(fds, O_CLOEXEC), 0);  // the programs the child runs do not keep it open
   const pid_t pid = ::fork();
   ASSERT_GE(pid, 0);
   if (pid == 0) {
@@ -265,6 +267,20 @@ TEST(NetnsLinkTest, WatchdogRemovesEverythingWhenTheOwnerIsKilled) {
       args.push_back(nullptr);
       ::execv(args[0], args.data());
       ::_exit(127);
+    }
+    // Report only once the process has entered the namespace: killed before, its `ip netns
+    // exec` could enter it after the watchdog listed the namespace's processes, and the
+    // escaped `sleep` would hold the test's output open until ctest's timeout.
+    struct stat want, have;
+    if (::stat(("/run/netns/" + (*link)->namespace_name(Side::kAgents)).c_str(), &want) != 0) {
+      ::_exit(1);
+    }
+    const std::string inside_ns = "/proc/" + std::to_string(inside) + "/ns/net";
+    const Stopwatch entering;
+    while (::stat(inside_ns.c_str(), &have) != 0 || have.st_ino != want.st_ino ||
+           have.st_dev != want.st_dev) {
+      if (entering.ElapsedSeconds() > 30) ::_exit(1);
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));  // polling another process
     }
     const std::string report =
         (*link)->namespace_name(Side::kAgents) + " " + (*link)->namespace_name(Side::kLink) + " " +
