@@ -465,6 +465,40 @@ bool SmallCorrection(const Pose& a, const Pose& b, const SeamOptions& seam) {
          RotationDistance(a, b) < seam.max_correction_deg * M_PI / 180;
 }
 
+// The verified pose of a loop's query inside one map refined on the seam around the loop, as
+// for a fusion (kept when the refinement is not a small one); `sides` receives the seam. The
+// map's poses are as they were on return.
+LoopMatch RefineLoopOnSeam(ServerMap* map, const LoopMatch& match, const PinholeCamera& camera,
+                           const LoopCloserOptions& options, SeamSides* sides) {
+  LoopMatch refined = match;
+  if (!options.seam.enabled) return refined;
+  *sides = MakeLoopSeamSides(*map, match, options);
+  // Searched from the verified pose, as a fusion's seam is: the query's side is where the loop
+  // puts it while the seam is fitted (from where drift left it, the candidate side's points
+  // would be searched as far off as the drift).
+  const Pose C = match.T_candidate_map_query * match.query->T_map_cam.inverse();
+  std::vector<Pose> before;
+  for (ServerKeyframe* kf : sides->query_keyframes) {
+    before.push_back(kf->T_map_cam);
+    kf->T_map_cam = C * kf->T_map_cam;
+  }
+  SeamJoin join;
+  const std::optional<Pose> D = FitSeam(*map, *sides, camera, options, &join);
+  for (std::size_t i = 0; i < before.size(); ++i) sides->query_keyframes[i]->T_map_cam = before[i];
+  if (D) {
+    const Pose T = Orthonormalized(*D * match.T_candidate_map_query);
+    if (SmallCorrection(T, match.T_candidate_map_query, options.seam)) {
+      refined.T_candidate_map_query = T;
+    }
+  }
+  CCMD_LOG(INFO) << "loop seam: " << join.searched << " matches, " << join.pair_inliers
+                 << " depth pairs agree; verified pose moved by "
+                 << 1000 * TranslationDistance(refined.T_candidate_map_query,
+                                               match.T_candidate_map_query)
+                 << " mm";
+  return refined;
+}
+
 }  // namespace
 
 SeamJoin JoinSeam(ServerMap* fused, const LoopMatch& match, const PinholeCamera& query_camera,
@@ -565,6 +599,45 @@ MapFusion FuseMapsByLoop(MapManager* maps, MapManager::Guard* query_map,
     fusion.placed = fused->LinkSegments(*match.query, *match.candidate);
   }
   return fusion;
+}
+
+std::vector<ServerKeyframe*> CloseEarlierLoops(ServerMap* fused,
+                                               const std::vector<LoopConsistency::Pair>& loops,
+                                               const PinholeCamera& camera,
+                                               const LoopCloserOptions& options) {
+  // The loops that confirmed a fusion may join other places than the one it was made at (an
+  // overlap, and a place the other agent came back to later): the fusion's transform and seam
+  // come from the last one only, and whatever either agent drifted between the places lies
+  // between the maps at the others. Verified again in the fused map, each is closed as a loop
+  // inside it: refined on its seam, and where the maps are apart there, the pose graph bends
+  // both agents' paths between the places.
+  std::vector<ServerKeyframe*> moved;
+  for (const auto& [query_id, candidate_id] : loops) {
+    ServerKeyframe* query = fused->keyframe(query_id);
+    ServerKeyframe* candidate = fused->keyframe(candidate_id);
+    // A keyframe of a segment still at a guess is not where it is: nothing to tie it to.
+    if (!query || !candidate || !fused->Placed(*query) || !fused->Placed(*candidate)) continue;
+    const std::optional<LoopMatch> match =
+        VerifyLoop(query, camera, candidate, *fused, options.verification);
+    if (!match) continue;
+    SeamSides sides;
+    const LoopMatch refined = RefineLoopOnSeam(fused, *match, camera, options, &sides);
+    const double apart_m = TranslationDistance(query->T_map_cam, refined.T_candidate_map_query);
+    const bool closed = LoopAlreadyClosed(refined, options);
+    if (closed) {
+      MergeLoopMatches(fused, refined);
+    } else {
+      for (ServerKeyframe* kf : CloseLoopInMap(fused, refined, options.pose_graph))
+        moved.push_back(kf);
+    }
+    if (options.seam.enabled) TieSeam(fused, sides, camera, options);
+    CCMD_LOG(INFO) << "fusion also " << (closed ? "tied" : "closed a loop") << " at agent "
+                   << query_id.agent.value() << " keyframe " << query_id.keyframe.value()
+                   << " ~ agent " << candidate_id.agent.value() << " keyframe "
+                   << candidate_id.keyframe.value() << " (" << match->inliers << " inliers, "
+                   << 1000 * apart_m << " mm apart)";
+  }
+  return moved;
 }
 
 namespace {
@@ -705,30 +778,6 @@ LoopCloser::Outcome LoopCloser::TryCandidate(const GlobalKeyframeId& id,
   return Outcome::kClosed;
 }
 
-void LoopCloser::TieEarlierLoops(const std::vector<LoopConsistency::Pair>& loops,
-                                 const PinholeCamera& camera, const LoopCloserOptions& options,
-                                 ServerMap* fused) {
-  // The loops that confirmed a fusion may join other places than the one it was made at (an
-  // overlap, and a place the other agent came back to later): the fusion's transform and seam
-  // come from the last one only, and whatever either agent drifted between the places would
-  // stay between the maps there. Verified again in the fused map, their matches are merged
-  // too, so that the global BA that follows holds the maps together at every place.
-  for (const auto& [query_id, candidate_id] : loops) {
-    ServerKeyframe* query = fused->keyframe(query_id);
-    ServerKeyframe* candidate = fused->keyframe(candidate_id);
-    // A keyframe of a segment still at a guess is not where it is: nothing to tie it to.
-    if (!query || !candidate || !fused->Placed(*query) || !fused->Placed(*candidate)) continue;
-    const std::optional<LoopMatch> match =
-        VerifyLoop(query, camera, candidate, *fused, options.verification);
-    if (!match) continue;
-    MergeLoopMatches(fused, *match);
-    CCMD_LOG(INFO) << "fusion also tied at agent " << query_id.agent.value() << " keyframe "
-                   << query_id.keyframe.value() << " ~ agent " << candidate_id.agent.value()
-                   << " keyframe " << candidate_id.keyframe.value() << " (" << match->inliers
-                   << " inliers)";
-  }
-}
-
 LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guard* candidate_guard,
                                 const LoopMatch& match, const PinholeCamera& camera,
                                 const LoopCloserOptions& options,
@@ -742,25 +791,9 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
   event.T_candidate_query = match.candidate->T_map_cam.inverse() * match.T_candidate_map_query;
   if (!candidate_guard) {
     ServerMap* map = query_guard->get();
-    // The verified pose of the query refined on the seam around the loop, as for a fusion.
-    LoopMatch refined = match;
     SeamSides sides;
-    if (options.seam.enabled) {
-      sides = MakeLoopSeamSides(*map, match, options);
-      SeamJoin join;
-      if (const std::optional<Pose> D = FitSeam(*map, sides, camera, options, &join)) {
-        const Pose T = Orthonormalized(*D * match.query->T_map_cam);
-        if (SmallCorrection(T, match.T_candidate_map_query, options.seam)) {
-          refined.T_candidate_map_query = T;
-          event.T_candidate_query = match.candidate->T_map_cam.inverse() * T;
-        }
-      }
-      CCMD_LOG(INFO) << "loop seam: " << join.searched << " matches, " << join.pair_inliers
-                     << " depth pairs agree; verified pose moved by "
-                     << 1000 * TranslationDistance(refined.T_candidate_map_query,
-                                                   match.T_candidate_map_query)
-                     << " mm";
-    }
+    const LoopMatch refined = RefineLoopOnSeam(map, match, camera, options, &sides);
+    event.T_candidate_query = match.candidate->T_map_cam.inverse() * refined.T_candidate_map_query;
     const AgentId a = match.query->id.agent, b = match.candidate->id.agent;
     const bool compared = compared_.Compared(a, b);
     compared_.Add(a, b);
@@ -795,7 +828,13 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
                    << ": query moved " << 1000 * seam.shift_m << " mm, "
                    << RotationDistance(Pose::Identity(), seam.correction) * 180 / M_PI << " deg; "
                    << seam.merged << " points tied";
-    TieEarlierLoops(earlier, camera, options, fusion.map.get());
+    // Moved by the fusion, and by the pose graph of an earlier loop: each keyframe once.
+    std::vector<ServerKeyframe*> bent =
+        CloseEarlierLoops(fusion.map.get(), earlier, camera, options);
+    const std::unordered_set<ServerKeyframe*> entered(fusion.moved.begin(), fusion.moved.end());
+    for (ServerKeyframe* kf : bent) {
+      if (!entered.count(kf)) fusion.moved.push_back(kf);
+    }
     if (!fusion.placed.empty() || !fusion.unplaced.empty()) {
       CCMD_LOG(INFO) << "the fusion went through a restarted segment: " << fusion.placed.size()
                      << " keyframes placed, " << fusion.unplaced.size()

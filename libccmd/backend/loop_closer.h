@@ -235,6 +235,17 @@ MapFusion FuseMapsByLoop(MapManager* maps, MapManager::Guard* query_map,
                          const LoopCloserOptions* options = nullptr,
                          const PinholeCamera* query_camera = nullptr);
 
+// After a fusion: the earlier loops of the consistency group that confirmed it (pairs of
+// query and candidate keyframes, LoopConsistency::Confirm), each verified again in the fused
+// map and closed there as a loop inside one map: refined on its seam; where the maps are
+// apart at its place (LoopAlreadyClosed), a loop edge and the pose graph, otherwise its
+// matches merged only; then its seam tied. Pairs with a keyframe gone or not placed are
+// skipped. Returns the keyframes the pose graphs moved (a keyframe may appear more than once).
+std::vector<ServerKeyframe*> CloseEarlierLoops(ServerMap* fused,
+                                               const std::vector<LoopConsistency::Pair>& loops,
+                                               const PinholeCamera& camera,
+                                               const LoopCloserOptions& options);
+
 // A loop the LoopCloser accepted and corrected.
 struct LoopClosure {
   LoopEvent event;
@@ -275,10 +286,6 @@ class LoopCloser {
   };
   std::optional<Query> FindCandidates(const GlobalKeyframeId& id, bool stored);
   enum class Outcome { kNextCandidate, kDone, kClosed };
-  // After a fusion: the earlier loops of its consistency group verified again in the fused
-  // map and their matches merged.
-  void TieEarlierLoops(const std::vector<LoopConsistency::Pair>& loops, const PinholeCamera& camera,
-                       const LoopCloserOptions& options, ServerMap* fused);
   // Verifies one candidate; on acceptance corrects and fills `closure`.
   // `options`: the closer's, with the query agent's depth noise.
   Outcome TryCandidate(const GlobalKeyframeId& id, const PinholeCamera& camera,
