@@ -525,10 +525,16 @@ SeamJoin JoinSeam(ServerMap* fused, const LoopMatch& match, const PinholeCamera&
     const Pose correction = query_moved ? D : D.inverse();
     for (ServerKeyframe* kf : moved) kf->T_map_cam = Orthonormalized(correction * kf->T_map_cam);
   };
+  // A correction's size is how far it moves and turns the query's camera, where the seam is:
+  // the map's origin may be metres away, where a fraction of a degree moves it by centimetres.
+  const auto small_at_query = [&](const Pose& D) {
+    const Pose& T = match.query->T_map_cam;  // as the corrections so far left it
+    return SmallCorrection(D * T, T, options.seam);
+  };
   if (const std::optional<Pose> D = FitSeam(*fused, sides, query_camera, options, &join)) {
     const Eigen::Vector3d centre = match.query->T_map_cam.translation();
     join.shift_m = (*D * centre - centre).norm();
-    if (SmallCorrection(Pose::Identity(), *D, options.seam)) {
+    if (small_at_query(*D)) {
       apply(*D);
       join.corrected = true;
       join.correction = *D;
@@ -542,8 +548,7 @@ SeamJoin JoinSeam(ServerMap* fused, const LoopMatch& match, const PinholeCamera&
       apply(*D);
       SeamJoin again;
       const std::optional<Pose> step = FitSeam(*fused, sides, query_camera, options, &again);
-      if (step && SmallCorrection(Pose::Identity(), *step, options.seam) &&
-          again.pair_inliers >= join.pair_inliers) {
+      if (step && small_at_query(*step) && again.pair_inliers >= join.pair_inliers) {
         apply(*step);
         join.corrected = true;
         join.confirmed_by_refit = true;

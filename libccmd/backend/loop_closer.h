@@ -44,8 +44,9 @@ struct SeamOptions {
   double merge_depth_m = 0.02;   // ... and after the refinement (plus 3 depth sigmas)
   int max_hamming = 50;
   int min_pairs = 20;  // 3D pairs (depth on the query side) needed to refine the transform
-  // A refinement larger than this is not trusted on its own (the verified loop was wrong, or the
-  // matches): a fusion takes it only if the search repeated from it agrees (JoinSeam).
+  // A refinement larger than this (how far it moves and turns the query's camera) is not
+  // trusted on its own (the verified loop was wrong, or the matches): a fusion takes it only if
+  // the search repeated from it agrees (JoinSeam).
   double max_correction_m = 0.05;
   double max_correction_deg = 2.0;
 

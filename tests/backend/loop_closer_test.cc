@@ -445,7 +445,7 @@ struct SeamCase {
 };
 
 void FuseWithError(const Pose& error, const LoopCloserOptions* options, SeamCase* c,
-                   bool query_in_primary = false) {
+                   bool query_in_primary = false, const Pose& T_map1_world = Pose::Identity()) {
   Rng rng(21);
   const GeneratedWorld world = MakeRingWorld(3000, &rng);
   constexpr int kSteps = 24;
@@ -453,7 +453,7 @@ void FuseWithError(const Pose& error, const LoopCloserOptions* options, SeamCase
     MapManager::Guard first = c->maps.CheckOutAgent(AgentId(1));
     for (int i = 0; i < 8; ++i)
       AddGeneratedKeyframe(first.get(), world, AgentId(1), i, CirclePose(i, kSteps),
-                           CirclePose(i, kSteps), &rng);
+                           T_map1_world * CirclePose(i, kSteps), &rng);
   }
   const Pose T_map2_world = Offset(1.5, -50);
   {
@@ -472,8 +472,9 @@ void FuseWithError(const Pose& error, const LoopCloserOptions* options, SeamCase
   c->fusion = FuseMapsByLoop(&c->maps, &query_guard, &candidate_guard, match, options, &camera);
   for (int k = 0; k < 6; ++k) {
     const Pose& T = c->fusion.map->keyframe(Kf(2, k))->T_map_cam;
-    c->worst_m = std::max(c->worst_m, TranslationDistance(T, CirclePose(4 + k, kSteps)));
-    c->worst_deg = std::max(c->worst_deg, RotationDistance(T, CirclePose(4 + k, kSteps)) / kDegree);
+    const Pose T_true = T_map1_world * CirclePose(4 + k, kSteps);
+    c->worst_m = std::max(c->worst_m, TranslationDistance(T, T_true));
+    c->worst_deg = std::max(c->worst_deg, RotationDistance(T, T_true) / kDegree);
   }
 }
 
@@ -539,6 +540,24 @@ TEST(SeamTest, ALargerRefinementIsTakenWhenASecondSearchFromItAgrees) {
   EXPECT_TRUE(reverse.fusion.seam.confirmed_by_refit);
   EXPECT_LT(reverse.worst_m, 0.001);
   EXPECT_LT(reverse.worst_deg, 0.03);
+}
+
+TEST(SeamTest, ARefinementIsSizedAtTheQueryNotAtTheMapsOrigin) {
+  // The primary map's frame 8 m from the ring (a large scene, a seam far from where the first
+  // agent started) and the verified pose 1 degree off: the refinement turns the query by 1
+  // degree about itself, which moves the map's origin by 14 cm but the query by millimetres.
+  // It is a small correction, taken at once (no second search).
+  Pose far = Pose::Identity();
+  far.translation() = Eigen::Vector3d(8, 0, 0);
+  LoopCloserOptions options;
+  for (const bool query_in_primary : {false, true}) {
+    SeamCase c;
+    FuseWithError(Offset(0.0, 1.0), &options, &c, query_in_primary, far);
+    EXPECT_TRUE(c.fusion.seam.corrected) << query_in_primary;
+    EXPECT_FALSE(c.fusion.seam.confirmed_by_refit) << query_in_primary;
+    EXPECT_LT(c.worst_m, 0.001) << query_in_primary;
+    EXPECT_LT(c.worst_deg, 0.03) << query_in_primary;
+  }
 }
 
 TEST(SeamTest, ARefinementLargerThanTrustedKeepsTheVerifiedTransform) {
