@@ -92,22 +92,26 @@ std::vector<PlaceHit> SelectLoopCandidates(
 // ---------------------------------------------------------------- step 2: consistency
 
 bool LoopConsistency::Confirm(const GlobalKeyframeId& query, MapId candidate_map,
-                              const Pose& T_candidate_map_query_map, int* count,
-                              const GlobalKeyframeId& candidate, std::vector<Pair>* earlier) {
+                              const Pose& T_candidate_map_query, const Pose& T_query_map_query,
+                              int* count, const GlobalKeyframeId& candidate,
+                              std::vector<Pair>* earlier) {
   Pending& pending = pending_[query.agent];
+  // Compared where the query is: where the last loop's map-to-map transform puts this query,
+  // against where this loop's match does. (Compared as transforms, their difference at the
+  // maps' origin grows with the distance to it: 3 degrees 4 m away is 20 cm there.)
+  const Pose predicted = pending.T_candidate_map_query_map * T_query_map_query;
   // Ids compared as unsigned: a query older than the last one (a late query) never confirms.
   const bool consistent =
       pending.count > 0 && pending.candidate_map == candidate_map &&
       query.keyframe.value() - pending.last_query.value() <=
           static_cast<std::uint32_t>(options_.consistency_max_gap) &&
-      TranslationDistance(pending.T_candidate_map_query_map, T_candidate_map_query_map) <
-          options_.consistency_translation &&
-      RotationDistance(pending.T_candidate_map_query_map, T_candidate_map_query_map) <
+      TranslationDistance(predicted, T_candidate_map_query) < options_.consistency_translation &&
+      RotationDistance(predicted, T_candidate_map_query) <
           options_.consistency_rotation_deg * M_PI / 180;
   pending.count = consistent ? pending.count + 1 : 1;
   if (!consistent) pending.loops.clear();
   pending.candidate_map = candidate_map;
-  pending.T_candidate_map_query_map = T_candidate_map_query_map;
+  pending.T_candidate_map_query_map = T_candidate_map_query * T_query_map_query.inverse();
   pending.last_query = query.keyframe;
   if (count) *count = pending.count;
   if (pending.count < options_.loop_consistency) {
@@ -770,9 +774,8 @@ LoopCloser::Outcome LoopCloser::TryCandidate(const GlobalKeyframeId& id,
 
   int count = 0;
   std::vector<LoopConsistency::Pair> earlier;
-  const bool accepted =
-      consistency_.Confirm(id, cmap.id(), match->T_candidate_map_query * query->T_map_cam.inverse(),
-                           &count, cand->id, &earlier);
+  const bool accepted = consistency_.Confirm(id, cmap.id(), match->T_candidate_map_query,
+                                             query->T_map_cam, &count, cand->id, &earlier);
   CCMD_LOG(INFO) << "loop candidate: agent " << id.agent.value() << " keyframe "
                  << id.keyframe.value() << " ~ agent " << cand->id.agent.value() << " keyframe "
                  << cand->id.keyframe.value() << " (" << match->inliers << " inliers, " << count

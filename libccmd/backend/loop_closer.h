@@ -57,9 +57,10 @@ struct SeamOptions {
 struct LoopCloserOptions {
   LoopVerificationOptions verification;
   SeamOptions seam;
-  int loop_candidates = 4;                // verified per query, best score first
-  int loop_consistency = 2;               // consecutive confirming keyframes needed
-  double consistency_translation = 0.05;  // metres between confirming map-to-map transforms
+  int loop_candidates = 4;   // verified per query, best score first
+  int loop_consistency = 2;  // consecutive confirming keyframes needed
+  // How far apart two loops' map-to-map transforms may put the later query (metres, degrees).
+  double consistency_translation = 0.05;
   double consistency_rotation_deg = 3.0;
   int consistency_max_gap = 3;        // keyframe ids between two confirming queries
   int exclude_recent_keyframes = 25;  // same-agent neighbours in id that never count as loops
@@ -108,12 +109,16 @@ class LoopConsistency {
   explicit LoopConsistency(const LoopCloserOptions& options) : options_(options) {}
   // A verified loop: its query and candidate keyframes.
   using Pair = std::pair<GlobalKeyframeId, GlobalKeyframeId>;
-  // Records a verified loop; true if it completes the rule. `count` receives how many
-  // consecutive agreeing loops there are with this one (for the log); on acceptance `earlier`
-  // receives the agreeing loops before it (`candidate` is this loop's candidate keyframe).
+  // Records a verified loop: the query's pose in the candidate's map (the match) and in its
+  // own. True if it completes the rule: the previous loop's map-to-map transform puts this
+  // query within consistency_translation and consistency_rotation_deg of the match. `count`
+  // receives how many consecutive agreeing loops there are with this one (for the log); on
+  // acceptance `earlier` receives the agreeing loops before it (`candidate` is this loop's
+  // candidate keyframe).
   bool Confirm(const GlobalKeyframeId& query, MapId candidate_map,
-               const Pose& T_candidate_map_query_map, int* count = nullptr,
-               const GlobalKeyframeId& candidate = {}, std::vector<Pair>* earlier = nullptr);
+               const Pose& T_candidate_map_query, const Pose& T_query_map_query,
+               int* count = nullptr, const GlobalKeyframeId& candidate = {},
+               std::vector<Pair>* earlier = nullptr);
 
  private:
   struct Pending {

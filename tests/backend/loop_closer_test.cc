@@ -35,19 +35,22 @@ GlobalKeyframeId Kf(int agent, int keyframe) {
           KeyframeId(static_cast<std::uint32_t>(keyframe))};
 }
 
+// A query at its map's origin: its pose in the candidate's map is the map-to-map transform.
+const Pose kAtOrigin = Pose::Identity();
+
 TEST(LoopConsistencyTest, TwoAgreeingKeyframesCloseALoopAndTheCountStartsAgain) {
   LoopConsistency rule{LoopCloserOptions()};
   const Pose T = Offset(0.8, 20);
   int count = 0;
-  EXPECT_FALSE(rule.Confirm(Kf(1, 10), MapId(2), T, &count));
+  EXPECT_FALSE(rule.Confirm(Kf(1, 10), MapId(2), T, kAtOrigin, &count));
   EXPECT_EQ(count, 1);
   // 3 ids later, 4 cm and 2 degrees apart: within 5 cm and 3 degrees.
-  EXPECT_TRUE(rule.Confirm(Kf(1, 13), MapId(2), T * Offset(0.04, 2), &count));
+  EXPECT_TRUE(rule.Confirm(Kf(1, 13), MapId(2), T * Offset(0.04, 2), kAtOrigin, &count));
   EXPECT_EQ(count, 2);
   // Accepted: the next one starts a new count.
-  EXPECT_FALSE(rule.Confirm(Kf(1, 14), MapId(2), T, &count));
+  EXPECT_FALSE(rule.Confirm(Kf(1, 14), MapId(2), T, kAtOrigin, &count));
   EXPECT_EQ(count, 1);
-  EXPECT_TRUE(rule.Confirm(Kf(1, 15), MapId(2), T));
+  EXPECT_TRUE(rule.Confirm(Kf(1, 15), MapId(2), T, kAtOrigin));
 }
 
 TEST(LoopConsistencyTest, AnAcceptedLoopNamesTheAgreeingLoopsBeforeIt) {
@@ -58,17 +61,18 @@ TEST(LoopConsistencyTest, AnAcceptedLoopNamesTheAgreeingLoopsBeforeIt) {
   LoopConsistency rule{options};
   const Pose T = Offset(0.8, 20);
   std::vector<LoopConsistency::Pair> earlier = {{Kf(9, 9), Kf(9, 9)}};
-  EXPECT_FALSE(rule.Confirm(Kf(1, 5), MapId(2), Offset(0.5, 0), nullptr, Kf(2, 1), &earlier));
+  EXPECT_FALSE(
+      rule.Confirm(Kf(1, 5), MapId(2), Offset(0.5, 0), kAtOrigin, nullptr, Kf(2, 1), &earlier));
   // A disagreeing loop starts the group again: keyframe 5's loop is not in it.
-  EXPECT_FALSE(rule.Confirm(Kf(1, 6), MapId(2), T, nullptr, Kf(2, 3), &earlier));
-  EXPECT_FALSE(rule.Confirm(Kf(1, 7), MapId(2), T, nullptr, Kf(2, 40), &earlier));
-  EXPECT_TRUE(rule.Confirm(Kf(1, 8), MapId(2), T, nullptr, Kf(2, 41), &earlier));
+  EXPECT_FALSE(rule.Confirm(Kf(1, 6), MapId(2), T, kAtOrigin, nullptr, Kf(2, 3), &earlier));
+  EXPECT_FALSE(rule.Confirm(Kf(1, 7), MapId(2), T, kAtOrigin, nullptr, Kf(2, 40), &earlier));
+  EXPECT_TRUE(rule.Confirm(Kf(1, 8), MapId(2), T, kAtOrigin, nullptr, Kf(2, 41), &earlier));
   const std::vector<LoopConsistency::Pair> expected = {{Kf(1, 6), Kf(2, 3)}, {Kf(1, 7), Kf(2, 40)}};
   EXPECT_EQ(earlier, expected);
   // The next group starts empty.
-  EXPECT_FALSE(rule.Confirm(Kf(1, 9), MapId(2), T, nullptr, Kf(2, 42), &earlier));
-  EXPECT_FALSE(rule.Confirm(Kf(1, 10), MapId(2), T, nullptr, Kf(2, 43), &earlier));
-  EXPECT_TRUE(rule.Confirm(Kf(1, 11), MapId(2), T, nullptr, Kf(2, 44), &earlier));
+  EXPECT_FALSE(rule.Confirm(Kf(1, 9), MapId(2), T, kAtOrigin, nullptr, Kf(2, 42), &earlier));
+  EXPECT_FALSE(rule.Confirm(Kf(1, 10), MapId(2), T, kAtOrigin, nullptr, Kf(2, 43), &earlier));
+  EXPECT_TRUE(rule.Confirm(Kf(1, 11), MapId(2), T, kAtOrigin, nullptr, Kf(2, 44), &earlier));
   const std::vector<LoopConsistency::Pair> next = {{Kf(1, 9), Kf(2, 42)}, {Kf(1, 10), Kf(2, 43)}};
   EXPECT_EQ(earlier, next);
 }
@@ -91,13 +95,38 @@ TEST(LoopConsistencyTest, DisagreeingGappedOrOtherMapLoopsDoNotConfirm) {
   for (const Case& c : cases) {
     LoopConsistency rule{LoopCloserOptions()};
     int count = 0;
-    EXPECT_FALSE(rule.Confirm(Kf(1, 10), MapId(2), T));
-    EXPECT_FALSE(rule.Confirm(c.second, c.map, c.T_second, &count)) << c.what;
+    EXPECT_FALSE(rule.Confirm(Kf(1, 10), MapId(2), T, kAtOrigin));
+    EXPECT_FALSE(rule.Confirm(c.second, c.map, c.T_second, kAtOrigin, &count)) << c.what;
     EXPECT_EQ(count, 1) << c.what;
     // The disagreeing loop is the new reference: one that agrees with it confirms.
-    EXPECT_TRUE(
-        rule.Confirm({AgentId(1), KeyframeId(c.second.keyframe.value() + 1)}, c.map, c.T_second))
+    EXPECT_TRUE(rule.Confirm({AgentId(1), KeyframeId(c.second.keyframe.value() + 1)}, c.map,
+                             c.T_second, kAtOrigin))
         << c.what;
+  }
+}
+
+TEST(LoopConsistencyTest, LoopsAreComparedWhereTheQueryIsNotAtTheMapsOrigin) {
+  // An agent 6 m from where its map starts; consecutive queries a few centimetres apart.
+  Pose here = Offset(6, 30), next = here * Offset(0.03, 1);
+  const Pose T = Offset(0.8, 20);  // the candidate's map from the query's
+  // Two matches that put the queries where one transform does, up to 2 degrees about the
+  // query's camera: their transforms differ by 21 cm at the maps' origin, and they agree.
+  {
+    LoopConsistency rule{LoopCloserOptions()};
+    EXPECT_FALSE(rule.Confirm(Kf(1, 10), MapId(2), T * here, here));
+    EXPECT_TRUE(rule.Confirm(Kf(1, 11), MapId(2), T * next * Offset(0, 2), next));
+  }
+  // Two transforms 0.6 degrees apart about the maps' origin (the same at the origin) put the
+  // query 6 cm apart: they disagree.
+  {
+    Pose turn = Pose::Identity();
+    turn.linear() = Eigen::AngleAxisd(0.6 * kDegree, Eigen::Vector3d::UnitZ()).toRotationMatrix();
+    here = Pose::Identity();
+    here.translation() = Eigen::Vector3d(6, 0, 0);
+    next = here * Offset(0.03, 1);
+    LoopConsistency rule{LoopCloserOptions()};
+    EXPECT_FALSE(rule.Confirm(Kf(1, 10), MapId(2), T * here, here));
+    EXPECT_FALSE(rule.Confirm(Kf(1, 11), MapId(2), T * turn * next, next));
   }
 }
 
@@ -106,11 +135,11 @@ TEST(LoopConsistencyTest, AgentsAreCountedApartAndTheRequiredCountIsAnOption) {
   options.loop_consistency = 3;
   LoopConsistency rule(options);
   const Pose T = Offset(0.5, 10);
-  EXPECT_FALSE(rule.Confirm(Kf(1, 10), MapId(5), T));
-  EXPECT_FALSE(
-      rule.Confirm(Kf(2, 40), MapId(5), Offset(2, 50)));  // another agent: no effect on agent 1
-  EXPECT_FALSE(rule.Confirm(Kf(1, 11), MapId(5), T));
-  EXPECT_TRUE(rule.Confirm(Kf(1, 12), MapId(5), T));
+  EXPECT_FALSE(rule.Confirm(Kf(1, 10), MapId(5), T, kAtOrigin));
+  EXPECT_FALSE(rule.Confirm(Kf(2, 40), MapId(5), Offset(2, 50),
+                            kAtOrigin));  // another agent: no effect on agent 1
+  EXPECT_FALSE(rule.Confirm(Kf(1, 11), MapId(5), T, kAtOrigin));
+  EXPECT_TRUE(rule.Confirm(Kf(1, 12), MapId(5), T, kAtOrigin));
 }
 
 TEST(LoopCooldownTest, HoldsTheAgentsNextKeyframesOnly) {

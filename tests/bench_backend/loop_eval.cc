@@ -308,8 +308,8 @@ class OfflineDetector {
   // The back-end's consistency rule, with one map per agent.
   void Consistency(ServerKeyframe* query, AgentId candidate_agent,
                    const Pose& T_candidate_map_query, const LoopCheck& check) {
-    const Pose T_cmap_qmap = T_candidate_map_query * query->T_map_cam.inverse();
-    if (consistency_.Confirm(query->id, MapId(candidate_agent.value()), T_cmap_qmap))
+    if (consistency_.Confirm(query->id, MapId(candidate_agent.value()), T_candidate_map_query,
+                             query->T_map_cam))
       out_->consistent.push_back(check);
   }
 
