@@ -837,11 +837,9 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
                    << RotationDistance(Pose::Identity(), seam.correction) * 180 / M_PI << " deg; "
                    << seam.merged << " points tied";
     // Moved by the fusion, and by the pose graph of an earlier loop: each keyframe once.
-    std::vector<ServerKeyframe*> bent =
-        CloseEarlierLoops(fusion.map.get(), earlier, camera, options);
-    const std::unordered_set<ServerKeyframe*> entered(fusion.moved.begin(), fusion.moved.end());
-    for (ServerKeyframe* kf : bent) {
-      if (!entered.count(kf)) fusion.moved.push_back(kf);
+    std::unordered_set<ServerKeyframe*> listed(fusion.moved.begin(), fusion.moved.end());
+    for (ServerKeyframe* kf : CloseEarlierLoops(fusion.map.get(), earlier, camera, options)) {
+      if (listed.insert(kf).second) fusion.moved.push_back(kf);
     }
     if (!fusion.placed.empty() || !fusion.unplaced.empty()) {
       CCMD_LOG(INFO) << "the fusion went through a restarted segment: " << fusion.placed.size()
