@@ -505,6 +505,12 @@ LoopMatch RefineLoopOnSeam(ServerMap* map, const LoopMatch& match, const Pinhole
 
 }  // namespace
 
+Pose RefineLoopPose(ServerMap* map, const LoopMatch& match, const PinholeCamera& camera,
+                    const LoopCloserOptions& options) {
+  SeamSides sides;
+  return RefineLoopOnSeam(map, match, camera, options, &sides).T_candidate_map_query;
+}
+
 SeamJoin JoinSeam(ServerMap* fused, const LoopMatch& match, const PinholeCamera& query_camera,
                   const std::vector<ServerKeyframe*>& moved, const LoopCloserOptions& options) {
   SeamJoin join;

@@ -168,6 +168,12 @@ void MergeLoopMatches(ServerMap* map, const LoopMatch& match);
 // pose graph. Returns the keyframes the pose graph moved (none if it failed: logged).
 std::vector<ServerKeyframe*> CloseLoopInMap(ServerMap* map, const LoopMatch& match,
                                             const MapPoseGraphOptions& options);
+// A loop inside one map: the query's verified pose refined on the seam around the loop (the
+// candidate's window without the query's covisible keyframes, searched in the query and its
+// neighbours placed where the verified pose puts them), or the verified pose if the refinement
+// is not a small one (SeamOptions::max_correction_*). The map's poses are unchanged.
+Pose RefineLoopPose(ServerMap* map, const LoopMatch& match, const PinholeCamera& camera,
+                    const LoopCloserOptions& options);
 // Whether a verified loop inside a map is already closed (see min_correction_m; asked only for
 // loops between agents already compared, ComparedAgents).
 bool LoopAlreadyClosed(const LoopMatch& match, const LoopCloserOptions& options);

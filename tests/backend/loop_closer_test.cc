@@ -277,6 +277,35 @@ TEST(LoopCorrectionTest, ALoopInsideAMapRemovesTheDriftAndMergesTheMatches) {
             TranslationDistance(Drifted(kSteps / 2, kSteps), CirclePose(kSteps / 2, kSteps)));
 }
 
+TEST(LoopCorrectionTest, ALoopsSeamIsSearchedFromTheVerifiedPoseNotFromTheDrift) {
+  // The drifted circle of the test above, back at its start 14 cm off, and the loop verified
+  // 2 cm and half a degree off: from where drift left the query, the seam's points would be
+  // searched 14 cm away; placed at the verified pose, the seam is found and the pose refined
+  // toward the truth (the query's neighbours, searched with it, drift against each other, so
+  // not all the way).
+  Rng rng(7);
+  const GeneratedWorld world = MakeRingWorld(3000, &rng);
+  constexpr int kSteps = 36;
+  ServerMap map(MapId(1));
+  for (int i = 0; i < kSteps; ++i) {
+    AddGeneratedKeyframe(&map, world, AgentId(1), i, CirclePose(i, kSteps), Drifted(i, kSteps),
+                         &rng);
+  }
+  ServerKeyframe* query =
+      AddGeneratedKeyframe(&map, world, AgentId(1), kSteps, CirclePose(0, kSteps),
+                           Drifted(kSteps, kSteps), &rng, /*local_window=*/kSteps - 5);
+  ASSERT_GT(TranslationDistance(query->T_map_cam, CirclePose(0, kSteps)), 0.1);
+  const LoopMatch match = TrueMatch(query, map.keyframe(Kf(1, 0)), Offset(0.02, 0.5));
+  const Pose before = query->T_map_cam;
+  const Pose refined = RefineLoopPose(&map, match, testing::TestCamera(), LoopCloserOptions());
+  const Pose& verified = match.T_candidate_map_query;
+  EXPECT_LT(TranslationDistance(refined, CirclePose(0, kSteps)),
+            0.5 * TranslationDistance(verified, CirclePose(0, kSteps)));
+  EXPECT_LT(RotationDistance(refined, CirclePose(0, kSteps)),
+            0.75 * RotationDistance(verified, CirclePose(0, kSteps)));
+  EXPECT_LT(TranslationDistance(query->T_map_cam, before), 1e-12);  // the map is unchanged
+}
+
 TEST(LoopCorrectionTest, FusionBringsTheOtherMapIntoThePrimaryMapsFrame) {
   Rng rng(8);
   const GeneratedWorld world = MakeRingWorld(2000, &rng);
