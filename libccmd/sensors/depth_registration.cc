@@ -4,6 +4,7 @@
 #include <cmath>
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
+#include <type_traits>
 
 namespace ccmd {
 
@@ -18,6 +19,28 @@ StatusOr<cv::Mat> RegisterDepth(const cv::Mat& depth_mm, const DepthToColorCalib
   return RegisterDepthToColor(depth_mm, depth, color_camera, calibration.T_color_depth);
 }
 
+namespace {
+
+// std::ceil / std::floor / std::lround are library calls on the baseline x86-64 target (no
+// SSE4.1 rounding instruction), several per depth pixel. These are exact for |x| < 2^31;
+// callers keep x within +-1e9.
+int CeilToInt(double x) {
+  const int i = static_cast<int>(x);  // towards zero
+  return i + (static_cast<double>(i) < x);
+}
+int FloorToInt(double x) {
+  const int i = static_cast<int>(x);
+  return i - (static_cast<double>(i) > x);
+}
+int RoundToInt(double x) {  // halves away from zero, as std::lround
+  return x >= 0 ? FloorToInt(x + 0.5) : -FloorToInt(0.5 - x);
+}
+// A projected coordinate kept where the conversions are exact: a point just in front of the
+// camera projects arbitrarily far out, and clamped it stays out of the image.
+double Clamped(double x) { return std::clamp(x, -1e9, 1e9); }
+
+}  // namespace
+
 cv::Mat RegisterDepthToColor(const cv::Mat& depth_mm, const PinholeCamera& depth_camera,
                              const PinholeCamera& color_camera, const Pose& T_color_depth,
                              int max_footprint) {
@@ -31,53 +54,73 @@ cv::Mat RegisterDepthToColor(const cv::Mat& depth_mm, const PinholeCamera& depth
   const Eigen::Vector3d half = R * Eigen::Vector3d(0.5 / depth_camera.fx, 0.5 / depth_camera.fy, 0);
   const Eigen::Vector3d column_step = R * Eigen::Vector3d(1.0 / depth_camera.fx, 0, 0);
   const bool distorted = color_camera.HasDistortion();
-  auto project = [&](const Eigen::Vector3d& p) {
-    const Eigen::Vector2d ideal(color_camera.fx * p.x() / p.z() + color_camera.cx,
-                                color_camera.fy * p.y() / p.z() + color_camera.cy);
+  const double fx = color_camera.fx, fy = color_camera.fy;
+  const double cx = color_camera.cx, cy = color_camera.cy;
+  auto project = [&](const Eigen::Vector3d& p, double inverse_z) {
+    const Eigen::Vector2d ideal(fx * p.x() * inverse_z + cx, fy * p.y() * inverse_z + cy);
     return distorted ? color_camera.DistortPixel(ideal) : ideal;
   };
-  for (int v = 0; v < depth_mm.rows; ++v) {
-    const std::uint16_t* row = depth_mm.ptr<std::uint16_t>(v);
-    // Rotated ray of pixel (0, v); each column adds column_step.
-    const Eigen::Vector3d row_start =
-        R * Eigen::Vector3d(-depth_camera.cx / depth_camera.fx,
-                            (v - depth_camera.cy) / depth_camera.fy, 1.0);
-    for (int u = 0; u < depth_mm.cols; ++u) {
-      if (row[u] == 0) continue;
-      const double z = row[u] * 1e-3;
-      const Eigen::Vector3d ray = row_start + u * column_step;
-      const Eigen::Vector3d centre = z * ray + t;
-      const Eigen::Vector3d a = z * (ray - half) + t;
-      const Eigen::Vector3d b = z * (ray + half) + t;
-      if (centre.z() <= 1e-6 || a.z() <= 1e-6 || b.z() <= 1e-6) continue;
-      const Eigen::Vector2d pa = project(a);
-      const Eigen::Vector2d pb = project(b);
-      // Colour pixels whose centres lie inside the footprint; at least the one under the
-      // projected centre (a footprint smaller than a pixel may hold no centre).
-      int x0 = static_cast<int>(std::ceil(std::min(pa.x(), pb.x())));
-      int x1 = static_cast<int>(std::floor(std::max(pa.x(), pb.x())));
-      int y0 = static_cast<int>(std::ceil(std::min(pa.y(), pb.y())));
-      int y1 = static_cast<int>(std::floor(std::max(pa.y(), pb.y())));
-      if (x1 < x0 || y1 < y0) {
-        const Eigen::Vector2d pc = project(centre);
-        if (x1 < x0) x0 = x1 = static_cast<int>(std::lround(pc.x()));
-        if (y1 < y0) y0 = y1 = static_cast<int>(std::lround(pc.y()));
-      }
-      if (x1 - x0 >= max_footprint || y1 - y0 >= max_footprint) continue;
-      x0 = std::max(x0, 0);
-      y0 = std::max(y0, 0);
-      x1 = std::min(x1, out_w - 1);
-      y1 = std::min(y1, out_h - 1);
-      const double z_mm = std::round(centre.z() * 1e3);
-      if (z_mm < 1 || z_mm > 65535) continue;
-      const auto value = static_cast<std::uint16_t>(z_mm);
-      for (int y = y0; y <= y1; ++y) {
-        std::uint16_t* target = out.ptr<std::uint16_t>(y);
-        for (int x = x0; x <= x1; ++x) {
-          if (target[x] == 0 || value < target[x]) target[x] = value;  // nearest wins
+  // Without a rotation out of the image plane (half.z() == 0: cameras that differ by a
+  // translation, or turned about the optical axis only) the corners are exactly as deep as
+  // the centre and one division per pixel serves all three; the loop is compiled for each
+  // case, so the other does not pay for the test.
+  auto register_rows = [&](auto same_depth) {
+    for (int v = 0; v < depth_mm.rows; ++v) {
+      const std::uint16_t* row = depth_mm.ptr<std::uint16_t>(v);
+      // Rotated ray of pixel (0, v); each column adds column_step.
+      const Eigen::Vector3d row_start =
+          R * Eigen::Vector3d(-depth_camera.cx / depth_camera.fx,
+                              (v - depth_camera.cy) / depth_camera.fy, 1.0);
+      for (int u = 0; u < depth_mm.cols; ++u) {
+        if (row[u] == 0) continue;
+        const double z = row[u] * 1e-3;
+        const Eigen::Vector3d ray = row_start + u * column_step;
+        const Eigen::Vector3d centre = z * ray + t;
+        const Eigen::Vector3d a = z * (ray - half) + t;
+        const Eigen::Vector3d b = z * (ray + half) + t;
+        if (centre.z() <= 1e-6 || a.z() <= 1e-6 || b.z() <= 1e-6) continue;
+        const double inverse_centre_z = 1.0 / centre.z();
+        Eigen::Vector2d pa, pb;
+        if constexpr (decltype(same_depth)::value) {
+          pa = project(a, inverse_centre_z);
+          pb = project(b, inverse_centre_z);
+        } else {
+          pa = project(a, 1.0 / a.z());
+          pb = project(b, 1.0 / b.z());
+        }
+        // Colour pixels whose centres lie inside the footprint; at least the one under the
+        // projected centre (a footprint smaller than a pixel may hold no centre).
+        int x0 = CeilToInt(Clamped(std::min(pa.x(), pb.x())));
+        int x1 = FloorToInt(Clamped(std::max(pa.x(), pb.x())));
+        int y0 = CeilToInt(Clamped(std::min(pa.y(), pb.y())));
+        int y1 = FloorToInt(Clamped(std::max(pa.y(), pb.y())));
+        if (x1 < x0 || y1 < y0) {
+          const Eigen::Vector2d pc = project(centre, inverse_centre_z);
+          if (x1 < x0) x0 = x1 = RoundToInt(Clamped(pc.x()));
+          if (y1 < y0) y0 = y1 = RoundToInt(Clamped(pc.y()));
+        }
+        if (x1 - x0 >= max_footprint || y1 - y0 >= max_footprint) continue;
+        x0 = std::max(x0, 0);
+        y0 = std::max(y0, 0);
+        x1 = std::min(x1, out_w - 1);
+        y1 = std::min(y1, out_h - 1);
+        if (x1 < x0 || y1 < y0) continue;
+        const double z_mm = centre.z() * 1e3;
+        if (z_mm < 0.5 || z_mm >= 65535.5) continue;
+        const auto value = static_cast<std::uint16_t>(RoundToInt(z_mm));
+        for (int y = y0; y <= y1; ++y) {
+          std::uint16_t* target = out.ptr<std::uint16_t>(y);
+          for (int x = x0; x <= x1; ++x) {
+            if (target[x] == 0 || value < target[x]) target[x] = value;  // nearest wins
+          }
         }
       }
     }
+  };
+  if (half.z() == 0) {
+    register_rows(std::true_type{});
+  } else {
+    register_rows(std::false_type{});
   }
   return out;
 }
