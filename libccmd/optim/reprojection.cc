@@ -31,6 +31,47 @@ std::string DepthNoiseConfigKeys(const DepthNoise& n) {
          "\nDepthNoise.keypointOffset: " + ExactNumber(n.keypoint_offset) + "\n";
 }
 
+void ReprojectionResidual::Evaluate(const double* q_cw, const double* t_cw, const double* p_w,
+                                    double* residual, double* J_q, double* J_t, double* J_p) const {
+  // Eigen's q * p: p + w (2 u x p) + u x (2 u x p), u the vector part.
+  const Eigen::Map<const Eigen::Vector3d> u(q_cw), p(p_w), t(t_cw);
+  const double w = q_cw[3];
+  const Eigen::Vector3d uxp2 = 2 * u.cross(p);
+  const Eigen::Vector3d pc = p + w * uxp2 + u.cross(uxp2) + t;
+  const double inv_z = 1.0 / pc.z();
+  residual[0] = w_ * (k_.fx * pc.x() * inv_z + k_.cx - uv_.x());
+  residual[1] = w_ * (k_.fy * pc.y() * inv_z + k_.cy - uv_.y());
+  residual[2] = depth_ > 0 ? w_depth_ * (pc.z() - depth_) : 0.0;
+  if (!J_q && !J_t && !J_p) return;
+  // d residual / d pc.
+  Eigen::Matrix3d D = Eigen::Matrix3d::Zero();
+  D(0, 0) = w_ * k_.fx * inv_z;
+  D(0, 2) = -w_ * k_.fx * pc.x() * inv_z * inv_z;
+  D(1, 1) = w_ * k_.fy * inv_z;
+  D(1, 2) = -w_ * k_.fy * pc.y() * inv_z * inv_z;
+  if (depth_ > 0) D(2, 2) = w_depth_;
+  using RowMajor3x3 = Eigen::Matrix<double, 3, 3, Eigen::RowMajor>;
+  if (J_t) Eigen::Map<RowMajor3x3>{J_t} = D;
+  auto skew = [](const Eigen::Vector3d& a) {
+    Eigen::Matrix3d m;
+    m << 0, -a.z(), a.y(), a.z(), 0, -a.x(), -a.y(), a.x(), 0;
+    return m;
+  };
+  if (J_p) {
+    // d pc / d p = I + 2 w [u]x + 2 [u]x [u]x (the rotation matrix when q is a unit).
+    const Eigen::Matrix3d U = skew(u);
+    Eigen::Map<RowMajor3x3>{J_p} = D * (Eigen::Matrix3d::Identity() + 2 * w * U + 2 * U * U);
+  }
+  if (J_q) {
+    // d pc / d u = -2 w [p]x + 2 ((u . p) I + u p^T - 2 p u^T); d pc / d w = 2 u x p.
+    Eigen::Matrix<double, 3, 4> dq;
+    dq.leftCols<3>() = -2 * w * skew(p) + 2 * (u.dot(p) * Eigen::Matrix3d::Identity() +
+                                               u * p.transpose() - 2 * p * u.transpose());
+    dq.col(3) = uxp2;
+    Eigen::Map<Eigen::Matrix<double, 3, 4, Eigen::RowMajor>>{J_q} = D * dq;
+  }
+}
+
 double ReprojectionChi2(const Intrinsics& k, const Eigen::Isometry3d& T_cam_world,
                         const Eigen::Vector3d& p_w, const Eigen::Vector2d& uv, double depth,
                         double info_px, double info_depth) {
