@@ -63,7 +63,7 @@ namespace {
 // Rows of one size (with 3-parameter points and 3-dimensional pose tangents) let Ceres use
 // its Schur eliminator compiled for 3x3x3 blocks instead of the dynamic one, which took
 // half of a local BA's time. The Jacobians are written out (ReprojectionResidual::Evaluate):
-// automatic differentiation of the same formula took a fifth of a local BA.
+// with automatic differentiation of the same formula a local BA took 5 % longer.
 class ReprojectionCost : public ceres::SizedCostFunction<3, 4, 3, 3> {
  public:
   explicit ReprojectionCost(const ReprojectionResidual& r) : residual_(r) {}
