@@ -36,8 +36,9 @@ int RoundToInt(double x) {  // halves away from zero, as std::lround
   return x >= 0 ? FloorToInt(x + 0.5) : -FloorToInt(0.5 - x);
 }
 // A projected coordinate kept where the conversions are exact: a point just in front of the
-// camera projects arbitrarily far out, and clamped it stays out of the image.
-double Clamped(double x) { return std::clamp(x, -1e9, 1e9); }
+// camera projects arbitrarily far out, and clamped it stays out of the image (as does a NaN,
+// which a distortion model pushed past its range could give).
+double Clamped(double x) { return x > -1e9 ? (x < 1e9 ? x : 1e9) : -1e9; }
 
 }  // namespace
 
