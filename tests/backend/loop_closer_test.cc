@@ -233,19 +233,23 @@ LoopMatch TrueMatch(ServerKeyframe* query, ServerKeyframe* candidate,
   return match;
 }
 
+// Agent 1 walks the circle in `steps` keyframes with growing drift and is back at its start:
+// the last keyframe (id `steps`, returned) sees what keyframe 0 saw, as new points.
+ServerKeyframe* WalkTheDriftedCircle(ServerMap* map, const GeneratedWorld& world, int steps,
+                                     Rng* rng) {
+  for (int i = 0; i < steps; ++i) {
+    AddGeneratedKeyframe(map, world, AgentId(1), i, CirclePose(i, steps), Drifted(i, steps), rng);
+  }
+  return AddGeneratedKeyframe(map, world, AgentId(1), steps, CirclePose(0, steps),
+                              Drifted(steps, steps), rng, /*local_window=*/steps - 5);
+}
+
 TEST(LoopCorrectionTest, ALoopInsideAMapRemovesTheDriftAndMergesTheMatches) {
   Rng rng(7);
   const GeneratedWorld world = MakeRingWorld(3000, &rng);
   constexpr int kSteps = 36;
   ServerMap map(MapId(1));
-  for (int i = 0; i < kSteps; ++i) {
-    AddGeneratedKeyframe(&map, world, AgentId(1), i, CirclePose(i, kSteps), Drifted(i, kSteps),
-                         &rng);
-  }
-  // Back at the start: keyframe 36 sees what keyframe 0 saw, as new points.
-  ServerKeyframe* query =
-      AddGeneratedKeyframe(&map, world, AgentId(1), kSteps, CirclePose(0, kSteps),
-                           Drifted(kSteps, kSteps), &rng, /*local_window=*/kSteps - 5);
+  ServerKeyframe* query = WalkTheDriftedCircle(&map, world, kSteps, &rng);
   ServerKeyframe* candidate = map.keyframe(Kf(1, 0));
   const double drift_before = TranslationDistance(query->T_map_cam, CirclePose(0, kSteps));
   ASSERT_GT(drift_before, 0.1);
@@ -287,13 +291,7 @@ TEST(LoopCorrectionTest, ALoopsSeamIsSearchedFromTheVerifiedPoseNotFromTheDrift)
   const GeneratedWorld world = MakeRingWorld(3000, &rng);
   constexpr int kSteps = 36;
   ServerMap map(MapId(1));
-  for (int i = 0; i < kSteps; ++i) {
-    AddGeneratedKeyframe(&map, world, AgentId(1), i, CirclePose(i, kSteps), Drifted(i, kSteps),
-                         &rng);
-  }
-  ServerKeyframe* query =
-      AddGeneratedKeyframe(&map, world, AgentId(1), kSteps, CirclePose(0, kSteps),
-                           Drifted(kSteps, kSteps), &rng, /*local_window=*/kSteps - 5);
+  ServerKeyframe* query = WalkTheDriftedCircle(&map, world, kSteps, &rng);
   ASSERT_GT(TranslationDistance(query->T_map_cam, CirclePose(0, kSteps)), 0.1);
   const LoopMatch match = TrueMatch(query, map.keyframe(Kf(1, 0)), Offset(0.02, 0.5));
   const Pose before = query->T_map_cam;
