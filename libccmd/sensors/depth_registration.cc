@@ -57,71 +57,54 @@ cv::Mat RegisterDepthToColor(const cv::Mat& depth_mm, const PinholeCamera& depth
   const bool distorted = color_camera.HasDistortion();
   const double fx = color_camera.fx, fy = color_camera.fy;
   const double cx = color_camera.cx, cy = color_camera.cy;
-  auto project = [&](const Eigen::Vector3d& p, double inverse_z) {
+  auto project = [&](const Eigen::Vector3d& p) {
+    const double inverse_z = 1.0 / p.z();  // one division, not two
     const Eigen::Vector2d ideal(fx * p.x() * inverse_z + cx, fy * p.y() * inverse_z + cy);
     return distorted ? color_camera.DistortPixel(ideal) : ideal;
   };
-  // Without a rotation out of the image plane (half.z() == 0: cameras that differ by a
-  // translation, or turned about the optical axis only) the corners are exactly as deep as
-  // the centre and one division per pixel serves all three; the loop is compiled for each
-  // case, so the other does not pay for the test.
-  auto register_rows = [&](auto same_depth) {
-    for (int v = 0; v < depth_mm.rows; ++v) {
-      const std::uint16_t* row = depth_mm.ptr<std::uint16_t>(v);
-      // Rotated ray of pixel (0, v); each column adds column_step.
-      const Eigen::Vector3d row_start =
-          R * Eigen::Vector3d(-depth_camera.cx / depth_camera.fx,
-                              (v - depth_camera.cy) / depth_camera.fy, 1.0);
-      for (int u = 0; u < depth_mm.cols; ++u) {
-        if (row[u] == 0) continue;
-        const double z = row[u] * 1e-3;
-        const Eigen::Vector3d ray = row_start + u * column_step;
-        const Eigen::Vector3d centre = z * ray + t;
-        const Eigen::Vector3d a = z * (ray - half) + t;
-        const Eigen::Vector3d b = z * (ray + half) + t;
-        if (centre.z() <= 1e-6 || a.z() <= 1e-6 || b.z() <= 1e-6) continue;
-        const double inverse_centre_z = 1.0 / centre.z();
-        Eigen::Vector2d pa, pb;
-        if constexpr (decltype(same_depth)::value) {
-          pa = project(a, inverse_centre_z);
-          pb = project(b, inverse_centre_z);
-        } else {
-          pa = project(a, 1.0 / a.z());
-          pb = project(b, 1.0 / b.z());
-        }
-        // Colour pixels whose centres lie inside the footprint; at least the one under the
-        // projected centre (a footprint smaller than a pixel may hold no centre).
-        int x0 = CeilToInt(Clamped(std::min(pa.x(), pb.x())));
-        int x1 = FloorToInt(Clamped(std::max(pa.x(), pb.x())));
-        int y0 = CeilToInt(Clamped(std::min(pa.y(), pb.y())));
-        int y1 = FloorToInt(Clamped(std::max(pa.y(), pb.y())));
-        if (x1 < x0 || y1 < y0) {
-          const Eigen::Vector2d pc = project(centre, inverse_centre_z);
-          if (x1 < x0) x0 = x1 = RoundToInt(Clamped(pc.x()));
-          if (y1 < y0) y0 = y1 = RoundToInt(Clamped(pc.y()));
-        }
-        if (x1 - x0 >= max_footprint || y1 - y0 >= max_footprint) continue;
-        x0 = std::max(x0, 0);
-        y0 = std::max(y0, 0);
-        x1 = std::min(x1, out_w - 1);
-        y1 = std::min(y1, out_h - 1);
-        if (x1 < x0 || y1 < y0) continue;
-        const double z_mm = centre.z() * 1e3;
-        if (z_mm < 0.5 || z_mm >= 65535.5) continue;
-        const auto value = static_cast<std::uint16_t>(RoundToInt(z_mm));
-        for (int y = y0; y <= y1; ++y) {
-          std::uint16_t* target = out.ptr<std::uint16_t>(y);
-          for (int x = x0; x <= x1; ++x) {
-            if (target[x] == 0 || value < target[x]) target[x] = value;  // nearest wins
-          }
+  for (int v = 0; v < depth_mm.rows; ++v) {
+    const std::uint16_t* row = depth_mm.ptr<std::uint16_t>(v);
+    // Rotated ray of pixel (0, v); each column adds column_step.
+    const Eigen::Vector3d row_start =
+        R * Eigen::Vector3d(-depth_camera.cx / depth_camera.fx,
+                            (v - depth_camera.cy) / depth_camera.fy, 1.0);
+    for (int u = 0; u < depth_mm.cols; ++u) {
+      if (row[u] == 0) continue;
+      const double z = row[u] * 1e-3;
+      const Eigen::Vector3d ray = row_start + u * column_step;
+      const Eigen::Vector3d centre = z * ray + t;
+      const Eigen::Vector3d a = z * (ray - half) + t;
+      const Eigen::Vector3d b = z * (ray + half) + t;
+      if (centre.z() <= 1e-6 || a.z() <= 1e-6 || b.z() <= 1e-6) continue;
+      const Eigen::Vector2d pa = project(a);
+      const Eigen::Vector2d pb = project(b);
+      // Colour pixels whose centres lie inside the footprint; at least the one under the
+      // projected centre (a footprint smaller than a pixel may hold no centre).
+      int x0 = CeilToInt(Clamped(std::min(pa.x(), pb.x())));
+      int x1 = FloorToInt(Clamped(std::max(pa.x(), pb.x())));
+      int y0 = CeilToInt(Clamped(std::min(pa.y(), pb.y())));
+      int y1 = FloorToInt(Clamped(std::max(pa.y(), pb.y())));
+      if (x1 < x0 || y1 < y0) {
+        const Eigen::Vector2d pc = project(centre);
+        if (x1 < x0) x0 = x1 = RoundToInt(Clamped(pc.x()));
+        if (y1 < y0) y0 = y1 = RoundToInt(Clamped(pc.y()));
+      }
+      if (x1 - x0 >= max_footprint || y1 - y0 >= max_footprint) continue;
+      x0 = std::max(x0, 0);
+      y0 = std::max(y0, 0);
+      x1 = std::min(x1, out_w - 1);
+      y1 = std::min(y1, out_h - 1);
+      if (x1 < x0 || y1 < y0) continue;
+      const double z_mm = centre.z() * 1e3;
+      if (z_mm < 0.5 || z_mm >= 65535.5) continue;
+      const auto value = static_cast<std::uint16_t>(RoundToInt(z_mm));
+      for (int y = y0; y <= y1; ++y) {
+        std::uint16_t* target = out.ptr<std::uint16_t>(y);
+        for (int x = x0; x <= x1; ++x) {
+          if (target[x] == 0 || value < target[x]) target[x] = value;  // nearest wins
         }
       }
     }
-  };
-  if (half.z() == 0) {
-    register_rows(std::true_type{});
-  } else {
-    register_rows(std::false_type{});
   }
   return out;
 }
