@@ -2,46 +2,19 @@
 
 #include <ceres/ceres.h>
 
+#include <algorithm>
 #include <cmath>
 #include <deque>
 #include <memory>
 
 #include <Eigen/Eigenvalues>
 
+#include "libccmd/optim/dense_schur_lm.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/timer.h"
 
 namespace ccmd {
 namespace {
-
-// Residual of a BaRelativePose; parameters: q_a, t_a, q_b, t_b (T_cam_world of each camera).
-struct RelativePoseResidual {
-  RelativePoseResidual(const Pose& T_b_a, const Eigen::Matrix<double, 6, 6>& sqrt_information)
-      : q_m_(T_b_a.linear()), t_m_(T_b_a.translation()), sqrt_information_(sqrt_information) {}
-
-  template <typename T>
-  bool operator()(const T* qa_, const T* ta_, const T* qb_, const T* tb_, T* residual) const {
-    using Vec3 = Eigen::Matrix<T, 3, 1>;
-    const Eigen::Map<const Eigen::Quaternion<T>> qa(qa_), qb(qb_);
-    const Eigen::Map<const Vec3> ta(ta_), tb(tb_);
-    // Estimate T_b_a = T_b * T_a^-1, error E = T_b_a * T_measured^-1.
-    const Eigen::Quaternion<T> q_ba = qb * qa.conjugate();
-    const Vec3 t_ba = tb - q_ba * ta;
-    Eigen::Quaternion<T> q_e = q_ba * q_m_.conjugate().cast<T>();
-    if (q_e.w() < T(0)) q_e.coeffs() = -q_e.coeffs();
-    const Vec3 t_e = t_ba - q_e * t_m_.cast<T>();
-    Eigen::Matrix<T, 6, 1> xi;
-    xi << T(2) * q_e.vec(), t_e;
-    Eigen::Map<Eigen::Matrix<T, 6, 1>> out(residual);
-    out = sqrt_information_.cast<T>() * xi;
-    return true;
-  }
-
- private:
-  Eigen::Quaterniond q_m_;
-  Eigen::Vector3d t_m_;
-  Eigen::Matrix<double, 6, 6> sqrt_information_;
-};
 
 bool IsOutlier(const BaObservation& o, const Intrinsics& k, const Pose& T,
                const Eigen::Vector3d& p) {
@@ -221,6 +194,31 @@ ceres::Solver::Options SolverOptions(const BaOptions& options, int iterations) {
   return solver;
 }
 
+// One pass with Ceres (BaLinearSolver::kSparseSchur and kIterativeSchur: the server's global
+// BA, thousands of cameras).
+LmPassSummary CeresPass(BaProblem* problem, Parameters* x, const BaOptions& options,
+                        const LmPassOptions& lm, std::string* schur_structure) {
+  CeresBundle bundle(problem, x, lm.skip ? *lm.skip : std::vector<bool>(), lm.robust);
+  ceres::Solver::Options solver = SolverOptions(options, lm.max_iterations);
+  solver.linear_solver_ordering = bundle.ordering();
+  IterationRecorder recorder(lm.abort);
+  solver.callbacks.push_back(&recorder);
+  solver.initial_trust_region_radius = lm.initial_radius;
+  ceres::Solver::Summary ceres_summary;
+  ceres::Solve(solver, bundle.problem(), &ceres_summary);
+  LmPassSummary done;
+  done.observations = bundle.observations();
+  done.iterations =
+      std::max(0, static_cast<int>(ceres_summary.iterations.size()) - 1);  // [0]: start
+  done.initial_cost = ceres_summary.initial_cost;
+  done.final_cost = ceres_summary.final_cost;
+  done.radius = recorder.radius();
+  done.aborted = ceres_summary.termination_type == ceres::USER_FAILURE;
+  done.message = ceres_summary.message;
+  *schur_structure = ceres_summary.schur_structure_used;
+  return done;
+}
+
 }  // namespace
 
 BaSummary BundleAdjust(BaProblem* problem, const BaOptions& options) {
@@ -237,32 +235,32 @@ BaSummary BundleAdjust(BaProblem* problem, const BaOptions& options) {
         << "camera without calibration";
   }
   Parameters x(*problem);
-  IterationRecorder recorder(options.abort);
   double radius = 0;
 
   for (int pass = 0; pass < 2; ++pass) {
     const int iterations = pass == 0 ? options.first_iterations : options.second_iterations;
     if (iterations <= 0) continue;
     // The second pass: no robust kernel, and the outliers of the first pass left out.
-    CeresBundle bundle(problem, &x, pass == 1 ? summary.outlier : std::vector<bool>(),
-                       /*robust=*/pass == 0);
-    if (bundle.observations() == 0) break;
-    ceres::Solver::Options solver = SolverOptions(options, iterations);
-    solver.linear_solver_ordering = bundle.ordering();
-    solver.callbacks.push_back(&recorder);
+    if (pass == 1 && std::count(summary.outlier.begin(), summary.outlier.end(), false) == 0) break;
+    LmPassOptions lm;
+    lm.max_iterations = iterations;
+    lm.function_tolerance = options.function_tolerance;
     // Warm start: the second pass begins with the trust region the first one ended with.
-    if (options.warm_start && radius > 0) solver.initial_trust_region_radius = radius;
-    ceres::Solver::Summary ceres_summary;
-    ceres::Solve(solver, bundle.problem(), &ceres_summary);
-    radius = recorder.radius();
-    if (pass == 0) summary.initial_cost = ceres_summary.initial_cost;
-    summary.final_cost = ceres_summary.final_cost;
-    const int done = static_cast<int>(ceres_summary.iterations.size()) - 1;  // [0] is the start
-    summary.iterations += std::max(0, done);
-    summary.pass_iterations[pass] = std::max(0, done);
-    summary.message = ceres_summary.message;
-    summary.schur_structure = ceres_summary.schur_structure_used;
-    if (ceres_summary.termination_type == ceres::USER_FAILURE) summary.aborted = true;
+    if (options.warm_start && radius > 0) lm.initial_radius = radius;
+    lm.robust = pass == 0;
+    lm.skip = pass == 1 ? &summary.outlier : nullptr;
+    lm.abort = options.abort;
+    const LmPassSummary done = options.solver == BaLinearSolver::kDenseSchur
+                                   ? DenseSchurLmPass(problem, x.values.data(), lm)
+                                   : CeresPass(problem, &x, options, lm, &summary.schur_structure);
+    if (options.solver == BaLinearSolver::kDenseSchur) summary.schur_structure = "3,3,6 dense";
+    if (done.radius > 0) radius = done.radius;
+    if (pass == 0) summary.initial_cost = done.initial_cost;
+    summary.final_cost = done.final_cost;
+    summary.iterations += done.iterations;
+    summary.pass_iterations[pass] = done.iterations;
+    summary.message = done.message;
+    summary.aborted = done.aborted;
 
     // Classify observations with the current estimate.
     summary.outliers = 0;

@@ -1,9 +1,10 @@
 #pragma once
 
-// Bundle adjustment with Ceres: camera poses and map points refined together from their image
+// Bundle adjustment: camera poses and map points refined together from their image
 // observations (reprojection + measured depth residuals), robust Huber kernel, outlier
 // observations removed between two optimisation passes. Used for the agent's local BA (a
-// bounded window of keyframes, the rest fixed) and the server's global BA (sparse Schur with
+// bounded window of keyframes, the rest fixed: BaLinearSolver::kDenseSchur, the in-tree
+// Levenberg-Marquardt of dense_schur_lm.h) and the server's global BA (Ceres, sparse Schur with
 // SuiteSparse). A flag can interrupt it between iterations when newer work arrives.
 
 #include <atomic>
@@ -55,6 +56,8 @@ struct BaProblem {
   std::vector<BaRelativePose> relative_poses;
 };
 
+// kDenseSchur: the in-tree solver, for tens of free cameras (it holds the reduced camera
+// system dense); the others: Ceres, for the server's thousands.
 enum class BaLinearSolver { kDenseSchur, kSparseSchur, kIterativeSchur };
 
 struct BaOptions {
@@ -78,7 +81,8 @@ struct BaSummary {
   bool aborted = false;
   int iterations = 0;
   int pass_iterations[2] = {0, 0};  // robust pass, then without outliers
-  std::string schur_structure;      // Ceres' block sizes ("3,3,3"; "d,d,d": dynamic)
+  // Ceres' block sizes ("3,3,3"; "d,d,d": dynamic); "3,3,6 dense" for the in-tree solver.
+  std::string schur_structure;
   double initial_cost = 0, final_cost = 0;
   double seconds = 0;
   std::vector<bool> outlier;  // per observation, after the final classification

@@ -1,9 +1,9 @@
 #pragma once
 
-// Residuals shared by the Ceres problems: a map point seen by a camera at pixel (u, v) and,
-// for RGB-D, with a measured depth. Each part is divided by its own standard deviation, so
-// chi-square tests combine them: pixels by the keypoint octave's sigma, depth by the depth
-// sensor's sigma at that depth (which grows with depth squared). This weighs depth by what
+// Residuals shared by the optimisers (pose, bundle adjustment): a map point seen by a camera at
+// pixel (u, v) and, for RGB-D, with a measured depth. Each part is divided by its own standard
+// deviation, so chi-square tests combine them: pixels by the keypoint octave's sigma, depth by the
+// depth sensor's sigma at that depth (which grows with depth squared). This weighs depth by what
 // the sensor delivers, unlike ORB-SLAM's virtual right-image coordinate (u - bf / z), whose
 // one-pixel sigma corresponds to ~12 cm of depth at 2.5 m and so mostly ignores depth.
 
@@ -11,6 +11,7 @@
 #include <Eigen/Geometry>
 #include <string>
 
+#include "libccmd/geometry/pose.h"
 #include "libccmd/io/config.h"
 #include "libccmd/util/options_writer.h"
 #include "libccmd/util/status.h"
@@ -58,6 +59,37 @@ struct ReprojectionResidual {
   Eigen::Vector2d uv_;
   double depth_;
   double w_, w_depth_;
+};
+
+// Residual of a measured relative pose T_b_a between two cameras (a BaRelativePose):
+// sqrt_information * (rotation vector, translation) of T_b_a_estimate * T_b_a^-1.
+// Parameters: q_a, t_a, q_b, t_b (T_cam_world of each camera, quaternions x y z w).
+struct RelativePoseResidual {
+  RelativePoseResidual(const Pose& T_b_a, const Eigen::Matrix<double, 6, 6>& sqrt_information)
+      : q_m_(T_b_a.linear()), t_m_(T_b_a.translation()), sqrt_information_(sqrt_information) {}
+
+  template <typename T>
+  bool operator()(const T* qa_, const T* ta_, const T* qb_, const T* tb_, T* residual) const {
+    using Vec3 = Eigen::Matrix<T, 3, 1>;
+    const Eigen::Map<const Eigen::Quaternion<T>> qa(qa_), qb(qb_);
+    const Eigen::Map<const Vec3> ta(ta_), tb(tb_);
+    // Estimate T_b_a = T_b * T_a^-1, error E = T_b_a * T_measured^-1.
+    const Eigen::Quaternion<T> q_ba = qb * qa.conjugate();
+    const Vec3 t_ba = tb - q_ba * ta;
+    Eigen::Quaternion<T> q_e = q_ba * q_m_.conjugate().cast<T>();
+    if (q_e.w() < T(0)) q_e.coeffs() = -q_e.coeffs();
+    const Vec3 t_e = t_ba - q_e * t_m_.cast<T>();
+    Eigen::Matrix<T, 6, 1> xi;
+    xi << T(2) * q_e.vec(), t_e;
+    Eigen::Map<Eigen::Matrix<T, 6, 1>> out(residual);
+    out = sqrt_information_.cast<T>() * xi;
+    return true;
+  }
+
+ private:
+  Eigen::Quaterniond q_m_;
+  Eigen::Vector3d t_m_;
+  Eigen::Matrix<double, 6, 6> sqrt_information_;
 };
 
 // The same residual evaluated in plain doubles as a chi-square value (sum of squared
