@@ -236,19 +236,29 @@ BaSummary BundleAdjust(BaProblem* problem, const BaOptions& options) {
   }
   Parameters x(*problem);
   double radius = 0;
+  // An observation whose point is not in front of its camera at the start (a point that
+  // drifted behind a keyframe, or onto its centre plane, where the residual divides by zero)
+  // is an outlier whatever the robust pass does, and one non-finite residual would make the
+  // solver refuse every step of that pass: it is left out from the start.
+  std::vector<bool> behind(num_obs);
+  for (std::size_t i = 0; i < num_obs; ++i) {
+    const BaObservation& o = problem->observations[i];
+    behind[i] = (x.T_cam_world(o.camera) * problem->points[o.point].position).z() <= 1e-6;
+  }
 
   for (int pass = 0; pass < 2; ++pass) {
     const int iterations = pass == 0 ? options.first_iterations : options.second_iterations;
     if (iterations <= 0) continue;
     // The second pass: no robust kernel, and the outliers of the first pass left out.
-    if (pass == 1 && std::count(summary.outlier.begin(), summary.outlier.end(), false) == 0) break;
+    const std::vector<bool>& skip = pass == 0 ? behind : summary.outlier;
+    if (std::count(skip.begin(), skip.end(), false) == 0) break;
     LmPassOptions lm;
     lm.max_iterations = iterations;
     lm.function_tolerance = options.function_tolerance;
     // Warm start: the second pass begins with the trust region the first one ended with.
     if (options.warm_start && radius > 0) lm.initial_radius = radius;
     lm.robust = pass == 0;
-    lm.skip = pass == 1 ? &summary.outlier : nullptr;
+    lm.skip = &skip;
     lm.abort = options.abort;
     const LmPassSummary done = options.solver == BaLinearSolver::kDenseSchur
                                    ? DenseSchurLmPass(problem, x.values.data(), lm)

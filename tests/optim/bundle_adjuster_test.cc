@@ -257,6 +257,39 @@ TEST(BundleAdjusterTest, TheDenseSolverReachesCeresOptimum) {
   EXPECT_LT(TranslationDistance(a.problem.cameras[4].T_cam_world, a.T_cam_world[4]), 0.01);
 }
 
+// A point that has drifted behind the camera observing it, or onto its centre plane (a
+// residual that divides by zero), is marked an outlier and does not stop the rest of the
+// problem from being solved, with either solver; nothing non-finite reaches the estimate.
+TEST(BundleAdjusterTest, APointBehindItsCameraIsAnOutlierAndTheRestIsSolved) {
+  for (const double depth_in_camera : {-0.5, 0.0}) {
+    for (BaLinearSolver solver : {BaLinearSolver::kDenseSchur, BaLinearSolver::kSparseSchur}) {
+      Rng rng(37);
+      Scene s = MakeScene(0.3, &rng);
+      s.problem.cameras[0].fixed = true;
+      s.problem.cameras[3].T_cam_world.translation() += Eigen::Vector3d(0.02, -0.01, 0.01);
+      const Eigen::Vector3d in_camera(0.1, 0.1, depth_in_camera);
+      s.problem.points.push_back({s.T_cam_world[2].inverse() * in_camera});
+      BaObservation o;
+      o.camera = 2;
+      o.point = static_cast<int>(s.problem.points.size()) - 1;
+      o.uv = Eigen::Vector2d(340, 260);
+      o.depth = 2.0;
+      o.depth_information = kDepthInfo;
+      s.problem.observations.push_back(o);
+      BaOptions options;
+      options.solver = solver;
+      const BaSummary summary = BundleAdjust(&s.problem, options);
+      const std::string where = "z " + std::to_string(depth_in_camera) + ", solver " +
+                                std::to_string(static_cast<int>(solver));
+      EXPECT_TRUE(summary.outlier.back()) << where;
+      EXPECT_LT(TranslationDistance(s.problem.cameras[3].T_cam_world, s.T_cam_world[3]), 0.005)
+          << where;
+      for (const BaCamera& c : s.problem.cameras) EXPECT_TRUE(c.T_cam_world.matrix().allFinite());
+      for (const BaPoint& p : s.problem.points) EXPECT_TRUE(p.position.allFinite()) << where;
+    }
+  }
+}
+
 // A relative pose places a camera that has no observation at all: T_b = T_b_a * T_a. The
 // inverse convention (T_a_b) would put it elsewhere, so this pins the residual's meaning.
 TEST(BundleAdjusterTest, RelativePosePlacesACameraWithoutObservations) {
