@@ -192,7 +192,9 @@ TEST(BundleAdjusterTest, MixedObservationsUseTheCompiledSchurEliminator) {
     BaOptions options;
     options.solver = solver;
     const BaSummary summary = BundleAdjust(&copy.problem, options);
-    if (solver == BaLinearSolver::kSparseSchur) EXPECT_EQ(summary.schur_structure, "3,3,3");
+    if (solver == BaLinearSolver::kSparseSchur) {
+      EXPECT_EQ(summary.schur_structure, "3,3,3");
+    }
     EXPECT_GT(summary.pass_iterations[1], 0);
     EXPECT_TRUE(summary.outlier[5]);
     EXPECT_LT(TranslationDistance(copy.problem.cameras[2].T_cam_world, s.T_cam_world[2]), 0.005);
@@ -224,7 +226,7 @@ TEST(BundleAdjusterTest, TheDenseSolverReachesCeresOptimum) {
     p.position += Eigen::Vector3d(rng.Uniform(-0.02, 0.02), rng.Uniform(-0.02, 0.02),
                                   rng.Uniform(-0.02, 0.02));
   // Relative poses 1 cm off the truth: between two free cameras, and to the fixed one.
-  for (const auto [ca, cb] : {std::pair{1, 3}, std::pair{0, 4}}) {
+  for (const auto& [ca, cb] : {std::pair{1, 3}, std::pair{0, 4}}) {
     Pose T_b_a = a.T_cam_world[cb] * a.T_cam_world[ca].inverse();
     T_b_a.translation() += Eigen::Vector3d(0.01, 0, -0.005);
     a.problem.relative_poses.push_back(
