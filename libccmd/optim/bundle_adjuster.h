@@ -69,7 +69,7 @@ struct BaOptions {
   // The second pass starts from the trust region the first one ended with.
   bool warm_start = true;
   BaLinearSolver solver = BaLinearSolver::kDenseSchur;
-  int threads = 1;
+  int threads = 1;  // Ceres solvers only; the in-tree dense solver runs in the calling thread
   // When set and it becomes true, the solver stops after the current iteration.
   const std::atomic<bool>* abort = nullptr;
 
