@@ -243,7 +243,8 @@ BaSummary BundleAdjust(BaProblem* problem, const BaOptions& options) {
   std::vector<bool> behind(num_obs);
   for (std::size_t i = 0; i < num_obs; ++i) {
     const BaObservation& o = problem->observations[i];
-    behind[i] = (x.T_cam_world(o.camera) * problem->points[o.point].position).z() <= 1e-6;
+    behind[i] =
+        (problem->cameras[o.camera].T_cam_world * problem->points[o.point].position).z() <= 1e-6;
   }
 
   for (int pass = 0; pass < 2; ++pass) {

@@ -4,7 +4,6 @@
 #include <cmath>
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
-#include <type_traits>
 
 namespace ccmd {
 
