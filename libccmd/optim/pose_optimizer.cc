@@ -48,10 +48,22 @@ double SquaredResidual(const PoseObservation& o, const Intrinsics& k, const Eige
   return r[0] * r[0] + r[1] * r[1] + r[2] * r[2];
 }
 
+// The prior's residual at (q, t), for doubles or Jets.
+template <typename T>
+Eigen::Matrix<T, 6, 1> PriorResidual(const PosePrior& prior, const Eigen::Quaternion<T>& q,
+                                     const Eigen::Matrix<T, 3, 1>& t) {
+  const Eigen::Quaternion<T> qb(prior.T_b_world.linear().cast<T>());
+  const Eigen::Matrix<T, 3, 1> tb = prior.T_b_world.translation().cast<T>();
+  Eigen::Matrix<T, 6, 1> r;
+  RelativePoseResidual(prior.T_b_a, prior.sqrt_information)(
+      q.coeffs().data(), t.data(), qb.coeffs().data(), tb.data(), r.data());
+  return r;
+}
+
 double Cost(const std::vector<PoseObservation>& observations, const std::vector<bool>& active,
-            bool robust, const Intrinsics& k, const Eigen::Quaterniond& q,
+            bool robust, const Intrinsics& k, const PosePrior* prior, const Eigen::Quaterniond& q,
             const Eigen::Vector3d& t) {
-  double cost = 0, weight;
+  double cost = prior ? PriorResidual(*prior, q, t).squaredNorm() : 0.0, weight;
   for (std::size_t i = 0; i < observations.size(); ++i) {
     if (!active[i]) continue;
     const double s = SquaredResidual(observations[i], k, q, t);
@@ -62,14 +74,22 @@ double Cost(const std::vector<PoseObservation>& observations, const std::vector<
 }
 
 Linear Linearize(const std::vector<PoseObservation>& observations, const std::vector<bool>& active,
-                 bool robust, const Intrinsics& k, const Eigen::Quaterniond& q0,
-                 const Eigen::Vector3d& t0) {
+                 bool robust, const Intrinsics& k, const PosePrior* prior,
+                 const Eigen::Quaterniond& q0, const Eigen::Vector3d& t0) {
   // q = exp(dr) * q0: d(q.vec)/d(dr) = I / 2 at dr = 0, d(q.w)/d(dr) = 0.
   const auto half = [](int i) { return Jet(0.0, i) * 0.5; };
   const Eigen::Quaternion<Jet> dq(Jet(1.0), half(0), half(1), half(2));
   const Eigen::Quaternion<Jet> q = dq * q0.cast<Jet>();
   const Eigen::Matrix<Jet, 3, 1> t(Jet(t0.x(), 3), Jet(t0.y(), 4), Jet(t0.z(), 5));
   Linear linear;
+  if (prior) {
+    const Eigen::Matrix<Jet, 6, 1> r = PriorResidual(*prior, q, t);
+    for (int j = 0; j < 6; ++j) {
+      linear.cost += r[j].a * r[j].a;
+      linear.H.noalias() += r[j].v * r[j].v.transpose();
+      linear.g.noalias() += r[j].a * r[j].v;
+    }
+  }
   for (std::size_t i = 0; i < observations.size(); ++i) {
     if (!active[i]) continue;
     const PoseObservation& o = observations[i];
@@ -103,10 +123,10 @@ void ApplyStep(const Vector6& step, Eigen::Quaterniond* q, Eigen::Vector3d* t) {
 // Levenberg-Marquardt from (q, t); stops as Ceres' defaults do, on a relative cost decrease
 // under 1e-6 or a step under 1e-8 of the parameters.
 void Minimize(const std::vector<PoseObservation>& observations, const std::vector<bool>& active,
-              bool robust, const Intrinsics& k, int max_iterations, Eigen::Quaterniond* q,
-              Eigen::Vector3d* t) {
+              bool robust, const Intrinsics& k, const PosePrior* prior, int max_iterations,
+              Eigen::Quaterniond* q, Eigen::Vector3d* t) {
   double lambda = 1e-4;
-  Linear linear = Linearize(observations, active, robust, k, *q, *t);
+  Linear linear = Linearize(observations, active, robust, k, prior, *q, *t);
   for (int iteration = 0; iteration < max_iterations; ++iteration) {
     Matrix6 A = linear.H;
     A.diagonal() += lambda * linear.H.diagonal().cwiseMax(1e-9);
@@ -115,7 +135,7 @@ void Minimize(const std::vector<PoseObservation>& observations, const std::vecto
     Eigen::Quaterniond q_new = *q;
     Eigen::Vector3d t_new = *t;
     ApplyStep(step, &q_new, &t_new);
-    const double cost = Cost(observations, active, robust, k, q_new, t_new);
+    const double cost = Cost(observations, active, robust, k, prior, q_new, t_new);
     if (!(cost < linear.cost)) {
       lambda *= 10;
       if (lambda > 1e8) return;
@@ -126,7 +146,7 @@ void Minimize(const std::vector<PoseObservation>& observations, const std::vecto
     *t = t_new;
     lambda = std::max(lambda / 10, 1e-9);
     if (decrease < 1e-6 || step.norm() < 1e-8 * (t->norm() + 1.0)) return;
-    linear = Linearize(observations, active, robust, k, *q, *t);
+    linear = Linearize(observations, active, robust, k, prior, *q, *t);
   }
 }
 
@@ -135,7 +155,8 @@ void Minimize(const std::vector<PoseObservation>& observations, const std::vecto
 PoseOptimizationResult OptimizePose(const Pose& T_cam_world_initial,
                                     const std::vector<PoseObservation>& observations,
                                     const Intrinsics& intrinsics,
-                                    const PoseOptimizationOptions& options) {
+                                    const PoseOptimizationOptions& options,
+                                    const PosePrior* prior) {
   PoseOptimizationResult result;
   result.T_cam_world = T_cam_world_initial;
   result.inlier.assign(observations.size(), true);
@@ -155,8 +176,8 @@ PoseOptimizationResult OptimizePose(const Pose& T_cam_world_initial,
     if (used < 3) break;
     // Robust in the first rounds; the last rounds fit the inliers exactly (ORB-SLAM drops the
     // kernel once the outliers are out).
-    Minimize(observations, active, /*robust=*/round < 2, intrinsics, options.iterations_per_round,
-             &q, &t);
+    Minimize(observations, active, /*robust=*/round < 2, intrinsics, prior,
+             options.iterations_per_round, &q, &t);
 
     Pose T = Pose::Identity();
     T.linear() = q.normalized().toRotationMatrix();

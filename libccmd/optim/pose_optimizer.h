@@ -27,6 +27,15 @@ struct PoseOptimizationOptions {
   void Describe(OptionsWriter* out) const;
 };
 
+// A measured pose of the camera relative to a fixed one (a dense depth alignment with a
+// keyframe), weighed in beside the observations: residual RelativePoseResidual with the
+// optimised camera as a and the fixed camera as b.
+struct PosePrior {
+  Pose T_b_world = Pose::Identity();  // the fixed camera
+  Pose T_b_a = Pose::Identity();      // measured
+  Eigen::Matrix<double, 6, 6> sqrt_information = Eigen::Matrix<double, 6, 6>::Zero();
+};
+
 struct PoseOptimizationResult {
   Pose T_cam_world = Pose::Identity();
   std::vector<bool> inlier;  // per observation
@@ -36,6 +45,7 @@ struct PoseOptimizationResult {
 PoseOptimizationResult OptimizePose(const Pose& T_cam_world_initial,
                                     const std::vector<PoseObservation>& observations,
                                     const Intrinsics& intrinsics,
-                                    const PoseOptimizationOptions& options = {});
+                                    const PoseOptimizationOptions& options = {},
+                                    const PosePrior* prior = nullptr);
 
 }  // namespace ccmd

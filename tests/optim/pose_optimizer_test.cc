@@ -81,8 +81,20 @@ struct FixedPointResidual {
   }
 };
 
+struct FixedPriorResidual {
+  RelativePoseResidual residual;
+  Pose T_b_world;
+  template <typename T>
+  bool operator()(const T* q, const T* t, T* r) const {
+    const Eigen::Quaternion<T> qb(T_b_world.linear().cast<T>());
+    const Eigen::Matrix<T, 3, 1> tb = T_b_world.translation().cast<T>();
+    return residual(q, t, qb.coeffs().data(), tb.data(), r);
+  }
+};
+
 // The same least-squares problem solved by Ceres (the solver the optimiser replaced).
-Pose CeresLeastSquares(const Pose& start, const std::vector<PoseObservation>& obs) {
+Pose CeresLeastSquares(const Pose& start, const std::vector<PoseObservation>& obs,
+                       const PosePrior* prior = nullptr) {
   using Fixed = FixedPointResidual;
   Eigen::Quaterniond q(start.linear());
   Eigen::Vector3d t = start.translation();
@@ -97,6 +109,12 @@ Pose CeresLeastSquares(const Pose& start, const std::vector<PoseObservation>& ob
                   new ceres::AutoDiffCostFunction<Fixed, 3, 4, 3>(new Fixed{r, o.point_world}))
             : new ceres::AutoDiffCostFunction<Fixed, 2, 4, 3>(new Fixed{r, o.point_world});
     problem.AddResidualBlock(cost, nullptr, q.coeffs().data(), t.data());
+  }
+  if (prior) {
+    problem.AddResidualBlock(
+        new ceres::AutoDiffCostFunction<FixedPriorResidual, 6, 4, 3>(new FixedPriorResidual{
+            RelativePoseResidual(prior->T_b_a, prior->sqrt_information), prior->T_b_world}),
+        nullptr, q.coeffs().data(), t.data());
   }
   ceres::Solver::Options options;
   options.function_tolerance = 1e-12;
@@ -128,6 +146,48 @@ TEST(PoseOptimizerTest, ReachesTheLeastSquaresOptimumCeresFinds) {
   EXPECT_GT(TranslationDistance(reference, truth), 1e-4);
   EXPECT_LT(TranslationDistance(r.T_cam_world, reference), 2e-6);
   EXPECT_LT(RotationDistance(r.T_cam_world, reference), 2e-7);
+}
+
+// A prior at camera pose T_a_world, measured relative to a fixed camera b (as a depth alignment
+// with a keyframe gives it).
+PosePrior PriorAt(const Pose& T_a_world, double sqrt_information) {
+  PosePrior prior;
+  prior.T_b_world = MakePose({-0.1, 0.05, 0.2}, {0.2, 0.1, -0.3});
+  prior.T_b_a = prior.T_b_world * T_a_world.inverse();
+  prior.sqrt_information = sqrt_information * Eigen::Matrix<double, 6, 6>::Identity();
+  return prior;
+}
+
+TEST(PoseOptimizerTest, APriorIsWeighedAsCeresWeighsIt) {
+  Rng rng(24);
+  const Pose truth = MakePose({0.1, 0.2, -0.1}, {0.1, -0.2, 0.4});
+  const auto obs = Observe(truth, 300, 1.0, &rng);
+  const PosePrior prior = PriorAt(MakePose({0.002, 0, 0}, {0.003, 0, 0}) * truth, 1000);
+  const Pose start = truth * MakePose({0.02, -0.01, 0.01}, {0.03, 0.02, -0.04});
+  const PoseOptimizationResult with = OptimizePose(start, obs, kCamera, {}, &prior);
+  const PoseOptimizationResult without = OptimizePose(start, obs, kCamera);
+  std::vector<PoseObservation> inliers;
+  for (std::size_t i = 0; i < obs.size(); ++i) {
+    if (with.inlier[i]) inliers.push_back(obs[i]);
+  }
+  const Pose reference = CeresLeastSquares(start, inliers, &prior);
+  // The prior moves the optimum by a millimetre; the two solvers agree to micrometres.
+  EXPECT_GT(TranslationDistance(with.T_cam_world, without.T_cam_world), 5e-4);
+  EXPECT_LT(TranslationDistance(with.T_cam_world, reference), 2e-6);
+  EXPECT_LT(RotationDistance(with.T_cam_world, reference), 2e-7);
+}
+
+// Weighed far above the observations, the prior decides the pose: the measured relative pose is
+// read as T_b * T_a^-1.
+TEST(PoseOptimizerTest, AStrongPriorHoldsTheMeasuredPose) {
+  Rng rng(25);
+  const Pose truth = MakePose({-0.1, 0.1, 0.05}, {0.2, 0.1, 0.2});
+  const auto obs = Observe(truth, 200, 0.5, &rng);
+  const Pose measured = MakePose({0, 0.01, 0}, {0, 0, 0.01}) * truth;
+  const PosePrior prior = PriorAt(measured, 1e6);
+  const PoseOptimizationResult r = OptimizePose(truth, obs, kCamera, {}, &prior);
+  EXPECT_LT(TranslationDistance(r.T_cam_world, measured), 1e-5);
+  EXPECT_LT(RotationDistance(r.T_cam_world, measured), 1e-5);
 }
 
 TEST(PoseOptimizerTest, TooFewObservationsAreAllOutliers) {
