@@ -25,6 +25,7 @@
 #include "libccmd/util/json.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/process_usage.h"
+#include "libccmd/util/string_util.h"
 #include "libccmd/util/timer.h"
 
 namespace {
@@ -303,9 +304,13 @@ int main(int argc, char** argv) {
     // Live cameras must not stall tracking: encode on a writer thread behind a queue.
     record_options.queue_frames = 16;
     record_options.drop_when_full = (*source)->IsLive();
-    // The recording replays with this sensor's depth noise, as without it the agent would
-    // take the default (a Kinect's) for a folder read without --config.
+    // The recording replays with this sensor's depth noise and frame depth weight, as without
+    // them the agent would take the defaults (a Kinect's) for a folder read without --config.
     record_options.config_keys = ccmd::DepthNoiseConfigKeys(tracking.depth_noise);
+    if (tracking.frame_depth_weight > 0) {
+      record_options.config_keys +=
+          "Tracking.frameDepthWeight: " + ccmd::ExactNumber(tracking.frame_depth_weight) + "\n";
+    }
     auto created = ccmd::TumRecorder::Create(record_dir, camera, record_options);
     if (!created.ok()) return Fail(created.status().ToString());
     recorder = std::move(created).value();

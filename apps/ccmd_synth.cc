@@ -93,6 +93,12 @@ int main(int argc, char** argv) {
     }
     options.depth_sigma_0 = noise->sigma_0;
     options.depth_sigma_2 = noise->sigma_2;
+    auto frame_depth_weight = file->GetDouble("Tracking.frameDepthWeight", 0.0);
+    if (!frame_depth_weight.ok()) {
+      std::fprintf(stderr, "ccmd_synth: %s\n", frame_depth_weight.status().ToString().c_str());
+      return 1;
+    }
+    options.frame_depth_weight = *frame_depth_weight;
     // The ground truth of the camera the config's trajectories are of (7-Scenes: depth).
     auto trajectory_camera = ccmd::ReadTrajectoryCamera(*file);
     if (!trajectory_camera.ok()) {

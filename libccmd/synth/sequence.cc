@@ -55,6 +55,9 @@ Status SyntheticSequenceOptions::Validate() const {
   }
   if (!((camera ? camera->fps : fps) > 0)) return InvalidArgument("fps must be positive");
   if (!(surface_spacing >= 0.002)) return InvalidArgument("surface spacing below 2 mm");
+  if (!(frame_depth_weight >= 0) || !std::isfinite(frame_depth_weight)) {
+    return InvalidArgument("frame depth weight must be finite and >= 0");
+  }
   if (!(noise_scale >= 0) || !std::isfinite(noise_scale)) {
     return InvalidArgument("noise scale must be >= 0");
   }
@@ -87,6 +90,7 @@ void SyntheticSequenceOptions::Describe(OptionsWriter* out) const {
   out->Add("noise", noise);
   out->Add("depth_sigma_0", depth_sigma_0);
   out->Add("depth_sigma_2", depth_sigma_2);
+  out->Add("frame_depth_weight", frame_depth_weight);
   out->Add("noise_scale", noise_scale);
   out->Add("surface_spacing", surface_spacing);
   out->Add("exposure_s", exposure_s);
@@ -307,6 +311,8 @@ StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
     noise_keys << "DepthNoise.sigma0: " << options.depth_sigma_0
                << "\nDepthNoise.sigma2: " << options.depth_sigma_2 << "\n";
   }
+  if (options.frame_depth_weight > 0)
+    noise_keys << "Tracking.frameDepthWeight: " << options.frame_depth_weight << "\n";
   if (options.ground_truth_of_depth_camera) noise_keys << "Trajectory.camera: \"depth\"\n";
   CCMD_RETURN_IF_ERROR(WriteCameraConfig(camera, JoinPath(folder, "camera.yaml"),
                                          options.depth_camera, noise_keys.str()));

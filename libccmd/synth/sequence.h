@@ -68,6 +68,9 @@ struct SyntheticSequenceOptions {
   // DepthNoise keys give the camera's own (ccmd_synth --config), and camera.yaml then keeps them.
   double depth_sigma_0 = DepthSensorModel().sigma_0;
   double depth_sigma_2 = DepthSensorModel().sigma_2;
+  // How the agents weigh each frame's depth for this sensor (Tracking.frameDepthWeight, a
+  // config's choice for its sensor: ccmd_synth --config takes it); camera.yaml keeps it when set.
+  double frame_depth_weight = 0.0;
   double noise_scale = 1.0;       // multiplies depth sigma and colour noise
   double surface_spacing = 0.01;  // ground-truth surface sampling (metres)
   // Motion blur: each colour image is the mean of the views over this exposure (seconds,

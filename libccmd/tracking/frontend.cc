@@ -1,5 +1,7 @@
 #include "libccmd/tracking/frontend.h"
 
+#include <cmath>
+
 namespace ccmd {
 
 Status TrackingOptions::Validate() const {
@@ -24,6 +26,8 @@ Status TrackingOptions::Validate() const {
   if (depth_alignment_neighbours < 0 || depth_alignment_neighbours > 20)
     return fail("depth alignment neighbours must be in [0, 20]");
   if (!(depth_alignment_weight >= 0)) return fail("depth alignment weight must be >= 0");
+  if (!(frame_depth_weight >= 0) || !std::isfinite(frame_depth_weight))
+    return fail("frame depth weight must be finite and >= 0");
   if (max_keyframes < local_ba_window + 5)
     return fail("max keyframes must exceed the local BA window by 5");
   if (max_frames_between_keyframes < 0) return fail("max frames between keyframes must be >= 0");
@@ -55,6 +59,7 @@ void TrackingOptions::Describe(OptionsWriter* out) const {
   out->Add("mapping_follows_budget", mapping_follows_budget);
   out->Add("depth_alignment_neighbours", depth_alignment_neighbours);
   out->Add("depth_alignment_weight", depth_alignment_weight);
+  out->Add("frame_depth_weight", frame_depth_weight);
   out->Add("triangulation_neighbours", triangulation_neighbours);
   out->Add("max_keyframes", max_keyframes);
   out->Add("cull_redundant_keyframes", cull_redundant_keyframes);

@@ -69,6 +69,10 @@ struct TrackingOptions {
   // information times `depth_alignment_weight` (0 turns it off).
   int depth_alignment_neighbours = 3;
   double depth_alignment_weight = 0.1;
+  // Each tracked frame's depth is aligned with that of the newest keyframe that has a depth
+  // model, from the pose the features give, and the pose optimisation against the local map
+  // weighs that alignment by its information times this (0 turns it off).
+  double frame_depth_weight = 0.0;
   // Keypoints without a map point and without depth at one end are matched with this many
   // best covisible keyframes along epipolar lines and triangulated into new points (ORB-SLAM's
   // CreateNewMapPoints; 0: off). Off by default: it gains on exact depth and loses on

@@ -6,7 +6,8 @@
 #include <unordered_map>
 #include <unordered_set>
 
-#include "libccmd/optim/pose_optimizer.h"
+#include "libccmd/optim/bundle_adjuster.h"
+#include "libccmd/tracking/depth_alignment.h"
 #include "libccmd/tracking/matching.h"
 #include "libccmd/util/logging.h"
 #include "libccmd/util/timer.h"
@@ -196,7 +197,7 @@ bool Tracker::Initialize(TrackingFrame* frame, const Pose& T_world_cam, bool res
   return true;
 }
 
-int Tracker::OptimizeCurrentPose() {
+int Tracker::OptimizeCurrentPose(const PosePrior* prior) {
   std::vector<PoseObservation> observations;
   std::vector<int> keypoint_of;
   for (int i = 0; i < current_->size(); ++i) {
@@ -209,7 +210,7 @@ int Tracker::OptimizeCurrentPose() {
     keypoint_of.push_back(i);
   }
   const Intrinsics k{camera_.fx, camera_.fy, camera_.cx, camera_.cy};
-  const PoseOptimizationResult r = OptimizePose(current_->T_cam_world, observations, k);
+  const PoseOptimizationResult r = OptimizePose(current_->T_cam_world, observations, k, {}, prior);
   current_->SetPose(r.T_cam_world);
   for (std::size_t j = 0; j < keypoint_of.size(); ++j)
     current_->outlier[keypoint_of[j]] = !r.inlier[j];
@@ -399,7 +400,8 @@ bool Tracker::TrackLocalMap() {
   }
   const float radius = frames_since_relocalisation_ < 2 ? 5.0f : 3.0f;
   const int found = SearchLocalPoints(current_.get(), candidates, radius, *orb_, camera_);
-  const int inliers = OptimizeCurrentPose();
+  const std::optional<PosePrior> prior = FrameDepthPrior();
+  const int inliers = OptimizeCurrentPose(prior ? &*prior : nullptr);
   CCMD_LOG(DEBUG) << "frame " << current_->index << " local map: " << local_keyframes_.size()
                   << " keyframes, " << local_points_.size() << " points, " << candidates.size()
                   << " candidates, " << found << " found, " << inliers << " inliers";
@@ -416,6 +418,34 @@ bool Tracker::TrackLocalMap() {
       frames_since_relocalisation_ < options_.max_frames_between_keyframes;
   if (recently_relocalised && matches_inliers_ < 50) return false;
   return matches_inliers_ >= 30;
+}
+
+std::optional<PosePrior> Tracker::FrameDepthPrior() const {
+  if (options_.frame_depth_weight <= 0 || current_->depth_mm.empty()) return std::nullopt;
+  const Keyframe* target = nullptr;
+  for (const KeyframePtr& kf : local_keyframes_) {
+    if (!kf->bad() && kf->depth_model && (!target || kf->id() > target->id())) target = kf.get();
+  }
+  if (!target) return std::nullopt;
+  // Coarser than the keyframes' models (8x8 pixel blocks, every other one used: 1200 cells
+  // for VGA) and fewer iterations: the features' pose is close, and this runs every frame.
+  const DepthModel model =
+      DepthModel::FromDepth(current_->depth_mm, camera_, 8, options_.min_depth, options_.max_depth);
+  DepthAlignmentOptions alignment;
+  alignment.iterations = 6;
+  const Pose T_kf_cam = target->T_cam_world() * current_->T_cam_world.inverse();
+  const auto aligned =
+      AlignDepth(model, *target->depth_model, T_kf_cam, options_.depth_noise, alignment);
+  // As for keyframes (LocalMapper::AlignWithNeighbours): far from the features' pose, the
+  // alignment has converged elsewhere.
+  if (!aligned || TranslationDistance(aligned->T_target_source, T_kf_cam) > 0.1 ||
+      RotationDistance(aligned->T_target_source, T_kf_cam) > 0.1)
+    return std::nullopt;
+  PosePrior prior;
+  prior.T_b_world = target->T_cam_world();
+  prior.T_b_a = aligned->T_target_source;
+  prior.sqrt_information = SqrtInformation(options_.frame_depth_weight * aligned->information);
+  return prior;
 }
 
 bool Tracker::NeedNewKeyframe() const {

@@ -14,6 +14,7 @@
 #include "libccmd/geometry/camera.h"
 #include "libccmd/io/rgbd_frame.h"
 #include "libccmd/io/trajectory.h"
+#include "libccmd/optim/pose_optimizer.h"
 #include "libccmd/tracking/frame.h"
 #include "libccmd/tracking/map.h"
 #include "libccmd/tracking/options.h"
@@ -99,7 +100,12 @@ class Tracker {
   bool Relocalize();
   bool TrackLocalMap();
   void UpdateLocalMap();
-  int OptimizeCurrentPose();
+  // `prior`: a measured pose weighed in beside the matches (FrameDepthPrior).
+  int OptimizeCurrentPose(const PosePrior* prior = nullptr);
+  // The current frame's depth aligned with the newest local keyframe's that has a depth
+  // model, from the frame's present pose; nullopt when off, without depth, or when the
+  // alignment fails or lands far from the features' pose.
+  std::optional<PosePrior> FrameDepthPrior() const;
   bool NeedNewKeyframe() const;
   void CreateKeyframe();
 

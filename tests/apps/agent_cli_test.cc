@@ -7,6 +7,7 @@
 #include <opencv2/core.hpp>
 
 #include "libccmd/eval/trajectory_error.h"
+#include "libccmd/io/config.h"
 #include "libccmd/io/trajectory.h"
 #include "libccmd/io/tum_dataset.h"
 #include "libccmd/sensors/synthetic_source.h"
@@ -77,9 +78,18 @@ TEST(AgentCliTest, AGuessedOrOwnConfigGivesTheTrackingOptionsTooAsAGivenOne) {
     auto text = ReadFileToString(dir.File(name));
     return text.ok() ? *text : std::string();
   };
-  // Its own camera.yaml (the config's camera and depth noise).
-  const std::string given = run(dir.File("seq"), "--config " + icl, "given.txt");
+  // Its own camera.yaml (the config's camera, depth noise and frame depth weight).
+  const std::string given =
+      run(dir.File("seq"), "--config " + icl + " --record " + dir.File("rec"), "given.txt");
   ASSERT_FALSE(given.empty());
+  // What the agent records carries the sensor's options as well.
+  auto config = ConfigFile::Open(icl);
+  auto recorded = ConfigFile::Open(dir.File("rec/camera.yaml"));
+  ASSERT_TRUE(config.ok() && recorded.ok());
+  for (const char* key : {"DepthNoise.sigma0", "DepthNoise.sigma2", "Tracking.frameDepthWeight"}) {
+    ASSERT_TRUE(config->Has(key)) << key;
+    EXPECT_EQ(*recorded->GetDouble(key, -1), *config->GetDouble(key, -2)) << key;
+  }
   EXPECT_EQ(run(dir.File("seq"), "", "own.txt"), given);
   // No camera.yaml, a folder named as ICL-NUIM's archives: the shipped icl_nuim.yaml.
   ASSERT_EQ(std::rename(dir.File("seq").c_str(), dir.File("traj0_frei_png").c_str()), 0);

@@ -31,10 +31,12 @@ struct RunResult {
   Collector sink;
 };
 
-void RunSequence(int frames, const TrackingOptions& options, RunResult* out) {
+void RunSequence(int frames, const TrackingOptions& options, RunResult* out,
+                 bool sensor_noise = true) {
   SyntheticSequenceOptions synth;
   synth.frames = frames;
   synth.seed = 1;
+  synth.noise = sensor_noise;
   SyntheticSource source(synth);
   auto frontend = Frontend::Create(source.camera(), options, &out->sink);
   ASSERT_TRUE(frontend.ok()) << frontend.status().ToString();
@@ -119,6 +121,32 @@ TEST(FrontendTest, DepthAlignmentsAgreeWithTheFeatures) {
   ASSERT_TRUE(ate_without.ok() && ate_with.ok());
   EXPECT_LT(ate_with->error.rmse, 1.25 * ate_without->error.rmse)
       << ate_with->error.rmse << " m with, " << ate_without->error.rmse << " m without";
+}
+
+// With exact depth (a renderer's, as ICL-NUIM's), each frame's depth aligned with its keyframe's
+// holds the frame's pose closer than its keypoints do: the frames between keyframes come closer
+// to the truth, and the keyframes do not move away from it.
+TEST(FrontendTest, FrameDepthPriorHoldsFramesOnExactDepth) {
+  constexpr int kFrames = 120;
+  TrackingOptions with = Synchronous();
+  with.depth_noise.sigma_2 = 0;    // the depth's noise model, as configs/icl_nuim.yaml gives it
+  with.frame_depth_weight = 0.03;  // configs/icl_nuim.yaml
+  TrackingOptions without = with;
+  without.frame_depth_weight = 0;
+  RunResult a, b;
+  RunSequence(kFrames, without, &a, /*sensor_noise=*/false);
+  RunSequence(kFrames, with, &b, /*sensor_noise=*/false);
+  auto frames_without = ComputeAte(a.ground_truth, a.trajectory);
+  auto frames_with = ComputeAte(b.ground_truth, b.trajectory);
+  auto keyframes_without = ComputeAte(a.ground_truth, a.keyframe_trajectory);
+  auto keyframes_with = ComputeAte(b.ground_truth, b.keyframe_trajectory);
+  ASSERT_TRUE(frames_without.ok() && frames_with.ok() && keyframes_without.ok() &&
+              keyframes_with.ok());
+  EXPECT_EQ(b.stats.lost_frames, 0);
+  EXPECT_LT(frames_with->error.rmse, 0.9 * frames_without->error.rmse)
+      << frames_with->error.rmse << " m with, " << frames_without->error.rmse << " m without";
+  EXPECT_LT(keyframes_with->error.rmse, 1.1 * keyframes_without->error.rmse)
+      << keyframes_with->error.rmse << " m with, " << keyframes_without->error.rmse << " m without";
 }
 
 TEST(FrontendTest, SinkGetsEveryKeyframeOnceWithConsistentLinks) {

@@ -110,6 +110,18 @@ TEST(RealDataFrontendTest, IclNuimDepthAlignmentHelps) {
       << with.ate_rmse << " m against " << without.ate_rmse << " m";
 }
 
+// The frames between keyframes track a few hundred keypoints; each frame's whole depth aligned
+// with its keyframe's (Tracking.frameDepthWeight in the shipped config) holds them closer.
+TEST(RealDataFrontendTest, IclNuimFrameDepthPriorHelps) {
+  CCMD_REQUIRE_DATASET(dir, "iclnuim_office_traj0_0000_0449");
+  const FrontendRun without = RunFrontend(dir, "icl_nuim.yaml", kFrames,
+                                          [](TrackingOptions* o) { o->frame_depth_weight = 0; });
+  const FrontendRun with = RunFrontend(dir, "icl_nuim.yaml", kFrames);
+  EXPECT_EQ(with.stats.lost_frames, 0);
+  EXPECT_LT(with.ate_rmse, 0.85 * without.ate_rmse)
+      << with.ate_rmse << " m against " << without.ate_rmse << " m";
+}
+
 TEST(RealDataFrontendTest, SevenScenesTracksToCentimetres) {
   CCMD_REQUIRE_DATASET(dir, "7scenes_redkitchen_0000_0599");
   const FrontendRun run = RunFrontend(dir, "7scenes.yaml", kFrames);
