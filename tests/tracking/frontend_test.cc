@@ -149,6 +149,19 @@ TEST(FrontendTest, FrameDepthPriorHoldsFramesOnExactDepth) {
       << keyframes_with->error.rmse << " m with, " << keyframes_without->error.rmse << " m without";
 }
 
+// Off unless a config asks (real sensors' depth errors are correlated); a weight that is not a
+// finite non-negative number is refused, not run.
+TEST(FrontendTest, FrameDepthWeightIsOffByDefaultAndChecked) {
+  TrackingOptions options;
+  EXPECT_EQ(options.frame_depth_weight, 0.0);
+  options.frame_depth_weight = 0.03;
+  EXPECT_TRUE(options.Validate().ok());
+  for (double bad : {-0.1, std::nan(""), HUGE_VAL}) {
+    options.frame_depth_weight = bad;
+    EXPECT_FALSE(options.Validate().ok()) << bad;
+  }
+}
+
 TEST(FrontendTest, SinkGetsEveryKeyframeOnceWithConsistentLinks) {
   RunResult r;
   RunSequence(90, Synchronous(), &r);
