@@ -36,17 +36,6 @@ Eigen::Matrix<double, 4, 3> LeftPerturbation(const double* q) {
   return m;
 }
 
-// Ceres' HuberLoss(sqrt(b)) of a squared norm s, and sqrt(rho'(s)): for this kernel Ceres'
-// corrector scales residual and Jacobian by sqrt(rho') (its second derivative is never > 0).
-struct Robust {
-  double rho, scale;
-};
-Robust Huber(double s, double b) {
-  if (s <= b) return {s, 1.0};
-  const double r = std::sqrt(s);
-  return {2 * std::sqrt(b) * r - b, std::sqrt(std::sqrt(b) / r)};
-}
-
 double Clamp(double d) { return std::clamp(d, kMinDiagonal, kMaxDiagonal); }
 
 class Pass {
@@ -229,9 +218,11 @@ class Pass {
       const double s = r.squaredNorm();
       double scale = 1;
       if (options_.robust) {
-        const Robust h = Huber(s, o.robust);
+        // Huber's second derivative is never > 0, so Ceres' corrector scales residual and
+        // Jacobian by sqrt(rho').
+        const RobustValue h = Huber(s, o.robust);
         cost += 0.5 * h.rho;
-        scale = h.scale;
+        scale = std::sqrt(h.derivative);
       } else {
         cost += 0.5 * s;
       }

@@ -27,18 +27,6 @@ ReprojectionResidual MakeResidual(const PoseObservation& o, const Intrinsics& k)
                               std::sqrt(o.depth_information));
 }
 
-// Huber loss rho(s) of a squared residual s at threshold a2 (Ceres' HuberLoss(sqrt(a2))), and
-// its derivative, which weighs the residual in the normal equations.
-double Huber(double s, double a2, double* weight) {
-  if (a2 <= 0 || s <= a2) {
-    *weight = 1;
-    return s;
-  }
-  const double r = std::sqrt(s), a = std::sqrt(a2);
-  *weight = a / r;
-  return 2 * a * r - a2;
-}
-
 double Threshold(const PoseObservation& o) { return o.depth > 0 ? kChi2Stereo : kChi2Mono; }
 
 double SquaredResidual(const PoseObservation& o, const Intrinsics& k, const Eigen::Quaterniond& q,
@@ -63,12 +51,12 @@ Eigen::Matrix<T, 6, 1> PriorResidual(const PosePrior& prior, const Eigen::Quater
 double Cost(const std::vector<PoseObservation>& observations, const std::vector<bool>& active,
             bool robust, const Intrinsics& k, const PosePrior* prior, const Eigen::Quaterniond& q,
             const Eigen::Vector3d& t) {
-  double cost = prior ? PriorResidual(*prior, q, t).squaredNorm() : 0.0, weight;
+  double cost = prior ? PriorResidual(*prior, q, t).squaredNorm() : 0.0;
   for (std::size_t i = 0; i < observations.size(); ++i) {
     if (!active[i]) continue;
     const double s = SquaredResidual(observations[i], k, q, t);
     if (!std::isfinite(s)) continue;  // on the camera centre: no residual either way
-    cost += Huber(s, robust ? Threshold(observations[i]) : 0.0, &weight);
+    cost += Huber(s, robust ? Threshold(observations[i]) : 0.0).rho;
   }
   return cost;
 }
@@ -100,8 +88,9 @@ Linear Linearize(const std::vector<PoseObservation>& observations, const std::ve
     double s = 0;
     for (int j = 0; j < n; ++j) s += r[j].a * r[j].a;
     if (!std::isfinite(s)) continue;
-    double weight;
-    linear.cost += Huber(s, robust ? Threshold(o) : 0.0, &weight);
+    const RobustValue h = Huber(s, robust ? Threshold(o) : 0.0);
+    const double weight = h.derivative;
+    linear.cost += h.rho;
     for (int j = 0; j < n; ++j) {
       linear.H.noalias() += weight * r[j].v * r[j].v.transpose();
       linear.g.noalias() += weight * r[j].a * r[j].v;

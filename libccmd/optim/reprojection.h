@@ -9,6 +9,7 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
+#include <cmath>
 #include <string>
 
 #include "libccmd/geometry/pose.h"
@@ -126,5 +127,16 @@ std::string DepthNoiseConfigKeys(const DepthNoise& noise);
 // Chi-square thresholds at 95%: 2 and 3 degrees of freedom.
 constexpr double kChi2Mono = 5.991;
 constexpr double kChi2Stereo = 7.815;
+
+// Ceres' HuberLoss(sqrt(b)) of a squared residual norm s: the loss rho(s) and its derivative
+// rho'(s), which weighs the residual in the normal equations (b <= 0: no kernel, rho = s).
+struct RobustValue {
+  double rho, derivative;
+};
+inline RobustValue Huber(double s, double b) {
+  if (b <= 0 || s <= b) return {s, 1.0};
+  const double r = std::sqrt(s), a = std::sqrt(b);
+  return {2 * a * r - b, a / r};
+}
 
 }  // namespace ccmd

@@ -302,20 +302,20 @@ StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
     CCMD_RETURN_IF_ERROR(WriteTumTrajectory(path, JoinPath(folder, "groundtruth.txt"),
                                             "ground truth of the colour camera, T_world_cam"));
   }
-  // The camera's own depth noise, for the agents that read camera.yaml (the default model
-  // needs no keys: it is the agents' default too).
-  std::ostringstream noise_keys;
+  // The camera's own depth noise and frame depth weight, for the agents that read camera.yaml
+  // (the defaults need no keys: they are the agents' defaults too).
+  std::ostringstream config_keys;
   if (options.depth_sigma_0 != DepthSensorModel().sigma_0 ||
       options.depth_sigma_2 != DepthSensorModel().sigma_2) {
-    noise_keys.precision(9);
-    noise_keys << "DepthNoise.sigma0: " << options.depth_sigma_0
-               << "\nDepthNoise.sigma2: " << options.depth_sigma_2 << "\n";
+    config_keys.precision(9);
+    config_keys << "DepthNoise.sigma0: " << options.depth_sigma_0
+                << "\nDepthNoise.sigma2: " << options.depth_sigma_2 << "\n";
   }
   if (options.frame_depth_weight > 0)
-    noise_keys << "Tracking.frameDepthWeight: " << options.frame_depth_weight << "\n";
-  if (options.ground_truth_of_depth_camera) noise_keys << "Trajectory.camera: \"depth\"\n";
+    config_keys << "Tracking.frameDepthWeight: " << options.frame_depth_weight << "\n";
+  if (options.ground_truth_of_depth_camera) config_keys << "Trajectory.camera: \"depth\"\n";
   CCMD_RETURN_IF_ERROR(WriteCameraConfig(camera, JoinPath(folder, "camera.yaml"),
-                                         options.depth_camera, noise_keys.str()));
+                                         options.depth_camera, config_keys.str()));
   CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "sequence.txt"), DescribeOptions(options)));
 
   VisibilityMarks seen = marks[0];

@@ -173,4 +173,9 @@ std::optional<DepthAlignment> AlignDepth(const DepthModel& source, const DepthMo
   return result;
 }
 
+bool StaysNearStart(const DepthAlignment& aligned, const Pose& T_target_source_start) {
+  return TranslationDistance(aligned.T_target_source, T_target_source_start) <= 0.1 &&
+         RotationDistance(aligned.T_target_source, T_target_source_start) <= 0.1;
+}
+
 }  // namespace ccmd

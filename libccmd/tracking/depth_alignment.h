@@ -70,4 +70,8 @@ std::optional<DepthAlignment> AlignDepth(const DepthModel& source, const DepthMo
                                          const Pose& T_target_source, const DepthNoise& noise,
                                          const DepthAlignmentOptions& options = {});
 
+// Whether `aligned` ended within 10 cm and 0.1 rad of the pose it started from (the features'
+// estimate): further off, the alignment has converged elsewhere and is not trusted.
+bool StaysNearStart(const DepthAlignment& aligned, const Pose& T_target_source_start);
+
 }  // namespace ccmd

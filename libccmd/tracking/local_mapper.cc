@@ -320,9 +320,7 @@ void LocalMapper::AlignWithNeighbours(Keyframe* keyframe) {
   int accepted = 0, failed = 0;
   for (const Job& job : jobs) {
     const auto aligned = AlignDepth(*job.model, *model, job.T_kf_neighbour, options_.depth_noise);
-    // An alignment far from what the features say has converged elsewhere: not trusted.
-    if (!aligned || TranslationDistance(aligned->T_target_source, job.T_kf_neighbour) > 0.1 ||
-        RotationDistance(aligned->T_target_source, job.T_kf_neighbour) > 0.1) {
+    if (!aligned || !StaysNearStart(*aligned, job.T_kf_neighbour)) {
       ++failed;
       continue;
     }

@@ -436,11 +436,7 @@ std::optional<PosePrior> Tracker::FrameDepthPrior() const {
   const Pose T_kf_cam = target->T_cam_world() * current_->T_cam_world.inverse();
   const auto aligned =
       AlignDepth(model, *target->depth_model, T_kf_cam, options_.depth_noise, alignment);
-  // As for keyframes (LocalMapper::AlignWithNeighbours): far from the features' pose, the
-  // alignment has converged elsewhere.
-  if (!aligned || TranslationDistance(aligned->T_target_source, T_kf_cam) > 0.1 ||
-      RotationDistance(aligned->T_target_source, T_kf_cam) > 0.1)
-    return std::nullopt;
+  if (!aligned || !StaysNearStart(*aligned, T_kf_cam)) return std::nullopt;
   PosePrior prior;
   prior.T_b_world = target->T_cam_world();
   prior.T_b_a = aligned->T_target_source;
