@@ -168,20 +168,24 @@ void Backend::WaitIdle() {
 // ---------------------------------------------------------------- ingest
 
 void Backend::Ingest(IngestItem item) {
-  const AgentId agent = item.agent;
-  if (const PoseUpdateMessage* pose_update = item.pose_update.get()) {
-    std::vector<ServerKeyframe*> moved;
-    MapManager::Guard guard = maps_.CheckOutAgent(agent);
-    moved = ApplyPoseUpdates(guard.get(), agent, *pose_update);
-    NotifyPoses(PoseSource::kAgent, guard->id(), moved, item.arrived);
-    QueueDenseUpdates(moved, DenseTask::Kind::kUpdate);
-    std::lock_guard<std::mutex> lock(stats_mutex_);
-    stats_.pose_updates_received++;
-    stats_.pose_updates_of_culled += pose_update->entries.size() - moved.size();
-    return;
+  if (item.pose_update) {
+    IngestPoseUpdate(item.agent, *item.pose_update, item.arrived);
+  } else if (item.keyframe) {
+    IngestKeyframe(item.agent, std::move(*item.keyframe), item.arrived);
   }
-  if (!item.keyframe) return;
-  KeyframeMessage& message = *item.keyframe;
+}
+
+void Backend::IngestPoseUpdate(AgentId agent, const PoseUpdateMessage& update, double arrived) {
+  MapManager::Guard guard = maps_.CheckOutAgent(agent);
+  const std::vector<ServerKeyframe*> moved = ApplyPoseUpdates(guard.get(), agent, update);
+  NotifyPoses(PoseSource::kAgent, guard->id(), moved, arrived);
+  QueueDenseUpdates(moved, DenseTask::Kind::kUpdate);
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  stats_.pose_updates_received++;
+  stats_.pose_updates_of_culled += update.entries.size() - moved.size();
+}
+
+void Backend::IngestKeyframe(AgentId agent, KeyframeMessage message, double arrived) {
   {
     std::lock_guard<std::mutex> lock(cameras_mutex_);
     if (!cameras_.count(agent)) {
@@ -208,30 +212,12 @@ void Backend::Ingest(IngestItem item) {
         (*keyframe)->rgbd = std::make_shared<const RgbdPayload>(std::move(*message.rgbd));
       const bool primary = maps_.primary() && guard->id() == *maps_.primary();
       if (observer_)
-        observer_->OnKeyframe(id, guard->id(), (*keyframe)->T_map_cam, item.arrived, primary);
-      if (primary) QueueDenseAdds(guard.get(), {*keyframe}, item.arrived - start_time_);
+        observer_->OnKeyframe(id, guard->id(), (*keyframe)->T_map_cam, arrived, primary);
+      if (primary) QueueDenseAdds(guard.get(), {*keyframe}, arrived - start_time_);
       // A restart in an almost empty map leaves the few keyframes before it unplaced.
       std::vector<GlobalKeyframeId> unplaced;
       if (!guard->Placed(**keyframe)) unplaced.push_back(id);
-      if (message.restart) {
-        const auto remove_from_dense = [&](const GlobalKeyframeId& k, bool* in_dense) {
-          if (!dense_ || !*in_dense) return;
-          *in_dense = false;
-          DenseTask task;
-          task.kind = DenseTask::Kind::kRemove;
-          task.keyframe = k;
-          dense_stage_.Push(std::move(task));
-        };
-        for (const auto& [kid, kf] : guard->keyframes()) {
-          if (guard->Placed(*kf) || kid == id) continue;
-          unplaced.push_back(kid);
-          remove_from_dense(kid, &kf->in_dense);
-          for (CulledKeyframe& f : kf->followers) {
-            unplaced.push_back(f.id);
-            remove_from_dense(f.id, &f.in_dense);
-          }
-        }
-      }
+      if (message.restart) RemoveUnplacedFromDense(guard.get(), id, &unplaced);
       if (observer_ && !unplaced.empty()) observer_->OnPlacement(guard->id(), unplaced, false);
       // Past the young map's size no restart keeps keyframes apart: what QueueDenseAdds kept
       // of the first keyframes' coded images goes (those kept apart keep theirs for a loop).
@@ -250,11 +236,32 @@ void Backend::Ingest(IngestItem item) {
     std::lock_guard<std::mutex> lock(stats_mutex_);
     stats_.keyframes_received++;
     stats_.segments_restarted += added && message.restart;
-    AppendSample(&timings_.intake_ms, (now - (item.arrived - start_time_)) * 1e3);
+    AppendSample(&timings_.intake_ms, (now - (arrived - start_time_)) * 1e3);
     AppendSample(&timings_.intake_at_s, now);
     AppendSample(&timings_.intake_during_gba, static_cast<char>(gba_running_.load()));
   }
   if (added) loop_stage_.Push(id);
+}
+
+void Backend::RemoveUnplacedFromDense(ServerMap* map, const GlobalKeyframeId& restart,
+                                      std::vector<GlobalKeyframeId>* unplaced) {
+  const auto remove_from_dense = [&](const GlobalKeyframeId& k, bool* in_dense) {
+    if (!dense_ || !*in_dense) return;
+    *in_dense = false;
+    DenseTask task;
+    task.kind = DenseTask::Kind::kRemove;
+    task.keyframe = k;
+    dense_stage_.Push(std::move(task));
+  };
+  for (const auto& [kid, kf] : map->keyframes()) {
+    if (map->Placed(*kf) || kid == restart) continue;
+    unplaced->push_back(kid);
+    remove_from_dense(kid, &kf->in_dense);
+    for (CulledKeyframe& f : kf->followers) {
+      unplaced->push_back(f.id);
+      remove_from_dense(f.id, &f.in_dense);
+    }
+  }
 }
 
 // ---------------------------------------------------------------- dense

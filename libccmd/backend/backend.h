@@ -223,6 +223,12 @@ class Backend {
   explicit Backend(const BackendOptions& options);
   // Stage handlers, each on its stage's thread.
   void Ingest(IngestItem item);
+  void IngestPoseUpdate(AgentId agent, const PoseUpdateMessage& update, double arrived);
+  void IngestKeyframe(AgentId agent, KeyframeMessage message, double arrived);
+  // After `restart` began a new segment: the keyframes it left unplaced (followers included)
+  // are added to `unplaced` and leave the dense map.
+  void RemoveUnplacedFromDense(ServerMap* map, const GlobalKeyframeId& restart,
+                               std::vector<GlobalKeyframeId>* unplaced);
   void DetectLoops(const GlobalKeyframeId& id);
   // Culls `id` if it is redundant (loop stage).
   void CullIfRedundant(const GlobalKeyframeId& id);

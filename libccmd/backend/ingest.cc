@@ -6,17 +6,13 @@
 
 namespace ccmd {
 
-StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent,
+namespace {
+
+// The keyframe placed in the map's frame: relative to a keyframe of the same agent the server
+// already has, else by T_map_agent; a restarted segment is kept apart until a loop places it.
+std::unique_ptr<ServerKeyframe> MakeKeyframe(ServerMap* map, AgentId agent,
                                              const KeyframeMessage& m, const Pose& T_map_agent) {
   const GlobalKeyframeId id{agent, m.id};
-  // An agent's keyframe ids only grow: an id not newer than its newest was received before
-  // (and may have been culled since, leaving only its pose).
-  const std::optional<KeyframeId> newest = map->NewestKeyframeOf(agent);
-  if (newest && m.id <= *newest) {
-    return InvalidArgument("keyframe " + std::to_string(m.id.value()) +
-                           " already known (the agent's newest is " +
-                           std::to_string(newest->value()) + ")");
-  }
   auto kf = std::make_unique<ServerKeyframe>();
   kf->id = id;
   kf->timestamp = m.timestamp;
@@ -60,8 +56,14 @@ StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent,
     const WireKeypoint& w = m.keypoints[i];
     kf->keypoints[i] = {cv::Point2f(w.u, w.v), w.octave, w.depth_m > 0 ? w.depth_m : 0.0f};
   }
-  ServerKeyframe* raw = map->AddKeyframe(std::move(kf));
+  return kf;
+}
 
+// Its new map points anchored in it, its keypoints' links to points the server has, and the
+// own descriptors of the keypoints left without a point.
+void AttachMapPoints(ServerMap* map, AgentId agent, const KeyframeMessage& m,
+                     ServerKeyframe* keyframe) {
+  const std::size_t n = m.keypoints.size();
   // New points are anchored here; the keypoint observing each is found by its link.
   std::unordered_map<std::uint32_t, int> keypoint_of;
   for (std::size_t i = 0; i < n; ++i) {
@@ -72,33 +74,39 @@ StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent,
     const GlobalMapPointId pid{agent, p.id};
     if (map->point(pid)) continue;  // resent after a reconnect: already known
     ServerMapPoint* point = map->AddPoint(std::make_unique<ServerMapPoint>(
-        pid, raw, Eigen::Vector3d(p.p_cam[0], p.p_cam[1], p.p_cam[2]), p.descriptor));
+        pid, keyframe, Eigen::Vector3d(p.p_cam[0], p.p_cam[1], p.p_cam[2]), p.descriptor));
     const auto it = keypoint_of.find(p.id.value());
-    if (it != keypoint_of.end()) map->AddObservation(point, raw, it->second);
+    if (it != keypoint_of.end()) map->AddObservation(point, keyframe, it->second);
   }
   int unknown_links = 0;
   for (std::size_t i = 0; i < n; ++i) {
-    if (!m.keypoints[i].map_point || raw->points[i]) continue;
+    if (!m.keypoints[i].map_point || keyframe->points[i]) continue;
     ServerMapPoint* point = map->point({agent, *m.keypoints[i].map_point});
     if (!point) {
       ++unknown_links;
       continue;
     }
-    map->AddObservation(point, raw, static_cast<int>(i));  // its descriptor is the point's
+    map->AddObservation(point, keyframe, static_cast<int>(i));  // its descriptor is the point's
   }
   // Keypoints without a map point (none, or one the server never received) keep their own.
   for (std::size_t i = 0; i < n; ++i) {
-    if (!raw->points[i])
-      raw->own_descriptors.emplace_back(static_cast<std::uint32_t>(i), m.keypoints[i].descriptor);
+    if (!keyframe->points[i])
+      keyframe->own_descriptors.emplace_back(static_cast<std::uint32_t>(i),
+                                             m.keypoints[i].descriptor);
   }
-  raw->own_descriptors.shrink_to_fit();
+  keyframe->own_descriptors.shrink_to_fit();
   if (unknown_links > 0) {
     CCMD_LOG(WARNING) << "keyframe " << m.id.value() << " of agent " << agent.value() << " links "
                       << unknown_links << " map points the server never received";
   }
+}
+
+// Its covisibility with, and depth alignments to, the agent's earlier keyframes.
+void AttachLinks(ServerMap* map, AgentId agent, const KeyframeMessage& m,
+                 ServerKeyframe* keyframe) {
   for (const CovisibilityLink& link : m.covisibility) {
     if (ServerKeyframe* other = map->keyframe({agent, link.keyframe})) {
-      map->AddCovisibility(raw, other, static_cast<int>(link.weight));
+      map->AddCovisibility(keyframe, other, static_cast<int>(link.weight));
     }
   }
   for (const DepthLink& link : m.depth_links) {
@@ -107,10 +115,27 @@ StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent,
     for (int r = 0; r < 6; ++r) {
       for (int c = r; c < 6; ++c) information(r, c) = information(c, r) = link.information[k++];
     }
-    raw->depth_links.push_back(
+    keyframe->depth_links.push_back(
         {{agent, link.keyframe}, PoseFromWire(link.T_this_other), SqrtInformation(information)});
   }
-  return raw;
+}
+
+}  // namespace
+
+StatusOr<ServerKeyframe*> AddKeyframeMessage(ServerMap* map, AgentId agent,
+                                             const KeyframeMessage& m, const Pose& T_map_agent) {
+  // An agent's keyframe ids only grow: an id not newer than its newest was received before
+  // (and may have been culled since, leaving only its pose).
+  const std::optional<KeyframeId> newest = map->NewestKeyframeOf(agent);
+  if (newest && m.id <= *newest) {
+    return InvalidArgument("keyframe " + std::to_string(m.id.value()) +
+                           " already known (the agent's newest is " +
+                           std::to_string(newest->value()) + ")");
+  }
+  ServerKeyframe* keyframe = map->AddKeyframe(MakeKeyframe(map, agent, m, T_map_agent));
+  AttachMapPoints(map, agent, m, keyframe);
+  AttachLinks(map, agent, m, keyframe);
+  return keyframe;
 }
 
 std::vector<ServerKeyframe*> ApplyPoseUpdates(ServerMap* map, AgentId agent,

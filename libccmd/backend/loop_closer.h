@@ -9,8 +9,8 @@
 //      keyframes of the agent agree on the transform between the two maps;
 //   3. correction: inside one map a loop edge, the matched points merged and a pose graph
 //      (CloseLoopInMap); between two maps their fusion (FuseMapsByLoop), whose seam is then
-//      refined and tied (JoinSeam). Both report the keyframes they moved or brought into the
-//      primary map, for the dense map.
+//      refined and tied (JoinSeam, loop_seam.h). Both report the keyframes they moved or brought
+//      into the primary map, for the dense map.
 // Each step is usable on its own (tests, the back-end bench); LoopCloser runs them in order.
 // One thread calls a LoopCloser; maps are checked out from the MapManager as they are needed.
 
@@ -21,62 +21,16 @@
 #include <utility>
 #include <vector>
 
+#include "libccmd/backend/loop_options.h"
+#include "libccmd/backend/loop_seam.h"
 #include "libccmd/backend/loop_verification.h"
 #include "libccmd/backend/map_manager.h"
 #include "libccmd/backend/map_optimization.h"
 #include "libccmd/backend/place_index.h"
 #include "libccmd/geometry/camera.h"
-#include "libccmd/util/options_writer.h"
 #include "libccmd/util/status.h"
 
 namespace ccmd {
-
-// How a fusion's seam is refined and tied (JoinSeam). The verified loop measures the query's
-// pose from one keyframe's matches; the candidate side's map points, projected into the query
-// side's keyframes around the loop, find many more, whose depths fix the transform between the
-// maps better, and which, merged, tie both sides in the global BA that follows.
-struct SeamOptions {
-  bool enabled = true;
-  int keyframes = 10;            // query-side keyframes searched: the query and its neighbours
-  double search_radius_px = 10;  // before the refinement (at octave 0; grows with the octave)
-  double merge_radius_px = 4;    // after it
-  double search_depth_m = 0.05;  // |keypoint depth - projected depth| accepted before
-  double merge_depth_m = 0.02;   // ... and after the refinement (plus 3 depth sigmas)
-  int max_hamming = 50;
-  int min_pairs = 20;  // 3D pairs (depth on the query side) needed to refine the transform
-  // A refinement larger than this (how far it moves and turns the query's camera) is not
-  // trusted on its own (the verified loop was wrong, or the matches): a fusion takes it only if
-  // the search repeated from it agrees (JoinSeam).
-  double max_correction_m = 0.05;
-  double max_correction_deg = 2.0;
-
-  Status Validate() const;
-  void Describe(OptionsWriter* out) const;
-};
-
-struct LoopCloserOptions {
-  LoopVerificationOptions verification;
-  SeamOptions seam;
-  int loop_candidates = 4;   // verified per query, best score first
-  int loop_consistency = 2;  // consecutive confirming keyframes needed
-  // How far apart two loops' map-to-map transforms may put the later query (metres, degrees).
-  double consistency_translation = 0.05;
-  double consistency_rotation_deg = 3.0;
-  int consistency_max_gap = 3;        // keyframe ids between two confirming queries
-  int exclude_recent_keyframes = 25;  // same-agent neighbours in id that never count as loops
-  int loop_cooldown_keyframes =
-      10;  // after a loop, the agent's next keyframes seek no loop in their own map
-  // A loop inside a map whose verified pose of the query differs from the query's pose in the
-  // map by less than this is already closed: its edge and matches are kept, but there is
-  // nothing to correct (no pose graph, no global BA). An agent circling a room finds such
-  // loops on every pass; optimising the whole map for each would grow without bound.
-  double min_correction_m = 0.005;
-  double min_correction_deg = 0.25;
-  MapPoseGraphOptions pose_graph;
-
-  Status Validate() const;
-  void Describe(OptionsWriter* out) const;
-};
 
 struct LoopEvent {
   double server_time = 0;  // seconds since the back-end started
@@ -160,68 +114,13 @@ class ComparedAgents {
   std::set<std::pair<AgentId, AgentId>> pairs_;
 };
 
-// Step 3 for both kinds of loop: the matched points become one (the query's observation moves
-// to the candidate-side point) and the two keyframes become covisible.
-void MergeLoopMatches(ServerMap* map, const LoopMatch& match);
-
 // Step 3 inside one map: the loop edge (the verified relative pose), merged matches, then the
 // pose graph. Returns the keyframes the pose graph moved (none if it failed: logged).
 std::vector<ServerKeyframe*> CloseLoopInMap(ServerMap* map, const LoopMatch& match,
                                             const MapPoseGraphOptions& options);
-// A loop inside one map: the query's verified pose refined on the seam around the loop (the
-// candidate's window without the query's covisible keyframes, searched in the query and its
-// neighbours placed where the verified pose puts them), or the verified pose if the refinement
-// is not a small one (SeamOptions::max_correction_*). The map's poses are unchanged.
-Pose RefineLoopPose(ServerMap* map, const LoopMatch& match, const PinholeCamera& camera,
-                    const LoopCloserOptions& options);
 // Whether a verified loop inside a map is already closed (see min_correction_m; asked only for
 // loops between agents already compared, ComparedAgents).
 bool LoopAlreadyClosed(const LoopMatch& match, const LoopCloserOptions& options);
-
-// A candidate-side map point found in a query-side keyframe (JoinSeam).
-struct SeamMatch {
-  ServerKeyframe* keyframe = nullptr;
-  int keypoint = -1;
-  GlobalMapPointId point;  // resolved through the map (it may be merged meanwhile)
-};
-// The points `points` projected into each of `keyframes` (all seen through `camera`, all in
-// `map`'s frame): per keypoint the point of the smallest descriptor distance within
-// `radius_px` (times 1.2 to the keypoint's octave), at most `max_hamming`, whose projected
-// depth is within `depth_m` plus 3 sigmas of the keypoint's (keypoints without depth: within
-// the radius only). Points a keyframe already observes are skipped.
-std::vector<SeamMatch> SearchSeam(const ServerMap& map,
-                                  const std::vector<ServerKeyframe*>& keyframes,
-                                  const PinholeCamera& camera,
-                                  const std::vector<GlobalMapPointId>& points, double radius_px,
-                                  double depth_m, int max_hamming, const DepthNoise& depth_noise);
-// The rigid transform D, in the map's frame, that moves the query side onto the candidate side
-// (candidate point ~ D * query-side position) fitted to the matches with depth: the query-side
-// position is the keypoint's measured depth back-projected. Weighted by the depth noise, outliers
-// dropped in rounds. Empty with fewer than `min_pairs` pairs; `inliers` receives how many agreed.
-std::optional<Pose> AlignSeam(const ServerMap& map, const std::vector<SeamMatch>& matches,
-                              const PinholeCamera& camera, const DepthNoise& depth_noise,
-                              int min_pairs, int* inliers = nullptr);
-
-// What JoinSeam did (for the log and tests).
-struct SeamJoin {
-  int searched = 0;      // matches found before the refinement
-  int pair_inliers = 0;  // 3D pairs that agreed with the refinement
-  bool corrected = false;
-  // The first refinement was larger than trusted and a second search from it agreed.
-  bool confirmed_by_refit = false;
-  Pose correction = Pose::Identity();  // D (AlignSeam): the query side onto the candidate side
-  double shift_m = 0;  // how far the query's camera moved relative to the other side
-  int merged = 0;      // points merged or observations added after it
-};
-// Step 3 after a fusion, before the loop's own matches are merged: the candidate's window
-// points (LoopVerificationOptions::window_keyframes) are searched in the query's keyframe and
-// its strongest covisible neighbours of the same agent (SeamOptions::keyframes); the transform
-// is refined on them (AlignSeam) and applied to the keyframes in `moved` (the side that
-// entered the other's frame; a refinement larger than SeamOptions::max_correction_* only if
-// the search repeated from it agrees); then they are searched again, tighter, and merged, and the
-// keyframes become covisible with the candidate side.
-SeamJoin JoinSeam(ServerMap* fused, const LoopMatch& match, const PinholeCamera& query_camera,
-                  const std::vector<ServerKeyframe*>& moved, const LoopCloserOptions& options);
 
 // What a fusion changed, beyond the fused map itself.
 struct MapFusion {
