@@ -4,12 +4,13 @@
 
 #include <algorithm>
 #include <filesystem>
-#include <fstream>
 #include <sstream>
 #include <string>
 #include <vector>
 
 #include <gtest/gtest.h>
+
+#include "libccmd/util/file_util.h"
 
 namespace {
 
@@ -23,11 +24,11 @@ std::vector<std::string> Lines(const std::string& text) {
   return lines;
 }
 
-std::string ReadFile(const std::filesystem::path& path) {
-  std::ifstream in(path);
-  std::stringstream text;
-  text << in.rdbuf();
-  return text.str();
+// The file's lines; a file that cannot be read fails the test.
+std::vector<std::string> FileLines(const std::filesystem::path& path) {
+  const auto text = ccmd::ReadFileToString(path.string());
+  EXPECT_TRUE(text.ok()) << path.string() << ": " << text.status().ToString();
+  return text.ok() ? Lines(*text) : std::vector<std::string>{};
 }
 
 bool StartsWith(const std::string& s, const std::string& prefix) {
@@ -129,7 +130,7 @@ TEST(SourceLimitsTest, NoLibccmdFileIsOver800Lines) {
   const std::vector<std::filesystem::path> files = SourcesUnder(root);
   ASSERT_GT(files.size(), 50u) << "libccmd sources not found under " << root;
   for (const auto& file : files) {
-    const int lines = static_cast<int>(Lines(ReadFile(file)).size());
+    const int lines = static_cast<int>(FileLines(file).size());
     EXPECT_LE(lines, kMaxFileLines) << file.string() << " has " << lines << " lines";
   }
 }
@@ -139,7 +140,7 @@ TEST(SourceLimitsTest, NoBackendFunctionIsOver80Lines) {
   const std::vector<std::filesystem::path> files = SourcesUnder(root);
   ASSERT_GT(files.size(), 10u) << "back-end sources not found under " << root;
   for (const auto& file : files) {
-    const std::vector<std::string> lines = Lines(ReadFile(file));
+    const std::vector<std::string> lines = FileLines(file);
     int bodies = 0;
     for (const FunctionSpan& f : FunctionSpans(lines)) {
       bodies += f.body_on_own_lines;
