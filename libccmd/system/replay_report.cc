@@ -1,6 +1,5 @@
 #include "libccmd/system/replay_report.h"
 
-#include <Eigen/Eigenvalues>
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -11,11 +10,12 @@
 
 #include "libccmd/dense/dense_map.h"
 #include "libccmd/dense/label.h"
-#include "libccmd/eval/map_picture.h"
 #include "libccmd/eval/plot.h"
 #include "libccmd/eval/reconstruction_error.h"
 #include "libccmd/eval/trajectory_error.h"
 #include "libccmd/system/link_report.h"
+#include "libccmd/system/replay_markdown.h"
+#include "libccmd/system/replay_plots.h"
 #include "libccmd/system/report_format.h"
 #include "libccmd/util/file_util.h"
 #include "libccmd/util/logging.h"
@@ -113,38 +113,6 @@ using report::FindAgentTraffic;
 using report::Fmt;
 using report::Num;
 
-// The plane of most motion of the ground truth (its two principal directions): a "top view"
-// that does not depend on which world axis is up.
-Eigen::Matrix<double, 2, 3> ViewPlane(const Trajectory& gt) {
-  Eigen::Vector3d mean = Eigen::Vector3d::Zero();
-  for (const auto& p : gt) mean += p.T_world_cam.translation();
-  mean /= std::max<std::size_t>(1, gt.size());
-  Eigen::Matrix3d cov = Eigen::Matrix3d::Zero();
-  for (const auto& p : gt) {
-    const Eigen::Vector3d d = p.T_world_cam.translation() - mean;
-    cov += d * d.transpose();
-  }
-  Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(cov);
-  Eigen::Matrix<double, 2, 3> P;
-  P.row(0) = eig.eigenvectors().col(2).transpose();
-  P.row(1) = eig.eigenvectors().col(1).transpose();
-  return P;
-}
-
-PlotSeries Projected(const Trajectory& t, const Eigen::Matrix<double, 2, 3>& P,
-                     const std::string& label, cv::Scalar color, int thickness) {
-  PlotSeries s;
-  s.label = label;
-  s.color = color;
-  s.thickness = thickness;
-  for (const auto& p : t) {
-    const Eigen::Vector2d q = P * p.T_world_cam.translation();
-    s.x.push_back(q.x());
-    s.y.push_back(q.y());
-  }
-  return s;
-}
-
 // Which map each agent's keyframes ended in, from server_stats.json ("agent_maps"; runs
 // written before it only say how many maps there were), and how many of them are placed
 // ("agent_placed_keyframes"): an agent whose keyframes all wait unplaced in the primary map
@@ -200,32 +168,6 @@ std::optional<AteResult> MapAte(const Trajectory& gt, const Trajectory& keyframe
   return *ate;
 }
 
-std::string JoinNames(const std::vector<std::string>& names) {
-  std::string out;
-  for (const std::string& n : names) out += (out.empty() ? "" : ", ") + n;
-  return out.empty() ? "none" : out;
-}
-
-// plots/map_top.png and plots/map_view.png, drawn from the server's map.ply (in its own world
-// frame, up from its keyframes); agents coloured as in the other plots. False without a map.
-bool WriteMapPlots(const std::string& server_dir, const std::string& plots_dir,
-                   const Json& server_stats, int agents) {
-  auto map = ReadPly(JoinPath(server_dir, "map.ply"));
-  if (!map.ok() || map->size() == 0) return false;
-  auto cameras = ReadTumTrajectory(JoinPath(server_dir, "trajectory_fused.txt"));
-  MapPictureOptions options;
-  const Json* ids = server_stats.Get("agent_ids");
-  for (int i = 1; i <= agents; ++i) {
-    const std::string name = "agent" + std::to_string(i);
-    if (ids && ids->Get(name))
-      options.agents[static_cast<int>(ids->Get(name)->number())] = {name, SeriesColor(i - 1)};
-  }
-  const Status s =
-      WriteMapPictures(*map, cameras.ok() ? *cameras : Trajectory{}, options, plots_dir);
-  if (!s.ok()) CCMD_LOG(WARNING) << "map pictures: " << s.ToString();
-  return s.ok();
-}
-
 // Reconstruction error of the server's map.ply, moved into the ground truth's frame by
 // `alignment`, into `results`; returns each agent's mean error by its id (the points' labels:
 // which keyframe, so which agent, each came from), empty without a map or a reference.
@@ -277,16 +219,8 @@ std::map<std::uint32_t, double> EvaluateMap(const std::string& run_dir, const Tu
   return by_agent;
 }
 
-}  // namespace
-
-StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dataset,
-                              const ReplayRunInfo& info, const ReferenceOptions& reference) {
-  const std::string& server_dir = run_dir;  // the server writes its results into the run folder
-  const std::string plots_dir = JoinPath(run_dir, "plots");
-  CCMD_RETURN_IF_ERROR(MakeDirectories(plots_dir));
-  CCMD_ASSIGN_OR_RETURN(const Json server_stats,
-                        ReadJsonFile(JoinPath(server_dir, "server_stats.json")));
-  const Trajectory gt = dataset.GroundTruthAtFrames();
+// The run's own figures out of server_stats.json: maps, loops, fusions, restarted segments.
+Json RunSummary(const ReplayRunInfo& info, const Json& server_stats) {
   Json results;
   results["dataset"] = info.dataset_dir;
   results["agents_count"] = info.agents;
@@ -300,20 +234,218 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   results["segments_restarted"] = Num(backend, "segments_restarted");
   results["segments_placed"] = Num(backend, "segments_placed");
   results["segments_unplaced"] = Num(backend, "segments_unplaced");
+  return results;
+}
+
+// What the agents sent, summed over them, and what a format without any packing would have
+// needed for the same keyframes.
+struct TrafficTotals {
+  double atps_sum = 0, akfs_sum = 0, akfr_sum = 0;
+  int with_traffic = 0;
+  KeyframeSizeBreakdown parts;
+  double keyframes = 0, rgbd_keyframes = 0;
+  double naive_pose = 0, naive_keypoints = 0, naive_descriptors = 0, naive_points = 0,
+         naive_colour = 0, naive_depth = 0;
+};
+
+// The agent's traffic as the server counted it (server_stats.json's transport) into `a`.
+void AddServerTraffic(const Json& traffic, Json& a, TrafficTotals& totals) {
+  const Json* messages = traffic.Get("messages");
+  const Json* kf = messages ? messages->Get("keyframe") : nullptr;
+  a["keyframes"] = Num(kf, "count");
+  a["bytes"] = Num(kf, "bytes") + Num(messages ? messages->Get("pose_update") : nullptr, "bytes");
+  a["atps_kBps"] = Num(&traffic, "average_traffic_bytes_per_s") / 1e3;
+  a["akfs_kB"] = Num(&traffic, "average_keyframe_bytes") / 1e3;
+  a["akfr_hz"] = Num(&traffic, "keyframe_rate_hz");
+  totals.atps_sum += a["atps_kBps"].number();
+  totals.akfs_sum += a["akfs_kB"].number();
+  totals.akfr_sum += a["akfr_hz"].number();
+  ++totals.with_traffic;
+  if (const Json* p = traffic.Get("keyframe_parts_bytes")) {
+    auto bytes = [&](const char* kind) { return static_cast<std::size_t>(Num(p, kind)); };
+    totals.parts.pose += bytes("pose");
+    totals.parts.keypoints += bytes("keypoints");
+    totals.parts.descriptors += bytes("descriptors");
+    totals.parts.map_points += bytes("map_points");
+    totals.parts.colour += bytes("colour");
+    totals.parts.depth += bytes("depth");
+    totals.parts.other += bytes("other");
+  }
+}
+
+// The agent's own statistics (agents/NAME_stats.json): frames, losses, what its link sent.
+void AddAgentStats(const Json& agent_stats, Json& a, TrafficTotals& totals) {
+  a["frames"] = Num(&agent_stats, "frames");
+  a["lost_frames"] = Num(&agent_stats, "lost_frames");
+  a["restarts"] = Num(&agent_stats, "restarts");
+  a["fps"] = Num(&agent_stats, "fps");
+  const Json* link = agent_stats.Get("link");
+  if (!link) return;
+  const double k = Num(link, "keyframes_sent");
+  totals.keyframes += k;
+  totals.rgbd_keyframes += Num(link, "rgbd_keyframes_sent");
+  a["rgbd_keyframes"] = Num(link, "rgbd_keyframes_sent");
+  // What a format without any of the packing would need: a 4x4 float pose, 5 floats per
+  // keypoint, every descriptor, an id and xyz floats per keypoint's map point, colour at
+  // 3 bytes and depth as a float per pixel of the full image for every keyframe.
+  const double keypoints = Num(link, "keypoints_extracted");
+  totals.naive_pose += 64 * k;
+  totals.naive_keypoints += 20 * keypoints;
+  totals.naive_descriptors += 32 * keypoints;
+  totals.naive_points += 16 * keypoints;
+  totals.naive_colour += 3 * Num(link, "full_rgbd_pixels");
+  totals.naive_depth += 4 * Num(link, "full_rgbd_pixels");
+}
+
+// Everything the report says of agent `i` (1-based).
+struct AgentInputs {
+  const std::string* run_dir;
+  const Json* server_stats;
+  const ReplayRunInfo* info;
+  const Trajectory* gt;
+  const MapMembership* membership;
+  const std::map<std::uint32_t, double>* map_error_of_agent;
+};
+
+Json EvaluateAgent(int i, const AgentInputs& in, Trajectory* keyframes, TrafficTotals& totals) {
+  const std::string name = "agent" + std::to_string(i);
+  Json a;
+  a["name"] = name;
+  if (i - 1 < static_cast<int>(in.info->segments.size())) {
+    a["first_frame"] = in.info->segments[i - 1].first;
+    a["last_frame"] = in.info->segments[i - 1].last;
+  }
+  auto t = ReadTumTrajectory(JoinPath(*in.run_dir, "trajectory_" + name + ".txt"));
+  *keyframes = t.ok() ? *t : Trajectory{};
+  a["in_primary_map"] = in.membership->InPrimary(name);
+  a["map"] = in.membership->InPrimary(name)  ? "primary"
+             : in.membership->Unplaced(name) ? "unplaced"
+                                             : "own";
+  const Json* agent_ids = in.server_stats->Get("agent_ids");
+  if (const Json* id = agent_ids ? agent_ids->Get(name) : nullptr) {
+    const auto found = in.map_error_of_agent->find(static_cast<std::uint32_t>(id->number()));
+    if (found != in.map_error_of_agent->end()) a["map_mean_error_m"] = found->second;
+  }
+  if (t.ok()) {
+    const auto ate = MapAte(*in.gt, *t);
+    if (ate) a["ate_rmse_m"] = ate->error.rmse;
+  }
+  auto frames = ReadTumTrajectory(JoinPath(*in.run_dir, "agents/" + name + "_frames.txt"));
+  if (frames.ok() && !in.gt->empty()) {
+    auto ate = ComputeAte(*in.gt, *frames);
+    if (ate.ok()) a["agent_frames_ate_rmse_m"] = ate->error.rmse;  // the agent's own odometry
+  }
+  if (const Json* traffic = FindAgentTraffic(*in.server_stats, name))
+    AddServerTraffic(*traffic, a, totals);
+  auto agent_stats = ReadJsonFile(JoinPath(*in.run_dir, "agents/" + name + "_stats.json"));
+  if (agent_stats.ok()) AddAgentStats(*agent_stats, a, totals);
+  for (const ReplayProcess& p : in.info->processes) {
+    if (p.name != name) continue;
+    a["cpu_seconds"] = p.cpu_seconds;
+    a["cpu_percent"] = p.wall_seconds > 0 ? 100 * p.cpu_seconds / p.wall_seconds : 0.0;
+    a["max_rss_mb"] = p.max_rss_mb;
+  }
+  return a;
+}
+
+// Mean rates over the agents: per second of connection, and per second of dataset time (each
+// agent's bytes and keyframes over its segment's duration).
+void AddRates(const TumSequence& dataset, const TrafficTotals& totals, Json& results) {
+  double dataset_bytes_per_s = 0, dataset_keyframes_per_s = 0;
+  int with_duration = 0;
+  for (const Json& a : results["agents"].array()) {
+    const int first = static_cast<int>(Num(&a, "first_frame", -1)),
+              last = static_cast<int>(Num(&a, "last_frame", -1));
+    if (first < 0 || last <= first || last >= static_cast<int>(dataset.size())) continue;
+    const double duration = dataset.frame(last).timestamp - dataset.frame(first).timestamp;
+    if (duration <= 0) continue;
+    dataset_bytes_per_s += Num(&a, "bytes") / duration;
+    dataset_keyframes_per_s += Num(&a, "keyframes") / duration;
+    ++with_duration;
+  }
+  if (with_duration) {
+    results["atps_dataset_kBps"] = dataset_bytes_per_s / with_duration / 1e3;
+    results["akfr_dataset_hz"] = dataset_keyframes_per_s / with_duration;
+  }
+  if (totals.with_traffic) {
+    results["atps_kBps"] = totals.atps_sum / totals.with_traffic;
+    results["akfs_kB"] = totals.akfs_sum / totals.with_traffic;
+    results["akfr_hz"] = totals.akfr_sum / totals.with_traffic;
+  }
+}
+
+// Bytes per keyframe by kind, sent and unpacked, and how many keyframes carried RGB-D.
+void AddBytesPerKind(const TrafficTotals& totals, Json& results) {
+  const double k = std::max(1.0, totals.keyframes);
+  const KeyframeSizeBreakdown& parts = totals.parts;
+  const std::vector<std::tuple<std::string, double, double>> per_kind = {
+      {"pose", parts.pose / k, totals.naive_pose / k},
+      {"keypoints", parts.keypoints / k, totals.naive_keypoints / k},
+      {"descriptors", parts.descriptors / k, totals.naive_descriptors / k},
+      {"map points", parts.map_points / k, totals.naive_points / k},
+      {"colour", parts.colour / k, totals.naive_colour / k},
+      {"depth", parts.depth / k, totals.naive_depth / k},
+      {"other", parts.other / k, 0.0}};
+  Json kinds = Json::MakeArray();
+  for (const auto& [kind, ours, naive] : per_kind) {
+    Json e;
+    e["kind"] = kind;
+    e["bytes_per_keyframe"] = ours;
+    e["uncompressed_bytes_per_keyframe"] = naive;
+    kinds.Push(e);
+  }
+  results["bytes_per_kind"] = kinds;
+  results["rgbd_keyframe_fraction"] = totals.rgbd_keyframes / k;
+  results["rgbd_keyframes"] = totals.rgbd_keyframes;
+  results["keyframes_sent"] = totals.keyframes;
+  results["colour_bytes"] = static_cast<double>(parts.colour);
+  results["depth_bytes"] = static_cast<double>(parts.depth);
+}
+
+// The server process's CPU and memory, and its memory as sampled during the run.
+void AddServerProcess(const ReplayRunInfo& info, Json& results) {
+  for (const ReplayProcess& p : info.processes) {
+    if (p.name != "server") continue;
+    results["server_cpu_seconds"] = p.cpu_seconds;
+    results["server_cpu_percent"] = p.wall_seconds > 0 ? 100 * p.cpu_seconds / p.wall_seconds : 0.0;
+    results["server_max_rss_mb"] = p.max_rss_mb;
+    results["server_peak_rss_mb"] = p.max_rss_mb;  // the name ccmd_load reports it under
+  }
+  Json memory = Json::MakeArray();
+  for (const auto& [t, keyframes, rss_mb] : info.server_memory) {
+    Json sample;
+    sample["t_s"] = t;
+    sample["keyframes"] = keyframes;
+    sample["rss_mb"] = rss_mb;
+    memory.Push(sample);
+  }
+  results["server_memory"] = memory;
+}
+
+}  // namespace
+
+StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dataset,
+                              const ReplayRunInfo& info, const ReferenceOptions& reference) {
+  const std::string plots_dir = JoinPath(run_dir, "plots");
+  CCMD_RETURN_IF_ERROR(MakeDirectories(plots_dir));
+  // The server writes its results into the run folder.
+  CCMD_ASSIGN_OR_RETURN(const Json server_stats,
+                        ReadJsonFile(JoinPath(run_dir, "server_stats.json")));
+  const Trajectory gt = dataset.GroundTruthAtFrames();
+  Json results = RunSummary(info, server_stats);
 
   // Trajectories: the agents' own odometry, then the primary map's keyframes (every agent's
   // when all fused; otherwise those of the agents in it, named in the results).
   const MapMembership membership = ReadMembership(server_stats, info.agents);
-  const std::vector<std::string> primary_agents = membership.PrimaryAgents();
   Json primary_names = Json::MakeArray();
-  for (const std::string& n : primary_agents) primary_names.Push(n);
+  for (const std::string& n : membership.PrimaryAgents()) primary_names.Push(n);
   results["primary_map_agents"] = primary_names;
   bool all_fused = results["maps_after_fusion"].number() == 1;
   for (int i = 1; i <= info.agents; ++i)
     all_fused = all_fused && !membership.Unplaced("agent" + std::to_string(i));
   results["all_maps_fused"] = all_fused;
   std::optional<AteResult> fused_ate;
-  auto read_fused = ReadTumTrajectory(JoinPath(server_dir, "trajectory_fused.txt"));
+  auto read_fused = ReadTumTrajectory(JoinPath(run_dir, "trajectory_fused.txt"));
   // The dense map is put in the ground truth's frame by the alignment fitted to the keyframes'
   // whole poses: on a short or nearly straight path, positions leave the rotation to the
   // noise (a degree tilts the map by 3-5 cm at the room's walls); on a long one both agree.
@@ -335,383 +467,36 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   const std::map<std::uint32_t, double> map_error_of_agent =
       map_alignment ? EvaluateMap(run_dir, dataset, reference, *map_alignment, &results)
                     : std::map<std::uint32_t, double>{};
-  const Json* agent_ids = server_stats.Get("agent_ids");
+
+  ReplayPlotInputs plots;
+  plots.agent_trajectories.resize(std::max(0, info.agents));
+  const AgentInputs agent_inputs{&run_dir, &server_stats, &info,
+                                 &gt,      &membership,   &map_error_of_agent};
+  TrafficTotals totals;
   Json agents = Json::MakeArray();
-  std::vector<Trajectory> agent_trajectories;
-  double atps_sum = 0, akfs_sum = 0, akfr_sum = 0;
-  int with_traffic = 0;
-  KeyframeSizeBreakdown parts_total;
-  double keyframes_total = 0, rgbd_keyframes_total = 0;
-  double naive_pose = 0, naive_keypoints = 0, naive_descriptors = 0, naive_points = 0,
-         naive_colour = 0, naive_depth = 0;
-  for (int i = 1; i <= info.agents; ++i) {
-    const std::string name = "agent" + std::to_string(i);
-    Json a;
-    a["name"] = name;
-    if (i - 1 < static_cast<int>(info.segments.size())) {
-      a["first_frame"] = info.segments[i - 1].first;
-      a["last_frame"] = info.segments[i - 1].last;
-    }
-    auto t = ReadTumTrajectory(JoinPath(server_dir, "trajectory_" + name + ".txt"));
-    agent_trajectories.push_back(t.ok() ? *t : Trajectory{});
-    a["in_primary_map"] = membership.InPrimary(name);
-    if (const Json* id = agent_ids ? agent_ids->Get(name) : nullptr) {
-      const auto found = map_error_of_agent.find(static_cast<std::uint32_t>(id->number()));
-      if (found != map_error_of_agent.end()) a["map_mean_error_m"] = found->second;
-    }
-    if (t.ok()) {
-      const auto ate = MapAte(gt, *t);
-      if (ate) a["ate_rmse_m"] = ate->error.rmse;
-    }
-    auto frames = ReadTumTrajectory(JoinPath(run_dir, "agents/" + name + "_frames.txt"));
-    if (frames.ok() && !gt.empty()) {
-      auto ate = ComputeAte(gt, *frames);
-      if (ate.ok()) a["agent_frames_ate_rmse_m"] = ate->error.rmse;  // the agent's own odometry
-    }
-    const Json* traffic = FindAgentTraffic(server_stats, name);
-    if (traffic) {
-      const Json* kf =
-          traffic->Get("messages") ? traffic->Get("messages")->Get("keyframe") : nullptr;
-      a["keyframes"] = Num(kf, "count");
-      a["bytes"] =
-          Num(kf, "bytes") +
-          Num(traffic->Get("messages") ? traffic->Get("messages")->Get("pose_update") : nullptr,
-              "bytes");
-      a["atps_kBps"] = Num(traffic, "average_traffic_bytes_per_s") / 1e3;
-      a["akfs_kB"] = Num(traffic, "average_keyframe_bytes") / 1e3;
-      a["akfr_hz"] = Num(traffic, "keyframe_rate_hz");
-      atps_sum += a["atps_kBps"].number();
-      akfs_sum += a["akfs_kB"].number();
-      akfr_sum += a["akfr_hz"].number();
-      ++with_traffic;
-      if (const Json* p = traffic->Get("keyframe_parts_bytes")) {
-        parts_total.pose += static_cast<std::size_t>(Num(p, "pose"));
-        parts_total.keypoints += static_cast<std::size_t>(Num(p, "keypoints"));
-        parts_total.descriptors += static_cast<std::size_t>(Num(p, "descriptors"));
-        parts_total.map_points += static_cast<std::size_t>(Num(p, "map_points"));
-        parts_total.colour += static_cast<std::size_t>(Num(p, "colour"));
-        parts_total.depth += static_cast<std::size_t>(Num(p, "depth"));
-        parts_total.other += static_cast<std::size_t>(Num(p, "other"));
-      }
-    }
-    auto agent_stats = ReadJsonFile(JoinPath(run_dir, "agents/" + name + "_stats.json"));
-    if (agent_stats.ok()) {
-      a["frames"] = Num(&*agent_stats, "frames");
-      a["lost_frames"] = Num(&*agent_stats, "lost_frames");
-      a["restarts"] = Num(&*agent_stats, "restarts");
-      a["fps"] = Num(&*agent_stats, "fps");
-      if (const Json* link = agent_stats->Get("link")) {
-        const double k = Num(link, "keyframes_sent");
-        keyframes_total += k;
-        rgbd_keyframes_total += Num(link, "rgbd_keyframes_sent");
-        a["rgbd_keyframes"] = Num(link, "rgbd_keyframes_sent");
-        // What a format without any of the packing would need: a 4x4 float pose, 5 floats per
-        // keypoint, every descriptor, an id and xyz floats per keypoint's map point, colour at
-        // 3 bytes and depth as a float per pixel of the full image for every keyframe.
-        naive_pose += 64 * k;
-        naive_keypoints += 20 * Num(link, "keypoints_extracted");
-        naive_descriptors += 32 * Num(link, "keypoints_extracted");
-        naive_points += 16 * Num(link, "keypoints_extracted");
-        naive_colour += 3 * Num(link, "full_rgbd_pixels");
-        naive_depth += 4 * Num(link, "full_rgbd_pixels");
-      }
-    }
-    for (const ReplayProcess& p : info.processes) {
-      if (p.name != name) continue;
-      a["cpu_seconds"] = p.cpu_seconds;
-      a["cpu_percent"] = p.wall_seconds > 0 ? 100 * p.cpu_seconds / p.wall_seconds : 0.0;
-      a["max_rss_mb"] = p.max_rss_mb;
-    }
-    agents.Push(a);
-  }
+  for (int i = 1; i <= info.agents; ++i)
+    agents.Push(EvaluateAgent(i, agent_inputs, &plots.agent_trajectories[i - 1], totals));
   results["agents"] = agents;
-  // Rates per second of dataset time: each agent's bytes and keyframes over its segment's duration.
-  double dataset_bytes_per_s = 0, dataset_keyframes_per_s = 0;
-  int with_duration = 0;
-  for (const Json& a : agents.array()) {
-    const int first = static_cast<int>(Num(&a, "first_frame", -1)),
-              last = static_cast<int>(Num(&a, "last_frame", -1));
-    if (first < 0 || last <= first || last >= static_cast<int>(dataset.size())) continue;
-    const double duration = dataset.frame(last).timestamp - dataset.frame(first).timestamp;
-    if (duration <= 0) continue;
-    dataset_bytes_per_s += Num(&a, "bytes") / duration;
-    dataset_keyframes_per_s += Num(&a, "keyframes") / duration;
-    ++with_duration;
-  }
-  if (with_duration) {
-    results["atps_dataset_kBps"] = dataset_bytes_per_s / with_duration / 1e3;
-    results["akfr_dataset_hz"] = dataset_keyframes_per_s / with_duration;
-  }
-  if (with_traffic) {
-    results["atps_kBps"] = atps_sum / with_traffic;
-    results["akfs_kB"] = akfs_sum / with_traffic;
-    results["akfr_hz"] = akfr_sum / with_traffic;
-  }
-  for (const ReplayProcess& p : info.processes) {
-    if (p.name != "server") continue;
-    results["server_cpu_seconds"] = p.cpu_seconds;
-    results["server_cpu_percent"] = p.wall_seconds > 0 ? 100 * p.cpu_seconds / p.wall_seconds : 0.0;
-    results["server_max_rss_mb"] = p.max_rss_mb;
-    results["server_peak_rss_mb"] = p.max_rss_mb;  // the name ccmd_load reports it under
-  }
-  Json memory = Json::MakeArray();
-  for (const auto& [t, keyframes, rss_mb] : info.server_memory) {
-    Json sample;
-    sample["t_s"] = t;
-    sample["keyframes"] = keyframes;
-    sample["rss_mb"] = rss_mb;
-    memory.Push(sample);
-  }
-  results["server_memory"] = memory;
-  const double k = std::max(1.0, keyframes_total);
-  Json kinds = Json::MakeArray();
-  const std::vector<std::tuple<std::string, double, double>> per_kind = {
-      {"pose", parts_total.pose / k, naive_pose / k},
-      {"keypoints", parts_total.keypoints / k, naive_keypoints / k},
-      {"descriptors", parts_total.descriptors / k, naive_descriptors / k},
-      {"map points", parts_total.map_points / k, naive_points / k},
-      {"colour", parts_total.colour / k, naive_colour / k},
-      {"depth", parts_total.depth / k, naive_depth / k},
-      {"other", parts_total.other / k, 0.0}};
-  for (const auto& [kind, ours, naive] : per_kind) {
-    Json e;
-    e["kind"] = kind;
-    e["bytes_per_keyframe"] = ours;
-    e["uncompressed_bytes_per_keyframe"] = naive;
-    kinds.Push(e);
-  }
-  results["bytes_per_kind"] = kinds;
-  results["rgbd_keyframe_fraction"] = rgbd_keyframes_total / k;
-  results["rgbd_keyframes"] = rgbd_keyframes_total;
-  results["keyframes_sent"] = keyframes_total;
-  results["colour_bytes"] = static_cast<double>(parts_total.colour);
-  results["depth_bytes"] = static_cast<double>(parts_total.depth);
+  AddRates(dataset, totals, results);
+  AddServerProcess(info, results);
+  AddBytesPerKind(totals, results);
 
-  // Plots.
-  const bool map_plots = WriteMapPlots(server_dir, plots_dir, server_stats, info.agents);
-  if (!gt.empty()) {
-    const auto P = ViewPlane(gt);
-    std::vector<PlotSeries> series = {
-        Projected(gt, P, "ground truth", cv::Scalar(160, 160, 160), 4)};
-    for (std::size_t i = 0; i < agent_trajectories.size(); ++i) {
-      Trajectory aligned = fused_ate
-                               ? TransformTrajectory(agent_trajectories[i], fused_ate->alignment)
-                               : agent_trajectories[i];
-      series.push_back(Projected(aligned, P, "agent" + std::to_string(i + 1),
-                                 SeriesColor(static_cast<int>(i)), 2));
-      series.back().points = true;
-    }
-    PlotOptions o;
-    o.title = "Keyframe trajectories (top view, aligned to ground truth)";
-    o.x_label = "metres";
-    o.y_label = "metres";
-    o.equal_aspect = true;
-    WritePng(PlotLines(series, o), JoinPath(plots_dir, "trajectories.png")).IgnoreError();
-  }
-  {
-    std::vector<PlotSeries> series;
-    for (int i = 1; i <= info.agents; ++i) {
-      const Json* traffic = FindAgentTraffic(server_stats, "agent" + std::to_string(i));
-      if (!traffic || !traffic->Get("per_bucket")) continue;
-      PlotSeries s;
-      s.label = "agent" + std::to_string(i);
-      s.color = SeriesColor(i - 1);
-      const double bucket = Num(server_stats.Get("transport"), "bucket_seconds", 1.0);
-      for (const Json& b : traffic->Get("per_bucket")->array()) {
-        s.x.push_back(Num(&b, "t"));
-        s.y.push_back(Num(&b, "bytes") / 1e3 / bucket);
-      }
-      series.push_back(s);
-    }
-    PlotOptions o;
-    o.title = "Traffic per agent";
-    o.x_label = "seconds since the server started";
-    o.y_label = "kB/s";
-    WritePng(PlotLines(series, o), JoinPath(plots_dir, "traffic.png")).IgnoreError();
-  }
-  {
-    std::vector<BarGroup> groups;
-    for (const auto& [kind, ours, naive] : per_kind) {
-      if (kind == "other") continue;
-      groups.push_back({kind, {ours, naive}});
-    }
-    PlotOptions o;
-    o.title = "Bytes per keyframe by kind (log scale)";
-    o.y_label = "log10(bytes)";
-    WritePng(PlotBars(groups, {"sent", "uncompressed"}, {SeriesColor(0), SeriesColor(6)}, o,
-                      /*log_scale=*/true),
-             JoinPath(plots_dir, "bytes_per_kind.png"))
-        .IgnoreError();
-  }
-  {
-    std::vector<PlotSeries> series;
-    int index = 0;
-    for (const ReplayProcess& p : info.processes) {
-      PlotSeries s;
-      s.label = p.name;
-      s.color = p.name == "server" ? cv::Scalar(0, 0, 0) : SeriesColor(index++);
-      for (const auto& [t, cpu] : p.cpu_percent) {
-        s.x.push_back(t);
-        s.y.push_back(cpu);
-      }
-      series.push_back(s);
-    }
-    PlotOptions o;
-    o.title = "CPU use per process";
-    o.x_label = "seconds";
-    o.y_label = "% of one core";
-    WritePng(PlotLines(series, o), JoinPath(plots_dir, "cpu.png")).IgnoreError();
-  }
-  if (!info.server_memory.empty()) {
-    PlotSeries s;
-    s.label = "server";
-    s.color = cv::Scalar(0, 0, 0);
-    for (const auto& [t, keyframes, rss_mb] : info.server_memory) {
-      s.x.push_back(keyframes);
-      s.y.push_back(rss_mb);
-    }
-    PlotOptions o;
-    o.title = "Server resident memory";
-    o.x_label = "keyframes in the server's maps";
-    o.y_label = "MB";
-    WritePng(PlotLines({s}, o), JoinPath(plots_dir, "server_memory.png")).IgnoreError();
-  }
+  plots.server_stats = &server_stats;
+  plots.results = &results;
+  plots.info = &info;
+  plots.ground_truth = gt;
+  if (fused_ate) plots.alignment = fused_ate->alignment;
+  const bool map_plots = WriteReplayPlots(run_dir, plots_dir, plots);
 
-  // report.md
-  std::ostringstream md;
-  md << "# Split-replay report\n\n";
-  md << "- dataset: `" << info.dataset_dir << "` (" << dataset.size() << " frames)\n";
-  md << "- agents: " << info.agents << ", pace: " << info.rate << ", wall time "
-     << Fmt("%.1f", info.wall_seconds) << " s\n";
-  md << "- command: `" << info.command << "`\n";
-  if (!info.config.empty()) md << "- config: `" << info.config << "` (copied to config.yaml)\n";
-  md << "\n## Maps and trajectories\n\n";
-  md << "Maps left after fusion: " << results["maps_after_fusion"].number() << " (loops "
-     << results["loops"].number() << ", fusions " << results["fusions"].number()
-     << ", global BA runs " << results["global_ba_runs"].number() << ")\n\n";
-  if (const double restarted = results["segments_restarted"].number(); restarted > 0) {
-    const double unplaced = results["segments_unplaced"].number();
-    md << "Agents lost tracking and restarted " << restarted << " time(s) in a new map segment; "
-       << (unplaced > 0 ? Fmt("%.0f", unplaced) +
-                              " segment(s) no loop has placed are left out of the trajectories "
-                              "and the dense map (the agents' own trajectories keep them).\n\n"
-                        : std::string("loops placed every segment.\n\n"));
-  }
-  if (!results["all_maps_fused"].boolean()) {
-    std::vector<std::string> others, unplaced;
-    for (int i = 1; i <= info.agents; ++i) {
-      const std::string name = "agent" + std::to_string(i);
-      if (membership.Unplaced(name)) {
-        unplaced.push_back(name);
-      } else if (!membership.InPrimary(name)) {
-        others.push_back(name);
-      }
-    }
-    md << "**Not every map fused.** The fused trajectory and the dense map below are the primary "
-          "map's, which holds "
-       << JoinNames(primary_agents);
-    if (!others.empty()) {
-      md << "; " << JoinNames(others)
-         << " kept their own maps: their server ATE in the table is in their own map's frame";
-    }
-    if (!unplaced.empty()) {
-      md << "; the keyframes of " << JoinNames(unplaced)
-         << " wait unplaced in it (they joined through a restarted segment no loop has placed)";
-    }
-    md << ".\n\n";
-  }
-  md << "| agent | frames | map | server keyframes | ATE RMSE (server, m) | ATE RMSE (agent "
-        "odometry, m) | its map points' mean error (m) | lost frames | restarts |\n"
-        "|---|---|---|---|---|---|---|---|---|\n";
-  for (const Json& a : agents.array()) {
-    md << "| " << a.Get("name")->string() << " | " << Num(&a, "first_frame") << "-"
-       << Num(&a, "last_frame") << " | "
-       << (a.Get("in_primary_map")->boolean()             ? "primary"
-           : membership.Unplaced(a.Get("name")->string()) ? "unplaced"
-                                                          : "own")
-       << " | " << Num(&a, "keyframes") << " | "
-       << (a.Has("ate_rmse_m") ? Fmt("%.4f", Num(&a, "ate_rmse_m")) : "-") << " | "
-       << (a.Has("agent_frames_ate_rmse_m") ? Fmt("%.4f", Num(&a, "agent_frames_ate_rmse_m")) : "-")
-       << " | " << (a.Has("map_mean_error_m") ? Fmt("%.4f", Num(&a, "map_mean_error_m")) : "-")
-       << " | " << Num(&a, "lost_frames") << " | " << Num(&a, "restarts") << " |\n";
-  }
-  if (results.Has("ate_rmse_m")) {
-    md << "\nFused trajectory (every keyframe of the primary map: " << JoinNames(primary_agents)
-       << "): ATE RMSE **" << Fmt("%.4f", results["ate_rmse_m"].number()) << " m** over "
-       << results["fused_keyframes"].number() << " keyframes (max "
-       << Fmt("%.4f", results["ate_max_m"].number()) << " m)"
-       << (results["ate_aligned_by"].string() == "poses"
-               ? ", aligned by whole keyframe poses: too few keyframes, or all within a centimetre "
-                 "of a line, to "
-                 "align by positions"
-               : "")
-       << ".\n";
-  } else {
-    md << "\nNo fused ATE: the primary map has no keyframe matching the ground truth.\n";
-  }
-  md << "\n![trajectories](plots/trajectories.png)\n\n## Dense map\n\n";
-  if (results.Has("recon_mean_m")) {
-    md << "| points | mean distance (m) | median (m) | 95% (m) | Hausdorff (m) | completeness (2 "
-          "cm) |\n|---|---|---|---|---|---|\n";
-    md << "| " << Fmt("%.0f", results["map_points"].number()) << " | "
-       << Fmt("%.4f", results["recon_mean_m"].number()) << " | "
-       << Fmt("%.4f", results["recon_median_m"].number()) << " | "
-       << Fmt("%.4f", results["recon_p95_m"].number()) << " | "
-       << Fmt("%.4f", results["recon_hausdorff_m"].number()) << " | "
-       << Fmt("%.1f%%", 100 * results["recon_completeness"].number()) << " |\n\n";
-    md << "Reference: " << results["reference"].string() << " ("
-       << results["reference_points"].number()
-       << " points). The map is aligned to it by the fit of the primary map's keyframe poses "
-          "(centres and "
-          "orientations) to the ground truth.\n";
-  } else {
-    md << "No dense map or no reference to compare with.\n";
-  }
-  if (map_plots)
-    md << "\n![dense map, top view](plots/map_top.png)\n\n![dense map, "
-          "perspective](plots/map_view.png)\n";
-  md << "\n## Bandwidth\n\n| agent | ATPS (kB/s) | AKFS (kB) | AKFR (Hz) | keyframes with RGB-D | "
-        "bytes |\n|---|---|---|---|---|---|\n";
-  for (const Json& a : agents.array()) {
-    md << "| " << a.Get("name")->string() << " | " << Fmt("%.1f", Num(&a, "atps_kBps")) << " | "
-       << Fmt("%.1f", Num(&a, "akfs_kB")) << " | " << Fmt("%.2f", Num(&a, "akfr_hz")) << " | "
-       << Num(&a, "rgbd_keyframes") << " of " << Num(&a, "keyframes") << " | "
-       << Fmt("%.0f", Num(&a, "bytes")) << " |\n";
-  }
-  md << "| mean | " << Fmt("%.1f", Num(&results, "atps_kBps")) << " | "
-     << Fmt("%.1f", Num(&results, "akfs_kB")) << " | " << Fmt("%.2f", Num(&results, "akfr_hz"))
-     << " | | |\n\n";
-  md << "ATPS and AKFR are per second of connection (wall clock of this run); per second of the "
-        "dataset's own time "
-        "(what a robot moving at that speed would send): "
-     << Fmt("%.1f", Num(&results, "atps_dataset_kBps")) << " kB/s and "
-     << Fmt("%.2f", Num(&results, "akfr_dataset_hz")) << " keyframes/s per agent.\n\n";
-  md << "Bytes per keyframe by kind, against an uncompressed format (4x4 float pose, 5 floats per "
-        "keypoint, every "
-        "descriptor, id + xyz per map point, full-resolution colour and float depth with every "
-        "keyframe):\n\n";
-  md << "| kind | sent (B/keyframe) | uncompressed (B/keyframe) | ratio |\n|---|---|---|---|\n";
-  for (const auto& [kind, ours, naive] : per_kind) {
-    md << "| " << kind << " | " << Fmt("%.0f", ours) << " | " << Fmt("%.0f", naive) << " | "
-       << (naive > 0 ? Fmt("%.3f", ours / naive) : "-") << " |\n";
-  }
-  md << "\n![traffic](plots/traffic.png)\n\n![bytes per kind](plots/bytes_per_kind.png)\n\n## "
-        "CPU\n\n";
-  md << "| process | CPU (s) | CPU (% of one core) | peak memory (MB) |\n|---|---|---|---|\n";
-  for (const ReplayProcess& p : info.processes) {
-    md << "| " << p.name << " | " << Fmt("%.1f", p.cpu_seconds) << " | "
-       << Fmt("%.0f", p.wall_seconds > 0 ? 100 * p.cpu_seconds / p.wall_seconds : 0.0) << " | "
-       << Fmt("%.0f", p.max_rss_mb) << " |\n";
-  }
-  md << "\n![cpu](plots/cpu.png)\n";
+  std::string md = ReplayMarkdown(results, info, dataset.size(), map_plots);
   auto link_section =
       AddLinkFigures(run_dir, LinkRunInfo{info.link, info.link_stats, info.agents}, &results);
   if (link_section.ok()) {
-    md << *link_section;
+    md += *link_section;
   } else {
     CCMD_LOG(WARNING) << "link figures: " << link_section.status().ToString();
   }
-  CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(run_dir, "report.md"), md.str()));
+  CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(run_dir, "report.md"), md));
   CCMD_RETURN_IF_ERROR(WriteJsonFile(results, JoinPath(run_dir, "results.json")));
   return results;
 }

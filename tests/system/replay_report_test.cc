@@ -12,6 +12,7 @@
 #include "libccmd/io/config.h"
 #include "libccmd/io/trajectory.h"
 #include "libccmd/synth/sequence.h"
+#include "libccmd/system/replay_markdown.h"
 #include "libccmd/util/file_util.h"
 #include "tests/support/test_support.h"
 
@@ -229,6 +230,27 @@ TEST(ReplayReportTest, AnAgentWaitingUnplacedInThePrimaryMapIsNotCountedAsFused)
   EXPECT_NE(report->find("the keyframes of agent1 wait unplaced"), std::string::npos) << *report;
   EXPECT_EQ(report->find("kept their own maps"), std::string::npos) << *report;
   EXPECT_NE(report->find("| agent1 | 0-4 | unplaced |"), std::string::npos) << *report;
+}
+
+// report.md says nothing results.json does not hold: written again from the results file
+// alone, its sections up to CPU come out as the evaluation wrote them.
+TEST(ReplayReportTest, ReportIsWrittenFromTheResultsFileAlone) {
+  testing::TempDir dir;
+  std::optional<StatusOr<Json>> evaluated;
+  EvaluateTwoAgentRun(dir, MapStats(2, 2, 1), &evaluated);
+  ASSERT_TRUE(evaluated.has_value() && evaluated->ok());
+  auto saved = ReadJsonFile(JoinPath(dir.File("run"), "results.json"));
+  ASSERT_TRUE(saved.ok()) << saved.status().ToString();
+  ReplayRunInfo info;
+  info.agents = 2;
+  info.segments = {{0, 4}, {4, 7}};
+  const std::string again = ReplayMarkdown(*saved, info, 8, /*map_plots=*/true);
+  auto report = ReadFileToString(JoinPath(dir.File("run"), "report.md"));
+  ASSERT_TRUE(report.ok());
+  ASSERT_GT(again.size(), 500u);
+  EXPECT_EQ(report->substr(0, again.size()), again);
+  EXPECT_NE(again.find("| agent1 | 0-4 | own |"), std::string::npos) << again;
+  EXPECT_NE(again.find("which holds agent2; agent1 kept"), std::string::npos) << again;
 }
 
 TEST(ReplayReportTest, AblationTableAddsRowsWithRatiosToTheFullRun) {
