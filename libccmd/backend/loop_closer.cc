@@ -146,8 +146,8 @@ std::vector<ServerKeyframe*> CloseEarlierLoops(ServerMap* fused,
   // overlap, and a place the other agent came back to later): the fusion's transform and seam
   // come from the last one only, and whatever either agent drifted between the places lies
   // between the maps at the others. Verified again in the fused map, each is closed as a loop
-  // inside it: refined on its seam, and where the maps are apart there, the pose graph bends
-  // both agents' paths between the places.
+  // inside it: where the verification puts the query apart from the map, refined on its seam
+  // and, still apart, the pose graph bends both agents' paths between the places.
   std::vector<ServerKeyframe*> moved;
   for (const auto& [query_id, candidate_id] : loops) {
     ServerKeyframe* query = fused->keyframe(query_id);
@@ -157,10 +157,17 @@ std::vector<ServerKeyframe*> CloseEarlierLoops(ServerMap* fused,
     const std::optional<LoopMatch> match =
         VerifyLoop(query, camera, candidate, *fused, options.verification);
     if (!match) continue;
+    // Where the verification already agrees with the fused map (typically next to the
+    // fusion's own place, which its seam has just tied), the two say the same and the loop
+    // only ties. A seam searched there finds what the tie left out: in the split replays, a
+    // few dozen pairs at the far edge of the candidate's window that moved the verified pose
+    // by 2-15 mm, which the pose graph then bent both paths by.
     SeamSides sides;
-    const LoopMatch refined = RefineLoopOnSeam(fused, *match, camera, options, &sides);
+    const bool agreed = LoopAlreadyClosed(*match, options);
+    const LoopMatch refined =
+        agreed ? *match : RefineLoopOnSeam(fused, *match, camera, options, &sides);
     const double apart_m = TranslationDistance(query->T_map_cam, refined.T_candidate_map_query);
-    const bool closed = LoopAlreadyClosed(refined, options);
+    const bool closed = agreed || LoopAlreadyClosed(refined, options);
     if (closed) {
       MergeLoopMatches(fused, refined);
     } else {

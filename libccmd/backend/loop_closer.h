@@ -148,10 +148,11 @@ MapFusion FuseMapsByLoop(MapManager* maps, MapManager::Guard* query_map,
 
 // After a fusion: the earlier loops of the consistency group that confirmed it (pairs of
 // query and candidate keyframes, LoopConsistency::Confirm), each verified again in the fused
-// map and closed there as a loop inside one map: refined on its seam; where the maps are
-// apart at its place (LoopAlreadyClosed), a loop edge and the pose graph, otherwise its
-// matches merged only; then its seam tied. Pairs with a keyframe gone or not placed are
-// skipped. Returns the keyframes the pose graphs moved (a keyframe may appear more than once).
+// map and closed there as a loop inside one map: where the verified pose agrees with the map
+// (LoopAlreadyClosed) its matches merged only; otherwise refined on its seam and, where the
+// maps are still apart at its place, a loop edge and the pose graph; then its seam tied. Pairs with
+// a keyframe gone or not placed are skipped. Returns the keyframes the pose graphs moved (a
+// keyframe may appear more than once).
 std::vector<ServerKeyframe*> CloseEarlierLoops(ServerMap* fused,
                                                const std::vector<LoopConsistency::Pair>& loops,
                                                const PinholeCamera& camera,

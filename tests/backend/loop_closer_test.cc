@@ -9,6 +9,7 @@
 #include <algorithm>
 #include <set>
 
+#include "libccmd/backend/loop_verification.h"
 #include "libccmd/features/bow_vocabulary.h"
 #include "tests/backend/generated_map.h"
 
@@ -628,69 +629,111 @@ TEST(SeamTest, ARefinementLargerThanTrustedKeepsTheVerifiedTransform) {
 
 // A fusion confirmed at two places: agent 2 walked steps 4-18 of agent 1's circle with a
 // drift of its own, and its group of agreeing loops met agent 1 at step 5 (its keyframe 1)
-// before the fusion's loop at step 18 (its keyframe 14). Fused at the later place, its map is
-// off at the earlier one by what it drifted in between; closing the earlier loop in the fused
-// map bends its path back there and keeps it at the later place.
-TEST(LoopCorrectionTest, AFusionClosesTheEarlierLoopsOfItsGroupInTheFusedMap) {
+// before the fusion's loop at step 18 (its keyframe 14). Fused at the later place (with the
+// seam), its map is off at the earlier one by what it drifted in between.
+constexpr int kRingSteps = 24, kWalk = 15;
+
+struct DriftedFusion {
+  MapManager maps;
+  MapFusion fusion;
+  const LoopCloserOptions options;
+  const PinholeCamera camera = testing::TestCamera();
+  // Agent 2's keyframe k from its true pose in the fused map.
+  double ErrorOf(int k) const {
+    return TranslationDistance(fusion.map->keyframe(Kf(2, k))->T_map_cam,
+                               CirclePose(4 + k, kRingSteps));
+  }
+};
+
+void FuseTheDriftedWalk(DriftedFusion* c) {
   Rng rng(31);
   const GeneratedWorld world = MakeRingWorld(3000, &rng);
-  constexpr int kSteps = 24, kWalk = 15;
-  MapManager maps;
   {
-    MapManager::Guard first = maps.CheckOutAgent(AgentId(1));
-    for (int i = 0; i < kSteps; ++i)
-      AddGeneratedKeyframe(first.get(), world, AgentId(1), i, CirclePose(i, kSteps),
-                           CirclePose(i, kSteps), &rng);
+    MapManager::Guard first = c->maps.CheckOutAgent(AgentId(1));
+    for (int i = 0; i < kRingSteps; ++i)
+      AddGeneratedKeyframe(first.get(), world, AgentId(1), i, CirclePose(i, kRingSteps),
+                           CirclePose(i, kRingSteps), &rng);
   }
   // Agent 2's keyframe k at step 4 + k: its own frame, and a drift growing from its start
   // (0.2 degrees and 4 mm per keyframe, about its first pose).
   const Pose T_map2_world = Offset(1.5, -50);
   const auto estimate = [&](int k) {
-    const Pose start = CirclePose(4, kSteps);
+    const Pose start = CirclePose(4, kRingSteps);
     Pose drift = Pose::Identity();
     drift.linear() =
         Eigen::AngleAxisd(0.2 * kDegree * k, Eigen::Vector3d::UnitY()).toRotationMatrix();
     drift.translation() = Eigen::Vector3d(0.004 * k, 0, 0.002 * k);
-    return T_map2_world * start * drift * start.inverse() * CirclePose(4 + k, kSteps);
+    return T_map2_world * start * drift * start.inverse() * CirclePose(4 + k, kRingSteps);
   };
   {
-    MapManager::Guard second = maps.CheckOutAgent(AgentId(2));
+    MapManager::Guard second = c->maps.CheckOutAgent(AgentId(2));
     for (int k = 0; k < kWalk; ++k)
-      AddGeneratedKeyframe(second.get(), world, AgentId(2), k, CirclePose(4 + k, kSteps),
+      AddGeneratedKeyframe(second.get(), world, AgentId(2), k, CirclePose(4 + k, kRingSteps),
                            estimate(k), &rng);
   }
-  auto [query_guard, candidate_guard] = maps.CheckOutPair(MapId(2), MapId(1));
+  auto [query_guard, candidate_guard] = c->maps.CheckOutPair(MapId(2), MapId(1));
   ServerKeyframe* query = query_guard->keyframe(Kf(2, kWalk - 1));
   ServerKeyframe* candidate = candidate_guard->keyframe(Kf(1, 4 + kWalk - 1));
-  const LoopCloserOptions options;
-  const PinholeCamera camera = testing::TestCamera();
-  MapFusion fusion =
-      FuseMapsByLoop(&maps, &query_guard, &candidate_guard,
-                     TrueMatch(query, candidate, Pose::Identity()), &options, &camera);
-  ServerMap* fused = fusion.map.get();
+  c->fusion =
+      FuseMapsByLoop(&c->maps, &query_guard, &candidate_guard,
+                     TrueMatch(query, candidate, Pose::Identity()), &c->options, &c->camera);
+}
+
+// Closing the earlier loop in the fused map bends agent 2's path back there and keeps it at
+// the later place.
+TEST(LoopCorrectionTest, AFusionClosesTheEarlierLoopsOfItsGroupInTheFusedMap) {
+  DriftedFusion c;
+  FuseTheDriftedWalk(&c);
+  ServerMap* fused = c.fusion.map.get();
   ASSERT_TRUE(fused);
-  const auto error_of = [&](int k) {
-    return TranslationDistance(fused->keyframe(Kf(2, k))->T_map_cam, CirclePose(4 + k, kSteps));
-  };
-  const double earlier_before = error_of(1);
-  ASSERT_LT(error_of(kWalk - 1), 0.005);
+  const double earlier_before = c.ErrorOf(1);
+  ASSERT_LT(c.ErrorOf(kWalk - 1), 0.005);
   ASSERT_GT(earlier_before, 0.04);  // the drift between the places
 
   const std::vector<ServerKeyframe*> moved =
-      CloseEarlierLoops(fused, {{Kf(2, 1), Kf(1, 5)}}, camera, options);
+      CloseEarlierLoops(fused, {{Kf(2, 1), Kf(1, 5)}}, c.camera, c.options);
   // The loop is a loop edge of its own, beside the fusion's; the pose graph moved agent 2's
   // keyframe there, which is now much nearer the truth, and the fusion's place stays joined.
   EXPECT_EQ(fused->loop_edges().size(), 2u);
   EXPECT_EQ(std::count(moved.begin(), moved.end(), fused->keyframe(Kf(2, 1))), 1);
-  EXPECT_LT(error_of(1), 0.4 * earlier_before);
-  EXPECT_LT(error_of(kWalk - 1), 0.01);
+  EXPECT_LT(c.ErrorOf(1), 0.4 * earlier_before);
+  EXPECT_LT(c.ErrorOf(kWalk - 1), 0.01);
 
   // Where the maps already agree, a loop only ties: nothing moves and no edge is added.
-  EXPECT_TRUE(CloseEarlierLoops(fused, {{Kf(2, kWalk - 2), Kf(1, 4 + kWalk - 2)}}, camera, options)
-                  .empty());
+  EXPECT_TRUE(
+      CloseEarlierLoops(fused, {{Kf(2, kWalk - 2), Kf(1, 4 + kWalk - 2)}}, c.camera, c.options)
+          .empty());
   EXPECT_EQ(fused->loop_edges().size(), 2u);
   // A pair with a keyframe the map does not hold is skipped.
-  EXPECT_TRUE(CloseEarlierLoops(fused, {{Kf(2, 99), Kf(1, 5)}}, camera, options).empty());
+  EXPECT_TRUE(CloseEarlierLoops(fused, {{Kf(2, 99), Kf(1, 5)}}, c.camera, c.options).empty());
+}
+
+// An earlier loop next to the fusion's own place, whose verification puts the query where
+// the fused map has it (within LoopAlreadyClosed's 5 mm and 0.25 degrees): the two agree, so
+// the loop is closed and only ties its matches. Refined on a seam first, it would be judged on
+// what a search next to a freshly tied place finds (here 133 pairs at the edge of the
+// candidate's window, which moved the verified pose by 10 mm and bent 38 keyframes).
+TEST(LoopCorrectionTest, AnEarlierLoopThatAgreesWithTheFusedMapOnlyTies) {
+  DriftedFusion c;
+  FuseTheDriftedWalk(&c);
+  ServerMap* fused = c.fusion.map.get();
+  ASSERT_TRUE(fused);
+  ServerKeyframe* query = fused->keyframe(Kf(2, kWalk - 2));
+  ServerKeyframe* candidate = fused->keyframe(Kf(1, 4 + kWalk - 3));
+  const std::optional<LoopMatch> verified =
+      VerifyLoop(query, c.camera, candidate, *fused, c.options.verification);
+  ASSERT_TRUE(verified.has_value());
+  ASSERT_TRUE(LoopAlreadyClosed(*verified, c.options));
+  const Pose before = query->T_map_cam;
+  const std::size_t edges = fused->loop_edges().size();
+  EXPECT_TRUE(CloseEarlierLoops(fused, {{query->id, candidate->id}}, c.camera, c.options).empty());
+  EXPECT_EQ(fused->loop_edges().size(), edges);
+  EXPECT_LT(TranslationDistance(query->T_map_cam, before), 1e-12);
+  // Its matches merged: the query observes the candidate's points it matched.
+  std::size_t shared = 0;
+  for (const auto& [keypoint, point] : verified->matches)
+    shared += query->points[keypoint] == point;
+  EXPECT_EQ(shared, verified->matches.size());
 }
 
 // What LoopCloser::Process closed for one keyframe (the closure's map guard released at once).
