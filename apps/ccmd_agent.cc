@@ -121,15 +121,8 @@ ccmd::Status FlushWhileProgressing(ccmd::AgentLink* link, double stall_s) {
   }
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
-  CLI::App app{
-      "CCMD agent: ORB RGB-D visual odometry on a robot. Sends compact keyframes to a "
-      "ccmd_server,\n"
-      "or runs --offline and writes its trajectory (TUM format).\n"
-      "Exit status: 0 when the server acknowledged every message, 3 when messages were refused\n"
-      "or never acknowledged (the counts are printed and in --stats), 1 on any other error."};
+// Everything the command line sets.
+struct AgentArgs {
   std::string source_spec, config_path, segment_spec, trajectory_path, keyframe_trajectory_path,
       stats_path, rate = "max", server, record_dir, name, psk_file, spill_dir, progress_path;
   double flush_timeout = 120.0, budget_kBps = 0,
@@ -138,319 +131,293 @@ int main(int argc, char** argv) {
   bool offline = false, synchronous = false, asynchronous = false, rgbd_every_keyframe = false;
   double cpu_budget = 1.0;
   int max_frames = 0, record_compression = 1;
-  app.add_option("--source", source_spec,
-                 "Frame source: tum:DIR (TUM layout), synth[:frames=N,seed=S,...]")
+  // Given on the command line (they override the config's values).
+  bool depth_bound_given = false, cpu_budget_given = false;
+};
+
+void AddOptions(CLI::App* app, AgentArgs* a) {
+  app->add_option("--source", a->source_spec,
+                  "Frame source: tum:DIR (TUM layout), synth[:frames=N,seed=S,...]")
       ->required();
-  app.add_option("--config", config_path,
-                 "YAML config: camera (Camera.fx, ..., DepthMapFactor) and tracking options; "
-                 "default: the dataset's camera.yaml or one guessed from its name");
-  app.add_option("--segment", segment_spec, "Replay only segment i of k (split replay), e.g. 2/3");
-  app.add_flag("--offline", offline, "Run without a server");
-  app.add_option("--server", server, "Server address HOST:PORT");
-  app.add_option("--name", name,
-                 "This agent's name at the server (default: host name and process id)");
-  app.add_option("--psk-file", psk_file,
-                 "Pre-shared key file (else $CCMD_PSK; none: loopback servers only)");
-  app.add_option(
-      "--spill-dir", spill_dir,
+  app->add_option("--config", a->config_path,
+                  "YAML config: camera (Camera.fx, ..., DepthMapFactor) and tracking options; "
+                  "default: the dataset's camera.yaml or one guessed from its name");
+  app->add_option("--segment", a->segment_spec,
+                  "Replay only segment i of k (split replay), e.g. 2/3");
+  app->add_flag("--offline", a->offline, "Run without a server");
+  app->add_option("--server", a->server, "Server address HOST:PORT");
+  app->add_option("--name", a->name,
+                  "This agent's name at the server (default: host name and process id)");
+  app->add_option("--psk-file", a->psk_file,
+                  "Pre-shared key file (else $CCMD_PSK; none: loopback servers only)");
+  app->add_option(
+      "--spill-dir", a->spill_dir,
       "Folder for messages not yet acknowledged beyond the memory limit, and for this agent's "
       "identity file: keep it to reconnect under the same --name after a restart "
       "(default: a folder in /tmp)");
-  app.add_option("--flush-timeout", flush_timeout,
-                 "At the end, wait for the server's acknowledgements as long as they keep coming; "
-                 "give up after "
-                 "this many seconds without one")
+  app->add_option("--flush-timeout", a->flush_timeout,
+                  "At the end, wait for the server's acknowledgements as long as they keep "
+                  "coming; give up after this many seconds without one")
       ->capture_default_str();
-  app.add_option("--rgbd-downsample", rgbd.downsample,
-                 "RGB-D sampling: 1, 2 or 4 (r = 1, 0.5, 0.25)")
+  app->add_option("--rgbd-downsample", a->rgbd.downsample,
+                  "RGB-D sampling: 1, 2 or 4 (r = 1, 0.5, 0.25)")
       ->check(CLI::IsMember({1, 2, 4}))
       ->capture_default_str();
-  app.add_option("--jpeg-quality", rgbd.jpeg_quality, "Colour JPEG quality")
+  app->add_option("--jpeg-quality", a->rgbd.jpeg_quality, "Colour JPEG quality")
       ->check(CLI::Range(1, 100))
       ->capture_default_str();
-  app.add_option("--depth-bound", rgbd.bound_e4,
-                 "Depth error bound in 1/10000 of depth (ccmd-bounded); default: the config's "
-                 "Link.depthBound, else 50")
+  app->add_option("--depth-bound", a->rgbd.bound_e4,
+                  "Depth error bound in 1/10000 of depth (ccmd-bounded); default: the config's "
+                  "Link.depthBound, else 50")
       ->check(CLI::Range(1, 1000))
       ->capture_default_str();
-  app.add_flag("--rgbd-every-keyframe", rgbd_every_keyframe,
-               "Send RGB-D data with every keyframe (covisibility selection off; for comparisons)");
-  app.add_option(
-         "--rgbd-threshold-scale", threshold_scale,
+  app->add_flag(
+      "--rgbd-every-keyframe", a->rgbd_every_keyframe,
+      "Send RGB-D data with every keyframe (covisibility selection off; for comparisons)");
+  app->add_option(
+         "--rgbd-threshold-scale", a->threshold_scale,
          "Multiply the RGB-D selection's thresholds (S_min): below 1 fewer keyframes send RGB-D")
       ->check(CLI::Range(0.05, 20.0))
       ->capture_default_str();
-  app.add_option(
-         "--bandwidth-budget", budget_kBps,
-         "Keep to KB_PER_S kilobytes (1000 bytes) per second: keyframe geometry always goes, the "
-         "RGB-D "
-         "selection and coding adapt to the budget and to what the link acknowledges, and the "
-         "connection is paced at the budget (0: no budget)")
+  app->add_option("--bandwidth-budget", a->budget_kBps,
+                  "Keep to KB_PER_S kilobytes (1000 bytes) per second: keyframe geometry always "
+                  "goes, the RGB-D selection and coding adapt to the budget and to what the link "
+                  "acknowledges, and the connection is paced at the budget (0: no budget)")
       ->check(CLI::NonNegativeNumber);
-  app.add_option(
-         "--max-queue", max_queue_s,
+  app->add_option(
+         "--max-queue", a->max_queue_s,
          "With a budget: seconds of unacknowledged data beyond which keyframes go without RGB-D")
       ->check(CLI::PositiveNumber)
       ->capture_default_str();
-  app.add_option("--progress", progress_path, "Rewrite a small progress JSON about once a second");
-  app.add_option("--trajectory", trajectory_path,
-                 "Write every tracked frame's pose (TUM format; of the camera the config's "
-                 "Trajectory.camera names, colour by default) at the end; the agent keeps 40 "
-                 "bytes a frame for it until then");
-  app.add_option("--keyframe-trajectory", keyframe_trajectory_path,
-                 "Write keyframe poses (TUM format)");
-  app.add_option("--stats", stats_path, "Write run statistics as JSON");
-  app.add_option("--rate", rate, "Replay pace: realtime (the dataset's timestamps) or max")
+  app->add_option("--progress", a->progress_path,
+                  "Rewrite a small progress JSON about once a second");
+  app->add_option("--trajectory", a->trajectory_path,
+                  "Write every tracked frame's pose (TUM format; of the camera the config's "
+                  "Trajectory.camera names, colour by default) at the end; the agent keeps 40 "
+                  "bytes a frame for it until then");
+  app->add_option("--keyframe-trajectory", a->keyframe_trajectory_path,
+                  "Write keyframe poses (TUM format)");
+  app->add_option("--stats", a->stats_path, "Write run statistics as JSON");
+  app->add_option("--rate", a->rate, "Replay pace: realtime (the dataset's timestamps) or max")
       ->check(CLI::IsMember({"realtime", "max"}))
       ->capture_default_str();
-  app.add_option("--max-frames", max_frames, "Stop after this many frames (0: all)");
-  app.add_option(
-      "--record", record_dir,
+  app->add_option("--max-frames", a->max_frames, "Stop after this many frames (0: all)");
+  app->add_option(
+      "--record", a->record_dir,
       "Also write the frames to DIR in the TUM layout (rgb/, depth/, rgb.txt, depth.txt, "
       "camera.yaml), to replay and evaluate the run later");
-  app.add_option("--record-png-compression", record_compression, "PNG level for --record (0-9)")
+  app->add_option("--record-png-compression", a->record_compression, "PNG level for --record (0-9)")
       ->check(CLI::Range(0, 9))
       ->capture_default_str();
-  auto* synchronous_flag = app.add_flag(
-      "--synchronous", synchronous,
+  auto* synchronous_flag = app->add_flag(
+      "--synchronous", a->synchronous,
       "Run local mapping in the tracking thread: each keyframe is mapped before the next frame "
       "(deterministic). The default for --offline runs on a recording at --rate max");
-  app.add_flag("--asynchronous", asynchronous,
-               "Run local mapping on its own thread beside tracking, as with a live camera or a "
-               "server (the default there)")
+  app->add_flag("--asynchronous", a->asynchronous,
+                "Run local mapping on its own thread beside tracking, as with a live camera or a "
+                "server (the default there)")
       ->excludes(synchronous_flag);
-  app.add_option(
-         "--cpu-budget", cpu_budget,
+  app->add_option(
+         "--cpu-budget", a->cpu_budget,
          "CPU cores the agent may use on average (0: no limit; overrides Tracking.cpuBudget). "
          "Local mapping shrinks its bundle adjustment when over; a replay is paced to it")
       ->check(CLI::Range(0.0, 256.0))
       ->capture_default_str();
-  CLI11_PARSE(app, argc, argv);
-  ccmd::ConfigureAllocatorForLongRuns();  // resident memory that follows the live data
+}
 
-  if (!offline && server.empty()) {
-    return Fail("give --server HOST:PORT, or --offline to run without a server");
-  }
-  if (offline && !server.empty()) return Fail("--offline and --server exclude each other");
-  std::signal(SIGINT, OnSignal);
-  std::signal(SIGTERM, OnSignal);
-
-  ccmd::SourceOptions source_options;
-  source_options.configs_dir = ccmd::app::ConfigDir();
-  source_options.camera_config = config_path;
-  if (!segment_spec.empty()) {
-    auto segment = ccmd::ParseSegmentSpec(segment_spec);
-    if (!segment.ok()) return Fail(segment.status().message());
-    source_options.segment = *segment;
-  }
-  // Live cameras come wrapped so that an unplugged camera is reopened with backoff while the
-  // agent keeps its map and keeps sending.
-  auto source = ccmd::OpenSourceWithRetry(source_spec, source_options);
-  if (!source.ok()) return Fail(source.status().ToString());
-  const ccmd::PinholeCamera camera = (*source)->camera();
-
+// The tracking options: the defaults, then the recording's config, then the command line. The
+// config may also set the depth codec's error bound (into a->rgbd) and names the config used
+// (into a->config_path).
+ccmd::StatusOr<ccmd::TrackingOptions> ReadTracking(AgentArgs* a,
+                                                   const ccmd::SourceOptions& source_options,
+                                                   const ccmd::RgbdSource& source) {
   ccmd::TrackingOptions tracking;
   // A recording processed offline as fast as it can has nothing to keep up with: mapping each
   // keyframe before the next frame is deterministic (the same recording gives the same
   // trajectory) and, under the CPU budget, no slower than two threads taking turns. A live
   // camera, a paced replay or a server session maps beside tracking, as a robot does.
   tracking.synchronous_mapping =
-      synchronous || (!asynchronous && offline && !(*source)->IsLive() && rate == "max");
+      a->synchronous || (!a->asynchronous && a->offline && !source.IsLive() && a->rate == "max");
   CCMD_LOG(INFO) << "local mapping "
                  << (tracking.synchronous_mapping ? "in the tracking thread (deterministic)"
                                                   : "on its own thread");
-  tracking.cpu_budget = cpu_budget;
+  tracking.cpu_budget = a->cpu_budget;
   // A recording's config gives the tracking and sensor options with its camera, whether it was
   // given, is the folder's camera.yaml or is the shipped one the folder's name points to.
-  config_path = ccmd::SourceConfigPath(source_spec, source_options);
-  if (!config_path.empty()) {
-    CCMD_LOG(INFO) << "tracking options from " << config_path;
-    auto config = ccmd::ConfigFile::Open(config_path);
-    if (!config.ok()) return Fail(config.status().ToString());
-    auto options = ccmd::ReadTrackingOptions(*config, tracking);
-    if (!options.ok()) return Fail(options.status().ToString());
-    tracking = *options;
+  a->config_path = ccmd::SourceConfigPath(a->source_spec, source_options);
+  if (!a->config_path.empty()) {
+    CCMD_LOG(INFO) << "tracking options from " << a->config_path;
+    CCMD_ASSIGN_OR_RETURN(const ccmd::ConfigFile config, ccmd::ConfigFile::Open(a->config_path));
+    CCMD_ASSIGN_OR_RETURN(tracking, ccmd::ReadTrackingOptions(config, tracking));
     // The depth codec's error bound belongs to the sensor (about its noise), so a config may
     // set it; --depth-bound on the command line wins.
-    if (app.count("--depth-bound") == 0) {
-      auto bound = config->GetInt("Link.depthBound", rgbd.bound_e4);
-      if (!bound.ok()) return Fail(bound.status().ToString());
-      if (*bound < 1 || *bound > 1000)
-        return Fail(config_path + ": Link.depthBound must be in 1..1000");
-      rgbd.bound_e4 = *bound;
+    if (!a->depth_bound_given) {
+      CCMD_ASSIGN_OR_RETURN(const int bound, config.GetInt("Link.depthBound", a->rgbd.bound_e4));
+      if (bound < 1 || bound > 1000)
+        return ccmd::InvalidArgument(a->config_path + ": Link.depthBound must be in 1..1000");
+      a->rgbd.bound_e4 = bound;
     }
   }
-  if (app.count("--cpu-budget")) tracking.cpu_budget = cpu_budget;
+  if (a->cpu_budget_given) tracking.cpu_budget = a->cpu_budget;
   // A recording mapped in the tracking thread keeps to the budget by its pace alone (one
   // thread uses at most one core, and the pacer below waits under a smaller budget).
-  tracking.mapping_follows_budget = !tracking.synchronous_mapping || (*source)->IsLive();
+  tracking.mapping_follows_budget = !tracking.synchronous_mapping || source.IsLive();
   // Frame records and removed keyframes' poses are needed only for the trajectory files;
   // without them nothing in the agent's memory grows with the frames, however long the mission.
-  tracking.record_trajectory = !trajectory_path.empty() || !keyframe_trajectory_path.empty();
-  ccmd::UseOpenCvThreadsForBudget(tracking.cpu_budget);
-  if (rgbd_every_keyframe) tracking.rgbd_selection.enabled = false;
-  if (threshold_scale != 1.0) {
+  tracking.record_trajectory = !a->trajectory_path.empty() || !a->keyframe_trajectory_path.empty();
+  if (a->rgbd_every_keyframe) tracking.rgbd_selection.enabled = false;
+  if (a->threshold_scale != 1.0) {
     ccmd::RgbdSelectionOptions& s = tracking.rgbd_selection;
-    s.threshold_ratio = std::min(1.0, s.threshold_ratio * threshold_scale);
+    s.threshold_ratio = std::min(1.0, s.threshold_ratio * a->threshold_scale);
     s.threshold_min_points =
-        static_cast<int>(std::lround(s.threshold_min_points * threshold_scale));
-    s.min_threshold = static_cast<int>(std::lround(s.min_threshold * threshold_scale));
+        static_cast<int>(std::lround(s.threshold_min_points * a->threshold_scale));
+    s.min_threshold = static_cast<int>(std::lround(s.min_threshold * a->threshold_scale));
   }
-  if (budget_kBps > 0 && offline) return Fail("--bandwidth-budget needs a server (not --offline)");
-  std::unique_ptr<ccmd::TumRecorder> recorder;
-  if (!record_dir.empty()) {
-    ccmd::TumRecorderOptions record_options;
-    record_options.png_compression = record_compression;
-    // Live cameras must not stall tracking: encode on a writer thread behind a queue.
-    record_options.queue_frames = 16;
-    record_options.drop_when_full = (*source)->IsLive();
-    // The recording replays with this sensor's depth noise and frame depth weight, as without
-    // them the agent would take the defaults (a Kinect's) for a folder read without --config.
-    record_options.config_keys = ccmd::DepthNoiseConfigKeys(tracking.depth_noise);
-    if (tracking.frame_depth_weight > 0) {
-      record_options.config_keys +=
-          "Tracking.frameDepthWeight: " + ccmd::ExactNumber(tracking.frame_depth_weight) + "\n";
-    }
-    auto created = ccmd::TumRecorder::Create(record_dir, camera, record_options);
-    if (!created.ok()) return Fail(created.status().ToString());
-    recorder = std::move(created).value();
-  }
-  // The link to the server: messages are kept (in memory, then on disk) until the server
-  // has stored them, and resent after reconnections.
-  std::unique_ptr<ccmd::AgentLink> link;
-  std::unique_ptr<ccmd::LinkSink> sink;
-  if (!offline) {
-    ccmd::AgentLinkOptions link_options;
-    link_options.server = server;
-    link_options.name = name.empty() ? ccmd::DefaultAgentName() : name;
-    link_options.camera = ccmd::SessionFromCamera(camera);
-    // The server weighs this agent's keypoint depths with the sensor's noise model.
-    link_options.camera.depth_sigma0 = tracking.depth_noise.sigma_0;
-    link_options.camera.depth_sigma2 = tracking.depth_noise.sigma_2;
-    // The server's trajectories of this agent give the same camera's poses as its own.
-    ccmd::SetSessionTrajectoryCamera((*source)->T_color_trajectory(), &link_options.camera);
-    auto psk = ccmd::ResolvePsk(psk_file);
-    if (!psk.ok()) return Fail(psk.status().ToString());
-    link_options.psk = *psk;
-    link_options.spill_dir =
-        spill_dir.empty() ? "/tmp/ccmd_agent_spill_" + link_options.name : spill_dir;
-    link_options.max_send_bytes_per_s = budget_kBps * 1e3;
-    std::unique_ptr<ccmd::BandwidthBudget> budget;
-    if (budget_kBps > 0) {
-      ccmd::BandwidthBudgetOptions budget_options;
-      budget_options.budget_bytes_per_s = budget_kBps * 1e3;
-      budget_options.max_queue_s = max_queue_s;
-      if (const ccmd::Status s = budget_options.Validate(); !s.ok()) return Fail(s.ToString());
-      ccmd::LogOptions("budget", budget_options);
-      int default_level = 0;
-      auto ladder = ccmd::DefaultBudgetLadder(rgbd, &default_level);
-      budget =
-          std::make_unique<ccmd::BandwidthBudget>(budget_options, std::move(ladder), default_level);
-    }
-    auto created = ccmd::AgentLink::Create(link_options);
-    if (!created.ok()) return Fail(created.status().ToString());
-    link = std::move(created).value();
-    if (ccmd::Status s = rgbd.Validate(); !s.ok()) return Fail(s.message());
-    sink = std::make_unique<ccmd::LinkSink>(link.get(), rgbd, std::move(budget));
-    ccmd::SetLogTag(link_options.name);
-    CCMD_LOG(INFO) << "sending to " << server << " as '" << link_options.name << "'";
-    ccmd::LogOptions("link", link_options);
-    ccmd::LogOptions("rgbd", rgbd);
-  }
-  auto frontend = ccmd::Frontend::Create(camera, tracking, sink.get());
-  if (!frontend.ok()) return Fail(frontend.status().ToString());
+  return tracking;
+}
 
-  CCMD_LOG(INFO) << "source: " << (*source)->Describe();
-  CCMD_LOG(INFO) << "camera: " << camera.ToString();
-  ccmd::LogOptions("source", source_options);
-  ccmd::LogOptions("camera", camera);
-  ccmd::LogOptions("tracking", tracking);
-  const int total = (*source)->FrameCount();
+// --record: the frames written in the TUM layout as they are read.
+ccmd::StatusOr<std::unique_ptr<ccmd::TumRecorder>> OpenRecorder(
+    const AgentArgs& a, const ccmd::PinholeCamera& camera, const ccmd::TrackingOptions& tracking,
+    bool live) {
+  ccmd::TumRecorderOptions record_options;
+  record_options.png_compression = a.record_compression;
+  // Live cameras must not stall tracking: encode on a writer thread behind a queue.
+  record_options.queue_frames = 16;
+  record_options.drop_when_full = live;
+  // The recording replays with this sensor's depth noise and frame depth weight, as without
+  // them the agent would take the defaults (a Kinect's) for a folder read without --config.
+  record_options.config_keys = ccmd::DepthNoiseConfigKeys(tracking.depth_noise);
+  if (tracking.frame_depth_weight > 0) {
+    record_options.config_keys +=
+        "Tracking.frameDepthWeight: " + ccmd::ExactNumber(tracking.frame_depth_weight) + "\n";
+  }
+  return ccmd::TumRecorder::Create(a.record_dir, camera, record_options);
+}
+
+// The link to the server: messages are kept (in memory, then on disk) until the server has
+// stored them, and resent after reconnections; the sink codes the front-end's output for it,
+// under the bandwidth budget if one is set.
+ccmd::Status OpenLink(const AgentArgs& a, const ccmd::PinholeCamera& camera,
+                      const ccmd::TrackingOptions& tracking, const ccmd::Pose& T_color_trajectory,
+                      std::unique_ptr<ccmd::AgentLink>* link,
+                      std::unique_ptr<ccmd::LinkSink>* sink) {
+  ccmd::AgentLinkOptions link_options;
+  link_options.server = a.server;
+  link_options.name = a.name.empty() ? ccmd::DefaultAgentName() : a.name;
+  link_options.camera = ccmd::SessionFromCamera(camera);
+  // The server weighs this agent's keypoint depths with the sensor's noise model.
+  link_options.camera.depth_sigma0 = tracking.depth_noise.sigma_0;
+  link_options.camera.depth_sigma2 = tracking.depth_noise.sigma_2;
+  // The server's trajectories of this agent give the same camera's poses as its own.
+  ccmd::SetSessionTrajectoryCamera(T_color_trajectory, &link_options.camera);
+  CCMD_ASSIGN_OR_RETURN(link_options.psk, ccmd::ResolvePsk(a.psk_file));
+  link_options.spill_dir =
+      a.spill_dir.empty() ? "/tmp/ccmd_agent_spill_" + link_options.name : a.spill_dir;
+  link_options.max_send_bytes_per_s = a.budget_kBps * 1e3;
+  std::unique_ptr<ccmd::BandwidthBudget> budget;
+  if (a.budget_kBps > 0) {
+    ccmd::BandwidthBudgetOptions budget_options;
+    budget_options.budget_bytes_per_s = a.budget_kBps * 1e3;
+    budget_options.max_queue_s = a.max_queue_s;
+    CCMD_RETURN_IF_ERROR(budget_options.Validate());
+    ccmd::LogOptions("budget", budget_options);
+    int default_level = 0;
+    auto ladder = ccmd::DefaultBudgetLadder(a.rgbd, &default_level);
+    budget =
+        std::make_unique<ccmd::BandwidthBudget>(budget_options, std::move(ladder), default_level);
+  }
+  CCMD_ASSIGN_OR_RETURN(*link, ccmd::AgentLink::Create(link_options));
+  CCMD_RETURN_IF_ERROR(a.rgbd.Validate());
+  *sink = std::make_unique<ccmd::LinkSink>(link->get(), a.rgbd, std::move(budget));
+  ccmd::SetLogTag(link_options.name);
+  CCMD_LOG(INFO) << "sending to " << a.server << " as '" << link_options.name << "'";
+  ccmd::LogOptions("link", link_options);
+  ccmd::LogOptions("rgbd", a.rgbd);
+  return ccmd::Status::Ok();
+}
+
+// The frame loop: read, record, pace, track, report progress; until the source ends, a signal,
+// or --max-frames.
+ccmd::Status RunFrames(const AgentArgs& a, ccmd::RgbdSource* source, ccmd::TumRecorder* recorder,
+                       ccmd::Frontend* frontend, const ccmd::LinkSink* sink,
+                       const ccmd::AgentLink* link, const ccmd::Stopwatch& wall,
+                       ccmd::CpuPacer* pacer) {
+  const int total = source->FrameCount();
   ccmd::app::Progress progress("frames");
-  const ccmd::Stopwatch wall;
-  const double cpu_start = ccmd::ProcessCpuTimeSeconds();
-  // A live camera sets the pace itself; a replay is held to the CPU budget.
-  ccmd::CpuPacer pacer((*source)->IsLive() ? 0.0 : tracking.cpu_budget);
   double first_timestamp = -1;
   int frames = 0;
   double last_progress = -1e9;
   ccmd::RgbdFrame frame;
   while (!g_stop) {
-    const ccmd::Status status = (*source)->Read(&frame);
+    const ccmd::Status status = source->Read(&frame);
     if (status.code() == ccmd::StatusCode::kEndOfStream) break;
     if (status.code() == ccmd::StatusCode::kUnavailable) continue;  // camera away: retrying
-    if (!status.ok()) return Fail(status.ToString());
+    CCMD_RETURN_IF_ERROR(status);
     if (recorder) {
-      const ccmd::Status recorded = recorder->Write(frame);
-      if (!recorded.ok()) return Fail("recording: " + recorded.ToString());
+      CCMD_RETURN_IF_ERROR(recorder->Write(frame).WithContext("recording"));
     }
-    if (rate == "realtime") {
+    if (a.rate == "realtime") {
       if (first_timestamp < 0) first_timestamp = frame.timestamp;
       const double due = frame.timestamp - first_timestamp;
       const double ahead = due - wall.ElapsedSeconds();
       if (ahead > 0) std::this_thread::sleep_for(std::chrono::duration<double>(ahead));  // pacing
     }
-    pacer.Pace();
-    (*frontend)->ProcessFrame(frame);
+    pacer->Pace();
+    frontend->ProcessFrame(frame);
     ++frames;
     if (total > 0) progress.Update(frames, total);
-    if (!progress_path.empty() && wall.ElapsedSeconds() - last_progress >= 1.0) {
+    if (!a.progress_path.empty() && wall.ElapsedSeconds() - last_progress >= 1.0) {
       last_progress = wall.ElapsedSeconds();
       ccmd::Json p;
       p["frames"] = frames;
       p["total_frames"] = total;
-      p["keyframes"] = (*frontend)->stats().keyframes;
+      p["keyframes"] = frontend->stats().keyframes;
       if (sink) p["link"] = sink->StatsJson(/*detailed=*/false);
       if (link) p["acked"] = link->stats().acked;
-      ccmd::WriteJsonFile(p, progress_path).IgnoreError();
+      ccmd::WriteJsonFile(p, a.progress_path).IgnoreError();
     }
-    if (max_frames > 0 && frames >= max_frames) break;
+    if (a.max_frames > 0 && frames >= a.max_frames) break;
   }
-  (*frontend)->Finish();
-  ccmd::Json link_json;
-  int exit_code = 0;
-  if (link) {
-    // Everything must reach the server before the agent goes away.
-    const ccmd::Status flushed = FlushWhileProgressing(link.get(), flush_timeout);
-    const ccmd::AgentLinkStats ls = link->stats();
-    link_json = sink->StatsJson();
-    link_json["acked"] = ls.acked;
-    link_json["unacked"] = ls.unacked;
-    link_json["refused"] = ls.refused;
-    link_json["resent"] = ls.resent;
-    link_json["sessions"] = ls.sessions;
-    link_json["spilled"] = ls.spilled;
-    link_json["bytes_sent"] = ls.bytes_sent;
-    link_json["auth_failures"] = ls.auth_failures;
-    link_json["link_error"] = link->status().ok() ? "" : link->status().ToString();
-    link->Close();
-    std::printf("sent %llu keyframes (%.1f kB each) and %llu pose updates; %llu acknowledged\n",
-                static_cast<unsigned long long>(link_json["keyframes_sent"].number()),
-                link_json["keyframe_bytes_mean"].number() / 1e3,
-                static_cast<unsigned long long>(link_json["pose_updates_sent"].number()),
-                static_cast<unsigned long long>(ls.acked));
-    if (ls.unacked > 0 || ls.refused > 0 || !flushed.ok()) {
-      // Not everything the agent produced is stored at the server: say so, and fail.
-      std::fprintf(stderr,
-                   "ccmd_agent: %llu messages not acknowledged by the server and %llu refused "
-                   "by the link: %s\n",
-                   static_cast<unsigned long long>(ls.unacked),
-                   static_cast<unsigned long long>(ls.refused),
-                   flushed.ok() ? "(see the log)" : flushed.ToString().c_str());
-      exit_code = kExitMessagesLost;
-    }
-  }
-  if (recorder) {
-    const ccmd::Trajectory gt = (*source)->GroundTruth();
-    if (!gt.empty()) recorder->WriteGroundTruth(gt).IgnoreError();
-    const ccmd::Status closed = recorder->Close();
-    if (!closed.ok()) return Fail("recording: " + closed.ToString());
-    std::printf("recorded %ld frames to %s (%ld dropped)\n", recorder->frames_written(),
-                record_dir.c_str(), recorder->frames_dropped());
-  }
-  const double seconds = wall.ElapsedSeconds();
-  const double cores = (ccmd::ProcessCpuTimeSeconds() - cpu_start) / std::max(seconds, 1e-9);
-  const ccmd::FrontendStats stats = (*frontend)->stats();
+  return ccmd::Status::Ok();
+}
+
+// Everything must reach the server before the agent goes away: waits for the
+// acknowledgements, prints what was sent, and fills `link_json`. Returns the exit status: 0,
+// or kExitMessagesLost when not everything the agent produced is stored at the server.
+int FinishLink(const AgentArgs& a, ccmd::AgentLink* link, const ccmd::LinkSink& sink,
+               ccmd::Json* link_json) {
+  const ccmd::Status flushed = FlushWhileProgressing(link, a.flush_timeout);
+  const ccmd::AgentLinkStats ls = link->stats();
+  ccmd::Json& j = *link_json;
+  j = sink.StatsJson();
+  j["acked"] = ls.acked;
+  j["unacked"] = ls.unacked;
+  j["refused"] = ls.refused;
+  j["resent"] = ls.resent;
+  j["sessions"] = ls.sessions;
+  j["spilled"] = ls.spilled;
+  j["bytes_sent"] = ls.bytes_sent;
+  j["auth_failures"] = ls.auth_failures;
+  j["link_error"] = link->status().ok() ? "" : link->status().ToString();
+  link->Close();
+  std::printf("sent %llu keyframes (%.1f kB each) and %llu pose updates; %llu acknowledged\n",
+              static_cast<unsigned long long>(j["keyframes_sent"].number()),
+              j["keyframe_bytes_mean"].number() / 1e3,
+              static_cast<unsigned long long>(j["pose_updates_sent"].number()),
+              static_cast<unsigned long long>(ls.acked));
+  if (ls.unacked == 0 && ls.refused == 0 && flushed.ok()) return 0;
+  std::fprintf(stderr,
+               "ccmd_agent: %llu messages not acknowledged by the server and %llu refused "
+               "by the link: %s\n",
+               static_cast<unsigned long long>(ls.unacked),
+               static_cast<unsigned long long>(ls.refused),
+               flushed.ok() ? "(see the log)" : flushed.ToString().c_str());
+  return kExitMessagesLost;
+}
+
+void PrintSummary(const ccmd::FrontendStats& stats, double seconds, double cores,
+                  double cpu_budget) {
   std::printf(
       "%d frames in %.1f s (%.1f fps, %.2f CPU cores), %d tracked, %d lost, %d keyframes (%d in "
       "map), "
@@ -465,33 +432,127 @@ int main(int argc, char** argv) {
   }
   if (m.local_ba_reduced + m.local_ba_skipped_budget > 0) {
     std::printf("CPU budget %.2f cores: %d local BAs reduced and %d skipped to stay within it\n",
-                tracking.cpu_budget, m.local_ba_reduced, m.local_ba_skipped_budget);
+                cpu_budget, m.local_ba_reduced, m.local_ba_skipped_budget);
   }
-  const std::string camera_note =
-      (*source)->T_color_trajectory().isApprox(ccmd::Pose::Identity(), 1e-12)
-          ? ""
-          : ", the depth camera's: the config's Trajectory.camera";
-  if (!trajectory_path.empty()) {
-    const ccmd::Status s = ccmd::WriteTumTrajectory(
-        ccmd::TrajectoryOfCamera((*frontend)->FrameTrajectory(), (*source)->T_color_trajectory()),
-        trajectory_path, "ccmd_agent frame trajectory (T_world_cam" + camera_note + ")");
-    if (!s.ok()) return Fail(s.ToString());
+}
+
+// --trajectory and --keyframe-trajectory, of the camera the config's Trajectory.camera names.
+ccmd::Status WriteTrajectories(const AgentArgs& a, ccmd::Frontend* frontend,
+                               const ccmd::Pose& T_color_trajectory) {
+  const std::string camera_note = T_color_trajectory.isApprox(ccmd::Pose::Identity(), 1e-12)
+                                      ? ""
+                                      : ", the depth camera's: the config's Trajectory.camera";
+  if (!a.trajectory_path.empty()) {
+    CCMD_RETURN_IF_ERROR(ccmd::WriteTumTrajectory(
+        ccmd::TrajectoryOfCamera(frontend->FrameTrajectory(), T_color_trajectory),
+        a.trajectory_path, "ccmd_agent frame trajectory (T_world_cam" + camera_note + ")"));
   }
-  if (!keyframe_trajectory_path.empty()) {
-    const ccmd::Status s = ccmd::WriteTumTrajectory(
-        ccmd::TrajectoryOfCamera((*frontend)->KeyframeTrajectory(),
-                                 (*source)->T_color_trajectory()),
-        keyframe_trajectory_path, "ccmd_agent keyframes (T_world_cam" + camera_note + ")");
-    if (!s.ok()) return Fail(s.ToString());
+  if (!a.keyframe_trajectory_path.empty()) {
+    CCMD_RETURN_IF_ERROR(ccmd::WriteTumTrajectory(
+        ccmd::TrajectoryOfCamera(frontend->KeyframeTrajectory(), T_color_trajectory),
+        a.keyframe_trajectory_path, "ccmd_agent keyframes (T_world_cam" + camera_note + ")"));
   }
-  if (!stats_path.empty()) {
+  return ccmd::Status::Ok();
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{
+      "CCMD agent: ORB RGB-D visual odometry on a robot. Sends compact keyframes to a "
+      "ccmd_server,\n"
+      "or runs --offline and writes its trajectory (TUM format).\n"
+      "Exit status: 0 when the server acknowledged every message, 3 when messages were refused\n"
+      "or never acknowledged (the counts are printed and in --stats), 1 on any other error."};
+  AgentArgs a;
+  AddOptions(&app, &a);
+  CLI11_PARSE(app, argc, argv);
+  a.depth_bound_given = app.count("--depth-bound") > 0;
+  a.cpu_budget_given = app.count("--cpu-budget") > 0;
+  ccmd::ConfigureAllocatorForLongRuns();  // resident memory that follows the live data
+
+  if (!a.offline && a.server.empty()) {
+    return Fail("give --server HOST:PORT, or --offline to run without a server");
+  }
+  if (a.offline && !a.server.empty()) return Fail("--offline and --server exclude each other");
+  std::signal(SIGINT, OnSignal);
+  std::signal(SIGTERM, OnSignal);
+
+  ccmd::SourceOptions source_options;
+  source_options.configs_dir = ccmd::app::ConfigDir();
+  source_options.camera_config = a.config_path;
+  if (!a.segment_spec.empty()) {
+    auto segment = ccmd::ParseSegmentSpec(a.segment_spec);
+    if (!segment.ok()) return Fail(segment.status().message());
+    source_options.segment = *segment;
+  }
+  // Live cameras come wrapped so that an unplugged camera is reopened with backoff while the
+  // agent keeps its map and keeps sending.
+  auto opened = ccmd::OpenSourceWithRetry(a.source_spec, source_options);
+  if (!opened.ok()) return Fail(opened.status().ToString());
+  const std::unique_ptr<ccmd::RgbdSource> source = std::move(opened).value();
+  const ccmd::PinholeCamera camera = source->camera();
+  const ccmd::Pose T_color_trajectory = source->T_color_trajectory();
+
+  auto read_tracking = ReadTracking(&a, source_options, *source);
+  if (!read_tracking.ok()) return Fail(read_tracking.status().ToString());
+  const ccmd::TrackingOptions tracking = *read_tracking;
+  ccmd::UseOpenCvThreadsForBudget(tracking.cpu_budget);
+  if (a.budget_kBps > 0 && a.offline)
+    return Fail("--bandwidth-budget needs a server (not --offline)");
+  std::unique_ptr<ccmd::TumRecorder> recorder;
+  if (!a.record_dir.empty()) {
+    auto created = OpenRecorder(a, camera, tracking, source->IsLive());
+    if (!created.ok()) return Fail(created.status().ToString());
+    recorder = std::move(created).value();
+  }
+  std::unique_ptr<ccmd::AgentLink> link;
+  std::unique_ptr<ccmd::LinkSink> sink;
+  if (!a.offline) {
+    const ccmd::Status opened_link =
+        OpenLink(a, camera, tracking, T_color_trajectory, &link, &sink);
+    if (!opened_link.ok()) return Fail(opened_link.ToString());
+  }
+  auto frontend = ccmd::Frontend::Create(camera, tracking, sink.get());
+  if (!frontend.ok()) return Fail(frontend.status().ToString());
+
+  CCMD_LOG(INFO) << "source: " << source->Describe();
+  CCMD_LOG(INFO) << "camera: " << camera.ToString();
+  ccmd::LogOptions("source", source_options);
+  ccmd::LogOptions("camera", camera);
+  ccmd::LogOptions("tracking", tracking);
+  const ccmd::Stopwatch wall;
+  const double cpu_start = ccmd::ProcessCpuTimeSeconds();
+  // A live camera sets the pace itself; a replay is held to the CPU budget.
+  ccmd::CpuPacer pacer(source->IsLive() ? 0.0 : tracking.cpu_budget);
+  const ccmd::Status ran = RunFrames(a, source.get(), recorder.get(), frontend->get(), sink.get(),
+                                     link.get(), wall, &pacer);
+  if (!ran.ok()) return Fail(ran.ToString());
+  (*frontend)->Finish();
+  ccmd::Json link_json;
+  const int exit_code = link ? FinishLink(a, link.get(), *sink, &link_json) : 0;
+  if (recorder) {
+    const ccmd::Trajectory gt = source->GroundTruth();
+    if (!gt.empty()) recorder->WriteGroundTruth(gt).IgnoreError();
+    const ccmd::Status closed = recorder->Close();
+    if (!closed.ok()) return Fail("recording: " + closed.ToString());
+    std::printf("recorded %ld frames to %s (%ld dropped)\n", recorder->frames_written(),
+                a.record_dir.c_str(), recorder->frames_dropped());
+  }
+  const double seconds = wall.ElapsedSeconds();
+  const double cores = (ccmd::ProcessCpuTimeSeconds() - cpu_start) / std::max(seconds, 1e-9);
+  const ccmd::FrontendStats stats = (*frontend)->stats();
+  PrintSummary(stats, seconds, cores, tracking.cpu_budget);
+  if (const ccmd::Status s = WriteTrajectories(a, frontend->get(), T_color_trajectory); !s.ok())
+    return Fail(s.ToString());
+  if (!a.stats_path.empty()) {
     ccmd::Json json = StatsJson(stats, seconds, (*frontend)->decisions());
     json["cpu_budget"] = tracking.cpu_budget;
     json["synchronous_mapping"] = tracking.synchronous_mapping;
     json["cpu_cores_used"] = cores;
     json["paced_ms"] = pacer.paced_ms();
     if (link) json["link"] = link_json;
-    const ccmd::Status s = ccmd::WriteJsonFile(json, stats_path);
+    const ccmd::Status s = ccmd::WriteJsonFile(json, a.stats_path);
     if (!s.ok()) return Fail(s.ToString());
   }
   return exit_code;
