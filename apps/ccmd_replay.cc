@@ -436,220 +436,180 @@ Status RunKnobCosts(const Setup& setup, const std::string& out, const Json& main
   return AppendKnobCosts(out, rows);
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
-  CLI::App app{
-      "Split-replay evaluation: a ccmd_server and K ccmd_agent processes over TCP on loopback (or "
-      "a\n"
-      "shaped link with --link), each agent replaying one segment (10% overlap) of a TUM-layout\n"
-      "sequence; then ATE, reconstruction error, bandwidth, map latency and CPU in DIR/report.md "
-      "and\n"
-      "DIR/results.json."};
+// Everything the command line sets.
+struct ReplayArgs {
   std::string dataset, out, config, rate = "max", reference, bin_dir;
   int agents = 3;
   double timeout_s = 3600;
   bool ablation = false, knob_costs = false;
   std::string link_text, budgets_text;
   std::vector<std::string> agent_args, server_args;
-  ViewSetup setup_view;
-  app.add_option("--dataset", dataset,
-                 "TUM-layout folder (TUM RGB-D, ICL-NUIM, 7-Scenes converted, ccmd_synth)")
+  ViewSetup view;
+};
+
+void AddOptions(CLI::App* app, ReplayArgs* a) {
+  app->add_option("--dataset", a->dataset,
+                  "TUM-layout folder (TUM RGB-D, ICL-NUIM, 7-Scenes converted, ccmd_synth)")
       ->required();
-  app.add_option("--agents", agents, "Number of agents K (segments)")
+  app->add_option("--agents", a->agents, "Number of agents K (segments)")
       ->check(CLI::Range(1, 32))
       ->capture_default_str();
-  app.add_option("--out", out, "Results folder (created)")->required();
-  app.add_option("--config", config,
-                 "Camera/tracking config (default: the dataset's camera.yaml or a guess)");
-  app.add_option("--rate", rate, "realtime (the dataset's timestamps) or max")
+  app->add_option("--out", a->out, "Results folder (created)")->required();
+  app->add_option("--config", a->config,
+                  "Camera/tracking config (default: the dataset's camera.yaml or a guess)");
+  app->add_option("--rate", a->rate, "realtime (the dataset's timestamps) or max")
       ->check(CLI::IsMember({"realtime", "max"}))
       ->capture_default_str();
-  app.add_option(
-      "--reference", reference,
+  app->add_option(
+      "--reference", a->reference,
       "Reference surface (PLY, points or mesh) for reconstruction error; default: the dataset's "
       "surface.ply, else a cloud built from ground-truth poses and depth");
-  app.add_option("--agent-arg", agent_args, "Extra argument for every ccmd_agent (repeatable)");
-  app.add_option("--server-arg", server_args, "Extra argument for ccmd_server (repeatable)");
-  app.add_option("--bin-dir", bin_dir,
-                 "Folder of ccmd_server and ccmd_agent (default: next to this program)");
-  app.add_option("--timeout", timeout_s,
-                 "Stop a run (each run of --ablation) after this many seconds")
+  app->add_option("--agent-arg", a->agent_args, "Extra argument for every ccmd_agent (repeatable)");
+  app->add_option("--server-arg", a->server_args, "Extra argument for ccmd_server (repeatable)");
+  app->add_option("--bin-dir", a->bin_dir,
+                  "Folder of ccmd_server and ccmd_agent (default: next to this program)");
+  app->add_option("--timeout", a->timeout_s,
+                  "Stop a run (each run of --ablation) after this many seconds")
       ->capture_default_str();
   CLI::Option* view_flag =
-      app.add_flag("--view", setup_view.enabled,
-                   "Serve the live map view while the run goes on (its address is printed)");
-  app.add_option("--view-port", setup_view.port,
-                 "Port of the map view on 127.0.0.1 (0: a free one)")
+      app->add_flag("--view", a->view.enabled,
+                    "Serve the live map view while the run goes on (its address is printed)");
+  app->add_option("--view-port", a->view.port, "Port of the map view on 127.0.0.1 (0: a free one)")
       ->check(CLI::Range(0, 65535))
       ->needs(view_flag)
       ->capture_default_str();
-  app.add_flag(
-      "--ablation", ablation,
+  app->add_flag(
+      "--ablation", a->ablation,
       "Also run r = 1, 0.5, 0.25 with and without the RGB-D keyframe selection (six runs in all, "
       "in DIR/ablation/) and add the RGB-D bytes and map points table to the report");
-  app.add_option("--link", link_text,
-                 "Run over a shaped link instead of loopback, e.g. "
-                 "rate=2.4mbit,delay=50ms,jitter=10ms,loss=0.02 "
-                 "(keys: rate, delay, jitter, loss, queue, seed; docs/benchmarks/link.md). The "
-                 "server and the agents "
-                 "run in network namespaces made for the run and removed after it. Needs root");
-  app.add_option("--budgets", budgets_text,
-                 "Also run with every agent under each of these bandwidth budgets (kB/s, "
-                 "comma-separated, e.g. "
-                 "25,50,100,200; runs in DIR/budget/) and add the reconstruction-against-budget "
-                 "table and plot");
-  app.add_flag(
-      "--knob-costs", knob_costs,
+  app->add_option("--link", a->link_text,
+                  "Run over a shaped link instead of loopback, e.g. "
+                  "rate=2.4mbit,delay=50ms,jitter=10ms,loss=0.02 "
+                  "(keys: rate, delay, jitter, loss, queue, seed; docs/benchmarks/link.md). The "
+                  "server and the agents "
+                  "run in network namespaces made for the run and removed after it. Needs root");
+  app->add_option("--budgets", a->budgets_text,
+                  "Also run with every agent under each of these bandwidth budgets (kB/s, "
+                  "comma-separated, e.g. "
+                  "25,50,100,200; runs in DIR/budget/) and add the reconstruction-against-budget "
+                  "table and plot");
+  app->add_flag(
+      "--knob-costs", a->knob_costs,
       "Also run with each RGB-D setting (JPEG quality, depth bound, r, S_min, every keyframe) "
       "changed alone "
       "(eleven runs in DIR/knobs/) and add what each saves and costs the map to the report");
-  CLI11_PARSE(app, argc, argv);
-  std::optional<LinkSpec> link;
-  if (!link_text.empty()) {
-    auto parsed = ParseLinkSpec(link_text);
-    if (!parsed.ok()) return Fail("--link: " + parsed.status().message());
+}
+
+// The first of `prefixes` an --agent-arg starts with ("" if none): an option a run series
+// sets itself.
+std::string SetBySeries(const std::vector<std::string>& agent_args,
+                        const std::vector<std::string>& prefixes) {
+  for (const std::string& arg : agent_args) {
+    for (const std::string& prefix : prefixes) {
+      if (arg.rfind(prefix, 0) == 0) return prefix;
+    }
+  }
+  return "";
+}
+
+// The options that need more than CLI11's checks: the shaped link (parsed, and available on
+// this machine), the budgets, and --agent-arg against what the run series set. The error's
+// message is the user's explanation.
+Status CheckArgs(const ReplayArgs& a, std::optional<LinkSpec>* link, std::vector<double>* budgets) {
+  if (!a.link_text.empty()) {
+    auto parsed = ParseLinkSpec(a.link_text);
+    if (!parsed.ok()) return InvalidArgument("--link: " + parsed.status().message());
     // The view serves on the server's loopback, which inside its namespace no browser reaches.
-    if (setup_view.enabled) {
-      return Fail(
+    if (a.view.enabled) {
+      return InvalidArgument(
           "--view cannot be combined with --link: the server runs in its own network namespace");
     }
     const Status available = CheckNetnsLinkAvailable();
-    if (!available.ok()) return Fail("--link: " + available.message());
-    link = *parsed;
-    // Stop cleanly on a signal: processes stopped, namespaces removed.
-    std::signal(SIGINT, OnSignal);
-    std::signal(SIGTERM, OnSignal);
-    std::signal(SIGHUP, OnSignal);
+    if (!available.ok()) return InvalidArgument("--link: " + available.message());
+    *link = *parsed;
   }
-  if (knob_costs) {
-    for (const std::string& a : agent_args) {
-      for (const char* knob :
-           {"--jpeg-quality", "--depth-bound", "--rgbd-downsample", "--rgbd-threshold-scale",
-            "--rgbd-every-keyframe", "--bandwidth-budget"}) {
-        if (a.rfind(knob, 0) == 0)
-          return Fail(std::string("--knob-costs sets ") + knob +
-                      " itself; leave it out of --agent-arg");
-      }
-    }
+  if (a.knob_costs) {
+    const std::string knob = SetBySeries(
+        a.agent_args, {"--jpeg-quality", "--depth-bound", "--rgbd-downsample",
+                       "--rgbd-threshold-scale", "--rgbd-every-keyframe", "--bandwidth-budget"});
+    if (!knob.empty())
+      return InvalidArgument("--knob-costs sets " + knob + " itself; leave it out of --agent-arg");
   }
-  std::vector<double> budgets;
-  if (!budgets_text.empty()) {
-    for (const std::string& part : Split(budgets_text, ',')) {
+  if (!a.budgets_text.empty()) {
+    for (const std::string& part : Split(a.budgets_text, ',')) {
       auto b = ParseDouble(Trim(part));
       if (!b.ok() || !(*b >= 1))
-        return Fail("--budgets: '" + part + "' is not a budget in kB/s (>= 1)");
-      budgets.push_back(*b);
+        return InvalidArgument("--budgets: '" + part + "' is not a budget in kB/s (>= 1)");
+      budgets->push_back(*b);
     }
-    for (const std::string& a : agent_args) {
-      if (a.rfind("--bandwidth-budget", 0) == 0)
-        return Fail("--budgets sets --bandwidth-budget itself; leave it out of --agent-arg");
+    if (!SetBySeries(a.agent_args, {"--bandwidth-budget"}).empty())
+      return InvalidArgument(
+          "--budgets sets --bandwidth-budget itself; leave it out of --agent-arg");
+  }
+  if (a.ablation) {
+    for (const std::string& arg : a.agent_args) {
+      if (arg.rfind("--rgbd-downsample", 0) == 0 || arg == "--rgbd-every-keyframe")
+        return InvalidArgument("--ablation sets " + arg + " itself; leave it out of --agent-arg");
     }
   }
-  if (ablation) {
-    for (const std::string& a : agent_args) {
-      if (a.rfind("--rgbd-downsample", 0) == 0 || a == "--rgbd-every-keyframe") {
-        return Fail("--ablation sets " + a + " itself; leave it out of --agent-arg");
-      }
-    }
-  }
-  if (bin_dir.empty()) bin_dir = ExecutableDir();
-  std::string command;
-  for (int i = 0; i < argc; ++i) command += (i ? " " : "") + std::string(argv[i]);
+  return Status::Ok();
+}
 
-  // The dataset: frame count, camera, ground truth.
+// The dataset (frame count, camera, ground truth) and its split, and the config the agents
+// get as --config: camera, tracking and sensor options from one file.
+Status OpenDataset(const ReplayArgs& a, std::optional<TumSequence>* sequence, Setup* setup) {
   std::optional<PinholeCamera> camera;
   SourceOptions source_options;
-  source_options.camera_config = config;
+  source_options.camera_config = a.config;
   source_options.configs_dir = app::ConfigDir();
-  // The agents get it as --config: camera, tracking and sensor options from one file.
-  const std::string camera_config = DatasetConfigPath(dataset, source_options);
-  if (!camera_config.empty()) {
-    auto loaded = LoadCameraConfig(camera_config);
-    if (!loaded.ok()) return Fail(loaded.status().ToString());
-    camera = *loaded;
+  setup->camera_config = DatasetConfigPath(a.dataset, source_options);
+  if (!setup->camera_config.empty()) {
+    CCMD_ASSIGN_OR_RETURN(camera, LoadCameraConfig(setup->camera_config));
   }
-  ReferenceOptions reference_camera;  // with the Depth block and the ground truth's camera
-  if (const Status s = ReadReferenceCamera(camera_config, &reference_camera); !s.ok())
-    return Fail(s.ToString());
-  auto sequence = TumSequence::Open(dataset, camera);
-  if (!sequence.ok()) return Fail(sequence.status().ToString());
-  auto segments = SplitWithOverlap(static_cast<int>(sequence->size()), agents);
-  if (!segments.ok()) return Fail(segments.status().ToString());
+  // With the Depth block and the ground truth's camera.
+  CCMD_RETURN_IF_ERROR(ReadReferenceCamera(setup->camera_config, &setup->reference));
+  setup->reference.reference_ply = a.reference;
+  CCMD_ASSIGN_OR_RETURN(*sequence, TumSequence::Open(a.dataset, camera));
+  CCMD_ASSIGN_OR_RETURN(setup->segments,
+                        SplitWithOverlap(static_cast<int>((*sequence)->size()), a.agents));
+  setup->sequence = &**sequence;
+  return Status::Ok();
+}
 
-  Setup setup;
-  setup.dataset = dataset;
-  setup.camera_config = camera_config;
-  setup.rate = rate;
-  setup.bin_dir = bin_dir;
-  setup.command = command;
-  setup.agents = agents;
-  setup.timeout_s = timeout_s;
-  setup.agent_args = agent_args;
-  setup.server_args = server_args;
-  setup.sequence = &*sequence;
-  setup.segments = *segments;
-  setup.reference = reference_camera;
-  setup.reference.reference_ply = reference;
-  setup.link = link;
-  setup.link_text = link_text;
-  setup.view = setup_view;
-  std::printf("replaying %s: %zu frames, %d agents\n", dataset.c_str(), sequence->size(), agents);
-  for (int i = 0; i < agents; ++i) {
-    std::printf("  agent%d: frames %d-%d\n", i + 1, (*segments)[i].first, (*segments)[i].last);
-  }
-  std::fflush(stdout);
-  int failed = 0;
-  auto results = RunOnce(setup, out, {}, &failed);
-  if (!results.ok()) return Fail(results.status().ToString());
-  if (ablation) {
-    // The main run is r = 0.5 with the selection (the agent's defaults); five more runs cover
-    // the rest of the grid, each in its own folder.
-    std::vector<AblationRow> rows;
-    int variant_index = 0;
-    for (const int downsample : {1, 2, 4}) {
-      for (const bool selection : {true, false}) {
-        AblationRow row;
-        row.downsample = downsample;
-        row.selection = selection;
-        if (downsample == 2 && selection) {
-          row.run_dir = ".";
-          row.results = *results;
-          rows.push_back(row);
-          continue;
-        }
-        row.run_dir = "ablation/r" + std::to_string(downsample) +
-                      (selection ? "_selected" : "_every_keyframe");
-        std::printf("\nablation run %d of 5: r = 1/%d, %s\n", ++variant_index, downsample,
-                    selection ? "RGB-D selection on" : "RGB-D with every keyframe");
-        std::fflush(stdout);
-        std::vector<std::string> extra = {"--rgbd-downsample", std::to_string(downsample)};
-        if (!selection) extra.push_back("--rgbd-every-keyframe");
-        auto variant = RunOnce(setup, JoinPath(out, row.run_dir), extra, &failed);
-        if (!variant.ok())
-          return Fail("ablation " + row.run_dir + ": " + variant.status().ToString());
-        row.results = *variant;
+// --ablation: the main run is r = 0.5 with the selection (the agent's defaults); five more
+// runs cover the rest of the grid, each in its own folder, and the table joins the report.
+Status RunAblation(const Setup& setup, const std::string& out, const Json& main_results,
+                   int* failed) {
+  std::vector<AblationRow> rows;
+  int variant_index = 0;
+  for (const int downsample : {1, 2, 4}) {
+    for (const bool selection : {true, false}) {
+      AblationRow row;
+      row.downsample = downsample;
+      row.selection = selection;
+      if (downsample == 2 && selection) {
+        row.run_dir = ".";
+        row.results = main_results;
         rows.push_back(row);
+        continue;
       }
+      row.run_dir =
+          "ablation/r" + std::to_string(downsample) + (selection ? "_selected" : "_every_keyframe");
+      std::printf("\nablation run %d of 5: r = 1/%d, %s\n", ++variant_index, downsample,
+                  selection ? "RGB-D selection on" : "RGB-D with every keyframe");
+      std::fflush(stdout);
+      std::vector<std::string> extra = {"--rgbd-downsample", std::to_string(downsample)};
+      if (!selection) extra.push_back("--rgbd-every-keyframe");
+      auto variant = RunOnce(setup, JoinPath(out, row.run_dir), extra, failed);
+      if (!variant.ok()) return variant.status().WithContext("ablation " + row.run_dir);
+      row.results = *variant;
+      rows.push_back(row);
     }
-    const Status s = AppendAblation(out, rows);
-    if (!s.ok()) return Fail(s.ToString());
-    results = ReadJsonFile(JoinPath(out, "results.json"));
-    if (!results.ok()) return Fail(results.status().ToString());
   }
-  if (knob_costs) {
-    if (const Status s = RunKnobCosts(setup, out, *results, &failed); !s.ok())
-      return Fail(s.ToString());
-    results = ReadJsonFile(JoinPath(out, "results.json"));
-    if (!results.ok()) return Fail(results.status().ToString());
-  }
-  if (!budgets.empty()) {
-    if (const Status s = RunBudgetSweep(setup, out, budgets, *results, &failed); !s.ok())
-      return Fail(s.ToString());
-    results = ReadJsonFile(JoinPath(out, "results.json"));
-    if (!results.ok()) return Fail(results.status().ToString());
-  }
-  const Json& r = *results;
+  return AppendAblation(out, rows);
+}
+
+void PrintSummary(const Json& r, const std::string& out) {
   auto num = [&](const char* key) { return r.Get(key) ? r.Get(key)->number() : -1.0; };
   std::printf(
       "\nmaps after fusion: %.0f   fused ATE RMSE: %.4f m   reconstruction mean %.4f m, Hausdorff "
@@ -675,5 +635,75 @@ int main(int argc, char** argv) {
                   : "NO");
   std::printf("report: %s\nmap:    %s\n", JoinPath(out, "report.md").c_str(),
               JoinPath(out, "map.ply").c_str());
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{
+      "Split-replay evaluation: a ccmd_server and K ccmd_agent processes over TCP on loopback (or "
+      "a\n"
+      "shaped link with --link), each agent replaying one segment (10% overlap) of a TUM-layout\n"
+      "sequence; then ATE, reconstruction error, bandwidth, map latency and CPU in DIR/report.md "
+      "and\n"
+      "DIR/results.json."};
+  ReplayArgs a;
+  AddOptions(&app, &a);
+  CLI11_PARSE(app, argc, argv);
+  std::optional<LinkSpec> link;
+  std::vector<double> budgets;
+  if (const Status s = CheckArgs(a, &link, &budgets); !s.ok()) return Fail(s.message());
+  if (link) {
+    // Stop cleanly on a signal: processes stopped, namespaces removed.
+    std::signal(SIGINT, OnSignal);
+    std::signal(SIGTERM, OnSignal);
+    std::signal(SIGHUP, OnSignal);
+  }
+  std::string command;
+  for (int i = 0; i < argc; ++i) command += (i ? " " : "") + std::string(argv[i]);
+
+  Setup setup;
+  std::optional<TumSequence> sequence;
+  if (const Status s = OpenDataset(a, &sequence, &setup); !s.ok()) return Fail(s.ToString());
+  setup.dataset = a.dataset;
+  setup.rate = a.rate;
+  setup.bin_dir = a.bin_dir.empty() ? ExecutableDir() : a.bin_dir;
+  setup.command = command;
+  setup.agents = a.agents;
+  setup.timeout_s = a.timeout_s;
+  setup.agent_args = a.agent_args;
+  setup.server_args = a.server_args;
+  setup.link = link;
+  setup.link_text = a.link_text;
+  setup.view = a.view;
+  std::printf("replaying %s: %zu frames, %d agents\n", a.dataset.c_str(), sequence->size(),
+              a.agents);
+  for (int i = 0; i < a.agents; ++i) {
+    std::printf("  agent%d: frames %d-%d\n", i + 1, setup.segments[i].first,
+                setup.segments[i].last);
+  }
+  std::fflush(stdout);
+  int failed = 0;
+  auto results = RunOnce(setup, a.out, {}, &failed);
+  if (!results.ok()) return Fail(results.status().ToString());
+  // Each series adds its table to the main run's report and results.json.
+  const auto series = [&](const Status& ran) -> Status {
+    CCMD_RETURN_IF_ERROR(ran);
+    CCMD_ASSIGN_OR_RETURN(results, ReadJsonFile(JoinPath(a.out, "results.json")));
+    return Status::Ok();
+  };
+  if (a.ablation) {
+    if (const Status s = series(RunAblation(setup, a.out, *results, &failed)); !s.ok())
+      return Fail(s.ToString());
+  }
+  if (a.knob_costs) {
+    if (const Status s = series(RunKnobCosts(setup, a.out, *results, &failed)); !s.ok())
+      return Fail(s.ToString());
+  }
+  if (!budgets.empty()) {
+    if (const Status s = series(RunBudgetSweep(setup, a.out, budgets, *results, &failed)); !s.ok())
+      return Fail(s.ToString());
+  }
+  PrintSummary(*results, a.out);
   return failed ? 1 : 0;
 }
