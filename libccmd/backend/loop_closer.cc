@@ -162,7 +162,7 @@ std::vector<ServerKeyframe*> CloseEarlierLoops(ServerMap* fused,
     // only ties. A seam searched there finds what the tie left out: in the split replays, a
     // few dozen pairs at the far edge of the candidate's window that moved the verified pose
     // by 2-15 mm, which the pose graph then bent both paths by.
-    SeamSides sides;
+    SeamSides sides;  // searched only for a loop that does not agree
     const bool agreed = LoopAlreadyClosed(*match, options);
     const LoopMatch refined =
         agreed ? *match : RefineLoopOnSeam(fused, *match, camera, options, &sides);
@@ -174,7 +174,7 @@ std::vector<ServerKeyframe*> CloseEarlierLoops(ServerMap* fused,
       for (ServerKeyframe* kf : CloseLoopInMap(fused, refined, options.pose_graph))
         moved.push_back(kf);
     }
-    if (options.seam.enabled) TieSeam(fused, sides, camera, options);
+    if (options.seam.enabled && !agreed) TieSeam(fused, sides, camera, options);
     CCMD_LOG(INFO) << "fusion also " << (closed ? "tied" : "closed a loop") << " at agent "
                    << query_id.agent.value() << " keyframe " << query_id.keyframe.value()
                    << " ~ agent " << candidate_id.agent.value() << " keyframe "

@@ -17,6 +17,7 @@ namespace {
 using report::FindAgentTraffic;
 using report::Fmt;
 using report::Num;
+using report::Str;
 
 // The server's record of one keyframe.
 struct Arrival {
@@ -169,7 +170,7 @@ std::pair<int, int> MatchKeyframes(const std::string& name, const Json* log,
 std::string AgentRow(const std::string& run_dir, const StatusOr<Json>& server_stats,
                      const ArrivalMap& arrivals, Json* a, Latencies* latencies,
                      double* budget_kBps) {
-  const std::string name = a->Get("name") ? a->Get("name")->string() : "";
+  const std::string name = Str(a, "name");
   const double rate = server_stats.ok()
                           ? AgentRateBytesPerSecond(FindAgentTraffic(*server_stats, name)) / 1e3
                           : 0.0;
@@ -277,7 +278,7 @@ StatusOr<std::string> AddLinkFigures(const std::string& run_dir, const LinkRunIn
   for (Json& a : agents) {
     double budget_kBps = 0;
     md << AgentRow(run_dir, server_stats, *arrivals, &a, &latencies, &budget_kBps);
-    budgets.emplace_back(a.Get("name") ? a.Get("name")->string() : "", budget_kBps);
+    budgets.emplace_back(Str(&a, "name"), budget_kBps);
   }
   (*results)["agents"] = Json(agents);
   AddLatencyResults(latencies, results);

@@ -10,16 +10,12 @@ namespace {
 
 using report::Fmt;
 using report::Num;
+using report::Str;
 
 std::string JoinNames(const std::vector<std::string>& names) {
   std::string out;
   for (const std::string& n : names) out += (out.empty() ? "" : ", ") + n;
   return out.empty() ? "none" : out;
-}
-
-std::string Str(const Json& j, const std::string& key) {
-  const Json* v = j.Get(key);
-  return v ? v->string() : "";
 }
 
 std::vector<std::string> PrimaryAgents(const Json& results) {
@@ -57,8 +53,8 @@ void WriteUnfused(const Json& results, std::ostringstream& md) {
   std::vector<std::string> others, unplaced;
   if (const Json* agents = results.Get("agents")) {
     for (const Json& a : agents->array()) {
-      if (Str(a, "map") == "unplaced") unplaced.push_back(Str(a, "name"));
-      if (Str(a, "map") == "own") others.push_back(Str(a, "name"));
+      if (Str(&a, "map") == "unplaced") unplaced.push_back(Str(&a, "name"));
+      if (Str(&a, "map") == "own") others.push_back(Str(&a, "name"));
     }
   }
   md << "**Not every map fused.** The fused trajectory and the dense map below are the primary "
@@ -83,8 +79,8 @@ void WriteTrajectories(const Json& results, std::ostringstream& md) {
     return a.Has(key) ? Fmt("%.4f", Num(&a, key)) : std::string("-");
   };
   for (const Json& a : results.Get("agents")->array()) {
-    md << "| " << Str(a, "name") << " | " << Num(&a, "first_frame") << "-" << Num(&a, "last_frame")
-       << " | " << Str(a, "map") << " | " << Num(&a, "keyframes") << " | "
+    md << "| " << Str(&a, "name") << " | " << Num(&a, "first_frame") << "-" << Num(&a, "last_frame")
+       << " | " << Str(&a, "map") << " | " << Num(&a, "keyframes") << " | "
        << metres(a, "ate_rmse_m") << " | " << metres(a, "agent_frames_ate_rmse_m") << " | "
        << metres(a, "map_mean_error_m") << " | " << Num(&a, "lost_frames") << " | "
        << Num(&a, "restarts") << " |\n";
@@ -95,7 +91,7 @@ void WriteTrajectories(const Json& results, std::ostringstream& md) {
        << Fmt("%.4f", Num(&results, "ate_rmse_m")) << " m** over "
        << Num(&results, "fused_keyframes") << " keyframes (max "
        << Fmt("%.4f", Num(&results, "ate_max_m")) << " m)"
-       << (Str(results, "ate_aligned_by") == "poses"
+       << (Str(&results, "ate_aligned_by") == "poses"
                ? ", aligned by whole keyframe poses: too few keyframes, or all within a centimetre "
                  "of a line, to align by positions"
                : "")
@@ -116,7 +112,7 @@ void WriteDenseMap(const Json& results, bool map_plots, std::ostringstream& md) 
        << Fmt("%.4f", Num(&results, "recon_p95_m")) << " | "
        << Fmt("%.4f", Num(&results, "recon_hausdorff_m")) << " | "
        << Fmt("%.1f%%", 100 * Num(&results, "recon_completeness")) << " |\n\n";
-    md << "Reference: " << Str(results, "reference") << " (" << Num(&results, "reference_points")
+    md << "Reference: " << Str(&results, "reference") << " (" << Num(&results, "reference_points")
        << " points). The map is aligned to it by the fit of the primary map's keyframe poses "
           "(centres and orientations) to the ground truth.\n";
   } else {
@@ -131,7 +127,7 @@ void WriteBandwidth(const Json& results, std::ostringstream& md) {
   md << "\n## Bandwidth\n\n| agent | ATPS (kB/s) | AKFS (kB) | AKFR (Hz) | keyframes with RGB-D | "
         "bytes |\n|---|---|---|---|---|---|\n";
   for (const Json& a : results.Get("agents")->array()) {
-    md << "| " << Str(a, "name") << " | " << Fmt("%.1f", Num(&a, "atps_kBps")) << " | "
+    md << "| " << Str(&a, "name") << " | " << Fmt("%.1f", Num(&a, "atps_kBps")) << " | "
        << Fmt("%.1f", Num(&a, "akfs_kB")) << " | " << Fmt("%.2f", Num(&a, "akfr_hz")) << " | "
        << Num(&a, "rgbd_keyframes") << " of " << Num(&a, "keyframes") << " | "
        << Fmt("%.0f", Num(&a, "bytes")) << " |\n";
@@ -151,7 +147,7 @@ void WriteBandwidth(const Json& results, std::ostringstream& md) {
     for (const Json& e : kinds->array()) {
       const double ours = Num(&e, "bytes_per_keyframe");
       const double naive = Num(&e, "uncompressed_bytes_per_keyframe");
-      md << "| " << Str(e, "kind") << " | " << Fmt("%.0f", ours) << " | " << Fmt("%.0f", naive)
+      md << "| " << Str(&e, "kind") << " | " << Fmt("%.0f", ours) << " | " << Fmt("%.0f", naive)
          << " | " << (naive > 0 ? Fmt("%.3f", ours / naive) : "-") << " |\n";
     }
   }

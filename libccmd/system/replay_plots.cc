@@ -17,6 +17,7 @@ namespace {
 
 using report::FindAgentTraffic;
 using report::Num;
+using report::Str;
 
 // The plane of most motion of the ground truth (its two principal directions): a "top view"
 // that does not depend on which world axis is up.
@@ -116,7 +117,7 @@ void WriteBytesPerKindPlot(const Json& results, const std::string& plots_dir) {
   std::vector<BarGroup> groups;
   if (const Json* kinds = results.Get("bytes_per_kind")) {
     for (const Json& e : kinds->array()) {
-      const std::string kind = e.Get("kind") ? e.Get("kind")->string() : "";
+      const std::string kind = Str(&e, "kind");
       if (kind == "other") continue;
       groups.push_back(
           {kind, {Num(&e, "bytes_per_keyframe"), Num(&e, "uncompressed_bytes_per_keyframe")}});

@@ -249,7 +249,9 @@ struct TrafficTotals {
 };
 
 // The agent's traffic as the server counted it (server_stats.json's transport) into `a`.
-void AddServerTraffic(const Json& traffic, Json& a, TrafficTotals& totals) {
+void AddServerTraffic(const Json& traffic, Json* agent, TrafficTotals* sums) {
+  Json& a = *agent;
+  TrafficTotals& totals = *sums;
   const Json* messages = traffic.Get("messages");
   const Json* kf = messages ? messages->Get("keyframe") : nullptr;
   a["keyframes"] = Num(kf, "count");
@@ -274,7 +276,9 @@ void AddServerTraffic(const Json& traffic, Json& a, TrafficTotals& totals) {
 }
 
 // The agent's own statistics (agents/NAME_stats.json): frames, losses, what its link sent.
-void AddAgentStats(const Json& agent_stats, Json& a, TrafficTotals& totals) {
+void AddAgentStats(const Json& agent_stats, Json* agent, TrafficTotals* sums) {
+  Json& a = *agent;
+  TrafficTotals& totals = *sums;
   a["frames"] = Num(&agent_stats, "frames");
   a["lost_frames"] = Num(&agent_stats, "lost_frames");
   a["restarts"] = Num(&agent_stats, "restarts");
@@ -299,47 +303,47 @@ void AddAgentStats(const Json& agent_stats, Json& a, TrafficTotals& totals) {
 
 // Everything the report says of agent `i` (1-based).
 struct AgentInputs {
-  const std::string* run_dir;
-  const Json* server_stats;
-  const ReplayRunInfo* info;
-  const Trajectory* gt;
-  const MapMembership* membership;
-  const std::map<std::uint32_t, double>* map_error_of_agent;
+  const std::string& run_dir;
+  const Json& server_stats;
+  const ReplayRunInfo& info;
+  const Trajectory& gt;
+  const MapMembership& membership;
+  const std::map<std::uint32_t, double>& map_error_of_agent;
 };
 
-Json EvaluateAgent(int i, const AgentInputs& in, Trajectory* keyframes, TrafficTotals& totals) {
+Json EvaluateAgent(int i, const AgentInputs& in, Trajectory* keyframes, TrafficTotals* totals) {
   const std::string name = "agent" + std::to_string(i);
   Json a;
   a["name"] = name;
-  if (i - 1 < static_cast<int>(in.info->segments.size())) {
-    a["first_frame"] = in.info->segments[i - 1].first;
-    a["last_frame"] = in.info->segments[i - 1].last;
+  if (i - 1 < static_cast<int>(in.info.segments.size())) {
+    a["first_frame"] = in.info.segments[i - 1].first;
+    a["last_frame"] = in.info.segments[i - 1].last;
   }
-  auto t = ReadTumTrajectory(JoinPath(*in.run_dir, "trajectory_" + name + ".txt"));
+  auto t = ReadTumTrajectory(JoinPath(in.run_dir, "trajectory_" + name + ".txt"));
   *keyframes = t.ok() ? *t : Trajectory{};
-  a["in_primary_map"] = in.membership->InPrimary(name);
-  a["map"] = in.membership->InPrimary(name)  ? "primary"
-             : in.membership->Unplaced(name) ? "unplaced"
-                                             : "own";
-  const Json* agent_ids = in.server_stats->Get("agent_ids");
+  a["in_primary_map"] = in.membership.InPrimary(name);
+  a["map"] = in.membership.InPrimary(name)  ? "primary"
+             : in.membership.Unplaced(name) ? "unplaced"
+                                            : "own";
+  const Json* agent_ids = in.server_stats.Get("agent_ids");
   if (const Json* id = agent_ids ? agent_ids->Get(name) : nullptr) {
-    const auto found = in.map_error_of_agent->find(static_cast<std::uint32_t>(id->number()));
-    if (found != in.map_error_of_agent->end()) a["map_mean_error_m"] = found->second;
+    const auto found = in.map_error_of_agent.find(static_cast<std::uint32_t>(id->number()));
+    if (found != in.map_error_of_agent.end()) a["map_mean_error_m"] = found->second;
   }
   if (t.ok()) {
-    const auto ate = MapAte(*in.gt, *t);
+    const auto ate = MapAte(in.gt, *t);
     if (ate) a["ate_rmse_m"] = ate->error.rmse;
   }
-  auto frames = ReadTumTrajectory(JoinPath(*in.run_dir, "agents/" + name + "_frames.txt"));
-  if (frames.ok() && !in.gt->empty()) {
-    auto ate = ComputeAte(*in.gt, *frames);
+  auto frames = ReadTumTrajectory(JoinPath(in.run_dir, "agents/" + name + "_frames.txt"));
+  if (frames.ok() && !in.gt.empty()) {
+    auto ate = ComputeAte(in.gt, *frames);
     if (ate.ok()) a["agent_frames_ate_rmse_m"] = ate->error.rmse;  // the agent's own odometry
   }
-  if (const Json* traffic = FindAgentTraffic(*in.server_stats, name))
-    AddServerTraffic(*traffic, a, totals);
-  auto agent_stats = ReadJsonFile(JoinPath(*in.run_dir, "agents/" + name + "_stats.json"));
-  if (agent_stats.ok()) AddAgentStats(*agent_stats, a, totals);
-  for (const ReplayProcess& p : in.info->processes) {
+  if (const Json* traffic = FindAgentTraffic(in.server_stats, name))
+    AddServerTraffic(*traffic, &a, totals);
+  auto agent_stats = ReadJsonFile(JoinPath(in.run_dir, "agents/" + name + "_stats.json"));
+  if (agent_stats.ok()) AddAgentStats(*agent_stats, &a, totals);
+  for (const ReplayProcess& p : in.info.processes) {
     if (p.name != name) continue;
     a["cpu_seconds"] = p.cpu_seconds;
     a["cpu_percent"] = p.wall_seconds > 0 ? 100 * p.cpu_seconds / p.wall_seconds : 0.0;
@@ -350,7 +354,8 @@ Json EvaluateAgent(int i, const AgentInputs& in, Trajectory* keyframes, TrafficT
 
 // Mean rates over the agents: per second of connection, and per second of dataset time (each
 // agent's bytes and keyframes over its segment's duration).
-void AddRates(const TumSequence& dataset, const TrafficTotals& totals, Json& results) {
+void AddRates(const TumSequence& dataset, const TrafficTotals& totals, Json* out) {
+  Json& results = *out;
   double dataset_bytes_per_s = 0, dataset_keyframes_per_s = 0;
   int with_duration = 0;
   for (const Json& a : results["agents"].array()) {
@@ -375,7 +380,8 @@ void AddRates(const TumSequence& dataset, const TrafficTotals& totals, Json& res
 }
 
 // Bytes per keyframe by kind, sent and unpacked, and how many keyframes carried RGB-D.
-void AddBytesPerKind(const TrafficTotals& totals, Json& results) {
+void AddBytesPerKind(const TrafficTotals& totals, Json* out) {
+  Json& results = *out;
   const double k = std::max(1.0, totals.keyframes);
   const KeyframeSizeBreakdown& parts = totals.parts;
   const std::vector<std::tuple<std::string, double, double>> per_kind = {
@@ -403,7 +409,8 @@ void AddBytesPerKind(const TrafficTotals& totals, Json& results) {
 }
 
 // The server process's CPU and memory, and its memory as sampled during the run.
-void AddServerProcess(const ReplayRunInfo& info, Json& results) {
+void AddServerProcess(const ReplayRunInfo& info, Json* out) {
+  Json& results = *out;
   for (const ReplayProcess& p : info.processes) {
     if (p.name != "server") continue;
     results["server_cpu_seconds"] = p.cpu_seconds;
@@ -470,16 +477,15 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
 
   ReplayPlotInputs plots;
   plots.agent_trajectories.resize(std::max(0, info.agents));
-  const AgentInputs agent_inputs{&run_dir, &server_stats, &info,
-                                 &gt,      &membership,   &map_error_of_agent};
+  const AgentInputs agent_inputs{run_dir, server_stats, info, gt, membership, map_error_of_agent};
   TrafficTotals totals;
   Json agents = Json::MakeArray();
   for (int i = 1; i <= info.agents; ++i)
-    agents.Push(EvaluateAgent(i, agent_inputs, &plots.agent_trajectories[i - 1], totals));
+    agents.Push(EvaluateAgent(i, agent_inputs, &plots.agent_trajectories[i - 1], &totals));
   results["agents"] = agents;
-  AddRates(dataset, totals, results);
-  AddServerProcess(info, results);
-  AddBytesPerKind(totals, results);
+  AddRates(dataset, totals, &results);
+  AddServerProcess(info, &results);
+  AddBytesPerKind(totals, &results);
 
   plots.server_stats = &server_stats;
   plots.results = &results;

@@ -1,7 +1,8 @@
 #pragma once
 
-// Small helpers shared by the report writers (replay_report.cc, link_report.cc): numbers
-// out of results JSON, formatted numbers, an agent's entry in the server's traffic stats.
+// Small helpers shared by the report writers (replay_report.cc, replay_markdown.cc,
+// replay_plots.cc, link_report.cc): numbers and strings out of results JSON, formatted
+// numbers, an agent's entry in the server's traffic stats.
 
 #include <cstdio>
 #include <string>
@@ -15,6 +16,12 @@ inline double Num(const Json* j, const std::string& key, double fallback = 0) {
   if (!j) return fallback;
   const Json* v = j->Get(key);
   return v ? v->number(fallback) : fallback;
+}
+
+// j[key] as a string; "" when j is null or the key is missing.
+inline std::string Str(const Json* j, const std::string& key) {
+  const Json* v = j ? j->Get(key) : nullptr;
+  return v ? v->string() : "";
 }
 
 // printf-style formatting of one number.
