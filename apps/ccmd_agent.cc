@@ -47,6 +47,7 @@ ccmd::Json StatsJson(const ccmd::FrontendStats& s, double wall_seconds,
   j["frames"] = s.frames;
   j["tracked_frames"] = s.tracked_frames;
   j["lost_frames"] = s.lost_frames;
+  j["depth_only_frames"] = s.depth_only_frames;
   j["restarts"] = s.restarts;
   j["keyframes"] = s.keyframes;
   j["map_keyframes"] = s.map_keyframes;
@@ -425,6 +426,10 @@ void PrintSummary(const ccmd::FrontendStats& stats, double seconds, double cores
       stats.frames, seconds, stats.frames / std::max(seconds, 1e-9), cores, stats.tracked_frames,
       stats.lost_frames, stats.keyframes, stats.map_keyframes, stats.map_points);
   const ccmd::MappingStats& m = stats.mapping;
+  if (stats.depth_only_frames > 0) {
+    std::printf("%d of the tracked frames were placed by their depth alone (too few features)\n",
+                stats.depth_only_frames);
+  }
   if (stats.restarts > 0) {
     std::printf(
         "tracking restarted %d time(s) in a new map segment after it could not relocalise\n",

@@ -4,6 +4,7 @@
 #include <cmath>
 
 #include <Eigen/Cholesky>
+#include <Eigen/Eigenvalues>
 #include <Eigen/Geometry>
 
 namespace ccmd {
@@ -114,7 +115,7 @@ std::optional<DepthAlignment> AlignDepth(const DepthModel& source, const DepthMo
     Matrix6d H = Matrix6d::Zero();
     Eigen::Matrix<double, 6, 1> b = Eigen::Matrix<double, 6, 1>::Zero();
     int inliers = 0;
-    double sse = 0;
+    double sse = 0, range = 0;
     const Eigen::Matrix3d R = T.linear();
     for (int y = 0; y < source.height(); y += options.source_stride) {
       for (int x = 0; x < source.width(); x += options.source_stride) {
@@ -139,6 +140,7 @@ std::optional<DepthAlignment> AlignDepth(const DepthModel& source, const DepthMo
         H.noalias() += w * J * J.transpose();
         b.noalias() += w * r * J;
         sse += r * r;
+        range += q.norm();
         ++inliers;
       }
     }
@@ -146,6 +148,7 @@ std::optional<DepthAlignment> AlignDepth(const DepthModel& source, const DepthMo
     result.information = H;
     result.inliers = inliers;
     result.rms = std::sqrt(sse / inliers);
+    result.mean_range = range / inliers;
     // A little damping keeps the step finite where the geometry leaves a direction free
     // (a single plane); that direction then keeps the initial guess.
     const Matrix6d damped = H + 1e-9 * H.trace() * Matrix6d::Identity();
@@ -176,6 +179,16 @@ std::optional<DepthAlignment> AlignDepth(const DepthModel& source, const DepthMo
 bool StaysNearStart(const DepthAlignment& aligned, const Pose& T_target_source_start) {
   return TranslationDistance(aligned.T_target_source, T_target_source_start) <= 0.1 &&
          RotationDistance(aligned.T_target_source, T_target_source_start) <= 0.1;
+}
+
+double Conditioning(const DepthAlignment& aligned) {
+  if (!(aligned.mean_range > 0)) return 0;
+  Eigen::Matrix<double, 6, 1> scale;
+  scale << Eigen::Vector3d::Constant(1 / aligned.mean_range), Eigen::Vector3d::Ones();
+  const Matrix6d H = scale.asDiagonal() * aligned.information * scale.asDiagonal();
+  const Eigen::SelfAdjointEigenSolver<Matrix6d> solver(H, Eigen::EigenvaluesOnly);
+  const Eigen::Matrix<double, 6, 1>& eig = solver.eigenvalues();  // ascending
+  return eig(5) > 0 ? std::max(0.0, eig(0)) / eig(5) : 0;
 }
 
 }  // namespace ccmd

@@ -61,7 +61,8 @@ struct DepthAlignment {
   // Information of the perturbation xi = (rotation, translation) in T = exp(xi) * T_hat.
   Matrix6d information = Matrix6d::Zero();
   int inliers = 0;
-  double rms = 0;  // metres, point-to-plane
+  double rms = 0;         // metres, point-to-plane
+  double mean_range = 0;  // metres, of the matched points from the target camera
 };
 
 // Aligns `source` to `target` starting from `T_target_source`; nullopt when too few points
@@ -73,5 +74,17 @@ std::optional<DepthAlignment> AlignDepth(const DepthModel& source, const DepthMo
 // Whether `aligned` ended within 10 cm and 0.1 rad of the pose it started from (the features'
 // estimate): further off, the alignment has converged elsewhere and is not trusted.
 bool StaysNearStart(const DepthAlignment& aligned, const Pose& T_target_source_start);
+
+// How well the geometry fixes all six directions of the pose: the smallest eigenvalue of the
+// information over the largest, with a rotation counted as the displacement it causes at the
+// matched points' mean range. 0 for a single plane, or a wall and the floor at its foot (they
+// leave the slide along both free); a room's corner (floor and two walls) gives about 0.008
+// (with the Kinect noise model's weights), ICL-NUIM's office 0.01-0.035: the weakest
+// direction rests on the smallest of the surfaces that fix it.
+double Conditioning(const DepthAlignment& aligned);
+
+// The conditioning at which an alignment alone is trusted to place a frame (no features to
+// back it): about a room corner's.
+constexpr double kMinConditioningAlone = 0.005;
 
 }  // namespace ccmd

@@ -28,6 +28,8 @@ Status TrackingOptions::Validate() const {
   if (!(depth_alignment_weight >= 0)) return fail("depth alignment weight must be >= 0");
   if (!(frame_depth_weight >= 0) || !std::isfinite(frame_depth_weight))
     return fail("frame depth weight must be finite and >= 0");
+  if (!(depth_bridge_seconds >= 0 && depth_bridge_seconds <= 3600))
+    return fail("depth bridge seconds must be in [0, 3600] (0: off)");
   if (max_keyframes < local_ba_window + 5)
     return fail("max keyframes must exceed the local BA window by 5");
   if (max_frames_between_keyframes < 0) return fail("max frames between keyframes must be >= 0");
@@ -60,6 +62,7 @@ void TrackingOptions::Describe(OptionsWriter* out) const {
   out->Add("depth_alignment_neighbours", depth_alignment_neighbours);
   out->Add("depth_alignment_weight", depth_alignment_weight);
   out->Add("frame_depth_weight", frame_depth_weight);
+  out->Add("depth_bridge_seconds", depth_bridge_seconds);
   out->Add("triangulation_neighbours", triangulation_neighbours);
   out->Add("max_keyframes", max_keyframes);
   out->Add("cull_redundant_keyframes", cull_redundant_keyframes);
@@ -101,6 +104,7 @@ TrackResult Frontend::ProcessFrame(const RgbdFrame& frame) {
   if (result.state == TrackingState::kOk) {
     initialised_ = true;
     ++stats_.tracked_frames;
+    stats_.depth_only_frames += result.depth_only;
   } else if (initialised_) {
     ++stats_.lost_frames;
   }

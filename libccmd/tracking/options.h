@@ -73,6 +73,10 @@ struct TrackingOptions {
   // model, from the pose the features give, and the pose optimisation against the local map
   // weighs that alignment by its information times this (0 turns it off).
   double frame_depth_weight = 0.0;
+  // Frames whose features cannot be tracked are placed by their depth alone when it fixes the
+  // pose (Tracker::BridgeWithDepth), for at most this many seconds in a row (0: off); needs
+  // the keyframes' depth models (depth alignment on). Then tracking counts as lost.
+  double depth_bridge_seconds = 3.0;
   // Keypoints without a map point and without depth at one end are matched with this many
   // best covisible keyframes along epipolar lines and triangulated into new points (ORB-SLAM's
   // CreateNewMapPoints; 0: off). Off by default: it gains on exact depth and loses on

@@ -74,13 +74,17 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
     }
     current_->reference = reference_;
     if (ok) ok = TrackLocalMap();
+    bool by_depth = false;
+    if (!ok && state_ == TrackingState::kOk) ok = by_depth = BridgeWithDepth();
     if (ok) {
       state_ = TrackingState::kOk;
       last_T_world_cam_ = current_->T_cam_world.inverse();
       last_tracked_timestamp_ = current_->timestamp;
       if (last_ && last_->has_pose)
         velocity_ = current_->T_cam_world * last_->T_cam_world.inverse();
-      if (NeedNewKeyframe()) {
+      result.depth_only = by_depth && matches_inliers_ == 0;
+      if (!result.depth_only) EndBridge();
+      if (!result.depth_only && NeedNewKeyframe()) {
         const KeyframePtr tracked_against = reference_;
         CreateKeyframe();
         result.new_keyframe = true;
@@ -103,6 +107,7 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
         lost_since_ = current_->timestamp;
       }
       state_ = TrackingState::kLost;
+      EndBridge();
       tracked_since_keyframe_ = false;
       velocity_.reset();
       current_->has_pose = false;
@@ -442,6 +447,72 @@ std::optional<PosePrior> Tracker::FrameDepthPrior() const {
   prior.T_b_a = aligned->T_target_source;
   prior.sqrt_information = SqrtInformation(options_.frame_depth_weight * aligned->information);
   return prior;
+}
+
+void Tracker::EndBridge() {
+  bridged_since_.reset();
+  bridge_model_.reset();
+}
+
+bool Tracker::BridgeWithDepth() {
+  if (options_.depth_bridge_seconds <= 0 || current_->depth_mm.empty() || !last_ ||
+      !last_->has_pose)
+    return false;
+  if (bridged_since_ && current_->timestamp - *bridged_since_ > options_.depth_bridge_seconds)
+    return false;
+  const Pose predicted = velocity_ ? *velocity_ * last_->T_cam_world : last_->T_cam_world;
+  DepthModel model =
+      DepthModel::FromDepth(current_->depth_mm, camera_, 4, options_.min_depth, options_.max_depth);
+  // Without features to back it, the alignment alone must hold: most of the view has to
+  // match the target's surfaces, and they must fix every direction of the pose.
+  DepthAlignmentOptions alignment;
+  alignment.min_inlier_fraction = 0.3;
+  auto place = [&](const DepthModel& target, const Pose& T_target_world) -> std::optional<Pose> {
+    const Pose start = T_target_world * predicted.inverse();
+    const auto aligned = AlignDepth(model, target, start, options_.depth_noise, alignment);
+    if (!aligned || !StaysNearStart(*aligned, start)) return std::nullopt;
+    const double conditioning = Conditioning(*aligned);
+    CCMD_LOG(DEBUG) << "frame " << current_->index << " depth alone: conditioning " << conditioning
+                    << ", " << aligned->inliers << " cells, rms " << aligned->rms * 1e3 << " mm";
+    // Residuals beyond the sensor's noise: the surfaces were matched wrongly.
+    if (conditioning < kMinConditioningAlone ||
+        aligned->rms > 2 * options_.depth_noise.Sigma(aligned->mean_range))
+      return std::nullopt;
+    return aligned->T_target_source.inverse() * T_target_world;
+  };
+  // The newest keyframe of this segment whose depth model local mapping has made holds the
+  // pose without drift; where the view has left it, the frame before.
+  std::optional<Pose> T_cam_world;
+  for (auto it = map_->keyframes().rbegin();
+       it != map_->keyframes().rend() && it->first >= segment_start_; ++it) {
+    if (it->second->bad() || !it->second->depth_model) continue;
+    T_cam_world = place(*it->second->depth_model, it->second->T_cam_world());
+    break;
+  }
+  if (!T_cam_world && !last_->depth_mm.empty()) {
+    if (!bridge_model_) {
+      bridge_model_ = std::make_shared<const DepthModel>(DepthModel::FromDepth(
+          last_->depth_mm, camera_, 4, options_.min_depth, options_.max_depth));
+    }
+    T_cam_world = place(*bridge_model_, last_->T_cam_world);
+  }
+  if (!T_cam_world) return false;
+  // From there the local map's points may be found again (the view regained texture).
+  current_->SetPose(*T_cam_world);
+  std::fill(current_->points.begin(), current_->points.end(), nullptr);
+  std::fill(current_->outlier.begin(), current_->outlier.end(), false);
+  if (TrackLocalMap()) return true;
+  current_->SetPose(*T_cam_world);
+  std::fill(current_->points.begin(), current_->points.end(), nullptr);
+  std::fill(current_->outlier.begin(), current_->outlier.end(), false);
+  matches_inliers_ = 0;
+  if (!bridged_since_) {
+    CCMD_LOG(INFO) << "too few features at frame " << current_->index
+                   << ": placed by its depth alone until they come back";
+    bridged_since_ = current_->timestamp;
+  }
+  bridge_model_ = std::make_shared<const DepthModel>(std::move(model));
+  return true;
 }
 
 bool Tracker::NeedNewKeyframe() const {

@@ -15,6 +15,7 @@
 #include "libccmd/io/rgbd_frame.h"
 #include "libccmd/io/trajectory.h"
 #include "libccmd/optim/pose_optimizer.h"
+#include "libccmd/tracking/depth_alignment.h"
 #include "libccmd/tracking/frame.h"
 #include "libccmd/tracking/map.h"
 #include "libccmd/tracking/options.h"
@@ -29,6 +30,8 @@ struct TrackResult {
   TrackingState state = TrackingState::kNotInitialized;
   std::optional<Pose> T_world_cam;  // when tracked
   bool new_keyframe = false;
+  // Tracked by the depth image alone (too few features matched): no keyframe is made from it.
+  bool depth_only = false;
   int tracked_points = 0;
   double extract_ms = 0, track_ms = 0;          // wall time
   double extract_cpu_ms = 0, track_cpu_ms = 0;  // CPU time of the calling thread
@@ -106,6 +109,12 @@ class Tracker {
   // model, from the frame's present pose; nullopt when off, without depth, or when the
   // alignment fails or lands far from the features' pose.
   std::optional<PosePrior> FrameDepthPrior() const;
+  // Features lost (a blank wall, motion blur): the frame's depth aligned with the newest
+  // keyframe's that has a depth model, from the constant-velocity prediction, places it when the
+  // view's geometry fixes every direction of the pose; the local map's points are then searched
+  // again from there. Keeps tracking through stretches without texture instead of relocalising.
+  bool BridgeWithDepth();
+  void EndBridge();
   bool NeedNewKeyframe() const;
   void CreateKeyframe();
 
@@ -134,6 +143,9 @@ class Tracker {
   std::vector<FrameRecord> records_;
   std::vector<KeyframeRecord> keyframe_records_;
   bool tracked_since_keyframe_ = false;  // every frame since the last keyframe was tracked
+  // While frames are placed by depth alone: since when, and the last such frame's depth.
+  std::optional<double> bridged_since_;
+  std::shared_ptr<const DepthModel> bridge_model_;
 };
 
 // The frames' trajectory: each record's pose relative to its reference keyframe, at that

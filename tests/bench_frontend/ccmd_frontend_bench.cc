@@ -107,6 +107,26 @@ std::vector<RgbdFrame> ReadFrames(RgbdSource& source, const FrameOrder& order) {
   return ReorderFrames(std::move(frames), order);
 }
 
+// Parses "FIRST-LAST" (0-based, inclusive) into `range`.
+bool ParseRange(const std::string& text, std::pair<int, int>* range) {
+  int first = 0, last = 0;
+  char dash = 0, extra = 0;
+  std::istringstream in(text);
+  if (!(in >> first >> dash >> last) || dash != '-' || in >> extra || first < 0 || last < first)
+    return false;
+  *range = {first, last};
+  return true;
+}
+
+// The colour of frames `range` (in the order played) replaced by its mean: no features, the
+// depth kept, as a camera facing a blank wall, or smeared by a fast turn, records it.
+void BlankColour(std::vector<RgbdFrame>* frames, std::pair<int, int> range) {
+  for (int i = range.first; i <= range.second && i < static_cast<int>(frames->size()); ++i) {
+    cv::Mat& bgr = (*frames)[i].bgr;
+    bgr = cv::Mat(bgr.size(), bgr.type(), cv::mean(bgr));
+  }
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -131,6 +151,10 @@ int main(int argc, char** argv) {
   app.add_option("--step", order.step, "Use every n-th frame (from --first)")
       ->check(CLI::PositiveNumber);
   app.add_flag("--reverse", order.reverse, "Play the selected frames backwards");
+  std::string blank;
+  app.add_option("--blank", blank,
+                 "FIRST-LAST: replace these frames' colour (0-based, in the order played) by its "
+                 "mean, as a blank wall or a fast turn gives it (no features; depth kept)");
   app.add_flag("--footprint", footprint,
                "Stream frames (no preloading) and print memory and frame time every 300 frames");
   app.add_option(
@@ -145,6 +169,11 @@ int main(int argc, char** argv) {
       ->check(CLI::IsMember({"all", "frontend", "extract"}))
       ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
+  std::pair<int, int> blank_range{-1, -1};
+  if (!blank.empty() && (footprint || !ParseRange(blank, &blank_range))) {
+    std::fprintf(stderr, "--blank needs FIRST-LAST (0-based, FIRST <= LAST) and no --footprint\n");
+    return 2;
+  }
   if (stage == "frontend") skip_baseline = true;
   // OpenCV in the calling thread, as the agent runs it on a budget, so that each stage's CPU
   // time (and instruction count under callgrind) is all its own.
@@ -216,6 +245,7 @@ int main(int argc, char** argv) {
   } else {
     order.count = max_frames;
     frames = ReadFrames(**source, order);
+    if (blank_range.first >= 0) BlankColour(&frames, blank_range);
     if (stage != "frontend") {
       // Alone, three alternating passes; before a whole run, one.
       const bench::ExtractionSpeed extraction =
@@ -247,6 +277,7 @@ int main(int argc, char** argv) {
   result["frames"] = stats.frames;
   result["tracked_frames"] = stats.tracked_frames;
   result["lost_frames"] = stats.lost_frames;
+  result["depth_only_frames"] = stats.depth_only_frames;
   result["keyframes"] = stats.keyframes;
   result["fps"] = fps;
   result["sensor_fps"] = camera.fps;
@@ -261,9 +292,10 @@ int main(int argc, char** argv) {
       stats.mapping.keyframes ? stats.mapping.mapping_ms_total / stats.mapping.keyframes : 0.0;
   std::printf("%s\n", (*source)->Describe().c_str());
   std::printf(
-      "ccmd front-end: %d frames, %d tracked, %d lost, %d keyframes, %.1f fps (%.2fx real time)\n",
-      stats.frames, stats.tracked_frames, stats.lost_frames, stats.keyframes, fps,
-      fps / camera.fps);
+      "ccmd front-end: %d frames, %d tracked (%d by depth alone), %d lost, %d keyframes, %.1f fps "
+      "(%.2fx real time)\n",
+      stats.frames, stats.tracked_frames, stats.depth_only_frames, stats.lost_frames,
+      stats.keyframes, fps, fps / camera.fps);
   std::printf(
       "  per frame: extraction %.2f ms, tracking %.2f ms; per keyframe: mapping %.1f ms (local BA "
       "%.1f ms)\n",

@@ -79,6 +79,8 @@ TEST(DepthAlignmentTest, RecoversTheRelativePoseOfTwoViews) {
   // Three planes constrain all six directions.
   const Eigen::SelfAdjointEigenSolver<Matrix6d> eigen(aligned->information);
   EXPECT_GT(eigen.eigenvalues()(0), 1e-3 * eigen.eigenvalues()(5));
+  EXPECT_GT(Conditioning(*aligned), kMinConditioningAlone);
+  EXPECT_NEAR(aligned->mean_range, 2.5, 1.0);  // the corner's surfaces are 1-3.6 m away
 }
 
 TEST(DepthAlignmentTest, NoisyDepthStillAlignsWithinMillimetres) {
@@ -117,6 +119,19 @@ TEST(DepthAlignmentTest, APlaneLeavesThreeDirectionsWithoutInformation) {
   const auto& e = eigen.eigenvalues();  // ascending
   EXPECT_LT(e(2), 1e-6 * e(5));
   EXPECT_GT(e(3), 1e-4 * e(5));
+  EXPECT_LT(Conditioning(*aligned), 1e-6);
+}
+
+// The same wall with a strip of floor along its foot: the slide along both stays free.
+TEST(DepthAlignmentTest, AWallAndFloorLeaveTheSlideAlongThemFree) {
+  Rng rng(45);
+  const std::vector<Plane> wall_and_floor = {{{0, 0, 1}, 2.0}, {{0, 1, 0}, 1.0}};
+  const Pose T_world_b = Motion({0, 0, 0}, {0, 0, 0.05});
+  const DepthModel a = Model(RenderDepth(wall_and_floor, Pose::Identity(), 0, &rng));
+  const DepthModel b = Model(RenderDepth(wall_and_floor, T_world_b, 0, &rng));
+  const auto aligned = AlignDepth(a, b, T_world_b.inverse(), DepthNoise());
+  ASSERT_TRUE(aligned.has_value());
+  EXPECT_LT(Conditioning(*aligned), 1e-6);
 }
 
 TEST(DepthAlignmentTest, RefusesViewsThatDoNotOverlap) {
