@@ -55,9 +55,10 @@ TEST(CpuPacerTest, HoldsTheProcessToItsBudget) {
     pacer.Pace();
     const double cpu = ProcessCpuTimeSeconds() - cpu_start;
     const double wall = MonotonicSeconds() - wall_start;
-    // Half a millisecond of slack for what runs after Pace() measured (and for any thread a
-    // library left behind in this process); unpaced, the excess would be about 4 ms.
-    EXPECT_LE(cpu, 0.01 * wall + 5e-4) << round;
+    // Two milliseconds of slack for what runs after Pace() measured: the sleep's own system
+    // calls (up to 0.8 ms of CPU on a sandboxed machine), and any thread a library left behind
+    // in this process. Unpaced, the excess would be 4 ms after the first round.
+    EXPECT_LE(cpu, 0.01 * wall + 2e-3) << round;
   }
   EXPECT_GT(pacer.paced_ms(), 0);
   EXPECT_EQ(CpuPacer(0).Pace(), 0);
