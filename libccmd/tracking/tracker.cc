@@ -463,18 +463,16 @@ bool Tracker::BridgeWithDepth() {
   const Pose predicted = velocity_ ? *velocity_ * last_->T_cam_world : last_->T_cam_world;
   DepthModel model =
       DepthModel::FromDepth(current_->depth_mm, camera_, 4, options_.min_depth, options_.max_depth);
-  // Without features to back it, the alignment alone must hold: most of the view has to
-  // match the target's surfaces, and they must fix every direction of the pose.
-  DepthAlignmentOptions alignment;
-  alignment.min_inlier_fraction = 0.3;
+  // Without features to back it, the alignment alone must hold: the surfaces it matched must
+  // fix every direction of the pose, and fit as well as the sensor measures.
   auto place = [&](const DepthModel& target, const Pose& T_target_world) -> std::optional<Pose> {
     const Pose start = T_target_world * predicted.inverse();
-    const auto aligned = AlignDepth(model, target, start, options_.depth_noise, alignment);
+    const auto aligned = AlignDepth(model, target, start, options_.depth_noise);
     if (!aligned || !StaysNearStart(*aligned, start)) return std::nullopt;
     const double conditioning = Conditioning(*aligned);
     CCMD_LOG(DEBUG) << "frame " << current_->index << " depth alone: conditioning " << conditioning
                     << ", " << aligned->inliers << " cells, rms " << aligned->rms * 1e3 << " mm";
-    // Residuals beyond the sensor's noise: the surfaces were matched wrongly.
+    // Residuals beyond twice the sensor's noise: surfaces matched wrongly.
     if (conditioning < kMinConditioningAlone ||
         aligned->rms > 2 * options_.depth_noise.Sigma(aligned->mean_range))
       return std::nullopt;
