@@ -332,6 +332,159 @@ int CheckGroundTruth(const std::string& spec, const std::string& config) {
   return 0;
 }
 
+struct CameraArgs {
+  bool list = false, retry = false, check_registration = false, check_ground_truth = false;
+  std::string spec, config, record;
+  int frames = -1;  // -1: the default of the mode
+  int every = 0;    // 0: the default of the mode
+  int png_compression = 1;
+};
+
+void AddOptions(CLI::App* app, CameraArgs* a) {
+  app->add_flag("--list", a->list, "List V4L2 nodes and OpenNI2 devices with their modes");
+  app->add_option("--source", a->spec,
+                  "Source: openni2[:URI], v4l2:color=DEV,depth=DEV[,...], tum:DIR, synth:...");
+  app->add_option("--config", a->config,
+                  "Camera config: mode and intrinsics (v4l2: also the depth imager, e.g. "
+                  "configs/realsense_d435_v4l2.yaml)");
+  app->add_option("--frames", a->frames,
+                  "Frames to read (default 10; with --record 0 = until Ctrl-C)")
+      ->check(CLI::NonNegativeNumber);
+  app->add_option("--record", a->record, "Record to this folder in the TUM layout");
+  app->add_option("--every", a->every,
+                  "Print every K-th frame (default: every frame, 1 per second when recording)")
+      ->check(CLI::NonNegativeNumber);
+  app->add_flag("--retry", a->retry, "Reopen a live camera that goes away (backoff 0.5 s .. 8 s)");
+  app->add_option("--png-compression", a->png_compression, "PNG level 0..9 for --record")
+      ->check(CLI::Range(0, 9))
+      ->capture_default_str();
+  app->add_flag("--check-registration", a->check_registration,
+                "Score the config's Depth block (depth-to-colour registration) on --frames frames "
+                "(default 15, spread over a recording) against sideways offsets of -50..50 mm");
+  app->add_flag("--check-ground-truth", a->check_ground_truth,
+                "Tell which camera of the config's rig (Depth block) a recording's ground-truth "
+                "poses give, from its depth alone: the value for the config's Trajectory.camera");
+}
+
+// The recorder of --record: the sensor's depth noise from the config the camera was opened
+// with travels with the recording, so that it replays without --config as it would with it.
+ccmd::StatusOr<std::unique_ptr<ccmd::TumRecorder>> OpenRecorder(const CameraArgs& a,
+                                                                const ccmd::SourceOptions& options,
+                                                                const ccmd::PinholeCamera& camera) {
+  ccmd::TumRecorderOptions recorder_options;
+  recorder_options.png_compression = a.png_compression;
+  recorder_options.queue_frames = 16;  // PNG encoding off the capture loop
+  recorder_options.writer_threads = 2;
+  ccmd::DepthNoise noise;
+  if (const std::string path = ccmd::SourceConfigPath(a.spec, options); !path.empty()) {
+    CCMD_ASSIGN_OR_RETURN(const ccmd::ConfigFile file, ccmd::ConfigFile::Open(path));
+    CCMD_ASSIGN_OR_RETURN(noise, ccmd::ReadDepthNoise(file));
+  }
+  recorder_options.config_keys = ccmd::DepthNoiseConfigKeys(noise);
+  ccmd::LogOptions("record", recorder_options);
+  return ccmd::TumRecorder::Create(a.record, camera, recorder_options);
+}
+
+// What the capture loop saw, for the summary line.
+struct CaptureStats {
+  int count = 0;
+  double first_time = 0, last_time = 0;
+  double min_interval = 1e9, max_interval = 0, valid_sum = 0;
+};
+
+// Reads frames until --frames, the end of a recording, a cancelled retry or a stop signal,
+// printing every `every`-th and recording each; an error from the source or the recorder is
+// printed and ends the loop with the returned failure.
+ccmd::Status Capture(int frames, int every, ccmd::RgbdSource* source,
+                     const std::atomic<ccmd::RetryingSource*>& retrying, const StopWatcher& watcher,
+                     ccmd::TumRecorder* recorder, CaptureStats* out) {
+  CaptureStats& c = *out;
+  while ((frames == 0 || c.count < frames) && !watcher.stopped()) {
+    ccmd::RgbdFrame frame;
+    const ccmd::Status status = source->Read(&frame);
+    if (status.code() == ccmd::StatusCode::kEndOfStream) break;
+    if (status.code() == ccmd::StatusCode::kCancelled) break;
+    if (status.code() == ccmd::StatusCode::kUnavailable && retrying.load() != nullptr) continue;
+    if (!status.ok()) return status;
+    const DepthStats stats = ComputeDepthStats(frame.depth_mm);
+    const double interval = c.count > 0 ? frame.timestamp - c.last_time : 0;
+    if (c.count == 0) c.first_time = frame.timestamp;
+    if (c.count > 0) {
+      c.min_interval = std::min(c.min_interval, interval);
+      c.max_interval = std::max(c.max_interval, interval);
+    }
+    c.last_time = frame.timestamp;
+    c.valid_sum += stats.valid_fraction;
+    if (recorder) CCMD_RETURN_IF_ERROR(recorder->Write(frame));
+    if (c.count % every == 0) {
+      std::printf(
+          "frame %d  t=%.6f s  dt=%5.1f ms  colour %dx%d  depth %dx%d  valid %5.1f%%  "
+          "min %d  median %d  max %d mm\n",
+          c.count, frame.timestamp, interval * 1e3, frame.bgr.cols, frame.bgr.rows,
+          frame.depth_mm.cols, frame.depth_mm.rows, 100 * stats.valid_fraction, stats.min_mm,
+          stats.median_mm, stats.max_mm);
+      std::fflush(stdout);
+    }
+    ++c.count;
+  }
+  return ccmd::Status::Ok();
+}
+
+void PrintCaptureSummary(const CaptureStats& c, double wall_seconds, bool stopped) {
+  const double span = c.last_time - c.first_time;
+  std::printf("%d frames over %.3f s of device time (%.3f s wall)", c.count, span, wall_seconds);
+  if (c.count > 1 && span > 0) {
+    std::printf(": %.2f fps, intervals %.1f..%.1f ms", (c.count - 1) / span, c.min_interval * 1e3,
+                c.max_interval * 1e3);
+  }
+  if (c.count > 0) std::printf(", depth valid %.1f%% on average", 100 * c.valid_sum / c.count);
+  std::printf("%s\n", stopped ? " (stopped by signal)" : "");
+}
+
+// Writes the recording's ground truth (a replayed dataset's) and closes it; false when the
+// recording could not be completed (printed).
+bool CloseRecorder(ccmd::TumRecorder* recorder, const ccmd::RgbdSource& source,
+                   const std::string& folder) {
+  if (!source.GroundTruth().empty()) {
+    const ccmd::Status gt = recorder->WriteGroundTruth(source.GroundTruth());
+    if (!gt.ok()) std::fprintf(stderr, "ccmd_camera: %s\n", gt.ToString().c_str());
+  }
+  const ccmd::Status closed = recorder->Close();
+  if (!closed.ok()) std::fprintf(stderr, "ccmd_camera: %s\n", closed.ToString().c_str());
+  std::printf("recorded %ld frames to %s", recorder->frames_written(), folder.c_str());
+  if (recorder->clipped_depth_pixels() > 0) {
+    std::printf(" (%ld depth pixels beyond the file range stored as 0)",
+                recorder->clipped_depth_pixels());
+  }
+  std::printf("; replay with --source tum:%s\n", folder.c_str());
+  return closed.ok();
+}
+
+// The modes that check a recording instead of reading a camera; nullopt when none is asked.
+std::optional<int> RunCheckModes(const CameraArgs& a) {
+  if (a.list) return ListDevices();
+  if (a.check_ground_truth) {
+    if (a.spec.empty() || a.config.empty()) {
+      std::fprintf(stderr, "ccmd_camera: --check-ground-truth needs --source and --config\n");
+      return 2;
+    }
+    return CheckGroundTruth(a.spec, a.config);
+  }
+  if (a.check_registration) {
+    if (a.spec.empty() || a.config.empty()) {
+      std::fprintf(stderr, "ccmd_camera: --check-registration needs --source and --config\n");
+      return 2;
+    }
+    return CheckRegistration(a.spec, a.config, a.frames > 0 ? a.frames : 15);
+  }
+  return std::nullopt;
+}
+
+int Fail(const ccmd::Status& status) {
+  std::fprintf(stderr, "ccmd_camera: %s\n", status.ToString().c_str());
+  return 1;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -341,59 +494,16 @@ int main(int argc, char** argv) {
       "  ccmd_camera --source openni2 [--frames 30]\n"
       "  ccmd_camera --source v4l2:color=/dev/video4,depth=/dev/video2 --record DIR\n"
       "Statistics per frame: size, timestamp, interval, depth valid fraction, min/median/max."};
-  bool list = false;
-  std::string spec, config, record;
-  int frames = -1;
-  int every = 0;
-  bool retry = false;
-  bool check_registration = false;
-  int png_compression = 1;
-  app.add_flag("--list", list, "List V4L2 nodes and OpenNI2 devices with their modes");
-  app.add_option("--source", spec,
-                 "Source: openni2[:URI], v4l2:color=DEV,depth=DEV[,...], tum:DIR, synth:...");
-  app.add_option("--config", config,
-                 "Camera config: mode and intrinsics (v4l2: also the depth imager, e.g. "
-                 "configs/realsense_d435_v4l2.yaml)");
-  app.add_option("--frames", frames, "Frames to read (default 10; with --record 0 = until Ctrl-C)")
-      ->check(CLI::NonNegativeNumber);
-  app.add_option("--record", record, "Record to this folder in the TUM layout");
-  app.add_option("--every", every,
-                 "Print every K-th frame (default: every frame, 1 per second when recording)")
-      ->check(CLI::NonNegativeNumber);
-  app.add_flag("--retry", retry, "Reopen a live camera that goes away (backoff 0.5 s .. 8 s)");
-  app.add_option("--png-compression", png_compression, "PNG level 0..9 for --record")
-      ->check(CLI::Range(0, 9))
-      ->capture_default_str();
-  app.add_flag("--check-registration", check_registration,
-               "Score the config's Depth block (depth-to-colour registration) on --frames frames "
-               "(default 15, spread over a recording) against sideways offsets of -50..50 mm");
-  bool check_ground_truth = false;
-  app.add_flag("--check-ground-truth", check_ground_truth,
-               "Tell which camera of the config's rig (Depth block) a recording's ground-truth "
-               "poses give, from its depth alone: the value for the config's Trajectory.camera");
+  CameraArgs args;
+  AddOptions(&app, &args);
   CLI11_PARSE(app, argc, argv);
-
-  if (list) return ListDevices();
-  if (check_ground_truth) {
-    if (spec.empty() || config.empty()) {
-      std::fprintf(stderr, "ccmd_camera: --check-ground-truth needs --source and --config\n");
-      return 2;
-    }
-    return CheckGroundTruth(spec, config);
-  }
-  if (check_registration) {
-    if (spec.empty() || config.empty()) {
-      std::fprintf(stderr, "ccmd_camera: --check-registration needs --source and --config\n");
-      return 2;
-    }
-    return CheckRegistration(spec, config, frames > 0 ? frames : 15);
-  }
-  if (spec.empty()) {
+  if (const std::optional<int> checked = RunCheckModes(args)) return *checked;
+  if (args.spec.empty()) {
     std::fprintf(stderr, "ccmd_camera: give --source SPEC or --list (see --help)\n");
     return 2;
   }
-  if (frames < 0) frames = record.empty() ? 10 : 0;
-  if (frames == 0 && record.empty()) {
+  const int frames = args.frames >= 0 ? args.frames : (args.record.empty() ? 10 : 0);
+  if (frames == 0 && args.record.empty()) {
     std::fprintf(stderr, "ccmd_camera: --frames 0 (until Ctrl-C) needs --record\n");
     return 2;
   }
@@ -406,13 +516,11 @@ int main(int argc, char** argv) {
   });
 
   ccmd::SourceOptions options;
-  options.camera_config = config;
+  options.camera_config = args.config;
   options.configs_dir = ccmd::app::ConfigDir();
-  auto opened = retry ? ccmd::OpenSourceWithRetry(spec, options) : ccmd::OpenSource(spec, options);
-  if (!opened.ok()) {
-    std::fprintf(stderr, "ccmd_camera: %s\n", opened.status().ToString().c_str());
-    return 1;
-  }
+  auto opened = args.retry ? ccmd::OpenSourceWithRetry(args.spec, options)
+                           : ccmd::OpenSource(args.spec, options);
+  if (!opened.ok()) return Fail(opened.status());
   std::unique_ptr<ccmd::RgbdSource> source = std::move(opened).value();
   const ccmd::PinholeCamera& camera = source->camera();
   std::printf("source: %s\n", source->Describe().c_str());
@@ -421,110 +529,30 @@ int main(int argc, char** argv) {
   ccmd::LogOptions("camera", camera);
 
   std::unique_ptr<ccmd::TumRecorder> recorder;
-  if (!record.empty()) {
-    ccmd::TumRecorderOptions recorder_options;
-    recorder_options.png_compression = png_compression;
-    recorder_options.queue_frames = 16;  // PNG encoding off the capture loop
-    recorder_options.writer_threads = 2;
-    // The sensor's depth noise from the config the camera was opened with travels with the
-    // recording, so that it replays without --config as it would with it.
-    ccmd::DepthNoise noise;
-    if (const std::string path = ccmd::SourceConfigPath(spec, options); !path.empty()) {
-      auto file = ccmd::ConfigFile::Open(path);
-      auto read = file.ok() ? ccmd::ReadDepthNoise(*file) : file.status();
-      if (!read.ok()) {
-        std::fprintf(stderr, "ccmd_camera: %s\n", read.status().ToString().c_str());
-        return 1;
-      }
-      noise = *read;
-    }
-    recorder_options.config_keys = ccmd::DepthNoiseConfigKeys(noise);
-    ccmd::LogOptions("record", recorder_options);
-    auto created = ccmd::TumRecorder::Create(record, camera, recorder_options);
-    if (!created.ok()) {
-      std::fprintf(stderr, "ccmd_camera: %s\n", created.status().ToString().c_str());
-      return 1;
-    }
+  if (!args.record.empty()) {
+    auto created = OpenRecorder(args, options, camera);
+    if (!created.ok()) return Fail(created.status());
     recorder = std::move(created).value();
-    std::printf("recording to %s (%s)\n", record.c_str(),
+    std::printf("recording to %s (%s)\n", args.record.c_str(),
                 frames > 0 ? (std::to_string(frames) + " frames").c_str() : "until Ctrl-C");
   }
-  if (every == 0) every = recorder ? std::max(1, static_cast<int>(camera.fps + 0.5)) : 1;
+  const int every = args.every > 0 ? args.every
+                    : recorder     ? std::max(1, static_cast<int>(camera.fps + 0.5))
+                                   : 1;
   std::fflush(stdout);
 
   retrying = dynamic_cast<ccmd::RetryingSource*>(source.get());
-
-  int count = 0;
-  double first_time = 0, last_time = 0;
-  double min_interval = 1e9, max_interval = 0, valid_sum = 0;
   int exit_code = 0;
+  CaptureStats captured;
   const double started = ccmd::MonotonicSeconds();
-  while ((frames == 0 || count < frames) && !watcher.stopped()) {
-    ccmd::RgbdFrame frame;
-    const ccmd::Status status = source->Read(&frame);
-    if (status.code() == ccmd::StatusCode::kEndOfStream) break;
-    if (status.code() == ccmd::StatusCode::kCancelled) break;
-    if (status.code() == ccmd::StatusCode::kUnavailable && retrying.load() != nullptr) continue;
-    if (!status.ok()) {
-      std::fprintf(stderr, "ccmd_camera: %s\n", status.ToString().c_str());
-      exit_code = 1;
-      break;
-    }
-    const DepthStats stats = ComputeDepthStats(frame.depth_mm);
-    const double interval = count > 0 ? frame.timestamp - last_time : 0;
-    if (count == 0) first_time = frame.timestamp;
-    if (count > 0) {
-      min_interval = std::min(min_interval, interval);
-      max_interval = std::max(max_interval, interval);
-    }
-    last_time = frame.timestamp;
-    valid_sum += stats.valid_fraction;
-    if (recorder) {
-      const ccmd::Status written = recorder->Write(frame);
-      if (!written.ok()) {
-        std::fprintf(stderr, "ccmd_camera: %s\n", written.ToString().c_str());
-        exit_code = 1;
-        break;
-      }
-    }
-    if (count % every == 0) {
-      std::printf(
-          "frame %d  t=%.6f s  dt=%5.1f ms  colour %dx%d  depth %dx%d  valid %5.1f%%  "
-          "min %d  median %d  max %d mm\n",
-          count, frame.timestamp, interval * 1e3, frame.bgr.cols, frame.bgr.rows,
-          frame.depth_mm.cols, frame.depth_mm.rows, 100 * stats.valid_fraction, stats.min_mm,
-          stats.median_mm, stats.max_mm);
-      std::fflush(stdout);
-    }
-    ++count;
+  if (ccmd::Status s =
+          Capture(frames, every, source.get(), retrying, watcher, recorder.get(), &captured);
+      !s.ok()) {
+    std::fprintf(stderr, "ccmd_camera: %s\n", s.ToString().c_str());
+    exit_code = 1;
   }
-
-  const double span = last_time - first_time;
-  std::printf("%d frames over %.3f s of device time (%.3f s wall)", count, span,
-              ccmd::MonotonicSeconds() - started);
-  if (count > 1 && span > 0) {
-    std::printf(": %.2f fps, intervals %.1f..%.1f ms", (count - 1) / span, min_interval * 1e3,
-                max_interval * 1e3);
-  }
-  if (count > 0) std::printf(", depth valid %.1f%% on average", 100 * valid_sum / count);
-  std::printf("%s\n", watcher.stopped() ? " (stopped by signal)" : "");
-  if (recorder) {
-    if (!source->GroundTruth().empty()) {
-      const ccmd::Status gt = recorder->WriteGroundTruth(source->GroundTruth());
-      if (!gt.ok()) std::fprintf(stderr, "ccmd_camera: %s\n", gt.ToString().c_str());
-    }
-    const ccmd::Status closed = recorder->Close();
-    if (!closed.ok()) {
-      std::fprintf(stderr, "ccmd_camera: %s\n", closed.ToString().c_str());
-      exit_code = 1;
-    }
-    std::printf("recorded %ld frames to %s", recorder->frames_written(), record.c_str());
-    if (recorder->clipped_depth_pixels() > 0) {
-      std::printf(" (%ld depth pixels beyond the file range stored as 0)",
-                  recorder->clipped_depth_pixels());
-    }
-    std::printf("; replay with --source tum:%s\n", record.c_str());
-  }
+  PrintCaptureSummary(captured, ccmd::MonotonicSeconds() - started, watcher.stopped());
+  if (recorder && !CloseRecorder(recorder.get(), *source, args.record)) exit_code = 1;
   retrying = nullptr;  // the source goes before the watcher
   return exit_code;
 }
