@@ -547,10 +547,8 @@ int main(int argc, char** argv) {
   const double started = ccmd::MonotonicSeconds();
   if (ccmd::Status s =
           Capture(frames, every, source.get(), retrying, watcher, recorder.get(), &captured);
-      !s.ok()) {
-    std::fprintf(stderr, "ccmd_camera: %s\n", s.ToString().c_str());
-    exit_code = 1;
-  }
+      !s.ok())
+    exit_code = Fail(s);
   PrintCaptureSummary(captured, ccmd::MonotonicSeconds() - started, watcher.stopped());
   if (recorder && !CloseRecorder(recorder.get(), *source, args.record)) exit_code = 1;
   retrying = nullptr;  // the source goes before the watcher

@@ -5,7 +5,9 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <optional>
 #include <set>
+#include <utility>
 
 #include "libccmd/eval/trajectory_error.h"
 #include "libccmd/io/tum_dataset.h"
@@ -31,8 +33,11 @@ struct RunResult {
   Collector sink;
 };
 
+// `blank`: frames [first, last] with their colour made one flat grey, as a camera facing a
+// blank wall or smeared by a fast turn records them: no features, depth intact.
 void RunSequence(int frames, const TrackingOptions& options, RunResult* out,
-                 bool sensor_noise = true) {
+                 bool sensor_noise = true,
+                 std::optional<std::pair<int, int>> blank = std::nullopt) {
   SyntheticSequenceOptions synth;
   synth.frames = frames;
   synth.seed = 1;
@@ -41,7 +46,11 @@ void RunSequence(int frames, const TrackingOptions& options, RunResult* out,
   auto frontend = Frontend::Create(source.camera(), options, &out->sink);
   ASSERT_TRUE(frontend.ok()) << frontend.status().ToString();
   RgbdFrame frame;
-  while (source.Read(&frame).ok()) (*frontend)->ProcessFrame(frame);
+  for (int i = 0; source.Read(&frame).ok(); ++i) {
+    if (blank && i >= blank->first && i <= blank->second)
+      frame.bgr.setTo(cv::Scalar(128, 128, 128));
+    (*frontend)->ProcessFrame(frame);
+  }
   (*frontend)->Finish();
   out->trajectory = (*frontend)->FrameTrajectory();
   out->keyframe_trajectory = (*frontend)->KeyframeTrajectory();
@@ -102,28 +111,6 @@ TEST(FrontendTest, TracksThroughMotionBlur) {
   EXPECT_LT(ate->error.rmse, 0.01);
 }
 
-// Frames [first, last] of the synthetic room with their colour made one flat grey, as a camera
-// facing a blank wall or smeared by a fast turn records it: no features, depth intact.
-void RunWithBlankStretch(int frames, int first, int last, const TrackingOptions& options,
-                         RunResult* out, bool sensor_noise) {
-  SyntheticSequenceOptions synth;
-  synth.frames = frames;
-  synth.seed = 1;
-  synth.noise = sensor_noise;
-  SyntheticSource source(synth);
-  auto frontend = Frontend::Create(source.camera(), options, &out->sink);
-  ASSERT_TRUE(frontend.ok()) << frontend.status().ToString();
-  RgbdFrame frame;
-  for (int i = 0; source.Read(&frame).ok(); ++i) {
-    if (i >= first && i <= last) frame.bgr.setTo(cv::Scalar(128, 128, 128));
-    (*frontend)->ProcessFrame(frame);
-  }
-  (*frontend)->Finish();
-  out->trajectory = (*frontend)->FrameTrajectory();
-  out->ground_truth = source.GroundTruth();
-  out->stats = (*frontend)->stats();
-}
-
 // Two thirds of a second without features (frames 12-31), on exact depth: the room's depth
 // places each of those frames against the newest keyframe's, or the frame before's where the
 // view has left the keyframe, and when the colour comes back the local map is found again from
@@ -136,9 +123,9 @@ TEST(FrontendTest, DepthCarriesTrackingThroughFramesWithoutFeatures) {
   TrackingOptions without = with;
   without.depth_bridge_seconds = 0;
   RunResult bridged, lost;
-  RunWithBlankStretch(kFrames, kFirst, kFirst + kBlank - 1, with, &bridged, /*sensor_noise=*/false);
-  RunWithBlankStretch(kFrames, kFirst, kFirst + kBlank - 1, without, &lost,
-                      /*sensor_noise=*/false);
+  const std::pair<int, int> blank{kFirst, kFirst + kBlank - 1};
+  RunSequence(kFrames, with, &bridged, /*sensor_noise=*/false, blank);
+  RunSequence(kFrames, without, &lost, /*sensor_noise=*/false, blank);
   EXPECT_GE(lost.stats.lost_frames, kBlank);
   EXPECT_EQ(lost.stats.depth_only_frames, 0);
   EXPECT_EQ(bridged.stats.lost_frames, 0);
@@ -158,7 +145,7 @@ TEST(FrontendTest, DepthAloneDoesNotPlaceAFrameOnAPlanarView) {
   options.depth_noise.sigma_2 = 0;
   RunResult r;
   // Frame 60 looks at a wall and a strip of floor (depth alignment conditioning 0.0005).
-  RunWithBlankStretch(90, 60, 69, options, &r, /*sensor_noise=*/false);
+  RunSequence(90, options, &r, /*sensor_noise=*/false, std::make_pair(60, 69));
   EXPECT_EQ(r.stats.depth_only_frames, 0);
   EXPECT_GE(r.stats.lost_frames, 10);
 }
