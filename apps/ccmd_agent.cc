@@ -417,8 +417,8 @@ int FinishLink(const AgentArgs& a, ccmd::AgentLink* link, const ccmd::LinkSink& 
   return kExitMessagesLost;
 }
 
-void PrintSummary(const ccmd::FrontendStats& stats, double seconds, double cores,
-                  double cpu_budget) {
+void PrintSummary(const ccmd::FrontendStats& stats, double seconds, double cores, double cpu_budget,
+                  long dropped_frames) {
   std::printf(
       "%d frames in %.1f s (%.1f fps, %.2f CPU cores), %d tracked, %d lost, %d keyframes (%d in "
       "map), "
@@ -426,6 +426,10 @@ void PrintSummary(const ccmd::FrontendStats& stats, double seconds, double cores
       stats.frames, seconds, stats.frames / std::max(seconds, 1e-9), cores, stats.tracked_frames,
       stats.lost_frames, stats.keyframes, stats.map_keyframes, stats.map_points);
   const ccmd::MappingStats& m = stats.mapping;
+  if (dropped_frames > 0) {
+    std::printf("frames dropped by the source as damaged or unreadable: %ld (see the log)\n",
+                dropped_frames);
+  }
   if (stats.depth_only_frames > 0) {
     std::printf("%d of the tracked frames were placed by their depth alone (too few features)\n",
                 stats.depth_only_frames);
@@ -532,7 +536,9 @@ int main(int argc, char** argv) {
   ccmd::CpuPacer pacer(source->IsLive() ? 0.0 : tracking.cpu_budget);
   const ccmd::Status ran = RunFrames(a, source.get(), recorder.get(), frontend->get(), sink.get(),
                                      link.get(), wall, &pacer);
-  if (!ran.ok()) return Fail(ran.ToString());
+  // What was tracked before an error is still sent, summarised and written; the exit status
+  // then says the run did not end as it should.
+  if (!ran.ok()) Fail(ran.ToString() + " (stopped there; finishing with the frames read before)");
   (*frontend)->Finish();
   ccmd::Json link_json;
   const int exit_code = link ? FinishLink(a, link.get(), *sink, &link_json) : 0;
@@ -547,7 +553,7 @@ int main(int argc, char** argv) {
   const double seconds = wall.ElapsedSeconds();
   const double cores = (ccmd::ProcessCpuTimeSeconds() - cpu_start) / std::max(seconds, 1e-9);
   const ccmd::FrontendStats stats = (*frontend)->stats();
-  PrintSummary(stats, seconds, cores, tracking.cpu_budget);
+  PrintSummary(stats, seconds, cores, tracking.cpu_budget, source->DroppedFrames());
   if (const ccmd::Status s = WriteTrajectories(a, frontend->get(), T_color_trajectory); !s.ok())
     return Fail(s.ToString());
   if (!a.stats_path.empty()) {
@@ -556,9 +562,10 @@ int main(int argc, char** argv) {
     json["synchronous_mapping"] = tracking.synchronous_mapping;
     json["cpu_cores_used"] = cores;
     json["paced_ms"] = pacer.paced_ms();
+    json["dropped_frames"] = source->DroppedFrames();
     if (link) json["link"] = link_json;
     const ccmd::Status s = ccmd::WriteJsonFile(json, a.stats_path);
     if (!s.ok()) return Fail(s.ToString());
   }
-  return exit_code;
+  return ran.ok() ? exit_code : 1;
 }

@@ -1,6 +1,17 @@
 #include "libccmd/sensors/dataset_source.h"
 
+#include <algorithm>
+
+#include "libccmd/util/logging.h"
+
 namespace ccmd {
+namespace {
+
+// Unreadable frames in a row before a recording counts as unreadable: as for a camera, a few
+// seconds' worth (sensors/v4l2_source.cc).
+constexpr double kMaxDroppedInARowSeconds = 3;
+
+}  // namespace
 
 StatusOr<std::unique_ptr<DatasetSource>> DatasetSource::Open(
     const std::string& folder, const std::optional<PinholeCamera>& camera,
@@ -15,13 +26,33 @@ StatusOr<std::unique_ptr<DatasetSource>> DatasetSource::Open(
   return std::unique_ptr<DatasetSource>(new DatasetSource(std::move(sequence), r));
 }
 
+// A frame whose files cannot be read (missing, truncated, another format) is dropped, as a
+// camera drops a damaged frame: the frames before and after it are still the recording.
 Status DatasetSource::Read(RgbdFrame* frame) {
-  if (next_ > range_.last) return EndOfStream();
-  auto loaded = sequence_.LoadFrame(static_cast<std::size_t>(next_));
-  if (!loaded.ok()) return loaded.status();
-  *frame = std::move(loaded).value();
-  ++next_;
-  return Status::Ok();
+  const int max_in_a_row =
+      static_cast<int>(kMaxDroppedInARowSeconds * std::max(1.0, sequence_.camera().fps));
+  for (int in_a_row = 0;;) {
+    if (next_ > range_.last) {
+      if (delivered_ > 0 || dropped_ == 0) return EndOfStream();
+      return Corrupt("none of the " + std::to_string(range_.size()) + " frames of " +
+                     sequence_.folder() + " could be read; the last: " + last_error_);
+    }
+    const int i = next_++;
+    auto loaded = sequence_.LoadFrame(static_cast<std::size_t>(i));
+    if (loaded.ok()) {
+      *frame = std::move(loaded).value();
+      ++delivered_;
+      return Status::Ok();
+    }
+    ++dropped_;
+    last_error_ = loaded.status().message();
+    CCMD_LOG(WARNING) << "dropping frame " << i << ": " << last_error_;
+    if (++in_a_row >= max_in_a_row) {
+      return Corrupt("frames " + std::to_string(i - in_a_row + 1) + "-" + std::to_string(i) +
+                     " of " + sequence_.folder() + " (" + std::to_string(in_a_row) +
+                     " in a row) could not be read; the last: " + last_error_);
+    }
+  }
 }
 
 std::string DatasetSource::Describe() const {

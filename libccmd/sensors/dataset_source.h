@@ -17,11 +17,14 @@ class DatasetSource : public RgbdSource {
                                                        std::optional<FrameRange> range = {},
                                                        const TumOptions& options = {});
 
+  // Drops frames whose files cannot be read (counted in DroppedFrames()); Corrupt after 3 s of
+  // them in a row, or when none of the range could be read.
   Status Read(RgbdFrame* frame) override;
   const PinholeCamera& camera() const override { return sequence_.camera(); }
   std::string Describe() const override;
   int FrameCount() const override { return range_.size(); }
   Trajectory GroundTruth() const override;
+  long DroppedFrames() const override { return dropped_; }
 
   const TumSequence& sequence() const { return sequence_; }
   const FrameRange& range() const { return range_; }
@@ -32,6 +35,8 @@ class DatasetSource : public RgbdSource {
   TumSequence sequence_;
   FrameRange range_;
   int next_;
+  long delivered_ = 0, dropped_ = 0;
+  std::string last_error_;
 };
 
 }  // namespace ccmd

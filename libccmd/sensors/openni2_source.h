@@ -59,6 +59,7 @@ class OpenNI2Source : public RgbdSource {
     long damaged_dropped = 0;
   };
   const Stats& stats() const { return stats_; }
+  long DroppedFrames() const override { return stats_.damaged_dropped + stats_.unpaired_dropped; }
 
  private:
   struct Impl;

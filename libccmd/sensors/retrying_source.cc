@@ -170,6 +170,7 @@ Status RetryingSource::Read(RgbdFrame* frame) {
 
   const Status status = inner_->Read(frame);
   if (status.code() == StatusCode::kUnavailable) {
+    dropped_before_ += inner_->DroppedFrames();
     inner_.reset();  // closes the device now, so it can be reopened (or replugged)
     lost_at_ = hooks_.now();
     RetryEvent event{RetryEvent::Kind::kLost, 0, BackoffDelay(options_, 0), 0, status};

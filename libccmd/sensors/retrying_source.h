@@ -79,6 +79,9 @@ class RetryingSource : public RgbdSource {
   bool IsLive() const override { return live_; }
   Trajectory GroundTruth() const override;
   Pose T_color_trajectory() const override { return T_color_trajectory_; }  // the first open's
+  long DroppedFrames() const override {
+    return dropped_before_ + (inner_ ? inner_->DroppedFrames() : 0);
+  }
 
   // Ends a wait in progress (from another thread, e.g. on shutdown): that Read and every
   // later one returns Cancelled.
@@ -108,6 +111,7 @@ class RetryingSource : public RgbdSource {
   int failed_attempts_ = 0;
   int reconnects_ = 0;
   double lost_at_ = 0;
+  long dropped_before_ = 0;  // by the devices opened before the current one
   Status gave_up_;
 
   int next_index_ = 0;

@@ -20,7 +20,12 @@ class RgbdSource {
 
   // Reads the next frame. Returns EndOfStream after the last frame, Unavailable for a
   // transient failure the caller may retry (e.g. a camera unplugged), other errors otherwise.
+  // A damaged frame (a truncated image, a short buffer) is dropped, not returned as an error.
   virtual Status Read(RgbdFrame* frame) = 0;
+
+  // Frames dropped so far as damaged or unreadable (a camera's also those left without a
+  // partner from the other stream).
+  virtual long DroppedFrames() const { return 0; }
 
   // Intrinsics of the depth image (colour is registered to it, possibly at a higher size).
   virtual const PinholeCamera& camera() const = 0;

@@ -68,6 +68,7 @@ class ConfiguredSource : public RgbdSource {
   int FrameCount() const override { return inner_->FrameCount(); }
   bool IsLive() const override { return inner_->IsLive(); }
   Trajectory GroundTruth() const override { return inner_->GroundTruth(); }
+  long DroppedFrames() const override { return inner_->DroppedFrames(); }
   Pose T_color_trajectory() const override { return T_color_trajectory_; }
 
  private:

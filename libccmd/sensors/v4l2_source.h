@@ -71,6 +71,7 @@ class V4l2Source : public RgbdSource {
     long driver_gaps = 0;       // frames the driver skipped (sequence-number gaps)
   };
   const Stats& stats() const { return stats_; }
+  long DroppedFrames() const override { return stats_.damaged_dropped + stats_.unpaired_dropped; }
 
  private:
   struct Stream {

@@ -72,7 +72,13 @@ StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset,
   int added = 0;
   for (std::size_t i = options.first; i < dataset.size(); i += options.stride) {
     if (!dataset.frame(i).T_world_cam_gt) continue;
-    CCMD_ASSIGN_OR_RETURN(RgbdFrame frame, dataset.LoadFrame(i));
+    auto loaded = dataset.LoadFrame(i);
+    if (!loaded.ok()) {  // as the agents did, the reference does without a damaged frame
+      CCMD_LOG(WARNING) << "reference cloud: frame " << i
+                        << " left out: " << loaded.status().message();
+      continue;
+    }
+    RgbdFrame frame = std::move(loaded).value();
     DenseKeyframe kf;
     kf.id = {AgentId(1), KeyframeId(static_cast<std::uint32_t>(i))};
     kf.T_world_cam = *dataset.frame(i).T_world_cam_gt * options.T_color_trajectory.inverse();

@@ -169,6 +169,49 @@ TEST(AgentCliTest, OfflineRunWritesTrajectoryStatsAndRecording) {
   EXPECT_EQ(cv::norm(live.bgr, first->bgr, cv::NORM_INF), 0);
 }
 
+// A recording with a damaged frame is mapped without it; one that becomes unreadable for good
+// stops the run with an error, and what was tracked until then is still written.
+TEST(AgentCliTest, DamagedFramesOfARecordingCostOnlyThemselves) {
+  testing::TempDir dir;
+  std::string out;
+  ASSERT_EQ(
+      RunCommand(ProgramPath("ccmd_synth") + " --out " + dir.File("seq") + " --frames 40", &out), 0)
+      << out;
+  auto sequence = TumSequence::Open(dir.File("seq"), std::nullopt);
+  ASSERT_TRUE(sequence.ok()) << sequence.status().ToString();
+  ASSERT_TRUE(WriteFileAtomic(sequence->frame(20).rgb_path, "truncated").ok());
+  const std::string agent = ProgramPath("ccmd_agent") + " --source tum:" + dir.File("seq") +
+                            " --offline --trajectory " + dir.File("t.txt") + " --stats " +
+                            dir.File("s.json");
+  ASSERT_EQ(RunCommand(agent, &out), 0) << out;
+  EXPECT_NE(out.find("damaged or unreadable: 1 "), std::string::npos) << out;
+  auto stats = ReadJsonFile(dir.File("s.json"));
+  ASSERT_TRUE(stats.ok()) << out;
+  EXPECT_EQ(stats->Get("dropped_frames")->number(), 1);
+  EXPECT_EQ(stats->Get("lost_frames")->number(), 0);
+  auto trajectory = ReadTumTrajectory(dir.File("t.txt"));
+  ASSERT_TRUE(trajectory.ok());
+  EXPECT_EQ(trajectory->size(), 39u);
+  auto ate = ComputeAte(*ReadTumTrajectory(dir.File("seq/groundtruth.txt")), *trajectory);
+  ASSERT_TRUE(ate.ok());
+  EXPECT_LT(ate->error.rmse, 0.01);
+
+  // From frame 25 on every depth image is gone: at 5 frames/s, three seconds of them.
+  for (int i = 25; i < 40; ++i) std::remove(sequence->frame(i).depth_path.c_str());
+  auto camera = ReadFileToString(dir.File("seq/camera.yaml"));
+  ASSERT_TRUE(camera.ok());
+  const std::size_t at = camera->find("Camera.fps: 30");
+  ASSERT_NE(at, std::string::npos);
+  ASSERT_TRUE(
+      WriteFileAtomic(dir.File("seq/camera.yaml"), camera->replace(at, 14, "Camera.fps: 5")).ok());
+  std::remove(dir.File("t.txt").c_str());
+  EXPECT_EQ(RunCommand(agent, &out), 1) << out;
+  EXPECT_NE(out.find("frames 25-39"), std::string::npos) << out;
+  trajectory = ReadTumTrajectory(dir.File("t.txt"));
+  ASSERT_TRUE(trajectory.ok()) << out;
+  EXPECT_EQ(trajectory->size(), 24u);  // 0-24 but 20
+}
+
 // --rgbd-every-keyframe turns the covisibility selection off: every keyframe's decision is
 // "transmit", where the default skips views that transmitted keyframes already cover.
 TEST(AgentCliTest, RgbdEveryKeyframeOverridesTheSelection) {

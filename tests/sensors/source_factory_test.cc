@@ -2,9 +2,12 @@
 
 #include <gtest/gtest.h>
 
+#include <cstdio>
+
 #include <opencv2/core.hpp>
 
 #include "libccmd/io/config.h"
+#include "libccmd/io/tum_dataset.h"
 #include "libccmd/sensors/depth_registration.h"
 #include "libccmd/synth/renderer.h"
 #include "libccmd/synth/sequence.h"
@@ -220,6 +223,70 @@ TEST(SourceFactoryTest, GroundTruthOfTheDepthCameraNamesItsCamera) {
              colour_path[1].T_world_cam.translation())
                 .norm(),
             1e-5);
+}
+
+// The files of frame i: its colour image made unreadable, or its depth image removed.
+void DamageColour(const TumSequence& sequence, int i) {
+  ASSERT_TRUE(WriteFileAtomic(sequence.frame(i).rgb_path, "not an image").ok());
+}
+void RemoveDepth(const TumSequence& sequence, int i) {
+  ASSERT_EQ(std::remove(sequence.frame(i).depth_path.c_str()), 0);
+}
+
+// A recording with a damaged frame is still the recording: the frame is dropped, as a camera
+// drops one, and counted; the frames after it come as they would have.
+TEST(SourceFactoryTest, ARecordingDropsItsUnreadableFramesAndGoesOn) {
+  testing::TempDir dir;
+  ASSERT_TRUE(WriteSmallSequence(dir.path(), 8).ok());
+  auto sequence = TumSequence::Open(dir.path(), std::nullopt);
+  ASSERT_TRUE(sequence.ok()) << sequence.status().ToString();
+  DamageColour(*sequence, 2);
+  RemoveDepth(*sequence, 5);
+  RemoveDepth(*sequence, 6);
+  auto source = OpenSource("tum:" + dir.path(), SourceOptions());
+  ASSERT_TRUE(source.ok()) << source.status().ToString();
+  std::vector<int> read;
+  RgbdFrame frame;
+  Status status;
+  while ((status = (*source)->Read(&frame)).ok()) {
+    EXPECT_FALSE(frame.bgr.empty());
+    EXPECT_FALSE(frame.depth_mm.empty());
+    read.push_back(frame.index);
+  }
+  EXPECT_EQ(status.code(), StatusCode::kEndOfStream) << status.ToString();
+  EXPECT_EQ(read, (std::vector<int>{0, 1, 3, 4, 7}));
+  EXPECT_EQ((*source)->DroppedFrames(), 3);
+}
+
+// Unreadable for three seconds of frames in a row, or throughout, a recording is an error
+// that names its frames and why, not an empty run.
+TEST(SourceFactoryTest, ARecordingThatCannotBeReadIsAnError) {
+  testing::TempDir dir;
+  ASSERT_TRUE(WriteSmallSequence(dir.path(), 100).ok());  // 30 frames/s
+  auto sequence = TumSequence::Open(dir.path(), std::nullopt);
+  ASSERT_TRUE(sequence.ok()) << sequence.status().ToString();
+  for (int i = 3; i < 100; ++i) RemoveDepth(*sequence, i);
+  auto source = OpenSource("tum:" + dir.path(), SourceOptions());
+  ASSERT_TRUE(source.ok()) << source.status().ToString();
+  RgbdFrame frame;
+  for (int i = 0; i < 3; ++i) ASSERT_TRUE((*source)->Read(&frame).ok());
+  const Status gave_up = (*source)->Read(&frame);
+  EXPECT_EQ(gave_up.code(), StatusCode::kCorrupt);
+  EXPECT_NE(gave_up.message().find("frames 3-92"), std::string::npos) << gave_up.ToString();
+  EXPECT_NE(gave_up.message().find(sequence->frame(92).depth_path), std::string::npos)
+      << gave_up.ToString();
+  EXPECT_EQ((*source)->DroppedFrames(), 90);
+
+  testing::TempDir short_dir;
+  ASSERT_TRUE(WriteSmallSequence(short_dir.path(), 6).ok());
+  auto short_sequence = TumSequence::Open(short_dir.path(), std::nullopt);
+  ASSERT_TRUE(short_sequence.ok());
+  for (int i = 0; i < 6; ++i) DamageColour(*short_sequence, i);
+  auto unreadable = OpenSource("tum:" + short_dir.path(), SourceOptions());
+  ASSERT_TRUE(unreadable.ok()) << unreadable.status().ToString();
+  const Status none = (*unreadable)->Read(&frame);
+  EXPECT_EQ(none.code(), StatusCode::kCorrupt);
+  EXPECT_NE(none.message().find("none of the 6 frames"), std::string::npos) << none.ToString();
 }
 
 TEST(SourceFactoryTest, BadSpecsAreExplained) {
