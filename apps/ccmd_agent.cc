@@ -478,7 +478,11 @@ int main(int argc, char** argv) {
   CLI11_PARSE(app, argc, argv);
   a.depth_bound_given = app.count("--depth-bound") > 0;
   a.cpu_budget_given = app.count("--cpu-budget") > 0;
-  ccmd::ConfigureAllocatorForLongRuns();  // resident memory that follows the live data
+  // The agent keeps glibc's own mmap threshold (the server fixes it, ccmd_server.cc): its
+  // working set is the same few image-sized buffers every frame, which the heap reuses, where
+  // a fixed 128 kB threshold mapped and faulted in fresh pages for each of them, every frame
+  // (half the frame rate); its resident size stays flat either way
+  // (docs/benchmarks/frontend.md#the-allocator).
 
   if (!a.offline && a.server.empty()) {
     return Fail("give --server HOST:PORT, or --offline to run without a server");

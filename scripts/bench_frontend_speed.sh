@@ -11,6 +11,8 @@
 #   scripts/bench_frontend_speed.sh --cpu-budget 0           no CPU budget (default: 1 core, as ccmd_agent)
 #   scripts/bench_frontend_speed.sh --only 7scenes           one sequence (7scenes, icl, synthetic, tum)
 #   scripts/bench_frontend_speed.sh --keep DIR               keep each run's JSON and log in DIR
+#   scripts/bench_frontend_speed.sh --agent                  ccmd_agent --offline instead: frames
+#                                                            read from disk, the process as users run it
 #
 # A build without --cpu-budget (older than it) runs without one. Sequences missing from
 # ../shared/datasets are skipped with a notice.
@@ -23,6 +25,7 @@ RUNS=1
 BUDGET=1.0
 ONLY=""
 KEEP=""
+AGENT=""
 DATA=../shared/datasets
 while (($#)); do
   case "$1" in
@@ -32,13 +35,16 @@ while (($#)); do
     --cpu-budget) BUDGET=$2; shift ;;
     --only) ONLY=$2; shift ;;
     --keep) KEEP=$2; shift ;;
-    -h|--help) sed -n '2,17p' "$0"; exit 0 ;;
+    --agent) AGENT=1 ;;
+    -h|--help) sed -n '2,19p' "$0"; exit 0 ;;
     *) echo "bench_frontend_speed.sh: unknown option $1" >&2; exit 2 ;;
   esac
   shift
 done
+program=ccmd_frontend_bench
+[ -n "$AGENT" ] && program=ccmd_agent
 for dir in "$BIN" $BASELINE; do
-  [ -x "$dir/ccmd_frontend_bench" ] || { echo "bench_frontend_speed.sh: no $dir/ccmd_frontend_bench" >&2; exit 1; }
+  [ -x "$dir/$program" ] || { echo "bench_frontend_speed.sh: no $dir/$program" >&2; exit 1; }
 done
 
 work=$(mktemp -d)
@@ -75,11 +81,25 @@ for entry in "${sequences[@]}"; do
     for build in "${builds[@]}"; do
       bin=$BIN
       [ "$build" = before ] && bin=$BASELINE
-      args=(--source "$source" --skip-baseline --json "$work/r.json")
+      if [ -n "$AGENT" ]; then
+        args=(--source "$source" --offline --stats "$work/r.json" --trajectory "$work/t.txt")
+      else
+        args=(--source "$source" --skip-baseline --json "$work/r.json")
+      fi
       [ -n "$config" ] && args+=(--config "$config")
-      "$bin/ccmd_frontend_bench" --help | grep -q -- --cpu-budget && args+=(--cpu-budget "$BUDGET")
-      "$bin/ccmd_frontend_bench" "${args[@]}" >"$work/r.log" 2>&1 ||
+      "$bin/$program" --help | grep -q -- --cpu-budget && args+=(--cpu-budget "$BUDGET")
+      "$bin/$program" "${args[@]}" >"$work/r.log" 2>&1 ||
         { echo "$name $build run $run failed:" >&2; cat "$work/r.log" >&2; exit 1; }
+      ate_json=$work/r.json
+      if [ -n "$AGENT" ]; then  # the agent does not evaluate itself: its ATE where there is a ground truth
+        ate_json=$work/ate.json
+        rm -f "$ate_json"
+        if [ -f "${source#tum:}/groundtruth.txt" ]; then
+          "$bin/ccmd_eval" ate --gt "${source#tum:}/groundtruth.txt" --est "$work/t.txt" \
+            --json "$ate_json" >/dev/null 2>&1 || true
+        fi
+        [ -f "$ate_json" ] || echo '{}' >"$ate_json"
+      fi
       if [ -n "$KEEP" ]; then
         cp "$work/r.json" "$KEEP/$name-$build-$run.json"
         cp "$work/r.log" "$KEEP/$name-$build-$run.log"
@@ -90,11 +110,11 @@ for entry in "${sequences[@]}"; do
         -v cores="$(field "$j" cpu_cores_used)" -v extract="$(field "$j" extract_ms_mean)" \
         -v track="$(field "$j" track_ms_mean)" -v map="$(field "$j" mapping_ms_mean)" \
         -v ba="$(field "$j" local_ba_ms_mean)" -v ba_n="$(field "$j" local_ba_runs)" \
-        -v ate="$(field "$j" ate_rmse_m)" 'BEGIN {
+        -v ate="$(field "$ate_json" ate_rmse_m)" 'BEGIN {
         cpu = (fps > 0) ? 1000 * cores / fps : 0  # CPU milliseconds per frame, all threads
-        printf "%-9s %-8s %3d %6d %5d %4d %6.1f %5.2f %7.1f %7.2f %7.2f %7.2f %8.1f %8.1f %5s %8.2f\n",
+        printf "%-9s %-8s %3d %6d %5d %4d %6.1f %5.2f %7.1f %7.2f %7.2f %7.2f %8.1f %8.1f %5s %8s\n",
           name, build, run, frames, tracked, kf, fps, cores, cpu, extract, track, extract + track, map, ba, ba_n,
-          1000 * ate
+          (ate == "-") ? "-" : sprintf("%.2f", 1000 * ate)
       }'
     done
   done

@@ -23,7 +23,9 @@ void ReleaseFreeMemory();
 // of a heap is returned once it exceeds `trim_threshold_bytes`. glibc otherwise raises its
 // mmap threshold to the largest block freed so far (up to 32 MB), after which decoded images,
 // clouds and solver workspaces are carved from the per-thread heaps, which fragment and keep
-// growing while the live data stays bounded. No-op where the allocator is not glibc's.
+// growing while the live data stays bounded. The price is a page fault per page of every such
+// block: a process that allocates the same image-sized buffers every frame (the agent) runs at
+// half speed with it and does not need it. No-op where the allocator is not glibc's.
 void ConfigureAllocatorForLongRuns(long mmap_threshold_bytes = 128 * 1024,
                                    long trim_threshold_bytes = 1024 * 1024);
 
