@@ -430,7 +430,7 @@ ccmd::Status Capture(int frames, int every, ccmd::RgbdSource* source,
   return ccmd::Status::Ok();
 }
 
-void PrintCaptureSummary(const CaptureStats& c, double wall_seconds, bool stopped) {
+void PrintCaptureSummary(const CaptureStats& c, double wall_seconds, bool stopped, long dropped) {
   const double span = c.last_time - c.first_time;
   std::printf("%d frames over %.3f s of device time (%.3f s wall)", c.count, span, wall_seconds);
   if (c.count > 1 && span > 0) {
@@ -439,6 +439,9 @@ void PrintCaptureSummary(const CaptureStats& c, double wall_seconds, bool stoppe
   }
   if (c.count > 0) std::printf(", depth valid %.1f%% on average", 100 * c.valid_sum / c.count);
   std::printf("%s\n", stopped ? " (stopped by signal)" : "");
+  if (dropped > 0) {
+    std::printf("frames dropped by the source as damaged, unreadable or unpaired: %ld\n", dropped);
+  }
 }
 
 // Writes the recording's ground truth (a replayed dataset's) and closes it; false when the
@@ -549,7 +552,8 @@ int main(int argc, char** argv) {
           Capture(frames, every, source.get(), retrying, watcher, recorder.get(), &captured);
       !s.ok())
     exit_code = Fail(s);
-  PrintCaptureSummary(captured, ccmd::MonotonicSeconds() - started, watcher.stopped());
+  PrintCaptureSummary(captured, ccmd::MonotonicSeconds() - started, watcher.stopped(),
+                      source->DroppedFrames());
   if (recorder && !CloseRecorder(recorder.get(), *source, args.record)) exit_code = 1;
   retrying = nullptr;  // the source goes before the watcher
   return exit_code;

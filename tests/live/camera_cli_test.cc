@@ -92,6 +92,29 @@ TEST(CameraCliTest, RecordingReplaysFrameForFrame) {
   EXPECT_EQ(sequence->GroundTruthAtFrames().size(), 4u);
 }
 
+// Re-recording a recording with a damaged frame: the frame is dropped and counted, the others
+// are recorded as they were.
+TEST(CameraCliTest, ADamagedFrameIsDroppedAndCounted) {
+  testing::TempDir dir;
+  std::string output;
+  ASSERT_EQ(
+      RunCamera("--source synth:frames=4,width=64,height=48 --frames 4 --record " + dir.File("rec"),
+                &output),
+      0)
+      << output;
+  auto sequence = TumSequence::Open(dir.File("rec"), std::nullopt);
+  ASSERT_TRUE(sequence.ok()) << sequence.status().ToString();
+  ASSERT_EQ(std::remove(sequence->frame(2).depth_path.c_str()), 0);
+  ASSERT_EQ(
+      RunCamera("--source tum:" + dir.File("rec") + " --frames 4 --record " + dir.File("again"),
+                &output),
+      0)
+      << output;
+  EXPECT_NE(output.find("damaged, unreadable or unpaired: 1"), std::string::npos) << output;
+  EXPECT_NE(output.find("recorded 3 frames"), std::string::npos) << output;
+  EXPECT_EQ(CountListed(dir.File("again/depth.txt")), 3);
+}
+
 // A recording carries the depth noise of the config its camera was opened with (a D435's,
 // here), so that replaying the folder without --config tracks with the same sensor model:
 // before, its camera.yaml held the camera only, and the replay fell back to a Kinect's noise.
