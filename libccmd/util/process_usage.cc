@@ -24,6 +24,7 @@ ProcessUsage CurrentProcessUsage() {
     usage.cpu_seconds = self.ru_utime.tv_sec + self.ru_utime.tv_usec * 1e-6 + self.ru_stime.tv_sec +
                         self.ru_stime.tv_usec * 1e-6;
     if (usage.peak_rss_mb == 0) usage.peak_rss_mb = self.ru_maxrss / 1024.0;
+    usage.minor_page_faults = self.ru_minflt;
   }
   return usage;
 }

@@ -5,9 +5,10 @@
 namespace ccmd {
 
 struct ProcessUsage {
-  double rss_mb = 0;       // resident memory now
-  double peak_rss_mb = 0;  // the most it has been resident
-  double cpu_seconds = 0;  // user + system, all threads
+  double rss_mb = 0;           // resident memory now
+  double peak_rss_mb = 0;      // the most it has been resident
+  double cpu_seconds = 0;      // user + system, all threads
+  long minor_page_faults = 0;  // pages first touched (or touched again after being unmapped)
 };
 
 // From /proc/self/status and getrusage; zeros where the system does not tell.
