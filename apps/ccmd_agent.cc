@@ -567,8 +567,9 @@ int main(int argc, char** argv) {
     json["cpu_cores_used"] = cores;
     json["paced_ms"] = pacer.paced_ms();
     json["dropped_frames"] = source->DroppedFrames();
-    json["peak_rss_mb"] = ccmd::CurrentProcessUsage().peak_rss_mb;
-    json["minor_page_faults"] = ccmd::CurrentProcessUsage().minor_page_faults;
+    const ccmd::ProcessUsage usage = ccmd::CurrentProcessUsage();
+    json["peak_rss_mb"] = usage.peak_rss_mb;
+    json["minor_page_faults"] = usage.minor_page_faults;
     if (link) json["link"] = link_json;
     const ccmd::Status s = ccmd::WriteJsonFile(json, a.stats_path);
     if (!s.ok()) return Fail(s.ToString());
