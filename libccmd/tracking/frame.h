@@ -3,6 +3,7 @@
 // A frame being tracked: its features (with measured depth per keypoint), the map points
 // matched to them, and its pose.
 
+#include <algorithm>
 #include <memory>
 #include <vector>
 
@@ -38,6 +39,11 @@ struct TrackingFrame {
   void SetPose(const Pose& T_cam_world_new) {
     T_cam_world = T_cam_world_new;
     has_pose = true;
+  }
+  // Forgets every match (and outlier mark) a search left, before a search from scratch.
+  void ClearMatches() {
+    std::fill(points.begin(), points.end(), nullptr);
+    std::fill(outlier.begin(), outlier.end(), false);
   }
 };
 

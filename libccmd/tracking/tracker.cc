@@ -165,8 +165,7 @@ bool Tracker::Initialize(TrackingFrame* frame, const Pose& T_world_cam, bool res
   for (float d : frame->features.depth) with_depth += d > 0;
   if (frame->size() < 300 || with_depth < 100) return false;
   // A failed search may have left matches with the old map's points.
-  std::fill(frame->points.begin(), frame->points.end(), nullptr);
-  std::fill(frame->outlier.begin(), frame->outlier.end(), false);
+  frame->ClearMatches();
   frame->SetPose(T_world_cam.inverse());
   // Started again at the frame after the last tracked one, the pose is as good as tracking's
   // (asked before the new keyframe counts in the segment it leaves).
@@ -279,8 +278,7 @@ bool Tracker::Relocalize() {
   const cv::Mat K =
       (cv::Mat_<double>(3, 3) << camera_.fx, 0, camera_.cx, 0, camera_.fy, camera_.cy, 0, 0, 1);
   for (const KeyframePtr& kf : candidates) {
-    std::fill(current_->points.begin(), current_->points.end(), nullptr);
-    std::fill(current_->outlier.begin(), current_->outlier.end(), false);
+    current_->ClearMatches();
     if (SearchByDescriptor(current_.get(), *kf) < 15) continue;
     std::vector<cv::Point3f> object;
     std::vector<cv::Point2f> image;
@@ -497,12 +495,10 @@ bool Tracker::BridgeWithDepth() {
   if (!T_cam_world) return false;
   // From there the local map's points may be found again (the view regained texture).
   current_->SetPose(*T_cam_world);
-  std::fill(current_->points.begin(), current_->points.end(), nullptr);
-  std::fill(current_->outlier.begin(), current_->outlier.end(), false);
+  current_->ClearMatches();
   if (TrackLocalMap()) return true;
   current_->SetPose(*T_cam_world);
-  std::fill(current_->points.begin(), current_->points.end(), nullptr);
-  std::fill(current_->outlier.begin(), current_->outlier.end(), false);
+  current_->ClearMatches();
   matches_inliers_ = 0;
   if (!bridged_since_) {
     CCMD_LOG(INFO) << "too few features at frame " << current_->index
