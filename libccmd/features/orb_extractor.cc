@@ -140,6 +140,20 @@ float HarrisAt(const cv::Mat& dx, const cv::Mat& dy, int x, int y, double k) {
   return static_cast<float>(A * C - B * B - k * (A + C) * (A + C));
 }
 
+// A level's image-sized buffers (its image, its derivatives), kept by each thread from frame to
+// frame. Made afresh for every frame they are new pages each time wherever the allocator hands
+// blocks of their size back to the system: over a megabyte of page faults per frame, which made
+// the first 600 frames' extraction 1.6 times slower than the same frames extracted again.
+struct LevelBuffers {
+  cv::Mat image, dx, dy;
+};
+
+LevelBuffers& ThreadBuffers(int level) {
+  static thread_local std::vector<LevelBuffers> buffers;
+  if (buffers.size() <= static_cast<std::size_t>(level)) buffers.resize(level + 1);
+  return buffers[level];
+}
+
 }  // namespace
 
 std::vector<cv::KeyPoint> OrbExtractor::FindCorners(const cv::Mat& image, int count) const {
@@ -229,8 +243,10 @@ std::vector<cv::KeyPoint> OrbExtractor::DetectLevel(const cv::Mat& image, int le
   // Rank by the Harris measure, which is far more stable from frame to frame than the FAST
   // score (OpenCV's ORB makes the same choice): selection repeatability is what lets the next
   // frame find the same map points.
-  cv::Mat dx, dy;
-  cv::spatialGradient(image, dx, dy, 3);
+  LevelBuffers& buffers = ThreadBuffers(level);
+  const cv::Mat& dx = buffers.dx;
+  const cv::Mat& dy = buffers.dy;
+  cv::spatialGradient(image, buffers.dx, buffers.dy, 3);
   for (cv::KeyPoint& k : corners) {
     const bool strong = k.response >= options_.fast_threshold;
     k.response = HarrisAt(dx, dy, cvRound(k.pt.x), cvRound(k.pt.y), kHarrisK);
@@ -292,7 +308,7 @@ OrbFeatures OrbExtractor::Extract(const cv::Mat& gray) const {
   for (int level = 0; level < L; ++level) {
     if (level > 0) {
       const cv::Size size(cvRound(gray.cols / scale_[level]), cvRound(gray.rows / scale_[level]));
-      cv::Mat smaller;
+      cv::Mat& smaller = ThreadBuffers(level).image;
       cv::resize(image, smaller, size, 0, 0, cv::INTER_LINEAR);
       image = smaller;
     }

@@ -38,7 +38,8 @@ class OrbExtractor {
  public:
   explicit OrbExtractor(const OrbOptions& options = {});
 
-  // Extracts from an 8-bit grey image. Thread-safe (no state changes).
+  // Extracts from an 8-bit grey image. Thread-safe: no state changes; each calling thread keeps
+  // its own pyramid and gradient buffers (about 5 MB at 640x480) for its next call.
   OrbFeatures Extract(const cv::Mat& gray) const;
 
   const OrbOptions& options() const { return options_; }

@@ -2,6 +2,8 @@
 
 #include <gtest/gtest.h>
 
+#include <thread>
+
 #include <opencv2/features2d.hpp>
 #include <opencv2/imgproc.hpp>
 
@@ -165,6 +167,39 @@ TEST(OrbExtractorTest, ShiftedImageMatchesAtShiftedPositions) {
   }
   EXPECT_GT(matched, 500);
   EXPECT_GT(consistent, 0.95 * matched);
+}
+
+bool SameFeatures(const OrbFeatures& a, const OrbFeatures& b) {
+  if (a.keypoints.size() != b.keypoints.size() || a.descriptors.size() != b.descriptors.size())
+    return false;
+  for (std::size_t i = 0; i < a.keypoints.size(); ++i) {
+    const cv::KeyPoint &p = a.keypoints[i], &q = b.keypoints[i];
+    if (p.pt != q.pt || p.octave != q.octave || p.angle != q.angle || p.response != q.response)
+      return false;
+  }
+  return a.descriptors.empty() || cv::norm(a.descriptors, b.descriptors, cv::NORM_L1) == 0;
+}
+
+TEST(OrbExtractorTest, ThreadBuffersCarryNothingFromOneImageToTheNext) {
+  // Each thread keeps its pyramid and gradient buffers between calls: an image of another size
+  // and content in between, or another thread, must not change what an image gives.
+  const cv::Mat gray = RenderGray();
+  cv::Mat other;
+  cv::resize(gray(cv::Rect(100, 50, 400, 300)), other, cv::Size(333, 251));
+  cv::flip(other, other, 1);
+  const OrbExtractor orb;
+  const OrbFeatures first = orb.Extract(gray);
+  ASSERT_GT(first.keypoints.size(), 500u);
+  const OrbFeatures between = orb.Extract(other);
+  EXPECT_FALSE(SameFeatures(first, between));
+  EXPECT_TRUE(SameFeatures(first, orb.Extract(gray)));
+  OrbFeatures elsewhere;
+  std::thread([&] { elsewhere = orb.Extract(gray); }).join();
+  EXPECT_TRUE(SameFeatures(first, elsewhere));
+  // The smaller image gives the same after the larger one as on a thread that saw only it.
+  OrbFeatures alone;
+  std::thread([&] { alone = orb.Extract(other); }).join();
+  EXPECT_TRUE(SameFeatures(between, alone));
 }
 
 }  // namespace
