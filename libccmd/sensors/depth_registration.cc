@@ -4,6 +4,7 @@
 #include <cmath>
 #include <opencv2/core.hpp>
 #include <opencv2/imgproc.hpp>
+#include <vector>
 
 namespace ccmd {
 
@@ -23,21 +24,78 @@ namespace {
 // std::ceil / std::floor / std::lround are library calls on the baseline x86-64 target (no
 // SSE4.1 rounding instruction), several per depth pixel. These are exact for |x| < 2^31;
 // callers keep x within +-1e9.
-int CeilToInt(double x) {
+int CeilToInt(float x) {
   const int i = static_cast<int>(x);  // towards zero
-  return i + (static_cast<double>(i) < x);
+  return i + (static_cast<float>(i) < x);
 }
-int FloorToInt(double x) {
+int FloorToInt(float x) {
   const int i = static_cast<int>(x);
-  return i - (static_cast<double>(i) > x);
+  return i - (static_cast<float>(i) > x);
 }
-int RoundToInt(double x) {  // halves away from zero, as std::lround
-  return x >= 0 ? FloorToInt(x + 0.5) : -FloorToInt(0.5 - x);
-}
+int RoundToInt(float x) { return FloorToInt(x + 0.5f); }  // halves up
 // A projected coordinate kept where the conversions are exact: a point just in front of the
 // camera projects arbitrarily far out, and clamped it stays out of the image (as does a NaN,
 // which a distortion model pushed past its range could give).
-double Clamped(double x) { return x > -1e9 ? (x < 1e9 ? x : 1e9) : -1e9; }
+float Clamped(float x) { return std::max(-1e9f, std::min(x, 1e9f)); }
+
+// The single-precision constants of one depth row: the rotated ray of its pixel 0 (r0) and the
+// step per column (s), the rotated half pixel (h), the translation (t) and the colour
+// intrinsics.
+struct RowGeometry {
+  float r0x, r0y, r0z, sx, sy, sz, hx, hy, hz, tx, ty, tz, fx, fy, cx, cy;
+};
+
+// Where each depth pixel of a row (depth in metres, 0: none) lands in the colour image: the two
+// corners of its footprint (a, b), its centre (q), and the centre's depth in millimetres (0:
+// nothing lands). Without branches, and with the arrays restrict-qualified, so that the
+// compiler does four pixels at once.
+void ProjectRow(const RowGeometry g, int n, const float* __restrict depth_m, float* __restrict ax,
+                float* __restrict ay, float* __restrict bx, float* __restrict by,
+                float* __restrict qx, float* __restrict qy, float* __restrict z_mm) {
+  constexpr float kMinZ = 1e-6f;
+  for (int u = 0; u < n; ++u) {
+    const float z = depth_m[u];
+    const float x = z * (g.r0x + u * g.sx) + g.tx;
+    const float y = z * (g.r0y + u * g.sy) + g.ty;
+    const float zc = z * (g.r0z + u * g.sz) + g.tz;
+    const float dx = z * g.hx, dy = z * g.hy, dz = z * g.hz;
+    const float az = zc - dz, bz = zc + dz;
+    // A measured depth (1 mm at least), and the whole footprint in front of the camera.
+    const bool in_front = std::min(std::min(z, zc), std::min(az, bz)) > kMinZ;
+    // One division per point; for a pixel that is dropped, a harmless 1.
+    const float ia = 1.0f / (in_front ? az : 1.0f);
+    const float ib = 1.0f / (in_front ? bz : 1.0f);
+    const float ic = 1.0f / (in_front ? zc : 1.0f);
+    ax[u] = g.fx * (x - dx) * ia + g.cx;
+    ay[u] = g.fy * (y - dy) * ia + g.cy;
+    bx[u] = g.fx * (x + dx) * ib + g.cx;
+    by[u] = g.fy * (y + dy) * ib + g.cy;
+    qx[u] = g.fx * x * ic + g.cx;
+    qy[u] = g.fy * y * ic + g.cy;
+    z_mm[u] = in_front ? zc * 1e3f : 0.0f;
+  }
+}
+
+// The colour pixels whose centres lie inside each footprint, x0..x1 by y0..y1 (at least the one
+// under the projected centre: a footprint smaller than a pixel may hold no centre), and the
+// depth they get (0: none). Branch-free too.
+void CoverRow(int n, const float* __restrict ax, const float* __restrict ay,
+              const float* __restrict bx, const float* __restrict by, const float* __restrict qx,
+              const float* __restrict qy, const float* __restrict z_mm, int* __restrict x0,
+              int* __restrict x1, int* __restrict y0, int* __restrict y1, int* __restrict value) {
+  for (int u = 0; u < n; ++u) {
+    const int left = CeilToInt(Clamped(std::min(ax[u], bx[u])));
+    const int right = FloorToInt(Clamped(std::max(ax[u], bx[u])));
+    const int top = CeilToInt(Clamped(std::min(ay[u], by[u])));
+    const int bottom = FloorToInt(Clamped(std::max(ay[u], by[u])));
+    const int column = RoundToInt(Clamped(qx[u])), line = RoundToInt(Clamped(qy[u]));
+    x0[u] = right < left ? column : left;
+    x1[u] = right < left ? column : right;
+    y0[u] = bottom < top ? line : top;
+    y1[u] = bottom < top ? line : bottom;
+    value[u] = ((z_mm[u] >= 0.5f) & (z_mm[u] < 65535.5f)) ? RoundToInt(z_mm[u]) : 0;
+  }
+}
 
 }  // namespace
 
@@ -45,62 +103,57 @@ cv::Mat RegisterDepthToColor(const cv::Mat& depth_mm, const PinholeCamera& depth
                              const PinholeCamera& color_camera, const Pose& T_color_depth,
                              int max_footprint) {
   cv::Mat out(color_camera.height, color_camera.width, CV_16UC1, cv::Scalar(0));
-  const Eigen::Matrix3d R = T_color_depth.linear();
-  const Eigen::Vector3d t = T_color_depth.translation();
-  const int out_w = out.cols, out_h = out.rows;
   // A depth pixel (u, v) at depth z is z * ray(u, v) in the depth frame, and its footprint's
   // corners are z * (ray -/+ half), half = (0.5 / fx, 0.5 / fy, 0). Rotated once here, the
-  // per-pixel work is a few multiply-adds: R z (ray +- half) + t.
-  const Eigen::Vector3d half = R * Eigen::Vector3d(0.5 / depth_camera.fx, 0.5 / depth_camera.fy, 0);
-  const Eigen::Vector3d column_step = R * Eigen::Vector3d(1.0 / depth_camera.fx, 0, 0);
+  // per-pixel work is a few multiply-adds: R z (ray +- half) + t. Single precision keeps the
+  // projected coordinates within about 1e-4 pixel.
+  const Eigen::Matrix3d R = T_color_depth.linear();
+  const Eigen::Vector3f t = T_color_depth.translation().cast<float>();
+  const Eigen::Vector3f half =
+      (R * Eigen::Vector3d(0.5 / depth_camera.fx, 0.5 / depth_camera.fy, 0)).cast<float>();
+  const Eigen::Vector3f step = (R * Eigen::Vector3d(1.0 / depth_camera.fx, 0, 0)).cast<float>();
+  RowGeometry g{};
+  g.sx = step.x(), g.sy = step.y(), g.sz = step.z();
+  g.hx = half.x(), g.hy = half.y(), g.hz = half.z();
+  g.tx = t.x(), g.ty = t.y(), g.tz = t.z();
+  g.fx = static_cast<float>(color_camera.fx), g.fy = static_cast<float>(color_camera.fy);
+  g.cx = static_cast<float>(color_camera.cx), g.cy = static_cast<float>(color_camera.cy);
   const bool distorted = color_camera.HasDistortion();
-  const double fx = color_camera.fx, fy = color_camera.fy;
-  const double cx = color_camera.cx, cy = color_camera.cy;
-  auto project = [&](const Eigen::Vector3d& p) {
-    const double inverse_z = 1.0 / p.z();  // one division, not two
-    const Eigen::Vector2d ideal(fx * p.x() * inverse_z + cx, fy * p.y() * inverse_z + cy);
-    return distorted ? color_camera.DistortPixel(ideal) : ideal;
-  };
+  const int n = depth_mm.cols, out_w = out.cols, out_h = out.rows;
+  std::vector<float> depth_m(n), ax(n), ay(n), bx(n), by(n), qx(n), qy(n), z_mm(n);
+  std::vector<int> x0(n), x1(n), y0(n), y1(n), value(n);
   for (int v = 0; v < depth_mm.rows; ++v) {
     const std::uint16_t* row = depth_mm.ptr<std::uint16_t>(v);
-    // Rotated ray of pixel (0, v); each column adds column_step.
-    const Eigen::Vector3d row_start =
-        R * Eigen::Vector3d(-depth_camera.cx / depth_camera.fx,
-                            (v - depth_camera.cy) / depth_camera.fy, 1.0);
-    for (int u = 0; u < depth_mm.cols; ++u) {
-      if (row[u] == 0) continue;
-      const double z = row[u] * 1e-3;
-      const Eigen::Vector3d ray = row_start + u * column_step;
-      const Eigen::Vector3d centre = z * ray + t;
-      const Eigen::Vector3d a = z * (ray - half) + t;
-      const Eigen::Vector3d b = z * (ray + half) + t;
-      if (centre.z() <= 1e-6 || a.z() <= 1e-6 || b.z() <= 1e-6) continue;
-      const Eigen::Vector2d pa = project(a);
-      const Eigen::Vector2d pb = project(b);
-      // Colour pixels whose centres lie inside the footprint; at least the one under the
-      // projected centre (a footprint smaller than a pixel may hold no centre).
-      int x0 = CeilToInt(Clamped(std::min(pa.x(), pb.x())));
-      int x1 = FloorToInt(Clamped(std::max(pa.x(), pb.x())));
-      int y0 = CeilToInt(Clamped(std::min(pa.y(), pb.y())));
-      int y1 = FloorToInt(Clamped(std::max(pa.y(), pb.y())));
-      if (x1 < x0 || y1 < y0) {
-        const Eigen::Vector2d pc = project(centre);
-        if (x1 < x0) x0 = x1 = RoundToInt(Clamped(pc.x()));
-        if (y1 < y0) y0 = y1 = RoundToInt(Clamped(pc.y()));
+    for (int u = 0; u < n; ++u) depth_m[u] = row[u] * 1e-3f;
+    const Eigen::Vector3f r0 = (R * Eigen::Vector3d(-depth_camera.cx / depth_camera.fx,
+                                                    (v - depth_camera.cy) / depth_camera.fy, 1.0))
+                                   .cast<float>();
+    g.r0x = r0.x(), g.r0y = r0.y(), g.r0z = r0.z();
+    ProjectRow(g, n, depth_m.data(), ax.data(), ay.data(), bx.data(), by.data(), qx.data(),
+               qy.data(), z_mm.data());
+    if (distorted) {
+      const auto distort = [&](float* x, float* y) {
+        const Eigen::Vector2d raw = color_camera.DistortPixel(Eigen::Vector2d(*x, *y));
+        *x = static_cast<float>(raw.x());
+        *y = static_cast<float>(raw.y());
+      };
+      for (int u = 0; u < n; ++u) {
+        if (z_mm[u] == 0) continue;
+        distort(&ax[u], &ay[u]);
+        distort(&bx[u], &by[u]);
+        distort(&qx[u], &qy[u]);
       }
-      if (x1 - x0 >= max_footprint || y1 - y0 >= max_footprint) continue;
-      x0 = std::max(x0, 0);
-      y0 = std::max(y0, 0);
-      x1 = std::min(x1, out_w - 1);
-      y1 = std::min(y1, out_h - 1);
-      if (x1 < x0 || y1 < y0) continue;
-      const double z_mm = centre.z() * 1e3;
-      if (z_mm < 0.5 || z_mm >= 65535.5) continue;
-      const auto value = static_cast<std::uint16_t>(RoundToInt(z_mm));
-      for (int y = y0; y <= y1; ++y) {
+    }
+    CoverRow(n, ax.data(), ay.data(), bx.data(), by.data(), qx.data(), qy.data(), z_mm.data(),
+             x0.data(), x1.data(), y0.data(), y1.data(), value.data());
+    for (int u = 0; u < n; ++u) {
+      if (value[u] == 0 || x1[u] - x0[u] >= max_footprint || y1[u] - y0[u] >= max_footprint)
+        continue;
+      const auto depth = static_cast<std::uint16_t>(value[u]);
+      for (int y = std::max(y0[u], 0); y <= std::min(y1[u], out_h - 1); ++y) {
         std::uint16_t* target = out.ptr<std::uint16_t>(y);
-        for (int x = x0; x <= x1; ++x) {
-          if (target[x] == 0 || value < target[x]) target[x] = value;  // nearest wins
+        for (int x = std::max(x0[u], 0); x <= std::min(x1[u], out_w - 1); ++x) {
+          if (target[x] == 0 || depth < target[x]) target[x] = depth;  // nearest wins
         }
       }
     }
