@@ -16,7 +16,7 @@
 namespace ccmd::bench {
 
 struct ExtractionSpeed {
-  int frames = 0;
+  int frames = 0, passes = 0;
   double ours_ms = 0, ours_cpu_ms = 0;              // per frame
   double opencv_ms = 0, opencv_cpu_ms = 0;          // per frame
   double ours_keypoints = 0, opencv_keypoints = 0;  // per frame
