@@ -123,6 +123,23 @@ std::string SevenScenesColour(const std::string& folder, int index) {
   return FileExists(png) ? png : SevenScenesFile(folder, index, "color.jpg");
 }
 
+// The numbers of a 7-Scenes folder's colour images, in order. A sequence's archive numbers
+// its frames from 0; a folder holding part of one (frames 600-999 copied out) keeps the
+// original numbers, and gaps are allowed.
+std::vector<int> SevenScenesFrameNumbers(const std::string& folder) {
+  std::vector<int> numbers;
+  std::error_code error;
+  for (const auto& entry : std::filesystem::directory_iterator(folder, error)) {
+    const std::string name = entry.path().filename().string();
+    int number = -1;
+    if (std::sscanf(name.c_str(), "frame-%8d.color.", &number) != 1 || number < 0) continue;
+    // Only the names the reader opens: six digits or more, no sign, png or jpg.
+    if (JoinPath(folder, name) == SevenScenesColour(folder, number)) numbers.push_back(number);
+  }
+  std::sort(numbers.begin(), numbers.end());
+  return numbers;
+}
+
 // A 4x4 camera-to-world matrix, its rotation made orthonormal (the files keep 6-7 digits).
 StatusOr<Pose> ReadSevenScenesPose(const std::string& path) {
   CCMD_ASSIGN_OR_RETURN(std::string text, ReadFileToString(path, 1 << 16));
@@ -180,8 +197,10 @@ std::string GroundTruthFile(const std::string& folder) {
 }  // namespace
 
 bool TumSequence::IsSevenScenesFolder(const std::string& folder) {
-  return FileExists(SevenScenesColour(folder, 0)) &&
-         FileExists(SevenScenesFile(folder, 0, "depth.png"));
+  const std::vector<int> numbers = SevenScenesFrameNumbers(folder);
+  return std::any_of(numbers.begin(), numbers.end(), [&](int number) {
+    return FileExists(SevenScenesFile(folder, number, "depth.png"));
+  });
 }
 
 StatusOr<TumSequence> TumSequence::Open(const std::string& folder,
@@ -232,10 +251,9 @@ StatusOr<TumSequence> TumSequence::Open(const std::string& folder,
   } else if (IsSevenScenesFolder(folder)) {
     sequence.depth_map_factor_ = 1000.0;
     sequence.no_depth_code_ = 65535;
-    for (int i = 0;; ++i) {
+    for (const int i : SevenScenesFrameNumbers(folder)) {
       TumFrameInfo info;
       info.rgb_path = SevenScenesColour(folder, i);
-      if (!FileExists(info.rgb_path)) break;
       info.timestamp = info.depth_timestamp = 1.0 + i / 30.0;
       info.depth_path = SevenScenesFile(folder, i, "depth.png");
       const std::string pose = SevenScenesFile(folder, i, "pose.txt");
@@ -250,7 +268,7 @@ StatusOr<TumSequence> TumSequence::Open(const std::string& folder,
   } else {
     return NotFound(folder +
                     " has neither rgb.txt + depth.txt nor associations.txt (nor 7-Scenes' "
-                    "frame-000000.color.png and frame-000000.depth.png)");
+                    "frame-NNNNNN.color.png and frame-NNNNNN.depth.png)");
   }
   if (pairs.empty()) {
     return Corrupt("no colour/depth pairs in " + folder + " within " +

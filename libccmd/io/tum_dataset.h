@@ -15,9 +15,11 @@
 // folder (ICL-NUIM's) is the ground truth.
 // A 7-Scenes sequence folder as its archives unpack (seq-01/frame-000000.color.png,
 // .depth.png in millimetres with 65535 for no depth, .pose.txt a 4x4 camera-to-world
-// matrix) is read as it is: frames from 0 up to the first one missing, timestamps
-// 1 + index/30 s (7-Scenes has none; the same as the project's converted copies), depth in
-// millimetres whatever the camera's DepthMapFactor, the poses as the ground truth.
+// matrix) is read as it is: every frame-NNNNNN.color.png (or .jpg) in the order of its
+// number, which need not start at 0 (part of a sequence copied out keeps its numbers),
+// timestamps 1 + number/30 s (7-Scenes has none; the same as the project's converted
+// copies), depth in millimetres whatever the camera's DepthMapFactor, the poses as the
+// ground truth.
 
 #include <cstddef>
 #include <cstdint>
@@ -69,7 +71,8 @@ struct TumOptions {
 
 class TumSequence {
  public:
-  // The 7-Scenes frame-per-file layout (see above), frame-000000.color.png or .jpg present.
+  // The 7-Scenes frame-per-file layout (see above): some frame-NNNNNN.color.png or .jpg with
+  // its frame-NNNNNN.depth.png.
   static bool IsSevenScenesFolder(const std::string& folder);
 
   // `camera` comes from a config file; without one, the folder's camera.yaml is used, and

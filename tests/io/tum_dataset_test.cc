@@ -140,10 +140,11 @@ TEST(TumDatasetTest, IclNuimReleaseAsItUnpacksIsReadAtTheCamerasRate) {
 }
 
 // A 7-Scenes sequence folder as its archive unpacks: depth in millimetres with 65535 for no
-// depth, a 4x4 camera-to-world matrix per frame written to 6 digits.
-void WriteSevenScenesFolder(const std::string& dir, int frames) {
+// depth, a 4x4 camera-to-world matrix per frame written to 6 digits; frames numbered from
+// `first`.
+void WriteSevenScenesFolder(const std::string& dir, int frames, int first = 0) {
   MakeDirectories(dir).IgnoreError();
-  for (int i = 0; i < frames; ++i) {
+  for (int i = first; i < first + frames; ++i) {
     char stem[32];
     std::snprintf(stem, sizeof(stem), "/frame-%06d.", i);
     cv::imwrite(dir + stem + "color.png", cv::Mat(6, 8, CV_8UC3, cv::Scalar(10, 20, 30)));
@@ -182,6 +183,38 @@ TEST(TumDatasetTest, SevenScenesFolderIsReadAsItUnpacks) {
   EXPECT_NEAR((T.linear().transpose() * T.linear() - Eigen::Matrix3d::Identity()).norm(), 0, 1e-12);
   EXPECT_NEAR(Eigen::AngleAxisd(T.linear()).angle(), 10 * M_PI / 180, 1e-6);
   EXPECT_NEAR(T.linear()(1, 0), std::sin(10 * M_PI / 180), 1e-6);  // camera-to-world, as written
+}
+
+// Part of a sequence copied out of its archive keeps the archive's numbers, here 600 on with
+// one frame left out: each frame keeps its time in the whole sequence and its own pose.
+TEST(TumDatasetTest, SevenScenesFramesNeedNotStartAtZero) {
+  testing::TempDir dir;
+  WriteSevenScenesFolder(dir.path(), 4, 600);
+  for (const char* suffix : {"color.png", "depth.png", "pose.txt"})
+    std::remove(dir.File(std::string("frame-000601.") + suffix).c_str());
+  // Names the reader would not open do not count as frames.
+  ASSERT_TRUE(WriteFileAtomic(dir.File("frame-604.color.png"), "x").ok());
+  ASSERT_TRUE(WriteFileAtomic(dir.File("frame-000605.color.bmp"), "x").ok());
+  ASSERT_TRUE(WriteFileAtomic(dir.File("frame-000606.color.png.bak"), "x").ok());
+  EXPECT_TRUE(TumSequence::IsSevenScenesFolder(dir.path()));
+  EXPECT_EQ(GuessCameraConfigName(dir.path()), "7scenes.yaml");
+  auto seq = TumSequence::Open(dir.path(), Camera());
+  ASSERT_TRUE(seq.ok()) << seq.status().ToString();
+  ASSERT_EQ(seq->size(), 3u);
+  const int numbers[] = {600, 602, 603};
+  for (int k = 0; k < 3; ++k) {
+    EXPECT_NEAR(seq->frame(k).timestamp, 1.0 + numbers[k] / 30.0, 1e-12) << k;
+    ASSERT_TRUE(seq->frame(k).T_world_cam_gt.has_value()) << k;
+    EXPECT_NEAR(seq->frame(k).T_world_cam_gt->translation().x(), 0.1 * numbers[k], 1e-6) << k;
+  }
+  auto f = seq->LoadFrame(1);
+  ASSERT_TRUE(f.ok()) << f.status().ToString();
+  EXPECT_EQ(f->depth_mm.at<std::uint16_t>(3, 3), 1500 + 100 * 602);
+  EXPECT_EQ(seq->GroundTruthAtFrames().size(), 3u);
+  // A folder with colour but no depth at all is not a sequence.
+  testing::TempDir colour_only;
+  ASSERT_TRUE(WriteFileAtomic(colour_only.File("frame-000600.color.png"), "x").ok());
+  EXPECT_FALSE(TumSequence::IsSevenScenesFolder(colour_only.path()));
 }
 
 TEST(TumDatasetTest, SevenScenesFolderErrorsNameTheFile) {
