@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <set>
 
 #include "libccmd/backend/ingest.h"
 #include "libccmd/backend/map_observer.h"
@@ -47,6 +48,7 @@ void BackendOptions::Describe(OptionsWriter* out) const {
   out->Add("global_ba_max_keyframes", global_ba_max_keyframes);
   out->Add("global_ba_max_observations", global_ba_max_observations);
   out->Add("global_ba_duty", global_ba_duty);
+  out->Add("final_global_ba_max_observations", final_global_ba_max_observations);
   out->Nested("depth_noise", depth_noise);
   out->Add("dense", dense);
   out->Nested("dense_options", dense_options);
@@ -163,6 +165,26 @@ void Backend::WaitIdle() {
   loop_stage_.WaitIdle();
   gba_stage_.WaitIdle();
   dense_stage_.WaitIdle();
+}
+
+void Backend::FinishGlobalBa() {
+  if (!options_.global_ba || options_.final_global_ba_max_observations == 0) return;
+  WaitIdle();
+  std::set<MapId> done;
+  for (const AgentId agent : maps_.Agents()) {
+    const std::optional<MapId> map = maps_.MapOfAgent(agent);
+    if (!map || !done.insert(*map).second) continue;
+    {
+      std::lock_guard<std::mutex> lock(gba_counts_mutex_);
+      if (gba_requested_[*map] <= gba_whole_map_[*map]) continue;
+    }
+    // One at a time: a request still waiting in the stage is replaced by a newer one.
+    GbaRequest request;
+    request.agent = agent;
+    request.final = true;
+    gba_stage_.Push(std::move(request));
+    WaitIdle();
+  }
 }
 
 // ---------------------------------------------------------------- ingest
@@ -476,6 +498,10 @@ void Backend::AfterLoop(LoopClosure closure) {
 
 void Backend::RequestGlobalBa(GbaRequest request) {
   if (!options_.global_ba) return;
+  if (const std::optional<MapId> map = maps_.MapOfAgent(request.agent)) {
+    std::lock_guard<std::mutex> lock(gba_counts_mutex_);
+    ++gba_requested_[*map];
+  }
   // A running global BA of a whole map is outdated by the new loop; a windowed one stays valid
   // unless its map is fused away.
   if (!gba_windowed_ || request.fusion) gba_abort_ = true;
@@ -503,7 +529,8 @@ void Backend::RunGlobalBa(GbaRequest request) {
   }
   const bool windowed = [&] {
     MapManager::Guard guard = maps_.CheckOutAgent(request.agent);
-    return static_cast<int>(guard->keyframes().size()) > options_.global_ba_max_keyframes;
+    return !request.final &&
+           static_cast<int>(guard->keyframes().size()) > options_.global_ba_max_keyframes;
   }();
   if (windowed) WaitForGbaTurn();
   if (stopping_) return;
@@ -512,9 +539,30 @@ void Backend::RunGlobalBa(GbaRequest request) {
   gba_running_ = true;
   GlobalBaProblem problem;
   MapId map_id;
+  std::uint64_t loops_in_problem = 0;  // the map's requests whose loops the problem holds
   {
     MapManager::Guard guard = maps_.CheckOutAgent(request.agent);
     map_id = guard->id();
+    {
+      // A loop is in the map before it asks for a global BA, and not while it is checked out.
+      std::lock_guard<std::mutex> lock(gba_counts_mutex_);
+      loops_in_problem = gba_requested_[map_id];
+    }
+    if (request.final) {
+      const std::size_t observations = CountGlobalBaObservations(*guard);
+      if (observations > options_.final_global_ba_max_observations) {
+        CCMD_LOG(INFO) << "map " << map_id.value() << " keeps its last windowed global BA: "
+                       << observations << " observations, more than the final one's "
+                       << options_.final_global_ba_max_observations;
+        gba_running_ = false;
+        std::lock_guard<std::mutex> lock(stats_mutex_);
+        stats_.global_ba_final_skipped++;
+        return;
+      }
+      CCMD_LOG(INFO) << "final global BA of map " << map_id.value() << ": "
+                     << guard->keyframes().size() << " keyframes, " << observations
+                     << " observations";
+    }
     if (windowed) {
       const std::set<GlobalKeyframeId> window =
           SelectGlobalBaWindow(*guard, request.around, options_.global_ba_max_keyframes,
@@ -543,6 +591,11 @@ void Backend::RunGlobalBa(GbaRequest request) {
       applied = true;
     }
   }
+  if (applied && !windowed) {
+    std::lock_guard<std::mutex> lock(gba_counts_mutex_);
+    std::uint64_t& whole = gba_whole_map_[map_id];
+    whole = std::max(whole, loops_in_problem);
+  }
   gba_running_ = false;
   gba_windowed_ = false;
   const double seconds = watch.ElapsedSeconds();
@@ -552,13 +605,15 @@ void Backend::RunGlobalBa(GbaRequest request) {
     std::lock_guard<std::mutex> lock(stats_mutex_);
     stats_.global_ba_runs++;
     stats_.global_ba_windowed += windowed;
+    stats_.global_ba_final += request.final && applied;
     stats_.global_ba_aborted += !applied;
     stats_.global_ba_seconds += seconds;
     AppendSample(&timings_.global_ba_seconds, seconds);
     AppendSample(&timings_.global_ba_applied, static_cast<char>(applied));
   }
   ReleaseFreeMemory();  // the solver's workspace
-  CCMD_LOG(INFO) << "global BA on map " << map_id.value() << (windowed ? " (window)" : "") << ": "
+  CCMD_LOG(INFO) << "global BA on map " << map_id.value()
+                 << (windowed ? " (window)" : request.final ? " (final)" : "") << ": "
                  << problem.keyframes.size() << " keyframes, " << problem.points.size()
                  << " points, " << problem.problem.observations.size() << " observations, "
                  << summary.iterations << " iterations, " << seconds << " s"

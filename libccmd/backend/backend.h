@@ -52,6 +52,11 @@ struct BackendOptions {
   int global_ba_max_keyframes = 100;
   std::size_t global_ba_max_observations = 30000;  // of the window's keyframes
   double global_ba_duty = 0.5;
+  // At the end of a run (FinishGlobalBa), a map whose latest loop or fusion no global BA of
+  // the whole map has followed (it had outgrown the window, or newer work abandoned the run)
+  // gets one, when it holds at most this many observations (about 1 kB each while it
+  // solves); 0: never.
+  std::size_t final_global_ba_max_observations = 200000;
   DepthNoise depth_noise;
   bool dense = true;
   DenseMapOptions dense_options;
@@ -74,6 +79,9 @@ struct BackendStats {
   std::size_t dense_keyframes = 0;
   int loops_already_closed = 0;  // verified loops that found the map consistent (no correction)
   int global_ba_windowed = 0;    // runs over a window of a larger map
+  // FinishGlobalBa: whole-map runs at the end, and maps left as their windows had them
+  // (above final_global_ba_max_observations).
+  int global_ba_final = 0, global_ba_final_skipped = 0;
   // Agents' restarted segments received, loops that placed segments, and the segments
   // unplaced now (left out of the dense map and the trajectories: ServerMap::Placed).
   int segments_restarted = 0, segments_placed = 0;
@@ -145,6 +153,11 @@ class Backend {
   // Returns when everything submitted so far has gone through every stage (and a global BA it
   // caused has finished).
   void WaitIdle();
+  // For the end of a run, once nothing more is submitted: a global BA of the whole map for
+  // each map whose latest loop or fusion was followed only by windowed or abandoned ones
+  // (BackendOptions::final_global_ba_max_observations). Returns when they and the dense
+  // updates they cause are done.
+  void FinishGlobalBa();
   // Stops the stages (queued work is finished first). Idempotent.
   void Shutdown();
 
@@ -218,6 +231,7 @@ class Backend {
     AgentId agent;
     std::vector<GlobalKeyframeId> around;
     bool fusion = false;
+    bool final = false;  // FinishGlobalBa: the agent's whole map, never a window
   };
 
   explicit Backend(const BackendOptions& options);
@@ -279,6 +293,10 @@ class Backend {
   std::mutex gba_turn_mutex_;
   std::condition_variable gba_turn_cv_;  // woken by shutdown
   double gba_next_start_ = 0;            // back-end clock; global BA stage only
+  // Per map: loops and fusions that asked for a global BA, and how many of them the latest
+  // applied global BA of the whole map came after (FinishGlobalBa runs where they differ).
+  std::mutex gba_counts_mutex_;
+  std::map<MapId, std::uint64_t> gba_requested_, gba_whole_map_;
   double dense_trimmed_ = 0;             // back-end clock; dense stage only
 
   std::mutex large_transient_mutex_;  // see LockLargeTransient

@@ -143,6 +143,8 @@ Json Backend::StatsJson() {
   j["fusions"] = s.fusions;
   j["global_ba_runs"] = s.global_ba_runs;
   j["global_ba_windowed"] = s.global_ba_windowed;
+  j["global_ba_final"] = s.global_ba_final;
+  j["global_ba_final_skipped"] = s.global_ba_final_skipped;
   j["culling_checked"] = s.culling_checked;
   j["keyframes_culled"] = s.keyframes_culled;
   j["culled_points"] = s.culled_points;

@@ -287,6 +287,14 @@ std::set<GlobalKeyframeId> SelectGlobalBaWindow(const ServerMap& map,
   return window;
 }
 
+std::size_t CountGlobalBaObservations(const ServerMap& map) {
+  std::size_t observations = 0;
+  for (const auto& [id, kf] : map.keyframes()) {
+    for (const ServerMapPoint* p : kf->points) observations += p && p->observations.size() >= 2;
+  }
+  return observations;
+}
+
 std::vector<ServerKeyframe*> ApplyGlobalBa(ServerMap* map, const GlobalBaProblem& g) {
   std::vector<ServerKeyframe*> moved;
   // Corrections of the optimised keyframes (world-frame deltas), by agent in id order.

@@ -83,6 +83,8 @@ std::set<GlobalKeyframeId> SelectGlobalBaWindow(const ServerMap& map,
                                                 const std::vector<GlobalKeyframeId>& seeds,
                                                 int max_keyframes,
                                                 std::size_t max_observations = SIZE_MAX);
+// The observations a global BA of the whole map would hold (of points seen at least twice).
+std::size_t CountGlobalBaObservations(const ServerMap& map);
 // Writes the result back: optimised keyframes get their new poses; keyframes added since the
 // problem was built move with the correction of the nearest optimised keyframe of their agent
 // (keyframes left out of a window stay); optimised points get their new positions. Returns

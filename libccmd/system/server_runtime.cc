@@ -233,6 +233,7 @@ Status ServerRuntime::Stop() {
     return Status::Ok();
   }
   backend_->WaitIdle();
+  backend_->FinishGlobalBa();  // the maps as a global BA of each whole map leaves them
   const Status results = WriteResults();
   if (view_) view_->Stop();  // browsers see the final map, then "server gone"
   backend_->Shutdown();

@@ -474,6 +474,57 @@ TEST(BackendIntegrationTest, CulledKeyframesKeepTheirPlaceInTheTrajectories) {
   EXPECT_EQ((*backend)->dense()->Stats().released_keyframes, observer.released.size());
 }
 
+// One agent circling the room once and a quarter, into a back-end whose global BA windows hold 10
+// keyframes: the loops where the lap closes are optimised over windows only. At the end,
+// FinishGlobalBa optimises the whole map once (more keyframes move than a window holds),
+// and once is enough; with a limit below the map's observations the windows' result stands.
+TEST(BackendIntegrationTest, TheEndOfARunOptimisesTheWholeMapOnce) {
+  for (const std::size_t limit : {std::size_t{200000}, std::size_t{1}}) {
+    BackendOptions options;
+    options.global_ba_max_keyframes = 10;
+    options.global_ba_max_observations = 1000;
+    options.final_global_ba_max_observations = limit;
+    RecordingObserver observer;
+    auto backend = Backend::Create(options, &observer);
+    ASSERT_TRUE(backend.ok()) << backend.status().ToString();
+    const AgentId agent(1);
+    const SyntheticSequenceOptions synth = QuickLaps(300);
+    const PinholeCamera camera = SyntheticCamera(320, 240);
+    ASSERT_TRUE((*backend)->RegisterAgent(agent, "agent1", camera).ok());
+    WireSink sink(agent, backend->get());
+    TrackingOptions tracking;
+    tracking.synchronous_mapping = true;
+    tracking.max_keyframes = 20;
+    auto frontend = Frontend::Create(camera, tracking, &sink);
+    ASSERT_TRUE(frontend.ok());
+    TrackParts(frontend->get(), synth, {{0, synth.frames - 1}});
+    (*backend)->WaitIdle();
+    const BackendStats before = (*backend)->stats();
+    ASSERT_GE(before.global_ba_windowed, 1) << "no loop was optimised over a window";
+    ASSERT_GT((*backend)->FusedTrajectory().size(), 20u);
+    const std::map<GlobalKeyframeId, Pose> poses = observer.poses;
+
+    (*backend)->FinishGlobalBa();
+    const BackendStats after = (*backend)->stats();
+    int moved = 0;
+    for (const auto& [id, pose] : observer.poses)
+      moved += TranslationDistance(pose, poses.at(id)) > 1e-7;
+    if (limit == 1) {
+      EXPECT_EQ(after.global_ba_final, 0);
+      EXPECT_EQ(after.global_ba_final_skipped, 1);
+      EXPECT_EQ(after.global_ba_runs, before.global_ba_runs);
+      EXPECT_EQ(moved, 0);
+      continue;
+    }
+    EXPECT_EQ(after.global_ba_final, 1);
+    EXPECT_EQ(after.global_ba_runs, before.global_ba_runs + 1);
+    EXPECT_GT(moved, options.global_ba_max_keyframes);
+    ExpectOnThePath(synth, (*backend)->FusedTrajectory());
+    (*backend)->FinishGlobalBa();  // nothing new since
+    EXPECT_EQ((*backend)->stats().global_ba_final, 1);
+  }
+}
+
 // An agent whose trajectories give another camera of its rig (7-Scenes: the depth camera, whose
 // poses its ground truth gives): the server's trajectories of it give that camera's poses too.
 TEST(BackendIntegrationTest, TrajectoriesGiveTheCameraTheAgentAnnounced) {
