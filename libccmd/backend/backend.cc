@@ -551,8 +551,9 @@ void Backend::RunGlobalBa(GbaRequest request) {
     if (request.final) {
       const std::size_t observations = CountGlobalBaObservations(*guard);
       if (observations > options_.final_global_ba_max_observations) {
-        CCMD_LOG(INFO) << "map " << map_id.value() << " keeps its last windowed global BA: "
-                       << observations << " observations, more than the final one's "
+        CCMD_LOG(INFO) << "map " << map_id.value()
+                       << " keeps its last windowed global BA: " << observations
+                       << " observations, more than the final one's "
                        << options_.final_global_ba_max_observations;
         gba_running_ = false;
         std::lock_guard<std::mutex> lock(stats_mutex_);
@@ -613,8 +614,10 @@ void Backend::RunGlobalBa(GbaRequest request) {
   }
   ReleaseFreeMemory();  // the solver's workspace
   CCMD_LOG(INFO) << "global BA on map " << map_id.value()
-                 << (windowed ? " (window)" : request.final ? " (final)" : "") << ": "
-                 << problem.keyframes.size() << " keyframes, " << problem.points.size()
+                 << (windowed        ? " (window)"
+                     : request.final ? " (final)"
+                                     : "")
+                 << ": " << problem.keyframes.size() << " keyframes, " << problem.points.size()
                  << " points, " << problem.problem.observations.size() << " observations, "
                  << summary.iterations << " iterations, " << seconds << " s"
                  << (applied ? "" : " (abandoned: newer work)");

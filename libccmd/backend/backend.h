@@ -297,7 +297,7 @@ class Backend {
   // applied global BA of the whole map came after (FinishGlobalBa runs where they differ).
   std::mutex gba_counts_mutex_;
   std::map<MapId, std::uint64_t> gba_requested_, gba_whole_map_;
-  double dense_trimmed_ = 0;             // back-end clock; dense stage only
+  double dense_trimmed_ = 0;  // back-end clock; dense stage only
 
   std::mutex large_transient_mutex_;  // see LockLargeTransient
 
