@@ -109,6 +109,13 @@ void AddOptions(CLI::App* app, ServerArgs* a) {
       "Keep every back-projected point of every keyframe (no compaction after the filter window: "
       "about 30 bytes a point for the whole run)");
   app->add_flag("--no-global-ba", a->no_gba, "No global bundle adjustment after loops");
+  app->add_option("--final-global-ba-max-observations",
+                  a->runtime.backend.final_global_ba_max_observations,
+                  "On stopping, a map whose latest loop only windowed or abandoned global BAs "
+                  "followed is optimised whole if it holds at most this many observations (about "
+                  "1 kB each while it solves; 0: never)")
+      ->check(CLI::Range(0, 100000000))
+      ->capture_default_str();
   app->add_flag("--no-culling", a->no_culling,
                 "Keep every keyframe's sparse data (no keyframe culling: the sparse maps then grow "
                 "with the time spent in a place, not with the place)");
