@@ -516,10 +516,25 @@ void Backend::WaitForGbaTurn() {
                         [&] { return stopping_.load(); });
 }
 
-void Backend::RunGlobalBa(GbaRequest request) {
-  if (stopping_) return;
-  gba_abort_ = false;
-  if (stopping_) return;  // Shutdown sets stopping_ before gba_abort_: no abort is lost
+bool Backend::FinalGlobalBaFits(const ServerMap& map) {
+  const std::size_t observations = CountGlobalBaObservations(map);
+  if (observations > options_.final_global_ba_max_observations) {
+    CCMD_LOG(INFO) << "map " << map.id().value()
+                   << " keeps its last windowed global BA: " << observations
+                   << " observations, more than the final one's "
+                   << options_.final_global_ba_max_observations;
+    std::lock_guard<std::mutex> lock(stats_mutex_);
+    stats_.global_ba_final_skipped++;
+    return false;
+  }
+  CCMD_LOG(INFO) << "final global BA of map " << map.id().value() << ": " << map.keyframes().size()
+                 << " keyframes, " << observations << " observations";
+  return true;
+}
+
+std::optional<GlobalBaProblem> Backend::BuildGlobalBaProblem(const GbaRequest& request,
+                                                             bool windowed, MapId* map_id,
+                                                             std::uint64_t* loops_in_problem) {
   std::map<AgentId, PinholeCamera> cameras;
   AgentDepthNoise depth_noise;
   {
@@ -527,6 +542,25 @@ void Backend::RunGlobalBa(GbaRequest request) {
     cameras = cameras_;
     depth_noise = depth_noise_;
   }
+  MapManager::Guard guard = maps_.CheckOutAgent(request.agent);
+  *map_id = guard->id();
+  {
+    // A loop is in the map before it asks for a global BA, and not while it is checked out.
+    std::lock_guard<std::mutex> lock(gba_counts_mutex_);
+    *loops_in_problem = gba_requested_[*map_id];
+  }
+  if (request.final && !FinalGlobalBaFits(*guard)) return std::nullopt;
+  if (!windowed) return BuildGlobalBa(*guard, cameras, depth_noise);
+  const std::set<GlobalKeyframeId> window =
+      SelectGlobalBaWindow(*guard, request.around, options_.global_ba_max_keyframes,
+                           options_.global_ba_max_observations);
+  return BuildGlobalBa(*guard, cameras, depth_noise, &window);
+}
+
+void Backend::RunGlobalBa(GbaRequest request) {
+  if (stopping_) return;
+  gba_abort_ = false;
+  if (stopping_) return;  // Shutdown sets stopping_ before gba_abort_: no abort is lost
   const bool windowed = [&] {
     MapManager::Guard guard = maps_.CheckOutAgent(request.agent);
     return !request.final &&
@@ -537,42 +571,15 @@ void Backend::RunGlobalBa(GbaRequest request) {
   gba_windowed_ = windowed;
   const Stopwatch watch;
   gba_running_ = true;
-  GlobalBaProblem problem;
   MapId map_id;
   std::uint64_t loops_in_problem = 0;  // the map's requests whose loops the problem holds
-  {
-    MapManager::Guard guard = maps_.CheckOutAgent(request.agent);
-    map_id = guard->id();
-    {
-      // A loop is in the map before it asks for a global BA, and not while it is checked out.
-      std::lock_guard<std::mutex> lock(gba_counts_mutex_);
-      loops_in_problem = gba_requested_[map_id];
-    }
-    if (request.final) {
-      const std::size_t observations = CountGlobalBaObservations(*guard);
-      if (observations > options_.final_global_ba_max_observations) {
-        CCMD_LOG(INFO) << "map " << map_id.value()
-                       << " keeps its last windowed global BA: " << observations
-                       << " observations, more than the final one's "
-                       << options_.final_global_ba_max_observations;
-        gba_running_ = false;
-        std::lock_guard<std::mutex> lock(stats_mutex_);
-        stats_.global_ba_final_skipped++;
-        return;
-      }
-      CCMD_LOG(INFO) << "final global BA of map " << map_id.value() << ": "
-                     << guard->keyframes().size() << " keyframes, " << observations
-                     << " observations";
-    }
-    if (windowed) {
-      const std::set<GlobalKeyframeId> window =
-          SelectGlobalBaWindow(*guard, request.around, options_.global_ba_max_keyframes,
-                               options_.global_ba_max_observations);
-      problem = BuildGlobalBa(*guard, cameras, depth_noise, &window);
-    } else {
-      problem = BuildGlobalBa(*guard, cameras, depth_noise);
-    }
+  std::optional<GlobalBaProblem> built =
+      BuildGlobalBaProblem(request, windowed, &map_id, &loops_in_problem);
+  if (!built) {
+    gba_running_ = false;
+    return;
   }
+  GlobalBaProblem& problem = *built;
   BaOptions ba;
   ba.solver = BaLinearSolver::kSparseSchur;
   ba.first_iterations = options_.global_ba_iterations;

@@ -247,6 +247,13 @@ class Backend {
   // Culls `id` if it is redundant (loop stage).
   void CullIfRedundant(const GlobalKeyframeId& id);
   void RunGlobalBa(GbaRequest request);
+  // A run's problem, built with its map checked out; the map's requests it holds go to
+  // `loops_in_problem`. nullopt: a final run the map is too large for.
+  std::optional<GlobalBaProblem> BuildGlobalBaProblem(const GbaRequest& request, bool windowed,
+                                                      MapId* map_id,
+                                                      std::uint64_t* loops_in_problem);
+  // Whether a final run may take the whole of `map` (final_global_ba_max_observations).
+  bool FinalGlobalBaFits(const ServerMap& map);
   void UpdateDense(DenseTask task);
   Status AddToDense(const DenseTask& task);
 
