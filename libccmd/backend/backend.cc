@@ -520,9 +520,9 @@ bool Backend::FinalGlobalBaFits(const ServerMap& map) {
   const std::size_t observations = CountGlobalBaObservations(map);
   if (observations > options_.final_global_ba_max_observations) {
     CCMD_LOG(INFO) << "map " << map.id().value()
-                   << " keeps its last windowed global BA: " << observations
-                   << " observations, more than the final one's "
-                   << options_.final_global_ba_max_observations;
+                   << " is written as its last global BA left it: " << observations
+                   << " observations, more than a final one takes ("
+                   << options_.final_global_ba_max_observations << ")";
     std::lock_guard<std::mutex> lock(stats_mutex_);
     stats_.global_ba_final_skipped++;
     return false;
