@@ -241,6 +241,17 @@ GlobalBaProblem BuildGlobalBa(const ServerMap& map, const std::map<AgentId, Pinh
   return g;
 }
 
+namespace {
+
+// A keyframe's observations in a global BA: of its points seen at least twice.
+std::size_t GlobalBaObservationsOf(const ServerKeyframe& kf) {
+  std::size_t observations = 0;
+  for (const ServerMapPoint* p : kf.points) observations += p && p->observations.size() >= 2;
+  return observations;
+}
+
+}  // namespace
+
 std::set<GlobalKeyframeId> SelectGlobalBaWindow(const ServerMap& map,
                                                 const std::vector<GlobalKeyframeId>& seeds,
                                                 int max_keyframes, std::size_t max_observations) {
@@ -248,8 +259,7 @@ std::set<GlobalKeyframeId> SelectGlobalBaWindow(const ServerMap& map,
   std::size_t observations = 0;
   // Adds a keyframe if both bounds allow it.
   const auto admit = [&](const ServerKeyframe* kf) {
-    std::size_t own = 0;
-    for (const ServerMapPoint* p : kf->points) own += p && p->observations.size() >= 2;
+    const std::size_t own = GlobalBaObservationsOf(*kf);
     if (static_cast<int>(window.size()) >= max_keyframes ||
         (!window.empty() && observations + own > max_observations)) {
       return false;
@@ -289,9 +299,7 @@ std::set<GlobalKeyframeId> SelectGlobalBaWindow(const ServerMap& map,
 
 std::size_t CountGlobalBaObservations(const ServerMap& map) {
   std::size_t observations = 0;
-  for (const auto& [id, kf] : map.keyframes()) {
-    for (const ServerMapPoint* p : kf->points) observations += p && p->observations.size() >= 2;
-  }
+  for (const auto& [id, kf] : map.keyframes()) observations += GlobalBaObservationsOf(*kf);
   return observations;
 }
 

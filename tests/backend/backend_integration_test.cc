@@ -284,6 +284,22 @@ void ExpectOnThePath(const SyntheticSequenceOptions& synth, const Trajectory& tr
   EXPECT_LT(ate->error.rmse, 0.01);
 }
 
+// Agent 1 tracks `synth` at 320x240 into `backend` through `sink` (made for agent 1), with
+// local mapping in the tracking thread and a local map of 20 keyframes; returns when the
+// back-end is idle.
+void TrackOneAgentAtQuarterSize(Backend* backend, WireSink* sink,
+                                const SyntheticSequenceOptions& synth) {
+  const PinholeCamera camera = SyntheticCamera(320, 240);
+  ASSERT_TRUE(backend->RegisterAgent(AgentId(1), "agent1", camera).ok());
+  TrackingOptions tracking;
+  tracking.synchronous_mapping = true;
+  tracking.max_keyframes = 20;
+  auto frontend = Frontend::Create(camera, tracking, sink);
+  ASSERT_TRUE(frontend.ok());
+  TrackParts(frontend->get(), synth, {{0, synth.frames - 1}});
+  backend->WaitIdle();
+}
+
 // An agent tracks ten frames (one keyframe), then its frames resume elsewhere after a gap in
 // time: it restarts in a new segment that nothing measures against that one keyframe. The map
 // held nothing else, so the new segment is the map: the keyframe before it leaves the dense
@@ -429,20 +445,10 @@ TEST(BackendIntegrationTest, CulledKeyframesKeepTheirPlaceInTheTrajectories) {
   ASSERT_TRUE(backend.ok()) << backend.status().ToString();
   const AgentId agent(1);
   const SyntheticSequenceOptions synth = QuickLaps(400);
-  const PinholeCamera camera = SyntheticCamera(320, 240);
-  ASSERT_TRUE((*backend)->RegisterAgent(agent, "agent1", camera).ok());
   WireSink sink(agent, backend->get());
-  TrackingOptions tracking;
-  tracking.synchronous_mapping = true;
-  tracking.max_keyframes = 20;
-  auto frontend = Frontend::Create(camera, tracking, &sink);
-  ASSERT_TRUE(frontend.ok());
-  SyntheticSource source(synth, FrameRange{0, synth.frames - 1});
-  const Trajectory ground_truth = source.GroundTruth();
-  RgbdFrame frame;
-  while (source.Read(&frame).ok()) (*frontend)->ProcessFrame(frame);
-  (*frontend)->Finish();
-  (*backend)->WaitIdle();
+  ASSERT_NO_FATAL_FAILURE(TrackOneAgentAtQuarterSize(backend->get(), &sink, synth));
+  const Trajectory ground_truth =
+      SyntheticSource(synth, FrameRange{0, synth.frames - 1}).GroundTruth();
 
   const BackendStats stats = (*backend)->stats();
   ASSERT_GE(stats.keyframes_culled, 10u);
@@ -487,18 +493,9 @@ TEST(BackendIntegrationTest, TheEndOfARunOptimisesTheWholeMapOnce) {
     RecordingObserver observer;
     auto backend = Backend::Create(options, &observer);
     ASSERT_TRUE(backend.ok()) << backend.status().ToString();
-    const AgentId agent(1);
     const SyntheticSequenceOptions synth = QuickLaps(300);
-    const PinholeCamera camera = SyntheticCamera(320, 240);
-    ASSERT_TRUE((*backend)->RegisterAgent(agent, "agent1", camera).ok());
-    WireSink sink(agent, backend->get());
-    TrackingOptions tracking;
-    tracking.synchronous_mapping = true;
-    tracking.max_keyframes = 20;
-    auto frontend = Frontend::Create(camera, tracking, &sink);
-    ASSERT_TRUE(frontend.ok());
-    TrackParts(frontend->get(), synth, {{0, synth.frames - 1}});
-    (*backend)->WaitIdle();
+    WireSink sink(AgentId(1), backend->get());
+    ASSERT_NO_FATAL_FAILURE(TrackOneAgentAtQuarterSize(backend->get(), &sink, synth));
     const BackendStats before = (*backend)->stats();
     ASSERT_GE(before.global_ba_windowed, 1) << "no loop was optimised over a window";
     ASSERT_GT((*backend)->FusedTrajectory().size(), 20u);
