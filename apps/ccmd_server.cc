@@ -116,6 +116,11 @@ void AddOptions(CLI::App* app, ServerArgs* a) {
                   "1 kB each while it solves; 0: never)")
       ->check(CLI::Range(0, 100000000))
       ->capture_default_str();
+  app->add_option("--idle-global-ba-seconds", a->runtime.backend.idle_global_ba_seconds,
+                  "While running, a map whose agents have sent no keyframe for this long gets "
+                  "that whole-map global BA too (same limit; 0: only on stopping)")
+      ->check(CLI::Range(0.0, 1e6))
+      ->capture_default_str();
   app->add_flag("--no-culling", a->no_culling,
                 "Keep every keyframe's sparse data (no keyframe culling: the sparse maps then grow "
                 "with the time spent in a place, not with the place)");

@@ -35,6 +35,8 @@ Status BackendOptions::Validate() const {
     return InvalidArgument("global BA window must allow >= 1000 observations");
   if (!(global_ba_duty > 0 && global_ba_duty <= 1))
     return InvalidArgument("global BA duty must be in (0, 1]");
+  if (!(idle_global_ba_seconds >= 0 && idle_global_ba_seconds <= 1e6))
+    return InvalidArgument("idle global BA seconds must be in [0, 1e6] (0: never)");
   if (dense) CCMD_RETURN_IF_ERROR(dense_options.Validate());
   CCMD_RETURN_IF_ERROR(place.Validate());
   return depth_noise.Validate();
@@ -49,6 +51,7 @@ void BackendOptions::Describe(OptionsWriter* out) const {
   out->Add("global_ba_max_observations", global_ba_max_observations);
   out->Add("global_ba_duty", global_ba_duty);
   out->Add("final_global_ba_max_observations", final_global_ba_max_observations);
+  out->Add("idle_global_ba_seconds", idle_global_ba_seconds);
   out->Nested("depth_noise", depth_noise);
   out->Add("dense", dense);
   out->Nested("dense_options", dense_options);
@@ -181,9 +184,39 @@ void Backend::FinishGlobalBa() {
     // One at a time: a request still waiting in the stage is replaced by a newer one.
     GbaRequest request;
     request.agent = agent;
-    request.final = true;
+    request.reason = GbaRequest::Reason::kFinal;
     gba_stage_.Push(std::move(request));
     WaitIdle();
+  }
+}
+
+void Backend::OptimiseIdleMaps() {
+  if (!options_.global_ba || options_.final_global_ba_max_observations == 0 ||
+      options_.idle_global_ba_seconds <= 0 || stopping_)
+    return;
+  // Loops still being looked for would ask for their own run.
+  if (loop_stage_.busy() || loop_stage_.backlog() > 0) return;
+  const double now = Now();
+  std::map<MapId, AgentId> maps;  // each map, by one of its agents
+  std::set<MapId> busy;           // an agent of it sent a keyframe lately
+  {
+    std::lock_guard<std::mutex> lock(gba_counts_mutex_);
+    for (const auto& [agent, last] : last_keyframe_at_) {
+      const std::optional<MapId> map = maps_.MapOfAgent(agent);
+      if (!map) continue;
+      if (now - last < options_.idle_global_ba_seconds) busy.insert(*map);
+      maps.emplace(*map, agent);
+    }
+    for (const auto& [map, agent] : maps) {
+      const std::uint64_t requested = gba_requested_[map];
+      if (busy.count(map) || requested <= gba_whole_map_[map] || requested <= gba_idle_queued_[map])
+        continue;
+      GbaRequest request;
+      request.agent = agent;
+      request.reason = GbaRequest::Reason::kIdle;
+      if (gba_stage_.PushIfIdle(std::move(request))) gba_idle_queued_[map] = requested;
+      return;  // one at a time: the stage is busy now, or was already
+    }
   }
 }
 
@@ -216,6 +249,10 @@ void Backend::IngestKeyframe(AgentId agent, KeyframeMessage message, double arri
     }
   }
   const GlobalKeyframeId id{agent, message.id};
+  {
+    std::lock_guard<std::mutex> lock(gba_counts_mutex_);
+    last_keyframe_at_[agent] = Now();
+  }
   {
     std::lock_guard<std::mutex> lock(stats_mutex_);
     RecordArrival({id, KeyframeArrival::Stage::kReceived, WallSeconds(), false});
@@ -516,19 +553,21 @@ void Backend::WaitForGbaTurn() {
                         [&] { return stopping_.load(); });
 }
 
-bool Backend::FinalGlobalBaFits(const ServerMap& map) {
+bool Backend::WholeMapBaFits(const ServerMap& map, GbaRequest::Reason reason) {
+  const bool final = reason == GbaRequest::Reason::kFinal;
   const std::size_t observations = CountGlobalBaObservations(map);
   if (observations > options_.final_global_ba_max_observations) {
     CCMD_LOG(INFO) << "map " << map.id().value()
-                   << " is written as its last global BA left it: " << observations
-                   << " observations, more than a final one takes ("
+                   << (final ? " is written as its last global BA left it: "
+                             : " keeps its last global BA's result while idle: ")
+                   << observations << " observations, more than a whole-map run takes ("
                    << options_.final_global_ba_max_observations << ")";
     std::lock_guard<std::mutex> lock(stats_mutex_);
-    stats_.global_ba_final_skipped++;
+    stats_.global_ba_final_skipped += final;
     return false;
   }
-  CCMD_LOG(INFO) << "final global BA of map " << map.id().value() << ": " << map.keyframes().size()
-                 << " keyframes, " << observations << " observations";
+  CCMD_LOG(INFO) << (final ? "final" : "idle") << " global BA of map " << map.id().value() << ": "
+                 << map.keyframes().size() << " keyframes, " << observations << " observations";
   return true;
 }
 
@@ -549,7 +588,8 @@ std::optional<GlobalBaProblem> Backend::BuildGlobalBaProblem(const GbaRequest& r
     std::lock_guard<std::mutex> lock(gba_counts_mutex_);
     *loops_in_problem = gba_requested_[*map_id];
   }
-  if (request.final && !FinalGlobalBaFits(*guard)) return std::nullopt;
+  if (request.reason != GbaRequest::Reason::kLoop && !WholeMapBaFits(*guard, request.reason))
+    return std::nullopt;
   if (!windowed) return BuildGlobalBa(*guard, cameras, depth_noise);
   const std::set<GlobalKeyframeId> window =
       SelectGlobalBaWindow(*guard, request.around, options_.global_ba_max_keyframes,
@@ -563,7 +603,7 @@ void Backend::RunGlobalBa(GbaRequest request) {
   if (stopping_) return;  // Shutdown sets stopping_ before gba_abort_: no abort is lost
   const bool windowed = [&] {
     MapManager::Guard guard = maps_.CheckOutAgent(request.agent);
-    return !request.final &&
+    return request.reason == GbaRequest::Reason::kLoop &&
            static_cast<int>(guard->keyframes().size()) > options_.global_ba_max_keyframes;
   }();
   if (windowed) WaitForGbaTurn();
@@ -613,7 +653,8 @@ void Backend::RunGlobalBa(GbaRequest request) {
     std::lock_guard<std::mutex> lock(stats_mutex_);
     stats_.global_ba_runs++;
     stats_.global_ba_windowed += windowed;
-    stats_.global_ba_final += request.final && applied;
+    stats_.global_ba_final += request.reason == GbaRequest::Reason::kFinal && applied;
+    stats_.global_ba_idle += request.reason == GbaRequest::Reason::kIdle && applied;
     stats_.global_ba_aborted += !applied;
     stats_.global_ba_seconds += seconds;
     AppendSample(&timings_.global_ba_seconds, seconds);
@@ -621,9 +662,10 @@ void Backend::RunGlobalBa(GbaRequest request) {
   }
   ReleaseFreeMemory();  // the solver's workspace
   CCMD_LOG(INFO) << "global BA on map " << map_id.value()
-                 << (windowed        ? " (window)"
-                     : request.final ? " (final)"
-                                     : "")
+                 << (windowed                                       ? " (window)"
+                     : request.reason == GbaRequest::Reason::kFinal ? " (final)"
+                     : request.reason == GbaRequest::Reason::kIdle  ? " (idle)"
+                                                                    : "")
                  << ": " << problem.keyframes.size() << " keyframes, " << problem.points.size()
                  << " points, " << problem.problem.observations.size() << " observations, "
                  << summary.iterations << " iterations, " << seconds << " s"

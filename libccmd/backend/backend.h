@@ -57,6 +57,10 @@ struct BackendOptions {
   // gets one, when it holds at most this many observations (about 1 kB each while it
   // solves); 0: never.
   std::size_t final_global_ba_max_observations = 200000;
+  // While the server runs, a map none of whose agents has sent a keyframe for this many
+  // seconds gets the same whole-map run (OptimiseIdleMaps, within the same limit), so that
+  // the map a paused or finished mission shows is the one the run will write; 0: never.
+  double idle_global_ba_seconds = 10.0;
   DepthNoise depth_noise;
   bool dense = true;
   DenseMapOptions dense_options;
@@ -82,6 +86,7 @@ struct BackendStats {
   // FinishGlobalBa: whole-map runs at the end, and maps left as their windows had them
   // (above final_global_ba_max_observations).
   int global_ba_final = 0, global_ba_final_skipped = 0;
+  int global_ba_idle = 0;  // OptimiseIdleMaps: whole-map runs applied while the server ran
   // Agents' restarted segments received, loops that placed segments, and the segments
   // unplaced now (left out of the dense map and the trajectories: ServerMap::Placed).
   int segments_restarted = 0, segments_placed = 0;
@@ -158,6 +163,11 @@ class Backend {
   // (BackendOptions::final_global_ba_max_observations). Returns when they and the dense
   // updates they cause are done.
   void FinishGlobalBa();
+  // Periodic (ServerRuntime::Tick): queues the whole-map global BA FinishGlobalBa would run for
+  // one map whose agents have been idle for BackendOptions::idle_global_ba_seconds, when the
+  // global BA stage has nothing else to do. Returns at once; the run follows on that stage
+  // (a newer loop abandons it, and a later call retries).
+  void OptimiseIdleMaps();
   // Stops the stages (queued work is finished first). Idempotent.
   void Shutdown();
 
@@ -228,10 +238,14 @@ class Backend {
   };
   // A global BA request: the map of `agent`, around the loop's keyframes.
   struct GbaRequest {
+    // kLoop: the whole map, or a window around `around` once the map has outgrown one.
+    // kIdle (OptimiseIdleMaps) and kFinal (FinishGlobalBa): the agent's whole map, never a
+    // window, when it holds at most final_global_ba_max_observations.
+    enum class Reason { kLoop, kIdle, kFinal };
     AgentId agent;
     std::vector<GlobalKeyframeId> around;
     bool fusion = false;
-    bool final = false;  // FinishGlobalBa: the agent's whole map, never a window
+    Reason reason = Reason::kLoop;
   };
 
   explicit Backend(const BackendOptions& options);
@@ -252,8 +266,9 @@ class Backend {
   std::optional<GlobalBaProblem> BuildGlobalBaProblem(const GbaRequest& request, bool windowed,
                                                       MapId* map_id,
                                                       std::uint64_t* loops_in_problem);
-  // Whether a final run may take the whole of `map` (final_global_ba_max_observations).
-  bool FinalGlobalBaFits(const ServerMap& map);
+  // Whether an idle or final run may take the whole of `map`
+  // (final_global_ba_max_observations).
+  bool WholeMapBaFits(const ServerMap& map, GbaRequest::Reason reason);
   void UpdateDense(DenseTask task);
   Status AddToDense(const DenseTask& task);
 
@@ -304,6 +319,10 @@ class Backend {
   // applied global BA of the whole map came after (FinishGlobalBa runs where they differ).
   std::mutex gba_counts_mutex_;
   std::map<MapId, std::uint64_t> gba_requested_, gba_whole_map_;
+  // The requests an idle run was last queued after (not again for the same ones), and when
+  // each agent's latest keyframe reached the back-end (back-end clock).
+  std::map<MapId, std::uint64_t> gba_idle_queued_;
+  std::map<AgentId, double> last_keyframe_at_;
   double dense_trimmed_ = 0;  // back-end clock; dense stage only
 
   std::mutex large_transient_mutex_;  // see LockLargeTransient

@@ -145,6 +145,7 @@ Json Backend::StatsJson() {
   j["global_ba_windowed"] = s.global_ba_windowed;
   j["global_ba_final"] = s.global_ba_final;
   j["global_ba_final_skipped"] = s.global_ba_final_skipped;
+  j["global_ba_idle"] = s.global_ba_idle;
   j["culling_checked"] = s.culling_checked;
   j["keyframes_culled"] = s.keyframes_culled;
   j["culled_points"] = s.culled_points;

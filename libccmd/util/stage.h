@@ -63,6 +63,16 @@ class Stage {
     return true;
   }
 
+  // Queues an item only when nothing is queued or being handled (work that must not replace or
+  // delay another's). Returns whether it was queued.
+  bool PushIfIdle(T item) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (closed_ || busy_ || !items_.empty()) return false;
+    items_.push_back(std::move(item));
+    not_empty_.notify_one();
+    return true;
+  }
+
   // Refuses new items, lets the thread handle what is queued and joins it. Idempotent.
   void Stop() {
     {

@@ -484,12 +484,14 @@ TEST(BackendIntegrationTest, CulledKeyframesKeepTheirPlaceInTheTrajectories) {
 // keyframes: the loops where the lap closes are optimised over windows only. At the end,
 // FinishGlobalBa optimises the whole map once (more keyframes move than a window holds),
 // and once is enough; with a limit below the map's observations the windows' result stands.
+// An agent that has not been idle for idle_global_ba_seconds gets no idle run before.
 TEST(BackendIntegrationTest, TheEndOfARunOptimisesTheWholeMapOnce) {
   for (const std::size_t limit : {std::size_t{200000}, std::size_t{1}}) {
     BackendOptions options;
     options.global_ba_max_keyframes = 10;
     options.global_ba_max_observations = 1000;
     options.final_global_ba_max_observations = limit;
+    options.idle_global_ba_seconds = 3600;  // the agent was never idle that long
     RecordingObserver observer;
     auto backend = Backend::Create(options, &observer);
     ASSERT_TRUE(backend.ok()) << backend.status().ToString();
@@ -500,6 +502,9 @@ TEST(BackendIntegrationTest, TheEndOfARunOptimisesTheWholeMapOnce) {
     ASSERT_GE(before.global_ba_windowed, 1) << "no loop was optimised over a window";
     ASSERT_GT((*backend)->FusedTrajectory().size(), 20u);
     const std::map<GlobalKeyframeId, Pose> poses = observer.poses;
+    (*backend)->OptimiseIdleMaps();
+    (*backend)->WaitIdle();
+    ASSERT_EQ((*backend)->stats().global_ba_runs, before.global_ba_runs);
 
     (*backend)->FinishGlobalBa();
     const BackendStats after = (*backend)->stats();
@@ -520,6 +525,41 @@ TEST(BackendIntegrationTest, TheEndOfARunOptimisesTheWholeMapOnce) {
     (*backend)->FinishGlobalBa();  // nothing new since
     EXPECT_EQ((*backend)->stats().global_ba_final, 1);
   }
+}
+
+// The same run with the server still up: once its agent has been idle for
+// idle_global_ba_seconds, OptimiseIdleMaps has the whole map optimised (more keyframes move
+// than a window holds), once, and the end of the run then has nothing left to do.
+// (TheEndOfARunOptimisesTheWholeMapOnce: not before the agent has been idle that long.)
+TEST(BackendIntegrationTest, AnIdleMapIsOptimisedWholeWhileTheServerRuns) {
+  BackendOptions options;
+  options.global_ba_max_keyframes = 10;
+  options.global_ba_max_observations = 1000;
+  options.idle_global_ba_seconds = 1e-6;
+  RecordingObserver observer;
+  auto backend = Backend::Create(options, &observer);
+  ASSERT_TRUE(backend.ok()) << backend.status().ToString();
+  const SyntheticSequenceOptions synth = QuickLaps(300);
+  WireSink sink(AgentId(1), backend->get());
+  ASSERT_NO_FATAL_FAILURE(TrackOneAgentAtQuarterSize(backend->get(), &sink, synth));
+  const BackendStats before = (*backend)->stats();
+  ASSERT_GE(before.global_ba_windowed, 1) << "no loop was optimised over a window";
+  const std::map<GlobalKeyframeId, Pose> poses = observer.poses;
+
+  (*backend)->OptimiseIdleMaps();
+  (*backend)->WaitIdle();
+  const BackendStats after = (*backend)->stats();
+  int moved = 0;
+  for (const auto& [id, pose] : observer.poses)
+    moved += TranslationDistance(pose, poses.at(id)) > 1e-7;
+  EXPECT_EQ(after.global_ba_idle, 1);
+  EXPECT_EQ(after.global_ba_runs, before.global_ba_runs + 1);
+  EXPECT_GT(moved, options.global_ba_max_keyframes);
+  ExpectOnThePath(synth, (*backend)->FusedTrajectory());
+  (*backend)->OptimiseIdleMaps();  // nothing new since
+  (*backend)->FinishGlobalBa();
+  EXPECT_EQ((*backend)->stats().global_ba_runs, after.global_ba_runs);
+  EXPECT_EQ((*backend)->stats().global_ba_final, 0);
 }
 
 // An agent whose trajectories give another camera of its rig (7-Scenes: the depth camera, whose

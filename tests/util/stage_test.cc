@@ -104,6 +104,31 @@ TEST(StageTest, LatestPolicyReplacesTheWaitingRequest) {
   EXPECT_EQ(handled, (std::vector<int>{1, 3}));
 }
 
+TEST(StageTest, PushIfIdleQueuesOnlyWhenNothingIsQueuedOrBeingHandled) {
+  Gate gate;
+  std::promise<void> handling;
+  std::vector<int> handled;
+  Stage<int> stage(4, Stage<int>::Policy::kLatest);
+  stage.Start([&](int x) {
+    if (x == 1) {
+      handling.set_value();
+      gate.Wait();
+    }
+    handled.push_back(x);
+  });
+  ASSERT_TRUE(stage.PushIfIdle(1));
+  handling.get_future().wait();
+  EXPECT_FALSE(stage.PushIfIdle(2));  // 1 is being handled
+  stage.Push(3);
+  EXPECT_FALSE(stage.PushIfIdle(4));  // 3 waits: not replaced
+  gate.Open();
+  stage.WaitIdle();
+  EXPECT_TRUE(stage.PushIfIdle(5));
+  stage.Stop();
+  EXPECT_FALSE(stage.PushIfIdle(6));
+  EXPECT_EQ(handled, (std::vector<int>{1, 3, 5}));
+}
+
 TEST(StageTest, StopHandlesWhatIsQueuedThenRefusesMore) {
   Gate gate;
   std::vector<int> handled;
