@@ -639,10 +639,14 @@ void Backend::RunGlobalBa(GbaRequest request) {
       applied = true;
     }
   }
-  if (applied && !windowed) {
+  {
     std::lock_guard<std::mutex> lock(gba_counts_mutex_);
-    std::uint64_t& whole = gba_whole_map_[map_id];
-    whole = std::max(whole, loops_in_problem);
+    if (applied && !windowed) {
+      std::uint64_t& whole = gba_whole_map_[map_id];
+      whole = std::max(whole, loops_in_problem);
+    }
+    // An abandoned idle run (a loop elsewhere outdates any whole-map run) is tried again.
+    if (!applied && request.reason == GbaRequest::Reason::kIdle) gba_idle_queued_.erase(map_id);
   }
   gba_running_ = false;
   gba_windowed_ = false;

@@ -319,8 +319,8 @@ class Backend {
   // applied global BA of the whole map came after (FinishGlobalBa runs where they differ).
   std::mutex gba_counts_mutex_;
   std::map<MapId, std::uint64_t> gba_requested_, gba_whole_map_;
-  // The requests an idle run was last queued after (not again for the same ones), and when
-  // each agent's latest keyframe reached the back-end (back-end clock).
+  // The requests an idle run was last queued after (not again for the same ones, unless it was
+  // abandoned), and when each agent's latest keyframe reached the back-end (back-end clock).
   std::map<MapId, std::uint64_t> gba_idle_queued_;
   std::map<AgentId, double> last_keyframe_at_;
   double dense_trimmed_ = 0;  // back-end clock; dense stage only
