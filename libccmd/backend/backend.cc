@@ -535,13 +535,15 @@ void Backend::AfterLoop(LoopClosure closure) {
 
 void Backend::RequestGlobalBa(GbaRequest request) {
   if (!options_.global_ba) return;
+  // A running global BA of the whole map the loop is in is outdated by it; a windowed one
+  // stays valid, and so does a run of another map, unless a fusion takes its map away.
+  bool abort = request.fusion;
   if (const std::optional<MapId> map = maps_.MapOfAgent(request.agent)) {
     std::lock_guard<std::mutex> lock(gba_counts_mutex_);
     ++gba_requested_[*map];
+    abort = abort || (!gba_windowed_ && gba_running_map_ == map);
   }
-  // A running global BA of a whole map is outdated by the new loop; a windowed one stays valid
-  // unless its map is fused away.
-  if (!gba_windowed_ || request.fusion) gba_abort_ = true;
+  if (abort) gba_abort_ = true;
   gba_stage_.Push(std::move(request));
 }
 
@@ -583,13 +585,15 @@ std::optional<GlobalBaProblem> Backend::BuildGlobalBaProblem(const GbaRequest& r
   }
   MapManager::Guard guard = maps_.CheckOutAgent(request.agent);
   *map_id = guard->id();
-  {
-    // A loop is in the map before it asks for a global BA, and not while it is checked out.
-    std::lock_guard<std::mutex> lock(gba_counts_mutex_);
-    *loops_in_problem = gba_requested_[*map_id];
-  }
   if (request.reason != GbaRequest::Reason::kLoop && !WholeMapBaFits(*guard, request.reason))
     return std::nullopt;
+  {
+    // A loop is in the map before it asks for a global BA, and not while it is checked out:
+    // a request counted after this abandons the run (RequestGlobalBa).
+    std::lock_guard<std::mutex> lock(gba_counts_mutex_);
+    *loops_in_problem = gba_requested_[*map_id];
+    gba_running_map_ = *map_id;
+  }
   if (!windowed) return BuildGlobalBa(*guard, cameras, depth_noise);
   const std::set<GlobalKeyframeId> window =
       SelectGlobalBaWindow(*guard, request.around, options_.global_ba_max_keyframes,
@@ -645,8 +649,7 @@ void Backend::RunGlobalBa(GbaRequest request) {
       std::uint64_t& whole = gba_whole_map_[map_id];
       whole = std::max(whole, loops_in_problem);
     }
-    // An abandoned idle run (a loop elsewhere outdates any whole-map run) is tried again.
-    if (!applied && request.reason == GbaRequest::Reason::kIdle) gba_idle_queued_.erase(map_id);
+    gba_running_map_.reset();
   }
   gba_running_ = false;
   gba_windowed_ = false;

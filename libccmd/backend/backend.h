@@ -262,7 +262,8 @@ class Backend {
   void CullIfRedundant(const GlobalKeyframeId& id);
   void RunGlobalBa(GbaRequest request);
   // A run's problem, built with its map checked out; the map's requests it holds go to
-  // `loops_in_problem`. nullopt: a final run the map is too large for.
+  // `loops_in_problem`, and its map becomes the running one. nullopt: an idle or final run the
+  // map is too large for.
   std::optional<GlobalBaProblem> BuildGlobalBaProblem(const GbaRequest& request, bool windowed,
                                                       MapId* map_id,
                                                       std::uint64_t* loops_in_problem);
@@ -306,8 +307,8 @@ class Backend {
   std::map<AgentId, std::string> names_;
   std::map<AgentId, Pose> trajectory_cameras_;  // T_color_trajectory (RegisterAgent)
 
-  // A newer loop or fusion abandons a running global BA of a whole map, a fusion a windowed
-  // one; shutdown abandons any.
+  // A newer loop in its map or a fusion abandons a running global BA of a whole map, a fusion
+  // a windowed one; shutdown abandons any.
   std::atomic<bool> gba_abort_{false};
   std::atomic<bool> gba_windowed_{false};
   std::atomic<bool> gba_running_{false};
@@ -319,9 +320,11 @@ class Backend {
   // applied global BA of the whole map came after (FinishGlobalBa runs where they differ).
   std::mutex gba_counts_mutex_;
   std::map<MapId, std::uint64_t> gba_requested_, gba_whole_map_;
-  // The requests an idle run was last queued after (not again for the same ones, unless it was
-  // abandoned), and when each agent's latest keyframe reached the back-end (back-end clock).
+  // The requests an idle run was last queued after (not again for the same ones: only a loop
+  // in its map, which counts as a new one, or a fusion abandons it), and when each agent's
+  // latest keyframe reached the back-end (back-end clock).
   std::map<MapId, std::uint64_t> gba_idle_queued_;
+  std::optional<MapId> gba_running_map_;  // of the global BA being solved
   std::map<AgentId, double> last_keyframe_at_;
   double dense_trimmed_ = 0;  // back-end clock; dense stage only
 
