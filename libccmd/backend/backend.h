@@ -166,7 +166,7 @@ class Backend {
   // Periodic (ServerRuntime::Tick): queues the whole-map global BA FinishGlobalBa would run for
   // one map whose agents have been idle for BackendOptions::idle_global_ba_seconds, when the
   // global BA stage has nothing else to do. Returns at once; the run follows on that stage
-  // (a newer loop abandons it, and a later call retries).
+  // (a newer loop in its map abandons it, and a later call queues it again).
   void OptimiseIdleMaps();
   // Stops the stages (queued work is finished first). Idempotent.
   void Shutdown();
