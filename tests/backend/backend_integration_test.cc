@@ -300,6 +300,23 @@ void TrackOneAgentAtQuarterSize(Backend* backend, WireSink* sink,
   backend->WaitIdle();
 }
 
+// Global BA windows of 10 keyframes (and 1000 observations), which the map of
+// TrackOneAgentAtQuarterSize's laps outgrows.
+BackendOptions SmallGlobalBaWindows() {
+  BackendOptions options;
+  options.global_ba_max_keyframes = 10;
+  options.global_ba_max_observations = 1000;
+  return options;
+}
+
+// The keyframes of `before` whose position differs in `now`.
+int MovedSince(const std::map<GlobalKeyframeId, Pose>& before,
+               const std::map<GlobalKeyframeId, Pose>& now) {
+  int moved = 0;
+  for (const auto& [id, pose] : now) moved += TranslationDistance(pose, before.at(id)) > 1e-7;
+  return moved;
+}
+
 // An agent tracks ten frames (one keyframe), then its frames resume elsewhere after a gap in
 // time: it restarts in a new segment that nothing measures against that one keyframe. The map
 // held nothing else, so the new segment is the map: the keyframe before it leaves the dense
@@ -487,9 +504,7 @@ TEST(BackendIntegrationTest, CulledKeyframesKeepTheirPlaceInTheTrajectories) {
 // An agent that has not been idle for idle_global_ba_seconds gets no idle run before.
 TEST(BackendIntegrationTest, TheEndOfARunOptimisesTheWholeMapOnce) {
   for (const std::size_t limit : {std::size_t{200000}, std::size_t{1}}) {
-    BackendOptions options;
-    options.global_ba_max_keyframes = 10;
-    options.global_ba_max_observations = 1000;
+    BackendOptions options = SmallGlobalBaWindows();
     options.final_global_ba_max_observations = limit;
     options.idle_global_ba_seconds = 3600;  // the agent was never idle that long
     RecordingObserver observer;
@@ -508,9 +523,7 @@ TEST(BackendIntegrationTest, TheEndOfARunOptimisesTheWholeMapOnce) {
 
     (*backend)->FinishGlobalBa();
     const BackendStats after = (*backend)->stats();
-    int moved = 0;
-    for (const auto& [id, pose] : observer.poses)
-      moved += TranslationDistance(pose, poses.at(id)) > 1e-7;
+    const int moved = MovedSince(poses, observer.poses);
     if (limit == 1) {
       EXPECT_EQ(after.global_ba_final, 0);
       EXPECT_EQ(after.global_ba_final_skipped, 1);
@@ -532,9 +545,7 @@ TEST(BackendIntegrationTest, TheEndOfARunOptimisesTheWholeMapOnce) {
 // than a window holds), once, and the end of the run then has nothing left to do.
 // (TheEndOfARunOptimisesTheWholeMapOnce: not before the agent has been idle that long.)
 TEST(BackendIntegrationTest, AnIdleMapIsOptimisedWholeWhileTheServerRuns) {
-  BackendOptions options;
-  options.global_ba_max_keyframes = 10;
-  options.global_ba_max_observations = 1000;
+  BackendOptions options = SmallGlobalBaWindows();
   options.idle_global_ba_seconds = 1e-6;
   RecordingObserver observer;
   auto backend = Backend::Create(options, &observer);
@@ -549,9 +560,7 @@ TEST(BackendIntegrationTest, AnIdleMapIsOptimisedWholeWhileTheServerRuns) {
   (*backend)->OptimiseIdleMaps();
   (*backend)->WaitIdle();
   const BackendStats after = (*backend)->stats();
-  int moved = 0;
-  for (const auto& [id, pose] : observer.poses)
-    moved += TranslationDistance(pose, poses.at(id)) > 1e-7;
+  const int moved = MovedSince(poses, observer.poses);
   EXPECT_EQ(after.global_ba_idle, 1);
   EXPECT_EQ(after.global_ba_runs, before.global_ba_runs + 1);
   EXPECT_GT(moved, options.global_ba_max_keyframes);
