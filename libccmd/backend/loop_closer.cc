@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <sstream>
+#include <unordered_map>
 #include <unordered_set>
 
 #include "libccmd/util/logging.h"
@@ -184,6 +186,81 @@ std::vector<ServerKeyframe*> CloseEarlierLoops(ServerMap* fused,
   return moved;
 }
 
+std::vector<LoopConsistency::Pair> UncomparedOverlaps(const ServerMap& fused,
+                                                      const LoopMatch& fusion,
+                                                      const std::vector<ServerKeyframe*>& moved,
+                                                      const FusionOverlapOptions& options) {
+  if (options.max_pairs <= 0) return {};
+  const ServerKeyframe* query = fusion.query;
+  const std::unordered_set<const ServerKeyframe*> moved_set(moved.begin(), moved.end());
+  const bool query_moved = moved_set.count(query) > 0;
+  std::vector<const ServerKeyframe*> queries, others;
+  for (const auto& [id, kf] : fused.keyframes()) {
+    if (!fused.Placed(*kf)) continue;
+    if ((moved_set.count(kf.get()) > 0) != query_moved) {
+      others.push_back(kf.get());
+    } else if (id.agent == query->id.agent && kf.get() != query) {
+      queries.push_back(kf.get());
+    }
+  }
+  // How many keyframes apart along its agent's path a keyframe is from the fusion's on its
+  // side (another agent's: as far as can be).
+  const auto along = [](const ServerKeyframe* kf, const ServerKeyframe* fused_at) {
+    if (kf->id.agent != fused_at->id.agent) return std::int64_t{1} << 32;
+    return std::abs(std::int64_t{kf->id.keyframe.value()} - fused_at->id.keyframe.value());
+  };
+  const double min_cos = std::cos(options.max_angle_deg * M_PI / 180);
+  struct Near {
+    std::int64_t apart;  // along both paths from the fusion's loop
+    double distance;
+    const ServerKeyframe* query;
+    const ServerKeyframe* other;
+  };
+  std::vector<Near> near;
+  for (const ServerKeyframe* q : queries) {
+    const Eigen::Vector3d axis = q->T_map_cam.linear().col(2);
+    std::vector<std::pair<double, const ServerKeyframe*>> close;
+    for (const ServerKeyframe* o : others) {
+      const double d = (o->camera_center() - q->camera_center()).norm();
+      if (d < options.max_distance_m && axis.dot(o->T_map_cam.linear().col(2)) >= min_cos)
+        close.emplace_back(d, o);
+    }
+    if (close.empty()) continue;
+    // A keyframe the seam or a merged loop already tied to q shares its points.
+    std::unordered_map<const ServerKeyframe*, int> shared;
+    for (const ServerMapPoint* p : q->points) {
+      if (!p) continue;
+      for (const ServerMapPoint::Observation& o : p->observations) ++shared[o.keyframe];
+    }
+    std::sort(close.begin(), close.end());
+    for (const auto& [d, o] : close) {
+      const auto it = shared.find(o);
+      if (it == shared.end() || it->second < options.tied_points) {
+        near.push_back({along(q, query) + along(o, fusion.candidate), d, q, o});
+        break;
+      }
+    }
+  }
+  // The places furthest from the fusion's along the paths first: what the agents drifted
+  // between there and the fusion is largest.
+  std::sort(near.begin(), near.end(), [](const Near& a, const Near& b) {
+    return a.apart != b.apart ? a.apart > b.apart : a.distance < b.distance;
+  });
+  std::vector<LoopConsistency::Pair> pairs;
+  std::vector<Eigen::Vector3d> places;
+  for (const Near& n : near) {
+    if (static_cast<int>(pairs.size()) >= options.max_pairs) break;
+    const Eigen::Vector3d c = n.query->camera_center();
+    if (std::any_of(places.begin(), places.end(), [&](const Eigen::Vector3d& place) {
+          return (place - c).norm() < options.spacing_m;
+        }))
+      continue;
+    places.push_back(c);
+    pairs.emplace_back(n.query->id, n.other->id);
+  }
+  return pairs;
+}
+
 namespace {
 
 // The ids of `keyframes` and of the culled keyframes each leads.
@@ -275,6 +352,15 @@ std::optional<LoopClosure> LoopCloser::Process(const GlobalKeyframeId& id,
   if (!query) return std::nullopt;
   LoopCloserOptions options = options_;
   options.verification.depth_noise = depth_noise;
+  if (MinLogLevel() <= LogLevel::DEBUG) {
+    std::ostringstream listed;
+    for (const PlaceHit& c : query->candidates)
+      listed << " " << c.keyframe.agent.value() << ":" << c.keyframe.keyframe.value() << " ("
+             << c.score << ")";
+    CCMD_LOG(DEBUG) << "loop query: agent " << id.agent.value() << " keyframe "
+                    << id.keyframe.value() << (cooldown_.Active(id) ? " (cooling down)" : "")
+                    << ", candidates:" << listed.str();
+  }
   std::optional<LoopClosure> closure;
   for (const PlaceHit& candidate : query->candidates) {
     if (TryCandidate(id, camera, options, candidate, query->map, &closure) !=
@@ -305,7 +391,12 @@ LoopCloser::Outcome LoopCloser::TryCandidate(const GlobalKeyframeId& id,
   ServerKeyframe* cand = cmap.keyframe(candidate.keyframe);
   if (!query || !cand) return Outcome::kNextCandidate;
   auto match = VerifyLoop(query, camera, cand, cmap, options.verification);
-  if (!match) return Outcome::kNextCandidate;
+  if (!match) {
+    CCMD_LOG(DEBUG) << "loop candidate not verified: agent " << id.agent.value() << " keyframe "
+                    << id.keyframe.value() << " ~ agent " << cand->id.agent.value() << " keyframe "
+                    << cand->id.keyframe.value();
+    return Outcome::kNextCandidate;
+  }
 
   int count = 0;
   std::vector<LoopConsistency::Pair> earlier;
@@ -372,8 +463,20 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
                    << RotationDistance(Pose::Identity(), seam.correction) * 180 / M_PI << " deg; "
                    << seam.merged << " points tied";
     // Moved by the fusion, and by the pose graph of an earlier loop: each keyframe once.
+    const std::vector<ServerKeyframe*> entered = fusion.moved;  // the moved map's keyframes
     std::unordered_set<ServerKeyframe*> listed(fusion.moved.begin(), fusion.moved.end());
     for (ServerKeyframe* kf : CloseEarlierLoops(fusion.map.get(), earlier, camera, options)) {
+      if (listed.insert(kf).second) fusion.moved.push_back(kf);
+    }
+    // Then the places the maps now overlap at that no loop has related yet (asked after the
+    // earlier loops, which tie theirs).
+    const std::vector<LoopConsistency::Pair> overlaps =
+        UncomparedOverlaps(*fusion.map, match, entered, options.overlap);
+    if (!overlaps.empty()) {
+      CCMD_LOG(INFO) << "fusion: " << overlaps.size()
+                     << " more places where the maps overlap and no loop related them";
+    }
+    for (ServerKeyframe* kf : CloseEarlierLoops(fusion.map.get(), overlaps, camera, options)) {
       if (listed.insert(kf).second) fusion.moved.push_back(kf);
     }
     if (!fusion.placed.empty() || !fusion.unplaced.empty()) {

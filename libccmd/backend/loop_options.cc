@@ -30,6 +30,24 @@ void SeamOptions::Describe(OptionsWriter* out) const {
   out->Add("max_correction_deg", max_correction_deg);
 }
 
+Status FusionOverlapOptions::Validate() const {
+  if (max_pairs < 0 || tied_points < 0)
+    return InvalidArgument("fusion overlap pairs and tied points must be >= 0");
+  for (const double v : {max_distance_m, max_angle_deg, spacing_m}) {
+    if (!(v > 0) || !std::isfinite(v))
+      return InvalidArgument("fusion overlap distance, angle and spacing must be positive");
+  }
+  return Status::Ok();
+}
+
+void FusionOverlapOptions::Describe(OptionsWriter* out) const {
+  out->Add("max_pairs", max_pairs);
+  out->Add("max_distance_m", max_distance_m);
+  out->Add("max_angle_deg", max_angle_deg);
+  out->Add("spacing_m", spacing_m);
+  out->Add("tied_points", tied_points);
+}
+
 Status LoopCloserOptions::Validate() const {
   if (loop_candidates < 1) return InvalidArgument("loop candidates must be >= 1");
   if (loop_consistency < 1) return InvalidArgument("loop consistency must be >= 1");
@@ -46,12 +64,14 @@ Status LoopCloserOptions::Validate() const {
   }
   CCMD_RETURN_IF_ERROR(verification.Validate());
   CCMD_RETURN_IF_ERROR(seam.Validate());
+  CCMD_RETURN_IF_ERROR(overlap.Validate());
   return pose_graph.Validate();
 }
 
 void LoopCloserOptions::Describe(OptionsWriter* out) const {
   out->Nested("verification", verification);
   out->Nested("seam", seam);
+  out->Nested("overlap", overlap);
   out->Add("loop_candidates", loop_candidates);
   out->Add("loop_consistency", loop_consistency);
   out->Add("consistency_translation", consistency_translation);

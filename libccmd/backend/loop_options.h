@@ -32,9 +32,30 @@ struct SeamOptions {
   void Describe(OptionsWriter* out) const;
 };
 
+// After a fusion, the places where the two maps now overlap and no loop has related them. A
+// fusion is made where the consistency rule accepted a loop, which need not be where the maps
+// overlap first (it may be a place one agent came back to after the other saw it), and
+// whatever an agent drifted between such places lies between the maps at the others, where no
+// query may ever look again (the agents have moved on, the query agent cools down). Pairs of
+// the query agent's keyframes and the other map's that are now close (cameras within
+// max_distance_m, optical axes within max_angle_deg) and share fewer than tied_points map
+// points are verified and closed like the loops that confirmed the fusion (CloseEarlierLoops):
+// the closest pairs first, one per place (queries at least spacing_m apart), at most max_pairs.
+struct FusionOverlapOptions {
+  int max_pairs = 4;  // 0: none
+  double max_distance_m = 0.3;
+  double max_angle_deg = 30;
+  double spacing_m = 0.5;
+  int tied_points = 10;
+
+  Status Validate() const;
+  void Describe(OptionsWriter* out) const;
+};
+
 struct LoopCloserOptions {
   LoopVerificationOptions verification;
   SeamOptions seam;
+  FusionOverlapOptions overlap;
   int loop_candidates = 4;   // verified per query, best score first
   int loop_consistency = 2;  // consecutive confirming keyframes needed
   // How far apart two loops' map-to-map transforms may put the later query (metres, degrees).

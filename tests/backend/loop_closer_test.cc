@@ -708,6 +708,54 @@ TEST(LoopCorrectionTest, AFusionClosesTheEarlierLoopsOfItsGroupInTheFusedMap) {
   EXPECT_TRUE(CloseEarlierLoops(fused, {{Kf(2, 99), Kf(1, 5)}}, c.camera, c.options).empty());
 }
 
+// The same fusion when no loop of its group met agent 1 at the earlier place: the fusion
+// itself finds where agent 2's path lies beside agent 1's without sharing its points (the
+// steps before the seam it tied), pairs each such keyframe with agent 1's at the same place,
+// one pair per place, and closing them removes what agent 2 drifted there.
+TEST(LoopCorrectionTest, AFusionFindsTheOverlapsNoLoopComparedAndClosesThem) {
+  DriftedFusion c;
+  FuseTheDriftedWalk(&c);
+  ServerMap* fused = c.fusion.map.get();
+  ASSERT_TRUE(fused);
+  LoopMatch fused_at;  // the fusion's loop
+  fused_at.query = fused->keyframe(Kf(2, kWalk - 1));
+  fused_at.candidate = fused->keyframe(Kf(1, 4 + kWalk - 1));
+  const double earlier_before = c.ErrorOf(1);
+  ASSERT_GT(earlier_before, 0.04);
+
+  const FusionOverlapOptions& overlap = c.options.overlap;
+  const std::vector<LoopConsistency::Pair> pairs =
+      UncomparedOverlaps(*fused, fused_at, c.fusion.moved, overlap);
+  ASSERT_EQ(static_cast<int>(pairs.size()), overlap.max_pairs);
+  // The place furthest along both paths from the fusion's first: agent 2's first keyframe.
+  EXPECT_EQ(pairs[0].first, Kf(2, 0));
+  for (std::size_t i = 0; i < pairs.size(); ++i) {
+    const auto& [q, other] = pairs[i];
+    ASSERT_EQ(q.agent, AgentId(2));
+    // Agent 1's keyframe at the same step of the circle, and the fusion's neighbours last.
+    EXPECT_EQ(other, Kf(1, 4 + static_cast<int>(q.keyframe.value())));
+    if (i > 0) EXPECT_GT(q.keyframe, pairs[i - 1].first.keyframe);
+    for (std::size_t j = 0; j < i; ++j) {
+      EXPECT_GE(
+          (fused->keyframe(q)->camera_center() - fused->keyframe(pairs[j].first)->camera_center())
+              .norm(),
+          overlap.spacing_m);
+    }
+  }
+
+  CloseEarlierLoops(fused, pairs, c.camera, c.options);
+  EXPECT_LT(c.ErrorOf(1), 0.4 * earlier_before);
+  EXPECT_LT(c.ErrorOf(kWalk - 1), 0.01);
+  // Closed, those places share points now: asked again, none of them is paired.
+  for (const auto& [q, other] : UncomparedOverlaps(*fused, fused_at, c.fusion.moved, overlap)) {
+    for (const auto& closed : pairs) EXPECT_NE(q, closed.first);
+  }
+
+  FusionOverlapOptions none = overlap;
+  none.max_pairs = 0;
+  EXPECT_TRUE(UncomparedOverlaps(*fused, fused_at, c.fusion.moved, none).empty());
+}
+
 // An earlier loop next to the fusion's own place, whose verification puts the query where
 // the fused map has it (within LoopAlreadyClosed's 5 mm and 0.25 degrees): the two agree, so
 // the loop is closed and only ties its matches. Refined on a seam first, it would be judged on
