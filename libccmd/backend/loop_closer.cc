@@ -158,7 +158,12 @@ std::vector<ServerKeyframe*> CloseEarlierLoops(ServerMap* fused,
     if (!query || !candidate || !fused->Placed(*query) || !fused->Placed(*candidate)) continue;
     const std::optional<LoopMatch> match =
         VerifyLoop(query, camera, candidate, *fused, options.verification);
-    if (!match) continue;
+    if (!match) {
+      CCMD_LOG(INFO) << "fusion: no loop verified at agent " << query_id.agent.value()
+                     << " keyframe " << query_id.keyframe.value() << " ~ agent "
+                     << candidate_id.agent.value() << " keyframe " << candidate_id.keyframe.value();
+      continue;
+    }
     // Where the verification already agrees with the fused map (typically next to the
     // fusion's own place, which its seam has just tied), the two say the same and the loop
     // only ties. A seam searched there finds what the tie left out: in the split replays, a
@@ -186,23 +191,16 @@ std::vector<ServerKeyframe*> CloseEarlierLoops(ServerMap* fused,
   return moved;
 }
 
-std::vector<LoopConsistency::Pair> UncomparedOverlaps(const ServerMap& fused,
-                                                      const LoopMatch& fusion,
-                                                      const std::vector<ServerKeyframe*>& moved,
-                                                      const FusionOverlapOptions& options) {
+namespace {
+
+// The core of UncomparedOverlaps and StrongerFusionLoop: `queries` (placed keyframes of the
+// fusion query's agent) paired with `others` (placed keyframes of the other map), the queries
+// put in the others' frame by T_other_query.
+std::vector<LoopConsistency::Pair> NearbyPairs(const std::vector<const ServerKeyframe*>& queries,
+                                               const std::vector<const ServerKeyframe*>& others,
+                                               const Pose& T_other_query, const LoopMatch& fusion,
+                                               const FusionOverlapOptions& options) {
   if (options.max_pairs <= 0) return {};
-  const ServerKeyframe* query = fusion.query;
-  const std::unordered_set<const ServerKeyframe*> moved_set(moved.begin(), moved.end());
-  const bool query_moved = moved_set.count(query) > 0;
-  std::vector<const ServerKeyframe*> queries, others;
-  for (const auto& [id, kf] : fused.keyframes()) {
-    if (!fused.Placed(*kf)) continue;
-    if ((moved_set.count(kf.get()) > 0) != query_moved) {
-      others.push_back(kf.get());
-    } else if (id.agent == query->id.agent && kf.get() != query) {
-      queries.push_back(kf.get());
-    }
-  }
   // How many keyframes apart along its agent's path a keyframe is from the fusion's on its
   // side (another agent's: as far as can be).
   const auto along = [](const ServerKeyframe* kf, const ServerKeyframe* fused_at) {
@@ -211,17 +209,19 @@ std::vector<LoopConsistency::Pair> UncomparedOverlaps(const ServerMap& fused,
   };
   const double min_cos = std::cos(options.max_angle_deg * M_PI / 180);
   struct Near {
-    std::int64_t apart;  // along both paths from the fusion's loop
     double distance;
+    std::int64_t apart;  // along both paths from the fusion's loop
+    Eigen::Vector3d place;
     const ServerKeyframe* query;
     const ServerKeyframe* other;
   };
   std::vector<Near> near;
   for (const ServerKeyframe* q : queries) {
-    const Eigen::Vector3d axis = q->T_map_cam.linear().col(2);
+    const Pose T_other_q = T_other_query * q->T_map_cam;
+    const Eigen::Vector3d axis = T_other_q.linear().col(2);
     std::vector<std::pair<double, const ServerKeyframe*>> close;
     for (const ServerKeyframe* o : others) {
-      const double d = (o->camera_center() - q->camera_center()).norm();
+      const double d = (o->camera_center() - T_other_q.translation()).norm();
       if (d < options.max_distance_m && axis.dot(o->T_map_cam.linear().col(2)) >= min_cos)
         close.emplace_back(d, o);
     }
@@ -236,29 +236,77 @@ std::vector<LoopConsistency::Pair> UncomparedOverlaps(const ServerMap& fused,
     for (const auto& [d, o] : close) {
       const auto it = shared.find(o);
       if (it == shared.end() || it->second < options.tied_points) {
-        near.push_back({along(q, query) + along(o, fusion.candidate), d, q, o});
+        near.push_back({d, along(q, fusion.query) + along(o, fusion.candidate),
+                        T_other_q.translation(), q, o});
         break;
       }
     }
   }
+  // One pair per place: the closest (the views most alike, most likely to verify).
+  std::sort(near.begin(), near.end(),
+            [](const Near& a, const Near& b) { return a.distance < b.distance; });
+  std::vector<Near> places;
+  for (const Near& n : near) {
+    if (std::none_of(places.begin(), places.end(),
+                     [&](const Near& p) { return (p.place - n.place).norm() < options.spacing_m; }))
+      places.push_back(n);
+  }
   // The places furthest from the fusion's along the paths first: what the agents drifted
   // between there and the fusion is largest.
-  std::sort(near.begin(), near.end(), [](const Near& a, const Near& b) {
-    return a.apart != b.apart ? a.apart > b.apart : a.distance < b.distance;
-  });
+  std::stable_sort(places.begin(), places.end(),
+                   [](const Near& a, const Near& b) { return a.apart > b.apart; });
+  if (static_cast<int>(places.size()) > options.max_pairs) places.resize(options.max_pairs);
   std::vector<LoopConsistency::Pair> pairs;
-  std::vector<Eigen::Vector3d> places;
-  for (const Near& n : near) {
-    if (static_cast<int>(pairs.size()) >= options.max_pairs) break;
-    const Eigen::Vector3d c = n.query->camera_center();
-    if (std::any_of(places.begin(), places.end(), [&](const Eigen::Vector3d& place) {
-          return (place - c).norm() < options.spacing_m;
-        }))
-      continue;
-    places.push_back(c);
-    pairs.emplace_back(n.query->id, n.other->id);
-  }
+  for (const Near& n : places) pairs.emplace_back(n.query->id, n.other->id);
   return pairs;
+}
+
+}  // namespace
+
+std::vector<LoopConsistency::Pair> UncomparedOverlaps(const ServerMap& fused,
+                                                      const LoopMatch& fusion,
+                                                      const std::vector<ServerKeyframe*>& moved,
+                                                      const FusionOverlapOptions& options) {
+  const ServerKeyframe* query = fusion.query;
+  const std::unordered_set<const ServerKeyframe*> moved_set(moved.begin(), moved.end());
+  const bool query_moved = moved_set.count(query) > 0;
+  std::vector<const ServerKeyframe*> queries, others;
+  for (const auto& [id, kf] : fused.keyframes()) {
+    if (!fused.Placed(*kf)) continue;
+    if ((moved_set.count(kf.get()) > 0) != query_moved) {
+      others.push_back(kf.get());
+    } else if (id.agent == query->id.agent && kf.get() != query) {
+      queries.push_back(kf.get());
+    }
+  }
+  return NearbyPairs(queries, others, Pose::Identity(), fusion, options);
+}
+
+std::optional<LoopMatch> StrongerFusionLoop(const ServerMap& query_map,
+                                            const ServerMap& candidate_map, const LoopMatch& match,
+                                            const PinholeCamera& camera,
+                                            const LoopCloserOptions& options) {
+  std::vector<const ServerKeyframe*> queries, others;
+  for (const auto& [id, kf] : query_map.keyframes()) {
+    if (id.agent == match.query->id.agent && kf.get() != match.query && query_map.Placed(*kf))
+      queries.push_back(kf.get());
+  }
+  for (const auto& [id, kf] : candidate_map.keyframes()) {
+    if (candidate_map.Placed(*kf)) others.push_back(kf.get());
+  }
+  const Pose T_cmap_qmap = match.T_candidate_map_query * match.query->T_map_cam.inverse();
+  std::optional<LoopMatch> best;
+  int most = match.inliers;
+  for (const auto& [q, o] : NearbyPairs(queries, others, T_cmap_qmap, match, options.overlap)) {
+    std::optional<LoopMatch> verified =
+        VerifyLoop(query_map.keyframe(q), camera, candidate_map.keyframe(o), candidate_map,
+                   options.verification);
+    if (verified && verified->inliers > most) {
+      most = verified->inliers;
+      best = std::move(verified);
+    }
+  }
+  return best;
 }
 
 namespace {
@@ -450,8 +498,29 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
     }
     closure.map = std::move(*query_guard);
   } else {
+    // Fused where the maps' views agree best: the confirming loop may join a place one agent
+    // came back to, with few matches, while the query agent's keyframes overlap the other
+    // map elsewhere with many. The confirming loop is then closed like an earlier one.
+    std::vector<LoopConsistency::Pair> loops = earlier;
+    std::optional<LoopMatch> stronger =
+        StrongerFusionLoop(**query_guard, **candidate_guard, match, camera, options);
+    if (stronger) {
+      CCMD_LOG(INFO) << "fusion made at agent " << stronger->query->id.agent.value() << " keyframe "
+                     << stronger->query->id.keyframe.value() << " ~ agent "
+                     << stronger->candidate->id.agent.value() << " keyframe "
+                     << stronger->candidate->id.keyframe.value() << " (" << stronger->inliers
+                     << " inliers), where the maps overlap, rather than at the confirming loop ("
+                     << match.inliers << ")";
+      loops.emplace_back(match.query->id, match.candidate->id);
+      event.query = stronger->query->id;
+      event.candidate = stronger->candidate->id;
+      event.inliers = stronger->inliers;
+      event.T_candidate_query =
+          stronger->candidate->T_map_cam.inverse() * stronger->T_candidate_map_query;
+    }
+    const LoopMatch& fused_at = stronger ? *stronger : match;
     MapFusion fusion =
-        FuseMapsByLoop(maps_, query_guard, candidate_guard, match, &options, &camera);
+        FuseMapsByLoop(maps_, query_guard, candidate_guard, fused_at, &options, &camera);
     event.fusion = true;
     const SeamJoin& seam = fusion.seam;
     CCMD_LOG(INFO) << "fusion seam: " << seam.searched << " matches, " << seam.pair_inliers
@@ -465,16 +534,21 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
     // Moved by the fusion, and by the pose graph of an earlier loop: each keyframe once.
     const std::vector<ServerKeyframe*> entered = fusion.moved;  // the moved map's keyframes
     std::unordered_set<ServerKeyframe*> listed(fusion.moved.begin(), fusion.moved.end());
-    for (ServerKeyframe* kf : CloseEarlierLoops(fusion.map.get(), earlier, camera, options)) {
+    for (ServerKeyframe* kf : CloseEarlierLoops(fusion.map.get(), loops, camera, options)) {
       if (listed.insert(kf).second) fusion.moved.push_back(kf);
     }
     // Then the places the maps now overlap at that no loop has related yet (asked after the
     // earlier loops, which tie theirs).
     const std::vector<LoopConsistency::Pair> overlaps =
-        UncomparedOverlaps(*fusion.map, match, entered, options.overlap);
+        UncomparedOverlaps(*fusion.map, fused_at, entered, options.overlap);
     if (!overlaps.empty()) {
+      std::ostringstream listed;
+      for (const auto& [q, o] : overlaps)
+        listed << " " << q.agent.value() << ":" << q.keyframe.value() << "~" << o.agent.value()
+               << ":" << o.keyframe.value();
       CCMD_LOG(INFO) << "fusion: " << overlaps.size()
-                     << " more places where the maps overlap and no loop related them";
+                     << " more places where the maps overlap and no loop related them:"
+                     << listed.str();
     }
     for (ServerKeyframe* kf : CloseEarlierLoops(fusion.map.get(), overlaps, camera, options)) {
       if (listed.insert(kf).second) fusion.moved.push_back(kf);

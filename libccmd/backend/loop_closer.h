@@ -160,15 +160,23 @@ std::vector<ServerKeyframe*> CloseEarlierLoops(ServerMap* fused,
 
 // After a fusion (see FusionOverlapOptions): pairs of a placed keyframe of the fusion query's
 // agent (not the query) and the nearest placed keyframe of the other map within the distance
-// and angle that shares fewer than tied_points map points with it, one pair per place
-// (queries spacing_m apart), at most max_pairs: first the places furthest along the agents'
-// paths from the fusion's loop (keyframes of its query's and candidate's agents apart in id;
-// another agent's counts as furthest), then the closest pairs. `moved`: the keyframes that
+// and angle that shares fewer than tied_points map points with it; one pair per place (the
+// closest; queries spacing_m apart), at most max_pairs, the places furthest along the agents'
+// paths from the fusion's loop first (keyframes of its query's and candidate's agents apart in
+// id; another agent's counts as furthest). `moved`: the keyframes that
 // entered the other map's frame (MapFusion::moved as FuseMapsByLoop returns it).
 std::vector<LoopConsistency::Pair> UncomparedOverlaps(const ServerMap& fused,
                                                       const LoopMatch& fusion,
                                                       const std::vector<ServerKeyframe*>& moved,
                                                       const FusionOverlapOptions& options);
+
+// Before a fusion: the places where the query agent's keyframes and the candidate map's
+// overlap, by the confirming loop's transform (the pairs UncomparedOverlaps would give after
+// it), verified; the one with the most inliers if it has more than `match` (else none).
+std::optional<LoopMatch> StrongerFusionLoop(const ServerMap& query_map,
+                                            const ServerMap& candidate_map, const LoopMatch& match,
+                                            const PinholeCamera& camera,
+                                            const LoopCloserOptions& options);
 
 // A loop the LoopCloser accepted and corrected.
 struct LoopClosure {

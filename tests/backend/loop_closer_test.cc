@@ -645,7 +645,8 @@ struct DriftedFusion {
   }
 };
 
-void FuseTheDriftedWalk(DriftedFusion* c) {
+// Both maps, not fused yet.
+void WalkTheDriftedMaps(DriftedFusion* c) {
   Rng rng(31);
   const GeneratedWorld world = MakeRingWorld(3000, &rng);
   {
@@ -671,6 +672,10 @@ void FuseTheDriftedWalk(DriftedFusion* c) {
       AddGeneratedKeyframe(second.get(), world, AgentId(2), k, CirclePose(4 + k, kRingSteps),
                            estimate(k), &rng);
   }
+}
+
+void FuseTheDriftedWalk(DriftedFusion* c) {
+  WalkTheDriftedMaps(c);
   auto [query_guard, candidate_guard] = c->maps.CheckOutPair(MapId(2), MapId(1));
   ServerKeyframe* query = query_guard->keyframe(Kf(2, kWalk - 1));
   ServerKeyframe* candidate = candidate_guard->keyframe(Kf(1, 4 + kWalk - 1));
@@ -754,6 +759,40 @@ TEST(LoopCorrectionTest, AFusionFindsTheOverlapsNoLoopComparedAndClosesThem) {
   FusionOverlapOptions none = overlap;
   none.max_pairs = 0;
   EXPECT_TRUE(UncomparedOverlaps(*fused, fused_at, c.fusion.moved, none).empty());
+}
+
+// Before fusing, the places where agent 2's keyframes overlap agent 1's map by the
+// confirming loop's transform are verified: when one holds more inliers than that loop (here
+// cut to 30 matches), the maps are fused there, the start of agent 2's walk, and so agree
+// there however far agent 2 drifted before the confirming loop's place.
+TEST(LoopCorrectionTest, AFusionIsMadeWhereTheMapsOverlapWithTheMostInliers) {
+  DriftedFusion c;
+  WalkTheDriftedMaps(&c);
+  auto [query_guard, candidate_guard] = c.maps.CheckOutPair(MapId(2), MapId(1));
+  LoopMatch weak = TrueMatch(query_guard->keyframe(Kf(2, kWalk - 1)),
+                             candidate_guard->keyframe(Kf(1, 4 + kWalk - 1)), Pose::Identity());
+  ASSERT_GT(weak.matches.size(), 30u);
+  weak.matches.resize(30);
+  weak.inliers = 30;
+  const std::optional<LoopMatch> stronger =
+      StrongerFusionLoop(*query_guard, *candidate_guard, weak, c.camera, c.options);
+  ASSERT_TRUE(stronger.has_value());
+  EXPECT_GT(stronger->inliers, weak.inliers);
+  ASSERT_EQ(stronger->query->id.agent, AgentId(2));
+  const int k = static_cast<int>(stronger->query->id.keyframe.value());
+  EXPECT_EQ(stronger->candidate->id, Kf(1, 4 + k));  // the same step of the circle
+  EXPECT_LT(k, kWalk / 2);                           // far along the walk from the loop
+
+  // A confirming loop with more inliers than any overlap keeps its place.
+  LoopMatch strong = weak;
+  strong.inliers = 100000;
+  EXPECT_FALSE(StrongerFusionLoop(*query_guard, *candidate_guard, strong, c.camera, c.options));
+
+  // Fused there, agent 2's keyframe at that place is where agent 1's map has it.
+  c.fusion =
+      FuseMapsByLoop(&c.maps, &query_guard, &candidate_guard, *stronger, &c.options, &c.camera);
+  ASSERT_TRUE(c.fusion.map);
+  EXPECT_LT(c.ErrorOf(k), 0.01);
 }
 
 // An earlier loop next to the fusion's own place, whose verification puts the query where
