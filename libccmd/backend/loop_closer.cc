@@ -140,65 +140,75 @@ MapFusion FuseMapsByLoop(MapManager* maps, MapManager::Guard* query_map,
   return fusion;
 }
 
+PairClosure CloseLoopAt(ServerMap* map, const LoopConsistency::Pair& pair,
+                        const PinholeCamera& camera, const LoopCloserOptions& options) {
+  PairClosure result;
+  const auto& [query_id, candidate_id] = pair;
+  ServerKeyframe* query = map->keyframe(query_id);
+  ServerKeyframe* candidate = map->keyframe(candidate_id);
+  // A keyframe of a segment still at a guess is not where it is: nothing to tie it to.
+  if (!query || !candidate || !map->Placed(*query) || !map->Placed(*candidate)) return result;
+  const std::optional<LoopMatch> match =
+      VerifyLoop(query, camera, candidate, *map, options.verification);
+  if (!match) {
+    CCMD_LOG(INFO) << "no loop verified at agent " << query_id.agent.value() << " keyframe "
+                   << query_id.keyframe.value() << " ~ agent " << candidate_id.agent.value()
+                   << " keyframe " << candidate_id.keyframe.value();
+    return result;
+  }
+  result.inliers = match->inliers;
+  // Where the verification already agrees with the map (typically next to a fusion's own
+  // place, which its seam has just tied), the two say the same and the loop only ties. A seam
+  // searched there finds what the tie left out: in the split replays, a few dozen pairs at
+  // the far edge of the candidate's window that moved the verified pose by 2-15 mm, which the
+  // pose graph then bent both paths by.
+  SeamSides sides;  // searched only for a loop that does not agree
+  const bool agreed = LoopAlreadyClosed(*match, options);
+  const LoopMatch refined =
+      agreed ? *match : RefineLoopOnSeam(map, *match, camera, options, &sides);
+  result.T_candidate_map_query = refined.T_candidate_map_query;
+  const double apart_m = TranslationDistance(query->T_map_cam, refined.T_candidate_map_query);
+  result.tied_only = agreed || LoopAlreadyClosed(refined, options);
+  if (result.tied_only) {
+    MergeLoopMatches(map, refined);
+  } else {
+    result.moved = CloseLoopInMap(map, refined, options.pose_graph);
+  }
+  if (options.seam.enabled && !agreed) TieSeam(map, sides, camera, options);
+  CCMD_LOG(INFO) << (result.tied_only ? "tied" : "closed a loop") << " at agent "
+                 << query_id.agent.value() << " keyframe " << query_id.keyframe.value()
+                 << " ~ agent " << candidate_id.agent.value() << " keyframe "
+                 << candidate_id.keyframe.value() << " (" << match->inliers << " inliers, "
+                 << 1000 * apart_m << " mm apart)";
+  return result;
+}
+
 std::vector<ServerKeyframe*> CloseEarlierLoops(ServerMap* fused,
                                                const std::vector<LoopConsistency::Pair>& loops,
                                                const PinholeCamera& camera,
                                                const LoopCloserOptions& options) {
   // The loops that confirmed a fusion may join other places than the one it was made at (an
   // overlap, and a place the other agent came back to later): the fusion's transform and seam
-  // come from the last one only, and whatever either agent drifted between the places lies
-  // between the maps at the others. Verified again in the fused map, each is closed as a loop
-  // inside it: where the verification puts the query apart from the map, refined on its seam
-  // and, still apart, the pose graph bends both agents' paths between the places.
+  // come from one only, and whatever either agent drifted between the places lies between
+  // the maps at the others. Verified again in the fused map, each is closed as a loop inside
+  // it: where the verification puts the query apart from the map, refined on its seam and,
+  // still apart, the pose graph bends both agents' paths between the places.
   std::vector<ServerKeyframe*> moved;
-  for (const auto& [query_id, candidate_id] : loops) {
-    ServerKeyframe* query = fused->keyframe(query_id);
-    ServerKeyframe* candidate = fused->keyframe(candidate_id);
-    // A keyframe of a segment still at a guess is not where it is: nothing to tie it to.
-    if (!query || !candidate || !fused->Placed(*query) || !fused->Placed(*candidate)) continue;
-    const std::optional<LoopMatch> match =
-        VerifyLoop(query, camera, candidate, *fused, options.verification);
-    if (!match) {
-      CCMD_LOG(INFO) << "fusion: no loop verified at agent " << query_id.agent.value()
-                     << " keyframe " << query_id.keyframe.value() << " ~ agent "
-                     << candidate_id.agent.value() << " keyframe " << candidate_id.keyframe.value();
-      continue;
-    }
-    // Where the verification already agrees with the fused map (typically next to the
-    // fusion's own place, which its seam has just tied), the two say the same and the loop
-    // only ties. A seam searched there finds what the tie left out: in the split replays, a
-    // few dozen pairs at the far edge of the candidate's window that moved the verified pose
-    // by 2-15 mm, which the pose graph then bent both paths by.
-    SeamSides sides;  // searched only for a loop that does not agree
-    const bool agreed = LoopAlreadyClosed(*match, options);
-    const LoopMatch refined =
-        agreed ? *match : RefineLoopOnSeam(fused, *match, camera, options, &sides);
-    const double apart_m = TranslationDistance(query->T_map_cam, refined.T_candidate_map_query);
-    const bool closed = agreed || LoopAlreadyClosed(refined, options);
-    if (closed) {
-      MergeLoopMatches(fused, refined);
-    } else {
-      for (ServerKeyframe* kf : CloseLoopInMap(fused, refined, options.pose_graph))
-        moved.push_back(kf);
-    }
-    if (options.seam.enabled && !agreed) TieSeam(fused, sides, camera, options);
-    CCMD_LOG(INFO) << "fusion also " << (closed ? "tied" : "closed a loop") << " at agent "
-                   << query_id.agent.value() << " keyframe " << query_id.keyframe.value()
-                   << " ~ agent " << candidate_id.agent.value() << " keyframe "
-                   << candidate_id.keyframe.value() << " (" << match->inliers << " inliers, "
-                   << 1000 * apart_m << " mm apart)";
+  for (const LoopConsistency::Pair& pair : loops) {
+    for (ServerKeyframe* kf : CloseLoopAt(fused, pair, camera, options).moved) moved.push_back(kf);
   }
   return moved;
 }
 
 namespace {
 
-// The core of UncomparedOverlaps and StrongerFusionLoop: `queries` (placed keyframes of the
-// fusion query's agent) paired with `others` (placed keyframes of the other map), the queries
-// put in the others' frame by T_other_query.
+// The core of UncomparedOverlaps, StrongerFusionLoop and UncomparedNeighbour: `queries`
+// (placed keyframes of one agent) paired with `others` (placed keyframes of other agents or
+// another map), the queries put in the others' frame by T_other_query. `fusion`: the loop the
+// places are ordered from (none: closest first).
 std::vector<LoopConsistency::Pair> NearbyPairs(const std::vector<const ServerKeyframe*>& queries,
                                                const std::vector<const ServerKeyframe*>& others,
-                                               const Pose& T_other_query, const LoopMatch& fusion,
+                                               const Pose& T_other_query, const LoopMatch* fusion,
                                                const FusionOverlapOptions& options) {
   if (options.max_pairs <= 0) return {};
   // How many keyframes apart along its agent's path a keyframe is from the fusion's on its
@@ -236,7 +246,7 @@ std::vector<LoopConsistency::Pair> NearbyPairs(const std::vector<const ServerKey
     for (const auto& [d, o] : close) {
       const auto it = shared.find(o);
       if (it == shared.end() || it->second < options.tied_points) {
-        near.push_back({d, along(q, fusion.query) + along(o, fusion.candidate),
+        near.push_back({d, fusion ? along(q, fusion->query) + along(o, fusion->candidate) : 0,
                         T_other_q.translation(), q, o});
         break;
       }
@@ -279,7 +289,7 @@ std::vector<LoopConsistency::Pair> UncomparedOverlaps(const ServerMap& fused,
       queries.push_back(kf.get());
     }
   }
-  return NearbyPairs(queries, others, Pose::Identity(), fusion, options);
+  return NearbyPairs(queries, others, Pose::Identity(), &fusion, options);
 }
 
 std::optional<LoopMatch> StrongerFusionLoop(const ServerMap& query_map,
@@ -297,7 +307,7 @@ std::optional<LoopMatch> StrongerFusionLoop(const ServerMap& query_map,
   const Pose T_cmap_qmap = match.T_candidate_map_query * match.query->T_map_cam.inverse();
   std::optional<LoopMatch> best;
   int most = match.inliers;
-  for (const auto& [q, o] : NearbyPairs(queries, others, T_cmap_qmap, match, options.overlap)) {
+  for (const auto& [q, o] : NearbyPairs(queries, others, T_cmap_qmap, &match, options.overlap)) {
     std::optional<LoopMatch> verified =
         VerifyLoop(query_map.keyframe(q), camera, candidate_map.keyframe(o), candidate_map,
                    options.verification);
@@ -307,6 +317,22 @@ std::optional<LoopMatch> StrongerFusionLoop(const ServerMap& query_map,
     }
   }
   return best;
+}
+
+std::optional<LoopConsistency::Pair> UncomparedNeighbour(const ServerMap& map,
+                                                         const ServerKeyframe& keyframe,
+                                                         const FusionOverlapOptions& options) {
+  if (!map.Placed(keyframe)) return std::nullopt;
+  std::vector<const ServerKeyframe*> others;
+  for (const auto& [id, kf] : map.keyframes()) {
+    if (id.agent != keyframe.id.agent && map.Placed(*kf)) others.push_back(kf.get());
+  }
+  FusionOverlapOptions one = options;
+  one.max_pairs = std::min(options.max_pairs, 1);
+  const std::vector<LoopConsistency::Pair> pairs =
+      NearbyPairs({&keyframe}, others, Pose::Identity(), nullptr, one);
+  if (pairs.empty()) return std::nullopt;
+  return pairs.front();
 }
 
 namespace {
@@ -415,6 +441,38 @@ std::optional<LoopClosure> LoopCloser::Process(const GlobalKeyframeId& id,
         Outcome::kNextCandidate)
       break;
   }
+  if (!closure && cooldown_.Active(id) && cooling_after_fusion_.count(id.agent))
+    closure = CloseUncomparedNeighbour(id, camera, options);
+  return closure;
+}
+
+std::optional<LoopClosure> LoopCloser::CloseUncomparedNeighbour(const GlobalKeyframeId& id,
+                                                                const PinholeCamera& camera,
+                                                                const LoopCloserOptions& options) {
+  MapManager::Guard guard = maps_->CheckOutAgent(id.agent);
+  const ServerKeyframe* keyframe = guard ? guard->keyframe(id) : nullptr;
+  if (!keyframe) return std::nullopt;
+  const std::optional<LoopConsistency::Pair> pair =
+      UncomparedNeighbour(*guard, *keyframe, options.overlap);
+  if (!pair) return std::nullopt;
+  PairClosure closed = CloseLoopAt(guard.get(), *pair, camera, options);
+  if (closed.inliers == 0) return std::nullopt;
+  compared_.Add(id.agent, pair->second.agent);
+  LoopClosure closure;
+  LoopEvent& event = closure.event;
+  event.server_time = MonotonicSeconds() - start_time_;
+  event.query = id;
+  event.candidate = pair->second;
+  event.inliers = closed.inliers;
+  event.T_candidate_query =
+      guard->keyframe(pair->second)->T_map_cam.inverse() * closed.T_candidate_map_query;
+  event.already_closed = closed.tied_only;
+  event.map = guard->id();
+  closure.moved = std::move(closed.moved);
+  closure.map = std::move(guard);
+  CCMD_LOG(INFO) << "cooling down after a fusion, agent " << id.agent.value() << " keyframe "
+                 << id.keyframe.value() << " met agent " << pair->second.agent.value()
+                 << " keyframe " << pair->second.keyframe.value() << " where no loop had";
   return closure;
 }
 
@@ -568,6 +626,11 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
   }
   event.map = closure.map->id();
   cooldown_.Start(event.query);
+  if (event.fusion) {
+    cooling_after_fusion_.insert(event.query.agent);
+  } else {
+    cooling_after_fusion_.erase(event.query.agent);
+  }
   CCMD_LOG(INFO) << (event.fusion           ? "maps fused"
                      : event.already_closed ? "loop already closed"
                                             : "loop closed")

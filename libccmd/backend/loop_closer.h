@@ -146,6 +146,19 @@ MapFusion FuseMapsByLoop(MapManager* maps, MapManager::Guard* query_map,
                          const LoopCloserOptions* options = nullptr,
                          const PinholeCamera* query_camera = nullptr);
 
+// A pair of keyframes of one map verified and closed as a loop inside it (CloseLoopAt).
+struct PairClosure {
+  int inliers = 0;         // 0: not verified (or a keyframe gone or not placed): nothing done
+  bool tied_only = false;  // the map agreed with it: its matches merged, nothing moved
+  Pose T_candidate_map_query = Pose::Identity();  // the query's verified (refined) pose
+  std::vector<ServerKeyframe*> moved;             // what the pose graph moved
+};
+// Verifies the pair in `map`; where the verified pose agrees with the map (LoopAlreadyClosed)
+// merges its matches only; otherwise refines it on its seam and, still apart, adds its loop
+// edge and runs the pose graph; then ties its seam.
+PairClosure CloseLoopAt(ServerMap* map, const LoopConsistency::Pair& pair,
+                        const PinholeCamera& camera, const LoopCloserOptions& options);
+
 // After a fusion: the earlier loops of the consistency group that confirmed it (pairs of
 // query and candidate keyframes, LoopConsistency::Confirm), each verified again in the fused
 // map and closed there as a loop inside one map: where the verified pose agrees with the map
@@ -177,6 +190,14 @@ std::optional<LoopMatch> StrongerFusionLoop(const ServerMap& query_map,
                                             const ServerMap& candidate_map, const LoopMatch& match,
                                             const PinholeCamera& camera,
                                             const LoopCloserOptions& options);
+
+// While an agent cools down after a fusion: the nearest placed keyframe of another agent in
+// `keyframe`'s map within the overlap distance and angle that shares fewer than tied_points
+// map points with it (none if overlap.max_pairs is 0). The agent may reach the place where it
+// overlaps the other map only after the fusion, and cooling down it queries no loop there.
+std::optional<LoopConsistency::Pair> UncomparedNeighbour(const ServerMap& map,
+                                                         const ServerKeyframe& keyframe,
+                                                         const FusionOverlapOptions& options);
 
 // A loop the LoopCloser accepted and corrected.
 struct LoopClosure {
@@ -223,6 +244,11 @@ class LoopCloser {
   Outcome TryCandidate(const GlobalKeyframeId& id, const PinholeCamera& camera,
                        const LoopCloserOptions& options, const PlaceHit& candidate, MapId query_map,
                        std::optional<LoopClosure>* closure);
+  // A keyframe of an agent cooling down after a fusion, against the other agents' nearest
+  // (UncomparedNeighbour): verified and closed like an earlier loop of a fusion.
+  std::optional<LoopClosure> CloseUncomparedNeighbour(const GlobalKeyframeId& id,
+                                                      const PinholeCamera& camera,
+                                                      const LoopCloserOptions& options);
   // `earlier`: the loops of the consistency group before `match` (a fusion ties them too).
   LoopClosure Correct(MapManager::Guard* query_guard, MapManager::Guard* candidate_guard,
                       const LoopMatch& match, const PinholeCamera& camera,
@@ -235,6 +261,7 @@ class LoopCloser {
   const double start_time_;
   LoopConsistency consistency_;
   LoopCooldown cooldown_;
+  std::set<AgentId> cooling_after_fusion_;  // agents whose cool-down a fusion started
   ComparedAgents compared_;
   std::vector<GlobalKeyframeId> late_queries_;
 };

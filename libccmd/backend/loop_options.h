@@ -32,15 +32,18 @@ struct SeamOptions {
   void Describe(OptionsWriter* out) const;
 };
 
-// After a fusion, the places where the two maps now overlap and no loop has related them. A
-// fusion is made where the consistency rule accepted a loop, which need not be where the maps
-// overlap first (it may be a place one agent came back to after the other saw it), and
-// whatever an agent drifted between such places lies between the maps at the others, where no
-// query may ever look again (the agents have moved on, the query agent cools down). Pairs of
-// the query agent's keyframes and the other map's that are now close (cameras within
-// max_distance_m, optical axes within max_angle_deg) and share fewer than tied_points map
-// points are verified and closed like the loops that confirmed the fusion (CloseEarlierLoops):
-// the closest pairs first, one per place (queries at least spacing_m apart), at most max_pairs.
+// Where two maps overlap besides the loop that confirmed their fusion. That loop may join a
+// place one agent came back to after the other saw it, from another viewpoint and with few
+// matches, while the maps overlap elsewhere where their views agree closely; and whatever an
+// agent drifted between such places lies between the maps at the others, where no query may
+// ever look again (the agents have moved on, the query agent cools down). Pairs of the query
+// agent's keyframes and the other map's that are close (cameras within max_distance_m, optical
+// axes within max_angle_deg) and share fewer than tied_points map points, one per place (the
+// closest; queries at least spacing_m apart), at most max_pairs, are: verified before the
+// fusion, which is made at the one with the most inliers if it beats the confirming loop
+// (StrongerFusionLoop); verified and closed after it like the loops of the confirming group
+// (UncomparedOverlaps, CloseEarlierLoops); and, one per keyframe, checked for each keyframe
+// the query agent makes while it cools down after the fusion (UncomparedNeighbour).
 struct FusionOverlapOptions {
   int max_pairs = 4;  // 0: none
   double max_distance_m = 0.3;

@@ -739,7 +739,9 @@ TEST(LoopCorrectionTest, AFusionFindsTheOverlapsNoLoopComparedAndClosesThem) {
     ASSERT_EQ(q.agent, AgentId(2));
     // Agent 1's keyframe at the same step of the circle, and the fusion's neighbours last.
     EXPECT_EQ(other, Kf(1, 4 + static_cast<int>(q.keyframe.value())));
-    if (i > 0) EXPECT_GT(q.keyframe, pairs[i - 1].first.keyframe);
+    if (i > 0) {
+      EXPECT_GT(q.keyframe, pairs[i - 1].first.keyframe);
+    }
     for (std::size_t j = 0; j < i; ++j) {
       EXPECT_GE(
           (fused->keyframe(q)->camera_center() - fused->keyframe(pairs[j].first)->camera_center())
@@ -753,7 +755,9 @@ TEST(LoopCorrectionTest, AFusionFindsTheOverlapsNoLoopComparedAndClosesThem) {
   EXPECT_LT(c.ErrorOf(kWalk - 1), 0.01);
   // Closed, those places share points now: asked again, none of them is paired.
   for (const auto& [q, other] : UncomparedOverlaps(*fused, fused_at, c.fusion.moved, overlap)) {
-    for (const auto& closed : pairs) EXPECT_NE(q, closed.first);
+    for (const auto& closed : pairs) {
+      EXPECT_NE(q, closed.first);
+    }
   }
 
   FusionOverlapOptions none = overlap;
@@ -793,6 +797,48 @@ TEST(LoopCorrectionTest, AFusionIsMadeWhereTheMapsOverlapWithTheMostInliers) {
       FuseMapsByLoop(&c.maps, &query_guard, &candidate_guard, *stronger, &c.options, &c.camera);
   ASSERT_TRUE(c.fusion.map);
   EXPECT_LT(c.ErrorOf(k), 0.01);
+}
+
+// A keyframe an agent makes while it cools down after a fusion is checked against the other
+// agents' nearest keyframes: agent 2's keyframe 1 finds agent 1's at the same step (nothing
+// tied them), closing it there removes agent 2's drift; where no other agent has been, or
+// where the seam tied the two, nothing is proposed.
+TEST(LoopCorrectionTest, AKeyframeCoolingDownAfterAFusionMeetsTheOtherAgentsNearestKeyframe) {
+  DriftedFusion c;
+  FuseTheDriftedWalk(&c);
+  ServerMap* fused = c.fusion.map.get();
+  ASSERT_TRUE(fused);
+  const double before = c.ErrorOf(1);
+  ASSERT_GT(before, 0.04);
+  const FusionOverlapOptions& overlap = c.options.overlap;
+
+  const std::optional<LoopConsistency::Pair> pair =
+      UncomparedNeighbour(*fused, *fused->keyframe(Kf(2, 1)), overlap);
+  ASSERT_TRUE(pair.has_value());
+  EXPECT_EQ(pair->first, Kf(2, 1));
+  EXPECT_EQ(pair->second, Kf(1, 5));
+  EXPECT_FALSE(UncomparedNeighbour(*fused, *fused->keyframe(Kf(1, 0)), overlap));  // step 0
+  const std::optional<LoopConsistency::Pair> at_seam =
+      UncomparedNeighbour(*fused, *fused->keyframe(Kf(2, kWalk - 2)), overlap);
+  if (at_seam) {
+    EXPECT_NE(at_seam->second, Kf(1, 4 + kWalk - 2));  // tied by the seam
+  }
+
+  const PairClosure closed = CloseLoopAt(fused, *pair, c.camera, c.options);
+  EXPECT_GT(closed.inliers, 0);
+  EXPECT_FALSE(closed.tied_only);
+  EXPECT_FALSE(closed.moved.empty());
+  EXPECT_LT(c.ErrorOf(1), 0.4 * before);
+  // Closed, the two share points: the place is not proposed again.
+  const std::optional<LoopConsistency::Pair> again =
+      UncomparedNeighbour(*fused, *fused->keyframe(Kf(2, 1)), overlap);
+  if (again) {
+    EXPECT_NE(again->second, Kf(1, 5));
+  }
+
+  FusionOverlapOptions none = overlap;
+  none.max_pairs = 0;
+  EXPECT_FALSE(UncomparedNeighbour(*fused, *fused->keyframe(Kf(2, 1)), none));
 }
 
 // An earlier loop next to the fusion's own place, whose verification puts the query where
