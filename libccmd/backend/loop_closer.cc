@@ -625,11 +625,11 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
     closure.primary_before = fusion.primary_before;
   }
   event.map = closure.map->id();
-  cooldown_.Start(event.query);
+  cooldown_.Start(match.query->id);  // the confirming query, wherever the fusion was made
   if (event.fusion) {
-    cooling_after_fusion_.insert(event.query.agent);
+    cooling_after_fusion_.insert(match.query->id.agent);
   } else {
-    cooling_after_fusion_.erase(event.query.agent);
+    cooling_after_fusion_.erase(match.query->id.agent);
   }
   CCMD_LOG(INFO) << (event.fusion           ? "maps fused"
                      : event.already_closed ? "loop already closed"

@@ -882,9 +882,8 @@ struct ProcessResult {
 // agent walking the circle and on past its start (new map points: it does not know it has
 // been there). With `restart_at`, the agent lost tracking there and restarted (new points, a
 // segment 20 cm off). Returns what each keyframe closed.
-std::vector<ProcessResult> WalkPastTheStart(int cooldown_keyframes, int restart_at = -1) {
-  Rng rng(11);
-  const GeneratedWorld world = MakeRingWorld(4000, &rng);
+// A place index whose vocabulary is trained on the wall's descriptors.
+PlaceIndexOptions WallPlaceIndex(const GeneratedWorld& world) {
   // Training images: the wall in 40 parts (one image would give every word a zero weight).
   std::vector<cv::Mat> images(40, cv::Mat(0, 32, CV_8U));
   for (std::size_t j = 0; j < world.descriptors.size(); ++j) {
@@ -898,6 +897,13 @@ std::vector<ProcessResult> WalkPastTheStart(int cooldown_keyframes, int restart_
   PlaceIndexOptions place;
   place.vocabulary = std::make_shared<const Vocabulary>(std::move(vocabulary).value());
   place.online_training = false;
+  return place;
+}
+
+std::vector<ProcessResult> WalkPastTheStart(int cooldown_keyframes, int restart_at = -1) {
+  Rng rng(11);
+  const GeneratedWorld world = MakeRingWorld(4000, &rng);
+  const PlaceIndexOptions place = WallPlaceIndex(world);
   LoopCloserOptions options;
   options.loop_cooldown_keyframes = cooldown_keyframes;
 
@@ -981,6 +987,72 @@ TEST(LoopCloserTest, ALoopWithTheKeyframesBeforeARestartPlacesTheNewSegment) {
   EXPECT_EQ(results[19].unplaced, 0u);
   EXPECT_EQ(results[20].unplaced, 1u);
   for (std::size_t id = closed; id < results.size(); ++id) EXPECT_EQ(results[id].unplaced, 0u);
+}
+
+// Agent 1 has mapped the ring; agent 2 starts at step 4 in a map of its own, and its map is
+// fused with agent 1's a keyframe or two later. It then cools down, and its next keyframe, at
+// step 9 with points it never tracked before, queries no loop in what is now its own map:
+// it is checked against agent 1's nearest keyframe instead, and the two tied. With no
+// overlap pairs allowed, nothing is checked there.
+std::vector<ProcessResult> FuseThenStepAside(int overlap_pairs) {
+  Rng rng(17);
+  const GeneratedWorld world = MakeRingWorld(4000, &rng);
+  LoopCloserOptions options;
+  options.overlap.max_pairs = overlap_pairs;
+  MapManager maps;
+  LoopCloser closer(options, WallPlaceIndex(world), &maps, 0.0);
+  constexpr int kSteps = 24;
+  const auto process = [&](AgentId agent, int id) {
+    std::optional<LoopClosure> closure =
+        closer.Process({agent, KeyframeId(id)}, testing::TestCamera(), DepthNoise(), false);
+    ProcessResult r;
+    if (closure) r = {true, closure->event, closure->moved.size(), closure->joined_primary.size()};
+    return r;
+  };
+  for (int i = 0; i < kSteps; ++i) {
+    {
+      MapManager::Guard guard = maps.CheckOutAgent(AgentId(1));
+      AddGeneratedKeyframe(guard.get(), world, AgentId(1), i, CirclePose(i, kSteps),
+                           CirclePose(i, kSteps), &rng);
+    }
+    process(AgentId(1), i);
+  }
+  const Pose T_map2_world = Offset(1.0, 40);
+  std::vector<ProcessResult> results;
+  for (int k = 0; k < 4; ++k) {
+    const int step = k < 3 ? 4 + k : 9;
+    {
+      MapManager::Guard guard = maps.CheckOutAgent(AgentId(2));
+      // The last one, after the fusion, is in agent 1's frame (as ingest puts it) and sees
+      // only points it has not tracked: a window starting at itself.
+      const bool aside = k == 3;
+      AddGeneratedKeyframe(guard.get(), world, AgentId(2), k, CirclePose(step, kSteps),
+                           (aside ? Pose::Identity() : T_map2_world) * CirclePose(step, kSteps),
+                           &rng, aside ? std::optional<std::uint32_t>(3) : std::nullopt);
+    }
+    results.push_back(process(AgentId(2), k));
+  }
+  return results;
+}
+
+TEST(LoopCloserTest, AKeyframeCoolingDownAfterAFusionIsCheckedAgainstTheOtherAgent) {
+  const std::vector<ProcessResult> results = FuseThenStepAside(4);
+  ASSERT_EQ(results.size(), 4u);
+  int fused_at = -1;
+  for (int k = 0; k < 3; ++k) {
+    if (results[k].closed && results[k].event.fusion) fused_at = k;
+  }
+  ASSERT_GE(fused_at, 1);  // confirmed by a second keyframe
+  const ProcessResult& aside = results[3];
+  ASSERT_TRUE(aside.closed);
+  EXPECT_FALSE(aside.event.fusion);
+  EXPECT_EQ(aside.event.query, Kf(2, 3));
+  EXPECT_EQ(aside.event.candidate, Kf(1, 9));  // agent 1's keyframe at the same step
+  EXPECT_GT(aside.event.inliers, 0);
+
+  const std::vector<ProcessResult> unchecked = FuseThenStepAside(0);
+  ASSERT_TRUE(unchecked[fused_at].closed && unchecked[fused_at].event.fusion);
+  EXPECT_FALSE(unchecked[3].closed);
 }
 
 }  // namespace
