@@ -518,6 +518,126 @@ LoopCloser::Outcome LoopCloser::TryCandidate(const GlobalKeyframeId& id,
   return Outcome::kClosed;
 }
 
+namespace {
+
+void LogSeam(const SeamJoin& seam) {
+  CCMD_LOG(INFO) << "fusion seam: " << seam.searched << " matches, " << seam.pair_inliers
+                 << " depth pairs agree; transform "
+                 << (!seam.corrected           ? "kept (no trusted refinement)"
+                     : seam.confirmed_by_refit ? "refined (confirmed by a second search)"
+                                               : "refined")
+                 << ": query moved " << 1000 * seam.shift_m << " mm, "
+                 << RotationDistance(Pose::Identity(), seam.correction) * 180 / M_PI << " deg; "
+                 << seam.merged << " points tied";
+}
+
+// After a fusion made at `fused_at`: `loops` (the confirming group's others) and then the
+// places the maps now overlap that no loop has related yet (asked after the loops, which tie
+// theirs) closed in the fused map; what their pose graphs moved joins fusion->moved, each
+// keyframe once.
+void CloseLoopsInTheFusedMap(MapFusion* fusion, const std::vector<LoopConsistency::Pair>& loops,
+                             const LoopMatch& fused_at, const PinholeCamera& camera,
+                             const LoopCloserOptions& options) {
+  const std::vector<ServerKeyframe*> entered = fusion->moved;  // the moved map's keyframes
+  std::unordered_set<ServerKeyframe*> listed(fusion->moved.begin(), fusion->moved.end());
+  const auto close = [&](const std::vector<LoopConsistency::Pair>& pairs) {
+    for (ServerKeyframe* kf : CloseEarlierLoops(fusion->map.get(), pairs, camera, options)) {
+      if (listed.insert(kf).second) fusion->moved.push_back(kf);
+    }
+  };
+  close(loops);
+  const std::vector<LoopConsistency::Pair> overlaps =
+      UncomparedOverlaps(*fusion->map, fused_at, entered, options.overlap);
+  if (!overlaps.empty()) {
+    std::ostringstream named;
+    for (const auto& [q, o] : overlaps)
+      named << " " << q.agent.value() << ":" << q.keyframe.value() << "~" << o.agent.value() << ":"
+            << o.keyframe.value();
+    CCMD_LOG(INFO) << "fusion: " << overlaps.size()
+                   << " more places where the maps overlap and no loop related them:"
+                   << named.str();
+  }
+  close(overlaps);
+}
+
+}  // namespace
+
+void LoopCloser::CloseInMap(MapManager::Guard* guard, const LoopMatch& match,
+                            const PinholeCamera& camera, const LoopCloserOptions& options,
+                            LoopClosure* closure) {
+  LoopEvent& event = closure->event;
+  ServerMap* map = guard->get();
+  SeamSides sides;
+  const LoopMatch refined = RefineLoopOnSeam(map, match, camera, options, &sides);
+  event.T_candidate_query = match.candidate->T_map_cam.inverse() * refined.T_candidate_map_query;
+  const AgentId a = match.query->id.agent, b = match.candidate->id.agent;
+  const bool compared = compared_.Compared(a, b);
+  compared_.Add(a, b);
+  if (compared && LoopAlreadyClosed(refined, options)) {
+    event.already_closed = true;
+    map->AddLoopEdge({match.candidate->id, match.query->id, event.T_candidate_query});
+    MergeLoopMatches(map, refined);
+  } else {
+    closure->moved = CloseLoopInMap(map, refined, options.pose_graph);
+  }
+  if (options.seam.enabled) TieSeam(map, sides, camera, options);
+  // A loop between a placed keyframe and one of a restarted segment places the segment.
+  std::vector<ServerKeyframe*> placed = map->LinkSegments(*match.query, *match.candidate);
+  if (!placed.empty()) {
+    CCMD_LOG(INFO) << "the loop places " << placed.size()
+                   << " keyframes of restarted segments in map " << map->id().value();
+    event.placed_segment = true;
+    closure->placed = WithFollowers(placed);
+    if (maps_->primary() == map->id()) closure->joined_primary = std::move(placed);
+  }
+  closure->map = std::move(*guard);
+}
+
+void LoopCloser::Fuse(MapManager::Guard* query_guard, MapManager::Guard* candidate_guard,
+                      const LoopMatch& match, const PinholeCamera& camera,
+                      const LoopCloserOptions& options,
+                      const std::vector<LoopConsistency::Pair>& earlier, LoopClosure* closure) {
+  LoopEvent& event = closure->event;
+  // Fused where the maps' views agree best: the confirming loop may join a place one agent
+  // came back to, with few matches, while the query agent's keyframes overlap the other map
+  // elsewhere with many. The confirming loop is then closed like an earlier one.
+  std::vector<LoopConsistency::Pair> loops = earlier;
+  std::optional<LoopMatch> stronger =
+      StrongerFusionLoop(**query_guard, **candidate_guard, match, camera, options);
+  if (stronger) {
+    CCMD_LOG(INFO) << "fusion made at agent " << stronger->query->id.agent.value() << " keyframe "
+                   << stronger->query->id.keyframe.value() << " ~ agent "
+                   << stronger->candidate->id.agent.value() << " keyframe "
+                   << stronger->candidate->id.keyframe.value() << " (" << stronger->inliers
+                   << " inliers), where the maps overlap, rather than at the confirming loop ("
+                   << match.inliers << ")";
+    loops.emplace_back(match.query->id, match.candidate->id);
+    event.query = stronger->query->id;
+    event.candidate = stronger->candidate->id;
+    event.inliers = stronger->inliers;
+    event.T_candidate_query =
+        stronger->candidate->T_map_cam.inverse() * stronger->T_candidate_map_query;
+  }
+  const LoopMatch& fused_at = stronger ? *stronger : match;
+  MapFusion fusion =
+      FuseMapsByLoop(maps_, query_guard, candidate_guard, fused_at, &options, &camera);
+  event.fusion = true;
+  LogSeam(fusion.seam);
+  CloseLoopsInTheFusedMap(&fusion, loops, fused_at, camera, options);
+  if (!fusion.placed.empty() || !fusion.unplaced.empty()) {
+    CCMD_LOG(INFO) << "the fusion went through a restarted segment: " << fusion.placed.size()
+                   << " keyframes placed, " << fusion.unplaced.size()
+                   << " of the moved map wait for a loop";
+  }
+  event.placed_segment = !fusion.placed.empty();
+  closure->placed = WithFollowers(fusion.placed);
+  closure->unplaced = WithFollowers(fusion.unplaced);
+  closure->map = std::move(fusion.map);
+  closure->moved = std::move(fusion.moved);
+  closure->joined_primary = std::move(fusion.joined_primary);
+  closure->primary_before = fusion.primary_before;
+}
+
 LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guard* candidate_guard,
                                 const LoopMatch& match, const PinholeCamera& camera,
                                 const LoopCloserOptions& options,
@@ -530,99 +650,9 @@ LoopClosure LoopCloser::Correct(MapManager::Guard* query_guard, MapManager::Guar
   event.inliers = match.inliers;
   event.T_candidate_query = match.candidate->T_map_cam.inverse() * match.T_candidate_map_query;
   if (!candidate_guard) {
-    ServerMap* map = query_guard->get();
-    SeamSides sides;
-    const LoopMatch refined = RefineLoopOnSeam(map, match, camera, options, &sides);
-    event.T_candidate_query = match.candidate->T_map_cam.inverse() * refined.T_candidate_map_query;
-    const AgentId a = match.query->id.agent, b = match.candidate->id.agent;
-    const bool compared = compared_.Compared(a, b);
-    compared_.Add(a, b);
-    if (compared && LoopAlreadyClosed(refined, options)) {
-      event.already_closed = true;
-      map->AddLoopEdge({match.candidate->id, match.query->id, event.T_candidate_query});
-      MergeLoopMatches(map, refined);
-    } else {
-      closure.moved = CloseLoopInMap(map, refined, options.pose_graph);
-    }
-    if (options.seam.enabled) TieSeam(map, sides, camera, options);
-    // A loop between a placed keyframe and one of a restarted segment places the segment.
-    std::vector<ServerKeyframe*> placed = map->LinkSegments(*match.query, *match.candidate);
-    if (!placed.empty()) {
-      CCMD_LOG(INFO) << "the loop places " << placed.size()
-                     << " keyframes of restarted segments in map " << map->id().value();
-      event.placed_segment = true;
-      closure.placed = WithFollowers(placed);
-      if (maps_->primary() == map->id()) closure.joined_primary = std::move(placed);
-    }
-    closure.map = std::move(*query_guard);
+    CloseInMap(query_guard, match, camera, options, &closure);
   } else {
-    // Fused where the maps' views agree best: the confirming loop may join a place one agent
-    // came back to, with few matches, while the query agent's keyframes overlap the other
-    // map elsewhere with many. The confirming loop is then closed like an earlier one.
-    std::vector<LoopConsistency::Pair> loops = earlier;
-    std::optional<LoopMatch> stronger =
-        StrongerFusionLoop(**query_guard, **candidate_guard, match, camera, options);
-    if (stronger) {
-      CCMD_LOG(INFO) << "fusion made at agent " << stronger->query->id.agent.value() << " keyframe "
-                     << stronger->query->id.keyframe.value() << " ~ agent "
-                     << stronger->candidate->id.agent.value() << " keyframe "
-                     << stronger->candidate->id.keyframe.value() << " (" << stronger->inliers
-                     << " inliers), where the maps overlap, rather than at the confirming loop ("
-                     << match.inliers << ")";
-      loops.emplace_back(match.query->id, match.candidate->id);
-      event.query = stronger->query->id;
-      event.candidate = stronger->candidate->id;
-      event.inliers = stronger->inliers;
-      event.T_candidate_query =
-          stronger->candidate->T_map_cam.inverse() * stronger->T_candidate_map_query;
-    }
-    const LoopMatch& fused_at = stronger ? *stronger : match;
-    MapFusion fusion =
-        FuseMapsByLoop(maps_, query_guard, candidate_guard, fused_at, &options, &camera);
-    event.fusion = true;
-    const SeamJoin& seam = fusion.seam;
-    CCMD_LOG(INFO) << "fusion seam: " << seam.searched << " matches, " << seam.pair_inliers
-                   << " depth pairs agree; transform "
-                   << (!seam.corrected           ? "kept (no trusted refinement)"
-                       : seam.confirmed_by_refit ? "refined (confirmed by a second search)"
-                                                 : "refined")
-                   << ": query moved " << 1000 * seam.shift_m << " mm, "
-                   << RotationDistance(Pose::Identity(), seam.correction) * 180 / M_PI << " deg; "
-                   << seam.merged << " points tied";
-    // Moved by the fusion, and by the pose graph of an earlier loop: each keyframe once.
-    const std::vector<ServerKeyframe*> entered = fusion.moved;  // the moved map's keyframes
-    std::unordered_set<ServerKeyframe*> listed(fusion.moved.begin(), fusion.moved.end());
-    for (ServerKeyframe* kf : CloseEarlierLoops(fusion.map.get(), loops, camera, options)) {
-      if (listed.insert(kf).second) fusion.moved.push_back(kf);
-    }
-    // Then the places the maps now overlap at that no loop has related yet (asked after the
-    // earlier loops, which tie theirs).
-    const std::vector<LoopConsistency::Pair> overlaps =
-        UncomparedOverlaps(*fusion.map, fused_at, entered, options.overlap);
-    if (!overlaps.empty()) {
-      std::ostringstream listed;
-      for (const auto& [q, o] : overlaps)
-        listed << " " << q.agent.value() << ":" << q.keyframe.value() << "~" << o.agent.value()
-               << ":" << o.keyframe.value();
-      CCMD_LOG(INFO) << "fusion: " << overlaps.size()
-                     << " more places where the maps overlap and no loop related them:"
-                     << listed.str();
-    }
-    for (ServerKeyframe* kf : CloseEarlierLoops(fusion.map.get(), overlaps, camera, options)) {
-      if (listed.insert(kf).second) fusion.moved.push_back(kf);
-    }
-    if (!fusion.placed.empty() || !fusion.unplaced.empty()) {
-      CCMD_LOG(INFO) << "the fusion went through a restarted segment: " << fusion.placed.size()
-                     << " keyframes placed, " << fusion.unplaced.size()
-                     << " of the moved map wait for a loop";
-    }
-    event.placed_segment = !fusion.placed.empty();
-    closure.placed = WithFollowers(fusion.placed);
-    closure.unplaced = WithFollowers(fusion.unplaced);
-    closure.map = std::move(fusion.map);
-    closure.moved = std::move(fusion.moved);
-    closure.joined_primary = std::move(fusion.joined_primary);
-    closure.primary_before = fusion.primary_before;
+    Fuse(query_guard, candidate_guard, match, camera, options, earlier, &closure);
   }
   event.map = closure.map->id();
   cooldown_.Start(match.query->id);  // the confirming query, wherever the fusion was made

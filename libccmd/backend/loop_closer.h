@@ -249,6 +249,12 @@ class LoopCloser {
   std::optional<LoopClosure> CloseUncomparedNeighbour(const GlobalKeyframeId& id,
                                                       const PinholeCamera& camera,
                                                       const LoopCloserOptions& options);
+  // Correct's two cases: a loop inside the query's map, and a fusion of the two maps.
+  void CloseInMap(MapManager::Guard* guard, const LoopMatch& match, const PinholeCamera& camera,
+                  const LoopCloserOptions& options, LoopClosure* closure);
+  void Fuse(MapManager::Guard* query_guard, MapManager::Guard* candidate_guard,
+            const LoopMatch& match, const PinholeCamera& camera, const LoopCloserOptions& options,
+            const std::vector<LoopConsistency::Pair>& earlier, LoopClosure* closure);
   // `earlier`: the loops of the consistency group before `match` (a fusion ties them too).
   LoopClosure Correct(MapManager::Guard* query_guard, MapManager::Guard* candidate_guard,
                       const LoopMatch& match, const PinholeCamera& camera,
