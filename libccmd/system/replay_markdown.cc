@@ -62,7 +62,10 @@ void WriteUnfused(const Json& results, std::ostringstream& md) {
      << JoinNames(PrimaryAgents(results));
   if (!others.empty()) {
     md << "; " << JoinNames(others)
-       << " kept their own maps: their server ATE in the table is in their own map's frame";
+       << (others.size() == 1
+               ? " kept its own map: its server ATE in the table is in that map's frame"
+               : " kept their own maps: each one's server ATE in the table is in its own map's "
+                 "frame");
   }
   if (!unplaced.empty()) {
     md << "; the keyframes of " << JoinNames(unplaced)
