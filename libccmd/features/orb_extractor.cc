@@ -317,12 +317,17 @@ OrbFeatures OrbExtractor::Extract(const cv::Mat& gray) const {
     for (cv::KeyPoint& k : keypoints) k.octave = 0;
     cv::Mat level_descriptors;
     orb->compute(image, keypoints, level_descriptors);
+    // Level pixel centres map to level-0 coordinates as (x + 0.5) * s - 0.5 (the pyramid
+    // resizes area-consistently); plain x * s would shift coarse octaves by up to a pixel. s is
+    // the level's own size ratio, per axis: its size is rounded to whole pixels, so it differs
+    // from the nominal scale_[level] by up to 0.2 % (640 / 179 = 3.575 for 1.2^7 = 3.583), over
+    // a pixel at the far side of the image.
+    const float sx = static_cast<float>(gray.cols) / static_cast<float>(image.cols);
+    const float sy = static_cast<float>(gray.rows) / static_cast<float>(image.rows);
     for (cv::KeyPoint& k : keypoints) {
       k.octave = level;
-      // Level pixel centres map to level-0 coordinates as (x + 0.5) * s - 0.5 (the pyramid
-      // resizes area-consistently); plain x * s would shift coarse octaves by up to a pixel.
-      k.pt.x = (k.pt.x + 0.5f) * scale_[level] - 0.5f;
-      k.pt.y = (k.pt.y + 0.5f) * scale_[level] - 0.5f;
+      k.pt.x = (k.pt.x + 0.5f) * sx - 0.5f;
+      k.pt.y = (k.pt.y + 0.5f) * sy - 0.5f;
       features.keypoints.push_back(k);
     }
     descriptors.push_back(level_descriptors);

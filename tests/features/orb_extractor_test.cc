@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <thread>
 
 #include <opencv2/features2d.hpp>
@@ -102,7 +103,8 @@ std::vector<cv::KeyPoint> ReferenceSelection(const cv::Mat& gray, const OrbExtra
     for (cv::KeyPoint k :
          DistributeKeypoints(inside, image.cols, image.rows, orb.level_budget()[level])) {
       k.octave = level;
-      k.pt = (k.pt + cv::Point2f(0.5f, 0.5f)) * orb.scale()[level] - cv::Point2f(0.5f, 0.5f);
+      k.pt.x = (k.pt.x + 0.5f) * gray.cols / image.cols - 0.5f;
+      k.pt.y = (k.pt.y + 0.5f) * gray.rows / image.rows - 0.5f;
       all.push_back(k);
     }
   }
@@ -167,6 +169,45 @@ TEST(OrbExtractorTest, ShiftedImageMatchesAtShiftedPositions) {
   }
   EXPECT_GT(matched, 500);
   EXPECT_GT(consistent, 0.95 * matched);
+}
+
+// A level's image size is rounded to whole pixels (640 / 1.2^7 = 178.6 -> 179), so its true
+// ratio to the full image differs from the nominal 1.2^level by up to 0.2 %: mapped with the
+// nominal one, keypoints of coarse octaves sit up to 1.4 pixels off at the far side of the
+// image. Flipping the image flips every level (the resize maps pixel centres symmetrically), so
+// each keypoint of the flipped image must come back at the mirror image of one of the
+// original's, on every octave.
+TEST(OrbExtractorTest, EveryOctaveMirrorsItsKeypointsWhenTheImageIsFlipped) {
+  const cv::Mat gray = RenderGray();
+  const OrbExtractor orb;
+  const OrbFeatures a = orb.Extract(gray);
+  for (const int flip : {0, 1}) {  // about the horizontal axis, the vertical one
+    cv::Mat flipped;
+    cv::flip(gray, flipped, flip);
+    const OrbFeatures b = orb.Extract(flipped);
+    std::vector<std::vector<float>> offsets(8);  // per octave, along the flipped axis
+    for (const cv::KeyPoint& p : a.keypoints) {
+      const cv::Point2f mirror = flip == 1 ? cv::Point2f(gray.cols - 1 - p.pt.x, p.pt.y)
+                                           : cv::Point2f(p.pt.x, gray.rows - 1 - p.pt.y);
+      const cv::KeyPoint* nearest = nullptr;
+      for (const cv::KeyPoint& q : b.keypoints) {
+        if (q.octave == p.octave && cv::norm(q.pt - mirror) < 3 &&
+            (!nearest || cv::norm(q.pt - mirror) < cv::norm(nearest->pt - mirror))) {
+          nearest = &q;
+        }
+      }
+      if (nearest) {
+        offsets[p.octave].push_back(flip == 1 ? nearest->pt.x - mirror.x
+                                              : nearest->pt.y - mirror.y);
+      }
+    }
+    for (int octave = 0; octave < 8; ++octave) {
+      std::vector<float>& o = offsets[octave];
+      ASSERT_GE(o.size(), 10u) << "octave " << octave << ", flip " << flip;
+      std::nth_element(o.begin(), o.begin() + o.size() / 2, o.end());
+      EXPECT_LT(std::abs(o[o.size() / 2]), 0.05f) << "octave " << octave << ", flip " << flip;
+    }
+  }
 }
 
 bool SameFeatures(const OrbFeatures& a, const OrbFeatures& b) {
