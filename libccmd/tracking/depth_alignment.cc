@@ -65,8 +65,9 @@ std::optional<std::pair<int, int>> DepthModel::Cell(const Eigen::Vector3d& p) co
   if (p.z() <= 0) return std::nullopt;
   const Eigen::Vector2d uv = camera_.ProjectToImage(p);
   const double u = uv.x(), v = uv.y();
-  const int x = static_cast<int>(std::floor(u / step_)),
-            y = static_cast<int>(std::floor(v / step_));
+  // The pixel u falls in is round(u); block x holds pixels x * step .. x * step + step - 1.
+  const int x = static_cast<int>(std::floor((u + 0.5) / step_)),
+            y = static_cast<int>(std::floor((v + 0.5) / step_));
   if (x < 0 || y < 0 || x >= width_ || y >= height_) return std::nullopt;
   return std::make_pair(x, y);
 }

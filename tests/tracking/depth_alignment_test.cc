@@ -146,5 +146,24 @@ TEST(DepthAlignmentTest, RefusesViewsThatDoNotOverlap) {
   EXPECT_FALSE(AlignDepth(empty, b, Pose::Identity(), DepthNoise()).has_value());
 }
 
+// A point is looked up in the cell whose block holds the pixel it falls in (pixel centres are
+// whole numbers): a cell of step 4 holds pixels 4..7, whose area spans 3.5 to 7.5.
+TEST(DepthAlignmentTest, APointFallsInTheCellOfItsPixel) {
+  const PinholeCamera cam = Vga();
+  const DepthModel m =
+      DepthModel::FromDepth(cv::Mat(480, 640, CV_16UC1, cv::Scalar(2000)), cam, 4, 0.3, 5.0);
+  const auto at = [&](double u, double v) {
+    return m.Cell(Eigen::Vector3d((u - cam.cx) / cam.fx * 2, (v - cam.cy) / cam.fy * 2, 2));
+  };
+  using C = std::pair<int, int>;
+  EXPECT_EQ(at(3.6, 7.6), C(1, 2));
+  EXPECT_EQ(at(7.4, 11.4), C(1, 2));
+  EXPECT_EQ(at(3.4, 7.4), C(0, 1));
+  EXPECT_EQ(at(-0.4, -0.4), C(0, 0));
+  EXPECT_FALSE(at(-0.6, 10).has_value());
+  EXPECT_EQ(at(639.4, 479.4), C(159, 119));
+  EXPECT_FALSE(at(639.6, 10).has_value());
+}
+
 }  // namespace
 }  // namespace ccmd
