@@ -46,6 +46,17 @@ void RefineKeypoints(const cv::Mat& gray, std::vector<cv::KeyPoint>* keypoints) 
   }
 }
 
+// The depth (m) at a keypoint's own position, interpolated between the four pixels around it
+// (valid and continuous there: the caller checked the 5x5 neighbourhood): on a slanted surface
+// the nearest pixel's depth is off by the slope times up to half a pixel.
+double DepthAt(const cv::Mat& depth_mm, const cv::Point2f& pt) {
+  const int x0 = static_cast<int>(std::floor(pt.x)), y0 = static_cast<int>(std::floor(pt.y));
+  const double fx = pt.x - x0, fy = pt.y - y0;
+  const auto at = [&](int x, int y) { return 1e-3 * depth_mm.at<std::uint16_t>(y, x); };
+  return (1 - fy) * ((1 - fx) * at(x0, y0) + fx * at(x0 + 1, y0)) +
+         fy * ((1 - fx) * at(x0, y0 + 1) + fx * at(x0 + 1, y0 + 1));
+}
+
 }  // namespace
 
 FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, const OrbExtractor& orb,
@@ -78,12 +89,12 @@ FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, cons
       }
     }
     if (lo == 0 || (hi - lo) * 1e-3 > 0.01 + 0.03 * d) continue;
-    f.depth[i] = static_cast<float>(d);
+    f.depth[i] = static_cast<float>(DepthAt(depth_mm, f.keypoints[i].pt));
     const DepthNoise& noise = options.depth_noise;
     const double pixel_sigma = noise.keypoint_offset * orb.scale()[f.keypoints[i].octave];
     f.depth_sigma[i] =
         static_cast<float>(KeypointDepthSigma(depth_mm, x, y, d, pixel_sigma, noise));
-    f.u_right[i] = static_cast<float>(f.keypoints[i].pt.x - camera.bf / d);
+    f.u_right[i] = static_cast<float>(f.keypoints[i].pt.x - camera.bf / f.depth[i]);
   }
   // As ORB-SLAM does: features are found and depth looked up on the image as recorded (depth
   // is registered to it); from here on every keypoint is the pixel of the ideal pinhole camera.

@@ -50,6 +50,32 @@ TEST(TrackingFrameTest, KeypointsAreUndistortedAfterTheDepthLookupAtTheRecordedP
   EXPECT_GT(largest_shift, 3.0);  // pixels near the corners move
 }
 
+// On a slanted surface a keypoint between pixels takes the depth at its own position, not the
+// nearest pixel's (which is off by the slope times up to half a pixel: here up to 2 mm).
+TEST(TrackingFrameTest, AKeypointBetweenPixelsTakesTheDepthAtItsPosition) {
+  SyntheticSource source(SyntheticSequenceOptions{});
+  RgbdFrame frame;
+  ASSERT_TRUE(source.Read(&frame).ok());
+  cv::Mat gray;
+  cv::cvtColor(frame.bgr, gray, cv::COLOR_BGR2GRAY);
+  cv::Mat ramp(gray.rows, gray.cols, CV_16UC1);  // z = 1000 mm + 3 mm a column + 1 mm a row
+  for (int y = 0; y < ramp.rows; ++y) {
+    for (int x = 0; x < ramp.cols; ++x) ramp.at<std::uint16_t>(y, x) = 1000 + 3 * x + y;
+  }
+  const FrameFeatures f =
+      ComputeFeatures(gray, ramp, OrbExtractor(), source.camera(), TrackingOptions{});
+  int with_depth = 0, between = 0;
+  for (std::size_t i = 0; i < f.keypoints.size(); ++i) {
+    if (f.depth[i] <= 0) continue;
+    const cv::Point2f& p = f.keypoints[i].pt;
+    EXPECT_NEAR(f.depth[i], 1e-3 * (1000 + 3 * p.x + p.y), 1e-5) << p;
+    ++with_depth;
+    between += std::abs(p.x - std::round(p.x)) > 0.2f;
+  }
+  EXPECT_GT(with_depth, 500);
+  EXPECT_GT(between, 100);
+}
+
 // A depth image (uint16 mm) of z = z0 + slope_x * x + slope_y * y (mm per pixel).
 cv::Mat DepthRamp(double z0_mm, double slope_x, double slope_y) {
   cv::Mat depth(60, 80, CV_16UC1);
