@@ -16,19 +16,32 @@
 namespace ccmd {
 namespace {
 
-TEST(TrackingFrameTest, KeypointsAreUndistortedAfterTheDepthLookupAtTheRecordedPixel) {
-  SyntheticSource source(SyntheticSequenceOptions{});
+// The synthetic room's first frame, its grey image and its camera.
+struct SyntheticView {
   RgbdFrame frame;
-  ASSERT_TRUE(source.Read(&frame).ok());
   cv::Mat gray;
-  cv::cvtColor(frame.bgr, gray, cv::COLOR_BGR2GRAY);
-  PinholeCamera plain = source.camera();
+  PinholeCamera camera;
+};
+
+void FirstSyntheticView(SyntheticView* view) {
+  SyntheticSource source(SyntheticSequenceOptions{});
+  ASSERT_TRUE(source.Read(&view->frame).ok());
+  cv::cvtColor(view->frame.bgr, view->gray, cv::COLOR_BGR2GRAY);
+  view->camera = source.camera();
+}
+
+TEST(TrackingFrameTest, KeypointsAreUndistortedAfterTheDepthLookupAtTheRecordedPixel) {
+  SyntheticView view;
+  ASSERT_NO_FATAL_FAILURE(FirstSyntheticView(&view));
+  const cv::Mat& gray = view.gray;
+  PinholeCamera plain = view.camera;
   PinholeCamera distorted = plain;
   distorted.distortion = testing::TumFr1Camera().distortion;
   const OrbExtractor orb;
-  const FrameFeatures raw = ComputeFeatures(gray, frame.depth_mm, orb, plain, TrackingOptions{});
+  const FrameFeatures raw =
+      ComputeFeatures(gray, view.frame.depth_mm, orb, plain, TrackingOptions{});
   const FrameFeatures undistorted =
-      ComputeFeatures(gray, frame.depth_mm, orb, distorted, TrackingOptions{});
+      ComputeFeatures(gray, view.frame.depth_mm, orb, distorted, TrackingOptions{});
   ASSERT_EQ(raw.keypoints.size(), undistorted.keypoints.size());
   ASSERT_GT(raw.keypoints.size(), 500u);
   double largest_shift = 0;
@@ -53,17 +66,15 @@ TEST(TrackingFrameTest, KeypointsAreUndistortedAfterTheDepthLookupAtTheRecordedP
 // On a slanted surface a keypoint between pixels takes the depth at its own position, not the
 // nearest pixel's (which is off by the slope times up to half a pixel: here up to 2 mm).
 TEST(TrackingFrameTest, AKeypointBetweenPixelsTakesTheDepthAtItsPosition) {
-  SyntheticSource source(SyntheticSequenceOptions{});
-  RgbdFrame frame;
-  ASSERT_TRUE(source.Read(&frame).ok());
-  cv::Mat gray;
-  cv::cvtColor(frame.bgr, gray, cv::COLOR_BGR2GRAY);
+  SyntheticView view;
+  ASSERT_NO_FATAL_FAILURE(FirstSyntheticView(&view));
+  const cv::Mat& gray = view.gray;
   cv::Mat ramp(gray.rows, gray.cols, CV_16UC1);  // z = 1000 mm + 3 mm a column + 1 mm a row
   for (int y = 0; y < ramp.rows; ++y) {
     for (int x = 0; x < ramp.cols; ++x) ramp.at<std::uint16_t>(y, x) = 1000 + 3 * x + y;
   }
   const FrameFeatures f =
-      ComputeFeatures(gray, ramp, OrbExtractor(), source.camera(), TrackingOptions{});
+      ComputeFeatures(gray, ramp, OrbExtractor(), view.camera, TrackingOptions{});
   int with_depth = 0, between = 0;
   for (std::size_t i = 0; i < f.keypoints.size(); ++i) {
     if (f.depth[i] <= 0) continue;
