@@ -40,6 +40,22 @@ void SortSmall(std::uint16_t* v, int n) {
   }
 }
 
+// The median of n sorted depths. With an even count the two middle depths are averaged when
+// they lie on one surface: on a plane the block's depths are symmetric about the depth at its
+// centre, where the output pixel's ray passes, so their mean is that depth, while either of
+// them alone is off by up to half a pixel's depth step (3 mm on a floor seen at 2 m). Middle
+// depths more than 3 % apart straddle an edge (a plane seen at 75 degrees by a 640-pixel-wide
+// camera changes by about 1 % per pixel): the nearer is kept. Halves round to even, so that
+// rounding adds no bias.
+std::uint16_t MedianOfSorted(const std::uint16_t* v, int n) {
+  const int lower = v[(n - 1) / 2];
+  if (n % 2) return static_cast<std::uint16_t>(lower);
+  const int upper = v[n / 2];
+  if ((upper - lower) * 100 > 3 * lower) return static_cast<std::uint16_t>(lower);
+  const int sum = lower + upper;
+  return static_cast<std::uint16_t>((sum >> 1) + (sum & (sum >> 1) & 1));
+}
+
 }  // namespace
 
 StatusOr<cv::Mat> DownsampleDepth(const cv::Mat& depth_mm, int factor, DownsampleMethod method) {
@@ -72,7 +88,7 @@ StatusOr<cv::Mat> DownsampleDepth(const cv::Mat& depth_mm, int factor, Downsampl
         dst[x] = *std::min_element(block, block + n);
       } else {
         SortSmall(block, n);
-        dst[x] = block[(n - 1) / 2];
+        dst[x] = MedianOfSorted(block, n);
       }
     }
   }

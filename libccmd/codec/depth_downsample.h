@@ -1,9 +1,9 @@
 #pragma once
 
-// Depth downsampling by r = 1, 1/2, 1/4 (factor 1, 2, 4) that never invents depths: each
-// output pixel takes one real depth from its factor x factor block of input pixels, so a
-// block that straddles a depth edge yields a depth of one surface, not a value floating
-// between the two (which averaging or bilinear resizing would produce).
+// Depth downsampling by r = 1, 1/2, 1/4 (factor 1, 2, 4) that never invents depths between
+// surfaces: a block that straddles a depth edge yields a depth of one surface, not a value
+// floating between the two (which averaging or bilinear resizing would produce). Within one
+// surface the median gives the depth at the block's centre, where the output pixel looks.
 
 #include <opencv2/core/mat.hpp>
 
@@ -12,7 +12,8 @@
 namespace ccmd {
 
 enum class DownsampleMethod {
-  kMedianValid,   // lower median of the block's valid depths (default: robust to speckle)
+  kMedianValid,   // median of the block's valid depths; of two middle ones their mean, or
+                  // the nearer across an edge (default: robust to speckle)
   kNearestValid,  // smallest valid depth (keeps thin foreground objects)
   kTopLeft,       // the block's top-left sample, valid or not (plain decimation)
 };

@@ -36,6 +36,36 @@ TEST(DownsampleTest, PicksARealDepthNeverAnAverage) {
   EXPECT_EQ(DownsampleDepth(holes, 2, DownsampleMethod::kTopLeft)->at<std::uint16_t>(0, 0), 0);
 }
 
+TEST(DownsampleTest, OnASlantedPlaneGivesTheDepthAtTheBlockCentre) {
+  // A floor seen obliquely: depth 2000 mm + 7 mm per column + 3 mm per row, the steps of a
+  // plane at about 60 degrees. The output pixel's ray passes through the block's centre
+  // (resized cameras keep pixel centres), so it must carry the depth there; any one pixel of
+  // the block is off by up to half a pixel's step.
+  cv::Mat plane(8, 8, CV_16UC1);
+  for (int y = 0; y < 8; ++y) {
+    for (int x = 0; x < 8; ++x) plane.at<std::uint16_t>(y, x) = 2000 + 7 * x + 3 * y;
+  }
+  for (const int factor : {2, 4}) {
+    const cv::Mat out = *DownsampleDepth(plane, factor);
+    for (int y = 0; y < out.rows; ++y) {
+      for (int x = 0; x < out.cols; ++x) {
+        const double centre_u = factor * x + (factor - 1) / 2.0;
+        const double centre_v = factor * y + (factor - 1) / 2.0;
+        EXPECT_NEAR(out.at<std::uint16_t>(y, x), 2000 + 7 * centre_u + 3 * centre_v, 0.5)
+            << "factor " << factor << " block " << x << "," << y;
+      }
+    }
+  }
+  // Halves round to even: 2001 and 2002 give 2002, 2002 and 2003 give 2002.
+  EXPECT_EQ(DownsampleDepth(Block({2000, 2001, 2002, 2009}, 2, 2), 2)->at<std::uint16_t>(0, 0),
+            2002);
+  EXPECT_EQ(DownsampleDepth(Block({2000, 2002, 2003, 2009}, 2, 2), 2)->at<std::uint16_t>(0, 0),
+            2002);
+  // Middle depths 10 % apart are two surfaces: the nearer, never a depth between them.
+  EXPECT_EQ(DownsampleDepth(Block({1000, 1000, 1100, 1100}, 2, 2), 2)->at<std::uint16_t>(0, 0),
+            1000);
+}
+
 TEST(DownsampleTest, FactorFourAndSizes) {
   cv::Mat m(8, 12, CV_16UC1);
   for (int y = 0; y < 8; ++y) {
@@ -44,8 +74,8 @@ TEST(DownsampleTest, FactorFourAndSizes) {
   }
   const cv::Mat out = *DownsampleDepth(m, 4);
   ASSERT_EQ(out.size(), cv::Size(3, 2));
-  // Block (0, 0) holds 100..103, 112..115, 124..127, 136..139: sixteen values, lower median
-  // is the 8th smallest = 115.
+  // Block (0, 0) holds 100..103, 112..115, 124..127, 136..139: sixteen values whose middle
+  // two (115 and 124) are too far apart to be one surface, so the nearer, 115.
   EXPECT_EQ(out.at<std::uint16_t>(0, 0), 115);
   EXPECT_EQ(DownsampleDepth(m, 1)->size(), m.size());
   EXPECT_EQ(DownsampleDepth(m, 3).status().code(), StatusCode::kInvalidArgument);
