@@ -30,6 +30,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "apps/dense_bench_revisits.h"
+#include "libccmd/codec/depth_downsample.h"
 #include "libccmd/dense/dense_map.h"
 #include "libccmd/dense/label.h"
 #include "libccmd/eval/reconstruction_error.h"
@@ -383,31 +384,11 @@ int RunStoreBench(const std::string& json_path, bool quick) {
 
 // ---- reconstruction error ----------------------------------------------------------------------
 
-// Stand-in for the keyframe codec's downsampler (same rule per block: a real depth of the
-// block, never an average across an edge): one depth per factor x factor block.
-cv::Mat DownsampleDepth(const cv::Mat& depth, int factor, const std::string& method) {
-  cv::Mat out(depth.rows / factor, depth.cols / factor, CV_16UC1, cv::Scalar(0));
-  std::vector<std::uint16_t> valid;
-  for (int y = 0; y < out.rows; ++y) {
-    for (int x = 0; x < out.cols; ++x) {
-      if (method == "topleft") {
-        out.at<std::uint16_t>(y, x) = depth.at<std::uint16_t>(y * factor, x * factor);
-        continue;
-      }
-      valid.clear();
-      for (int dy = 0; dy < factor; ++dy) {
-        for (int dx = 0; dx < factor; ++dx) {
-          const std::uint16_t d = depth.at<std::uint16_t>(y * factor + dy, x * factor + dx);
-          if (d != 0) valid.push_back(d);
-        }
-      }
-      if (valid.empty()) continue;
-      std::sort(valid.begin(), valid.end());
-      out.at<std::uint16_t>(y, x) =
-          method == "nearest" ? valid.front() : valid[(valid.size() - 1) / 2];
-    }
-  }
-  return out;
+// The keyframe codec's downsampling rules, by their names on the command line.
+ccmd::DownsampleMethod DownsampleMethodNamed(const std::string& name) {
+  if (name == "nearest") return ccmd::DownsampleMethod::kNearestValid;
+  if (name == "topleft") return ccmd::DownsampleMethod::kTopLeft;
+  return ccmd::DownsampleMethod::kMedianValid;
 }
 
 struct RemoveOnExit {
@@ -463,7 +444,8 @@ int RunRecon(const ReconConfig& config) {
     ccmd::DenseKeyframe k;
     k.id = {AgentId(1), KeyframeId(static_cast<std::uint32_t>(keyframes.size()))};
     k.T_world_cam = *sequence->frame(i).T_world_cam_gt;
-    k.depth_mm = DownsampleDepth(frame->depth_mm, factor, config.downsample);
+    k.depth_mm =
+        *ccmd::DownsampleDepth(frame->depth_mm, factor, DownsampleMethodNamed(config.downsample));
     cv::resize(frame->bgr, k.bgr, k.depth_mm.size(), 0, 0, cv::INTER_AREA);
     k.camera = camera;
     keyframes.push_back(std::move(k));
