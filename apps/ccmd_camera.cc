@@ -24,6 +24,7 @@
 #include <vector>
 
 #include "apps/app_common.h"
+#include "libccmd/codec/depth_downsample.h"
 #include "libccmd/eval/depth_agreement.h"
 #include "libccmd/io/tum_recorder.h"
 #include "libccmd/optim/reprojection.h"
@@ -255,7 +256,8 @@ int CheckGroundTruth(const std::string& spec, const std::string& config) {
     std::fprintf(stderr, "ccmd_camera: %s has no ground truth\n", source->Describe().c_str());
     return 1;
   }
-  // Half-size depth (nearest: no mixed depths) of every 3rd frame with a ground-truth pose.
+  // Half-size depth (the keyframe codec's median: no mixed depths) of every 3rd frame with a
+  // ground-truth pose.
   const ccmd::DepthToColorCalibration& c = rig->calibration;
   const ccmd::PinholeCamera depth_camera = c.depth.Resized(c.depth.width / 2, c.depth.height / 2);
   struct Sample {
@@ -269,10 +271,9 @@ int CheckGroundTruth(const std::string& spec, const std::string& config) {
     const auto pose = ccmd::InterpolateTrajectory(truth, frame.timestamp, 0.02);
     if (!pose || frame.depth_mm.cols != c.depth.width || frame.depth_mm.rows != c.depth.height)
       continue;
-    cv::Mat half;
-    cv::resize(frame.depth_mm, half, cv::Size(depth_camera.width, depth_camera.height), 0, 0,
-               cv::INTER_NEAREST);
-    samples.push_back({half, *pose});
+    auto half = ccmd::DownsampleDepth(frame.depth_mm, 2);
+    if (!half.ok()) continue;
+    samples.push_back({*half, *pose});
   }
   // Pairs whose view turned by 12-40 degrees: the rig's offset shows, the views still overlap.
   std::vector<std::pair<int, int>> pairs;

@@ -8,6 +8,7 @@
 #include <opencv2/imgproc.hpp>
 #include <sstream>
 
+#include "libccmd/codec/depth_downsample.h"
 #include "libccmd/dense/dense_map.h"
 #include "libccmd/dense/label.h"
 #include "libccmd/eval/plot.h"
@@ -88,9 +89,10 @@ StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset,
     }
     if (bgr.size() != depth.size()) cv::resize(bgr, bgr, depth.size(), 0, 0, cv::INTER_AREA);
     if (factor > 1) {
-      // Nearest (not averaging) for depth: no mixed depths across edges.
-      cv::resize(depth, depth, cv::Size(depth.cols / factor, depth.rows / factor), 0, 0,
-                 cv::INTER_NEAREST);
+      // The keyframe codec's rule: no mixed depths across edges, and on a surface the depth
+      // at the block's centre, where the resized camera's ray passes (a block's top-left
+      // pixel lies half a pixel off that ray).
+      CCMD_ASSIGN_OR_RETURN(depth, DownsampleDepth(depth, factor));
       cv::resize(bgr, bgr, depth.size(), 0, 0, cv::INTER_AREA);
     }
     kf.depth_mm = depth;
