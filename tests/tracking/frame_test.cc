@@ -87,6 +87,52 @@ TEST(TrackingFrameTest, AKeypointBetweenPixelsTakesTheDepthAtItsPosition) {
   EXPECT_GT(between, 100);
 }
 
+// A noisy sensor (a D435's sigma at 2 m: 18 mm, independent per pixel) keeps its keypoints'
+// depth on a smooth surface: a 5x5 neighbourhood of such depths spans about 70 mm, past the
+// fixed 7 cm a slanted surface may span at 2 m, which used to take the depth of half of them.
+// A depth edge still takes it, however noisy the sensor is said to be.
+TEST(TrackingFrameTest, ANoisySensorKeepsItsKeypointDepthsAndEdgesStillLoseTheirs) {
+  SyntheticView view;
+  ASSERT_NO_FATAL_FAILURE(FirstSyntheticView(&view));
+  TrackingOptions options;
+  options.depth_noise.sigma_0 = 0.002;
+  options.depth_noise.sigma_2 = 0.004;
+  const double sigma_mm = 1e3 * options.depth_noise.Sigma(2.0);
+  cv::Mat depth(view.gray.rows, view.gray.cols, CV_16UC1);
+  cv::RNG rng(7);
+  for (int y = 0; y < depth.rows; ++y) {
+    for (int x = 0; x < depth.cols; ++x) {
+      depth.at<std::uint16_t>(y, x) =
+          static_cast<std::uint16_t>(std::lround(2000 + rng.gaussian(sigma_mm)));
+    }
+  }
+  const OrbExtractor orb;
+  const FrameFeatures noisy = ComputeFeatures(view.gray, depth, orb, view.camera, options);
+  std::size_t inside = 0, with_depth = 0;
+  for (std::size_t i = 0; i < noisy.keypoints.size(); ++i) {
+    const cv::Point2f& p = noisy.keypoints[i].pt;
+    if (p.x < 3 || p.y < 3 || p.x > depth.cols - 4 || p.y > depth.rows - 4) continue;
+    ++inside;
+    with_depth += noisy.depth[i] > 0;
+  }
+  ASSERT_GT(inside, 500u);
+  EXPECT_GT(with_depth, inside * 97 / 100);
+
+  // Left of column 320 at 1.5 m, right of it at 2.5 m: a 1 m step, far beyond 6 sigma.
+  for (int y = 0; y < depth.rows; ++y) {
+    for (int x = 0; x < depth.cols; ++x) depth.at<std::uint16_t>(y, x) = x < 320 ? 1500 : 2500;
+  }
+  const FrameFeatures edge = ComputeFeatures(view.gray, depth, orb, view.camera, options);
+  int near_edge = 0;
+  for (std::size_t i = 0; i < edge.keypoints.size(); ++i) {
+    const int x = static_cast<int>(std::lround(edge.keypoints[i].pt.x));
+    if (x < 318 || x > 321) continue;
+    ++near_edge;
+    EXPECT_EQ(edge.depth[i], 0.0f) << edge.keypoints[i].pt;
+  }
+  EXPECT_GT(near_edge, 3);
+}
+
 // A depth image (uint16 mm) of z = z0 + slope_x * x + slope_y * y (mm per pixel).
 cv::Mat DepthRamp(double z0_mm, double slope_x, double slope_y) {
   cv::Mat depth(60, 80, CV_16UC1);
