@@ -414,6 +414,8 @@ struct ReconConfig {
 };
 
 int RunRecon(const ReconConfig& config) {
+  const int factor = ccmd::DownsampleFactorForRate(config.rate);
+  if (factor == 0) return Fail(ccmd::InvalidArgument("--rate must be 1, 0.5 or 0.25"));
   std::string folder = config.sequence;
   RemoveOnExit generated;
   if (folder.empty()) {
@@ -430,10 +432,6 @@ int RunRecon(const ReconConfig& config) {
   if (!sequence.ok()) return Fail(sequence.status());
   auto surface = ccmd::ReadPly(ccmd::JoinPath(folder, "surface.ply"));
   if (!surface.ok()) return Fail(surface.status());
-  const int factor = static_cast<int>(std::lround(1.0 / config.rate));
-  if (factor < 1 || std::fabs(factor * config.rate - 1.0) > 1e-9) {
-    return Fail(ccmd::InvalidArgument("--rate must be 1, 0.5, 0.25, ..."));
-  }
   const ccmd::PinholeCamera camera = sequence->camera().Scaled(config.rate);
 
   std::vector<ccmd::DenseKeyframe> keyframes;
@@ -444,8 +442,10 @@ int RunRecon(const ReconConfig& config) {
     ccmd::DenseKeyframe k;
     k.id = {AgentId(1), KeyframeId(static_cast<std::uint32_t>(keyframes.size()))};
     k.T_world_cam = *sequence->frame(i).T_world_cam_gt;
-    k.depth_mm =
-        *ccmd::DownsampleDepth(frame->depth_mm, factor, DownsampleMethodNamed(config.downsample));
+    auto depth =
+        ccmd::DownsampleDepth(frame->depth_mm, factor, DownsampleMethodNamed(config.downsample));
+    if (!depth.ok()) return Fail(depth.status());
+    k.depth_mm = *std::move(depth);
     cv::resize(frame->bgr, k.bgr, k.depth_mm.size(), 0, 0, cv::INTER_AREA);
     k.camera = camera;
     keyframes.push_back(std::move(k));
