@@ -90,10 +90,10 @@ FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, cons
         hi = std::max(hi, v);
       }
     }
-    const double span = std::max(0.01 + 0.03 * d, 6.0 * options.depth_noise.Sigma(d));
+    const DepthNoise& noise = options.depth_noise;
+    const double span = std::max(0.01 + 0.03 * d, 6.0 * noise.Sigma(d));
     if (lo == 0 || (hi - lo) * 1e-3 > span) continue;
     f.depth[i] = static_cast<float>(DepthAt(depth_mm, f.keypoints[i].pt));
-    const DepthNoise& noise = options.depth_noise;
     const double pixel_sigma = noise.keypoint_offset * orb.scale()[f.keypoints[i].octave];
     f.depth_sigma[i] =
         static_cast<float>(KeypointDepthSigma(depth_mm, x, y, d, pixel_sigma, noise));
