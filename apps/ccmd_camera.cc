@@ -5,6 +5,7 @@
 //   ccmd_camera --source SPEC --record DIR [--frames N|0]         TUM-layout recording
 //   ccmd_camera --source tum:DIR --config FILE --check-registration  the Depth block's offset
 //   ccmd_camera --source tum:DIR --config FILE --check-ground-truth  whose poses the truth gives
+//   ccmd_camera --source SPEC [--config FILE] --check-noise [--frames N]  depth noise vs config
 //
 // SPEC is any source spec (openni2[:URI], v4l2:color=...,depth=..., tum:DIR, synth:...).
 // Ctrl-C ends a recording cleanly: the current frame is finished and the lists closed.
@@ -31,6 +32,7 @@
 #include "libccmd/sensors/depth_registration.h"
 #include "libccmd/sensors/pixel_formats.h"
 #include "libccmd/sensors/source_factory.h"
+#include "libccmd/tracking/depth_noise_meter.h"
 #ifdef CCMD_HAVE_OPENNI2
 #include "libccmd/sensors/openni2_source.h"
 #endif
@@ -333,8 +335,57 @@ int CheckGroundTruth(const std::string& spec, const std::string& config) {
   return 0;
 }
 
+int Fail(const ccmd::Status& status) {
+  std::fprintf(stderr, "ccmd_camera: %s\n", status.ToString().c_str());
+  return 1;
+}
+
+// --check-noise: the depth noise measured on the camera's frames (planar 8x8 blocks, see
+// DepthNoiseMeter) against the config's DepthNoise model, per depth range, and the model's keys
+// fitted to it. Frames spread over a recording, or the next ones from a live camera.
+int CheckNoise(const std::string& spec, const std::string& config, int frames) {
+  ccmd::SourceOptions options;
+  options.camera_config = config;
+  options.configs_dir = ccmd::app::ConfigDir();
+  auto opened = ccmd::OpenSource(spec, options);
+  if (!opened.ok()) return Fail(opened.status());
+  const std::unique_ptr<ccmd::RgbdSource>& source = *opened;
+  ccmd::DepthNoise model;
+  if (const std::string path = ccmd::SourceConfigPath(spec, options); !path.empty()) {
+    auto file = ccmd::ConfigFile::Open(path);
+    if (!file.ok()) return Fail(file.status());
+    auto read = ccmd::ReadDepthNoise(*file);
+    if (!read.ok()) return Fail(read.status());
+    model = *read;
+  }
+  const int total = source->FrameCount();
+  const int stride = total > frames ? total / frames : 1;
+  ccmd::DepthNoiseMeter meter;
+  ccmd::RgbdFrame frame;
+  for (int i = 0; meter.frames() < frames && source->Read(&frame).ok(); ++i) {
+    if (i % stride == 0) meter.Add(frame.depth_mm);
+  }
+  const ccmd::DepthNoiseMeasurement m = meter.Measure();
+  std::printf("depth noise on %d frames, %d planar 8x8 blocks with every depth\n", meter.frames(),
+              m.blocks);
+  if (!m.Enough()) {
+    std::fprintf(stderr, "ccmd_camera: too few blocks with every depth to measure the noise\n");
+    return 1;
+  }
+  std::printf("  depth m  blocks  measured mm  config mm  ratio\n");
+  for (const ccmd::DepthNoiseBin& bin : m.bins) {
+    std::printf("  %7.2f  %6d  %11.2f  %9.2f  %5.2f\n", bin.depth, bin.blocks, 1e3 * bin.sigma,
+                1e3 * model.Sigma(bin.depth), bin.sigma / model.Sigma(bin.depth));
+  }
+  std::printf("measured / config: %.2f (1: the config describes this camera)\n", m.RatioTo(model));
+  std::printf("fitted model (sigma0 + sigma2 z^2):\n%s",
+              ccmd::DepthNoiseConfigKeys(m.fitted).c_str());
+  return 0;
+}
+
 struct CameraArgs {
   bool list = false, retry = false, check_registration = false, check_ground_truth = false;
+  bool check_noise = false;
   std::string spec, config, record;
   int frames = -1;  // -1: the default of the mode
   int every = 0;    // 0: the default of the mode
@@ -365,6 +416,9 @@ void AddOptions(CLI::App* app, CameraArgs* a) {
   app->add_flag("--check-ground-truth", a->check_ground_truth,
                 "Tell which camera of the config's rig (Depth block) a recording's ground-truth "
                 "poses give, from its depth alone: the value for the config's Trajectory.camera");
+  app->add_flag("--check-noise", a->check_noise,
+                "Measure the depth noise on --frames frames (default 30, spread over a recording) "
+                "and compare it with the config's DepthNoise model");
 }
 
 // The recorder of --record: the sensor's depth noise from the config the camera was opened
@@ -474,6 +528,13 @@ std::optional<int> RunCheckModes(const CameraArgs& a) {
     }
     return CheckGroundTruth(a.spec, a.config);
   }
+  if (a.check_noise) {
+    if (a.spec.empty()) {
+      std::fprintf(stderr, "ccmd_camera: --check-noise needs --source\n");
+      return 2;
+    }
+    return CheckNoise(a.spec, a.config, a.frames > 0 ? a.frames : 30);
+  }
   if (a.check_registration) {
     if (a.spec.empty() || a.config.empty()) {
       std::fprintf(stderr, "ccmd_camera: --check-registration needs --source and --config\n");
@@ -482,11 +543,6 @@ std::optional<int> RunCheckModes(const CameraArgs& a) {
     return CheckRegistration(a.spec, a.config, a.frames > 0 ? a.frames : 15);
   }
   return std::nullopt;
-}
-
-int Fail(const ccmd::Status& status) {
-  std::fprintf(stderr, "ccmd_camera: %s\n", status.ToString().c_str());
-  return 1;
 }
 
 }  // namespace

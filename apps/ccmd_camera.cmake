@@ -1,1 +1,1 @@
-ccmd_add_executable(ccmd_camera SOURCES ccmd_camera.cc DEPS ccmd_codec ccmd_sources ccmd_sensors_live ccmd_io ccmd_optim ccmd_eval ccmd_app_common)
+ccmd_add_executable(ccmd_camera SOURCES ccmd_camera.cc DEPS ccmd_codec ccmd_sources ccmd_sensors_live ccmd_io ccmd_optim ccmd_tracking ccmd_eval ccmd_app_common)

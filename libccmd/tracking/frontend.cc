@@ -1,6 +1,9 @@
 #include "libccmd/tracking/frontend.h"
 
 #include <cmath>
+#include <cstdio>
+
+#include "libccmd/util/logging.h"
 
 namespace ccmd {
 
@@ -93,6 +96,7 @@ Frontend::Frontend(const PinholeCamera& camera, const TrackingOptions& options, 
 Frontend::~Frontend() { Finish(); }
 
 TrackResult Frontend::ProcessFrame(const RgbdFrame& frame) {
+  MeasureDepthNoise(frame);
   const TrackResult result = tracker_->Track(frame);
   if (options_.synchronous_mapping) mapper_->ProcessPending();
   ++stats_.frames;
@@ -111,7 +115,50 @@ TrackResult Frontend::ProcessFrame(const RgbdFrame& frame) {
   return result;
 }
 
-void Frontend::Finish() { mapper_->Finish(); }
+void Frontend::Finish() {
+  ReportDepthNoise();
+  mapper_->Finish();
+}
+
+// Every 10th of the first 100 frames: a few seconds of a moving camera see its surfaces at
+// several ranges, and cost about a millisecond each.
+void Frontend::MeasureDepthNoise(const RgbdFrame& frame) {
+  constexpr int kEvery = 10, kSamples = 10;
+  if (noise_reported_ || stats_.frames % kEvery != 0 || frame.depth_mm.empty()) return;
+  noise_meter_.Add(frame.depth_mm);
+  if (noise_meter_.frames() == kSamples) ReportDepthNoise();
+}
+
+// A camera noisier than its config's DepthNoise model has its depth weighed as more precise
+// than it is, and that costs accuracy (docs/cameras.md#depth-noise): said once, with the keys
+// that would describe it.
+void Frontend::ReportDepthNoise() {
+  if (noise_reported_ || noise_meter_.frames() == 0) return;
+  noise_reported_ = true;
+  const DepthNoiseMeasurement measured = noise_meter_.Measure();
+  noise_meter_ = DepthNoiseMeter();  // its blocks are not needed any more
+  if (!measured.Enough()) {
+    CCMD_LOG(INFO) << "depth noise: too few planar blocks with every depth to measure it";
+    return;
+  }
+  const DepthNoise& model = options_.depth_noise;
+  stats_.depth_noise_ratio = measured.RatioTo(model);
+  const DepthNoise& fitted = measured.fitted;
+  char line[200];
+  std::snprintf(line, sizeof line,
+                "%.1f mm at 1 m, %.1f mm at 2 m; the config's model %.1f / %.1f mm (x%.2f)",
+                1e3 * fitted.Sigma(1.0), 1e3 * fitted.Sigma(2.0), 1e3 * model.Sigma(1.0),
+                1e3 * model.Sigma(2.0), stats_.depth_noise_ratio);
+  CCMD_LOG(INFO) << "depth noise measured on the first frames: " << line;
+  if (stats_.depth_noise_ratio > kNoisierThanModel) {
+    std::snprintf(line, sizeof line, "DepthNoise.sigma0: %.2g  DepthNoise.sigma2: %.2g",
+                  fitted.sigma_0, fitted.sigma_2);
+    CCMD_LOG(WARNING) << "the depth is " << std::round(10 * stats_.depth_noise_ratio) / 10
+                      << " times as noisy as the config's DepthNoise model says; unless the "
+                         "config chose its model knowingly, keys that describe this camera: "
+                      << line << " (ccmd_camera --check-noise measures it per range)";
+  }
+}
 
 Trajectory Frontend::FrameTrajectory() {
   const auto lock = map_.Lock();

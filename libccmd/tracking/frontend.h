@@ -9,6 +9,7 @@
 #include "libccmd/features/orb_extractor.h"
 #include "libccmd/geometry/camera.h"
 #include "libccmd/io/trajectory.h"
+#include "libccmd/tracking/depth_noise_meter.h"
 #include "libccmd/tracking/keyframe_sink.h"
 #include "libccmd/tracking/local_mapper.h"
 #include "libccmd/tracking/map.h"
@@ -17,6 +18,9 @@
 #include "libccmd/util/status.h"
 
 namespace ccmd {
+
+// Above this ratio of measured to configured depth noise the front-end warns.
+constexpr double kNoisierThanModel = 1.5;
 
 struct FrontendStats {
   int frames = 0;
@@ -31,6 +35,9 @@ struct FrontendStats {
   double track_ms_total = 0;
   double extract_cpu_ms_total = 0;  // CPU time: meaningful on a machine shared with other work
   double track_cpu_ms_total = 0;
+  // The depth noise measured on the first frames (DepthNoiseMeter) over the config's
+  // DepthNoise model: about 1 when the model describes the camera; 0 until measured.
+  double depth_noise_ratio = 0;
   MappingStats mapping;
 };
 
@@ -62,8 +69,13 @@ class Frontend {
   LocalMap map_;
   std::unique_ptr<LocalMapper> mapper_;
   std::unique_ptr<Tracker> tracker_;
+  void MeasureDepthNoise(const RgbdFrame& frame);
+  void ReportDepthNoise();
+
   FrontendStats stats_;
   bool initialised_ = false;
+  DepthNoiseMeter noise_meter_;  // the first frames only
+  bool noise_reported_ = false;
 };
 
 }  // namespace ccmd

@@ -9,6 +9,7 @@
 #include <gtest/gtest.h>
 
 #include <cstdio>
+#include <cstdlib>
 #include <fstream>
 #include <opencv2/core.hpp>
 
@@ -239,6 +240,28 @@ TEST(CameraCliTest, GroundTruthCheckNamesTheCameraThePosesGive) {
                       &output),
             2);
   EXPECT_NE(output.find("needs a --config with a Depth block"), std::string::npos) << output;
+}
+
+// --check-noise on the synthetic room, whose depth is rendered with the default model's noise
+// (the one a config without DepthNoise keys gives) or twice it: the ratio it prints reads which.
+TEST(CameraCliTest, NoiseCheckReadsACameraNoisierThanItsConfig) {
+  for (const double scale : {1.0, 2.0}) {
+    std::string output;
+    ASSERT_EQ(RunCamera("--check-noise --frames 5 --source synth:frames=10,noise=" +
+                            std::to_string(scale),
+                        &output),
+              0)
+        << output;
+    const std::size_t at = output.find("measured / config: ");
+    ASSERT_NE(at, std::string::npos) << output;
+    const double ratio = std::atof(output.c_str() + at + 19);
+    EXPECT_NEAR(ratio, scale, 0.12 * scale) << output;
+    // The keys it fits read back as a config.
+    EXPECT_NE(output.find("DepthNoise.sigma2: "), std::string::npos) << output;
+  }
+  std::string output;
+  EXPECT_EQ(RunCamera("--check-noise", &output), 2);
+  EXPECT_NE(output.find("--check-noise needs --source"), std::string::npos) << output;
 }
 
 TEST(CameraCliTest, RecordsTheOpenNI2TestDriver) {
