@@ -1,12 +1,9 @@
 #include "libccmd/tracking/depth_noise_meter.h"
 
-
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <utility>
-
-#include "libccmd/util/logging.h"
 
 namespace ccmd {
 namespace {
@@ -62,7 +59,7 @@ DepthNoise FitModel(const std::vector<DepthNoiseBin>& bins) {
 }  // namespace
 
 void DepthNoiseMeter::Add(const cv::Mat& depth) {
-  CCMD_CHECK(depth.type() == CV_16UC1) << "depth must be CV_16UC1";
+  if (depth.type() != CV_16UC1) return;  // not a depth image a source delivers
   ++frames_;
   float inverse[kPixels];
   for (int y0 = 0; y0 + kBlock <= depth.rows; y0 += kBlock) {

@@ -35,8 +35,8 @@ struct DepthNoiseMeasurement {
 
 class DepthNoiseMeter {
  public:
-  // One depth image (CV_16UC1 millimetres, 0 = no depth, as sources give it). Frames of a moving
-  // camera measure more surfaces.
+  // One depth image (CV_16UC1 millimetres, 0 = no depth, as sources give it; other types are
+  // not counted). Frames of a moving camera measure more surfaces.
   void Add(const cv::Mat& depth);
   int frames() const { return frames_; }
   DepthNoiseMeasurement Measure() const;

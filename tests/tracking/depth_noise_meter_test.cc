@@ -75,6 +75,10 @@ TEST(DepthNoiseMeterTest, BlocksWithoutEveryDepthAreNotMeasured) {
   EXPECT_EQ(m.blocks, 0);
   EXPECT_FALSE(m.Enough());
   EXPECT_EQ(m.RatioTo(D435Noise()), 0.0);
+  // Nor is an image that is not depth in millimetres, nor an empty one.
+  meter.Add(cv::Mat(480, 640, CV_32FC1, cv::Scalar(1.0f)));
+  meter.Add(cv::Mat());
+  EXPECT_EQ(meter.frames(), 1);
 }
 
 // The front-end measures the first frames of a rendered room and compares them with the model
