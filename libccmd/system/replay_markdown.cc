@@ -88,6 +88,15 @@ void WriteTrajectories(const Json& results, std::ostringstream& md) {
        << metres(a, "map_mean_error_m") << " | " << Num(&a, "lost_frames") << " | "
        << Num(&a, "restarts") << " |\n";
   }
+  // The agents' check of their config's depth-noise model (FrontendStats::depth_noise_ratio;
+  // the agent warns above 1.5).
+  for (const Json& a : results.Get("agents")->array()) {
+    if (Num(&a, "depth_noise_ratio") <= 1.5) continue;
+    md << "\n"
+       << Str(&a, "name") << "'s depth measured " << Fmt("%.1f", Num(&a, "depth_noise_ratio"))
+       << " times as noisy as its config's DepthNoise model: logs/" << Str(&a, "name")
+       << ".log gives the keys that describe the camera (docs/cameras.md, checking a camera).\n";
+  }
   if (results.Has("ate_rmse_m")) {
     md << "\nFused trajectory (every keyframe of the primary map: "
        << JoinNames(PrimaryAgents(results)) << "): ATE RMSE **"

@@ -291,6 +291,8 @@ void AddAgentStats(const Json& agent_stats, Json* agent, TrafficTotals* sums) {
   a["lost_frames"] = Num(&agent_stats, "lost_frames");
   a["restarts"] = Num(&agent_stats, "restarts");
   a["fps"] = Num(&agent_stats, "fps");
+  if (agent_stats.Has("depth_noise_ratio"))
+    a["depth_noise_ratio"] = Num(&agent_stats, "depth_noise_ratio");
   const Json* link = agent_stats.Get("link");
   if (!link) return;
   const double k = Num(link, "keyframes_sent");

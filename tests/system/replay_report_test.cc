@@ -190,6 +190,15 @@ void EvaluateTwoAgentRun(const testing::TempDir& dir, const Json& stats,
   }
   ASSERT_TRUE(WritePly(map, JoinPath(run, "map.ply")).ok());
   ASSERT_TRUE(WriteJsonFile(stats, JoinPath(run, "server_stats.json")).ok());
+  // agent1's camera read twice as noisy as its config's model, agent2's as its model.
+  for (const auto& [name, ratio] : {std::pair{"agent1", 2.04}, std::pair{"agent2", 0.98}}) {
+    Json agent_stats;
+    agent_stats["frames"] = 4;
+    agent_stats["depth_noise_ratio"] = ratio;
+    ASSERT_TRUE(
+        WriteJsonFile(agent_stats, JoinPath(run, std::string("agents/") + name + "_stats.json"))
+            .ok());
+  }
   ReplayRunInfo info;
   info.agents = 2;
   info.segments = {{0, 4}, {4, 7}};
@@ -237,6 +246,11 @@ TEST(ReplayReportTest, UnfusedRunStillReportsThePrimaryMapAndNamesItsAgents) {
   EXPECT_NE(report->find("which holds agent2; agent1 kept its own map:"), std::string::npos)
       << *report;
   EXPECT_NE(report->find("| agent1 | 0-4 | own |"), std::string::npos) << *report;
+  // The agents' depth-noise check: the noisy camera is named, the other not.
+  EXPECT_NE(report->find("agent1's depth measured 2.0 times as noisy as its config's"),
+            std::string::npos)
+      << *report;
+  EXPECT_EQ(report->find("agent2's depth measured"), std::string::npos) << *report;
 }
 
 // One map, but agent1's keyframes all wait unplaced in it (its map fused with the primary one
