@@ -130,8 +130,8 @@ void Frontend::MeasureDepthNoise(const RgbdFrame& frame) {
 }
 
 // A camera noisier than its config's DepthNoise model has its depth weighed as more precise
-// than it is, and that costs accuracy (docs/cameras.md#depth-noise): said once, with the keys
-// that would describe it.
+// than it is, and that costs accuracy (docs/cameras.md, checking a camera): said once, with the
+// keys that would describe it.
 void Frontend::ReportDepthNoise() {
   if (noise_reported_ || noise_meter_.frames() == 0) return;
   noise_reported_ = true;

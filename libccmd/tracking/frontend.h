@@ -63,15 +63,15 @@ class Frontend {
 
  private:
   Frontend(const PinholeCamera& camera, const TrackingOptions& options, KeyframeSink* sink);
+  void MeasureDepthNoise(const RgbdFrame& frame);
+  void ReportDepthNoise();
+
   PinholeCamera camera_;
   TrackingOptions options_;
   OrbExtractor orb_;
   LocalMap map_;
   std::unique_ptr<LocalMapper> mapper_;
   std::unique_ptr<Tracker> tracker_;
-  void MeasureDepthNoise(const RgbdFrame& frame);
-  void ReportDepthNoise();
-
   FrontendStats stats_;
   bool initialised_ = false;
   DepthNoiseMeter noise_meter_;  // the first frames only
