@@ -264,6 +264,29 @@ TEST(CameraCliTest, NoiseCheckReadsACameraNoisierThanItsConfig) {
   EXPECT_NE(output.find("--check-noise needs --source"), std::string::npos) << output;
 }
 
+// A camera with a separate depth imager (the D435 over V4L2: a Depth block) rendered with its
+// config's noise: the check reads the imager's own pixels, as the model describes them. On
+// depth registered to colour the nearest of colliding depths wins and it would read 0.87.
+TEST(CameraCliTest, NoiseCheckReadsTheDepthImagersOwnPixels) {
+  testing::TempDir dir;
+  const std::string config = std::string(CCMD_CONFIG_DIR) + "/realsense_d435_v4l2.yaml";
+  std::string output;
+  ASSERT_EQ(testing::RunCommand(testing::ProgramPath("ccmd_synth") + " --config " + config +
+                                    " --frames 20 --surface-spacing 0.05 --out " +
+                                    dir.File("d435") + " 2>&1",
+                                &output),
+            0)
+      << output;
+  ASSERT_EQ(RunCamera("--check-noise --frames 10 --source tum:" + dir.File("d435") + " --config " +
+                          config,
+                      &output),
+            0)
+      << output;
+  const std::size_t at = output.find("measured / config: ");
+  ASSERT_NE(at, std::string::npos) << output;
+  EXPECT_NEAR(std::atof(output.c_str() + at + 19), 1.0, 0.06) << output;
+}
+
 TEST(CameraCliTest, RecordsTheOpenNI2TestDriver) {
   testing::TempDir dir;
   const std::string folder = dir.File("rec");
