@@ -89,11 +89,12 @@ void WriteTrajectories(const Json& results, std::ostringstream& md) {
        << Num(&a, "restarts") << " |\n";
   }
   // The agents' check of their config's depth-noise model (FrontendStats::depth_noise_ratio;
-  // the agent warns above 1.5).
+  // the agent warns outside 0.25-1.5: kPreciserThanModel, kNoisierThanModel).
   for (const Json& a : results.Get("agents")->array()) {
-    if (Num(&a, "depth_noise_ratio") <= 1.5) continue;
+    const double ratio = Num(&a, "depth_noise_ratio");
+    if (ratio == 0 || (ratio >= 0.25 && ratio <= 1.5)) continue;
     md << "\n"
-       << Str(&a, "name") << "'s depth measured " << Fmt("%.1f", Num(&a, "depth_noise_ratio"))
+       << Str(&a, "name") << "'s depth measured " << Fmt(ratio < 1 ? "%.2f" : "%.1f", ratio)
        << " times as noisy as its config's DepthNoise model: logs/" << Str(&a, "name")
        << ".log gives the keys that describe the camera (docs/cameras.md, checking a camera).\n";
   }

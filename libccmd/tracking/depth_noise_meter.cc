@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstdio>
 #include <utility>
 
 namespace ccmd {
@@ -145,6 +146,24 @@ double DepthNoiseMeasurement::RatioTo(const DepthNoise& model) const {
     if (2 * seen >= total) return ratio;
   }
   return ratios.back().first;
+}
+
+std::string DepthNoiseAdvice(const DepthNoiseMeasurement& measured, const DepthNoise& model) {
+  const double ratio = measured.RatioTo(model);
+  if (ratio == 0 || (ratio >= kPreciserThanModel && ratio <= kNoisierThanModel)) return {};
+  char text[400];
+  const char* what = ratio > kNoisierThanModel
+                         ? "%.1f times as noisy as the config's DepthNoise model says: its depth "
+                           "is weighed as more precise than it is"
+                         : "%.2f times as noisy as the config's DepthNoise model says (rendered "
+                           "or exact depth?): its depth is weighed as less precise than it is";
+  int n = std::snprintf(text, sizeof text, what, ratio);
+  std::snprintf(text + n, sizeof text - n,
+                ". Unless the config chose its model knowingly, keys that describe this depth: "
+                "DepthNoise.sigma0: %.2g  DepthNoise.sigma2: %.2g (ccmd_camera --check-noise "
+                "measures it per range)",
+                measured.fitted.sigma_0, measured.fitted.sigma_2);
+  return std::string("the depth is ") + text;
 }
 
 }  // namespace ccmd

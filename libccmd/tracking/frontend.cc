@@ -129,9 +129,8 @@ void Frontend::MeasureDepthNoise(const RgbdFrame& frame) {
   if (noise_meter_.frames() == kSamples) ReportDepthNoise();
 }
 
-// A camera noisier than its config's DepthNoise model has its depth weighed as more precise
-// than it is, and that costs accuracy (docs/cameras.md, checking a camera): said once, with the
-// keys that would describe it.
+// A depth model far from the camera's noise costs accuracy (docs/cameras.md, checking a
+// camera): said once, with the keys that would describe it.
 void Frontend::ReportDepthNoise() {
   if (noise_reported_ || noise_meter_.frames() == 0) return;
   noise_reported_ = true;
@@ -150,14 +149,8 @@ void Frontend::ReportDepthNoise() {
                 1e3 * fitted.Sigma(1.0), 1e3 * fitted.Sigma(2.0), 1e3 * model.Sigma(1.0),
                 1e3 * model.Sigma(2.0), stats_.depth_noise_ratio);
   CCMD_LOG(INFO) << "depth noise measured on the first frames: " << line;
-  if (stats_.depth_noise_ratio > kNoisierThanModel) {
-    std::snprintf(line, sizeof line, "DepthNoise.sigma0: %.2g  DepthNoise.sigma2: %.2g",
-                  fitted.sigma_0, fitted.sigma_2);
-    CCMD_LOG(WARNING) << "the depth is " << std::round(10 * stats_.depth_noise_ratio) / 10
-                      << " times as noisy as the config's DepthNoise model says; unless the "
-                         "config chose its model knowingly, keys that describe this camera: "
-                      << line << " (ccmd_camera --check-noise measures it per range)";
-  }
+  const std::string advice = DepthNoiseAdvice(measured, model);
+  if (!advice.empty()) CCMD_LOG(WARNING) << advice;
 }
 
 Trajectory Frontend::FrameTrajectory() {

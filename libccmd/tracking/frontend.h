@@ -19,9 +19,6 @@
 
 namespace ccmd {
 
-// Above this ratio of measured to configured depth noise the front-end warns.
-constexpr double kNoisierThanModel = 1.5;
-
 struct FrontendStats {
   int frames = 0;
   int tracked_frames = 0;

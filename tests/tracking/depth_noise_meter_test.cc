@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdlib>
 #include <random>
 
 #include "libccmd/sensors/synthetic_source.h"
@@ -79,6 +80,31 @@ TEST(DepthNoiseMeterTest, BlocksWithoutEveryDepthAreNotMeasured) {
   meter.Add(cv::Mat(480, 640, CV_32FC1, cv::Scalar(1.0f)));
   meter.Add(cv::Mat());
   EXPECT_EQ(meter.frames(), 1);
+}
+
+// The advice: nothing while the model is within the ratios, the keys when it is not.
+TEST(DepthNoiseMeterTest, AdvisesOnlyAModelFarFromTheDepth) {
+  const DepthNoise truth = D435Noise();
+  DepthNoiseMeter meter;
+  meter.Add(SlantedPlaneWithBoxes(truth, 11));
+  const DepthNoiseMeasurement m = meter.Measure();
+  ASSERT_TRUE(m.Enough());
+  EXPECT_EQ(DepthNoiseAdvice(m, truth), "");
+  DepthNoise tight = truth, loose = truth;
+  tight.sigma_0 /= 2;
+  tight.sigma_2 /= 2;
+  loose.sigma_0 *= 10;
+  loose.sigma_2 *= 10;
+  const std::string noisier = DepthNoiseAdvice(m, tight);
+  EXPECT_NE(noisier.find("2.0 times as noisy"), std::string::npos) << noisier;
+  EXPECT_NE(noisier.find("more precise than it is"), std::string::npos) << noisier;
+  const std::size_t keys = noisier.find("DepthNoise.sigma2: ");
+  ASSERT_NE(keys, std::string::npos) << noisier;
+  EXPECT_NEAR(std::atof(noisier.c_str() + keys + 19), truth.sigma_2, 0.1 * truth.sigma_2);
+  const std::string preciser = DepthNoiseAdvice(m, loose);
+  EXPECT_NE(preciser.find("0.10 times as noisy"), std::string::npos) << preciser;
+  EXPECT_NE(preciser.find("less precise than it is"), std::string::npos) << preciser;
+  EXPECT_EQ(DepthNoiseAdvice(DepthNoiseMeasurement(), truth), "");
 }
 
 // The front-end measures the first frames of a rendered room and compares them with the model
