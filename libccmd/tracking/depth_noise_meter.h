@@ -16,7 +16,7 @@
 namespace ccmd {
 
 struct DepthNoiseBin {
-  double depth = 0;  // metres: the range's middle
+  double depth = 0;  // metres: the median depth of its blocks
   double sigma = 0;  // metres: the noise measured there
   int blocks = 0;    // planar blocks it is measured on
 };
