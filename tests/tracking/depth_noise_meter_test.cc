@@ -80,6 +80,13 @@ TEST(DepthNoiseMeterTest, BlocksWithoutEveryDepthAreNotMeasured) {
   meter.Add(cv::Mat(480, 640, CV_32FC1, cv::Scalar(1.0f)));
   meter.Add(cv::Mat());
   EXPECT_EQ(meter.frames(), 1);
+  // Images of any size: only whole blocks count (none under 8 pixels, 2 in 17x9).
+  DepthNoiseMeter odd;
+  odd.Add(cv::Mat(7, 1000, CV_16UC1, cv::Scalar(1000)));
+  odd.Add(cv::Mat(1000, 1, CV_16UC1, cv::Scalar(1000)));
+  odd.Add(cv::Mat(9, 17, CV_16UC1, cv::Scalar(65535)));
+  EXPECT_EQ(odd.frames(), 3);
+  EXPECT_EQ(odd.Measure().blocks, 2);
 }
 
 // The advice: nothing while the model is within the ratios, the keys when it is not.
