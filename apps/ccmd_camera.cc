@@ -335,6 +335,15 @@ int CheckGroundTruth(const std::string& spec, const std::string& config) {
   return 0;
 }
 
+// The depth-noise model of the config a source is opened with (the default without one).
+ccmd::StatusOr<ccmd::DepthNoise> SourceDepthNoise(const std::string& spec,
+                                                  const ccmd::SourceOptions& options) {
+  const std::string path = ccmd::SourceConfigPath(spec, options);
+  if (path.empty()) return ccmd::DepthNoise();
+  CCMD_ASSIGN_OR_RETURN(const ccmd::ConfigFile file, ccmd::ConfigFile::Open(path));
+  return ccmd::ReadDepthNoise(file);
+}
+
 int Fail(const ccmd::Status& status) {
   std::fprintf(stderr, "ccmd_camera: %s\n", status.ToString().c_str());
   return 1;
@@ -354,14 +363,9 @@ int CheckNoise(const std::string& spec, const std::string& config, int frames) {
   auto opened = ccmd::OpenSource(spec, options);
   if (!opened.ok()) return Fail(opened.status());
   const std::unique_ptr<ccmd::RgbdSource>& source = *opened;
-  ccmd::DepthNoise model;
-  if (const std::string path = ccmd::SourceConfigPath(spec, options); !path.empty()) {
-    auto file = ccmd::ConfigFile::Open(path);
-    if (!file.ok()) return Fail(file.status());
-    auto read = ccmd::ReadDepthNoise(*file);
-    if (!read.ok()) return Fail(read.status());
-    model = *read;
-  }
+  auto noise_model = SourceDepthNoise(spec, options);
+  if (!noise_model.ok()) return Fail(noise_model.status());
+  const ccmd::DepthNoise& model = *noise_model;
   const int total = source->FrameCount();
   const int stride = total > frames ? total / frames : 1;
   ccmd::DepthNoiseMeter meter;
@@ -434,11 +438,7 @@ ccmd::StatusOr<std::unique_ptr<ccmd::TumRecorder>> OpenRecorder(const CameraArgs
   recorder_options.png_compression = a.png_compression;
   recorder_options.queue_frames = 16;  // PNG encoding off the capture loop
   recorder_options.writer_threads = 2;
-  ccmd::DepthNoise noise;
-  if (const std::string path = ccmd::SourceConfigPath(a.spec, options); !path.empty()) {
-    CCMD_ASSIGN_OR_RETURN(const ccmd::ConfigFile file, ccmd::ConfigFile::Open(path));
-    CCMD_ASSIGN_OR_RETURN(noise, ccmd::ReadDepthNoise(file));
-  }
+  CCMD_ASSIGN_OR_RETURN(const ccmd::DepthNoise noise, SourceDepthNoise(a.spec, options));
   recorder_options.config_keys = ccmd::DepthNoiseConfigKeys(noise);
   ccmd::LogOptions("record", recorder_options);
   return ccmd::TumRecorder::Create(a.record, camera, recorder_options);
