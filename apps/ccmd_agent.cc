@@ -49,6 +49,7 @@ ccmd::Json StatsJson(const ccmd::FrontendStats& s, double wall_seconds,
   j["lost_frames"] = s.lost_frames;
   j["depth_only_frames"] = s.depth_only_frames;
   j["depth_noise_ratio"] = s.depth_noise_ratio;
+  j["depth_fit_sigmas"] = s.mapping.depth_fit_sigmas;
   j["restarts"] = s.restarts;
   j["keyframes"] = s.keyframes;
   j["map_keyframes"] = s.map_keyframes;

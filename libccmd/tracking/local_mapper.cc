@@ -33,6 +33,11 @@ bool LocalMapper::Idle() const {
   return queue_.empty() && !busy_;
 }
 
+double LocalMapper::DepthFitSigmas() const {
+  std::lock_guard<std::mutex> lock(stats_mutex_);
+  return stats_.depth_fit_sigmas;
+}
+
 bool LocalMapper::CanAccept() const {
   std::lock_guard<std::mutex> lock(queue_mutex_);
   return !stopping_ && queue_.size() < kQueueCapacity;
@@ -318,6 +323,7 @@ void LocalMapper::AlignWithNeighbours(Keyframe* keyframe) {
     }
   }
   int accepted = 0, failed = 0;
+  std::vector<double> fits;
   for (const Job& job : jobs) {
     const auto aligned = AlignDepth(*job.model, *model, job.T_kf_neighbour, options_.depth_noise);
     if (!aligned || !StaysNearStart(*aligned, job.T_kf_neighbour)) {
@@ -328,9 +334,16 @@ void LocalMapper::AlignWithNeighbours(Keyframe* keyframe) {
     depth_edges_.push_back(
         {job.id, keyframe->id(), aligned->T_target_source,
          SqrtInformation(options_.depth_alignment_weight * aligned->information)});
+    fits.push_back(aligned->rms / options_.depth_noise.Sigma(aligned->mean_range));
     ++accepted;
   }
   std::lock_guard<std::mutex> lock(stats_mutex_);
+  for (const double fit : fits) {
+    fit_sigmas_.push_back(fit);
+    if (fit_sigmas_.size() > kFitWindow) fit_sigmas_.pop_front();
+  }
+  if (!fit_sigmas_.empty())
+    stats_.depth_fit_sigmas = *std::max_element(fit_sigmas_.begin(), fit_sigmas_.end());
   stats_.depth_alignments += accepted;
   stats_.depth_alignments_failed += failed;
   stats_.depth_alignment_ms_total += watch.ElapsedMillis();

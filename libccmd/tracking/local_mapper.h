@@ -47,6 +47,7 @@ struct MappingStats {
   int depth_alignments = 0;         // accepted keyframe-to-keyframe depth alignments
   int depth_alignments_failed = 0;  // tried and rejected
   double depth_alignment_ms_total = 0;
+  double depth_fit_sigmas = 0;  // MappingQueue::DepthFitSigmas when last updated
   int rgbd_transmitted = 0;
   int rgbd_decisions_not_recorded = 0;  // beyond LocalMapper::kMaxRecordedDecisions
 };
@@ -63,6 +64,7 @@ class LocalMapper : public MappingQueue {
   bool Idle() const override;
   bool CanAccept() const override;
   double KeyframeRatioScale() const override { return sink_ ? sink_->KeyframeRatioScale() : 1.0; }
+  double DepthFitSigmas() const override;
   void Insert(const KeyframePtr& keyframe) override;
 
   // The tracking thread's CPU time for one frame, for the CPU budget.
@@ -123,6 +125,9 @@ class LocalMapper : public MappingQueue {
     Eigen::Matrix<double, 6, 6> sqrt_information;
   };
   std::vector<DepthEdge> depth_edges_;
+  // DepthFitSigmas over the last kFitWindow accepted alignments (under stats_mutex_).
+  static constexpr std::size_t kFitWindow = 64;
+  std::deque<double> fit_sigmas_;
   mutable std::mutex stats_mutex_;
   MappingStats stats_;
   std::vector<RgbdDecision> decisions_;

@@ -468,12 +468,15 @@ bool Tracker::BridgeWithDepth() {
     const auto aligned = AlignDepth(model, target, start, options_.depth_noise);
     if (!aligned || !StaysNearStart(*aligned, start)) return std::nullopt;
     const double conditioning = Conditioning(*aligned);
+    const double fit_sigmas = aligned->rms / options_.depth_noise.Sigma(aligned->mean_range);
+    // Residuals beyond twice the sensor's noise, or beyond what alignments between keyframes
+    // whose poses the features confirmed reach (on rendered depth the cells' planes, not the
+    // noise, set the residuals: 2.5 sigma of configs/icl_nuim.yaml): surfaces matched wrongly.
+    const double allowed_sigmas = std::max(2.0, mapping_->DepthFitSigmas());
     CCMD_LOG(DEBUG) << "frame " << current_->index << " depth alone: conditioning " << conditioning
-                    << ", " << aligned->inliers << " cells, rms " << aligned->rms * 1e3 << " mm";
-    // Residuals beyond twice the sensor's noise: surfaces matched wrongly.
-    if (conditioning < kMinConditioningAlone ||
-        aligned->rms > 2 * options_.depth_noise.Sigma(aligned->mean_range))
-      return std::nullopt;
+                    << ", " << aligned->inliers << " cells, rms " << aligned->rms * 1e3 << " mm ("
+                    << fit_sigmas << " sigma, " << allowed_sigmas << " allowed)";
+    if (conditioning < kMinConditioningAlone || fit_sigmas > allowed_sigmas) return std::nullopt;
     return aligned->T_target_source.inverse() * T_target_world;
   };
   // The newest keyframe of this segment whose depth model local mapping has made holds the

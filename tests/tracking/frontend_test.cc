@@ -138,6 +138,23 @@ TEST(FrontendTest, DepthCarriesTrackingThroughFramesWithoutFeatures) {
   EXPECT_LT(ate->error.max, 0.01);
 }
 
+// The keyframes' depth alignments tell how closely the depth fits where the surfaces are matched
+// rightly, in sigmas of the config's model: a model stricter than the depth (a tenth of a
+// millimetre on depth rounded to millimetres) reads several sigma, the Kinect model on the
+// room's Kinect-like noise well under two. The bridge allows a frame placed by depth alone as
+// much (RealDataFrontendTest.IclNuimBridgesBlankFramesOnItsConfigsModel).
+TEST(FrontendTest, KeyframeDepthFitIsMeasuredInTheModelsSigmas) {
+  TrackingOptions strict = Synchronous();
+  strict.depth_noise.sigma_0 = 0.0001;
+  strict.depth_noise.sigma_2 = 0;
+  RunResult exact, noisy;
+  RunSequence(40, strict, &exact, /*sensor_noise=*/false);
+  RunSequence(40, Synchronous(), &noisy, /*sensor_noise=*/true);
+  EXPECT_GT(exact.stats.mapping.depth_fit_sigmas, 2.0);
+  EXPECT_GT(noisy.stats.mapping.depth_fit_sigmas, 0.0);
+  EXPECT_LT(noisy.stats.mapping.depth_fit_sigmas, 2.0);
+}
+
 // A blank view of a single wall leaves the pose free along the wall: depth alone does not
 // place it, and the frame is lost (then relocalised) rather than put anywhere.
 TEST(FrontendTest, DepthAloneDoesNotPlaceAFrameOnAPlanarView) {
