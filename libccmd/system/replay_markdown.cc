@@ -4,6 +4,7 @@
 #include <vector>
 
 #include "libccmd/system/report_format.h"
+#include "libccmd/tracking/depth_noise_ratio.h"
 
 namespace ccmd {
 namespace {
@@ -89,10 +90,10 @@ void WriteTrajectories(const Json& results, std::ostringstream& md) {
        << Num(&a, "restarts") << " |\n";
   }
   // The agents' check of their config's depth-noise model (FrontendStats::depth_noise_ratio;
-  // the agent warns outside 0.25-1.5: kPreciserThanModel, kNoisierThanModel).
+  // the agent warns where it does not fit).
   for (const Json& a : results.Get("agents")->array()) {
     const double ratio = Num(&a, "depth_noise_ratio");
-    if (ratio == 0 || (ratio >= 0.25 && ratio <= 1.5)) continue;
+    if (DepthNoiseModelFits(ratio)) continue;
     md << "\n"
        << Str(&a, "name") << "'s depth measured " << Fmt(ratio < 1 ? "%.2f" : "%.1f", ratio)
        << " times as noisy as its config's DepthNoise model: logs/" << Str(&a, "name")

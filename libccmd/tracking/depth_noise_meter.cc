@@ -150,7 +150,7 @@ double DepthNoiseMeasurement::RatioTo(const DepthNoise& model) const {
 
 std::string DepthNoiseAdvice(const DepthNoiseMeasurement& measured, const DepthNoise& model) {
   const double ratio = measured.RatioTo(model);
-  if (ratio == 0 || (ratio >= kPreciserThanModel && ratio <= kNoisierThanModel)) return {};
+  if (DepthNoiseModelFits(ratio)) return {};
   char text[400];
   const char* what = ratio > kNoisierThanModel
                          ? "%.1f times as noisy as the config's DepthNoise model says: its depth "

@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "libccmd/optim/reprojection.h"
+#include "libccmd/tracking/depth_noise_ratio.h"
 
 namespace ccmd {
 
@@ -34,16 +35,8 @@ struct DepthNoiseMeasurement {
   double RatioTo(const DepthNoise& model) const;
 };
 
-// Outside these ratios of measured to modelled noise the model is worth changing: depth noisier
-// than its model is weighed as more precise than it is (a D435 at twice its config's noise:
-// 12-15 mm instead of 5 mm); depth far more precise than its model is under-used (ICL-NUIM's
-// rendered depth with a Kinect's model: over twice the error). The measurement misses slowly
-// varying errors, so a model a little above it is right (a Kinect v1 reads about 0.65).
-constexpr double kNoisierThanModel = 1.5;
-constexpr double kPreciserThanModel = 0.25;
-
-// What to tell the user about `model` given `measured`: empty when the model is within the
-// ratios above (or nothing was measured), else a sentence with the keys that describe the depth.
+// What to tell the user about `model` given `measured`: empty when the model fits
+// (DepthNoiseModelFits), else a sentence with the keys that describe the depth.
 std::string DepthNoiseAdvice(const DepthNoiseMeasurement& measured, const DepthNoise& model);
 
 class DepthNoiseMeter {
