@@ -477,7 +477,9 @@ bool Tracker::BridgeWithDepth() {
                     << ", " << aligned->inliers << " cells, rms " << aligned->rms * 1e3 << " mm ("
                     << fit_sigmas << " sigma, " << allowed_sigmas << " allowed)";
     if (conditioning < kMinConditioningAlone || fit_sigmas > allowed_sigmas) return std::nullopt;
-    return aligned->T_target_source.inverse() * T_target_world;
+    // Re-projected onto SO(3): each bridged pose starts the next frame's prediction, and a
+    // product's rounding, fed back so frame after frame, would grow into a shear.
+    return Orthonormalized(aligned->T_target_source.inverse() * T_target_world);
   };
   // The newest keyframe of this segment whose depth model local mapping has made holds the
   // pose without drift; where the view has left it, the frame before.

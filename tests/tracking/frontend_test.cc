@@ -4,6 +4,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <optional>
 #include <set>
@@ -29,6 +30,9 @@ struct Collector : KeyframeSink {
 
 struct RunResult {
   Trajectory trajectory, keyframe_trajectory, ground_truth;
+  // The largest |R^T R - I| of a tracked frame's pose as tracking gave it (the trajectory is
+  // rebuilt from records whose rotations are stored normalised).
+  double max_shear = 0;
   FrontendStats stats;
   Collector sink;
 };
@@ -49,7 +53,12 @@ void RunSequence(int frames, const TrackingOptions& options, RunResult* out,
   for (int i = 0; source.Read(&frame).ok(); ++i) {
     if (blank && i >= blank->first && i <= blank->second)
       frame.bgr.setTo(cv::Scalar(128, 128, 128));
-    (*frontend)->ProcessFrame(frame);
+    const TrackResult tracked = (*frontend)->ProcessFrame(frame);
+    if (tracked.T_world_cam) {
+      const Eigen::Matrix3d R = tracked.T_world_cam->linear();
+      out->max_shear =
+          std::max(out->max_shear, (R.transpose() * R - Eigen::Matrix3d::Identity()).norm());
+    }
   }
   (*frontend)->Finish();
   out->trajectory = (*frontend)->FrameTrajectory();
@@ -114,8 +123,11 @@ TEST(FrontendTest, TracksThroughMotionBlur) {
 // Two thirds of a second without features (frames 12-31), on exact depth: the room's depth
 // places each of those frames against the newest keyframe's, or the frame before's where the
 // view has left the keyframe, and when the colour comes back the local map is found again from
-// there. Nothing is lost and the trajectory stays within millimetres of the truth. Without the
-// bridge the same frames are lost, and the camera is found again by relocalisation.
+// there. Nothing is lost, the trajectory stays within millimetres of the truth, and its
+// rotations stay rotations: each bridged pose predicts the next, and a product's rounding fed
+// back so grew frame after frame (1e-4 off orthonormal after these 20 frames; on ICL-NUIM a 1 %
+// shear after a second, when the alignments stopped converging). Without the bridge the same
+// frames are lost, and the camera is found again by relocalisation.
 TEST(FrontendTest, DepthCarriesTrackingThroughFramesWithoutFeatures) {
   constexpr int kFrames = 90, kFirst = 12, kBlank = 20;
   TrackingOptions with = Synchronous();
@@ -136,6 +148,7 @@ TEST(FrontendTest, DepthCarriesTrackingThroughFramesWithoutFeatures) {
   ASSERT_TRUE(ate.ok());
   EXPECT_LT(ate->error.rmse, 0.005);
   EXPECT_LT(ate->error.max, 0.01);
+  EXPECT_LT(bridged.max_shear, 1e-12);
 }
 
 // The keyframes' depth alignments tell how closely the depth fits where the surfaces are matched
