@@ -83,8 +83,10 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
       if (last_ && last_->has_pose)
         velocity_ = current_->T_cam_world * last_->T_cam_world.inverse();
       result.depth_only = by_depth && matches_inliers_ == 0;
+      const bool restarted = result.depth_only && RestartAtBridgedFrame();
+      if (restarted) result.depth_only = false;
       if (!result.depth_only) EndBridge();
-      if (!result.depth_only && NeedNewKeyframe()) {
+      if (!result.depth_only && !restarted && NeedNewKeyframe()) {
         const KeyframePtr tracked_against = reference_;
         CreateKeyframe();
         result.new_keyframe = true;
@@ -160,17 +162,19 @@ bool Tracker::RestartDue() const {
   return YoungSegment() || current_->timestamp - lost_since_ >= options_.relocalisation_seconds;
 }
 
-bool Tracker::Initialize(TrackingFrame* frame, const Pose& T_world_cam, bool restart) {
+bool Tracker::Initialize(TrackingFrame* frame, const Pose& T_world_cam, bool restart,
+                         bool tracked) {
   int with_depth = 0;
   for (float d : frame->features.depth) with_depth += d > 0;
   if (frame->size() < 300 || with_depth < 100) return false;
   // A failed search may have left matches with the old map's points.
   frame->ClearMatches();
   frame->SetPose(T_world_cam.inverse());
-  // Started again at the frame after the last tracked one, the pose is as good as tracking's
-  // (asked before the new keyframe counts in the segment it leaves).
+  // Started again at the frame after the last tracked one, or at a frame tracked itself, the
+  // pose is as good as tracking's (asked before the new keyframe counts in the segment it leaves).
   const bool reset =
-      restart && YoungSegment() && frame->timestamp - last_tracked_timestamp_ <= 1.5 / camera_.fps;
+      restart && (tracked || (YoungSegment() &&
+                              frame->timestamp - last_tracked_timestamp_ <= 1.5 / camera_.fps));
   auto keyframe =
       std::make_shared<Keyframe>(map_->NextKeyframeId(), frame->timestamp, frame->index,
                                  frame->features, T_world_cam, camera_.width, camera_.height);
@@ -511,6 +515,17 @@ bool Tracker::BridgeWithDepth() {
     bridged_since_ = current_->timestamp;
   }
   bridge_model_ = std::make_shared<const DepthModel>(std::move(model));
+  return true;
+}
+
+bool Tracker::RestartAtBridgedFrame() {
+  if (!bridged_since_ || current_->timestamp - *bridged_since_ < options_.relocalisation_seconds ||
+      !Initialize(current_.get(), current_->T_cam_world.inverse(), /*restart=*/true,
+                  /*tracked=*/true))
+    return false;
+  CCMD_LOG(WARNING) << "frame " << current_->index << " has features again but the map is not "
+                    << "in view: a new map segment starts there, at the pose its depth gave";
+  ++restarts_;
   return true;
 }
 

@@ -93,8 +93,9 @@ class Tracker {
 
  private:
   // Starts the map (or, with `restart`, a new segment of it after tracking was lost) at this
-  // frame, placed at `T_world_cam`.
-  bool Initialize(TrackingFrame* frame, const Pose& T_world_cam, bool restart);
+  // frame, placed at `T_world_cam`; `tracked`: that is the frame's own tracked pose.
+  bool Initialize(TrackingFrame* frame, const Pose& T_world_cam, bool restart,
+                  bool tracked = false);
   // A new map point from keypoint i of `frame` (which has depth), observed by `keyframe` made
   // from that frame (at `T_world_cam`), and matched to the keypoint.
   void AddMapPoint(TrackingFrame* frame, Keyframe* keyframe, const Pose& T_world_cam, int i);
@@ -118,6 +119,11 @@ class Tracker {
   // view's geometry fixes every direction of the pose; the local map's points are then searched
   // again from there. Keeps tracking through stretches without texture instead of relocalising.
   bool BridgeWithDepth();
+  // A frame placed by depth alone whose features are back but find none of the local map's
+  // points (the bridge has carried the camera out of the view its map holds): once the bridge
+  // has lasted as long as a lost camera waits for relocalisation, a new segment starts at that
+  // frame, at the pose its depth gave, marked a reset (as good as tracking's).
+  bool RestartAtBridgedFrame();
   void EndBridge();
   bool NeedNewKeyframe() const;
   void CreateKeyframe();

@@ -130,15 +130,19 @@ TEST(RealDataFrontendTest, IclNuimFrameDepthPriorHelps) {
       << with.ate_rmse << " m against " << without.ate_rmse << " m";
 }
 
-// Half a second without features on ICL-NUIM (frames 200-214) is placed by the depth alone:
+// Three seconds without features on ICL-NUIM (frames 200-289) are placed by the depth alone:
 // the alignments fit to 1.1 mm, over twice the config's 0.5 mm (which weighs the rendered depth
-// as it should), but no worse than the keyframes' own alignments do.
+// as it should), but no worse than the keyframes' own alignments do. The bridge lasts (its
+// placements once stopped at frame 234, their rotations sheared by rounding fed back), and the
+// features that come back at frame 290, in a view the map does not hold, start a new segment
+// there at the bridged pose (once a second later at a stale one: 34 mm).
 TEST(RealDataFrontendTest, IclNuimBridgesBlankFramesOnItsConfigsModel) {
   CCMD_REQUIRE_DATASET(dir, "iclnuim_office_traj0_0000_0449");
-  const FrontendRun run = RunFrontend(dir, "icl_nuim.yaml", 230, nullptr, {200, 214});
+  const FrontendRun run = RunFrontend(dir, "icl_nuim.yaml", 320, nullptr, {200, 289});
   EXPECT_GT(run.stats.mapping.depth_fit_sigmas, 2.0);
   EXPECT_EQ(run.stats.lost_frames, 0);
-  EXPECT_GE(run.stats.depth_only_frames, 15);
+  EXPECT_GE(run.stats.depth_only_frames, 90);
+  EXPECT_LE(run.stats.restarts, 1);
   EXPECT_LT(run.ate_rmse, kIclAteBound);
 }
 
