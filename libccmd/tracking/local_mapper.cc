@@ -342,8 +342,20 @@ void LocalMapper::AlignWithNeighbours(Keyframe* keyframe) {
     fit_sigmas_.push_back(fit);
     if (fit_sigmas_.size() > kFitWindow) fit_sigmas_.pop_front();
   }
-  if (!fit_sigmas_.empty())
-    stats_.depth_fit_sigmas = *std::max_element(fit_sigmas_.begin(), fit_sigmas_.end());
+  // Mean plus three standard deviations rather than the largest: known after a few alignments
+  // (ICL-NUIM: 2.3-2.9 over its first hundred, where the largest stays at 2.06 for 35 and then
+  // reaches 2.53), and one loose alignment moves it less (a 5 sigma one among 64: +1.1, the
+  // largest +3.6).
+  if (!fit_sigmas_.empty()) {
+    double sum = 0, sum_sq = 0;
+    for (const double f : fit_sigmas_) {
+      sum += f;
+      sum_sq += f * f;
+    }
+    const double n = static_cast<double>(fit_sigmas_.size());
+    const double mean = sum / n;
+    stats_.depth_fit_sigmas = mean + 3.0 * std::sqrt(std::max(0.0, sum_sq / n - mean * mean));
+  }
   stats_.depth_alignments += accepted;
   stats_.depth_alignments_failed += failed;
   stats_.depth_alignment_ms_total += watch.ElapsedMillis();

@@ -46,9 +46,10 @@ class MappingQueue {
   virtual void Insert(const KeyframePtr& keyframe) = 0;  // only called after CanAccept()
   // Multiplies the tracked-point fraction of the keyframe decision (KeyframeSink's).
   virtual double KeyframeRatioScale() const { return 1.0; }
-  // How closely this camera's depth fits where surfaces are matched rightly: the largest
-  // residual RMS, in sigmas of the config's noise model, of the recent depth alignments
-  // between keyframes (whose poses the features confirmed); 0 before there are any.
+  // How closely this camera's depth fits where surfaces are matched rightly: the tail (mean
+  // plus three standard deviations) of the residual RMS, in sigmas of the config's noise
+  // model, of the recent depth alignments between keyframes (whose poses the features
+  // confirmed); 0 before there are any.
   virtual double DepthFitSigmas() const { return 0.0; }
 };
 
