@@ -368,6 +368,50 @@ TEST(BackendIntegrationTest, ARestartAfterAYoungStartKeepsTheStartApart) {
   EXPECT_GE(fused.front().timestamp, restart_time);
 }
 
+// An agent's features fail for two thirds of a second (its colour blank) and come back in a
+// view its map does not hold (the colour inverted from then on: every descriptor differs). It
+// places those frames by their depth and, at the first textured one, starts a new segment at
+// the pose the depth gave, marked a reset. The server places that segment as the one before:
+// nothing waits unplaced (a restart without the mark, after a start this young, would keep the
+// first keyframes apart), and every keyframe is in the trajectory, on the path.
+TEST(BackendIntegrationTest, ARestartAtAFramePlacedByDepthIsPlacedAsTheSegmentBefore) {
+  RecordingObserver observer;
+  auto backend = Backend::Create(BackendOptions(), &observer);
+  ASSERT_TRUE(backend.ok()) << backend.status().ToString();
+  const AgentId agent(1);
+  ASSERT_TRUE((*backend)->RegisterAgent(agent, "agent1", SyntheticCamera()).ok());
+  WireSink sink(agent, backend->get());
+  SyntheticSequenceOptions synth;
+  synth.frames = 80;
+  synth.seed = 1;
+  synth.noise = false;
+  TrackingOptions tracking;
+  tracking.synchronous_mapping = true;
+  tracking.depth_noise.sigma_2 = 0;  // a renderer's depth
+  tracking.relocalisation_seconds = 0.5;
+  // A keyframe at nearly every frame: the segment is past its young start when the colour goes.
+  tracking.keyframe_tracked_ratio = 0.99;
+  auto frontend = Frontend::Create(SyntheticCamera(), tracking, &sink);
+  ASSERT_TRUE(frontend.ok());
+  constexpr int kBlankFrom = 12, kInvertedFrom = 32;
+  SyntheticSource source(synth, FrameRange{0, synth.frames - 1});
+  RgbdFrame frame;
+  for (int i = 0; source.Read(&frame).ok(); ++i) {
+    if (i >= kBlankFrom && i < kInvertedFrom) frame.bgr.setTo(cv::Scalar(128, 128, 128));
+    if (i >= kInvertedFrom) cv::bitwise_not(frame.bgr, frame.bgr);
+    (*frontend)->ProcessFrame(frame);
+  }
+  (*frontend)->Finish();
+  ASSERT_EQ((*frontend)->stats().restarts, 1);
+  EXPECT_EQ((*frontend)->stats().lost_frames, 0);
+  (*backend)->WaitIdle();
+  EXPECT_EQ((*backend)->stats().segments_restarted, 1);
+  EXPECT_EQ((*backend)->stats().segments_unplaced, 0u);
+  const Trajectory fused = (*backend)->FusedTrajectory();
+  EXPECT_EQ(fused.size(), sink.timestamps_.size());
+  ExpectOnThePath(synth, fused);
+}
+
 // Agent 2 maps a part of the room agent 1 never saw, loses tracking, and restarts where agent
 // 1 has been. Its new segment has no place in its own map (nothing measured the gap), but it
 // does in agent 1's: the fusion through it places it there, and agent 2's first segment,
