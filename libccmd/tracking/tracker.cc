@@ -475,7 +475,8 @@ bool Tracker::BridgeWithDepth() {
     const double fit_sigmas = aligned->rms / options_.depth_noise.Sigma(aligned->mean_range);
     // Residuals beyond twice the sensor's noise, or beyond what alignments between keyframes
     // whose poses the features confirmed reach (on rendered depth the cells' planes, not the
-    // noise, set the residuals: 2.5 sigma of configs/icl_nuim.yaml): surfaces matched wrongly.
+    // noise, set the residuals: up to 2.9 sigma of configs/icl_nuim.yaml): surfaces matched
+    // wrongly.
     const double allowed_sigmas = std::max(2.0, mapping_->DepthFitSigmas());
     CCMD_LOG(DEBUG) << "frame " << current_->index << " depth alone: conditioning " << conditioning
                     << ", " << aligned->inliers << " cells, rms " << aligned->rms * 1e3 << " mm ("

@@ -372,8 +372,9 @@ TEST(BackendIntegrationTest, ARestartAfterAYoungStartKeepsTheStartApart) {
 // view its map does not hold (the colour inverted from then on: every descriptor differs). It
 // places those frames by their depth and, at the first textured one, starts a new segment at
 // the pose the depth gave, marked a reset. The server places that segment as the one before:
-// nothing waits unplaced (a restart without the mark, after a start this young, would keep the
-// first keyframes apart), and every keyframe is in the trajectory, on the path.
+// nothing waits unplaced (a restart without the mark would wait for a loop, and the trajectory
+// would keep only the 12 keyframes before it), and every keyframe is in the trajectory, on the
+// path.
 TEST(BackendIntegrationTest, ARestartAtAFramePlacedByDepthIsPlacedAsTheSegmentBefore) {
   RecordingObserver observer;
   auto backend = Backend::Create(BackendOptions(), &observer);
