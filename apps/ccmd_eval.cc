@@ -204,17 +204,18 @@ int RunJumps(const std::string& path, int top, const std::string& json_path) {
 }
 
 int RunRecon(const std::string& ref_path, const std::string& rec_path, const std::string& json_path,
-             const std::string& gt_traj, const std::string& est_traj, bool point_to_point,
-             double completeness_threshold) {
+             const std::string& gt_traj, const std::string& est_traj, double alignment_arm,
+             bool point_to_point, double completeness_threshold) {
   auto ref = ccmd::ReadPly(ref_path);
   if (!ref.ok()) return Fail(ref.status());
   auto rec = ccmd::ReadPly(rec_path);
   if (!rec.ok()) return Fail(rec.status());
   if (!gt_traj.empty() || !est_traj.empty()) {
     // The map is in the estimate's world frame: move it into the ground truth's with the
-    // alignment fitted to the keyframes' whole poses, as ccmd_replay's report does (positions
-    // alone leave the rotation to the noise on a short path, and a degree tilts a room's walls
-    // by centimetres), so that its figures reproduce here.
+    // alignment fitted to the keyframes' whole poses at the distance they see the map from,
+    // as ccmd_replay's report does (positions alone leave the rotation to the noise on a short
+    // path, and a degree tilts a room's walls by centimetres), so that its figures reproduce
+    // here.
     if (gt_traj.empty() || est_traj.empty()) {
       return Fail(ccmd::InvalidArgument("--gt-traj and --est-traj go together"));
     }
@@ -222,13 +223,14 @@ int RunRecon(const std::string& ref_path, const std::string& rec_path, const std
     if (!gt.ok()) return Fail(gt.status());
     auto est = ccmd::ReadTumTrajectory(est_traj);
     if (!est.ok()) return Fail(est.status());
-    ccmd::AteOptions by_poses;
-    by_poses.pose_alignment_below_spread_m = std::numeric_limits<double>::infinity();
-    auto ate = ccmd::ComputeAte(*gt, *est, by_poses);
+    auto ate = ccmd::AlignMap(*gt, *est, *rec, alignment_arm);
     if (!ate.ok()) return Fail(ate.status());
+    std::printf(
+        "aligned the reconstruction with the trajectory's poses, arms %.2f m (the map seen from "
+        "%.2f m; ATE rmse %.4f m)\n",
+        alignment_arm > 0 ? alignment_arm : ccmd::MapViewingDistance(*rec, *est),
+        ccmd::MapViewingDistance(*rec, *est), ate->error.rmse);
     for (auto& p : rec->points) p = (ate->alignment * p.cast<double>()).cast<float>();
-    std::printf("aligned the reconstruction with the trajectory's poses (ATE rmse %.4f m)\n",
-                ate->error.rmse);
   }
   // A mesh (e.g. ICL-NUIM's living room model) is its surface, not its vertices, as
   // ccmd_replay --reference takes it; point to point needs no normals fitted.
@@ -394,6 +396,14 @@ int main(int argc, char** argv) {
   recon->add_option("--json", json, "Write the figures as JSON");
   recon->add_option("--gt-traj", gt_traj, "Ground-truth trajectory, to align the map first");
   recon->add_option("--est-traj", est_traj, "Estimated trajectory the map was built with");
+  double alignment_arm = 0;
+  recon
+      ->add_option("--alignment-arm", alignment_arm,
+                   "Metres along each pose's axes at which the alignment compares the poses "
+                   "(0: the distance the keyframes see the map from, as ccmd_replay's report; "
+                   "0.1: the report before)")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
   recon->add_flag("--point-to-point", point_to_point,
                   "Distance to the nearest reference point only (no normals)");
   recon
@@ -432,7 +442,8 @@ int main(int argc, char** argv) {
   if (*jumps) return RunJumps(traj, top, json);
   if (*shared) return RunShared(gt, ests, json, max_diff);
   if (*recon) {
-    return RunRecon(ref, rec, json, gt_traj, est_traj, point_to_point, completeness_threshold);
+    return RunRecon(ref, rec, json, gt_traj, est_traj, alignment_arm, point_to_point,
+                    completeness_threshold);
   }
   if (*split) return RunSplit(frames, dataset, config, agents, overlap);
   return 1;

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <limits>
 #include <thread>
 
 #include <Eigen/Eigenvalues>
@@ -192,6 +193,33 @@ StatusOr<ReconstructionError> ComputeReconstructionError(const PointCloud& refer
   result.completeness = static_cast<double>(covered) / completeness.size();
   result.hausdorff = std::max(result.max, result.max_reverse);
   return result;
+}
+
+double MapViewingDistance(const PointCloud& map, const Trajectory& keyframes) {
+  if (map.size() == 0 || keyframes.empty()) return 0;
+  std::vector<Eigen::Vector3f> centres;
+  for (const StampedPose& k : keyframes)
+    centres.push_back(k.T_world_cam.translation().cast<float>());
+  const PointKdTree tree(centres);
+  const std::size_t step = std::max<std::size_t>(1, map.size() / 20000);
+  std::vector<double> distances;
+  for (std::size_t i = 0; i < map.size(); i += step) {
+    float d2 = 0;
+    tree.Nearest(map.points[i], &d2);
+    distances.push_back(std::sqrt(d2));
+  }
+  auto middle = distances.begin() + static_cast<std::ptrdiff_t>(distances.size() / 2);
+  std::nth_element(distances.begin(), middle, distances.end());
+  return *middle;
+}
+
+StatusOr<AteResult> AlignMap(const Trajectory& groundtruth, const Trajectory& keyframes,
+                             const PointCloud& map, double arm_m) {
+  AteOptions by_poses;
+  by_poses.pose_alignment_below_spread_m = std::numeric_limits<double>::infinity();
+  const double arm = arm_m > 0 ? arm_m : MapViewingDistance(map, keyframes);
+  if (arm > 0) by_poses.pose_alignment_arm_m = arm;
+  return ComputeAte(groundtruth, keyframes, by_poses);
 }
 
 }  // namespace ccmd

@@ -13,7 +13,9 @@
 #include <string>
 #include <vector>
 
+#include "libccmd/eval/trajectory_error.h"
 #include "libccmd/io/ply.h"
+#include "libccmd/io/trajectory.h"
 #include "libccmd/util/options_writer.h"
 #include "libccmd/util/status.h"
 
@@ -76,5 +78,20 @@ PointCloud AsReferenceSurface(PointCloud reference, std::string* how = nullptr);
 // Directed nearest-neighbour distances from every point of `from` to the cloud `to`
 // (point-to-point). Exposed for tests and other metrics.
 std::vector<double> NearestDistances(const PointCloud& from, const PointCloud& to, int threads = 0);
+
+// How far the keyframes see their map from: the median, over the map's points (at most 20000,
+// evenly picked), of the distance to the nearest keyframe centre. 0 when either is empty.
+double MapViewingDistance(const PointCloud& map, const Trajectory& keyframes);
+
+// The rigid transform that puts a map built from `keyframes` into the ground truth's frame,
+// fitted to the keyframes' whole poses: each centre and the points at the map's viewing
+// distance along its axes (AteOptions::pose_alignment_arm_m). A pose whose orientation is a
+// degrees off moves the points it put in the map by about a times that distance, so the fit
+// weighs orientations as the map feels them; with 10 cm arms a few millimetres of keyframe
+// position error (a fusion's join, or the ground truth's own) tilt a room's walls by
+// centimetres. The result's errors are the centres' (as ComputeAte's). `arm_m` > 0 sets the
+// arms' length instead (0.1 m was the fit before).
+StatusOr<AteResult> AlignMap(const Trajectory& groundtruth, const Trajectory& keyframes,
+                             const PointCloud& map, double arm_m = 0);
 
 }  // namespace ccmd

@@ -16,6 +16,9 @@ Status AteOptions::Validate() const {
   if (!(pose_alignment_below_spread_m >= 0)) {
     return InvalidArgument("pose alignment spread must be >= 0");
   }
+  if (!(pose_alignment_arm_m > 0) || !std::isfinite(pose_alignment_arm_m)) {
+    return InvalidArgument("pose alignment arm must be finite and > 0");
+  }
   return Status::Ok();
 }
 
@@ -24,6 +27,7 @@ void AteOptions::Describe(OptionsWriter* out) const {
   out->Add("align", align);
   out->Add("correct_scale", correct_scale);
   out->Add("pose_alignment_below_spread_m", pose_alignment_below_spread_m);
+  out->Add("pose_alignment_arm_m", pose_alignment_arm_m);
 }
 
 Status RpeOptions::Validate() const {
@@ -110,10 +114,11 @@ StatusOr<AteResult> ComputeAte(const Trajectory& groundtruth, const Trajectory& 
         (est.size() < 3 || SecondSpread(est) < options.pose_alignment_below_spread_m);
     std::vector<Eigen::Vector3d> est_fit = est, gt_fit = gt;
     if (result.aligned_by_poses) {
+      const double arm = options.pose_alignment_arm_m;
       for (const auto& [ie, ig] : matches) {
         for (int axis = 0; axis < 3; ++axis) {
-          est_fit.push_back(estimate[ie].T_world_cam * (0.1 * Eigen::Vector3d::Unit(axis)));
-          gt_fit.push_back(groundtruth[ig].T_world_cam * (0.1 * Eigen::Vector3d::Unit(axis)));
+          est_fit.push_back(estimate[ie].T_world_cam * (arm * Eigen::Vector3d::Unit(axis)));
+          gt_fit.push_back(groundtruth[ig].T_world_cam * (arm * Eigen::Vector3d::Unit(axis)));
         }
       }
     }

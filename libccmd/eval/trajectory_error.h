@@ -26,9 +26,15 @@ struct AteOptions {
   // Alignment fitted to whole poses instead of positions when the positions cannot fix it:
   // fewer than three, or spread less than this (metres, standard deviation across their main
   // direction: points that close to a line leave the rotation about it to the noise). The fit
-  // uses each pose's centre and the points 10 cm along its three axes, so one pose is enough;
-  // the errors are still those of the centres. 0: positions only (evo's behaviour).
+  // uses each pose's centre and the points pose_alignment_arm_m along its three axes, so one
+  // pose is enough; the errors are still those of the centres. 0: positions only (evo's
+  // behaviour).
   double pose_alignment_below_spread_m = 0;
+  // How far from each centre those points lie (metres): the longer, the more the poses'
+  // orientations count against their centres. A map is aligned with the distance at which its
+  // keyframes see it (MapAlignmentArm), so that the fit weighs a pose's error by how far it
+  // moves the points that pose put in the map.
+  double pose_alignment_arm_m = 0.1;
 
   Status Validate() const;
   void Describe(OptionsWriter* out) const;

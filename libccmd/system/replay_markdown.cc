@@ -128,7 +128,9 @@ void WriteDenseMap(const Json& results, bool map_plots, std::ostringstream& md) 
        << Fmt("%.1f%%", 100 * Num(&results, "recon_completeness")) << " |\n\n";
     md << "Reference: " << Str(&results, "reference") << " (" << Num(&results, "reference_points")
        << " points). The map is aligned to it by the fit of the primary map's keyframe poses "
-          "(centres and orientations) to the ground truth.\n";
+          "(centres, and orientations weighed at the "
+       << Fmt("%.2f", Num(&results, "recon_viewing_distance_m"))
+       << " m the keyframes see the map from) to the ground truth.\n";
   } else {
     md << "No dense map or no reference to compare with.\n";
   }

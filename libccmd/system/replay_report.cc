@@ -176,12 +176,14 @@ std::optional<AteResult> MapAte(const Trajectory& gt, const Trajectory& keyframe
   return *ate;
 }
 
-// Reconstruction error of the server's map.ply, moved into the ground truth's frame by
-// `alignment`, into `results`; returns each agent's mean error by its id (the points' labels:
-// which keyframe, so which agent, each came from), empty without a map or a reference.
+// Reconstruction error of the server's map.ply, moved into the ground truth's frame by the
+// alignment of the primary map's `keyframes` to it (AlignMap: their whole poses, weighed at
+// the distance they see the map from), into `results`; returns each agent's mean error by its
+// id (the points' labels: which keyframe, so which agent, each came from), empty without a
+// map or a reference.
 std::map<std::uint32_t, double> EvaluateMap(const std::string& run_dir, const TumSequence& dataset,
-                                            const ReferenceOptions& reference,
-                                            const Similarity3& alignment, Json* results) {
+                                            const ReferenceOptions& reference, const Trajectory& gt,
+                                            const Trajectory& keyframes, Json* results) {
   std::map<std::uint32_t, double> by_agent;
   const std::string map_path = JoinPath(run_dir, "map.ply");
   if (!FileExists(map_path)) return by_agent;
@@ -198,7 +200,10 @@ std::map<std::uint32_t, double> EvaluateMap(const std::string& run_dir, const Tu
   }
   auto rec = ReadPly(map_path);
   if (!rec.ok() || rec->size() == 0) return by_agent;
-  for (auto& p : rec->points) p = (alignment * p.cast<double>()).cast<float>();
+  const double seen_from = MapViewingDistance(*rec, keyframes);
+  auto aligned = AlignMap(gt, keyframes, *rec, seen_from);
+  if (!aligned.ok()) return by_agent;
+  for (auto& p : rec->points) p = (aligned->alignment * p.cast<double>()).cast<float>();
   std::vector<double> per_point;
   auto error = ComputeReconstructionError(*ref, *rec, {}, &per_point);
   if (!error.ok()) return by_agent;
@@ -212,6 +217,7 @@ std::map<std::uint32_t, double> EvaluateMap(const std::string& run_dir, const Tu
   r["recon_max_reference_to_map_m"] = error->max_reverse;
   r["recon_completeness"] = error->completeness;
   r["map_points"] = rec->size();
+  r["recon_viewing_distance_m"] = seen_from;
   r["reference"] = source;
   r["reference_points"] = ref->size();
   if (rec->HasLabels()) {
@@ -463,15 +469,7 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
   results["all_maps_fused"] = all_fused;
   std::optional<AteResult> fused_ate;
   auto read_fused = ReadTumTrajectory(JoinPath(run_dir, "trajectory_fused.txt"));
-  // The dense map is put in the ground truth's frame by the alignment fitted to the keyframes'
-  // whole poses: on a short or nearly straight path, positions leave the rotation to the
-  // noise (a degree tilts the map by 3-5 cm at the room's walls); on a long one both agree.
-  std::optional<Similarity3> map_alignment;
   if (read_fused.ok()) {
-    AteOptions by_poses;
-    by_poses.pose_alignment_below_spread_m = std::numeric_limits<double>::infinity();
-    auto posed = ComputeAte(gt, *read_fused, by_poses);
-    if (posed.ok()) map_alignment = posed->alignment;
     fused_ate = MapAte(gt, *read_fused);
     if (fused_ate) {
       results["ate_rmse_m"] = fused_ate->error.rmse;
@@ -482,8 +480,8 @@ StatusOr<Json> EvaluateReplay(const std::string& run_dir, const TumSequence& dat
     }
   }
   const std::map<std::uint32_t, double> map_error_of_agent =
-      map_alignment ? EvaluateMap(run_dir, dataset, reference, *map_alignment, &results)
-                    : std::map<std::uint32_t, double>{};
+      read_fused.ok() ? EvaluateMap(run_dir, dataset, reference, gt, *read_fused, &results)
+                      : std::map<std::uint32_t, double>{};
 
   ReplayPlotInputs plots;
   plots.agent_trajectories.resize(std::max(0, info.agents));

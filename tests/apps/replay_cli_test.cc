@@ -2,6 +2,10 @@
 // loopback TCP. The report's figures are checked against independent computations from the
 // files the run wrote.
 
+#include <algorithm>
+#include <limits>
+#include <vector>
+
 #include <gtest/gtest.h>
 
 #include "libccmd/eval/reconstruction_error.h"
@@ -52,12 +56,28 @@ TEST(ReplayCliTest, TwoAgentsFuseAndTheReportMatchesTheFiles) {
   EXPECT_NEAR(results->Get("ate_rmse_m")->number(), ate->error.rmse, 1e-9);
   EXPECT_LT(ate->error.rmse, 0.01);
   // And the reconstruction error from the written map, aligned by the fit of the trajectory's
-  // whole poses (centres and orientations).
+  // whole poses (centres and orientations), its arms as long as the median distance from the
+  // map's points to their nearest keyframe.
   auto reference = ReadPly(dir.File("seq/surface.ply"));
   auto map = ReadPly(dir.File("run/map.ply"));
-  ASSERT_TRUE(reference.ok() && map.ok());
+  ASSERT_TRUE(reference.ok() && map.ok() && map->size() > 0);
+  std::vector<double> nearest;
+  for (const auto& p : map->points) {
+    double best = std::numeric_limits<double>::infinity();
+    for (const auto& k : *fused) {
+      best = std::min(best, (p.cast<double>() - k.T_world_cam.translation()).norm());
+    }
+    nearest.push_back(best);
+  }
+  std::nth_element(nearest.begin(), nearest.begin() + nearest.size() / 2, nearest.end());
+  const double viewing_distance = nearest[nearest.size() / 2];
+  EXPECT_GT(viewing_distance, 0.5);  // the room's walls are metres from the cameras
+  // The report's is the median of an even pick of at most 20000 points.
+  const double reported_distance = results->Get("recon_viewing_distance_m")->number();
+  EXPECT_NEAR(reported_distance, viewing_distance, 0.02);
   AteOptions by_poses;
   by_poses.pose_alignment_below_spread_m = 1e9;
+  by_poses.pose_alignment_arm_m = reported_distance;
   auto posed = ComputeAte(*gt, *fused, by_poses);
   ASSERT_TRUE(posed.ok());
   // On this loop both fits agree to a fraction of a degree.
