@@ -205,7 +205,7 @@ int RunJumps(const std::string& path, int top, const std::string& json_path) {
 
 int RunRecon(const std::string& ref_path, const std::string& rec_path, const std::string& json_path,
              const std::string& gt_traj, const std::string& est_traj, double alignment_arm,
-             bool point_to_point, double completeness_threshold) {
+             bool icp, bool point_to_point, double completeness_threshold) {
   auto ref = ccmd::ReadPly(ref_path);
   if (!ref.ok()) return Fail(ref.status());
   auto rec = ccmd::ReadPly(rec_path);
@@ -238,6 +238,14 @@ int RunRecon(const std::string& ref_path, const std::string& rec_path, const std
     std::string how;
     *ref = ccmd::AsReferenceSurface(std::move(*ref), &how);
     if (!how.empty()) std::printf("the reference: %s\n", how.c_str());
+  }
+  if (icp) {
+    // Onto the reference's planes (fitted for this when the error is measured point to point).
+    auto placed = ccmd::AlignByIcp(ref->HasNormals() ? *ref : ccmd::AsReferenceSurface(*ref), *rec);
+    if (!placed.ok()) return Fail(placed.status());
+    for (auto& p : rec->points) p = (placed->T_reference_map * p.cast<double>()).cast<float>();
+    std::printf("placed on the reference by ICP: turned %.3f degrees, moved %.4f m\n",
+                placed->turn_deg, placed->shift_m);
   }
   ccmd::ReconstructionOptions options;
   options.point_to_plane = !point_to_point;
@@ -404,6 +412,10 @@ int main(int argc, char** argv) {
                    "0.1: the report before)")
       ->check(CLI::NonNegativeNumber)
       ->capture_default_str();
+  bool icp = false;
+  recon->add_flag("--icp", icp,
+                  "Then place the map on the reference by point-to-plane ICP (as the paper "
+                  "aligns its maps) and measure it there");
   recon->add_flag("--point-to-point", point_to_point,
                   "Distance to the nearest reference point only (no normals)");
   recon
@@ -442,7 +454,7 @@ int main(int argc, char** argv) {
   if (*jumps) return RunJumps(traj, top, json);
   if (*shared) return RunShared(gt, ests, json, max_diff);
   if (*recon) {
-    return RunRecon(ref, rec, json, gt_traj, est_traj, alignment_arm, point_to_point,
+    return RunRecon(ref, rec, json, gt_traj, est_traj, alignment_arm, icp, point_to_point,
                     completeness_threshold);
   }
   if (*split) return RunSplit(frames, dataset, config, agents, overlap);

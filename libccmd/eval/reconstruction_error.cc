@@ -222,4 +222,48 @@ StatusOr<AteResult> AlignMap(const Trajectory& groundtruth, const Trajectory& ke
   return ComputeAte(groundtruth, keyframes, by_poses);
 }
 
+StatusOr<IcpResult> AlignByIcp(const PointCloud& reference, const PointCloud& map,
+                               const IcpOptions& options) {
+  if (!reference.HasNormals()) return InvalidArgument("ICP needs the reference's normals");
+  const PointKdTree tree(reference.points);
+  std::vector<Eigen::Vector3d> points;
+  const std::size_t step =
+      std::max<std::size_t>(1, map.size() / std::max<std::size_t>(1, options.max_points));
+  for (std::size_t i = 0; i < map.size(); i += step) points.push_back(map.points[i].cast<double>());
+  IcpResult result;
+  const float max_d2 = static_cast<float>(options.max_distance * options.max_distance);
+  for (int iteration = 0; iteration < options.iterations; ++iteration) {
+    // Linearised about the current placement: a small rotation w and shift v move point p
+    // along the reference's normal n by n . (w x p + v) = (p x n) . w + n . v.
+    Eigen::Matrix<double, 6, 6> H = Eigen::Matrix<double, 6, 6>::Zero();
+    Eigen::Matrix<double, 6, 1> g = Eigen::Matrix<double, 6, 1>::Zero();
+    result.pairs = 0;
+    for (const Eigen::Vector3d& p : points) {
+      float d2 = 0;
+      const std::uint32_t i = tree.Nearest(p.cast<float>(), &d2);
+      const Eigen::Vector3d n = reference.normals[i].cast<double>();
+      if (d2 > max_d2 || n.squaredNorm() < 0.5) continue;
+      Eigen::Matrix<double, 6, 1> J;
+      J << p.cross(n), n;
+      H += J * J.transpose();
+      g += J * n.dot(p - reference.points[i].cast<double>());
+      ++result.pairs;
+    }
+    if (result.pairs < 6) return InvalidArgument("ICP found too few map points near the reference");
+    const Eigen::Matrix<double, 6, 1> x = -H.ldlt().solve(g);
+    Pose step_pose = Pose::Identity();
+    if (x.head<3>().norm() > 0) {
+      step_pose.linear() =
+          Eigen::AngleAxisd(x.head<3>().norm(), x.head<3>().normalized()).toRotationMatrix();
+    }
+    step_pose.translation() = x.tail<3>();
+    for (Eigen::Vector3d& p : points) p = step_pose * p;
+    result.T_reference_map = step_pose * result.T_reference_map;
+    if (x.norm() < 1e-9) break;
+  }
+  result.turn_deg = Eigen::AngleAxisd(result.T_reference_map.linear()).angle() * 180 / M_PI;
+  result.shift_m = result.T_reference_map.translation().norm();
+  return result;
+}
+
 }  // namespace ccmd

@@ -94,4 +94,24 @@ double MapViewingDistance(const PointCloud& map, const Trajectory& keyframes);
 StatusOr<AteResult> AlignMap(const Trajectory& groundtruth, const Trajectory& keyframes,
                              const PointCloud& map, double arm_m = 0);
 
+struct IcpOptions {
+  int iterations = 30;
+  double max_distance = 0.03;      // metres: map points further from the reference are left out
+  std::size_t max_points = 50000;  // an even pick of the map's points takes part
+};
+
+struct IcpResult {
+  Pose T_reference_map = Pose::Identity();  // moves the map onto the reference
+  double turn_deg = 0;                      // its rotation angle
+  double shift_m = 0;                       // its translation
+  std::size_t pairs = 0;                    // point-plane pairs in the last iteration
+};
+
+// Point-to-plane ICP of `map` onto `reference` (a surface as AsReferenceSurface gives it; points
+// without a normal are not used), from where the map is: the best rigid placement of the map
+// on the reference, as CloudCompare's registration that the paper aligns its clouds with.
+// Refused when the reference has no normals or fewer than 6 pairs are found.
+StatusOr<IcpResult> AlignByIcp(const PointCloud& reference, const PointCloud& map,
+                               const IcpOptions& options = {});
+
 }  // namespace ccmd

@@ -130,7 +130,14 @@ void WriteDenseMap(const Json& results, bool map_plots, std::ostringstream& md) 
        << " points). The map is aligned to it by the fit of the primary map's keyframe poses "
           "(centres, and orientations weighed at the "
        << Fmt("%.2f", Num(&results, "recon_viewing_distance_m"))
-       << " m the keyframes see the map from) to the ground truth.\n";
+       << " m the keyframes see the map from) to the ground truth.";
+    if (results.Has("recon_mean_after_icp_m")) {
+      md << " Placed on the reference by ICP instead (as the paper aligns its maps): mean "
+         << Fmt("%.4f", Num(&results, "recon_mean_after_icp_m")) << " m, the map turned by "
+         << Fmt("%.3f", Num(&results, "recon_icp_turn_deg")) << " degrees and moved "
+         << Fmt("%.4f", Num(&results, "recon_icp_shift_m")) << " m from the keyframes' fit.";
+    }
+    md << "\n";
   } else {
     md << "No dense map or no reference to compare with.\n";
   }

@@ -184,6 +184,37 @@ TEST(EvalCliTest, ReconAlignsTheMapByTheTrajectorysWholePoses) {
   EXPECT_LT(json->Get("mean_m")->number(), 0.001) << out;
 }
 
+// A room's corner given as points (no normals), and the same corner moved by a degree and 2 cm:
+// --icp places it back and measures it there.
+TEST(EvalCliTest, ReconIcpPlacesTheMapOnTheReference) {
+  testing::TempDir dir;
+  Pose moved = Pose::Identity();
+  moved.linear() =
+      Eigen::AngleAxisd(M_PI / 180, Eigen::Vector3d(1, 1, 0).normalized()).toRotationMatrix();
+  moved.translation() = Eigen::Vector3d(0.02, 0, -0.01);
+  PointCloud ref, rec;
+  for (int i = 0; i < 60; ++i) {
+    for (int j = 0; j < 60; ++j) {
+      for (const Eigen::Vector3d& p :
+           {Eigen::Vector3d(0.02 * i, 0.02 * j, 0), Eigen::Vector3d(0.02 * i, 0, 0.02 * j),
+            Eigen::Vector3d(0, 0.02 * i, 0.02 * j)}) {
+        ref.points.push_back(p.cast<float>());
+        rec.points.push_back((moved * p).cast<float>());
+      }
+    }
+  }
+  ASSERT_TRUE(WritePly(ref, dir.File("ref.ply")).ok());
+  ASSERT_TRUE(WritePly(rec, dir.File("rec.ply")).ok());
+  std::string out;
+  const auto as_it_is = RunRecon(dir, "", &out);
+  ASSERT_TRUE(as_it_is.ok()) << out;
+  EXPECT_GT(as_it_is->Get("mean_m")->number(), 0.005) << out;
+  const auto placed = RunRecon(dir, "--icp", &out);
+  ASSERT_TRUE(placed.ok()) << out;
+  EXPECT_LT(placed->Get("mean_m")->number(), 0.0005) << out;
+  EXPECT_NE(out.find("placed on the reference by ICP: turned 1.0"), std::string::npos) << out;
+}
+
 // A straight path at constant speed with one pose pushed 2 cm aside: that pose comes first,
 // its neighbours next (1 cm each), and a trajectory of two poses is refused by name.
 TEST(EvalCliTest, JumpsListsTheLargestFirst) {

@@ -87,6 +87,10 @@ TEST(ReplayCliTest, TwoAgentsFuseAndTheReportMatchesTheFiles) {
   ASSERT_TRUE(recon.ok());
   EXPECT_NEAR(results->Get("recon_mean_m")->number(), recon->mean, 1e-9);
   EXPECT_LT(recon->mean, 0.01);
+  // Placed by ICP the map can be no worse, and on this exact room the keyframes' fit is
+  // within a fraction of a degree of that placement.
+  EXPECT_LE(results->Get("recon_mean_after_icp_m")->number(), recon->mean + 0.0005);
+  EXPECT_LT(results->Get("recon_icp_turn_deg")->number(), 0.2);
   // Each agent's map error is that of the points its keyframes gave (the labels' top byte is
   // the agent's id, as the server numbered it); both agents gave points.
   auto ids = ReadJsonFile(dir.File("run/server_stats.json"));
