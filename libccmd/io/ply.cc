@@ -34,6 +34,9 @@ bool PointCloud::IsConsistent() const {
 
 namespace {
 
+// A value that converts to an unsigned integer no larger than `max`.
+bool InRange(double v, double max) { return v >= 0 && v <= max; }
+
 template <typename T>
 void Append(std::vector<char>* buffer, T value) {
   const char* bytes = reinterpret_cast<const char*>(&value);  // x86/ARM: little-endian hosts
@@ -384,6 +387,17 @@ StatusOr<PointCloud> ReadPly(const std::string& path, const PlyReadOptions& opti
         }
         cloud.points[i] = Eigen::Vector3f(values[ix], values[iy], values[iz]);
         if (normals) cloud.normals[i] = Eigen::Vector3f(values[inx], values[iny], values[inz]);
+        // Distances and fits over a cloud are meaningless with one NaN or infinite point in
+        // it, and a colour or label outside its type does not convert.
+        if (!cloud.points[i].allFinite() || (normals && !cloud.normals[i].allFinite())) {
+          return Corrupt(path + ": vertex " + std::to_string(i) + " is not finite");
+        }
+        if ((colors &&
+             !(InRange(values[ir], 255) && InRange(values[ig], 255) && InRange(values[ib], 255))) ||
+            (il >= 0 && !InRange(values[il], 4294967295.0))) {
+          return Corrupt(path + ": vertex " + std::to_string(i) +
+                         " has a colour or label out of range");
+        }
         if (colors) {
           cloud.colors[i] = {static_cast<std::uint8_t>(values[ir]),
                              static_cast<std::uint8_t>(values[ig]),

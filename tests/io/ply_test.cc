@@ -2,7 +2,10 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <filesystem>
+#include <limits>
+#include <utility>
 
 #include "libccmd/util/file_util.h"
 #include "tests/support/test_support.h"
@@ -116,6 +119,31 @@ TEST(PlyTest, MalformedFilesAreErrors) {
   data.resize(data.size() - 10);
   ASSERT_TRUE(WriteFileAtomic(dir.File("cut.ply"), data).ok());
   EXPECT_EQ(ReadPly(dir.File("cut.ply")).status().code(), StatusCode::kCorrupt);
+  // A vertex that is not a point (NaN, infinite), or whose colour does not fit its byte.
+  auto two_vertices = [](float x, float red) {
+    std::string ply =
+        "ply\nformat binary_little_endian 1.0\nelement vertex 2\nproperty float x\n"
+        "property float y\nproperty float z\nproperty float red\nproperty float green\n"
+        "property float blue\nend_header\n";
+    for (const float v : {0.f, 0.f, 0.f, 1.f, 2.f, 3.f, x, 1.f, 0.f, red, 5.f, 6.f}) {
+      ply.append(reinterpret_cast<const char*>(&v), sizeof v);
+    }
+    return ply;
+  };
+  for (const auto& [x, red] : {std::pair<float, float>{std::nanf(""), 4},
+                               {std::numeric_limits<float>::infinity(), 4},
+                               {0.5f, 300},
+                               {0.5f, -1}}) {
+    ASSERT_TRUE(WriteFileAtomic(dir.File("bad.ply"), two_vertices(x, red)).ok());
+    const auto bad = ReadPly(dir.File("bad.ply"));
+    EXPECT_EQ(bad.status().code(), StatusCode::kCorrupt) << x << " " << red;
+    EXPECT_NE(bad.status().message().find("vertex 1 "), std::string::npos)
+        << bad.status().ToString();
+  }
+  ASSERT_TRUE(WriteFileAtomic(dir.File("good.ply"), two_vertices(0.5f, 4)).ok());
+  const auto good = ReadPly(dir.File("good.ply"));
+  ASSERT_TRUE(good.ok()) << good.status().ToString();
+  EXPECT_EQ(good->colors[1][0], 4);
 }
 
 }  // namespace
