@@ -273,6 +273,11 @@ class BodyReader {
 
 StatusOr<PointCloud> ReadPly(const std::string& path, const PlyReadOptions& options) {
   CCMD_ASSIGN_OR_RETURN(const std::string data, ReadFileToString(path, 1ull << 36));
+  return ParsePly(data, path, options);
+}
+
+StatusOr<PointCloud> ParsePly(const std::string& data, const std::string& path,
+                              const PlyReadOptions& options) {
   const std::size_t header_end = data.find("end_header");
   if (data.compare(0, 3, "ply") != 0 || header_end == std::string::npos) {
     return Corrupt(path + " is not a PLY file");
@@ -331,6 +336,7 @@ StatusOr<PointCloud> ReadPly(const std::string& path, const PlyReadOptions& opti
     const bool is_vertex = element.name == "vertex";
     const bool is_face = element.name == "face";
     if (is_vertex) {
+      if (vertices_read) return Corrupt(path + ": a second vertex element");
       if (element.count > options.max_vertices) {
         return OutOfRange(path + ": " + std::to_string(element.count) +
                           " vertices exceed the limit");
@@ -343,6 +349,9 @@ StatusOr<PointCloud> ReadPly(const std::string& path, const PlyReadOptions& opti
         if (element.count * bytes_per_vertex > data.size() - body) {
           return Corrupt(path + ": file shorter than its vertex count says");
         }
+      } else if (element.count * 2 * element.properties.size() > data.size() - body + 1) {
+        // Text needs a character and a separator for each value at least.
+        return Corrupt(path + ": file shorter than its vertex count says");
       }
       int ix = -1, iy = -1, iz = -1, inx = -1, iny = -1, inz = -1, ir = -1, ig = -1, ib = -1,
           il = -1;
@@ -415,12 +424,12 @@ StatusOr<PointCloud> ReadPly(const std::string& path, const PlyReadOptions& opti
             return Corrupt(path + ": truncated at face " + std::to_string(i));
           }
           if (!p.is_list) continue;
-          if (count < 0 || count > 64) return Corrupt(path + ": bad face size");
+          if (!(count >= 0 && count <= 64)) return Corrupt(path + ": bad face size");
           std::vector<std::uint32_t> indices(static_cast<std::size_t>(count));
           for (auto& index : indices) {
             double v = 0;
             if (!reader.Read(p.type, &v)) return Corrupt(path + ": truncated face");
-            if (v < 0 || v >= static_cast<double>(cloud.points.size())) {
+            if (!(v >= 0 && v < static_cast<double>(cloud.points.size()))) {  // NaN too
               return Corrupt(path + ": face index out of range");
             }
             index = static_cast<std::uint32_t>(v);

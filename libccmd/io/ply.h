@@ -78,5 +78,8 @@ class PlyVertexWriter {
   bool failed_ = false;
 };
 StatusOr<PointCloud> ReadPly(const std::string& path, const PlyReadOptions& options = {});
+// The same from a PLY file's bytes; `name` prefixes the error messages (the file's path).
+StatusOr<PointCloud> ParsePly(const std::string& data, const std::string& name,
+                              const PlyReadOptions& options = {});
 
 }  // namespace ccmd

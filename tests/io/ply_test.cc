@@ -111,6 +111,14 @@ TEST(PlyTest, MalformedFilesAreErrors) {
       "property float x\nproperty float y\nproperty float z\nend_header\n";
   ASSERT_TRUE(WriteFileAtomic(dir.File("huge.ply"), std::string(header) + "abc").ok());
   EXPECT_FALSE(ReadPly(dir.File("huge.ply")).ok());  // refused before allocating
+  // The same in text, and the shortest text that holds its count.
+  const std::string text_header =
+      "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+      "property float z\nend_header\n";
+  EXPECT_EQ(ParsePly(text_header + "0 0 0\n1 1", "short").status().code(), StatusCode::kCorrupt);
+  const auto shortest = ParsePly(text_header + "0 0 0\n1 1 1", "shortest");
+  ASSERT_TRUE(shortest.ok()) << shortest.status().ToString();
+  EXPECT_EQ(shortest->points[1], Eigen::Vector3f(1, 1, 1));
   ASSERT_TRUE(WriteFileAtomic(dir.File("junk.ply"), "not a ply").ok());
   EXPECT_EQ(ReadPly(dir.File("junk.ply")).status().code(), StatusCode::kCorrupt);
   // Truncated body.
