@@ -250,7 +250,11 @@ StatusOr<IcpResult> AlignByIcp(const PointCloud& reference, const PointCloud& ma
       ++result.pairs;
     }
     if (result.pairs < 6) return InvalidArgument("ICP found too few map points near the reference");
+    // A little damping leaves the directions the reference does not hold (a single wall's
+    // slide along itself) where they are instead of solving for them.
+    H.diagonal().array() += 1e-9 * H.trace();
     const Eigen::Matrix<double, 6, 1> x = -H.ldlt().solve(g);
+    if (!x.allFinite()) return InvalidArgument("ICP did not converge");
     Pose step_pose = Pose::Identity();
     if (x.head<3>().norm() > 0) {
       step_pose.linear() =

@@ -238,6 +238,17 @@ TEST(ReconstructionErrorTest, IcpPutsAMovedMapBackOnItsSurface) {
   PointCloud bare = corner;
   bare.normals.clear();
   EXPECT_FALSE(AlignByIcp(bare, map).ok());
+
+  // A single wall holds the map only along its normal: the ICP takes the map back onto it and
+  // does not slide it along the wall.
+  PointCloud wall = Grid();
+  PointCloud off = wall;
+  for (auto& p : off.points) p += Eigen::Vector3f(0, 0, 0.01f);
+  auto onto_wall = AlignByIcp(wall, off);
+  ASSERT_TRUE(onto_wall.ok()) << onto_wall.status().ToString();
+  EXPECT_NEAR(onto_wall->T_reference_map.translation().z(), -0.01, 1e-5);
+  EXPECT_LT(onto_wall->T_reference_map.translation().head<2>().norm(), 1e-5);
+  EXPECT_LT(onto_wall->turn_deg, 1e-3);
 }
 
 TEST(ReconstructionErrorTest, EmptyCloudsAreErrors) {
