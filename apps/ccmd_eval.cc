@@ -223,13 +223,14 @@ int RunRecon(const std::string& ref_path, const std::string& rec_path, const std
     if (!gt.ok()) return Fail(gt.status());
     auto est = ccmd::ReadTumTrajectory(est_traj);
     if (!est.ok()) return Fail(est.status());
-    auto ate = ccmd::AlignMap(*gt, *est, *rec, alignment_arm);
+    const double seen_from = ccmd::MapViewingDistance(*rec, *est);
+    const double arm = alignment_arm > 0 ? alignment_arm : seen_from;
+    auto ate = ccmd::AlignMap(*gt, *est, *rec, arm);
     if (!ate.ok()) return Fail(ate.status());
     std::printf(
         "aligned the reconstruction with the trajectory's poses, arms %.2f m (the map seen from "
         "%.2f m; ATE rmse %.4f m)\n",
-        alignment_arm > 0 ? alignment_arm : ccmd::MapViewingDistance(*rec, *est),
-        ccmd::MapViewingDistance(*rec, *est), ate->error.rmse);
+        arm, seen_from, ate->error.rmse);
     for (auto& p : rec->points) p = (ate->alignment * p.cast<double>()).cast<float>();
   }
   // A mesh (e.g. ICL-NUIM's living room model) is its surface, not its vertices, as

@@ -32,8 +32,8 @@ struct AteOptions {
   double pose_alignment_below_spread_m = 0;
   // How far from each centre those points lie (metres): the longer, the more the poses'
   // orientations count against their centres. A map is aligned with the distance at which its
-  // keyframes see it (MapAlignmentArm), so that the fit weighs a pose's error by how far it
-  // moves the points that pose put in the map.
+  // keyframes see it (AlignMap, MapViewingDistance), so that the fit weighs a pose's error by how
+  // far it moves the points that pose put in the map.
   double pose_alignment_arm_m = 0.1;
 
   Status Validate() const;
