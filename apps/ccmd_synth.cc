@@ -61,11 +61,17 @@ int main(int argc, char** argv) {
                  "centred on the frame's time, at most a frame interval; depth stays sharp)")
       ->check(CLI::NonNegativeNumber)
       ->capture_default_str();
+  double depth_lag_ms = 0;
+  app.add_option("--depth-lag", depth_lag_ms,
+                 "Depth taken this many ms after the colour image, as by a sensor whose streams "
+                 "are not synchronised (TUM RGB-D: 10-15 ms); under half a frame interval")
+      ->capture_default_str();
   app.add_option("--threads", options.threads, "Render threads (0 = all cores)")
       ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   if (no_noise || options.noise_scale == 0.0) options.noise = false;
   options.exposure_s = exposure_ms * 1e-3;
+  options.depth_lag_s = depth_lag_ms * 1e-3;
   if (!config.empty()) {
     for (const char* fixed : {"--width", "--height", "--fps"}) {
       if (app.count(fixed) > 0) {

@@ -69,6 +69,10 @@ Status SyntheticSequenceOptions::Validate() const {
   if (!(exposure_s >= 0 && exposure_s <= 1.0 / (camera ? camera->fps : fps))) {
     return InvalidArgument("exposure must be between 0 and one frame interval");
   }
+  // (half an interval or more and depth.txt would pair each depth with the next colour image)
+  if (!(std::fabs(depth_lag_s) < 0.5 / (camera ? camera->fps : fps))) {
+    return InvalidArgument("depth lag must be less than half a frame interval");
+  }
   CCMD_RETURN_IF_ERROR(room.Validate().WithContext("room"));
   return path.Validate().WithContext("path");
 }
@@ -94,6 +98,7 @@ void SyntheticSequenceOptions::Describe(OptionsWriter* out) const {
   out->Add("noise_scale", noise_scale);
   out->Add("surface_spacing", surface_spacing);
   out->Add("exposure_s", exposure_s);
+  out->Add("depth_lag_s", depth_lag_s);
   out->Add("threads", threads);
   out->Nested("room", room);
   out->Nested("path", path);
@@ -171,6 +176,7 @@ std::string DescribeOptions(const SyntheticSequenceOptions& o) {
     << " x " << o.room.size_y << " x " << o.room.height << "\nloop_period_s "
     << o.path.loop_period_s << "\n";
   if (o.exposure_s > 0) s << "exposure_s " << o.exposure_s << "\n";
+  if (o.depth_lag_s != 0) s << "depth_lag_s " << o.depth_lag_s << "\n";
   if (o.camera) s << "camera " << o.camera->ToString() << "\n";
   if (o.depth_camera) {
     const Eigen::Vector3d t = o.depth_camera->T_color_depth.translation();
@@ -216,9 +222,13 @@ RecordedFrame RenderRecordedFrame(const SyntheticScene& scene,
   RecordedFrame out;
   out.colour = camera.rgb ? bgr : SwapRedBlue(bgr);
   cv::Mat depth_mm = frame.depth_mm;
+  const Pose T_world_cam_at_depth =
+      options.depth_lag_s != 0 ? LoopPathPose(t + options.depth_lag_s, options.path) : T_world_cam;
   if (options.depth_camera) {
-    const Pose T_world_depth = T_world_cam * options.depth_camera->T_color_depth;
+    const Pose T_world_depth = T_world_cam_at_depth * options.depth_camera->T_color_depth;
     depth_mm = RenderFrame(scene, options.depth_camera->depth, T_world_depth, render).depth_mm;
+  } else if (options.depth_lag_s != 0) {
+    depth_mm = RenderFrame(scene, camera, T_world_cam_at_depth, render).depth_mm;
   }
   depth_mm.convertTo(out.depth, CV_16U, camera.depth_map_factor / 1000.0);
   return out;
@@ -260,10 +270,12 @@ StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
       while (!render_seconds.compare_exchange_weak(expected, expected + watch.ElapsedSeconds())) {
       }
       const std::string name = FormatTimestamp(path[i].timestamp) + ".png";
+      const std::string depth_name =
+          FormatTimestamp(path[i].timestamp + options.depth_lag_s) + ".png";
       bool ok = false;
       try {
         ok = cv::imwrite(JoinPath(folder, "rgb/" + name), frame.colour) &&
-             cv::imwrite(JoinPath(folder, "depth/" + name), frame.depth);
+             cv::imwrite(JoinPath(folder, "depth/" + depth_name), frame.depth);
       } catch (const cv::Exception&) {
         ok = false;
       }
@@ -289,8 +301,9 @@ StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
   std::string depth_list = "# depth maps\n# timestamp filename\n";
   for (const StampedPose& p : path) {
     const std::string stamp = FormatTimestamp(p.timestamp);
+    const std::string depth_stamp = FormatTimestamp(p.timestamp + options.depth_lag_s);
     rgb_list += stamp + " rgb/" + stamp + ".png\n";
-    depth_list += stamp + " depth/" + stamp + ".png\n";
+    depth_list += depth_stamp + " depth/" + depth_stamp + ".png\n";
   }
   CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "rgb.txt"), rgb_list));
   CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "depth.txt"), depth_list));

@@ -77,6 +77,11 @@ struct SyntheticSequenceOptions {
   // centred on the frame's time, at most a frame interval); depth and the ground truth are
   // those of the frame's time. 0: sharp images.
   double exposure_s = 0;
+  // Depth taken this long after the colour image (seconds, under half a frame interval), as
+  // by a sensor whose two streams are not synchronised (a Kinect v1: TUM RGB-D's depth comes
+  // 10-15 ms after its colour): the depth image is the view at that time, depth.txt gives that
+  // time, and the ground truth stays the colour image's.
+  double depth_lag_s = 0;
   int threads = 0;        // 0: all cores
   RoomSceneOptions room;  // room.seed is overridden by seed
   LoopPathOptions path;

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <limits>
+#include <map>
 #include <string>
 #include <tuple>
 #include <vector>
@@ -250,6 +251,53 @@ TEST(SequenceTest, AnExposureBlursColourByTheMotionOnly) {
   ASSERT_FALSE(HasFatalFailure());
   ASSERT_EQ(s.blurred.size(), 1u);
   EXPECT_LE(cv::norm(s.sharp[0].bgr, s.blurred[0].bgr, cv::NORM_INF), 1);
+}
+
+// A sensor whose depth comes after its colour (a Kinect v1's, 10-15 ms): the depth image is the
+// view at the later time and depth.txt gives that time, while colour and ground truth stay the
+// frame's. A third of a frame interval late, frame i's depth is frame 3i+1's of the same path at
+// three times the frame rate.
+TEST(SequenceTest, ALateDepthIsTheViewAtItsOwnTime) {
+  testing::TempDir dir;
+  SyntheticSequenceOptions on_time = SmallOptions();
+  on_time.frames = 3;
+  on_time.noise = false;
+  on_time.path.loop_period_s = 5;  // 72 degrees a second: 0.8 degrees in 1/90 s
+  SyntheticSequenceOptions late = on_time;
+  late.depth_lag_s = 1.0 / 90;
+  SyntheticSequenceOptions tripled = on_time;
+  tripled.frames = 9;
+  tripled.fps = 90;
+  std::map<std::string, std::vector<RgbdFrame>> frames;
+  for (const auto& [name, options] :
+       {std::pair{"on_time", on_time}, std::pair{"late", late}, std::pair{"tripled", tripled}}) {
+    ASSERT_TRUE(WriteSyntheticSequence(dir.File(name), options).ok()) << name;
+    auto sequence = TumSequence::Open(dir.File(name), std::nullopt);
+    ASSERT_TRUE(sequence.ok()) << sequence.status().ToString();
+    for (std::size_t i = 0; i < sequence->size(); ++i) {
+      auto frame = sequence->LoadFrame(i);
+      ASSERT_TRUE(frame.ok()) << frame.status().ToString();
+      if (std::string(name) == "late") {
+        EXPECT_NEAR(sequence->frame(i).depth_timestamp - sequence->frame(i).timestamp, 1.0 / 90,
+                    1e-6);
+        EXPECT_NEAR(frame->depth_time_offset, 1.0 / 90, 1e-6);
+      } else {
+        EXPECT_EQ(frame->depth_time_offset, 0);
+      }
+      frames[name].push_back(*frame);
+    }
+  }
+  ASSERT_EQ(frames["late"].size(), 3u);
+  for (std::size_t i = 0; i < 3; ++i) {
+    const RgbdFrame &a = frames["on_time"][i], &b = frames["late"][i];
+    EXPECT_EQ(cv::norm(a.bgr, b.bgr, cv::NORM_INF), 0) << i;
+    // (the same times summed in another order: a millimetre's rounding may differ)
+    EXPECT_LE(cv::norm(b.depth_mm, frames["tripled"][3 * i + 1].depth_mm, cv::NORM_INF), 1) << i;
+    EXPECT_GT(cv::norm(a.depth_mm, b.depth_mm, cv::NORM_L1) / a.depth_mm.total(), 5.0) << i;
+  }
+  SyntheticSequenceOptions too_late = SmallOptions();
+  too_late.depth_lag_s = 1.0 / 60;  // half a frame at 30 Hz: which colour image is its?
+  EXPECT_FALSE(too_late.Validate().ok());
 }
 
 TEST(SequenceTest, BadOptionsAreRefused) {
