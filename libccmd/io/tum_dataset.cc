@@ -324,6 +324,7 @@ StatusOr<RgbdFrame> TumSequence::LoadFrame(std::size_t i) const {
   RgbdFrame frame;
   frame.index = static_cast<int>(i);
   frame.timestamp = info.timestamp;
+  frame.depth_time_offset = info.depth_timestamp - info.timestamp;
   try {
     frame.bgr = cv::imread(info.rgb_path, cv::IMREAD_COLOR);
     const cv::Mat raw_depth = cv::imread(info.depth_path, cv::IMREAD_UNCHANGED);

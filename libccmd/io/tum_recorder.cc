@@ -108,7 +108,9 @@ Status TumRecorder::Check(const RgbdFrame& frame) {
   if (frame.bgr.cols < frame.depth_mm.cols || frame.bgr.rows < frame.depth_mm.rows) {
     return InvalidArgument("recorder: colour smaller than depth");
   }
-  if (!std::isfinite(frame.timestamp)) return InvalidArgument("recorder: timestamp not finite");
+  if (!std::isfinite(frame.timestamp) || !std::isfinite(frame.depth_time_offset)) {
+    return InvalidArgument("recorder: timestamp not finite");
+  }
   const std::string name = TumTimestampName(frame.timestamp);
   if (have_last_ && (frame.timestamp <= last_timestamp_ || name == last_name_)) {
     return InvalidArgument("recorder: timestamps must increase (" + name + " after " + last_name_ +
@@ -122,8 +124,11 @@ Status TumRecorder::Check(const RgbdFrame& frame) {
 
 Status TumRecorder::WriteNow(const RgbdFrame& frame) {
   const std::string name = TumTimestampName(frame.timestamp);
+  // Depth under its own time, as TUM RGB-D lists it: a sensor whose streams are not
+  // synchronised plays back with the same offset.
+  const std::string depth_name = TumTimestampName(frame.timestamp + frame.depth_time_offset);
   const std::string rgb_path = "rgb/" + name + ".png";
-  const std::string depth_path = "depth/" + name + ".png";
+  const std::string depth_path = "depth/" + depth_name + ".png";
 
   // Millimetres to file units; a depth too far for 16 bits is recorded as "no depth"
   // rather than saturated to a wrong distance.
@@ -163,7 +168,7 @@ Status TumRecorder::WriteNow(const RgbdFrame& frame) {
   // Listed only once both images are complete.
   std::lock_guard<std::mutex> lock(list_mutex_);
   if (std::fprintf(rgb_list_, "%s %s\n", name.c_str(), rgb_path.c_str()) < 0 ||
-      std::fprintf(depth_list_, "%s %s\n", name.c_str(), depth_path.c_str()) < 0 ||
+      std::fprintf(depth_list_, "%s %s\n", depth_name.c_str(), depth_path.c_str()) < 0 ||
       std::fflush(rgb_list_) != 0 || std::fflush(depth_list_) != 0) {
     return IoError("cannot append to the lists in " + folder_ + ": " + std::strerror(errno));
   }
@@ -198,6 +203,7 @@ Status TumRecorder::Write(const RgbdFrame& frame) {
   RgbdFrame copy;
   copy.index = frame.index;
   copy.timestamp = frame.timestamp;
+  copy.depth_time_offset = frame.depth_time_offset;
   copy.bgr = frame.bgr.clone();
   copy.depth_mm = frame.depth_mm.clone();
   if (options_.drop_when_full) {

@@ -161,6 +161,94 @@ cv::Mat RegisterDepthToColor(const cv::Mat& depth_mm, const PinholeCamera& depth
   return out;
 }
 
+namespace {
+
+// The input's depth (metres) at (x, y) of a `cols` x `rows` image whose rows are `step`
+// values apart: bilinear where the four pixels around have depths within 1 cm + 3 % of each
+// other (one surface: the keypoints' continuity test), else the nearest pixel's; 0 outside
+// the image (beyond the outer pixels' half) or where the chosen pixel has none.
+inline float SampleDepth(const std::uint16_t* depth, std::size_t step, int cols, int rows, float x,
+                         float y) {
+  if (!(x >= -0.5f && y >= -0.5f && x < cols - 0.5f && y < rows - 0.5f)) return 0;
+  x = std::min(std::max(x, 0.0f), cols - 1.0f);
+  y = std::min(std::max(y, 0.0f), rows - 1.0f);
+  const int x0 = std::min(static_cast<int>(x), cols - 2);
+  const int y0 = std::min(static_cast<int>(y), rows - 2);
+  const float ax = x - x0, ay = y - y0;
+  const std::uint16_t* r0 = depth + y0 * step + x0;
+  const std::uint16_t* r1 = r0 + step;
+  const int d00 = r0[0], d10 = r0[1], d01 = r1[0], d11 = r1[1];
+  const int lo = std::min(std::min(d00, d10), std::min(d01, d11));
+  const int hi = std::max(std::max(d00, d10), std::max(d01, d11));
+  if (lo > 0 && hi - lo <= 10 + 0.03f * lo) {
+    const float top = d00 + ax * (d10 - d00), bottom = d01 + ax * (d11 - d01);
+    return 1e-3f * (top + ay * (bottom - top));
+  }
+  return 1e-3f * (ay < 0.5f ? (ax < 0.5f ? d00 : d10) : (ax < 0.5f ? d01 : d11));
+}
+
+}  // namespace
+
+cv::Mat DepthFromNearbyPose(const cv::Mat& depth_mm, const PinholeCamera& camera,
+                            const Pose& T_in_out) {
+  cv::Mat out(depth_mm.size(), CV_16UC1, cv::Scalar(0));
+  const Eigen::Matrix3d R = T_in_out.linear();
+  const Eigen::Vector3f t = T_in_out.translation().cast<float>();
+  const float fx = static_cast<float>(camera.fx), fy = static_cast<float>(camera.fy);
+  const float cx = static_cast<float>(camera.cx), cy = static_cast<float>(camera.cy);
+  // An input pixel (x, y) at depth z_in is, in the output frame, at depth
+  // z_in * (bx * x + by * y + bc) + bt: the third row of T_in_out^-1 = (R^T, -R^T t) applied
+  // to its back-projection.
+  const Eigen::Vector3d col = R.col(2);
+  const float bx = static_cast<float>(col.x() / camera.fx);
+  const float by = static_cast<float>(col.y() / camera.fy);
+  const float bc = static_cast<float>(col.z() - col.x() * camera.cx / camera.fx -
+                                      col.y() * camera.cy / camera.fy);
+  const float bt = -col.cast<float>().dot(t);
+  // R times an output pixel's ray (u, v, 1) in normalised coordinates: r0 + u * ru per row.
+  const Eigen::Vector3f ru = (R.col(0) / camera.fx).cast<float>();
+  const auto* data = depth_mm.ptr<std::uint16_t>(0);
+  const std::size_t step_values = depth_mm.step1();
+  const int cols = depth_mm.cols, rows = depth_mm.rows;
+  for (int v = 0; v < rows; ++v) {
+    const std::uint16_t* in = depth_mm.ptr<std::uint16_t>(v);
+    std::uint16_t* target = out.ptr<std::uint16_t>(v);
+    const Eigen::Vector3f r0 =
+        (R * Eigen::Vector3d(-camera.cx / camera.fx, (v - camera.cy) / camera.fy, 1.0))
+            .cast<float>();
+    for (int u = 0; u < cols; ++u) {
+      if (in[u] == 0) continue;
+      const float rx = r0.x() + u * ru.x(), ry = r0.y() + u * ru.y(), rz = r0.z() + u * ru.z();
+      // The first guess is the depth measured at the same pixel; a second step only where the
+      // point found is far from it (a depth edge crossed), since the guess enters only through
+      // the few millimetres of the camera's translation.
+      float z = in[u] * 1e-3f;
+      for (int pass = 0; pass < 2; ++pass) {
+        const float Yz = z * rz + t.z();
+        if (!(Yz > 1e-3f)) {
+          z = 0;
+          break;
+        }
+        const float inv = 1.0f / Yz;
+        const float x = fx * (z * rx + t.x()) * inv + cx;
+        const float y = fy * (z * ry + t.y()) * inv + cy;
+        const float z_in = SampleDepth(data, step_values, cols, rows, x, y);
+        if (z_in <= 0) {
+          z = 0;
+          break;
+        }
+        const float z_out = z_in * (bx * x + by * y + bc) + bt;
+        const bool settled = std::fabs(z_out - z) < 0.02f * z;
+        z = z_out;
+        if (settled) break;
+      }
+      const float mm = z * 1e3f;
+      if (mm >= 0.5f && mm < 65535.5f) target[u] = static_cast<std::uint16_t>(mm + 0.5f);
+    }
+  }
+  return out;
+}
+
 double EdgeAlignmentScore(const cv::Mat& bgr, const cv::Mat& depth_mm) {
   if (bgr.empty() || bgr.size() != depth_mm.size() || depth_mm.type() != CV_16UC1) return 0;
   cv::Mat gray, gx, gy, magnitude;

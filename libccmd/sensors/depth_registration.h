@@ -31,6 +31,18 @@ cv::Mat RegisterDepthToColor(const cv::Mat& depth_mm, const PinholeCamera& depth
                              const PinholeCamera& color_camera, const Pose& T_color_depth,
                              int max_footprint = 8);
 
+// Depth as `camera` would have measured it from a nearby pose: `T_in_out` takes points from
+// the wanted camera's frame into the frame of the one that measured `depth_mm` (uint16 mm),
+// both with the intrinsics of `camera` (distortion not applied: for the few pixels of a
+// camera's motion over a few milliseconds it changes the shift by hundredths of a pixel).
+// Each output pixel finds where its point lies in the input, from its own depth (two
+// fixed-point steps), takes the depth there bilinearly where the four pixels around are one
+// surface and the nearest one elsewhere, and gives that point's depth in the wanted frame.
+// Unlike the forward projection above, a sub-pixel shift is kept, no holes open where the
+// surface stretches and noise is not biased towards the nearer of overlapping pixels.
+cv::Mat DepthFromNearbyPose(const cv::Mat& depth_mm, const PinholeCamera& camera,
+                            const Pose& T_in_out);
+
 // RegisterDepthToColor with `calibration`, once the depth image is checked to have the size
 // the calibration describes (a recording or camera mode that does not match is an error).
 StatusOr<cv::Mat> RegisterDepth(const cv::Mat& depth_mm, const DepthToColorCalibration& calibration,

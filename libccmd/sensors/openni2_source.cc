@@ -463,7 +463,8 @@ Status OpenNI2Source::Read(RgbdFrame* frame) {
       continue;
     }
     frame->index = next_index_++;
-    frame->timestamp = depth_time;
+    frame->timestamp = color_time;
+    frame->depth_time_offset = depth_time - color_time;
     frame->bgr = ResizeColorToDepth(bgr, depth_mm.size());
     frame->depth_mm = depth_mm;
     ++stats_.frames;

@@ -322,7 +322,7 @@ Status V4l2Source::Read(RgbdFrame* frame) {
     cv::Mat bgr, depth_mm;
     const Status color_status = ConvertColor(color_.buffer, &bgr);
     const Status depth_status = ConvertDepth(depth_.buffer, &depth_mm);
-    const double timestamp = depth_.buffer.timestamp;
+    const double color_time = color_.buffer.timestamp, depth_time = depth_.buffer.timestamp;
     CCMD_RETURN_IF_ERROR(Release(&color_));
     CCMD_RETURN_IF_ERROR(Release(&depth_));
     if (!color_status.ok() || !depth_status.ok()) {
@@ -333,7 +333,8 @@ Status V4l2Source::Read(RgbdFrame* frame) {
       continue;
     }
     frame->index = next_index_++;
-    frame->timestamp = timestamp;
+    frame->timestamp = color_time;
+    frame->depth_time_offset = depth_time - color_time;
     frame->bgr = ResizeColorToDepth(bgr, depth_mm.size());
     frame->depth_mm = registration_ ? RegisterDepthToColor(depth_mm, registration_->depth, camera_,
                                                            registration_->T_color_depth)

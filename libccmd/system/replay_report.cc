@@ -80,9 +80,18 @@ StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset,
       continue;
     }
     RgbdFrame frame = std::move(loaded).value();
+    // The camera where the depth image was taken: a sensor whose streams are not synchronised
+    // (TUM RGB-D's depth comes 10-15 ms after its colour) took it from the ground truth's pose
+    // at the depth's own time.
+    std::optional<Pose> T_world_gt = dataset.frame(i).T_world_cam_gt;
+    if (frame.depth_time_offset != 0) {
+      T_world_gt = InterpolateTrajectory(dataset.groundtruth(), dataset.frame(i).depth_timestamp,
+                                         TumOptions().groundtruth_max_gap);
+      if (!T_world_gt) continue;
+    }
     DenseKeyframe kf;
     kf.id = {AgentId(1), KeyframeId(static_cast<std::uint32_t>(i))};
-    kf.T_world_cam = *dataset.frame(i).T_world_cam_gt * options.T_color_trajectory.inverse();
+    kf.T_world_cam = *T_world_gt * options.T_color_trajectory.inverse();
     cv::Mat depth = frame.depth_mm, bgr = frame.bgr;
     if (options.registration) {
       CCMD_ASSIGN_OR_RETURN(depth, RegisterDepth(depth, *options.registration, dataset.camera()));

@@ -39,6 +39,9 @@ StatusOr<TrackingOptions> ReadTrackingOptions(const ConfigFile& c, TrackingOptio
                         c.GetDouble("Tracking.frameDepthWeight", o.frame_depth_weight));
   CCMD_ASSIGN_OR_RETURN(o.depth_bridge_seconds,
                         c.GetDouble("Tracking.depthBridgeSeconds", o.depth_bridge_seconds));
+  CCMD_ASSIGN_OR_RETURN(const int lag,
+                        c.GetInt("Tracking.depthLagCompensation", o.compensate_depth_lag));
+  o.compensate_depth_lag = lag != 0;
   CCMD_ASSIGN_OR_RETURN(o.triangulation_neighbours,
                         c.GetInt("Tracking.triangulationNeighbours", o.triangulation_neighbours));
   CCMD_ASSIGN_OR_RETURN(o.max_keyframes, c.GetInt("Tracking.maxKeyframes", o.max_keyframes));

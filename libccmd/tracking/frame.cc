@@ -4,6 +4,8 @@
 #include <cmath>
 #include <opencv2/imgproc.hpp>
 
+#include "libccmd/sensors/depth_registration.h"
+
 namespace ccmd {
 
 int TrackingFrame::TrackedPoints() const {
@@ -57,10 +59,37 @@ double DepthAt(const cv::Mat& depth_mm, const cv::Point2f& pt) {
          fy * ((1 - fx) * at(x0, y0 + 1) + fx * at(x0 + 1, y0 + 1));
 }
 
+// Where the point that colour pixel `pt` sees lies in a depth image taken from a nearby pose
+// (`T_depth_colour` takes the colour image's camera frame to the depth image's): projected
+// from the depth measured at the pixel itself (the translation of a few milliseconds makes
+// the depth matter little), again from the depth found there where the two differ (a depth
+// edge), and from the rotation alone where there is no depth. Lens distortion is left out: it
+// changes a shift of a few pixels by hundredths of a pixel.
+cv::Point2f WhereDepthSaw(const cv::Mat& depth_mm, const cv::Point2f& pt,
+                          const PinholeCamera& camera, const Pose& T_depth_colour) {
+  const Eigen::Vector3d ray((pt.x - camera.cx) / camera.fx, (pt.y - camera.cy) / camera.fy, 1.0);
+  const auto project = [&](double z) {
+    const Eigen::Vector3d Y = z > 0 ? T_depth_colour * (z * ray) : T_depth_colour.linear() * ray;
+    return cv::Point2f(static_cast<float>(camera.fx * Y.x() / Y.z() + camera.cx),
+                       static_cast<float>(camera.fy * Y.y() / Y.z() + camera.cy));
+  };
+  const auto depth_near = [&](const cv::Point2f& p) {
+    const int x = cvRound(p.x), y = cvRound(p.y);
+    if (x < 0 || y < 0 || x >= depth_mm.cols || y >= depth_mm.rows) return 0.0;
+    return 1e-3 * depth_mm.at<std::uint16_t>(y, x);
+  };
+  const double z = depth_near(pt);
+  const cv::Point2f at = project(z);
+  const double z_there = depth_near(at);
+  if (z_there > 0 && std::fabs(z_there - z) > 0.02 * z_there) return project(z_there);
+  return at;
+}
+
 }  // namespace
 
 FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, const OrbExtractor& orb,
-                              const PinholeCamera& camera, const TrackingOptions& options) {
+                              const PinholeCamera& camera, const TrackingOptions& options,
+                              const Pose* T_colour_depth) {
   OrbFeatures orb_features = orb.Extract(gray);
   FrameFeatures f;
   f.keypoints = std::move(orb_features.keypoints);
@@ -70,8 +99,14 @@ FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, cons
   f.depth_sigma.assign(f.keypoints.size(), 0.0f);
   f.u_right.assign(f.keypoints.size(), -1.0f);
   constexpr int kRadius = 2;
+  const Pose T_depth_colour = T_colour_depth ? T_colour_depth->inverse() : Pose::Identity();
   for (std::size_t i = 0; i < f.keypoints.size(); ++i) {
-    const int x = cvRound(f.keypoints[i].pt.x), y = cvRound(f.keypoints[i].pt.y);
+    // Where the keypoint's point lies in the depth image (its own pixel, unless the depth was
+    // taken apart from the colour).
+    const cv::Point2f at = T_colour_depth
+                               ? WhereDepthSaw(depth_mm, f.keypoints[i].pt, camera, T_depth_colour)
+                               : f.keypoints[i].pt;
+    const int x = cvRound(at.x), y = cvRound(at.y);
     if (x < kRadius || y < kRadius || x >= depth_mm.cols - kRadius || y >= depth_mm.rows - kRadius)
       continue;
     const double d = depth_mm.at<std::uint16_t>(y, x) * 1e-3;
@@ -93,7 +128,12 @@ FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, cons
     const DepthNoise& noise = options.depth_noise;
     const double span = std::max(0.01 + 0.03 * d, 6.0 * noise.Sigma(d));
     if (lo == 0 || (hi - lo) * 1e-3 > span) continue;
-    f.depth[i] = static_cast<float>(DepthAt(depth_mm, f.keypoints[i].pt));
+    f.depth[i] = static_cast<float>(DepthAt(depth_mm, at));
+    if (T_colour_depth) {
+      // That point's depth in the camera at the colour image's time.
+      const Eigen::Vector3d ray((at.x - camera.cx) / camera.fx, (at.y - camera.cy) / camera.fy, 1);
+      f.depth[i] = static_cast<float>((*T_colour_depth * (f.depth[i] * ray)).z());
+    }
     const double pixel_sigma = noise.keypoint_offset * orb.scale()[f.keypoints[i].octave];
     f.depth_sigma[i] =
         static_cast<float>(KeypointDepthSigma(depth_mm, x, y, d, pixel_sigma, noise));
@@ -112,14 +152,30 @@ FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, cons
   return f;
 }
 
+const cv::Mat& TrackingFrame::DepthAtColourTime(const PinholeCamera& camera) {
+  if (!T_colour_depth || depth_mm.empty()) return depth_mm;
+  if (depth_at_colour_time_.empty()) {
+    depth_at_colour_time_ = DepthFromNearbyPose(depth_mm, camera, T_colour_depth->inverse());
+  }
+  return depth_at_colour_time_;
+}
+
+void TrackingFrame::HandDepthTo(Keyframe* keyframe) const {
+  const bool moved = !depth_at_colour_time_.empty();
+  keyframe->depth_mm = moved ? depth_at_colour_time_ : depth_mm;
+  keyframe->T_colour_depth = moved ? std::nullopt : T_colour_depth;
+}
+
 std::unique_ptr<TrackingFrame> MakeFrame(const RgbdFrame& input, const OrbExtractor& orb,
                                          const PinholeCamera& camera,
-                                         const TrackingOptions& options) {
+                                         const TrackingOptions& options,
+                                         const std::optional<Pose>& T_colour_depth) {
   auto frame = std::make_unique<TrackingFrame>();
   frame->index = input.index;
   frame->timestamp = input.timestamp;
   frame->bgr = input.bgr;
   frame->depth_mm = input.depth_mm;
+  frame->T_colour_depth = T_colour_depth;
   cv::Mat gray;
   if (input.bgr.size() != input.depth_mm.size()) {
     cv::Mat resized;
@@ -129,7 +185,8 @@ std::unique_ptr<TrackingFrame> MakeFrame(const RgbdFrame& input, const OrbExtrac
   } else {
     cv::cvtColor(input.bgr, gray, cv::COLOR_BGR2GRAY);
   }
-  frame->features = ComputeFeatures(gray, input.depth_mm, orb, camera, options);
+  frame->features = ComputeFeatures(gray, input.depth_mm, orb, camera, options,
+                                    T_colour_depth ? &*T_colour_depth : nullptr);
   frame->grid = FeatureGrid(frame->features.keypoints, camera.width, camera.height);
   frame->points.assign(frame->features.keypoints.size(), nullptr);
   frame->outlier.assign(frame->features.keypoints.size(), false);

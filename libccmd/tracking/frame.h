@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <memory>
+#include <optional>
 #include <vector>
 
 #include "libccmd/features/orb_extractor.h"
@@ -26,7 +27,10 @@ struct TrackingFrame {
   Pose T_cam_world = Pose::Identity();
   bool has_pose = false;
   KeyframePtr reference;
-  cv::Mat bgr, depth_mm;  // kept so that the frame can become a keyframe
+  cv::Mat bgr, depth_mm;  // kept so that the frame can become a keyframe; depth as taken
+  // The pose of the camera when the depth image was taken, in its frame at the colour image's
+  // time (RgbdFrame::depth_time_offset, moved by the motion model); nullopt: taken together.
+  std::optional<Pose> T_colour_depth;
 
   TrackingFrame() = default;
   TrackingFrame(const TrackingFrame&) = delete;
@@ -40,11 +44,22 @@ struct TrackingFrame {
     T_cam_world = T_cam_world_new;
     has_pose = true;
   }
+  // The depth image as the camera would have taken it with the colour image: depth_mm, or
+  // depth_mm moved by T_colour_depth (DepthFromNearbyPose, about 10 ms for 640x480: made
+  // once, when asked, for a keyframe or a frame whose depth must be aligned).
+  const cv::Mat& DepthAtColourTime(const PinholeCamera& camera);
+  // Gives a keyframe made from this frame its depth: at the colour image's time when it has
+  // been moved already, else as taken with T_colour_depth (local mapping moves it, off the
+  // tracking thread).
+  void HandDepthTo(Keyframe* keyframe) const;
   // Forgets every match (and outlier mark) a search left, before a search from scratch.
   void ClearMatches() {
     std::fill(points.begin(), points.end(), nullptr);
     std::fill(outlier.begin(), outlier.end(), false);
   }
+
+ private:
+  cv::Mat depth_at_colour_time_;
 };
 
 // Detects features in the colour image and attaches depth (metres) from the depth image at
@@ -53,13 +68,18 @@ struct TrackingFrame {
 // combined with the depth change across the keypoint's own position uncertainty
 // (KeypointDepthSigma). With options.subpixel_keypoints, finest-octave keypoints are first
 // moved to the sub-pixel corner position.
+// `T_colour_depth`: the depth image was taken from that pose (TrackingFrame::T_colour_depth);
+// each keypoint then takes the depth where its point lies in the depth image, moved to the
+// colour image's time.
 std::unique_ptr<TrackingFrame> MakeFrame(const RgbdFrame& input, const OrbExtractor& orb,
                                          const PinholeCamera& camera,
-                                         const TrackingOptions& options);
+                                         const TrackingOptions& options,
+                                         const std::optional<Pose>& T_colour_depth = std::nullopt);
 
 // The frame's features with depth lookups, for keyframes created directly (tests).
 FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, const OrbExtractor& orb,
-                              const PinholeCamera& camera, const TrackingOptions& options);
+                              const PinholeCamera& camera, const TrackingOptions& options,
+                              const Pose* T_colour_depth = nullptr);
 
 // Standard deviation (metres) of the depth `z` read at pixel (x, y) for a keypoint whose
 // position is uncertain by `pixel_sigma` pixels: the sensor's noise, and the depth slope

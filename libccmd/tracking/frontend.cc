@@ -66,6 +66,7 @@ void TrackingOptions::Describe(OptionsWriter* out) const {
   out->Add("depth_alignment_weight", depth_alignment_weight);
   out->Add("frame_depth_weight", frame_depth_weight);
   out->Add("depth_bridge_seconds", depth_bridge_seconds);
+  out->Add("compensate_depth_lag", compensate_depth_lag);
   out->Add("triangulation_neighbours", triangulation_neighbours);
   out->Add("max_keyframes", max_keyframes);
   out->Add("cull_redundant_keyframes", cull_redundant_keyframes);

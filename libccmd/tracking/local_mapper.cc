@@ -6,6 +6,7 @@
 #include <unordered_set>
 
 #include "libccmd/optim/bundle_adjuster.h"
+#include "libccmd/sensors/depth_registration.h"
 #include "libccmd/tracking/depth_alignment.h"
 #include "libccmd/tracking/local_ba.h"
 #include "libccmd/tracking/matching.h"
@@ -110,6 +111,7 @@ void LocalMapper::Process(const KeyframePtr& keyframe_ptr) {
   const Stopwatch watch;
   const ThreadCpuStopwatch cpu;
   Keyframe* keyframe = keyframe_ptr.get();
+  MoveDepthToColourTime(keyframe);
   {
     const auto lock = map_->Lock();
     if (keyframe->bad()) return;
@@ -292,6 +294,21 @@ void LocalMapper::FuseWithNeighbours(Keyframe* keyframe) {
   map_->UpdateConnections(keyframe);
   std::lock_guard<std::mutex> lock(stats_mutex_);
   stats_.fused_points += fused;
+}
+
+void LocalMapper::MoveDepthToColourTime(Keyframe* keyframe) {
+  cv::Mat depth;
+  Pose T_colour_depth;
+  {
+    const auto lock = map_->Lock();
+    if (!keyframe->T_colour_depth || keyframe->depth_mm.empty()) return;
+    depth = keyframe->depth_mm;
+    T_colour_depth = *keyframe->T_colour_depth;
+  }
+  cv::Mat moved = DepthFromNearbyPose(depth, camera_, T_colour_depth.inverse());
+  const auto lock = map_->Lock();
+  keyframe->depth_mm = std::move(moved);
+  keyframe->T_colour_depth.reset();
 }
 
 void LocalMapper::AlignWithNeighbours(Keyframe* keyframe) {

@@ -90,6 +90,9 @@ class LocalMapper : public MappingQueue {
   // CreateNewMapPoints).
   void TriangulateWithNeighbours(Keyframe* keyframe);
   void FuseWithNeighbours(Keyframe* keyframe);
+  // A keyframe whose depth was taken apart from its colour (Keyframe::T_colour_depth): the
+  // depth moved to the colour image's time, before anything reads it.
+  void MoveDepthToColourTime(Keyframe* keyframe);
   // Aligns the keyframe's depth with its best covisible neighbours' (depth_edges_).
   void AlignWithNeighbours(Keyframe* keyframe);
   // Decides how much local BA the keyframe gets (waiting keyframes, CPU budget) and runs it.

@@ -133,6 +133,10 @@ class Keyframe {
 
   // Images kept until the keyframe has been handed to the link (then released).
   cv::Mat bgr, depth_mm;
+  // Set while depth_mm is still the depth image as taken apart from the colour image: the
+  // pose it was taken from (TrackingFrame::T_colour_depth). Local mapping first moves the
+  // depth to the keyframe's own time (LocalMapper::MoveDepthToColourTime) and clears it.
+  std::optional<Pose> T_colour_depth;
   // Reduced depth for dense alignment with later keyframes (kept while in the map).
   std::shared_ptr<const DepthModel> depth_model;
   // First keyframe of a map segment started after tracking was lost (Tracker::RestartDue):

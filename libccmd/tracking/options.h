@@ -77,6 +77,11 @@ struct TrackingOptions {
   // pose (Tracker::BridgeWithDepth), for at most this many seconds in a row (0: off); needs
   // the keyframes' depth models (depth alignment on). Then tracking counts as lost.
   double depth_bridge_seconds = 3.0;
+  // A depth image taken after (or before) its colour image (RgbdFrame::depth_time_offset) is
+  // moved to the colour image's time by the constant-velocity model's motion over the offset
+  // before anything reads it (the keypoints' depth, the depth alignments, the keyframes' dense
+  // depth); off, the depth is used as taken.
+  bool compensate_depth_lag = true;
   // Keypoints without a map point and without depth at one end are matched with this many
   // best covisible keyframes along epipolar lines and triangulated into new points (ORB-SLAM's
   // CreateNewMapPoints; 0: off). Off by default: it gains on exact depth and loses on

@@ -1,6 +1,7 @@
 #include "libccmd/tracking/tracker.h"
 
 #include <algorithm>
+#include <cmath>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/core/eigen.hpp>
 #include <unordered_map>
@@ -51,7 +52,7 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
   TrackResult result;
   Stopwatch watch;
   ThreadCpuStopwatch cpu;
-  current_ = MakeFrame(input, *orb_, camera_, options_);
+  current_ = MakeFrame(input, *orb_, camera_, options_, DepthCameraPose(input));
   result.extract_ms = watch.ElapsedMillis();
   result.extract_cpu_ms = cpu.ElapsedMillis();
   watch.Restart();
@@ -80,8 +81,10 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
       state_ = TrackingState::kOk;
       last_T_world_cam_ = current_->T_cam_world.inverse();
       last_tracked_timestamp_ = current_->timestamp;
-      if (last_ && last_->has_pose)
+      if (last_ && last_->has_pose) {
         velocity_ = current_->T_cam_world * last_->T_cam_world.inverse();
+        velocity_interval_ = current_->timestamp - last_->timestamp;
+      }
       result.depth_only = by_depth && matches_inliers_ == 0;
       const bool restarted = result.depth_only && RestartAtBridgedFrame();
       if (restarted) result.depth_only = false;
@@ -139,6 +142,23 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
   return result;
 }
 
+std::optional<Pose> Tracker::DepthCameraPose(const RgbdFrame& input) const {
+  const double offset = input.depth_time_offset;
+  if (!options_.compensate_depth_lag || offset == 0 || !std::isfinite(offset) ||
+      input.depth_mm.empty() || state_ != TrackingState::kOk || !velocity_ ||
+      !(velocity_interval_ > 0)) {
+    return std::nullopt;
+  }
+  // The camera's motion from the colour image's time to the depth image's: that fraction of
+  // the last interval's (rotation about the same axis, translation in proportion).
+  const double fraction = offset / velocity_interval_;
+  Pose T_depth_colour = Pose::Identity();
+  T_depth_colour.linear() =
+      RotationFromAngleAxis(fraction * AngleAxisFromRotation(velocity_->linear()));
+  T_depth_colour.translation() = fraction * velocity_->translation();
+  return T_depth_colour.inverse();
+}
+
 void Tracker::AddMapPoint(TrackingFrame* frame, Keyframe* keyframe, const Pose& T_world_cam,
                           int i) {
   const cv::Point2f& pt = frame->features.keypoints[i].pt;
@@ -181,7 +201,7 @@ bool Tracker::Initialize(TrackingFrame* frame, const Pose& T_world_cam, bool res
   keyframe->restart = restart;
   keyframe->reset = reset;
   keyframe->bgr = frame->bgr;
-  keyframe->depth_mm = frame->depth_mm;
+  frame->HandDepthTo(keyframe.get());
   segment_start_ = keyframe->id();
   last_T_world_cam_ = T_world_cam;
   last_tracked_timestamp_ = frame->timestamp;
@@ -436,8 +456,8 @@ std::optional<PosePrior> Tracker::FrameDepthPrior() const {
   if (!target) return std::nullopt;
   // Coarser than the keyframes' models (8x8 pixel blocks, every other one used: 1200 cells
   // for VGA) and fewer iterations: the features' pose is close, and this runs every frame.
-  const DepthModel model =
-      DepthModel::FromDepth(current_->depth_mm, camera_, 8, options_.min_depth, options_.max_depth);
+  const DepthModel model = DepthModel::FromDepth(current_->DepthAtColourTime(camera_), camera_, 8,
+                                                 options_.min_depth, options_.max_depth);
   DepthAlignmentOptions alignment;
   alignment.iterations = 6;
   const Pose T_kf_cam = target->T_cam_world() * current_->T_cam_world.inverse();
@@ -463,8 +483,8 @@ bool Tracker::BridgeWithDepth() {
   if (bridged_since_ && current_->timestamp - *bridged_since_ > options_.depth_bridge_seconds)
     return false;
   const Pose predicted = velocity_ ? *velocity_ * last_->T_cam_world : last_->T_cam_world;
-  DepthModel model =
-      DepthModel::FromDepth(current_->depth_mm, camera_, 4, options_.min_depth, options_.max_depth);
+  DepthModel model = DepthModel::FromDepth(current_->DepthAtColourTime(camera_), camera_, 4,
+                                           options_.min_depth, options_.max_depth);
   // Without features to back it, the alignment alone must hold: the surfaces it matched must
   // fix every direction of the pose, and fit as well as the sensor measures.
   auto place = [&](const DepthModel& target, const Pose& T_target_world) -> std::optional<Pose> {
@@ -498,7 +518,7 @@ bool Tracker::BridgeWithDepth() {
   if (!T_cam_world && !last_->depth_mm.empty()) {
     if (!bridge_model_) {
       bridge_model_ = std::make_shared<const DepthModel>(DepthModel::FromDepth(
-          last_->depth_mm, camera_, 4, options_.min_depth, options_.max_depth));
+          last_->DepthAtColourTime(camera_), camera_, 4, options_.min_depth, options_.max_depth));
     }
     T_cam_world = place(*bridge_model_, last_->T_cam_world);
   }
@@ -563,7 +583,7 @@ void Tracker::CreateKeyframe() {
       map_->NextKeyframeId(), current_->timestamp, current_->index, current_->features,
       current_->T_cam_world.inverse(), camera_.width, camera_.height);
   keyframe->bgr = current_->bgr;
-  keyframe->depth_mm = current_->depth_mm;
+  current_->HandDepthTo(keyframe.get());
   map_->AddKeyframe(keyframe);
   for (int i = 0; i < current_->size(); ++i) {
     const MapPointPtr& p = current_->points[i];

@@ -56,9 +56,11 @@ TEST(TumDatasetTest, ReadsAssociatesAndConvertsDepth) {
   ASSERT_TRUE(f.ok()) << f.status().ToString();
   EXPECT_EQ(f->bgr.type(), CV_8UC3);
   EXPECT_EQ(f->depth_mm.type(), CV_16UC1);
-  EXPECT_EQ(f->depth_mm.at<std::uint16_t>(1, 1), 1400);  // 7000 / 5000 m
-  EXPECT_EQ(f->depth_mm.at<std::uint16_t>(0, 0), 0);     // invalid stays invalid
-  EXPECT_TRUE(seq->LoadFrame(1).ok());                   // the .jpg frame
+  EXPECT_EQ(f->depth_mm.at<std::uint16_t>(1, 1), 1400);     // 7000 / 5000 m
+  EXPECT_DOUBLE_EQ(f->timestamp, seq->frame(2).timestamp);  // the colour image's time
+  EXPECT_NEAR(f->depth_time_offset, 0.012, 1e-9);           // and the depth's after it
+  EXPECT_EQ(f->depth_mm.at<std::uint16_t>(0, 0), 0);        // invalid stays invalid
+  EXPECT_TRUE(seq->LoadFrame(1).ok());                      // the .jpg frame
 }
 
 TEST(TumDatasetTest, GroundTruthInterpolatedAtColourTimestamps) {

@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
 
 #include "libccmd/util/file_util.h"
 #include "tests/support/test_support.h"
@@ -243,6 +244,73 @@ TEST(DepthRegistrationTest, EdgeAlignmentScorePeaksWhenDepthEdgesMeetColourEdges
   // No depth edge, or images that do not match: nothing to score.
   EXPECT_EQ(EdgeAlignmentScore(bgr, cv::Mat(240, 320, CV_16UC1, cv::Scalar(1500))), 0);
   EXPECT_EQ(EdgeAlignmentScore(bgr, cv::Mat(120, 160, CV_16UC1, cv::Scalar(1500))), 0);
+}
+
+// Depth (mm) of a scene seen from `T_world_cam`: a wall at 1.5 m turned 40 degrees about the
+// vertical, and in front of it a square board at 0.8 m, 0.4 m wide.
+cv::Mat SceneDepth(const PinholeCamera& camera, const Pose& T_world_cam) {
+  const Eigen::Vector3d wall_normal(std::sin(0.7), 0, -std::cos(0.7));  // n . X = -1.5 cos
+  const double wall_offset = wall_normal.dot(Eigen::Vector3d(0, 0, 1.5));
+  cv::Mat depth(camera.height, camera.width, CV_16UC1, cv::Scalar(0));
+  const Eigen::Vector3d centre = T_world_cam.translation();
+  for (int v = 0; v < camera.height; ++v) {
+    for (int u = 0; u < camera.width; ++u) {
+      const Eigen::Vector3d ray_cam((u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1);
+      const Eigen::Vector3d ray = T_world_cam.linear() * ray_cam;  // z = 1 in the camera
+      double z = (wall_offset - wall_normal.dot(centre)) / wall_normal.dot(ray);
+      const double s = (0.8 - centre.z()) / ray.z();
+      const Eigen::Vector3d on_board = centre + s * ray;
+      if (std::abs(on_board.x()) < 0.2 && std::abs(on_board.y()) < 0.2 && s > 0) z = std::min(z, s);
+      depth.at<std::uint16_t>(v, u) = static_cast<std::uint16_t>(std::lround(z * 1e3));
+    }
+  }
+  return depth;
+}
+
+// A camera's depth seen a few milliseconds later (turned 1 degree, moved 1 cm): moved back to the
+// first pose it is that pose's depth, to the sensor's millimetre, everywhere but at the board's
+// edges (which the motion uncovers or hides) and where the view leaves the image. The depth as
+// taken is centimetres off there.
+TEST(DepthRegistrationTest, DepthFromANearbyPoseIsTheDepthSeenFromHere) {
+  const PinholeCamera camera = Camera(150, 160, 120);
+  const Pose T_world_here = Pose::Identity();
+  Pose T_world_there = Pose::Identity();
+  T_world_there.linear() =
+      RotationFromAngleAxis(0.0175 * Eigen::Vector3d(0.3, 1.0, 0.0).normalized());
+  T_world_there.translation() = Eigen::Vector3d(0.008, -0.003, 0.005);
+  const cv::Mat here = SceneDepth(camera, T_world_here);
+  const cv::Mat there = SceneDepth(camera, T_world_there);
+  const Pose T_there_here = T_world_there.inverse() * T_world_here;
+  EXPECT_EQ(cv::norm(DepthFromNearbyPose(here, camera, Pose::Identity()), here, cv::NORM_INF), 0);
+
+  const cv::Mat moved = DepthFromNearbyPose(there, camera, T_there_here);
+  // The board's edges in this view, widened by the few pixels the motion shifts them.
+  cv::Mat edges(here.size(), CV_8UC1, cv::Scalar(0));
+  for (int v = 0; v + 1 < here.rows; ++v) {
+    for (int u = 0; u + 1 < here.cols; ++u) {
+      const int d = here.at<std::uint16_t>(v, u);
+      if (std::abs(d - here.at<std::uint16_t>(v, u + 1)) > 50 ||
+          std::abs(d - here.at<std::uint16_t>(v + 1, u)) > 50)
+        edges.at<std::uint8_t>(v, u) = 255;
+    }
+  }
+  cv::dilate(edges, edges, cv::Mat(), cv::Point(-1, -1), 5);
+  int checked = 0, within_1mm = 0, holes = 0;
+  double raw_error = 0;
+  for (int v = 8; v < here.rows - 8; ++v) {
+    for (int u = 8; u < here.cols - 8; ++u) {
+      if (edges.at<std::uint8_t>(v, u)) continue;
+      const int truth = here.at<std::uint16_t>(v, u), got = moved.at<std::uint16_t>(v, u);
+      ++checked;
+      holes += got == 0;
+      within_1mm += got != 0 && std::abs(got - truth) <= 1;
+      raw_error += std::abs(there.at<std::uint16_t>(v, u) - truth);
+    }
+  }
+  ASSERT_GT(checked, 8000);
+  EXPECT_EQ(holes, 0);
+  EXPECT_GE(within_1mm, 0.99 * checked);
+  EXPECT_GT(raw_error / checked, 10.0);  // mm: what the motion does to the depth as taken
 }
 
 }  // namespace

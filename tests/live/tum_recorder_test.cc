@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <limits>
 #include <opencv2/core.hpp>
 
 #include "libccmd/io/config.h"
@@ -75,6 +76,34 @@ TEST(TumRecorderTest, TumReaderReadsBackEveryFrameExactlyAt5000PerMetre) {
   ASSERT_TRUE(camera.ok());
   EXPECT_EQ(camera->depth_map_factor, 5000);
   EXPECT_EQ(camera->width, 64);
+}
+
+// A camera whose depth comes apart from its colour (RgbdFrame::depth_time_offset) is recorded as
+// TUM RGB-D lists one: each image under its own time, so that playback has the same offset.
+TEST(TumRecorderTest, DepthTakenApartFromColourKeepsItsOwnTime) {
+  testing::TempDir dir;
+  const std::string folder = dir.File("run");
+  auto recorder = TumRecorder::Create(folder, SmallCamera(5000));
+  ASSERT_TRUE(recorder.ok()) << recorder.status().ToString();
+  cv::RNG rng(3);
+  std::vector<RgbdFrame> frames;
+  for (int i = 0; i < 4; ++i) {
+    frames.push_back(RandomFrame(&rng, 20.0 + i / 30.0, 9000));
+    frames.back().depth_time_offset = i == 2 ? -0.004 : 0.0125;
+  }
+  for (const RgbdFrame& f : frames) ASSERT_TRUE((*recorder)->Write(f).ok());
+  RgbdFrame bad = RandomFrame(&rng, 30.0, 9000);
+  bad.depth_time_offset = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_FALSE((*recorder)->Write(bad).ok());
+  ASSERT_TRUE((*recorder)->Close().ok());
+  ExpectReadsBack(folder, frames);
+  auto sequence = TumSequence::Open(folder, std::nullopt);
+  ASSERT_TRUE(sequence.ok());
+  for (std::size_t i = 0; i < frames.size(); ++i) {
+    auto loaded = sequence->LoadFrame(i);
+    ASSERT_TRUE(loaded.ok());
+    EXPECT_NEAR(loaded->depth_time_offset, frames[i].depth_time_offset, 1.5e-6) << i;
+  }
 }
 
 TEST(TumRecorderTest, MillimetreFilesHoldTheWholeSixteenBitRange) {

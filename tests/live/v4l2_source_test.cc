@@ -121,7 +121,10 @@ TEST(V4l2SourceTest, FramesFlowPairedByDriverTimestamps) {
     RgbdFrame frame;
     ASSERT_TRUE((*source)->Read(&frame).ok()) << "pair " << j;
     EXPECT_EQ(frame.index, j);
-    EXPECT_DOUBLE_EQ(frame.timestamp, depth_times[j]);
+    // The colour image's time, and the depth's after it (the tracker moves the depth to the
+    // colour image's time).
+    EXPECT_DOUBLE_EQ(frame.timestamp, colour_times[j]);
+    EXPECT_NEAR(frame.depth_time_offset, depth_times[j] - colour_times[j], 1e-12);
     ASSERT_EQ(frame.depth_mm.size(), cv::Size(kW, kH));
     ASSERT_EQ(frame.bgr.size(), cv::Size(kW, kH));
     EXPECT_EQ(frame.depth_mm.at<std::uint16_t>(5, 7), 1500 + j);
