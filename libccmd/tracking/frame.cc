@@ -176,6 +176,7 @@ std::unique_ptr<TrackingFrame> MakeFrame(const RgbdFrame& input, const OrbExtrac
   frame->bgr = input.bgr;
   frame->depth_mm = input.depth_mm;
   frame->T_colour_depth = T_colour_depth;
+  frame->depth_time_offset = input.depth_time_offset;
   cv::Mat gray;
   if (input.bgr.size() != input.depth_mm.size()) {
     cv::Mat resized;

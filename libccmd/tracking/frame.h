@@ -31,6 +31,7 @@ struct TrackingFrame {
   // The pose of the camera when the depth image was taken, in its frame at the colour image's
   // time (RgbdFrame::depth_time_offset, moved by the motion model); nullopt: taken together.
   std::optional<Pose> T_colour_depth;
+  double depth_time_offset = 0;  // RgbdFrame's
 
   TrackingFrame() = default;
   TrackingFrame(const TrackingFrame&) = delete;

@@ -52,7 +52,9 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
   TrackResult result;
   Stopwatch watch;
   ThreadCpuStopwatch cpu;
-  current_ = MakeFrame(input, *orb_, camera_, options_, DepthCameraPose(input));
+  current_ =
+      MakeFrame(input, *orb_, camera_, options_,
+                input.depth_mm.empty() ? std::nullopt : DepthCameraPose(input.depth_time_offset));
   result.extract_ms = watch.ElapsedMillis();
   result.extract_cpu_ms = cpu.ElapsedMillis();
   watch.Restart();
@@ -142,11 +144,9 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
   return result;
 }
 
-std::optional<Pose> Tracker::DepthCameraPose(const RgbdFrame& input) const {
-  const double offset = input.depth_time_offset;
+std::optional<Pose> Tracker::DepthCameraPose(double offset) const {
   if (!options_.compensate_depth_lag || offset == 0 || !std::isfinite(offset) ||
-      input.depth_mm.empty() || state_ != TrackingState::kOk || !velocity_ ||
-      !(velocity_interval_ > 0)) {
+      state_ != TrackingState::kOk || !velocity_ || !(velocity_interval_ > 0)) {
     return std::nullopt;
   }
   // The camera's motion from the colour image's time to the depth image's: that fraction of
@@ -583,6 +583,10 @@ void Tracker::CreateKeyframe() {
       map_->NextKeyframeId(), current_->timestamp, current_->index, current_->features,
       current_->T_cam_world.inverse(), camera_.width, camera_.height);
   keyframe->bgr = current_->bgr;
+  // The keyframe's depth moves with the motion measured up to this frame, a frame more recent
+  // than the prediction its keypoints used.
+  if (current_->T_colour_depth)
+    current_->T_colour_depth = DepthCameraPose(current_->depth_time_offset);
   current_->HandDepthTo(keyframe.get());
   map_->AddKeyframe(keyframe);
   for (int i = 0; i < current_->size(); ++i) {

@@ -97,12 +97,12 @@ class Tracker {
   // frame, placed at `T_world_cam`; `tracked`: that is the frame's own tracked pose.
   bool Initialize(TrackingFrame* frame, const Pose& T_world_cam, bool restart,
                   bool tracked = false);
-  // Where the camera was when `input`'s depth image was taken, in its frame at the colour
-  // image's time (TrackingFrame::T_colour_depth): the motion model's motion over the frame's
-  // depth_time_offset, a fraction of the last frame interval's. nullopt when the offset is 0,
-  // the compensation is off or the motion is not known (before tracking has two frames, after
-  // a loss).
-  std::optional<Pose> DepthCameraPose(const RgbdFrame& input) const;
+  // Where the camera was when a depth image taken `offset` seconds after its colour image was
+  // taken, in its frame at the colour image's time (TrackingFrame::T_colour_depth): the
+  // motion model's motion over the offset, a fraction of the last frame interval's. nullopt
+  // when the offset is 0, the compensation is off or the motion is not known (before tracking
+  // has two frames, after a loss).
+  std::optional<Pose> DepthCameraPose(double offset) const;
   // A new map point from keypoint i of `frame` (which has depth), observed by `keyframe` made
   // from that frame (at `T_world_cam`), and matched to the keypoint.
   void AddMapPoint(TrackingFrame* frame, Keyframe* keyframe, const Pose& T_world_cam, int i);
