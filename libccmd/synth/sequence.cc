@@ -327,6 +327,9 @@ StatusOr<SyntheticSequenceSummary> WriteSyntheticSequence(
   if (options.frame_depth_weight > 0)
     config_keys << "Tracking.frameDepthWeight: " << options.frame_depth_weight << "\n";
   if (options.ground_truth_of_depth_camera) config_keys << "Trajectory.camera: \"depth\"\n";
+  // The renderer's timestamps are when each image was taken: the agents may move the depth
+  // to its colour image's time by them.
+  if (options.depth_lag_s != 0) config_keys << "Tracking.depthLagCompensation: 1\n";
   CCMD_RETURN_IF_ERROR(WriteCameraConfig(camera, JoinPath(folder, "camera.yaml"),
                                          options.depth_camera, config_keys.str()));
   CCMD_RETURN_IF_ERROR(WriteFileAtomic(JoinPath(folder, "sequence.txt"), DescribeOptions(options)));

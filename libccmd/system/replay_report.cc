@@ -42,6 +42,7 @@ void ReferenceOptions::Describe(OptionsWriter* out) const {
   out->Add("voxel_m", voxel_m);
   out->Add("registration", registration ? "Depth block" : "none");
   out->Add("ground_truth_camera_in_colour_m", T_color_trajectory.translation().norm());
+  out->Add("depth_at_own_time", depth_at_own_time);
 }
 
 Status ReadReferenceCamera(const std::string& camera_file, ReferenceOptions* options) {
@@ -49,6 +50,9 @@ Status ReadReferenceCamera(const std::string& camera_file, ReferenceOptions* opt
   CCMD_ASSIGN_OR_RETURN(options->registration, LoadDepthToColorCalibration(camera_file));
   CCMD_ASSIGN_OR_RETURN(const Pose T_color_trajectory, LoadTrajectoryCamera(camera_file));
   if (options->registration) options->T_color_trajectory = T_color_trajectory;
+  CCMD_ASSIGN_OR_RETURN(const ConfigFile config, ConfigFile::Open(camera_file));
+  CCMD_ASSIGN_OR_RETURN(const int lag, config.GetInt("Tracking.depthLagCompensation", 0));
+  options->depth_at_own_time = lag != 0;
   return Status::Ok();
 }
 
@@ -80,11 +84,10 @@ StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset,
       continue;
     }
     RgbdFrame frame = std::move(loaded).value();
-    // The camera where the depth image was taken: a sensor whose streams are not synchronised
-    // (TUM RGB-D's depth comes 10-15 ms after its colour) took it from the ground truth's pose
-    // at the depth's own time.
+    // The camera where the depth image was taken, when the agents move depth taken apart from
+    // its colour to the colour image's time: the ground truth's pose at the depth's own time.
     std::optional<Pose> T_world_gt = dataset.frame(i).T_world_cam_gt;
-    if (frame.depth_time_offset != 0) {
+    if (options.depth_at_own_time && frame.depth_time_offset != 0) {
       T_world_gt = InterpolateTrajectory(dataset.groundtruth(), dataset.frame(i).depth_timestamp,
                                          TumOptions().groundtruth_max_gap);
       if (!T_world_gt) continue;

@@ -54,6 +54,10 @@ struct ReferenceOptions {
   // The camera whose poses the ground truth gives, in the colour camera's frame (the config's
   // Trajectory.camera): the registered depth is placed at ground truth * its inverse.
   Pose T_color_trajectory = Pose::Identity();
+  // Set when the config moves depth taken apart from its colour image to the colour image's
+  // time (Tracking.depthLagCompensation): each depth image is then placed at the ground truth
+  // of its own time, as the agents place it.
+  bool depth_at_own_time = false;
 
   Status Validate() const;
   void Describe(OptionsWriter* out) const;

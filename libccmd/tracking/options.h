@@ -80,8 +80,10 @@ struct TrackingOptions {
   // A depth image taken after (or before) its colour image (RgbdFrame::depth_time_offset) is
   // moved to the colour image's time by the constant-velocity model's motion over the offset
   // before anything reads it (the keypoints' depth, the depth alignments, the keyframes' dense
-  // depth); off, the depth is used as taken.
-  bool compensate_depth_lag = true;
+  // depth). Off by default: it needs timestamps that say when each image was taken, which
+  // TUM RGB-D's do not show they are (docs/benchmarks/frontend.md#depth-taken-after-colour);
+  // a rendered sequence's camera.yaml turns it on.
+  bool compensate_depth_lag = false;
   // Keypoints without a map point and without depth at one end are matched with this many
   // best covisible keyframes along epipolar lines and triangulated into new points (ORB-SLAM's
   // CreateNewMapPoints; 0: off). Off by default: it gains on exact depth and loses on
