@@ -69,7 +69,13 @@ StatusOr<std::unique_ptr<Backend>> Backend::Create(const BackendOptions& options
   }
   Backend* b = backend.get();
   b->ingest_stage_.Start([b](IngestItem item) { b->Ingest(std::move(item)); });
-  b->loop_stage_.Start([b](GlobalKeyframeId id) { b->DetectLoops(id); });
+  b->loop_stage_.Start([b](LoopTask task) {
+    if (task.session_ended) {
+      b->LoopsAtSessionEnd(task.keyframe.agent);
+    } else {
+      b->DetectLoops(task.keyframe);
+    }
+  });
   b->gba_stage_.Start([b](GbaRequest request) { b->RunGlobalBa(std::move(request)); });
   b->dense_stage_.Start([b](DenseTask task) { b->UpdateDense(std::move(task)); });
   return backend;
@@ -146,6 +152,12 @@ Status Backend::SubmitPoseUpdate(AgentId agent, PoseUpdateMessage message, doubl
   IngestItem item{agent, nullptr, std::make_unique<PoseUpdateMessage>(std::move(message)),
                   arrived_s > 0 ? arrived_s : MonotonicSeconds()};
   if (!ingest_stage_.Push(std::move(item))) return Unavailable("the back-end is shutting down");
+  return Status::Ok();
+}
+
+Status Backend::SubmitSessionEnded(AgentId agent) {
+  if (!ingest_stage_.Push(IngestItem{agent, nullptr, nullptr, MonotonicSeconds()}))
+    return Unavailable("the back-end is shutting down");
   return Status::Ok();
 }
 
@@ -227,6 +239,11 @@ void Backend::Ingest(IngestItem item) {
     IngestPoseUpdate(item.agent, *item.pose_update, item.arrived);
   } else if (item.keyframe) {
     IngestKeyframe(item.agent, std::move(*item.keyframe), item.arrived);
+  } else {
+    LoopTask task;
+    task.keyframe.agent = item.agent;
+    task.session_ended = true;
+    loop_stage_.Push(task);
   }
 }
 
@@ -299,7 +316,7 @@ void Backend::IngestKeyframe(AgentId agent, KeyframeMessage message, double arri
     AppendSample(&timings_.intake_at_s, now);
     AppendSample(&timings_.intake_during_gba, static_cast<char>(gba_running_.load()));
   }
-  if (added) loop_stage_.Push(id);
+  if (added) loop_stage_.Push(LoopTask{id});
 }
 
 void Backend::RemoveUnplacedFromDense(ServerMap* map, const GlobalKeyframeId& restart,
@@ -468,6 +485,13 @@ void Backend::DetectLoops(const GlobalKeyframeId& id) {
       AfterLoop(std::move(*closure));
     }
   }
+}
+
+void Backend::LoopsAtSessionEnd(AgentId agent) {
+  if (auto closure = loop_closer_.SessionEnded(
+          agent, [this](AgentId a) { return CameraOf(a); },
+          [this](AgentId a) { return DepthNoiseOf(a); }))
+    AfterLoop(std::move(*closure));
 }
 
 void Backend::CullIfRedundant(const GlobalKeyframeId& id) {

@@ -154,6 +154,10 @@ class Backend {
   // observer gets it with the change the message causes.
   Status SubmitKeyframe(AgentId agent, KeyframeMessage message, double arrived_s = 0);
   Status SubmitPoseUpdate(AgentId agent, PoseUpdateMessage message, double arrived_s = 0);
+  // The agent's session ended (after its last message was submitted): a loop of its still
+  // waiting for its next keyframes to agree is confirmed from the other map's side instead
+  // (LoopCloser::SessionEnded), once everything it submitted has been through the loop stage.
+  Status SubmitSessionEnded(AgentId agent);
 
   // Returns when everything submitted so far has gone through every stage (and a global BA it
   // caused has finished).
@@ -212,10 +216,16 @@ class Backend {
  private:
   struct IngestItem {
     AgentId agent;
-    // Exactly one is set. Held by pointer: queue moves stay cheap.
+    // At most one is set (neither: the agent's session ended). Held by pointer: queue moves
+    // stay cheap.
     std::unique_ptr<KeyframeMessage> keyframe;
     std::unique_ptr<PoseUpdateMessage> pose_update;
     double arrived = 0;  // MonotonicSeconds() when the message reached the server
+  };
+  // The loop stage's work: a new keyframe, or the end of an agent's session.
+  struct LoopTask {
+    GlobalKeyframeId keyframe;  // its agent's, when session_ended
+    bool session_ended = false;
   };
   struct DenseTask {
     enum class Kind {
@@ -258,6 +268,7 @@ class Backend {
   void RemoveUnplacedFromDense(ServerMap* map, const GlobalKeyframeId& restart,
                                std::vector<GlobalKeyframeId>* unplaced);
   void DetectLoops(const GlobalKeyframeId& id);
+  void LoopsAtSessionEnd(AgentId agent);
   // Culls `id` if it is redundant (loop stage).
   void CullIfRedundant(const GlobalKeyframeId& id);
   void RunGlobalBa(GbaRequest request);
@@ -341,7 +352,7 @@ class Backend {
 
   // Declared last: stopped (joined) before anything their handlers use is destroyed.
   Stage<IngestItem> ingest_stage_;
-  Stage<GlobalKeyframeId> loop_stage_;
+  Stage<LoopTask> loop_stage_;
   Stage<GbaRequest> gba_stage_;  // the newest request replaces one still waiting
   Stage<DenseTask> dense_stage_;
   bool shut_down_ = false;

@@ -40,13 +40,10 @@ bool LoopConsistency::Confirm(const GlobalKeyframeId& query, MapId candidate_map
   // maps' origin grows with the distance to it: 3 degrees 4 m away is 20 cm there.)
   const Pose predicted = pending.T_candidate_map_query_map * T_query_map_query;
   // Ids compared as unsigned: a query older than the last one (a late query) never confirms.
-  const bool consistent =
-      pending.count > 0 && pending.candidate_map == candidate_map &&
-      query.keyframe.value() - pending.last_query.value() <=
-          static_cast<std::uint32_t>(options_.consistency_max_gap) &&
-      TranslationDistance(predicted, T_candidate_map_query) < options_.consistency_translation &&
-      RotationDistance(predicted, T_candidate_map_query) <
-          options_.consistency_rotation_deg * M_PI / 180;
+  const bool consistent = pending.count > 0 && pending.candidate_map == candidate_map &&
+                          query.keyframe.value() - pending.last_query.value() <=
+                              static_cast<std::uint32_t>(options_.consistency_max_gap) &&
+                          Agrees(predicted, T_candidate_map_query);
   pending.count = consistent ? pending.count + 1 : 1;
   if (!consistent) pending.loops.clear();
   pending.candidate_map = candidate_map;
@@ -61,6 +58,20 @@ bool LoopConsistency::Confirm(const GlobalKeyframeId& query, MapId candidate_map
   pending.loops.clear();
   pending.count = 0;
   return true;
+}
+
+std::optional<LoopConsistency::Waiting> LoopConsistency::WaitingLoop(AgentId agent) const {
+  const auto it = pending_.find(agent);
+  if (it == pending_.end() || it->second.count == 0 || it->second.loops.empty())
+    return std::nullopt;
+  const Pending& pending = it->second;
+  return Waiting{pending.loops.back(), pending.candidate_map, pending.T_candidate_map_query_map,
+                 pending.count};
+}
+
+bool LoopConsistency::Agrees(const Pose& predicted, const Pose& measured) const {
+  return TranslationDistance(predicted, measured) < options_.consistency_translation &&
+         RotationDistance(predicted, measured) < options_.consistency_rotation_deg * M_PI / 180;
 }
 
 void LoopCooldown::Start(const GlobalKeyframeId& loop_query) {
@@ -474,6 +485,72 @@ std::optional<LoopClosure> LoopCloser::CloseUncomparedNeighbour(const GlobalKeyf
                  << id.keyframe.value() << " met agent " << pair->second.agent.value()
                  << " keyframe " << pair->second.keyframe.value() << " where no loop had";
   return closure;
+}
+
+std::optional<LoopClosure> LoopCloser::SessionEnded(
+    AgentId agent, const std::function<PinholeCamera(AgentId)>& camera_of,
+    const std::function<DepthNoise(AgentId)>& depth_noise_of) {
+  const std::optional<LoopConsistency::Waiting> waiting = consistency_.WaitingLoop(agent);
+  if (!waiting || options_.reverse_checks == 0) return std::nullopt;
+  const auto& [query_id, candidate_id] = waiting->loop;
+  const auto query_map = maps_->MapOfAgent(agent);
+  const auto candidate_map = maps_->MapOfAgent(candidate_id.agent);
+  // The candidate's map fused with another since: the transform no longer says where it is.
+  if (!query_map || !candidate_map || *candidate_map != waiting->candidate_map) return std::nullopt;
+  const bool same_map = *candidate_map == *query_map;
+  MapManager::Guard query_guard, candidate_guard;
+  if (same_map) {
+    query_guard = maps_->CheckOut(*query_map);
+  } else {
+    std::tie(query_guard, candidate_guard) = maps_->CheckOutPair(*query_map, *candidate_map);
+  }
+  if (!query_guard || (!same_map && !candidate_guard)) return std::nullopt;
+  const ServerMap& cmap = same_map ? *query_guard : *candidate_guard;
+  ServerKeyframe* query = query_guard->keyframe(query_id);
+  ServerKeyframe* candidate = cmap.keyframe(candidate_id);
+  if (!query || !candidate || !query_guard->Placed(*query) || !cmap.Placed(*candidate))
+    return std::nullopt;
+
+  // The candidate's neighbours that see none of the query's places already (those would only
+  // repeat what the map holds), strongest first.
+  std::vector<std::pair<int, ServerKeyframe*>> neighbours;
+  for (const auto& [id, weight] : candidate->covisibility) {
+    ServerKeyframe* n = cmap.keyframe(id);
+    if (!n || n == query || !cmap.Placed(*n) || query->covisibility.count(id)) continue;
+    neighbours.emplace_back(weight, n);
+  }
+  std::sort(neighbours.begin(), neighbours.end(),
+            [](const auto& a, const auto& b) { return a.first > b.first; });
+  if (static_cast<int>(neighbours.size()) > options_.reverse_checks)
+    neighbours.resize(options_.reverse_checks);
+  const Pose T_query_map_candidate_map = waiting->T_candidate_map_query_map.inverse();
+  int agreeing = waiting->count;
+  for (const auto& [weight, n] : neighbours) {
+    if (agreeing >= options_.loop_consistency) break;
+    LoopVerificationOptions verification = options_.verification;
+    verification.depth_noise = depth_noise_of(n->id.agent);
+    const auto reverse = VerifyLoop(n, camera_of(n->id.agent), query, *query_guard, verification);
+    const bool agrees = reverse && consistency_.Agrees(T_query_map_candidate_map * n->T_map_cam,
+                                                       reverse->T_candidate_map_query);
+    CCMD_LOG(INFO) << "agent " << agent.value() << " ended its session with a loop waiting (agent "
+                   << agent.value() << " keyframe " << query_id.keyframe.value() << " ~ agent "
+                   << candidate_id.agent.value() << " keyframe " << candidate_id.keyframe.value()
+                   << "): agent " << n->id.agent.value() << " keyframe " << n->id.keyframe.value()
+                   << " verified against it: "
+                   << (!reverse ? "no loop"
+                       : agrees ? "agrees (" + std::to_string(reverse->inliers) + " inliers)"
+                                : "disagrees");
+    if (agrees) ++agreeing;
+  }
+  if (agreeing < options_.loop_consistency) return std::nullopt;
+
+  LoopCloserOptions options = options_;
+  options.verification.depth_noise = depth_noise_of(agent);
+  const PinholeCamera camera = camera_of(agent);
+  const auto match = VerifyLoop(query, camera, candidate, cmap, options.verification);
+  if (!match) return std::nullopt;
+  consistency_.Forget(agent);
+  return Correct(&query_guard, same_map ? nullptr : &candidate_guard, *match, camera, options, {});
 }
 
 LoopCloser::Outcome LoopCloser::TryCandidate(const GlobalKeyframeId& id,

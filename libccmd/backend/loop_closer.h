@@ -74,6 +74,20 @@ class LoopConsistency {
                int* count = nullptr, const GlobalKeyframeId& candidate = {},
                std::vector<Pair>* earlier = nullptr);
 
+  // An agent's latest verified loop that waits for more to agree with it: the loop, its
+  // candidate's map, the map-to-map transform it measured and how many agree so far.
+  struct Waiting {
+    Pair loop;
+    MapId candidate_map;
+    Pose T_candidate_map_query_map = Pose::Identity();
+    int count = 0;
+  };
+  std::optional<Waiting> WaitingLoop(AgentId agent) const;
+  // Whether a keyframe's pose measured in a map agrees with where a waiting loop's transform
+  // puts it (the tolerances Confirm uses).
+  bool Agrees(const Pose& predicted, const Pose& measured) const;
+  void Forget(AgentId agent) { pending_.erase(agent); }
+
  private:
   struct Pending {
     MapId candidate_map;
@@ -223,6 +237,19 @@ class LoopCloser {
   // queried. Returns the loop it closed, if any, with its map still checked out.
   std::optional<LoopClosure> Process(const GlobalKeyframeId& id, const PinholeCamera& camera,
                                      const DepthNoise& depth_noise, bool stored);
+
+  // An agent's session ended: it sends no more keyframes for now, so its verified loop still
+  // waiting for its next keyframes to agree (LoopConsistency) can get no more of them; with
+  // only the overlap at a segment's end to join two maps, the last keyframe before it is
+  // often the only one to see the other map. The rest of the agreement is then sought from
+  // the other side: the candidate's covisible neighbours not covisible with the query
+  // (strongest first, at most reverse_checks of them), each verified as a query against the
+  // query keyframe, must find themselves where the loop's map-to-map transform puts them.
+  // Returns the loop it then closed (corrected as Process would), if any. `camera_of` and
+  // `depth_noise_of` give each agent's camera and depth sensor.
+  std::optional<LoopClosure> SessionEnded(AgentId agent,
+                                          const std::function<PinholeCamera(AgentId)>& camera_of,
+                                          const std::function<DepthNoise(AgentId)>& depth_noise_of);
 
   // Keyframes stored before an online vocabulary existed, to be queried now, oldest first.
   std::optional<GlobalKeyframeId> NextLateQuery();

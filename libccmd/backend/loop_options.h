@@ -64,7 +64,10 @@ struct LoopCloserOptions {
   // How far apart two loops' map-to-map transforms may put the later query (metres, degrees).
   double consistency_translation = 0.05;
   double consistency_rotation_deg = 3.0;
-  int consistency_max_gap = 3;        // keyframe ids between two confirming queries
+  int consistency_max_gap = 3;  // keyframe ids between two confirming queries
+  // When the query's agent ends its session: the candidate's neighbours verified against the
+  // waiting loop's query in place of its next keyframes (LoopCloser::SessionEnded); 0: none.
+  int reverse_checks = 3;
   int exclude_recent_keyframes = 25;  // same-agent neighbours in id that never count as loops
   int loop_cooldown_keyframes =
       10;  // after a loop, the agent's next keyframes seek no loop in their own map

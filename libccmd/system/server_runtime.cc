@@ -74,6 +74,7 @@ void ServerRuntime::OnAgentKnown(const AgentDescription& agent, bool from_journa
 
 void ServerRuntime::OnAgentDisconnected(AgentId agent, const std::string& reason) {
   CCMD_LOG(INFO) << "agent " << agent << " left: " << reason;
+  backend_->SubmitSessionEnded(agent).IgnoreError();
 }
 
 void ServerRuntime::OnMessage(DeliveredMessage m) {

@@ -469,6 +469,40 @@ TEST(BackendIntegrationTest, ARestartedSegmentFusesWithAnotherAgentsMap) {
   ExpectOnThePath(synth, fused);
 }
 
+// Agent 2's session covers only the last frames of agent 1's: one keyframe, whose loop with
+// agent 1's map is verified but can get no second keyframe to agree. The maps stay apart
+// while the session lasts, and fuse when it ends.
+TEST(BackendIntegrationTest, AnAgentWhoseSessionEndsWithALoopWaitingIsFused) {
+  RecordingObserver observer;
+  auto backend = Backend::Create(BackendOptions(), &observer);
+  ASSERT_TRUE(backend.ok()) << backend.status().ToString();
+  const SyntheticSequenceOptions synth = QuickLaps(120);  // enough keyframes for a vocabulary
+  const PinholeCamera camera = SyntheticCamera(320, 240);
+  TrackingOptions tracking;
+  tracking.synchronous_mapping = true;
+  std::vector<std::unique_ptr<WireSink>> sinks;
+  const std::vector<FrameRange> parts = {{0, 119}, {114, 117}};
+  for (int i = 0; i < 2; ++i) {
+    const AgentId id(i + 1);
+    sinks.push_back(std::make_unique<WireSink>(id, backend->get()));
+    ASSERT_TRUE((*backend)->RegisterAgent(id, "agent" + std::to_string(i + 1), camera).ok());
+    auto frontend = Frontend::Create(camera, tracking, sinks[i].get());
+    ASSERT_TRUE(frontend.ok());
+    TrackParts(frontend->get(), synth, {parts[i]});
+    (*backend)->WaitIdle();
+  }
+  ASSERT_EQ(sinks[1]->timestamps_.size(), 1u);
+  EXPECT_EQ((*backend)->Maps().size(), 2u);
+  EXPECT_EQ((*backend)->stats().fusions, 0);
+
+  ASSERT_TRUE((*backend)->SubmitSessionEnded(AgentId(2)).ok());
+  (*backend)->WaitIdle();
+  EXPECT_EQ((*backend)->Maps().size(), 1u);
+  EXPECT_EQ((*backend)->stats().fusions, 1);
+  EXPECT_TRUE((*backend)->AgentInPrimaryMap(AgentId(2)));
+  ExpectOnThePath(synth, (*backend)->FusedTrajectory());
+}
+
 // The same start, but the camera comes round to it again: the loop that places the keyframe
 // kept apart brings its cloud back to the dense map (its coded images were kept for that).
 TEST(BackendIntegrationTest, AKeyframeKeptApartReturnsToTheDenseMapWhenALoopPlacesIt) {

@@ -1055,5 +1055,79 @@ TEST(LoopCloserTest, AKeyframeCoolingDownAfterAFusionIsCheckedAgainstTheOtherAge
   EXPECT_FALSE(unchecked[3].closed);
 }
 
+// Agent 1 has mapped the ring; agent 2 made one keyframe, at step 4, in a map of its own, and
+// its session ends there: a segment that only overlaps the other's end. Its loop with agent 1
+// is verified but no next keyframe can agree with it. At the session's end agent 1's
+// neighbours of the candidate are verified against it instead. `displace_neighbours` moves
+// those neighbours 10 cm in agent 1's map (where the images put them stays the same): the
+// transform then puts them elsewhere than they see themselves, and nothing is fused.
+struct EndedSession {
+  ProcessResult queried, ended;
+  std::size_t maps_after = 0;
+};
+EndedSession EndTheSessionWithALoopWaiting(int reverse_checks, bool displace_neighbours) {
+  Rng rng(23);
+  const GeneratedWorld world = MakeRingWorld(4000, &rng);
+  LoopCloserOptions options;
+  options.reverse_checks = reverse_checks;
+  MapManager maps;
+  LoopCloser closer(options, WallPlaceIndex(world), &maps, 0.0);
+  constexpr int kSteps = 24;
+  for (int i = 0; i < kSteps; ++i) {
+    {
+      MapManager::Guard guard = maps.CheckOutAgent(AgentId(1));
+      AddGeneratedKeyframe(guard.get(), world, AgentId(1), i, CirclePose(i, kSteps),
+                           CirclePose(i, kSteps), &rng);
+    }
+    EXPECT_FALSE(closer.Process(Kf(1, i), testing::TestCamera(), DepthNoise(), false));
+  }
+  {
+    MapManager::Guard guard = maps.CheckOutAgent(AgentId(2));
+    AddGeneratedKeyframe(guard.get(), world, AgentId(2), 0, CirclePose(4, kSteps),
+                         Offset(1.0, 40) * CirclePose(4, kSteps), &rng);
+  }
+  const auto summary = [](std::optional<LoopClosure> closure) {
+    ProcessResult r;
+    if (closure) r = {true, closure->event, closure->moved.size(), closure->joined_primary.size()};
+    return r;
+  };
+  EndedSession result;
+  result.queried =
+      summary(closer.Process(Kf(2, 0), testing::TestCamera(), DepthNoise(), /*stored=*/false));
+  if (displace_neighbours) {
+    MapManager::Guard guard = maps.CheckOutAgent(AgentId(1));
+    for (const auto& [id, kf] : guard->keyframes()) {
+      if (id.keyframe.value() != 4) kf->T_map_cam.translation() += Eigen::Vector3d(0.1, 0, 0);
+    }
+  }
+  result.ended = summary(closer.SessionEnded(
+      AgentId(2), [](AgentId) { return testing::TestCamera(); },
+      [](AgentId) { return DepthNoise(); }));
+  result.maps_after = maps.Maps().size();
+  return result;
+}
+
+TEST(LoopCloserTest, ALoopWaitingWhenItsSessionEndsIsConfirmedFromTheOtherMap) {
+  const EndedSession ended = EndTheSessionWithALoopWaiting(3, false);
+  EXPECT_FALSE(ended.queried.closed);  // one keyframe is not enough on its own
+  ASSERT_TRUE(ended.ended.closed);
+  EXPECT_TRUE(ended.ended.event.fusion);
+  EXPECT_EQ(ended.ended.event.query, Kf(2, 0));
+  EXPECT_EQ(ended.ended.event.candidate.agent, AgentId(1));
+  EXPECT_EQ(ended.maps_after, 1u);
+
+  // Without the checks from the other side the loop stays waiting, and the maps apart.
+  const EndedSession unchecked = EndTheSessionWithALoopWaiting(0, false);
+  EXPECT_FALSE(unchecked.ended.closed);
+  EXPECT_EQ(unchecked.maps_after, 2u);
+}
+
+TEST(LoopCloserTest, NeighboursThatDisagreeWithTheWaitingLoopDoNotConfirmIt) {
+  const EndedSession ended = EndTheSessionWithALoopWaiting(3, true);
+  EXPECT_FALSE(ended.queried.closed);
+  EXPECT_FALSE(ended.ended.closed);
+  EXPECT_EQ(ended.maps_after, 2u);
+}
+
 }  // namespace
 }  // namespace ccmd
