@@ -121,6 +121,12 @@ void AddOptions(CLI::App* app, ServerArgs* a) {
                   "that whole-map global BA too (same limit; 0: only on stopping)")
       ->check(CLI::Range(0.0, 1e6))
       ->capture_default_str();
+  app->add_option("--idle-loop-seconds", a->runtime.backend.idle_loop_seconds,
+                  "An agent that has sent no keyframe for this long (or whose session ended) gets "
+                  "a loop still waiting for its next keyframe confirmed from the other map's "
+                  "keyframes (0: only when its session ends)")
+      ->check(CLI::Range(0.0, 1e6))
+      ->capture_default_str();
   app->add_flag("--no-culling", a->no_culling,
                 "Keep every keyframe's sparse data (no keyframe culling: the sparse maps then grow "
                 "with the time spent in a place, not with the place)");

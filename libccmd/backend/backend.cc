@@ -37,6 +37,8 @@ Status BackendOptions::Validate() const {
     return InvalidArgument("global BA duty must be in (0, 1]");
   if (!(idle_global_ba_seconds >= 0 && idle_global_ba_seconds <= 1e6))
     return InvalidArgument("idle global BA seconds must be in [0, 1e6] (0: never)");
+  if (!(idle_loop_seconds >= 0 && idle_loop_seconds <= 1e6))
+    return InvalidArgument("idle loop seconds must be in [0, 1e6] (0: never)");
   if (dense) CCMD_RETURN_IF_ERROR(dense_options.Validate());
   CCMD_RETURN_IF_ERROR(place.Validate());
   return depth_noise.Validate();
@@ -52,6 +54,7 @@ void BackendOptions::Describe(OptionsWriter* out) const {
   out->Add("global_ba_duty", global_ba_duty);
   out->Add("final_global_ba_max_observations", final_global_ba_max_observations);
   out->Add("idle_global_ba_seconds", idle_global_ba_seconds);
+  out->Add("idle_loop_seconds", idle_loop_seconds);
   out->Nested("depth_noise", depth_noise);
   out->Add("dense", dense);
   out->Nested("dense_options", dense_options);
@@ -70,8 +73,8 @@ StatusOr<std::unique_ptr<Backend>> Backend::Create(const BackendOptions& options
   Backend* b = backend.get();
   b->ingest_stage_.Start([b](IngestItem item) { b->Ingest(std::move(item)); });
   b->loop_stage_.Start([b](LoopTask task) {
-    if (task.session_ended) {
-      b->LoopsAtSessionEnd(task.keyframe.agent);
+    if (task.agent_stopped) {
+      b->LoopsOfAStoppedAgent(task.keyframe.agent);
     } else {
       b->DetectLoops(task.keyframe);
     }
@@ -232,6 +235,28 @@ void Backend::OptimiseIdleMaps() {
   }
 }
 
+void Backend::ConfirmIdleAgentsLoops() {
+  if (options_.idle_loop_seconds <= 0 || stopping_) return;
+  const double now = Now();
+  std::vector<AgentId> idle;
+  {
+    std::lock_guard<std::mutex> lock(gba_counts_mutex_);
+    for (const auto& [agent, last] : last_keyframe_at_) {
+      if (now - last < options_.idle_loop_seconds) continue;
+      const auto checked = idle_loops_checked_.find(agent);
+      if (checked != idle_loops_checked_.end() && checked->second == last) continue;
+      idle_loops_checked_[agent] = last;
+      idle.push_back(agent);
+    }
+  }
+  for (const AgentId agent : idle) {
+    LoopTask task;
+    task.keyframe.agent = agent;
+    task.agent_stopped = true;
+    loop_stage_.Push(task);
+  }
+}
+
 // ---------------------------------------------------------------- ingest
 
 void Backend::Ingest(IngestItem item) {
@@ -242,7 +267,7 @@ void Backend::Ingest(IngestItem item) {
   } else {
     LoopTask task;
     task.keyframe.agent = item.agent;
-    task.session_ended = true;
+    task.agent_stopped = true;
     loop_stage_.Push(task);
   }
 }
@@ -487,8 +512,8 @@ void Backend::DetectLoops(const GlobalKeyframeId& id) {
   }
 }
 
-void Backend::LoopsAtSessionEnd(AgentId agent) {
-  if (auto closure = loop_closer_.SessionEnded(
+void Backend::LoopsOfAStoppedAgent(AgentId agent) {
+  if (auto closure = loop_closer_.AgentStopped(
           agent, [this](AgentId a) { return CameraOf(a); },
           [this](AgentId a) { return DepthNoiseOf(a); }))
     AfterLoop(std::move(*closure));

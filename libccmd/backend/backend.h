@@ -61,6 +61,9 @@ struct BackendOptions {
   // seconds gets the same whole-map run (OptimiseIdleMaps, within the same limit), so that
   // the map a paused or finished mission shows is the one the run will write; 0: never.
   double idle_global_ba_seconds = 10.0;
+  // An agent that has sent no keyframe for this many seconds gets its waiting loop confirmed
+  // from the other side as at the end of its session (ConfirmIdleAgentsLoops); 0: never.
+  double idle_loop_seconds = 10.0;
   DepthNoise depth_noise;
   bool dense = true;
   DenseMapOptions dense_options;
@@ -156,8 +159,12 @@ class Backend {
   Status SubmitPoseUpdate(AgentId agent, PoseUpdateMessage message, double arrived_s = 0);
   // The agent's session ended (after its last message was submitted): a loop of its still
   // waiting for its next keyframes to agree is confirmed from the other map's side instead
-  // (LoopCloser::SessionEnded), once everything it submitted has been through the loop stage.
+  // (LoopCloser::AgentStopped), once everything it submitted has been through the loop stage.
   Status SubmitSessionEnded(AgentId agent);
+  // Periodic (ServerRuntime::Tick): the same for each agent that has sent no keyframe for
+  // BackendOptions::idle_loop_seconds (once per pause): a robot that stands still with its
+  // agent running makes no next keyframe either.
+  void ConfirmIdleAgentsLoops();
 
   // Returns when everything submitted so far has gone through every stage (and a global BA it
   // caused has finished).
@@ -222,10 +229,11 @@ class Backend {
     std::unique_ptr<PoseUpdateMessage> pose_update;
     double arrived = 0;  // MonotonicSeconds() when the message reached the server
   };
-  // The loop stage's work: a new keyframe, or the end of an agent's session.
+  // The loop stage's work: a new keyframe, or an agent that stopped sending them (its
+  // session ended or it is idle).
   struct LoopTask {
-    GlobalKeyframeId keyframe;  // its agent's, when session_ended
-    bool session_ended = false;
+    GlobalKeyframeId keyframe;  // its agent's, when agent_stopped
+    bool agent_stopped = false;
   };
   struct DenseTask {
     enum class Kind {
@@ -268,7 +276,7 @@ class Backend {
   void RemoveUnplacedFromDense(ServerMap* map, const GlobalKeyframeId& restart,
                                std::vector<GlobalKeyframeId>* unplaced);
   void DetectLoops(const GlobalKeyframeId& id);
-  void LoopsAtSessionEnd(AgentId agent);
+  void LoopsOfAStoppedAgent(AgentId agent);
   // Culls `id` if it is redundant (loop stage).
   void CullIfRedundant(const GlobalKeyframeId& id);
   void RunGlobalBa(GbaRequest request);
@@ -337,6 +345,8 @@ class Backend {
   std::map<MapId, std::uint64_t> gba_idle_queued_;
   std::optional<MapId> gba_running_map_;  // of the global BA being solved
   std::map<AgentId, double> last_keyframe_at_;
+  // Per agent: the last_keyframe_at_ value its idle loop check followed (once per pause).
+  std::map<AgentId, double> idle_loops_checked_;
   double dense_trimmed_ = 0;  // back-end clock; dense stage only
 
   std::mutex large_transient_mutex_;  // see LockLargeTransient

@@ -487,7 +487,7 @@ std::optional<LoopClosure> LoopCloser::CloseUncomparedNeighbour(const GlobalKeyf
   return closure;
 }
 
-std::optional<LoopClosure> LoopCloser::SessionEnded(
+std::optional<LoopClosure> LoopCloser::AgentStopped(
     AgentId agent, const std::function<PinholeCamera(AgentId)>& camera_of,
     const std::function<DepthNoise(AgentId)>& depth_noise_of) {
   const std::optional<LoopConsistency::Waiting> waiting = consistency_.WaitingLoop(agent);
@@ -532,7 +532,7 @@ std::optional<LoopClosure> LoopCloser::SessionEnded(
     const auto reverse = VerifyLoop(n, camera_of(n->id.agent), query, *query_guard, verification);
     const bool agrees = reverse && consistency_.Agrees(T_query_map_candidate_map * n->T_map_cam,
                                                        reverse->T_candidate_map_query);
-    CCMD_LOG(INFO) << "agent " << agent.value() << " ended its session with a loop waiting (agent "
+    CCMD_LOG(INFO) << "agent " << agent.value() << " stopped with a loop waiting (agent "
                    << agent.value() << " keyframe " << query_id.keyframe.value() << " ~ agent "
                    << candidate_id.agent.value() << " keyframe " << candidate_id.keyframe.value()
                    << "): agent " << n->id.agent.value() << " keyframe " << n->id.keyframe.value()

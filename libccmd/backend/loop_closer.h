@@ -238,16 +238,16 @@ class LoopCloser {
   std::optional<LoopClosure> Process(const GlobalKeyframeId& id, const PinholeCamera& camera,
                                      const DepthNoise& depth_noise, bool stored);
 
-  // An agent's session ended: it sends no more keyframes for now, so its verified loop still
-  // waiting for its next keyframes to agree (LoopConsistency) can get no more of them; with
-  // only the overlap at a segment's end to join two maps, the last keyframe before it is
-  // often the only one to see the other map. The rest of the agreement is then sought from
+  // An agent stopped sending keyframes (its session ended, or it has been idle for a while):
+  // its verified loop still waiting for its next keyframes to agree (LoopConsistency) gets no
+  // more of them; with only the overlap at a segment's end to join two maps, the last keyframe
+  // before it is often the only one to see the other map. The rest of the agreement is sought from
   // the other side: the candidate's covisible neighbours not covisible with the query
   // (strongest first, at most reverse_checks of them), each verified as a query against the
   // query keyframe, must find themselves where the loop's map-to-map transform puts them.
   // Returns the loop it then closed (corrected as Process would), if any. `camera_of` and
   // `depth_noise_of` give each agent's camera and depth sensor.
-  std::optional<LoopClosure> SessionEnded(AgentId agent,
+  std::optional<LoopClosure> AgentStopped(AgentId agent,
                                           const std::function<PinholeCamera(AgentId)>& camera_of,
                                           const std::function<DepthNoise(AgentId)>& depth_noise_of);
 

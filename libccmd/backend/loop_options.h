@@ -65,8 +65,9 @@ struct LoopCloserOptions {
   double consistency_translation = 0.05;
   double consistency_rotation_deg = 3.0;
   int consistency_max_gap = 3;  // keyframe ids between two confirming queries
-  // When the query's agent ends its session: the candidate's neighbours verified against the
-  // waiting loop's query in place of its next keyframes (LoopCloser::SessionEnded); 0: none.
+  // When the query's agent stops (session ended, or idle): the candidate's neighbours verified
+  // against the waiting loop's query in place of its next keyframes (LoopCloser::AgentStopped); 0:
+  // none.
   int reverse_checks = 3;
   int exclude_recent_keyframes = 25;  // same-agent neighbours in id that never count as loops
   int loop_cooldown_keyframes =

@@ -159,7 +159,10 @@ void ServerRuntime::Tick() {
     const Status s = WriteJsonFile(StatsJson(), JoinPath(options_.output_dir, "server_stats.json"));
     if (!s.ok()) CCMD_LOG(WARNING) << s.ToString();
   }
-  if (backend_) backend_->OptimiseIdleMaps();
+  if (backend_) {
+    backend_->ConfirmIdleAgentsLoops();
+    backend_->OptimiseIdleMaps();
+  }
   if (snapshots_ && options_.snapshot_period_s > 0 && snapshots_->Due(now)) {
     // Not while a global BA solves (their transient memory would add up): next tick.
     if (const auto transient = backend_->LockLargeTransient(/*wait=*/false)) {

@@ -471,10 +471,14 @@ TEST(BackendIntegrationTest, ARestartedSegmentFusesWithAnotherAgentsMap) {
 
 // Agent 2's session covers only the last frames of agent 1's: one keyframe, whose loop with
 // agent 1's map is verified but can get no second keyframe to agree. The maps stay apart
-// while the session lasts, and fuse when it ends.
-TEST(BackendIntegrationTest, AnAgentWhoseSessionEndsWithALoopWaitingIsFused) {
+// while the session lasts, and fuse when it ends, or (`idle`) when the agent, still
+// connected, has sent nothing for idle_loop_seconds.
+// With `idle`, the session does not end: the agent stands still, and its pause does the same.
+void FuseAnAgentThatStopsWithALoopWaiting(bool idle) {
   RecordingObserver observer;
-  auto backend = Backend::Create(BackendOptions(), &observer);
+  BackendOptions options;
+  options.idle_loop_seconds = idle ? 1e-3 : 0;
+  auto backend = Backend::Create(options, &observer);
   ASSERT_TRUE(backend.ok()) << backend.status().ToString();
   const SyntheticSequenceOptions synth = QuickLaps(120);  // enough keyframes for a vocabulary
   const PinholeCamera camera = SyntheticCamera(320, 240);
@@ -495,12 +499,27 @@ TEST(BackendIntegrationTest, AnAgentWhoseSessionEndsWithALoopWaitingIsFused) {
   EXPECT_EQ((*backend)->Maps().size(), 2u);
   EXPECT_EQ((*backend)->stats().fusions, 0);
 
-  ASSERT_TRUE((*backend)->SubmitSessionEnded(AgentId(2)).ok());
+  if (idle) {
+    (*backend)->ConfirmIdleAgentsLoops();
+  } else {
+    (*backend)->ConfirmIdleAgentsLoops();  // disabled: nothing happens
+    (*backend)->WaitIdle();
+    EXPECT_EQ((*backend)->Maps().size(), 2u);
+    ASSERT_TRUE((*backend)->SubmitSessionEnded(AgentId(2)).ok());
+  }
   (*backend)->WaitIdle();
   EXPECT_EQ((*backend)->Maps().size(), 1u);
   EXPECT_EQ((*backend)->stats().fusions, 1);
   EXPECT_TRUE((*backend)->AgentInPrimaryMap(AgentId(2)));
   ExpectOnThePath(synth, (*backend)->FusedTrajectory());
+}
+
+TEST(BackendIntegrationTest, AnAgentWhoseSessionEndsWithALoopWaitingIsFused) {
+  FuseAnAgentThatStopsWithALoopWaiting(false);
+}
+
+TEST(BackendIntegrationTest, AnAgentIdleWithALoopWaitingIsFused) {
+  FuseAnAgentThatStopsWithALoopWaiting(true);
 }
 
 // The same start, but the camera comes round to it again: the loop that places the keyframe

@@ -1100,7 +1100,7 @@ EndedSession EndTheSessionWithALoopWaiting(int reverse_checks, bool displace_nei
       if (id.keyframe.value() != 4) kf->T_map_cam.translation() += Eigen::Vector3d(0.1, 0, 0);
     }
   }
-  result.ended = summary(closer.SessionEnded(
+  result.ended = summary(closer.AgentStopped(
       AgentId(2), [](AgentId) { return testing::TestCamera(); },
       [](AgentId) { return DepthNoise(); }));
   result.maps_after = maps.Maps().size();
