@@ -491,7 +491,7 @@ std::optional<LoopClosure> LoopCloser::AgentStopped(
     AgentId agent, const std::function<PinholeCamera(AgentId)>& camera_of,
     const std::function<DepthNoise(AgentId)>& depth_noise_of) {
   const std::optional<LoopConsistency::Waiting> waiting = consistency_.WaitingLoop(agent);
-  if (!waiting || options_.reverse_checks == 0) return std::nullopt;
+  if (!waiting || options_.neighbour_checks == 0) return std::nullopt;
   const auto& [query_id, candidate_id] = waiting->loop;
   const auto query_map = maps_->MapOfAgent(agent);
   const auto candidate_map = maps_->MapOfAgent(candidate_id.agent);
@@ -511,36 +511,56 @@ std::optional<LoopClosure> LoopCloser::AgentStopped(
   if (!query || !candidate || !query_guard->Placed(*query) || !cmap.Placed(*candidate))
     return std::nullopt;
 
-  // The candidate's neighbours that see none of the query's places already (those would only
-  // repeat what the map holds), strongest first.
-  std::vector<std::pair<int, ServerKeyframe*>> neighbours;
-  for (const auto& [id, weight] : candidate->covisibility) {
-    ServerKeyframe* n = cmap.keyframe(id);
-    if (!n || n == query || !cmap.Placed(*n) || query->covisibility.count(id)) continue;
-    neighbours.emplace_back(weight, n);
-  }
-  std::sort(neighbours.begin(), neighbours.end(),
-            [](const auto& a, const auto& b) { return a.first > b.first; });
-  if (static_cast<int>(neighbours.size()) > options_.reverse_checks)
-    neighbours.resize(options_.reverse_checks);
-  const Pose T_query_map_candidate_map = waiting->T_candidate_map_query_map.inverse();
+  // Each side's neighbours that see none of the other side's keyframe already (those would
+  // only repeat what the map holds), strongest first, verified against that keyframe: where
+  // they find themselves in its map must be where the loop's transform puts them.
+  const auto neighbours = [&](const ServerKeyframe& of, const ServerMap& map,
+                              const ServerKeyframe& other) {
+    std::vector<std::pair<int, ServerKeyframe*>> found;
+    for (const auto& [id, weight] : of.covisibility) {
+      ServerKeyframe* n = map.keyframe(id);
+      if (!n || n == &other || !map.Placed(*n) || other.covisibility.count(id)) continue;
+      found.emplace_back(weight, n);
+    }
+    std::sort(found.begin(), found.end(),
+              [](const auto& a, const auto& b) { return a.first > b.first; });
+    if (static_cast<int>(found.size()) > options_.neighbour_checks)
+      found.resize(options_.neighbour_checks);
+    return found;
+  };
+  struct Check {
+    ServerKeyframe* neighbour;
+    ServerKeyframe* against;
+    const ServerMap* in;
+    Pose T_in_neighbours_map;  // the neighbour's map into `in`, by the waiting loop
+  };
+  std::vector<Check> checks;
+  for (const auto& [weight, n] : neighbours(*candidate, cmap, *query))
+    checks.push_back({n, query, query_guard.get(), waiting->T_candidate_map_query_map.inverse()});
+  for (const auto& [weight, n] : neighbours(*query, *query_guard, *candidate))
+    checks.push_back({n, candidate, &cmap, waiting->T_candidate_map_query_map});
   int agreeing = waiting->count;
-  for (const auto& [weight, n] : neighbours) {
-    if (agreeing >= options_.loop_consistency) break;
+  for (const Check& check : checks) {
+    const ServerKeyframe* n = check.neighbour;
     LoopVerificationOptions verification = options_.verification;
     verification.depth_noise = depth_noise_of(n->id.agent);
-    const auto reverse = VerifyLoop(n, camera_of(n->id.agent), query, *query_guard, verification);
-    const bool agrees = reverse && consistency_.Agrees(T_query_map_candidate_map * n->T_map_cam,
-                                                       reverse->T_candidate_map_query);
+    const auto verified =
+        VerifyLoop(check.neighbour, camera_of(n->id.agent), check.against, *check.in, verification);
+    const bool agrees = verified && consistency_.Agrees(check.T_in_neighbours_map * n->T_map_cam,
+                                                        verified->T_candidate_map_query);
     CCMD_LOG(INFO) << "agent " << agent.value() << " stopped with a loop waiting (agent "
                    << agent.value() << " keyframe " << query_id.keyframe.value() << " ~ agent "
                    << candidate_id.agent.value() << " keyframe " << candidate_id.keyframe.value()
                    << "): agent " << n->id.agent.value() << " keyframe " << n->id.keyframe.value()
-                   << " verified against it: "
-                   << (!reverse ? "no loop"
-                       : agrees ? "agrees (" + std::to_string(reverse->inliers) + " inliers)"
-                                : "disagrees");
-    if (agrees) ++agreeing;
+                   << " verified against agent " << check.against->id.agent.value() << " keyframe "
+                   << check.against->id.keyframe.value() << ": "
+                   << (!verified ? "no loop"
+                       : agrees  ? "agrees (" + std::to_string(verified->inliers) + " inliers)"
+                                 : "disagrees");
+    // A neighbour that finds itself elsewhere speaks against the loop, as a next keyframe
+    // that disagreed would.
+    if (verified && !agrees) return std::nullopt;
+    if (agrees && ++agreeing >= options_.loop_consistency) break;
   }
   if (agreeing < options_.loop_consistency) return std::nullopt;
 

@@ -241,10 +241,12 @@ class LoopCloser {
   // An agent stopped sending keyframes (its session ended, or it has been idle for a while):
   // its verified loop still waiting for its next keyframes to agree (LoopConsistency) gets no
   // more of them; with only the overlap at a segment's end to join two maps, the last keyframe
-  // before it is often the only one to see the other map. The rest of the agreement is sought from
-  // the other side: the candidate's covisible neighbours not covisible with the query
-  // (strongest first, at most reverse_checks of them), each verified as a query against the
-  // query keyframe, must find themselves where the loop's map-to-map transform puts them.
+  // before it is often the only one to see the other map. The rest of the agreement is sought
+  // from both sides' neighbours: the candidate's covisible neighbours not covisible with the
+  // query, then the query's not covisible with the candidate (strongest first, at most
+  // neighbour_checks on each side), each verified as a query against the other side's
+  // keyframe, must find themselves where the loop's map-to-map transform puts them. Each that
+  // does counts as a next keyframe would; one that verifies elsewhere rejects the loop.
   // Returns the loop it then closed (corrected as Process would), if any. `camera_of` and
   // `depth_noise_of` give each agent's camera and depth sensor.
   std::optional<LoopClosure> AgentStopped(AgentId agent,

@@ -53,7 +53,7 @@ Status LoopCloserOptions::Validate() const {
   if (loop_consistency < 1) return InvalidArgument("loop consistency must be >= 1");
   if (verification.min_inliers < 10) return InvalidArgument("loop min inliers must be >= 10");
   if (consistency_max_gap < 1) return InvalidArgument("loop consistency gap must be >= 1");
-  if (reverse_checks < 0) return InvalidArgument("loop reverse checks must be >= 0");
+  if (neighbour_checks < 0) return InvalidArgument("loop neighbour checks must be >= 0");
   if (!(consistency_translation > 0) || !(consistency_rotation_deg > 0)) {
     return InvalidArgument("loop consistency tolerances must be positive");
   }
@@ -78,7 +78,7 @@ void LoopCloserOptions::Describe(OptionsWriter* out) const {
   out->Add("consistency_translation", consistency_translation);
   out->Add("consistency_rotation_deg", consistency_rotation_deg);
   out->Add("consistency_max_gap", consistency_max_gap);
-  out->Add("reverse_checks", reverse_checks);
+  out->Add("neighbour_checks", neighbour_checks);
   out->Add("exclude_recent_keyframes", exclude_recent_keyframes);
   out->Add("loop_cooldown_keyframes", loop_cooldown_keyframes);
   out->Add("min_correction_m", min_correction_m);

@@ -65,10 +65,10 @@ struct LoopCloserOptions {
   double consistency_translation = 0.05;
   double consistency_rotation_deg = 3.0;
   int consistency_max_gap = 3;  // keyframe ids between two confirming queries
-  // When the query's agent stops (session ended, or idle): the candidate's neighbours verified
-  // against the waiting loop's query in place of its next keyframes (LoopCloser::AgentStopped); 0:
-  // none.
-  int reverse_checks = 3;
+  // When the query's agent stops (session ended, or idle): neighbours of each side of its
+  // waiting loop verified against the other side in place of its next keyframes
+  // (LoopCloser::AgentStopped), at most this many on each side; 0: none.
+  int neighbour_checks = 3;
   int exclude_recent_keyframes = 25;  // same-agent neighbours in id that never count as loops
   int loop_cooldown_keyframes =
       10;  // after a loop, the agent's next keyframes seek no loop in their own map

@@ -1065,11 +1065,11 @@ struct EndedSession {
   ProcessResult queried, ended;
   std::size_t maps_after = 0;
 };
-EndedSession EndTheSessionWithALoopWaiting(int reverse_checks, bool displace_neighbours) {
+EndedSession EndTheSessionWithALoopWaiting(int neighbour_checks, bool displace_neighbours) {
   Rng rng(23);
   const GeneratedWorld world = MakeRingWorld(4000, &rng);
   LoopCloserOptions options;
-  options.reverse_checks = reverse_checks;
+  options.neighbour_checks = neighbour_checks;
   MapManager maps;
   LoopCloser closer(options, WallPlaceIndex(world), &maps, 0.0);
   constexpr int kSteps = 24;
@@ -1127,6 +1127,45 @@ TEST(LoopCloserTest, NeighboursThatDisagreeWithTheWaitingLoopDoNotConfirmIt) {
   EXPECT_FALSE(ended.queried.closed);
   EXPECT_FALSE(ended.ended.closed);
   EXPECT_EQ(ended.maps_after, 2u);
+}
+
+// The query's side: agent 1 has one keyframe (step 4), so the candidate has no neighbours.
+// Agent 2's first keyframe (step 3) came before it and found nothing; its second (step 4)
+// verifies a loop with it that no next keyframe confirms. When agent 2 stops, its first
+// keyframe, verified against agent 1's, confirms the loop (with `neighbour_checks` 0 nothing
+// does).
+bool AQuerysNeighbourConfirms(int neighbour_checks) {
+  Rng rng(29);
+  const GeneratedWorld world = MakeRingWorld(4000, &rng);
+  LoopCloserOptions options;
+  options.neighbour_checks = neighbour_checks;
+  MapManager maps;
+  LoopCloser closer(options, WallPlaceIndex(world), &maps, 0.0);
+  constexpr int kSteps = 24;
+  const Pose T_map2_world = Offset(1.0, 40);
+  const auto add = [&](int agent, int id, int step, const Pose& T_map_world) {
+    MapManager::Guard guard = maps.CheckOutAgent(AgentId(static_cast<std::uint16_t>(agent)));
+    AddGeneratedKeyframe(guard.get(), world, AgentId(static_cast<std::uint16_t>(agent)), id,
+                         CirclePose(step, kSteps), T_map_world * CirclePose(step, kSteps), &rng);
+  };
+  add(2, 0, 3, T_map2_world);
+  EXPECT_FALSE(closer.Process(Kf(2, 0), testing::TestCamera(), DepthNoise(), false));
+  add(1, 0, 4, Pose::Identity());
+  EXPECT_FALSE(closer.Process(Kf(1, 0), testing::TestCamera(), DepthNoise(), false));
+  add(2, 1, 4, T_map2_world);
+  EXPECT_FALSE(closer.Process(Kf(2, 1), testing::TestCamera(), DepthNoise(), false));
+  std::optional<LoopClosure> closure = closer.AgentStopped(
+      AgentId(2), [](AgentId) { return testing::TestCamera(); },
+      [](AgentId) { return DepthNoise(); });
+  const bool fused = closure && closure->event.fusion && closure->event.query == Kf(2, 1);
+  closure.reset();
+  EXPECT_EQ(maps.Maps().size(), fused ? 1u : 2u);
+  return fused;
+}
+
+TEST(LoopCloserTest, AQuerysNeighbourConfirmsWhenTheCandidateHasNone) {
+  EXPECT_TRUE(AQuerysNeighbourConfirms(3));
+  EXPECT_FALSE(AQuerysNeighbourConfirms(0));
 }
 
 }  // namespace
