@@ -570,6 +570,7 @@ void Backend::AfterLoop(LoopClosure closure) {
       stats_.loops++;
     }
     stats_.segments_placed += closure.event.placed_segment;
+    stats_.loops_at_agent_stop += closure.event.agent_stopped;
   }
   closure.map = MapManager::Guard();
   // A loop the map already agreed with corrected nothing: there is nothing to optimise.

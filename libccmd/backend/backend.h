@@ -85,7 +85,10 @@ struct BackendStats {
   double global_ba_seconds = 0;
   std::size_t dense_keyframes = 0;
   int loops_already_closed = 0;  // verified loops that found the map consistent (no correction)
-  int global_ba_windowed = 0;    // runs over a window of a larger map
+  // Loops and fusions (of the counts above) confirmed when their agent stopped
+  // (LoopCloser::AgentStopped).
+  int loops_at_agent_stop = 0;
+  int global_ba_windowed = 0;  // runs over a window of a larger map
   // FinishGlobalBa: whole-map runs at the end, and maps left as their windows had them
   // (above final_global_ba_max_observations).
   int global_ba_final = 0, global_ba_final_skipped = 0;

@@ -137,6 +137,7 @@ Json Backend::StatsJson() {
   j["pose_updates_of_culled"] = s.pose_updates_of_culled;
   j["loops"] = s.loops;
   j["loops_already_closed"] = s.loops_already_closed;
+  j["loops_at_agent_stop"] = s.loops_at_agent_stop;
   j["segments_restarted"] = s.segments_restarted;
   j["segments_placed"] = s.segments_placed;
   j["segments_unplaced"] = s.segments_unplaced;

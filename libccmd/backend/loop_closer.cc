@@ -570,7 +570,10 @@ std::optional<LoopClosure> LoopCloser::AgentStopped(
   const auto match = VerifyLoop(query, camera, candidate, cmap, options.verification);
   if (!match) return std::nullopt;
   consistency_.Forget(agent);
-  return Correct(&query_guard, same_map ? nullptr : &candidate_guard, *match, camera, options, {});
+  LoopClosure closure =
+      Correct(&query_guard, same_map ? nullptr : &candidate_guard, *match, camera, options, {});
+  closure.event.agent_stopped = true;
+  return closure;
 }
 
 LoopCloser::Outcome LoopCloser::TryCandidate(const GlobalKeyframeId& id,

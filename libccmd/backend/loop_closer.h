@@ -42,6 +42,7 @@ struct LoopEvent {
   bool fusion = false;          // two maps fused (else a loop inside a map)
   bool already_closed = false;  // inside a map that agreed with it already: nothing corrected
   bool placed_segment = false;  // it placed an agent's restarted segment (ServerMap::Placed)
+  bool agent_stopped = false;   // confirmed by neighbours when its agent stopped (AgentStopped)
   MapId map;                    // the map after the event
 };
 

@@ -498,6 +498,7 @@ void FuseAnAgentThatStopsWithALoopWaiting(bool idle) {
   ASSERT_EQ(sinks[1]->timestamps_.size(), 1u);
   EXPECT_EQ((*backend)->Maps().size(), 2u);
   EXPECT_EQ((*backend)->stats().fusions, 0);
+  EXPECT_EQ((*backend)->stats().loops_at_agent_stop, 0);
 
   if (idle) {
     (*backend)->ConfirmIdleAgentsLoops();
@@ -510,6 +511,7 @@ void FuseAnAgentThatStopsWithALoopWaiting(bool idle) {
   (*backend)->WaitIdle();
   EXPECT_EQ((*backend)->Maps().size(), 1u);
   EXPECT_EQ((*backend)->stats().fusions, 1);
+  EXPECT_EQ((*backend)->stats().loops_at_agent_stop, 1);
   EXPECT_TRUE((*backend)->AgentInPrimaryMap(AgentId(2)));
   ExpectOnThePath(synth, (*backend)->FusedTrajectory());
 }
