@@ -123,8 +123,8 @@ void AddOptions(CLI::App* app, ServerArgs* a) {
       ->capture_default_str();
   app->add_option("--idle-loop-seconds", a->runtime.backend.idle_loop_seconds,
                   "An agent that has sent no keyframe for this long (or whose session ended) gets "
-                  "a loop still waiting for its next keyframe confirmed from the other map's "
-                  "keyframes (0: only when its session ends)")
+                  "a loop still waiting for its next keyframe checked by both sides' neighbouring "
+                  "keyframes instead (0: only when its session ends)")
       ->check(CLI::Range(0.0, 1e6))
       ->capture_default_str();
   app->add_flag("--no-culling", a->no_culling,
