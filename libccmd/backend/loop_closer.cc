@@ -487,30 +487,11 @@ std::optional<LoopClosure> LoopCloser::CloseUncomparedNeighbour(const GlobalKeyf
   return closure;
 }
 
-std::optional<LoopClosure> LoopCloser::AgentStopped(
-    AgentId agent, const std::function<PinholeCamera(AgentId)>& camera_of,
-    const std::function<DepthNoise(AgentId)>& depth_noise_of) {
-  const std::optional<LoopConsistency::Waiting> waiting = consistency_.WaitingLoop(agent);
-  if (!waiting || options_.neighbour_checks == 0) return std::nullopt;
-  const auto& [query_id, candidate_id] = waiting->loop;
-  const auto query_map = maps_->MapOfAgent(agent);
-  const auto candidate_map = maps_->MapOfAgent(candidate_id.agent);
-  // The candidate's map fused with another since: the transform no longer says where it is.
-  if (!query_map || !candidate_map || *candidate_map != waiting->candidate_map) return std::nullopt;
-  const bool same_map = *candidate_map == *query_map;
-  MapManager::Guard query_guard, candidate_guard;
-  if (same_map) {
-    query_guard = maps_->CheckOut(*query_map);
-  } else {
-    std::tie(query_guard, candidate_guard) = maps_->CheckOutPair(*query_map, *candidate_map);
-  }
-  if (!query_guard || (!same_map && !candidate_guard)) return std::nullopt;
-  const ServerMap& cmap = same_map ? *query_guard : *candidate_guard;
-  ServerKeyframe* query = query_guard->keyframe(query_id);
-  ServerKeyframe* candidate = cmap.keyframe(candidate_id);
-  if (!query || !candidate || !query_guard->Placed(*query) || !cmap.Placed(*candidate))
-    return std::nullopt;
-
+bool LoopCloser::NeighboursConfirm(const LoopConsistency::Waiting& waiting, ServerKeyframe* query,
+                                   const ServerMap& query_map, ServerKeyframe* candidate,
+                                   const ServerMap& candidate_map,
+                                   const std::function<DepthNoise(AgentId)>& depth_noise_of,
+                                   const std::function<PinholeCamera(AgentId)>& camera_of) {
   // Each side's neighbours that see none of the other side's keyframe already (those would
   // only repeat what the map holds), strongest first, verified against that keyframe: where
   // they find themselves in its map must be where the loop's transform puts them.
@@ -535,11 +516,11 @@ std::optional<LoopClosure> LoopCloser::AgentStopped(
     Pose T_in_neighbours_map;  // the neighbour's map into `in`, by the waiting loop
   };
   std::vector<Check> checks;
-  for (const auto& [weight, n] : neighbours(*candidate, cmap, *query))
-    checks.push_back({n, query, query_guard.get(), waiting->T_candidate_map_query_map.inverse()});
-  for (const auto& [weight, n] : neighbours(*query, *query_guard, *candidate))
-    checks.push_back({n, candidate, &cmap, waiting->T_candidate_map_query_map});
-  int agreeing = waiting->count;
+  for (const auto& [weight, n] : neighbours(*candidate, candidate_map, *query))
+    checks.push_back({n, query, &query_map, waiting.T_candidate_map_query_map.inverse()});
+  for (const auto& [weight, n] : neighbours(*query, query_map, *candidate))
+    checks.push_back({n, candidate, &candidate_map, waiting.T_candidate_map_query_map});
+  int agreeing = waiting.count;
   for (const Check& check : checks) {
     const ServerKeyframe* n = check.neighbour;
     LoopVerificationOptions verification = options_.verification;
@@ -548,21 +529,50 @@ std::optional<LoopClosure> LoopCloser::AgentStopped(
         VerifyLoop(check.neighbour, camera_of(n->id.agent), check.against, *check.in, verification);
     const bool agrees = verified && consistency_.Agrees(check.T_in_neighbours_map * n->T_map_cam,
                                                         verified->T_candidate_map_query);
-    CCMD_LOG(INFO) << "agent " << agent.value() << " stopped with a loop waiting (agent "
-                   << agent.value() << " keyframe " << query_id.keyframe.value() << " ~ agent "
-                   << candidate_id.agent.value() << " keyframe " << candidate_id.keyframe.value()
-                   << "): agent " << n->id.agent.value() << " keyframe " << n->id.keyframe.value()
-                   << " verified against agent " << check.against->id.agent.value() << " keyframe "
+    CCMD_LOG(INFO) << "agent " << query->id.agent.value() << " stopped with a loop waiting (agent "
+                   << query->id.agent.value() << " keyframe " << query->id.keyframe.value()
+                   << " ~ agent " << candidate->id.agent.value() << " keyframe "
+                   << candidate->id.keyframe.value() << "): agent " << n->id.agent.value()
+                   << " keyframe " << n->id.keyframe.value() << " verified against agent "
+                   << check.against->id.agent.value() << " keyframe "
                    << check.against->id.keyframe.value() << ": "
                    << (!verified ? "no loop"
                        : agrees  ? "agrees (" + std::to_string(verified->inliers) + " inliers)"
                                  : "disagrees");
     // A neighbour that finds itself elsewhere speaks against the loop, as a next keyframe
     // that disagreed would.
-    if (verified && !agrees) return std::nullopt;
+    if (verified && !agrees) return false;
     if (agrees && ++agreeing >= options_.loop_consistency) break;
   }
-  if (agreeing < options_.loop_consistency) return std::nullopt;
+  return agreeing >= options_.loop_consistency;
+}
+
+std::optional<LoopClosure> LoopCloser::AgentStopped(
+    AgentId agent, const std::function<PinholeCamera(AgentId)>& camera_of,
+    const std::function<DepthNoise(AgentId)>& depth_noise_of) {
+  const std::optional<LoopConsistency::Waiting> waiting = consistency_.WaitingLoop(agent);
+  if (!waiting || options_.neighbour_checks == 0) return std::nullopt;
+  const auto& [query_id, candidate_id] = waiting->loop;
+  const auto query_map = maps_->MapOfAgent(agent);
+  const auto candidate_map = maps_->MapOfAgent(candidate_id.agent);
+  // The candidate's map fused with another since: the transform no longer says where it is.
+  if (!query_map || !candidate_map || *candidate_map != waiting->candidate_map) return std::nullopt;
+  const bool same_map = *candidate_map == *query_map;
+  MapManager::Guard query_guard, candidate_guard;
+  if (same_map) {
+    query_guard = maps_->CheckOut(*query_map);
+  } else {
+    std::tie(query_guard, candidate_guard) = maps_->CheckOutPair(*query_map, *candidate_map);
+  }
+  if (!query_guard || (!same_map && !candidate_guard)) return std::nullopt;
+  const ServerMap& cmap = same_map ? *query_guard : *candidate_guard;
+  ServerKeyframe* query = query_guard->keyframe(query_id);
+  ServerKeyframe* candidate = cmap.keyframe(candidate_id);
+  if (!query || !candidate || !query_guard->Placed(*query) || !cmap.Placed(*candidate))
+    return std::nullopt;
+
+  if (!NeighboursConfirm(*waiting, query, *query_guard, candidate, cmap, depth_noise_of, camera_of))
+    return std::nullopt;
 
   LoopCloserOptions options = options_;
   options.verification.depth_noise = depth_noise_of(agent);

@@ -279,6 +279,15 @@ class LoopCloser {
   std::optional<LoopClosure> CloseUncomparedNeighbour(const GlobalKeyframeId& id,
                                                       const PinholeCamera& camera,
                                                       const LoopCloserOptions& options);
+  // AgentStopped's agreement: each side's neighbours (at most neighbour_checks, strongest
+  // first) verified against the other side's keyframe must find themselves where the waiting
+  // loop's transform puts them, until loop_consistency agree; one that verifies elsewhere
+  // rejects the loop.
+  bool NeighboursConfirm(const LoopConsistency::Waiting& waiting, ServerKeyframe* query,
+                         const ServerMap& query_map, ServerKeyframe* candidate,
+                         const ServerMap& candidate_map,
+                         const std::function<DepthNoise(AgentId)>& depth_noise_of,
+                         const std::function<PinholeCamera(AgentId)>& camera_of);
   // Correct's two cases: a loop inside the query's map, and a fusion of the two maps.
   void CloseInMap(MapManager::Guard* guard, const LoopMatch& match, const PinholeCamera& camera,
                   const LoopCloserOptions& options, LoopClosure* closure);
