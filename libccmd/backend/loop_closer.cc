@@ -490,8 +490,8 @@ std::optional<LoopClosure> LoopCloser::CloseUncomparedNeighbour(const GlobalKeyf
 bool LoopCloser::NeighboursConfirm(const LoopConsistency::Waiting& waiting, ServerKeyframe* query,
                                    const ServerMap& query_map, ServerKeyframe* candidate,
                                    const ServerMap& candidate_map,
-                                   const std::function<DepthNoise(AgentId)>& depth_noise_of,
-                                   const std::function<PinholeCamera(AgentId)>& camera_of) {
+                                   const std::function<PinholeCamera(AgentId)>& camera_of,
+                                   const std::function<DepthNoise(AgentId)>& depth_noise_of) {
   // Each side's neighbours that see none of the other side's keyframe already (those would
   // only repeat what the map holds), strongest first, verified against that keyframe: where
   // they find themselves in its map must be where the loop's transform puts them.
@@ -529,8 +529,8 @@ bool LoopCloser::NeighboursConfirm(const LoopConsistency::Waiting& waiting, Serv
         VerifyLoop(check.neighbour, camera_of(n->id.agent), check.against, *check.in, verification);
     const bool agrees = verified && consistency_.Agrees(check.T_in_neighbours_map * n->T_map_cam,
                                                         verified->T_candidate_map_query);
-    CCMD_LOG(INFO) << "agent " << query->id.agent.value() << " stopped with a loop waiting (agent "
-                   << query->id.agent.value() << " keyframe " << query->id.keyframe.value()
+    CCMD_LOG(INFO) << "agent " << query->id.agent.value()
+                   << " stopped with a loop waiting (keyframe " << query->id.keyframe.value()
                    << " ~ agent " << candidate->id.agent.value() << " keyframe "
                    << candidate->id.keyframe.value() << "): agent " << n->id.agent.value()
                    << " keyframe " << n->id.keyframe.value() << " verified against agent "
@@ -571,7 +571,7 @@ std::optional<LoopClosure> LoopCloser::AgentStopped(
   if (!query || !candidate || !query_guard->Placed(*query) || !cmap.Placed(*candidate))
     return std::nullopt;
 
-  if (!NeighboursConfirm(*waiting, query, *query_guard, candidate, cmap, depth_noise_of, camera_of))
+  if (!NeighboursConfirm(*waiting, query, *query_guard, candidate, cmap, camera_of, depth_noise_of))
     return std::nullopt;
 
   LoopCloserOptions options = options_;

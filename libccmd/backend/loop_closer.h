@@ -286,8 +286,8 @@ class LoopCloser {
   bool NeighboursConfirm(const LoopConsistency::Waiting& waiting, ServerKeyframe* query,
                          const ServerMap& query_map, ServerKeyframe* candidate,
                          const ServerMap& candidate_map,
-                         const std::function<DepthNoise(AgentId)>& depth_noise_of,
-                         const std::function<PinholeCamera(AgentId)>& camera_of);
+                         const std::function<PinholeCamera(AgentId)>& camera_of,
+                         const std::function<DepthNoise(AgentId)>& depth_noise_of);
   // Correct's two cases: a loop inside the query's map, and a fusion of the two maps.
   void CloseInMap(MapManager::Guard* guard, const LoopMatch& match, const PinholeCamera& camera,
                   const LoopCloserOptions& options, LoopClosure* closure);
