@@ -66,12 +66,20 @@ int main(int argc, char** argv) {
                  "Depth taken this many ms after the colour image, as by a sensor whose streams "
                  "are not synchronised (TUM RGB-D: 10-15 ms); under half a frame interval")
       ->capture_default_str();
+  double rolling_shutter_ms = 0;
+  app.add_option("--rolling-shutter", rolling_shutter_ms,
+                 "Rolling shutter: the colour image's rows are read out over this many ms, first "
+                 "row to last, each row the view at its own time (the frame's time is the middle "
+                 "row's; at most a frame interval; depth stays a global shutter's)")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
   app.add_option("--threads", options.threads, "Render threads (0 = all cores)")
       ->capture_default_str();
   CLI11_PARSE(app, argc, argv);
   if (no_noise || options.noise_scale == 0.0) options.noise = false;
   options.exposure_s = exposure_ms * 1e-3;
   options.depth_lag_s = depth_lag_ms * 1e-3;
+  options.rolling_shutter_s = rolling_shutter_ms * 1e-3;
   if (!config.empty()) {
     for (const char* fixed : {"--width", "--height", "--fps"}) {
       if (app.count(fixed) > 0) {

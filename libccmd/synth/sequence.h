@@ -82,6 +82,11 @@ struct SyntheticSequenceOptions {
   // 10-15 ms after its colour): the depth image is the view at that time, depth.txt gives that
   // time, and the ground truth stays the colour image's.
   double depth_lag_s = 0;
+  // Rolling shutter: the colour image's rows are read out one after another over this time
+  // (seconds, first row to last, at most a frame interval), each row the view at its own time;
+  // the frame's time and its ground truth are the middle row's. Depth stays a global shutter's
+  // (one view at the frame's time, or depth_lag_s after it). 0: a global shutter.
+  double rolling_shutter_s = 0;
   int threads = 0;        // 0: all cores
   RoomSceneOptions room;  // room.seed is overridden by seed
   LoopPathOptions path;

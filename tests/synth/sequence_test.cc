@@ -300,6 +300,60 @@ TEST(SequenceTest, ALateDepthIsTheViewAtItsOwnTime) {
   EXPECT_FALSE(too_late.Validate().ok());
 }
 
+// A rolling shutter's rows are read one after another: the image's first band of rows is the
+// view of 31/64 of the readout before the frame's time, its last band the view as long after
+// (32 bands, each at its middle row's time), and the depth is the frame's time's. With that
+// readout set to 64/31 of 1/90 s, the bands are frames of the same path rendered at 90 Hz.
+TEST(SequenceTest, ARollingShutterReadsEachBandOfRowsAtItsOwnTime) {
+  testing::TempDir dir;
+  SyntheticSequenceOptions global = SmallOptions();
+  global.frames = 3;
+  global.height = 128;  // 32 bands of 4 rows
+  global.noise = false;
+  global.path.loop_period_s = 5;
+  SyntheticSequenceOptions rolling = global;
+  rolling.rolling_shutter_s = 64.0 / 31 / 90;
+  SyntheticSequenceOptions tripled = global;
+  tripled.frames = 9;
+  tripled.fps = 90;
+  std::map<std::string, std::vector<RgbdFrame>> frames;
+  for (const auto& [name, options] : {std::pair{"global", global}, std::pair{"rolling", rolling},
+                                      std::pair{"tripled", tripled}}) {
+    ASSERT_TRUE(WriteSyntheticSequence(dir.File(name), options).ok()) << name;
+    auto sequence = TumSequence::Open(dir.File(name), std::nullopt);
+    ASSERT_TRUE(sequence.ok()) << sequence.status().ToString();
+    for (std::size_t i = 0; i < sequence->size(); ++i) {
+      auto frame = sequence->LoadFrame(i);
+      ASSERT_TRUE(frame.ok()) << frame.status().ToString();
+      frames[name].push_back(*frame);
+    }
+  }
+  auto camera_yaml = ConfigFile::Open(dir.File("rolling") + "/camera.yaml");
+  ASSERT_TRUE(camera_yaml.ok());
+  EXPECT_NEAR(camera_yaml->GetDouble("Camera.rollingShutterReadout", 0).value(),
+              rolling.rolling_shutter_s, 1e-6);
+  // Mean absolute difference of two images' rows [first, last).
+  const auto differ = [](const cv::Mat& a, const cv::Mat& b, int first, int last) {
+    return cv::norm(a.rowRange(first, last), b.rowRange(first, last), cv::NORM_L1) /
+           static_cast<double>(a.cols * (last - first) * a.channels());
+  };
+  const int h = global.height, band = h / 32;
+  for (std::size_t i = 1; i < 3; ++i) {
+    const cv::Mat& image = frames["rolling"][i].bgr;
+    // (the same times summed in another order: a few edge pixels may round the other way)
+    EXPECT_LT(differ(image, frames["tripled"][3 * i - 1].bgr, 0, band), 0.5) << i;
+    EXPECT_LT(differ(image, frames["tripled"][3 * i + 1].bgr, h - band, h), 0.5) << i;
+    EXPECT_GT(differ(image, frames["global"][i].bgr, 0, band), 3.0) << i;
+    EXPECT_GT(differ(image, frames["global"][i].bgr, h - band, h), 3.0) << i;
+    EXPECT_EQ(cv::norm(frames["rolling"][i].depth_mm, frames["global"][i].depth_mm, cv::NORM_INF),
+              0)
+        << i;
+  }
+  SyntheticSequenceOptions too_slow = SmallOptions();
+  too_slow.rolling_shutter_s = 0.04;  // longer than a frame at 30 Hz
+  EXPECT_FALSE(too_slow.Validate().ok());
+}
+
 TEST(SequenceTest, BadOptionsAreRefused) {
   testing::TempDir dir;
   SyntheticSequenceOptions o = SmallOptions();
