@@ -288,12 +288,18 @@ ccmd::StatusOr<std::unique_ptr<ccmd::TumRecorder>> OpenRecorder(
   // Live cameras must not stall tracking: encode on a writer thread behind a queue.
   record_options.queue_frames = 16;
   record_options.drop_when_full = live;
-  // The recording replays with this sensor's depth noise and frame depth weight, as without
-  // them the agent would take the defaults (a Kinect's) for a folder read without --config.
+  // The recording replays with this sensor's depth noise, frame depth weight and rolling
+  // shutter, as without them the agent would take the defaults (a Kinect's, a global shutter)
+  // for a folder read without --config.
   record_options.config_keys = ccmd::DepthNoiseConfigKeys(tracking.depth_noise);
   if (tracking.frame_depth_weight > 0) {
     record_options.config_keys +=
         "Tracking.frameDepthWeight: " + ccmd::ExactNumber(tracking.frame_depth_weight) + "\n";
+  }
+  if (tracking.rolling_shutter_readout > 0) {
+    record_options.config_keys +=
+        "Camera.rollingShutterReadout: " + ccmd::ExactNumber(tracking.rolling_shutter_readout) +
+        "\n";
   }
   return ccmd::TumRecorder::Create(a.record_dir, camera, record_options);
 }

@@ -42,6 +42,8 @@ StatusOr<TrackingOptions> ReadTrackingOptions(const ConfigFile& c, TrackingOptio
   CCMD_ASSIGN_OR_RETURN(const int lag,
                         c.GetInt("Tracking.depthLagCompensation", o.compensate_depth_lag));
   o.compensate_depth_lag = lag != 0;
+  CCMD_ASSIGN_OR_RETURN(o.rolling_shutter_readout,
+                        c.GetDouble("Camera.rollingShutterReadout", o.rolling_shutter_readout));
   CCMD_ASSIGN_OR_RETURN(o.triangulation_neighbours,
                         c.GetInt("Tracking.triangulationNeighbours", o.triangulation_neighbours));
   CCMD_ASSIGN_OR_RETURN(o.max_keyframes, c.GetInt("Tracking.maxKeyframes", o.max_keyframes));

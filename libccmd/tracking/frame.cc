@@ -87,13 +87,46 @@ cv::Point2f WhereDepthSaw(const cv::Mat& depth_mm, const cv::Point2f& pt,
 
 }  // namespace
 
+Pose MotionOver(const Pose& velocity, double interval, double dt) {
+  const double fraction = dt / interval;
+  Pose T_later_now = Pose::Identity();
+  T_later_now.linear() = RotationFromAngleAxis(fraction * AngleAxisFromRotation(velocity.linear()));
+  T_later_now.translation() = fraction * velocity.translation();
+  return T_later_now.inverse();
+}
+
+void UnrollKeypoints(const cv::Mat& depth_mm, const PinholeCamera& camera,
+                     const RollingShutter& shutter, const TrackingOptions& options,
+                     std::vector<cv::KeyPoint>* keypoints) {
+  const double height = camera.height;
+  for (cv::KeyPoint& keypoint : *keypoints) {
+    const double dt = shutter.readout * ((keypoint.pt.y + 0.5) / height - 0.5);
+    const Pose T_now_then = MotionOver(shutter.velocity, shutter.interval, dt);
+    const Eigen::Vector2d raw(keypoint.pt.x, keypoint.pt.y);
+    const Eigen::Vector2d ideal = camera.HasDistortion() ? camera.UndistortPixel(raw) : raw;
+    const int x = cvRound(raw.x()), y = cvRound(raw.y());
+    const double d = depth_mm.empty() || x < 0 || y < 0 || x >= depth_mm.cols || y >= depth_mm.rows
+                         ? 0.0
+                         : depth_mm.at<std::uint16_t>(y, x) * 1e-3;
+    const bool has_depth = d >= options.min_depth && d <= options.max_depth;
+    const Eigen::Vector3d seen = camera.BackProject(ideal.x(), ideal.y(), has_depth ? d : 1.0);
+    // Without depth the point counts as far: only the rotation moves it.
+    const Eigen::Vector3d now = has_depth ? T_now_then * seen : T_now_then.linear() * seen;
+    if (!(now.z() > 0)) continue;
+    const Eigen::Vector2d moved = camera.ProjectToImage(now);
+    keypoint.pt.x = static_cast<float>(std::clamp(moved.x(), 0.0, camera.width - 1.0));
+    keypoint.pt.y = static_cast<float>(std::clamp(moved.y(), 0.0, camera.height - 1.0));
+  }
+}
+
 FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, const OrbExtractor& orb,
                               const PinholeCamera& camera, const TrackingOptions& options,
-                              const Pose* T_colour_depth) {
+                              const Pose* T_colour_depth, const RollingShutter* shutter) {
   OrbFeatures orb_features = orb.Extract(gray);
   FrameFeatures f;
   f.keypoints = std::move(orb_features.keypoints);
   if (options.subpixel_keypoints) RefineKeypoints(gray, &f.keypoints);
+  if (shutter) UnrollKeypoints(depth_mm, camera, *shutter, options, &f.keypoints);
   f.descriptors = orb_features.descriptors;
   f.depth.assign(f.keypoints.size(), 0.0f);
   f.depth_sigma.assign(f.keypoints.size(), 0.0f);
@@ -169,7 +202,8 @@ void TrackingFrame::HandDepthTo(Keyframe* keyframe) const {
 std::unique_ptr<TrackingFrame> MakeFrame(const RgbdFrame& input, const OrbExtractor& orb,
                                          const PinholeCamera& camera,
                                          const TrackingOptions& options,
-                                         const std::optional<Pose>& T_colour_depth) {
+                                         const std::optional<Pose>& T_colour_depth,
+                                         const RollingShutter* shutter) {
   auto frame = std::make_unique<TrackingFrame>();
   frame->index = input.index;
   frame->timestamp = input.timestamp;
@@ -187,7 +221,7 @@ std::unique_ptr<TrackingFrame> MakeFrame(const RgbdFrame& input, const OrbExtrac
     cv::cvtColor(input.bgr, gray, cv::COLOR_BGR2GRAY);
   }
   frame->features = ComputeFeatures(gray, input.depth_mm, orb, camera, options,
-                                    T_colour_depth ? &*T_colour_depth : nullptr);
+                                    T_colour_depth ? &*T_colour_depth : nullptr, shutter);
   frame->grid = FeatureGrid(frame->features.keypoints, camera.width, camera.height);
   frame->points.assign(frame->features.keypoints.size(), nullptr);
   frame->outlier.assign(frame->features.keypoints.size(), false);

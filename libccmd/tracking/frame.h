@@ -63,6 +63,27 @@ struct TrackingFrame {
   cv::Mat depth_at_colour_time_;
 };
 
+// The camera's motion over `dt` seconds after a frame's time by the constant-velocity model
+// whose `velocity` (T_cur_prev) spans `interval` seconds: that fraction of its rotation (about
+// the same axis) and of its translation. Returns T_now_later, which takes a point in the
+// camera at the later time into the camera at the frame's time.
+Pose MotionOver(const Pose& velocity, double interval, double dt);
+
+// A rolling shutter's readout and the camera's motion meanwhile (TrackingOptions::
+// rolling_shutter_readout and the constant-velocity model).
+struct RollingShutter {
+  double readout = 0;  // seconds, first row to last
+  Pose velocity;       // T_cur_prev
+  double interval = 0;
+};
+
+// Moves each keypoint (raw pixels, as detected) to where the camera would have seen its point
+// at the frame's time, the middle row's: row y was read (y + 0.5) / height - 0.5 readouts from
+// it. The point is the keypoint's pixel at the depth there (rotation alone where it has none).
+void UnrollKeypoints(const cv::Mat& depth_mm, const PinholeCamera& camera,
+                     const RollingShutter& shutter, const TrackingOptions& options,
+                     std::vector<cv::KeyPoint>* keypoints);
+
 // Detects features in the colour image and attaches depth (metres) from the depth image at
 // each keypoint; depth outside [options.min_depth, options.max_depth] counts as missing. Each
 // depth gets its standard deviation: the sensor's noise (options.depth_noise) at that depth
@@ -71,16 +92,19 @@ struct TrackingFrame {
 // moved to the sub-pixel corner position.
 // `T_colour_depth`: the depth image was taken from that pose (TrackingFrame::T_colour_depth);
 // each keypoint then takes the depth where its point lies in the depth image, moved to the
-// colour image's time.
+// colour image's time. `shutter`: the colour image came from a rolling shutter; the keypoints
+// are moved to the frame's time first (UnrollKeypoints).
 std::unique_ptr<TrackingFrame> MakeFrame(const RgbdFrame& input, const OrbExtractor& orb,
                                          const PinholeCamera& camera,
                                          const TrackingOptions& options,
-                                         const std::optional<Pose>& T_colour_depth = std::nullopt);
+                                         const std::optional<Pose>& T_colour_depth = std::nullopt,
+                                         const RollingShutter* shutter = nullptr);
 
 // The frame's features with depth lookups, for keyframes created directly (tests).
 FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, const OrbExtractor& orb,
                               const PinholeCamera& camera, const TrackingOptions& options,
-                              const Pose* T_colour_depth = nullptr);
+                              const Pose* T_colour_depth = nullptr,
+                              const RollingShutter* shutter = nullptr);
 
 // Standard deviation (metres) of the depth `z` read at pixel (x, y) for a keypoint whose
 // position is uncertain by `pixel_sigma` pixels: the sensor's noise, and the depth slope

@@ -31,6 +31,8 @@ Status TrackingOptions::Validate() const {
   if (!(depth_alignment_weight >= 0)) return fail("depth alignment weight must be >= 0");
   if (!(frame_depth_weight >= 0) || !std::isfinite(frame_depth_weight))
     return fail("frame depth weight must be finite and >= 0");
+  if (!(rolling_shutter_readout >= 0 && rolling_shutter_readout <= 1))
+    return fail("rolling shutter readout must be in [0, 1] s (0: a global shutter)");
   if (!(depth_bridge_seconds >= 0 && depth_bridge_seconds <= 3600))
     return fail("depth bridge seconds must be in [0, 3600] (0: off)");
   if (max_keyframes < local_ba_window + 5)
@@ -67,6 +69,7 @@ void TrackingOptions::Describe(OptionsWriter* out) const {
   out->Add("frame_depth_weight", frame_depth_weight);
   out->Add("depth_bridge_seconds", depth_bridge_seconds);
   out->Add("compensate_depth_lag", compensate_depth_lag);
+  out->Add("rolling_shutter_readout", rolling_shutter_readout);
   out->Add("triangulation_neighbours", triangulation_neighbours);
   out->Add("max_keyframes", max_keyframes);
   out->Add("cull_redundant_keyframes", cull_redundant_keyframes);

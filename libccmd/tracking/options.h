@@ -84,6 +84,12 @@ struct TrackingOptions {
   // TUM RGB-D's do not show they are (docs/benchmarks/frontend.md#depth-taken-after-colour);
   // a rendered sequence's camera.yaml turns it on.
   bool compensate_depth_lag = false;
+  // Rolling shutter (the config's Camera.rollingShutterReadout): the colour image's rows were
+  // read out one after another over this time (seconds, first row to last), so each row shows
+  // the scene from where the camera was at its own time. Each keypoint is moved to where the
+  // middle row's time would have seen it, by the constant-velocity model's motion over its
+  // row's offset (docs/frontend.md). 0: a global shutter.
+  double rolling_shutter_readout = 0;
   // Keypoints without a map point and without depth at one end are matched with this many
   // best covisible keyframes along epipolar lines and triangulated into new points (ORB-SLAM's
   // CreateNewMapPoints; 0: off). Off by default: it gains on exact depth and loses on

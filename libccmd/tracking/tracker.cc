@@ -52,9 +52,15 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
   TrackResult result;
   Stopwatch watch;
   ThreadCpuStopwatch cpu;
+  std::optional<RollingShutter> shutter;
+  if (options_.rolling_shutter_readout > 0 && state_ == TrackingState::kOk && velocity_ &&
+      velocity_interval_ > 0) {
+    shutter = RollingShutter{options_.rolling_shutter_readout, *velocity_, velocity_interval_};
+  }
   current_ =
       MakeFrame(input, *orb_, camera_, options_,
-                input.depth_mm.empty() ? std::nullopt : DepthCameraPose(input.depth_time_offset));
+                input.depth_mm.empty() ? std::nullopt : DepthCameraPose(input.depth_time_offset),
+                shutter ? &*shutter : nullptr);
   result.extract_ms = watch.ElapsedMillis();
   result.extract_cpu_ms = cpu.ElapsedMillis();
   watch.Restart();
@@ -149,14 +155,8 @@ std::optional<Pose> Tracker::DepthCameraPose(double offset) const {
       state_ != TrackingState::kOk || !velocity_ || !(velocity_interval_ > 0)) {
     return std::nullopt;
   }
-  // The camera's motion from the colour image's time to the depth image's: that fraction of
-  // the last interval's (rotation about the same axis, translation in proportion).
-  const double fraction = offset / velocity_interval_;
-  Pose T_depth_colour = Pose::Identity();
-  T_depth_colour.linear() =
-      RotationFromAngleAxis(fraction * AngleAxisFromRotation(velocity_->linear()));
-  T_depth_colour.translation() = fraction * velocity_->translation();
-  return T_depth_colour.inverse();
+  // The camera's motion from the colour image's time to the depth image's.
+  return MotionOver(*velocity_, velocity_interval_, offset);
 }
 
 void Tracker::AddMapPoint(TrackingFrame* frame, Keyframe* keyframe, const Pose& T_world_cam,

@@ -105,6 +105,17 @@ TEST(AgentCliTest, AGuessedOrOwnConfigGivesTheTrackingOptionsTooAsAGivenOne) {
   }
   ASSERT_TRUE(WriteFileAtomic(kinect, text).ok());
   EXPECT_NE(run(dir.File("traj0_frei_png"), "--config " + kinect, "kinect.txt"), given);
+  // A rolling shutter's readout is recorded too (and moves the keypoints, so the run differs).
+  const std::string rolling = dir.File("rolling.yaml");
+  ASSERT_TRUE(
+      WriteFileAtomic(rolling, *ReadFileToString(icl) + "Camera.rollingShutterReadout: 0.02\n")
+          .ok());
+  EXPECT_NE(run(dir.File("traj0_frei_png"), "--config " + rolling + " --record " + dir.File("rs"),
+                "rolling.txt"),
+            given);
+  auto recorded_rolling = ConfigFile::Open(dir.File("rs/camera.yaml"));
+  ASSERT_TRUE(recorded_rolling.ok());
+  EXPECT_EQ(*recorded_rolling->GetDouble("Camera.rollingShutterReadout", -1), 0.02);
 }
 
 // A recording mapped in the tracking thread keeps to the CPU budget by its pace: every local

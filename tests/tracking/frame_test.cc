@@ -63,6 +63,63 @@ TEST(TrackingFrameTest, KeypointsAreUndistortedAfterTheDepthLookupAtTheRecordedP
   EXPECT_GT(largest_shift, 3.0);  // pixels near the corners move
 }
 
+// A rolling shutter read over 30 ms while the camera turns at 1 rad/s about its y axis and
+// moves 1 m/s along x: each row sees a plane 2 m ahead from where the camera was at its own
+// time. Unrolled, every keypoint is where the frame's time (the middle row's) sees its point,
+// through each shipped convention (plain, TUM's lens distortion, ICL-NUIM's negative fy).
+// Where a keypoint has no depth the rotation alone moves it, which is exact for a turn.
+TEST(TrackingFrameTest, UnrolledKeypointsAreWhereTheFramesTimeSeesThem) {
+  constexpr double kReadout = 0.03, kTurn = 1.0, kSpeed = 1.0, kPlane = 2.0;
+  for (const bool with_depth : {true, false}) {
+    const double speed = with_depth ? kSpeed : 0.0;
+    // The camera s seconds after the frame's time, in the frame's camera.
+    const auto T_frame_cam = [&](double s) {
+      Pose T = Pose::Identity();
+      T.linear() = Eigen::AngleAxisd(kTurn * s, Eigen::Vector3d::UnitY()).toRotationMatrix();
+      T.translation() = Eigen::Vector3d(speed * s, 0, 0);
+      return T;
+    };
+    for (PinholeCamera camera :
+         {PinholeCamera{}, testing::TumFr1Camera(), testing::IclNuimCamera()}) {
+      camera.width = 640;
+      camera.height = 480;
+      const cv::Mat depth(480, 640, CV_16UC1, cv::Scalar(with_depth ? kPlane * 1000 : 0));
+      RollingShutter shutter;
+      shutter.readout = kReadout;
+      shutter.interval = 1.0 / 30;
+      shutter.velocity = T_frame_cam(-shutter.interval);  // T_cur_prev
+      std::vector<cv::KeyPoint> keypoints;
+      std::vector<Eigen::Vector2d> truth;
+      for (double u = 40; u < 640; u += 80) {
+        for (double v = 20; v < 480; v += 55) {
+          const Eigen::Vector3d point = camera.BackProject(u, v, kPlane);  // in the frame's camera
+          // The pixel the rolling shutter records: its row's time depends on the row itself.
+          Eigen::Vector2d seen = camera.ProjectToImage(point);
+          for (int k = 0; k < 20; ++k) {
+            const double s = kReadout * ((seen.y() + 0.5) / camera.height - 0.5);
+            seen = camera.ProjectToImage(T_frame_cam(s).inverse() * point);
+          }
+          keypoints.emplace_back(static_cast<float>(seen.x()), static_cast<float>(seen.y()), 8);
+          truth.push_back(camera.ProjectToImage(point));
+        }
+      }
+      double before = 0, after = 0;
+      for (std::size_t i = 0; i < keypoints.size(); ++i) {
+        before = std::max(
+            before, (truth[i] - Eigen::Vector2d(keypoints[i].pt.x, keypoints[i].pt.y)).norm());
+      }
+      UnrollKeypoints(depth, camera, shutter, TrackingOptions{}, &keypoints);
+      for (std::size_t i = 0; i < keypoints.size(); ++i) {
+        after = std::max(after,
+                         (truth[i] - Eigen::Vector2d(keypoints[i].pt.x, keypoints[i].pt.y)).norm());
+      }
+      EXPECT_GT(before, 5.0) << camera.ToString();
+      // (the motion model interpolates rotation and translation apart: 0.1 mm at 15 ms)
+      EXPECT_LT(after, with_depth ? 0.1 : 0.01) << camera.ToString() << " " << with_depth;
+    }
+  }
+}
+
 // On a slanted surface a keypoint between pixels takes the depth at its own position, not the
 // nearest pixel's (which is off by the slope times up to half a pixel: here up to 2 mm).
 TEST(TrackingFrameTest, AKeypointBetweenPixelsTakesTheDepthAtItsPosition) {
