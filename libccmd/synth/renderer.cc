@@ -31,6 +31,8 @@ Status RenderOptions::Validate() const {
   if (!(color_sigma >= 0) || !(blur_sigma >= 0))
     return InvalidArgument("noise sigmas must be >= 0");
   if (threads < 1) return InvalidArgument("render threads must be at least 1");
+  if (row_first < 0 || row_last < -1 || (row_last >= 0 && row_last < row_first))
+    return InvalidArgument("rows to render must satisfy 0 <= first <= last (last -1: all)");
   return Status::Ok();
 }
 
@@ -41,6 +43,8 @@ void RenderOptions::Describe(OptionsWriter* out) const {
   out->Add("blur_sigma", blur_sigma);
   out->Add("seed", seed);
   out->Add("threads", threads);
+  out->Add("row_first", row_first);
+  out->Add("row_last", row_last);
 }
 
 void VisibilityMarks::Init(const SyntheticScene& scene, double cell_spacing) {
@@ -415,9 +419,18 @@ RenderedFrame RenderFrame(const SyntheticScene& scene, const PinholeCamera& came
   shade.depth_model = &options.depth;
   shade.marks = marks;
   const DepthSensorModel& dm = options.depth;
+  // The rows rendered: those asked for and the neighbours their depth edges and optical blur
+  // read. Noise is seeded per row, so the rows asked for are those of the whole image.
+  const int margin = 2 + static_cast<int>(std::ceil(4 * options.blur_sigma));
+  const int y_first = std::clamp(options.row_first - margin, 0, H - 1);
+  const int y_last = options.row_last < 0 ? H - 1 : std::min(H - 1, options.row_last + margin);
+  const auto for_rows = [&](auto&& fn) {
+    ForRowBands(y_last - y_first + 1, threads,
+                [&](int first, int last) { fn(first + y_first, last + y_first); });
+  };
 
   // Pass 1: visible polygon and depth per pixel, then shading, by bands of rows.
-  ForRowBands(H, threads, [&](int band_first, int band_last) {
+  for_rows([&](int band_first, int band_last) {
     if (distorted) {
       ResampleBand(frame_polygons, grid, grid_ids, rays, kNear, band_first, band_last, &zbuf,
                    &out.polygon);
@@ -430,7 +443,7 @@ RenderedFrame RenderFrame(const SyntheticScene& scene, const PinholeCamera& came
   // Pass 2: the depth sensor model (needs neighbouring rows' true depth for the edge test).
   // Random numbers are seeded per row, so the result does not depend on the thread count.
   const std::vector<float>& gauss = GaussianTable();
-  ForRowBands(H, threads, [&](int band_first, int band_last) {
+  for_rows([&](int band_first, int band_last) {
     for (int y = band_first; y <= band_last; ++y) {
       Rng rng(MixSeed(options.seed, static_cast<std::uint64_t>(y)));
       const float* zrow = out.depth_true.ptr<float>(y);
@@ -476,7 +489,7 @@ RenderedFrame RenderFrame(const SyntheticScene& scene, const PinholeCamera& came
   }
   if (options.noise && options.color_sigma > 0) {
     const float sigma = static_cast<float>(options.color_sigma);
-    ForRowBands(H, threads, [&](int band_first, int band_last) {
+    for_rows([&](int band_first, int band_last) {
       for (int y = band_first; y <= band_last; ++y) {
         Rng rng(MixSeed(options.seed ^ 0xc0105, static_cast<std::uint64_t>(y)));
         uchar* row = out.bgr.ptr<uchar>(y);

@@ -42,6 +42,10 @@ struct RenderOptions {
   double blur_sigma = 0.5;   // pixels; 0 disables
   std::uint64_t seed = 0;    // noise seed (mix in the frame index)
   int threads = 1;           // bands of rows rendered in parallel (same image for any count)
+  // Only rows [row_first, row_last] are needed (-1: to the last row); the others may be left
+  // blank. A rolling shutter renders each band of rows from its own pose.
+  int row_first = 0;
+  int row_last = -1;
 
   Status Validate() const;
   void Describe(OptionsWriter* out) const;

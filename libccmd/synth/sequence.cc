@@ -228,10 +228,13 @@ cv::Mat RollingShutterColour(const SyntheticScene& scene, const SyntheticSequenc
     const int first = b * camera.height / bands, last = (b + 1) * camera.height / bands;
     const double middle_row = 0.5 * (first + last);
     const double t_b = t + options.rolling_shutter_s * (middle_row / camera.height - 0.5);
+    RenderOptions rows = render;
+    rows.row_first = first;
+    rows.row_last = last - 1;
     const cv::Mat view =
         options.exposure_s > 0
-            ? BlurredColour(scene, options, camera, t_b, render)
-            : RenderFrame(scene, camera, LoopPathPose(t_b, options.path), render).bgr;
+            ? BlurredColour(scene, options, camera, t_b, rows)
+            : RenderFrame(scene, camera, LoopPathPose(t_b, options.path), rows).bgr;
     view.rowRange(first, last).copyTo(bgr.rowRange(first, last));
   }
   return bgr;
