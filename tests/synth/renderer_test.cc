@@ -166,7 +166,9 @@ TEST(RendererTest, ABandOfRowsAloneIsThoseRowsOfTheWholeImage) {
                 0)
           << camera.ToString() << " rows " << first;
       EXPECT_GT(cv::norm(full.bgr.rowRange(rows), cv::NORM_L1), 0);
-      if (first > 20) EXPECT_EQ(cv::norm(part.bgr.rowRange(0, 10), cv::NORM_INF), 0);  // not drawn
+      if (first > 20) {
+        EXPECT_EQ(cv::norm(part.bgr.rowRange(0, 10), cv::NORM_INF), 0);  // not drawn
+      }
     }
   }
   RenderOptions backwards;
