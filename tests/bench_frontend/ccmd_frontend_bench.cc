@@ -18,6 +18,7 @@
 #include "libccmd/sensors/source_factory.h"
 #include "libccmd/tracking/config.h"
 #include "libccmd/tracking/cpu_budget.h"
+#include "libccmd/tracking/depth_consistency.h"
 #include "libccmd/tracking/frontend.h"
 #include "libccmd/util/json.h"
 #include "libccmd/util/timer.h"
@@ -127,13 +128,41 @@ void BlankColour(std::vector<RgbdFrame>* frames, std::pair<int, int> range) {
   }
 }
 
+// How far the tracked motion between frames `gap` apart is from what their depth alone says
+// (MeasureDepthConsistency): needs no ground truth, so a camera setting can be chosen by it.
+void ReportDepthConsistency(const std::vector<RgbdFrame>& frames, const Trajectory& trajectory,
+                            const PinholeCamera& camera, const TrackingOptions& tracking, int gap,
+                            Json* result) {
+  DepthConsistencyOptions options;
+  options.gap = gap;
+  options.min_depth = tracking.min_depth;
+  options.max_depth = tracking.max_depth;
+  options.noise = tracking.depth_noise;
+  const auto consistency = MeasureDepthConsistency(frames, trajectory, camera, options);
+  if (!consistency) {
+    std::printf("  depth consistency: no pair of frames %d apart could be aligned\n", gap);
+    return;
+  }
+  constexpr double kDegrees = 180.0 / M_PI;
+  std::printf(
+      "  depth consistency (frames %d apart, %d pairs aligned, %d not): tracked motion against "
+      "the depth's own, median %.2f mm, %.3f deg\n",
+      gap, consistency->pairs, consistency->failed, consistency->translation_median_m * 1e3,
+      consistency->rotation_median_rad * kDegrees);
+  (*result)["depth_consistency_pairs"] = consistency->pairs;
+  (*result)["depth_consistency_translation_median_m"] = consistency->translation_median_m;
+  (*result)["depth_consistency_translation_mean_m"] = consistency->translation_mean_m;
+  (*result)["depth_consistency_rotation_median_deg"] = consistency->rotation_median_rad * kDegrees;
+  (*result)["depth_consistency_rotation_mean_deg"] = consistency->rotation_mean_rad * kDegrees;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
   CLI::App app{
       "Front-end benchmark: ATE against ground truth and OpenCV RgbdOdometry, speed, footprint."};
   std::string source_spec, config_path, json_path, trajectory_path, baseline_path, stage = "all";
-  int max_frames = 0;
+  int max_frames = 0, consistency_gap = 10;
   bool skip_baseline = false, synchronous = false, footprint = false;
   double cpu_budget = 0;
   app.add_option("--source", source_spec, "tum:DIR or synth:frames=N,...")->required();
@@ -155,6 +184,11 @@ int main(int argc, char** argv) {
   app.add_option("--blank", blank,
                  "FIRST-LAST: replace these frames' colour (0-based, in the order played) by its "
                  "mean, as a blank wall or a fast turn gives it (no features; depth kept)");
+  app.add_option("--depth-consistency", consistency_gap,
+                 "After the run, align the depth of frames this many apart and report how far "
+                 "the tracked motion is from it (no ground truth needed; 0: off)")
+      ->check(CLI::NonNegativeNumber)
+      ->capture_default_str();
   app.add_flag("--footprint", footprint,
                "Stream frames (no preloading) and print memory and frame time every 300 frames");
   app.add_option(
@@ -316,6 +350,10 @@ int main(int argc, char** argv) {
   std::printf("  depth alignment: %d accepted, %d rejected, %.1f ms per keyframe\n",
               stats.mapping.depth_alignments, stats.mapping.depth_alignments_failed,
               result["depth_alignment_ms_mean"].number());
+  if (consistency_gap > 0 && !frames.empty()) {
+    ReportDepthConsistency(frames, (*frontend)->FrameTrajectory(), camera, options, consistency_gap,
+                           &result);
+  }
   if (!trajectory_path.empty()) WriteTumTrajectory(ours, trajectory_path).IgnoreError();
   if (!ground_truth.empty()) {
     auto ate = ComputeAte(ground_truth, ours);

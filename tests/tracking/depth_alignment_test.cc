@@ -1,6 +1,7 @@
 // Dense depth alignment on depth images ray-cast from planes with exact poses.
 
 #include "libccmd/tracking/depth_alignment.h"
+#include "libccmd/tracking/depth_consistency.h"
 
 #include <gtest/gtest.h>
 
@@ -163,6 +164,41 @@ TEST(DepthAlignmentTest, APointFallsInTheCellOfItsPixel) {
   EXPECT_FALSE(at(-0.6, 10).has_value());
   EXPECT_EQ(at(639.4, 479.4), C(159, 119));
   EXPECT_FALSE(at(639.6, 10).has_value());
+}
+
+// A camera sliding past the room corner while it turns: the depth of frames 10 apart agrees
+// with the true motion, and a trajectory that turns 0.1 degree a frame too far is found out by
+// the depth alone, 1 degree per pair. A frame the trajectory has no pose for is not paired.
+TEST(DepthConsistencyTest, TheDepthAloneFindsATrajectoryThatTurnsTooFar) {
+  Rng rng(43);
+  std::vector<RgbdFrame> frames;
+  Trajectory truth, turned;
+  constexpr double kDrift = 0.1 * M_PI / 180;  // per frame
+  for (int k = 0; k < 40; ++k) {
+    const Pose T_world_cam = Motion({0.0, 0.15 + 0.004 * k, 0.01}, {-0.2 + 0.01 * k, 0, 0.005 * k});
+    RgbdFrame frame;
+    frame.index = k;
+    frame.timestamp = k / 30.0;
+    frame.depth_mm = RenderDepth(kCorner, T_world_cam, 0.001, &rng);
+    frames.push_back(frame);
+    if (k == 21) continue;  // no pose
+    truth.push_back({frame.timestamp, T_world_cam});
+    turned.push_back({frame.timestamp, T_world_cam * Motion({0, kDrift * k, 0}, {0, 0, 0})});
+  }
+  DepthConsistencyOptions options;  // frames 10 apart, a pair every 3rd frame: 10 pairs
+  const auto exact = MeasureDepthConsistency(frames, truth, Vga(), options);
+  ASSERT_TRUE(exact.has_value());
+  EXPECT_EQ(exact->pairs, 9);
+  EXPECT_EQ(exact->failed, 1);  // frames 21 and 31
+  EXPECT_LT(exact->translation_median_m, 0.001);
+  EXPECT_LT(exact->rotation_median_rad, 0.05 * M_PI / 180);
+
+  const auto off = MeasureDepthConsistency(frames, turned, Vga(), options);
+  ASSERT_TRUE(off.has_value());
+  EXPECT_NEAR(off->rotation_median_rad, 10 * kDrift, 0.15 * 10 * kDrift);
+  EXPECT_NEAR(off->rotation_mean_rad, 10 * kDrift, 0.15 * 10 * kDrift);
+  // The camera turned about its own centre: the depth's correction is that turn, not a shift.
+  EXPECT_LT(off->translation_median_m, 0.003);
 }
 
 }  // namespace
