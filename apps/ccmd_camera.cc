@@ -6,6 +6,7 @@
 //   ccmd_camera --source tum:DIR --config FILE --check-registration  the Depth block's offset
 //   ccmd_camera --source tum:DIR --config FILE --check-ground-truth  whose poses the truth gives
 //   ccmd_camera --source SPEC [--config FILE] --check-noise [--frames N]  depth noise vs config
+//   ccmd_camera --source tum:DIR [--config FILE] --check-shutter [--frames N]  rolling shutter
 //
 // SPEC is any source spec (openni2[:URI], v4l2:color=...,depth=..., tum:DIR, synth:...).
 // Ctrl-C ends a recording cleanly: the current frame is finished and the lists closed.
@@ -32,7 +33,9 @@
 #include "libccmd/sensors/depth_registration.h"
 #include "libccmd/sensors/pixel_formats.h"
 #include "libccmd/sensors/source_factory.h"
+#include "libccmd/tracking/config.h"
 #include "libccmd/tracking/depth_noise_meter.h"
+#include "libccmd/tracking/readout_check.h"
 #ifdef CCMD_HAVE_OPENNI2
 #include "libccmd/sensors/openni2_source.h"
 #endif
@@ -391,9 +394,71 @@ int CheckNoise(const std::string& spec, const std::string& config, int frames) {
   return 0;
 }
 
+// --check-shutter: the colour camera's rolling-shutter readout read off a recording with no
+// ground truth (ccmd::CheckReadout): its first frames tracked once per candidate readout, each
+// run's motion held against the depth images' own.
+int CheckShutter(const std::string& spec, const std::string& config, int frames,
+                 const std::vector<double>& candidates_ms) {
+  ccmd::SourceOptions options;
+  options.camera_config = config;
+  options.configs_dir = ccmd::app::ConfigDir();
+  auto opened = ccmd::OpenSource(spec, options);
+  if (!opened.ok()) return Fail(opened.status());
+  const std::unique_ptr<ccmd::RgbdSource>& source = *opened;
+  ccmd::TrackingOptions tracking;
+  if (const std::string path = ccmd::SourceConfigPath(spec, options); !path.empty()) {
+    auto file = ccmd::ConfigFile::Open(path);
+    if (!file.ok()) return Fail(file.status());
+    auto read = ccmd::ReadTrackingOptions(*file);
+    if (!read.ok()) return Fail(read.status());
+    tracking = *read;
+  }
+  std::vector<ccmd::RgbdFrame> loaded;
+  ccmd::RgbdFrame frame;
+  while (static_cast<int>(loaded.size()) < frames && source->Read(&frame).ok())
+    loaded.push_back(frame);
+  ccmd::ReadoutCheckOptions check;
+  check.candidates.clear();
+  for (double ms : candidates_ms) check.candidates.push_back(1e-3 * ms);
+  std::printf(
+      "rolling-shutter check on the first %zu frames: each readout tracked, and the\n"
+      "tracked motion held against the depth images' own (smaller is better)\n",
+      loaded.size());
+  std::fflush(stdout);
+  const auto result = ccmd::CheckReadout(
+      loaded, source->camera(), tracking, check, [](const ccmd::ReadoutTrial& t) {
+        std::printf(
+            "  readout %5.1f ms: rotation %.4f deg, translation %.2f mm (medians over %d "
+            "pairs)%s\n",
+            1e3 * t.readout, t.consistency.rotation_median_rad * 180 / M_PI,
+            1e3 * t.consistency.translation_median_m, t.consistency.pairs,
+            t.lost_frames ? (", " + std::to_string(t.lost_frames) + " frames lost").c_str() : "");
+        std::fflush(stdout);
+      });
+  if (!result.ok()) return Fail(result.status());
+  std::printf("pairs of frames %d apart (the camera turns about %.0f degrees between them)\n",
+              result->gap, check.pair_rotation_deg);
+  if (!result->readout) {
+    std::printf(
+        "these frames do not show a readout (no candidate beats 0 by %.0f %%): keep "
+        "Camera.rollingShutterReadout at %g (the config's), or record faster turns\n",
+        100 * check.min_gain, tracking.rolling_shutter_readout);
+  } else if (*result->readout == 0) {
+    std::printf("best: a global shutter\nCamera.rollingShutterReadout: 0\n");
+  } else {
+    std::printf(
+        "best: %.1f ms (between the candidates, the vertex of a parabola through the "
+        "best three; candidates 5 ms apart around it narrow it down)\n"
+        "Camera.rollingShutterReadout: %.4f\n",
+        1e3 * *result->readout, *result->readout);
+  }
+  return 0;
+}
+
 struct CameraArgs {
   bool list = false, retry = false, check_registration = false, check_ground_truth = false;
-  bool check_noise = false;
+  bool check_noise = false, check_shutter = false;
+  std::vector<double> readouts_ms = {0, 10, 20, 30, 40};
   std::string spec, config, record;
   int frames = -1;  // -1: the default of the mode
   int every = 0;    // 0: the default of the mode
@@ -427,6 +492,14 @@ void AddOptions(CLI::App* app, CameraArgs* a) {
   app->add_flag("--check-noise", a->check_noise,
                 "Measure the depth noise on --frames frames (default 30, spread over a recording) "
                 "and compare it with the config's DepthNoise model");
+  app->add_flag("--check-shutter", a->check_shutter,
+                "Read the colour camera's rolling-shutter readout off a recording of hand-held "
+                "turns (no ground truth): its first --frames frames (default 450) tracked with "
+                "each of --readouts, against the depth images' own motion");
+  app->add_option("--readouts", a->readouts_ms, "Candidate readouts in ms for --check-shutter")
+      ->check(CLI::Range(0.0, 200.0))
+      ->delimiter(',')
+      ->capture_default_str();
 }
 
 // The recorder of --record: the sensor's depth noise from the config the camera was opened
@@ -538,6 +611,13 @@ std::optional<int> RunCheckModes(const CameraArgs& a) {
       return 2;
     }
     return CheckNoise(a.spec, a.config, a.frames > 0 ? a.frames : 30);
+  }
+  if (a.check_shutter) {
+    if (a.spec.empty()) {
+      std::fprintf(stderr, "ccmd_camera: --check-shutter needs --source\n");
+      return 2;
+    }
+    return CheckShutter(a.spec, a.config, a.frames > 0 ? a.frames : 450, a.readouts_ms);
   }
   if (a.check_registration) {
     if (a.spec.empty() || a.config.empty()) {

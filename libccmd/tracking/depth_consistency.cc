@@ -11,9 +11,8 @@ namespace {
 
 // The trajectory's pose at `timestamp` (within 1 ms); `sorted` is ordered by time.
 const Pose* PoseAt(const Trajectory& sorted, double timestamp) {
-  const auto it =
-      std::lower_bound(sorted.begin(), sorted.end(), timestamp - 1e-3,
-                       [](const StampedPose& p, double t) { return p.timestamp < t; });
+  const auto it = std::lower_bound(sorted.begin(), sorted.end(), timestamp - 1e-3,
+                                   [](const StampedPose& p, double t) { return p.timestamp < t; });
   if (it == sorted.end() || std::abs(it->timestamp - timestamp) > 1e-3) return nullptr;
   return &it->T_world_cam;
 }

@@ -21,9 +21,9 @@
 namespace ccmd {
 
 struct DepthConsistencyOptions {
-  int gap = 10;     // frames between the two of a pair
-  int stride = 3;   // a pair starts at every stride-th frame
-  int cell = 4;     // pixels per depth-model cell
+  int gap = 10;                              // frames between the two of a pair
+  int stride = 3;                            // a pair starts at every stride-th frame
+  int cell = 4;                              // pixels per depth-model cell
   double min_depth = 0.1, max_depth = 10.0;  // metres
   DepthNoise noise;
 };

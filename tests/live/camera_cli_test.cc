@@ -287,6 +287,40 @@ TEST(CameraCliTest, NoiseCheckReadsTheDepthImagersOwnPixels) {
   EXPECT_NEAR(std::atof(output.c_str() + at + 19), 1.0, 0.06) << output;
 }
 
+// --check-shutter on the fast path rendered with a 30 ms readout names that readout as the key
+// to set; on a global shutter (the synth: source) it does not name 30 ms.
+TEST(CameraCliTest, ShutterCheckNamesTheReadoutARecordingWasMadeWith) {
+  testing::TempDir dir;
+  std::string output;
+  ASSERT_EQ(testing::RunCommand(testing::ProgramPath("ccmd_synth") +
+                                    " --frames 90 --width 320 --height 240 --loop-period 6 "
+                                    "--rolling-shutter 30 --out " +
+                                    dir.File("rs") + " 2>&1",
+                                &output),
+            0)
+      << output;
+  ASSERT_EQ(RunCamera("--check-shutter --readouts 0,30,60 --source tum:" + dir.File("rs"), &output),
+            0)
+      << output;
+  EXPECT_NE(output.find("readout  60.0 ms: rotation"), std::string::npos) << output;
+  const std::size_t key = output.find("Camera.rollingShutterReadout: ");
+  ASSERT_NE(key, std::string::npos) << output;
+  EXPECT_NEAR(std::atof(output.c_str() + key + 30), 0.03, 0.008) << output;
+
+  ASSERT_EQ(
+      RunCamera("--check-shutter --readouts 0,30 --source synth:frames=90,width=320,height=240",
+                &output),
+      0)
+      << output;
+  EXPECT_NE(output.find("readout  30.0 ms: rotation"), std::string::npos) << output;
+  EXPECT_NE(output.find("Camera.rollingShutterReadout: 0\n"), std::string::npos) << output;
+
+  EXPECT_EQ(RunCamera("--check-shutter", &output), 2);
+  EXPECT_NE(output.find("--check-shutter needs --source"), std::string::npos) << output;
+  EXPECT_EQ(RunCamera("--check-shutter --source synth:frames=20,width=64,height=48", &output), 1);
+  EXPECT_NE(output.find("20 frames are too few"), std::string::npos) << output;
+}
+
 TEST(CameraCliTest, RecordsTheOpenNI2TestDriver) {
   testing::TempDir dir;
   const std::string folder = dir.File("rec");
