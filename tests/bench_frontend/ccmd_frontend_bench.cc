@@ -350,7 +350,7 @@ int main(int argc, char** argv) {
   std::printf("  depth alignment: %d accepted, %d rejected, %.1f ms per keyframe\n",
               stats.mapping.depth_alignments, stats.mapping.depth_alignments_failed,
               result["depth_alignment_ms_mean"].number());
-  if (consistency_gap > 0 && !frames.empty()) {
+  if (consistency_gap > 0 && !frames.empty() && stage != "frontend") {
     ReportDepthConsistency(frames, (*frontend)->FrameTrajectory(), camera, options, consistency_gap,
                            &result);
   }
