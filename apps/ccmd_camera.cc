@@ -427,17 +427,31 @@ int CheckShutter(const std::string& spec, const std::string& config, int frames,
   std::fflush(stdout);
   const auto result = ccmd::CheckReadout(
       loaded, source->camera(), tracking, check, [](const ccmd::ReadoutTrial& t) {
-        std::printf(
-            "  readout %5.1f ms: rotation %.4f deg, translation %.2f mm (medians over %d "
-            "pairs)%s\n",
-            1e3 * t.readout, t.consistency.rotation_median_rad * 180 / M_PI,
-            1e3 * t.consistency.translation_median_m, t.consistency.pairs,
-            t.lost_frames ? (", " + std::to_string(t.lost_frames) + " frames lost").c_str() : "");
+        const std::string lost =
+            t.lost_frames ? ", " + std::to_string(t.lost_frames) + " frames lost" : "";
+        if (t.consistency.pairs == 0) {
+          std::printf("  readout %5.1f ms: no pair of frames aligned%s\n", 1e3 * t.readout,
+                      lost.c_str());
+        } else {
+          std::printf(
+              "  readout %5.1f ms: rotation %.4f deg, translation %.2f mm (medians over "
+              "%d pairs)%s\n",
+              1e3 * t.readout, t.consistency.rotation_median_rad * 180 / M_PI,
+              1e3 * t.consistency.translation_median_m, t.consistency.pairs, lost.c_str());
+        }
         std::fflush(stdout);
       });
   if (!result.ok()) return Fail(result.status());
   std::printf("pairs of frames %d apart (the camera turns about %.0f degrees between them)\n",
               result->gap, check.pair_rotation_deg);
+  constexpr int kFewPairs = 20;
+  if (result->trials.front().consistency.pairs < kFewPairs) {
+    std::printf(
+        "only %d pairs aligned at readout 0: too few to read a readout from; record "
+        "more frames, or turns that keep the view on the same surfaces\n",
+        result->trials.front().consistency.pairs);
+    return 1;
+  }
   if (!result->readout) {
     std::printf(
         "these frames do not show a readout (no candidate beats 0 by %.0f %%): keep "

@@ -43,7 +43,7 @@ int GapForRotation(const Trajectory& trajectory, double rotation_rad) {
           trajectory[i].T_world_cam.linear().transpose() * trajectory[i + gap].T_world_cam.linear();
       turns.push_back(AngleAxisFromRotation(R).norm());
     }
-    if (turns.empty()) return gap;
+    if (turns.empty()) break;  // too short to turn that much
     const auto middle = turns.begin() + turns.size() / 2;
     std::nth_element(turns.begin(), middle, turns.end());
     if (*middle >= rotation_rad) return gap;

@@ -44,7 +44,7 @@ struct ReadoutCheckOptions {
 };
 
 // The smallest gap (in frames, 2..30) over which `trajectory` (in time order) turns by
-// `rotation_rad` or more in the median; 30 when it never does.
+// `rotation_rad` or more in the median; 30 when it never does (or is too short to).
 int GapForRotation(const Trajectory& trajectory, double rotation_rad);
 
 // The readout whose run's rotation median is smallest: between the candidates, the vertex of

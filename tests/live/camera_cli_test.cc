@@ -315,6 +315,13 @@ TEST(CameraCliTest, ShutterCheckNamesTheReadoutARecordingWasMadeWith) {
   EXPECT_NE(output.find("readout  30.0 ms: rotation"), std::string::npos) << output;
   EXPECT_NE(output.find("Camera.rollingShutterReadout: 0\n"), std::string::npos) << output;
 
+  // Images too small to align: it says so and names no readout.
+  EXPECT_EQ(RunCamera("--check-shutter --readouts 0,30 --source synth:frames=70,width=64,height=48",
+                      &output),
+            1);
+  EXPECT_NE(output.find("too few to read a readout from"), std::string::npos) << output;
+  EXPECT_EQ(output.find("Camera.rollingShutterReadout:"), std::string::npos) << output;
+
   EXPECT_EQ(RunCamera("--check-shutter", &output), 2);
   EXPECT_NE(output.find("--check-shutter needs --source"), std::string::npos) << output;
   EXPECT_EQ(RunCamera("--check-shutter --source synth:frames=20,width=64,height=48", &output), 1);

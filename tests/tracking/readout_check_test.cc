@@ -104,6 +104,7 @@ TEST(ReadoutCheckTest, PairsFramesAsFarApartAsTheCameraTakesToTurnSoMuch) {
   EXPECT_EQ(GapForRotation(turning, 1 * M_PI / 180), 2);  // never under 2
   EXPECT_EQ(GapForRotation(turning, 90 * M_PI / 180), 30);
   EXPECT_EQ(GapForRotation(still, 8 * M_PI / 180), 30);  // moves without turning
+  EXPECT_EQ(GapForRotation(Trajectory(turning.begin(), turning.begin() + 5), 8 * M_PI / 180), 30);
 }
 
 TEST(ReadoutCheckTest, RefusesTooFewFramesAndAnImpossibleReadout) {
