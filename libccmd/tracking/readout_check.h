@@ -63,7 +63,8 @@ struct ReadoutCheck {
 };
 
 // `frames`: consecutive frames of one recording, as the agent reads them (depth registered
-// to colour). `progress` is called after each trial.
+// to colour), at least 60 (two of the largest gaps); a candidate must be 0..0.2 s. `progress`
+// is called after each trial.
 StatusOr<ReadoutCheck> CheckReadout(const std::vector<RgbdFrame>& frames,
                                     const PinholeCamera& camera, TrackingOptions tracking,
                                     const ReadoutCheckOptions& options,
