@@ -347,6 +347,15 @@ ccmd::StatusOr<ccmd::DepthNoise> SourceDepthNoise(const std::string& spec,
   return ccmd::ReadDepthNoise(file);
 }
 
+// The tracking options of the config a source is opened with (the defaults without one).
+ccmd::StatusOr<ccmd::TrackingOptions> SourceTrackingOptions(const std::string& spec,
+                                                            const ccmd::SourceOptions& options) {
+  const std::string path = ccmd::SourceConfigPath(spec, options);
+  if (path.empty()) return ccmd::TrackingOptions();
+  CCMD_ASSIGN_OR_RETURN(const ccmd::ConfigFile file, ccmd::ConfigFile::Open(path));
+  return ccmd::ReadTrackingOptions(file);
+}
+
 int Fail(const ccmd::Status& status) {
   std::fprintf(stderr, "ccmd_camera: %s\n", status.ToString().c_str());
   return 1;
@@ -405,14 +414,9 @@ int CheckShutter(const std::string& spec, const std::string& config, int frames,
   auto opened = ccmd::OpenSource(spec, options);
   if (!opened.ok()) return Fail(opened.status());
   const std::unique_ptr<ccmd::RgbdSource>& source = *opened;
-  ccmd::TrackingOptions tracking;
-  if (const std::string path = ccmd::SourceConfigPath(spec, options); !path.empty()) {
-    auto file = ccmd::ConfigFile::Open(path);
-    if (!file.ok()) return Fail(file.status());
-    auto read = ccmd::ReadTrackingOptions(*file);
-    if (!read.ok()) return Fail(read.status());
-    tracking = *read;
-  }
+  auto read = SourceTrackingOptions(spec, options);
+  if (!read.ok()) return Fail(read.status());
+  const ccmd::TrackingOptions& tracking = *read;
   std::vector<ccmd::RgbdFrame> loaded;
   ccmd::RgbdFrame frame;
   while (static_cast<int>(loaded.size()) < frames && source->Read(&frame).ok())
