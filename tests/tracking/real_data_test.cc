@@ -6,7 +6,9 @@
 
 #include <cstdio>
 #include <functional>
+#include <memory>
 #include <opencv2/core.hpp>
+#include <optional>
 #include <string>
 #include <utility>
 
@@ -26,6 +28,28 @@ struct FrontendRun {
   double ate_rmse = -1;
 };
 
+// The recording `dir` opened with the shipped `config_name`, and the tracking options read
+// from that config; nullopt (with a failed expectation) when either cannot be read.
+struct Shipped {
+  std::unique_ptr<RgbdSource> source;
+  TrackingOptions options;
+};
+std::optional<Shipped> OpenShipped(const std::string& dir, const std::string& config_name) {
+  const std::string config_path = std::string(CCMD_CONFIG_DIR) + "/" + config_name;
+  SourceOptions source_options;
+  source_options.camera_config = config_path;
+  auto source = OpenSource("tum:" + dir, source_options);
+  EXPECT_TRUE(source.ok()) << source.status().ToString();
+  if (!source.ok()) return std::nullopt;
+  auto config = ConfigFile::Open(config_path);
+  EXPECT_TRUE(config.ok());
+  if (!config.ok()) return std::nullopt;
+  auto options = ReadTrackingOptions(*config);
+  EXPECT_TRUE(options.ok()) << options.status().ToString();
+  if (!options.ok()) return std::nullopt;
+  return Shipped{std::move(source).value(), *options};
+}
+
 // Runs the first `frames` frames of `dir` with the shipped `config_name`; `adjust` may change
 // the tracking options read from it. Frames `blank.first`..`blank.second` get their colour's
 // mean instead of their colour (no features; depth kept), as ccmd_frontend_bench --blank.
@@ -33,31 +57,23 @@ FrontendRun RunFrontend(const std::string& dir, const std::string& config_name, 
                         const std::function<void(TrackingOptions*)>& adjust = nullptr,
                         std::pair<int, int> blank = {-1, -1}) {
   FrontendRun run;
-  const std::string config_path = std::string(CCMD_CONFIG_DIR) + "/" + config_name;
-  SourceOptions source_options;
-  source_options.camera_config = config_path;
-  auto source = OpenSource("tum:" + dir, source_options);
-  EXPECT_TRUE(source.ok()) << source.status().ToString();
-  if (!source.ok()) return run;
-  auto config = ConfigFile::Open(config_path);
-  EXPECT_TRUE(config.ok());
-  if (!config.ok()) return run;
-  auto options = ReadTrackingOptions(*config);
-  EXPECT_TRUE(options.ok()) << options.status().ToString();
-  if (!options.ok()) return run;
+  std::optional<Shipped> shipped = OpenShipped(dir, config_name);
+  if (!shipped) return run;
+  const std::unique_ptr<RgbdSource>& source = shipped->source;
+  TrackingOptions* options = &shipped->options;
   options->synchronous_mapping = true;
-  if (adjust) adjust(&*options);
-  auto frontend = Frontend::Create((*source)->camera(), *options, nullptr);
+  if (adjust) adjust(options);
+  auto frontend = Frontend::Create(source->camera(), *options, nullptr);
   EXPECT_TRUE(frontend.ok()) << frontend.status().ToString();
   if (!frontend.ok()) return run;
   RgbdFrame frame;
-  for (int i = 0; i < frames && (*source)->Read(&frame).ok(); ++i) {
+  for (int i = 0; i < frames && source->Read(&frame).ok(); ++i) {
     if (i >= blank.first && i <= blank.second) frame.bgr.setTo(cv::mean(frame.bgr));
     (*frontend)->ProcessFrame(frame);
   }
   (*frontend)->Finish();
   run.stats = (*frontend)->stats();
-  auto ate = ComputeAte((*source)->GroundTruth(), (*frontend)->FrameTrajectory());
+  auto ate = ComputeAte(source->GroundTruth(), (*frontend)->FrameTrajectory());
   EXPECT_TRUE(ate.ok()) << ate.status().ToString();
   if (ate.ok()) run.ate_rmse = ate->error.rmse;
   return run;
@@ -201,22 +217,15 @@ TEST(RealDataFrontendTest, ShippedConfigsAreNotNoisierThanTheirCameras) {
 // names no readout (rotation medians when written: 0.033 degrees at 0, 0.066 at 30 ms).
 TEST(RealDataFrontendTest, IclNuimReadsAsAGlobalShutter) {
   CCMD_REQUIRE_DATASET(dir, "iclnuim_office_traj0_0000_0449");
-  const std::string config_path = std::string(CCMD_CONFIG_DIR) + "/icl_nuim.yaml";
-  SourceOptions source_options;
-  source_options.camera_config = config_path;
-  auto source = OpenSource("tum:" + dir, source_options);
-  ASSERT_TRUE(source.ok()) << source.status().ToString();
-  auto config = ConfigFile::Open(config_path);
-  ASSERT_TRUE(config.ok());
-  auto options = ReadTrackingOptions(*config);
-  ASSERT_TRUE(options.ok()) << options.status().ToString();
+  const std::optional<Shipped> shipped = OpenShipped(dir, "icl_nuim.yaml");
+  ASSERT_TRUE(shipped.has_value());
   std::vector<RgbdFrame> frames;
   RgbdFrame frame;
-  while (static_cast<int>(frames.size()) < kFrames && (*source)->Read(&frame).ok())
+  while (static_cast<int>(frames.size()) < kFrames && shipped->source->Read(&frame).ok())
     frames.push_back(frame);
   ReadoutCheckOptions check;
   check.candidates = {0.03};
-  const auto result = CheckReadout(frames, (*source)->camera(), *options, check);
+  const auto result = CheckReadout(frames, shipped->source->camera(), shipped->options, check);
   ASSERT_TRUE(result.ok()) << result.status().ToString();
   ASSERT_EQ(result->trials.size(), 2u);
   EXPECT_GT(result->trials[1].consistency.rotation_median_rad,
