@@ -17,6 +17,7 @@
 #include "libccmd/io/rgbd_frame.h"
 #include "libccmd/io/trajectory.h"
 #include "libccmd/optim/reprojection.h"
+#include "libccmd/tracking/options.h"
 
 namespace ccmd {
 
@@ -26,6 +27,13 @@ struct DepthConsistencyOptions {
   int cell = 4;                              // pixels per depth-model cell
   double min_depth = 0.1, max_depth = 10.0;  // metres
   DepthNoise noise;
+
+  // The depth range and noise the front-end tracked with.
+  void UseSensorOf(const TrackingOptions& tracking) {
+    min_depth = tracking.min_depth;
+    max_depth = tracking.max_depth;
+    noise = tracking.depth_noise;
+  }
 };
 
 struct DepthConsistency {

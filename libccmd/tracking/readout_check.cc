@@ -70,9 +70,7 @@ StatusOr<ReadoutCheck> CheckReadout(const std::vector<RgbdFrame>& frames,
                            std::to_string(kFewest) + ")");
   }
   DepthConsistencyOptions consistency = options.consistency;
-  consistency.min_depth = tracking.min_depth;
-  consistency.max_depth = tracking.max_depth;
-  consistency.noise = tracking.depth_noise;
+  consistency.UseSensorOf(tracking);
   tracking.synchronous_mapping = true;  // deterministic: the trials differ by the readout only
   tracking.cpu_budget = 0;
   ReadoutCheck out;

@@ -135,9 +135,7 @@ void ReportDepthConsistency(const std::vector<RgbdFrame>& frames, const Trajecto
                             Json* result) {
   DepthConsistencyOptions options;
   options.gap = gap;
-  options.min_depth = tracking.min_depth;
-  options.max_depth = tracking.max_depth;
-  options.noise = tracking.depth_noise;
+  options.UseSensorOf(tracking);
   const auto consistency = MeasureDepthConsistency(frames, trajectory, camera, options);
   if (!consistency) {
     std::printf("  depth consistency: no pair of frames %d apart could be aligned\n", gap);
