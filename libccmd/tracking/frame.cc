@@ -119,15 +119,13 @@ void UnrollKeypoints(const cv::Mat& depth_mm, const PinholeCamera& camera,
   }
 }
 
-FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, const OrbExtractor& orb,
-                              const PinholeCamera& camera, const TrackingOptions& options,
-                              const Pose* T_colour_depth, const RollingShutter* shutter) {
-  OrbFeatures orb_features = orb.Extract(gray);
-  FrameFeatures f;
-  f.keypoints = std::move(orb_features.keypoints);
-  if (options.subpixel_keypoints) RefineKeypoints(gray, &f.keypoints);
-  if (shutter) UnrollKeypoints(depth_mm, camera, *shutter, options, &f.keypoints);
-  f.descriptors = orb_features.descriptors;
+namespace {
+
+// Gives each keypoint of `f` (raw pixels) its depth, the depth's sigma and the virtual right
+// coordinate, then moves the keypoints to the ideal pinhole camera.
+void AttachDepths(const cv::Mat& depth_mm, const OrbExtractor& orb, const PinholeCamera& camera,
+                  const TrackingOptions& options, const Pose* T_colour_depth, FrameFeatures* out) {
+  FrameFeatures& f = *out;
   f.depth.assign(f.keypoints.size(), 0.0f);
   f.depth_sigma.assign(f.keypoints.size(), 0.0f);
   f.u_right.assign(f.keypoints.size(), -1.0f);
@@ -182,7 +180,35 @@ FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, cons
       pt = cv::Point2f(static_cast<float>(ideal.x()), static_cast<float>(ideal.y()));
     }
   }
+}
+
+}  // namespace
+
+FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, const OrbExtractor& orb,
+                              const PinholeCamera& camera, const TrackingOptions& options,
+                              const Pose* T_colour_depth, const RollingShutter* shutter,
+                              std::vector<cv::KeyPoint>* as_read) {
+  OrbFeatures orb_features = orb.Extract(gray);
+  FrameFeatures f;
+  f.keypoints = std::move(orb_features.keypoints);
+  if (options.subpixel_keypoints) RefineKeypoints(gray, &f.keypoints);
+  if (shutter) {
+    if (as_read) *as_read = f.keypoints;
+    UnrollKeypoints(depth_mm, camera, *shutter, options, &f.keypoints);
+  }
+  f.descriptors = orb_features.descriptors;
+  AttachDepths(depth_mm, orb, camera, options, T_colour_depth, &f);
   return f;
+}
+
+void UnrollAgain(TrackingFrame* frame, const RollingShutter& shutter, const OrbExtractor& orb,
+                 const PinholeCamera& camera, const TrackingOptions& options) {
+  if (frame->keypoints_as_read.empty()) return;
+  frame->features.keypoints = frame->keypoints_as_read;
+  UnrollKeypoints(frame->depth_mm, camera, shutter, options, &frame->features.keypoints);
+  AttachDepths(frame->depth_mm, orb, camera, options,
+               frame->T_colour_depth ? &*frame->T_colour_depth : nullptr, &frame->features);
+  frame->grid = FeatureGrid(frame->features.keypoints, camera.width, camera.height);
 }
 
 const cv::Mat& TrackingFrame::DepthAtColourTime(const PinholeCamera& camera) {
@@ -221,7 +247,8 @@ std::unique_ptr<TrackingFrame> MakeFrame(const RgbdFrame& input, const OrbExtrac
     cv::cvtColor(input.bgr, gray, cv::COLOR_BGR2GRAY);
   }
   frame->features = ComputeFeatures(gray, input.depth_mm, orb, camera, options,
-                                    T_colour_depth ? &*T_colour_depth : nullptr, shutter);
+                                    T_colour_depth ? &*T_colour_depth : nullptr, shutter,
+                                    &frame->keypoints_as_read);
   frame->grid = FeatureGrid(frame->features.keypoints, camera.width, camera.height);
   frame->points.assign(frame->features.keypoints.size(), nullptr);
   frame->outlier.assign(frame->features.keypoints.size(), false);

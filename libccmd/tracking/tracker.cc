@@ -428,7 +428,8 @@ bool Tracker::TrackLocalMap() {
   const float radius = frames_since_relocalisation_ < 2 ? 5.0f : 3.0f;
   const int found = SearchLocalPoints(current_.get(), candidates, radius, *orb_, camera_);
   const std::optional<PosePrior> prior = FrameDepthPrior();
-  const int inliers = OptimizeCurrentPose(prior ? &*prior : nullptr);
+  int inliers = OptimizeCurrentPose(prior ? &*prior : nullptr);
+  if (UnrollWithOwnMotion()) inliers = OptimizeCurrentPose(prior ? &*prior : nullptr);
   CCMD_LOG(DEBUG) << "frame " << current_->index << " local map: " << local_keyframes_.size()
                   << " keyframes, " << local_points_.size() << " points, " << candidates.size()
                   << " candidates, " << found << " found, " << inliers << " inliers";
@@ -445,6 +446,16 @@ bool Tracker::TrackLocalMap() {
       frames_since_relocalisation_ < options_.max_frames_between_keyframes;
   if (recently_relocalised && matches_inliers_ < 50) return false;
   return matches_inliers_ >= 30;
+}
+
+bool Tracker::UnrollWithOwnMotion() {
+  if (current_->keypoints_as_read.empty() || !last_ || !last_->has_pose) return false;
+  const double interval = current_->timestamp - last_->timestamp;
+  if (!(interval > 0)) return false;
+  const RollingShutter shutter{options_.rolling_shutter_readout,
+                               current_->T_cam_world * last_->T_cam_world.inverse(), interval};
+  UnrollAgain(current_.get(), shutter, *orb_, camera_, options_);
+  return true;
 }
 
 std::optional<PosePrior> Tracker::FrameDepthPrior() const {

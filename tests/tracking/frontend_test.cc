@@ -178,7 +178,8 @@ TEST(FrontendTest, DepthTakenAfterColourIsMovedToTheColourImagesTime) {
 // 1.2 m a second): the first and last rows see the scene from 35 mm and 1.8 degrees apart, 8
 // pixels at this resolution. Each keypoint moved to the frame's time by the motion model takes
 // the error back to the global shutter's; as detected, it is several times that (when written:
-// 3.0 mm with a global shutter, 11.8 mm as detected, 2.8 mm moved).
+// 3.0 mm with a global shutter, 11.8 mm as detected, 2.8 mm moved; 2.7 mm since each frame's
+// keypoints are moved again by its own solved motion).
 TEST(FrontendTest, RollingShutterKeypointsAreMovedToTheFramesTime) {
   testing::TempDir dir;
   SyntheticSequenceOptions synth;
