@@ -56,6 +56,11 @@ struct TrackingFrame {
   // been moved already, else as taken with T_colour_depth (local mapping moves it, off the
   // tracking thread).
   void HandDepthTo(Keyframe* keyframe) const;
+  // A newer estimate of T_colour_depth: a depth moved with the old one is dropped.
+  void SetDepthPose(const std::optional<Pose>& T_colour_depth_new) {
+    T_colour_depth = T_colour_depth_new;
+    depth_at_colour_time_.release();
+  }
   // Forgets every match (and outlier mark) a search left, before a search from scratch.
   void ClearMatches() {
     std::fill(points.begin(), points.end(), nullptr);

@@ -597,7 +597,7 @@ void Tracker::CreateKeyframe() {
   // The keyframe's depth moves with the motion measured up to this frame, a frame more recent
   // than the prediction its keypoints used.
   if (current_->T_colour_depth)
-    current_->T_colour_depth = DepthCameraPose(current_->depth_time_offset);
+    current_->SetDepthPose(DepthCameraPose(current_->depth_time_offset));
   current_->HandDepthTo(keyframe.get());
   map_->AddKeyframe(keyframe);
   for (int i = 0; i < current_->size(); ++i) {

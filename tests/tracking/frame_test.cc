@@ -172,6 +172,33 @@ TEST(TrackingFrameTest, UnrollingAgainGivesTheFrameMadeWithThatMotion) {
   }
 }
 
+// Depth taken apart from its colour image: a frame that moved its depth to the colour image's
+// time (to align it) hands that to a keyframe; once the depth camera's pose is estimated anew
+// (the keyframe's, from the motion measured up to its own frame), the keyframe gets the depth
+// as taken with the new pose, not the one moved with the old.
+TEST(TrackingFrameTest, ANewerDepthPoseReplacesTheDepthMovedWithTheOldOne) {
+  SyntheticView view;
+  ASSERT_NO_FATAL_FAILURE(FirstSyntheticView(&view));
+  Pose predicted = Pose::Identity(), measured = Pose::Identity();
+  predicted.translation() = Eigen::Vector3d(0.01, 0, 0);
+  measured.translation() = Eigen::Vector3d(0.02, 0, 0);
+  const OrbExtractor orb;
+  const auto frame = MakeFrame(view.frame, orb, view.camera, TrackingOptions{}, predicted);
+  const cv::Mat moved = frame->DepthAtColourTime(view.camera).clone();
+  EXPECT_GT(cv::norm(moved, view.frame.depth_mm, cv::NORM_L1), 0);
+  Keyframe with_moved(KeyframeId(0), 0.0, 0, frame->features, Pose::Identity(), 640, 480);
+  frame->HandDepthTo(&with_moved);
+  EXPECT_EQ(cv::norm(with_moved.depth_mm, moved, cv::NORM_L1), 0);
+  EXPECT_FALSE(with_moved.T_colour_depth.has_value());
+
+  frame->SetDepthPose(measured);
+  Keyframe with_new(KeyframeId(1), 0.0, 0, frame->features, Pose::Identity(), 640, 480);
+  frame->HandDepthTo(&with_new);
+  EXPECT_EQ(cv::norm(with_new.depth_mm, view.frame.depth_mm, cv::NORM_L1), 0);
+  ASSERT_TRUE(with_new.T_colour_depth.has_value());
+  EXPECT_TRUE(with_new.T_colour_depth->isApprox(measured));
+}
+
 // On a slanted surface a keypoint between pixels takes the depth at its own position, not the
 // nearest pixel's (which is off by the slope times up to half a pixel: here up to 2 mm).
 TEST(TrackingFrameTest, AKeypointBetweenPixelsTakesTheDepthAtItsPosition) {
