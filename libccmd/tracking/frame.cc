@@ -192,20 +192,20 @@ FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, cons
   FrameFeatures f;
   f.keypoints = std::move(orb_features.keypoints);
   if (options.subpixel_keypoints) RefineKeypoints(gray, &f.keypoints);
-  if (shutter) {
-    if (as_read) *as_read = f.keypoints;
-    UnrollKeypoints(depth_mm, camera, *shutter, options, &f.keypoints);
-  }
+  if (as_read && (shutter || T_colour_depth)) *as_read = f.keypoints;
+  if (shutter) UnrollKeypoints(depth_mm, camera, *shutter, options, &f.keypoints);
   f.descriptors = orb_features.descriptors;
   AttachDepths(depth_mm, orb, camera, options, T_colour_depth, &f);
   return f;
 }
 
-void UnrollAgain(TrackingFrame* frame, const RollingShutter& shutter, const OrbExtractor& orb,
-                 const PinholeCamera& camera, const TrackingOptions& options) {
+void MoveKeypointsAgain(TrackingFrame* frame, const RollingShutter& shutter,
+                        const OrbExtractor& orb, const PinholeCamera& camera,
+                        const TrackingOptions& options) {
   if (frame->keypoints_as_read.empty()) return;
   frame->features.keypoints = frame->keypoints_as_read;
-  UnrollKeypoints(frame->depth_mm, camera, shutter, options, &frame->features.keypoints);
+  if (shutter.readout > 0)
+    UnrollKeypoints(frame->depth_mm, camera, shutter, options, &frame->features.keypoints);
   AttachDepths(frame->depth_mm, orb, camera, options,
                frame->T_colour_depth ? &*frame->T_colour_depth : nullptr, &frame->features);
   frame->grid = FeatureGrid(frame->features.keypoints, camera.width, camera.height);

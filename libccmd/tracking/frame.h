@@ -32,8 +32,8 @@ struct TrackingFrame {
   // time (RgbdFrame::depth_time_offset, moved by the motion model); nullopt: taken together.
   std::optional<Pose> T_colour_depth;
   double depth_time_offset = 0;  // RgbdFrame's
-  // The keypoints as detected, before a rolling shutter's unrolling moved them (raw pixels);
-  // empty when they were not moved.
+  // The keypoints as detected (raw pixels), kept where the frame's motion moved them (a
+  // rolling shutter's unrolling) or chose their depths (T_colour_depth); else empty.
   std::vector<cv::KeyPoint> keypoints_as_read;
 
   TrackingFrame() = default;
@@ -109,19 +109,21 @@ std::unique_ptr<TrackingFrame> MakeFrame(const RgbdFrame& input, const OrbExtrac
                                          const RollingShutter* shutter = nullptr);
 
 // The frame's features with depth lookups, for keyframes created directly (tests).
-// `as_read`: receives the keypoints before `shutter` moved them.
+// `as_read`: receives the keypoints as detected when `shutter` or `T_colour_depth` is given.
 FrameFeatures ComputeFeatures(const cv::Mat& gray, const cv::Mat& depth_mm, const OrbExtractor& orb,
                               const PinholeCamera& camera, const TrackingOptions& options,
                               const Pose* T_colour_depth = nullptr,
                               const RollingShutter* shutter = nullptr,
                               std::vector<cv::KeyPoint>* as_read = nullptr);
 
-// Moves a frame's keypoints as read (TrackingFrame::keypoints_as_read) to its time again with
-// `shutter`'s motion, and looks their depths up anew: once the frame's own pose is solved, the
-// motion over its own interval replaces the one predicted from the interval before. Matches
-// stay (they are per keypoint); nothing happens to a frame whose keypoints were not unrolled.
-void UnrollAgain(TrackingFrame* frame, const RollingShutter& shutter, const OrbExtractor& orb,
-                 const PinholeCamera& camera, const TrackingOptions& options);
+// Makes a frame's keypoints again from those as read (TrackingFrame::keypoints_as_read): moved
+// to its time with `shutter`'s motion (readout 0: not moved), their depths looked up with the
+// frame's present T_colour_depth. Once the frame's own pose is solved, the motion over its own
+// interval replaces the one predicted from the interval before. Matches stay (they are per
+// keypoint); a frame that kept no keypoints as read is left as it is.
+void MoveKeypointsAgain(TrackingFrame* frame, const RollingShutter& shutter,
+                        const OrbExtractor& orb, const PinholeCamera& camera,
+                        const TrackingOptions& options);
 
 // Standard deviation (metres) of the depth `z` read at pixel (x, y) for a keypoint whose
 // position is uncertain by `pixel_sigma` pixels: the sensor's noise, and the depth slope

@@ -429,7 +429,7 @@ bool Tracker::TrackLocalMap() {
   const int found = SearchLocalPoints(current_.get(), candidates, radius, *orb_, camera_);
   const std::optional<PosePrior> prior = FrameDepthPrior();
   int inliers = OptimizeCurrentPose(prior ? &*prior : nullptr);
-  if (UnrollWithOwnMotion()) inliers = OptimizeCurrentPose(prior ? &*prior : nullptr);
+  if (MoveKeypointsWithOwnMotion()) inliers = OptimizeCurrentPose(prior ? &*prior : nullptr);
   CCMD_LOG(DEBUG) << "frame " << current_->index << " local map: " << local_keyframes_.size()
                   << " keyframes, " << local_points_.size() << " points, " << candidates.size()
                   << " candidates, " << found << " found, " << inliers << " inliers";
@@ -448,13 +448,15 @@ bool Tracker::TrackLocalMap() {
   return matches_inliers_ >= 30;
 }
 
-bool Tracker::UnrollWithOwnMotion() {
+bool Tracker::MoveKeypointsWithOwnMotion() {
   if (current_->keypoints_as_read.empty() || !last_ || !last_->has_pose) return false;
   const double interval = current_->timestamp - last_->timestamp;
   if (!(interval > 0)) return false;
   const RollingShutter shutter{options_.rolling_shutter_readout,
                                current_->T_cam_world * last_->T_cam_world.inverse(), interval};
-  UnrollAgain(current_.get(), shutter, *orb_, camera_, options_);
+  if (current_->T_colour_depth)
+    current_->SetDepthPose(MotionOver(shutter.velocity, interval, current_->depth_time_offset));
+  MoveKeypointsAgain(current_.get(), shutter, *orb_, camera_, options_);
   return true;
 }
 

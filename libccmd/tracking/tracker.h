@@ -117,10 +117,11 @@ class Tracker {
   void UpdateLocalMap();
   // `prior`: a measured pose weighed in beside the matches (FrameDepthPrior).
   int OptimizeCurrentPose(const PosePrior* prior = nullptr);
-  // A rolling shutter's keypoints were unrolled with the motion predicted from the interval
-  // before; once the frame's pose is solved, unrolls them again with the motion over its own
-  // interval (UnrollAgain). False, changing nothing, where they were not unrolled.
-  bool UnrollWithOwnMotion();
+  // A rolling shutter's keypoints, and the depths of keypoints whose depth image was taken
+  // apart, came from the motion predicted from the interval before; once the frame's pose is
+  // solved, makes them again with the motion over its own interval (MoveKeypointsAgain).
+  // False, changing nothing, where the motion did not enter.
+  bool MoveKeypointsWithOwnMotion();
   // The current frame's depth aligned with the newest local keyframe's that has a depth
   // model, from the frame's present pose; nullopt when off, without depth, or when the
   // alignment fails or lands far from the features' pose.

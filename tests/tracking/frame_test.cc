@@ -120,12 +120,14 @@ TEST(TrackingFrameTest, UnrolledKeypointsAreWhereTheFramesTimeSeesThem) {
   }
 }
 
-// A frame unrolled with one motion and unrolled again with another is the frame made with the
-// second in the first place: the keypoints start again from where they were read (not from
-// where the first motion put them) and get the depths, sigmas and right coordinates of their
-// new positions; through a lens-distorted camera too, whose keypoints as read are raw pixels.
-// A frame read with a global shutter keeps nothing to unroll and is left as it is.
-TEST(TrackingFrameTest, UnrollingAgainGivesTheFrameMadeWithThatMotion) {
+// The keypoints made again with a second motion are those of the frame made with the second
+// in the first place: from where they were read (not from where the first motion put them),
+// with the depths, sigmas and right coordinates of their new positions; through a
+// lens-distorted camera too, whose keypoints as read are raw pixels. Both ways the motion
+// enters: a rolling shutter's unrolling, and a depth image taken apart from the colour one
+// (the depth camera's pose, T_colour_depth). A frame where neither entered keeps no keypoints
+// as read and is left as it is.
+TEST(TrackingFrameTest, KeypointsMadeAgainAreThoseOfTheFrameMadeWithThatMotion) {
   SyntheticView view;
   ASSERT_NO_FATAL_FAILURE(FirstSyntheticView(&view));
   const auto motion = [](double turn, double speed) {  // T_cur_prev over 1/30 s
@@ -136,36 +138,48 @@ TEST(TrackingFrameTest, UnrollingAgainGivesTheFrameMadeWithThatMotion) {
   };
   const RollingShutter predicted{0.03, motion(0.01, 0.01), 1.0 / 30};
   const RollingShutter solved{0.03, motion(0.04, 0.04), 1.0 / 30};
+  const RollingShutter global_shutter{0, solved.velocity, solved.interval};
+  // The depth camera 13 ms after the colour one, by each motion.
+  const Pose depth_predicted = MotionOver(predicted.velocity, predicted.interval, 0.013);
+  const Pose depth_solved = MotionOver(solved.velocity, solved.interval, 0.013);
   const OrbExtractor orb;
   const TrackingOptions options;
   PinholeCamera distorted = view.camera;
   distorted.distortion = testing::TumFr1Camera().distortion;
-  for (const PinholeCamera& camera : {view.camera, distorted}) {
-    auto frame = MakeFrame(view.frame, orb, camera, options, std::nullopt, &predicted);
-    const auto direct = MakeFrame(view.frame, orb, camera, options, std::nullopt, &solved);
-    const FrameFeatures first = frame->features;
-    ASSERT_EQ(frame->keypoints_as_read.size(), first.keypoints.size());
-    UnrollAgain(frame.get(), solved, orb, camera, options);
-    const FrameFeatures& f = frame->features;
-    ASSERT_EQ(f.keypoints.size(), direct->features.keypoints.size());
-    double moved = 0;
-    int depth_changed = 0;
-    for (std::size_t i = 0; i < f.keypoints.size(); ++i) {
-      EXPECT_EQ(f.keypoints[i].pt, direct->features.keypoints[i].pt) << i;
-      EXPECT_EQ(f.depth[i], direct->features.depth[i]) << i;
-      EXPECT_EQ(f.depth_sigma[i], direct->features.depth_sigma[i]) << i;
-      EXPECT_EQ(f.u_right[i], direct->features.u_right[i]) << i;
-      moved = std::max(moved, double{cv::norm(f.keypoints[i].pt - first.keypoints[i].pt)});
-      depth_changed += f.depth[i] != first.depth[i];
+  for (const bool rolling : {true, false}) {
+    for (const PinholeCamera& camera : {view.camera, distorted}) {
+      const std::string what =
+          (rolling ? "rolling shutter, " : "depth apart, ") + camera.ToString();
+      auto frame = rolling ? MakeFrame(view.frame, orb, camera, options, std::nullopt, &predicted)
+                           : MakeFrame(view.frame, orb, camera, options, depth_predicted);
+      const auto direct = rolling
+                              ? MakeFrame(view.frame, orb, camera, options, std::nullopt, &solved)
+                              : MakeFrame(view.frame, orb, camera, options, depth_solved);
+      const FrameFeatures first = frame->features;
+      ASSERT_EQ(frame->keypoints_as_read.size(), first.keypoints.size()) << what;
+      if (!rolling) frame->SetDepthPose(depth_solved);
+      MoveKeypointsAgain(frame.get(), rolling ? solved : global_shutter, orb, camera, options);
+      const FrameFeatures& f = frame->features;
+      ASSERT_EQ(f.keypoints.size(), direct->features.keypoints.size()) << what;
+      double moved = 0;
+      int depth_changed = 0;
+      for (std::size_t i = 0; i < f.keypoints.size(); ++i) {
+        EXPECT_EQ(f.keypoints[i].pt, direct->features.keypoints[i].pt) << what << " " << i;
+        EXPECT_EQ(f.depth[i], direct->features.depth[i]) << what << " " << i;
+        EXPECT_EQ(f.depth_sigma[i], direct->features.depth_sigma[i]) << what << " " << i;
+        EXPECT_EQ(f.u_right[i], direct->features.u_right[i]) << what << " " << i;
+        moved = std::max(moved, double{cv::norm(f.keypoints[i].pt - first.keypoints[i].pt)});
+        depth_changed += f.depth[i] != first.depth[i];
+      }
+      // The two motions differ by pixels; the depth's time moves no keypoint.
+      EXPECT_TRUE(rolling ? moved > 2.0 : moved == 0.0) << what << ": moved " << moved;
+      EXPECT_GT(depth_changed, 100) << what;
     }
-    EXPECT_GT(moved, 2.0) << camera.ToString();  // the two motions differ by pixels
-    EXPECT_GT(depth_changed, 100) << camera.ToString();
-    EXPECT_EQ(cv::norm(frame->features.descriptors, direct->features.descriptors, cv::NORM_L1), 0);
   }
   auto global = MakeFrame(view.frame, orb, view.camera, options);
   EXPECT_TRUE(global->keypoints_as_read.empty());
   const std::vector<cv::KeyPoint> before = global->features.keypoints;
-  UnrollAgain(global.get(), solved, orb, view.camera, options);
+  MoveKeypointsAgain(global.get(), solved, orb, view.camera, options);
   ASSERT_EQ(global->features.keypoints.size(), before.size());
   for (std::size_t i = 0; i < before.size(); ++i) {
     EXPECT_EQ(global->features.keypoints[i].pt, before[i].pt);

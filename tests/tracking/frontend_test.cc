@@ -149,7 +149,9 @@ TEST(FrontendTest, TracksThroughMotionBlur) {
 // 63 degrees a second) 13 ms move the view by about 1.5 cm and 0.8 degrees, which the depth as
 // taken puts into every keypoint and keyframe; moved to the colour image's time by the motion
 // model, the error falls to what the sequence without the lag gives, within a few millimetres
-// (docs/benchmarks/frontend.md#depth-taken-after-colour).
+// (docs/benchmarks/frontend.md#depth-taken-after-colour). The keypoints' depths are looked up
+// again once the frame's own motion is solved: 14.2 mm as taken, 6.4 mm moved by the predicted
+// motion alone, 3.5 mm with the second lookup.
 TEST(FrontendTest, DepthTakenAfterColourIsMovedToTheColourImagesTime) {
   testing::TempDir dir;
   SyntheticSequenceOptions synth;
@@ -170,8 +172,8 @@ TEST(FrontendTest, DepthTakenAfterColourIsMovedToTheColourImagesTime) {
     });
   };
   const double as_taken = rmse(false), moved = rmse(true);
-  EXPECT_LT(moved, 0.6 * as_taken) << "as taken " << as_taken << " m";
-  EXPECT_LT(moved, 0.008);
+  EXPECT_LT(moved, 0.4 * as_taken) << "as taken " << as_taken << " m";
+  EXPECT_LT(moved, 0.005);
 }
 
 // A rolling shutter read out over 30 ms, on a fast path (a loop every 6 s: 60 degrees and
