@@ -597,7 +597,8 @@ void Tracker::CreateKeyframe() {
       current_->T_cam_world.inverse(), camera_.width, camera_.height);
   keyframe->bgr = current_->bgr;
   // The keyframe's depth moves with the motion measured up to this frame, a frame more recent
-  // than the prediction its keypoints used.
+  // than the prediction (its keypoints took the same, MoveKeypointsWithOwnMotion, unless the
+  // frame was placed by its depth instead of the local map).
   if (current_->T_colour_depth)
     current_->SetDepthPose(DepthCameraPose(current_->depth_time_offset));
   current_->HandDepthTo(keyframe.get());
