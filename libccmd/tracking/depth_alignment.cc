@@ -61,7 +61,21 @@ DepthModel DepthModel::FromDepth(const cv::Mat& depth_mm, const PinholeCamera& c
   return m;
 }
 
-std::optional<std::pair<int, int>> DepthModel::Cell(const Eigen::Vector3d& p) const {
+DepthModel DepthModel::Moved(const Pose& T_new_old) const {
+  DepthModel m = *this;
+  const Eigen::Matrix3f R = T_new_old.linear().cast<float>();
+  const Eigen::Vector3f t = T_new_old.translation().cast<float>();
+  for (std::size_t i = 0; i < m.vertex_.size(); ++i) {
+    if (m.vertex_[i].z() == 0) continue;  // no vertex
+    m.vertex_[i] = R * m.vertex_[i] + t;
+    m.normal_[i] = R * m.normal_[i];
+  }
+  m.T_grid_model_ = T_grid_model_ * T_new_old.inverse();
+  return m;
+}
+
+std::optional<std::pair<int, int>> DepthModel::Cell(const Eigen::Vector3d& point) const {
+  const Eigen::Vector3d p = T_grid_model_ * point;
   if (p.z() <= 0) return std::nullopt;
   const Eigen::Vector2d uv = camera_.ProjectToImage(p);
   const double u = uv.x(), v = uv.y();

@@ -38,9 +38,15 @@ class DepthModel {
   const Eigen::Vector3f& normal(int x, int y) const { return normal_[y * width_ + x]; }
   // The cell a camera-frame point projects to, if inside.
   std::optional<std::pair<int, int>> Cell(const Eigen::Vector3d& p) const;
+  // The same surface in the frame of a camera `T_new_old` takes this model's points into (a
+  // depth image taken a few milliseconds apart from its colour image, put at the colour
+  // image's time): vertices and normals moved rigidly, nothing resampled; a point still finds
+  // its cell where the camera that measured the depth saw it.
+  DepthModel Moved(const Pose& T_new_old) const;
 
  private:
   int width_ = 0, height_ = 0, step_ = 1, valid_ = 0;
+  Pose T_grid_model_ = Pose::Identity();  // model frame -> the frame the cells were measured in
   PinholeCamera camera_;
   std::vector<Eigen::Vector3f> vertex_, normal_;
 };

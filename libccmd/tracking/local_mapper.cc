@@ -111,7 +111,7 @@ void LocalMapper::Process(const KeyframePtr& keyframe_ptr) {
   const Stopwatch watch;
   const ThreadCpuStopwatch cpu;
   Keyframe* keyframe = keyframe_ptr.get();
-  MoveDepthToColourTime(keyframe);
+  const std::optional<DepthAsTaken> taken = MoveDepthToColourTime(keyframe);
   {
     const auto lock = map_->Lock();
     if (keyframe->bad()) return;
@@ -126,7 +126,7 @@ void LocalMapper::Process(const KeyframePtr& keyframe_ptr) {
     TriangulateWithNeighbours(keyframe);
     FuseWithNeighbours(keyframe);
   }
-  AlignWithNeighbours(keyframe);
+  AlignWithNeighbours(keyframe, taken ? &*taken : nullptr);
   ScheduleLocalBundleAdjustment(keyframe);
 
   KeyframeSnapshot snapshot;
@@ -296,22 +296,21 @@ void LocalMapper::FuseWithNeighbours(Keyframe* keyframe) {
   stats_.fused_points += fused;
 }
 
-void LocalMapper::MoveDepthToColourTime(Keyframe* keyframe) {
-  cv::Mat depth;
-  Pose T_colour_depth;
+std::optional<LocalMapper::DepthAsTaken> LocalMapper::MoveDepthToColourTime(Keyframe* keyframe) {
+  DepthAsTaken taken;
   {
     const auto lock = map_->Lock();
-    if (!keyframe->T_colour_depth || keyframe->depth_mm.empty()) return;
-    depth = keyframe->depth_mm;
-    T_colour_depth = *keyframe->T_colour_depth;
+    if (!keyframe->T_colour_depth || keyframe->depth_mm.empty()) return std::nullopt;
+    taken = {keyframe->depth_mm, *keyframe->T_colour_depth};
   }
-  cv::Mat moved = DepthFromNearbyPose(depth, camera_, T_colour_depth.inverse());
+  cv::Mat moved = DepthFromNearbyPose(taken.depth_mm, camera_, taken.T_colour_depth.inverse());
   const auto lock = map_->Lock();
   keyframe->depth_mm = std::move(moved);
   keyframe->T_colour_depth.reset();
+  return taken;
 }
 
-void LocalMapper::AlignWithNeighbours(Keyframe* keyframe) {
+void LocalMapper::AlignWithNeighbours(Keyframe* keyframe, const DepthAsTaken* taken) {
   if (options_.depth_alignment_weight <= 0 || options_.depth_alignment_neighbours == 0) return;
   const Stopwatch watch;
   cv::Mat depth;
@@ -322,7 +321,10 @@ void LocalMapper::AlignWithNeighbours(Keyframe* keyframe) {
   }
   // Quarter resolution: 160x120 cells for VGA, a few milliseconds per alignment.
   auto model = std::make_shared<const DepthModel>(
-      DepthModel::FromDepth(depth, camera_, 4, options_.min_depth, options_.max_depth));
+      taken ? DepthModel::FromDepth(taken->depth_mm, camera_, 4, options_.min_depth,
+                                    options_.max_depth)
+                  .Moved(taken->T_colour_depth)
+            : DepthModel::FromDepth(depth, camera_, 4, options_.min_depth, options_.max_depth));
   struct Job {
     KeyframeId id;
     Pose T_kf_neighbour;

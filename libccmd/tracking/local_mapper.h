@@ -90,11 +90,19 @@ class LocalMapper : public MappingQueue {
   // CreateNewMapPoints).
   void TriangulateWithNeighbours(Keyframe* keyframe);
   void FuseWithNeighbours(Keyframe* keyframe);
+  // A depth image as its camera took it, and that camera's pose in the colour image's frame.
+  struct DepthAsTaken {
+    cv::Mat depth_mm;
+    Pose T_colour_depth;
+  };
   // A keyframe whose depth was taken apart from its colour (Keyframe::T_colour_depth): the
-  // depth moved to the colour image's time, before anything reads it.
-  void MoveDepthToColourTime(Keyframe* keyframe);
-  // Aligns the keyframe's depth with its best covisible neighbours' (depth_edges_).
-  void AlignWithNeighbours(Keyframe* keyframe);
+  // depth moved to the colour image's time, before anything reads it. Returns the depth as
+  // taken, for the alignment.
+  std::optional<DepthAsTaken> MoveDepthToColourTime(Keyframe* keyframe);
+  // Aligns the keyframe's depth with its best covisible neighbours' (depth_edges_). `taken`:
+  // the depth as taken, whose model is moved rigidly to the colour image's frame instead of
+  // being built from the moved (resampled) image.
+  void AlignWithNeighbours(Keyframe* keyframe, const DepthAsTaken* taken);
   // Decides how much local BA the keyframe gets (waiting keyframes, CPU budget) and runs it.
   void ScheduleLocalBundleAdjustment(Keyframe* keyframe);
   void LocalBundleAdjustment(Keyframe* keyframe, bool reduced);

@@ -84,6 +84,44 @@ TEST(DepthAlignmentTest, RecoversTheRelativePoseOfTwoViews) {
   EXPECT_NEAR(aligned->mean_range, 2.5, 1.0);  // the corner's surfaces are 1-3.6 m away
 }
 
+// A depth image taken 2 cm and 1 degree away from the colour camera (a depth camera a few
+// milliseconds late on a moving rig), its model moved rigidly into the colour camera's frame:
+// aligned with another view, as the source and as the target, it gives the colour camera's
+// pose, not the depth camera's, without the image being resampled.
+TEST(DepthAlignmentTest, AModelMovedToAnotherCameraAlignsAsThatCamera) {
+  Rng rng(43);
+  const Pose T_world_colour = Motion({0.0, 0.2, 0.0}, {0, 0, 0});
+  const Pose T_colour_depth = Motion({0.0, 0.017, 0.005}, {0.02, 0.004, 0.003});
+  const Pose T_world_b = T_world_colour * Motion({0.03, -0.05, 0.02}, {0.04, -0.02, 0.05});
+  const DepthModel taken = Model(RenderDepth(kCorner, T_world_colour * T_colour_depth, 0, &rng));
+  const DepthModel colour = taken.Moved(T_colour_depth);
+  const DepthModel b = Model(RenderDepth(kCorner, T_world_b, 0, &rng));
+  ASSERT_GT(colour.valid_points(), 5000);
+  const Pose T_b_colour = T_world_b.inverse() * T_world_colour;
+  const auto as_source = AlignDepth(colour, b, T_b_colour, DepthNoise());
+  const auto as_target = AlignDepth(b, colour, T_b_colour.inverse(), DepthNoise());
+  ASSERT_TRUE(as_source.has_value());
+  ASSERT_TRUE(as_target.has_value());
+  EXPECT_LT(TranslationDistance(as_source->T_target_source, T_b_colour), 0.001);
+  EXPECT_LT(RotationDistance(as_source->T_target_source, T_b_colour), 0.05 * M_PI / 180);
+  EXPECT_LT(TranslationDistance(as_target->T_target_source, T_b_colour.inverse()), 0.001);
+  EXPECT_LT(RotationDistance(as_target->T_target_source, T_b_colour.inverse()), 0.05 * M_PI / 180);
+  // Each vertex is where the colour camera sees it, in the cell the depth camera measured.
+  int checked = 0;
+  for (int y = 0; y < taken.height(); y += 7) {
+    for (int x = 0; x < taken.width(); x += 7) {
+      if (taken.vertex(x, y).z() == 0) continue;
+      const Eigen::Vector3d v = colour.vertex(x, y).cast<double>();
+      EXPECT_LT((v - T_colour_depth * taken.vertex(x, y).cast<double>()).norm(), 1e-5);
+      const auto cell = colour.Cell(v);
+      ASSERT_TRUE(cell.has_value());
+      EXPECT_EQ(*cell, std::make_pair(x, y));
+      ++checked;
+    }
+  }
+  EXPECT_GT(checked, 200);
+}
+
 TEST(DepthAlignmentTest, NoisyDepthStillAlignsWithinMillimetres) {
   Rng rng(42);
   const Pose T_world_a = Motion({0.0, 0.2, 0.0}, {0, 0, 0});
