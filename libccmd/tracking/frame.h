@@ -35,6 +35,10 @@ struct TrackingFrame {
   // The keypoints as detected (raw pixels), kept where the frame's motion moved them (a
   // rolling shutter's unrolling) or chose their depths (T_colour_depth); else empty.
   std::vector<cv::KeyPoint> keypoints_as_read;
+  // Made before any motion was known (a map's first frames) although its rolling shutter or
+  // its depth taken apart needs one: its keypoints are kept as read and made again once its
+  // own motion is solved.
+  bool motion_pending = false;
 
   TrackingFrame() = default;
   TrackingFrame(const TrackingFrame&) = delete;

@@ -121,6 +121,7 @@ TrackResult Frontend::ProcessFrame(const RgbdFrame& frame) {
 
 void Frontend::Finish() {
   ReportDepthNoise();
+  tracker_->Finish();
   mapper_->Finish();
 }
 

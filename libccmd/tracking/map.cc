@@ -65,6 +65,13 @@ Keyframe::Keyframe(KeyframeId id, double timestamp, int frame_index, FrameFeatur
   set_T_world_cam(T_world_cam);
 }
 
+void Keyframe::ReplaceFeatures(FrameFeatures features, int width, int height) {
+  CCMD_CHECK(features.keypoints.size() == features_.keypoints.size())
+      << "a keyframe's keypoints are made again one for one";
+  features_ = std::move(features);
+  grid_ = FeatureGrid(features_.keypoints, width, height);  // it points into features_
+}
+
 int Keyframe::TrackedPoints(int min_observations) const {
   int n = 0;
   for (const MapPointPtr& p : points_) {

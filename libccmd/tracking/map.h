@@ -111,6 +111,9 @@ class Keyframe {
   int frame_index() const { return frame_index_; }
   const FrameFeatures& features() const { return features_; }
   const FeatureGrid& grid() const { return grid_; }
+  // The same keypoints made again (MoveKeypointsAgain: moved, depths looked up again), for a
+  // keyframe local mapping has not been given yet; the image is width x height.
+  void ReplaceFeatures(FrameFeatures features, int width, int height);
   const Pose& T_world_cam() const { return T_world_cam_; }
   const Pose& T_cam_world() const { return T_cam_world_; }
   void set_T_world_cam(const Pose& T) {

@@ -61,6 +61,10 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
       MakeFrame(input, *orb_, camera_, options_,
                 input.depth_mm.empty() ? std::nullopt : DepthCameraPose(input.depth_time_offset),
                 shutter ? &*shutter : nullptr);
+  current_->motion_pending = (options_.rolling_shutter_readout > 0 && !shutter) ||
+                             (CompensatesLag(*current_) && !current_->T_colour_depth);
+  if (current_->motion_pending && current_->keypoints_as_read.empty())
+    current_->keypoints_as_read = current_->features.keypoints;
   result.extract_ms = watch.ElapsedMillis();
   result.extract_cpu_ms = cpu.ElapsedMillis();
   watch.Restart();
@@ -143,11 +147,30 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
                             reference_->T_cam_world() * T_world_cam);
     }
   }
+  // The first keyframe waited for this frame's motion (MoveFirstKeyframeWithOwnMotion), which
+  // has it now or never will.
+  if (pending_keyframe_ && pending_keyframe_->frame_index() != current_->index)
+    InsertPendingKeyframe();
   result.tracked_points = current_->TrackedPoints();
   result.track_ms = watch.ElapsedMillis();
   result.track_cpu_ms = cpu.ElapsedMillis();
   last_ = std::move(current_);
   return result;
+}
+
+void Tracker::Finish() {
+  const auto lock = map_->Lock();
+  InsertPendingKeyframe();
+}
+
+void Tracker::InsertPendingKeyframe() {
+  if (pending_keyframe_) mapping_->Insert(pending_keyframe_);
+  pending_keyframe_.reset();
+}
+
+bool Tracker::CompensatesLag(const TrackingFrame& frame) const {
+  return options_.compensate_depth_lag && !frame.depth_mm.empty() && frame.depth_time_offset != 0 &&
+         std::isfinite(frame.depth_time_offset);
 }
 
 std::optional<Pose> Tracker::DepthCameraPose(double offset) const {
@@ -187,6 +210,7 @@ bool Tracker::Initialize(TrackingFrame* frame, const Pose& T_world_cam, bool res
   int with_depth = 0;
   for (float d : frame->features.depth) with_depth += d > 0;
   if (frame->size() < 300 || with_depth < 100) return false;
+  InsertPendingKeyframe();
   // A failed search may have left matches with the old map's points.
   frame->ClearMatches();
   frame->SetPose(T_world_cam.inverse());
@@ -221,7 +245,11 @@ bool Tracker::Initialize(TrackingFrame* frame, const Pose& T_world_cam, bool res
                                  FrameRecord(frame->timestamp, keyframe->id(), Pose::Identity())});
   }
   tracked_since_keyframe_ = true;
-  mapping_->Insert(keyframe);
+  if (frame->motion_pending) {
+    pending_keyframe_ = keyframe;
+  } else {
+    mapping_->Insert(keyframe);
+  }
   return true;
 }
 
@@ -430,6 +458,12 @@ bool Tracker::TrackLocalMap() {
   const std::optional<PosePrior> prior = FrameDepthPrior();
   int inliers = OptimizeCurrentPose(prior ? &*prior : nullptr);
   if (MoveKeypointsWithOwnMotion()) inliers = OptimizeCurrentPose(prior ? &*prior : nullptr);
+  // This frame was tracked against the first keyframe's points as read, so its motion is off by
+  // part of what moving them corrects: a second round measures it again from the moved points.
+  for (int round = 0; round < 2 && MoveFirstKeyframeWithOwnMotion(); ++round) {
+    MoveKeypointsWithOwnMotion();
+    inliers = OptimizeCurrentPose(prior ? &*prior : nullptr);
+  }
   CCMD_LOG(DEBUG) << "frame " << current_->index << " local map: " << local_keyframes_.size()
                   << " keyframes, " << local_points_.size() << " points, " << candidates.size()
                   << " candidates, " << found << " found, " << inliers << " inliers";
@@ -454,9 +488,37 @@ bool Tracker::MoveKeypointsWithOwnMotion() {
   if (!(interval > 0)) return false;
   const RollingShutter shutter{options_.rolling_shutter_readout,
                                current_->T_cam_world * last_->T_cam_world.inverse(), interval};
-  if (current_->T_colour_depth)
+  if (CompensatesLag(*current_))
     current_->SetDepthPose(MotionOver(shutter.velocity, interval, current_->depth_time_offset));
   MoveKeypointsAgain(current_.get(), shutter, *orb_, camera_, options_);
+  return true;
+}
+
+bool Tracker::MoveFirstKeyframeWithOwnMotion() {
+  if (!pending_keyframe_ || !last_ || last_->index != pending_keyframe_->frame_index() ||
+      !current_->has_pose)
+    return false;
+  const double interval = current_->timestamp - last_->timestamp;
+  if (!(interval > 0)) return false;
+  // The motion over the interval right after the keyframe's frame.
+  const RollingShutter shutter{options_.rolling_shutter_readout,
+                               current_->T_cam_world * last_->T_cam_world.inverse(), interval};
+  if (CompensatesLag(*last_))
+    last_->SetDepthPose(MotionOver(shutter.velocity, interval, last_->depth_time_offset));
+  MoveKeypointsAgain(last_.get(), shutter, *orb_, camera_, options_);
+  Keyframe* keyframe = pending_keyframe_.get();
+  keyframe->ReplaceFeatures(last_->features, camera_.width, camera_.height);
+  last_->HandDepthTo(keyframe);
+  // Its points, seen by it alone, go where its keypoints' new depths put them.
+  const Pose& T_world_cam = keyframe->T_world_cam();
+  for (int i = 0; i < last_->size(); ++i) {
+    const MapPointPtr& p = keyframe->point(i);
+    const float z = last_->features.depth[i];
+    if (!p || p->bad() || p->num_observations() != 1 || z <= 0) continue;
+    const cv::Point2f& pt = last_->features.keypoints[i].pt;
+    p->set_position(T_world_cam * camera_.BackProject(pt.x, pt.y, z));
+    p->UpdateNormalAndDepth(*orb_);
+  }
   return true;
 }
 
@@ -592,6 +654,7 @@ bool Tracker::NeedNewKeyframe() const {
 }
 
 void Tracker::CreateKeyframe() {
+  InsertPendingKeyframe();
   auto keyframe = std::make_shared<Keyframe>(
       map_->NextKeyframeId(), current_->timestamp, current_->index, current_->features,
       current_->T_cam_world.inverse(), camera_.width, camera_.height);

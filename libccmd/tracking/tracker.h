@@ -59,6 +59,9 @@ class Tracker {
           const OrbExtractor* orb, MappingQueue* mapping);
 
   TrackResult Track(const RgbdFrame& input);
+  // Hands local mapping a first keyframe still waiting for the next frame's motion (the
+  // input ended there). Call before local mapping finishes.
+  void Finish();
 
   TrackingState state() const { return state_; }
   int frames_since_relocalisation() const { return frames_since_relocalisation_; }
@@ -103,6 +106,9 @@ class Tracker {
   // when the offset is 0, the compensation is off or the motion is not known (before tracking
   // has two frames, after a loss).
   std::optional<Pose> DepthCameraPose(double offset) const;
+  // Whether `frame`'s depth image was taken apart from its colour image and is to be moved to
+  // the colour image's time (options.compensate_depth_lag).
+  bool CompensatesLag(const TrackingFrame& frame) const;
   // A new map point from keypoint i of `frame` (which has depth), observed by `keyframe` made
   // from that frame (at `T_world_cam`), and matched to the keypoint.
   void AddMapPoint(TrackingFrame* frame, Keyframe* keyframe, const Pose& T_world_cam, int i);
@@ -122,6 +128,14 @@ class Tracker {
   // solved, makes them again with the motion over its own interval (MoveKeypointsAgain).
   // False, changing nothing, where the motion did not enter.
   bool MoveKeypointsWithOwnMotion();
+  // A map's first keyframe is made before any motion is known, so a rolling shutter's
+  // keypoints and the depths from a depth image taken apart stay as read. It waits
+  // (pending_keyframe_) for the next frame: once that frame's pose is solved, the motion
+  // between the two makes the keyframe's keypoints again and moves the points it made. False
+  // when there is no such keyframe. Its frame, last_, must still be the keyframe's.
+  bool MoveFirstKeyframeWithOwnMotion();
+  // Gives local mapping the waiting first keyframe, if any.
+  void InsertPendingKeyframe();
   // The current frame's depth aligned with the newest local keyframe's that has a depth
   // model, from the frame's present pose; nullopt when off, without depth, or when the
   // alignment fails or lands far from the features' pose.
@@ -157,6 +171,7 @@ class Tracker {
   double velocity_interval_ = 0;  // seconds between the two frames velocity_ was measured on
   KeyframePtr reference_;
   KeyframePtr last_keyframe_;
+  KeyframePtr pending_keyframe_;  // first keyframe, held from local mapping until moved
   int last_keyframe_frame_ = -1;
   int last_relocalisation_frame_ = -1000;
   int frames_since_relocalisation_ = 1000;
