@@ -489,6 +489,53 @@ TEST(FrontendTest, AsynchronousMappingSendsEachKeyframeOnceInOrderAndTracks) {
   EXPECT_LT(ate->error.rmse, 0.01);
 }
 
+// With a rolling-shutter readout set the map's first keyframe waits for the next frame's
+// motion before local mapping gets it. On its own thread, local mapping still sends it first
+// and once, the others in order after it; when the input ends at that first frame, finishing
+// hands it over all the same.
+TEST(FrontendTest, AsynchronousMappingSendsAWaitingFirstKeyframeFirstAndOnce) {
+  testing::TempDir dir;
+  SyntheticSequenceOptions synth;
+  synth.frames = 60;
+  synth.width = 320;
+  synth.height = 240;
+  synth.seed = 1;
+  synth.path.loop_period_s = 6;
+  synth.rolling_shutter_s = 0.03;
+  ASSERT_TRUE(WriteSyntheticSequence(dir.path(), synth).ok());
+  auto sequence = TumSequence::Open(dir.path(), std::nullopt);
+  ASSERT_TRUE(sequence.ok()) << sequence.status().ToString();
+  const auto run = [&](std::size_t frames, Collector* sink) {
+    TrackingOptions options;
+    options.rolling_shutter_readout = 0.03;
+    ASSERT_FALSE(options.synchronous_mapping);
+    auto frontend = Frontend::Create(sequence->camera(), options, sink);
+    ASSERT_TRUE(frontend.ok());
+    for (std::size_t i = 0; i < frames; ++i) {
+      auto frame = sequence->LoadFrame(i);
+      ASSERT_TRUE(frame.ok());
+      (*frontend)->ProcessFrame(*frame);
+    }
+    (*frontend)->Finish();
+    EXPECT_EQ((*frontend)->stats().lost_frames, 0);
+  };
+  Collector all;
+  run(sequence->size(), &all);
+  ASSERT_GE(all.keyframes.size(), 3u);
+  EXPECT_EQ(all.keyframes.front().frame_index, 0);
+  std::set<std::uint32_t> ids;
+  for (std::size_t i = 0; i < all.keyframes.size(); ++i) {
+    EXPECT_TRUE(ids.insert(all.keyframes[i].id.value()).second) << "keyframe sent twice";
+    if (i > 0) {
+      EXPECT_GT(all.keyframes[i].frame_index, all.keyframes[i - 1].frame_index);
+    }
+  }
+  Collector one;
+  run(1, &one);
+  ASSERT_EQ(one.keyframes.size(), 1u);
+  EXPECT_EQ(one.keyframes.front().frame_index, 0);
+}
+
 TEST(FrontendTest, BoundedMapStaysBounded) {
   TrackingOptions o = Synchronous();
   o.local_ba_window = 5;
