@@ -482,30 +482,29 @@ bool Tracker::TrackLocalMap() {
   return matches_inliers_ >= 30;
 }
 
-bool Tracker::MoveKeypointsWithOwnMotion() {
-  if (current_->keypoints_as_read.empty() || !last_ || !last_->has_pose) return false;
-  const double interval = current_->timestamp - last_->timestamp;
+bool Tracker::MoveKeypointsWithMotion(TrackingFrame* frame, const TrackingFrame& before,
+                                      const TrackingFrame& after) const {
+  const double interval = after.timestamp - before.timestamp;
   if (!(interval > 0)) return false;
   const RollingShutter shutter{options_.rolling_shutter_readout,
-                               current_->T_cam_world * last_->T_cam_world.inverse(), interval};
-  if (CompensatesLag(*current_))
-    current_->SetDepthPose(MotionOver(shutter.velocity, interval, current_->depth_time_offset));
-  MoveKeypointsAgain(current_.get(), shutter, *orb_, camera_, options_);
+                               after.T_cam_world * before.T_cam_world.inverse(), interval};
+  if (CompensatesLag(*frame))
+    frame->SetDepthPose(MotionOver(shutter.velocity, interval, frame->depth_time_offset));
+  MoveKeypointsAgain(frame, shutter, *orb_, camera_, options_);
   return true;
+}
+
+bool Tracker::MoveKeypointsWithOwnMotion() {
+  if (current_->keypoints_as_read.empty() || !last_ || !last_->has_pose) return false;
+  return MoveKeypointsWithMotion(current_.get(), *last_, *current_);
 }
 
 bool Tracker::MoveFirstKeyframeWithOwnMotion() {
   if (!pending_keyframe_ || !last_ || last_->index != pending_keyframe_->frame_index() ||
       !current_->has_pose)
     return false;
-  const double interval = current_->timestamp - last_->timestamp;
-  if (!(interval > 0)) return false;
   // The motion over the interval right after the keyframe's frame.
-  const RollingShutter shutter{options_.rolling_shutter_readout,
-                               current_->T_cam_world * last_->T_cam_world.inverse(), interval};
-  if (CompensatesLag(*last_))
-    last_->SetDepthPose(MotionOver(shutter.velocity, interval, last_->depth_time_offset));
-  MoveKeypointsAgain(last_.get(), shutter, *orb_, camera_, options_);
+  if (!MoveKeypointsWithMotion(last_.get(), *last_, *current_)) return false;
   Keyframe* keyframe = pending_keyframe_.get();
   keyframe->ReplaceFeatures(last_->features, camera_.width, camera_.height);
   last_->HandDepthTo(keyframe);

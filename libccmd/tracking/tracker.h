@@ -128,6 +128,11 @@ class Tracker {
   // solved, makes them again with the motion over its own interval (MoveKeypointsAgain).
   // False, changing nothing, where the motion did not enter.
   bool MoveKeypointsWithOwnMotion();
+  // Makes `frame`'s keypoints again from those as read (MoveKeypointsAgain), and its depth
+  // image's pose where its depth was taken apart, with the constant-velocity motion between
+  // `before` and `after` (both with poses). False, changing nothing, when they share a time.
+  bool MoveKeypointsWithMotion(TrackingFrame* frame, const TrackingFrame& before,
+                               const TrackingFrame& after) const;
   // A map's first keyframe is made before any motion is known, so a rolling shutter's
   // keypoints and the depths from a depth image taken apart stay as read. It waits
   // (pending_keyframe_) for the next frame: once that frame's pose is solved, the motion
