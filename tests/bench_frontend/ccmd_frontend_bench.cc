@@ -154,6 +154,73 @@ void ReportDepthConsistency(const std::vector<RgbdFrame>& frames, const Trajecto
   (*result)["depth_consistency_rotation_mean_deg"] = consistency->rotation_mean_rad * kDegrees;
 }
 
+// OpenCV RgbdOdometry on the same frames, the in-run reference. The plain keys give it on the
+// frames as the dataset records them, with the camera's published intrinsics: what it is given
+// without a calibration, and the reference the front-end's accuracy target names. When the config
+// registers depth to colour (a Depth block), it also runs on the registered frames the front-end
+// gets (`*_registered` keys), a stronger reference on such recordings.
+struct ReferenceRun {
+  const std::string& source_spec;
+  const SourceOptions& source_options;
+  const std::string& config_path;
+  const PinholeCamera& camera;  // the front-end's camera (registered frames: the colour camera)
+  const FrameOrder& order;
+  const Trajectory& ground_truth;
+  const Pose& T_color_trajectory;
+  const std::string& trajectory_path;  // where to write the registered (or only) run's poses
+};
+
+void ReportReference(const Trajectory& ground_truth, const Trajectory& reference, double ms,
+                     double our_rmse, const std::string& suffix, const char* what, Json* result) {
+  const auto ate = ComputeAte(ground_truth, reference);
+  if (!ate.ok()) {
+    std::printf("OpenCV RgbdOdometry %s: no ATE (%s)\n", what, ate.status().ToString().c_str());
+    return;
+  }
+  (*result)["rgbd_odometry" + suffix + "_ate_rmse_m"] = ate->error.rmse;
+  (*result)["rgbd_odometry" + suffix + "_ms_per_frame"] = ms;
+  if (our_rmse > 0) (*result)["ate_ratio_to_rgbd_odometry" + suffix] = our_rmse / ate->error.rmse;
+  std::printf(
+      "OpenCV RgbdOdometry %s frame to frame: ATE rmse %.4f m, %.1f ms/frame; ratio "
+      "ours/baseline %.3f\n",
+      what, ate->error.rmse, ms, our_rmse > 0 ? our_rmse / ate->error.rmse : 0.0);
+}
+
+// `frames` are the front-end's (registered) frames; they are released before the frames as
+// recorded are read, so that one copy of the sequence is in memory at a time.
+void RunReference(const ReferenceRun& run, double our_rmse, std::vector<RgbdFrame>* frames,
+                  Json* result) {
+  const auto registration = run.config_path.empty()
+                                ? StatusOr<std::optional<DepthToColorCalibration>>(std::nullopt)
+                                : LoadDepthToColorCalibration(run.config_path);
+  const bool registered = registration.ok() && registration->has_value();
+  double ms = 0;
+  const Trajectory same_frames =
+      TrajectoryOfCamera(RgbdOdometryTrajectory(*frames, run.camera, &ms), run.T_color_trajectory);
+  if (!run.trajectory_path.empty())
+    WriteTumTrajectory(same_frames, run.trajectory_path).IgnoreError();
+  if (!registered) {
+    ReportReference(run.ground_truth, same_frames, ms, our_rmse, "", "on the same frames,", result);
+    return;
+  }
+  ReportReference(run.ground_truth, same_frames, ms, our_rmse, "_registered",
+                  "on the registered frames,", result);
+  SourceOptions raw_options = run.source_options;
+  raw_options.register_depth = false;
+  auto raw_source = OpenSource(run.source_spec, raw_options);
+  if (!raw_source.ok()) {
+    std::printf("OpenCV RgbdOdometry on the frames as recorded: cannot open them (%s)\n",
+                raw_source.status().ToString().c_str());
+    return;
+  }
+  frames->clear();
+  const std::vector<RgbdFrame> raw_frames = ReadFrames(**raw_source, run.order);
+  double raw_ms = 0;
+  // The frames as recorded are the depth camera's (its intrinsics for both images).
+  const Trajectory raw = RgbdOdometryTrajectory(raw_frames, (*registration)->depth, &raw_ms);
+  ReportReference(run.ground_truth, raw, raw_ms, our_rmse, "",
+                  "on the frames as recorded, depth intrinsics,", result);
+}
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -370,50 +437,9 @@ int main(int argc, char** argv) {
                   keyframe_ate->matched);
     }
     if (!skip_baseline && !frames.empty()) {
-      double ms = 0;
-      const Trajectory baseline =
-          TrajectoryOfCamera(RgbdOdometryTrajectory(frames, camera, &ms), T_color_trajectory);
-      if (!baseline_path.empty()) WriteTumTrajectory(baseline, baseline_path).IgnoreError();
-      auto base_ate = ComputeAte(ground_truth, baseline);
-      if (base_ate.ok()) {
-        result["rgbd_odometry_ate_rmse_m"] = base_ate->error.rmse;
-        result["rgbd_odometry_ms_per_frame"] = ms;
-        if (ate.ok()) result["ate_ratio_to_rgbd_odometry"] = ate->error.rmse / base_ate->error.rmse;
-        std::printf(
-            "OpenCV RgbdOdometry (frame to frame): ATE rmse %.4f m, %.1f ms/frame; ratio "
-            "ours/baseline %.2f\n",
-            base_ate->error.rmse, ms, ate.ok() ? ate->error.rmse / base_ate->error.rmse : 0.0);
-      }
-      // With a Depth block our frames are registered; RgbdOdometry also runs on the frames as
-      // recorded, with the depth camera's intrinsics (what it is given without calibration).
-      auto registration = config_path.empty()
-                              ? StatusOr<std::optional<DepthToColorCalibration>>(std::nullopt)
-                              : LoadDepthToColorCalibration(config_path);
-      if (registration.ok() && registration->has_value()) {
-        SourceOptions raw_options = source_options;
-        raw_options.register_depth = false;
-        auto raw_source = OpenSource(source_spec, raw_options);
-        if (raw_source.ok()) {
-          // The same frames in the same order as the run above (--first, --step, --reverse).
-          frames.clear();  // memory: one copy of the sequence at a time
-          const std::vector<RgbdFrame> raw_frames = ReadFrames(**raw_source, order);
-          double raw_ms = 0;
-          const Trajectory raw =
-              RgbdOdometryTrajectory(raw_frames, (*registration)->depth, &raw_ms);
-          auto raw_ate = ComputeAte(ground_truth, raw);
-          if (raw_ate.ok()) {
-            result["rgbd_odometry_unregistered_ate_rmse_m"] = raw_ate->error.rmse;
-            if (ate.ok())
-              result["ate_ratio_to_rgbd_odometry_unregistered"] =
-                  ate->error.rmse / raw_ate->error.rmse;
-            std::printf(
-                "OpenCV RgbdOdometry on the frames as recorded (depth intrinsics): ATE rmse %.4f "
-                "m; "
-                "ratio ours/baseline %.2f\n",
-                raw_ate->error.rmse, ate.ok() ? ate->error.rmse / raw_ate->error.rmse : 0.0);
-          }
-        }
-      }
+      const ReferenceRun reference{source_spec, source_options, config_path,        camera,
+                                   order,       ground_truth,   T_color_trajectory, baseline_path};
+      RunReference(reference, ate.ok() ? ate->error.rmse : 0.0, &frames, &result);
     }
   }
   if (!json_path.empty()) {
