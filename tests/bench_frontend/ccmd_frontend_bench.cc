@@ -221,6 +221,7 @@ void RunReference(const ReferenceRun& run, double our_rmse, std::vector<RgbdFram
   ReportReference(run.ground_truth, raw, raw_ms, our_rmse, "",
                   "on the frames as recorded, depth intrinsics,", result);
 }
+
 }  // namespace
 
 int main(int argc, char** argv) {
