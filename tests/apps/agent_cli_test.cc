@@ -228,6 +228,9 @@ TEST(AgentCliTest, DamagedFramesOfARecordingCostOnlyThemselves) {
 // and faulted in afresh, about 3000 pages a frame here and half the frame rate. What 60 more
 // frames cost in page faults says which it is, whatever the start-up costs.
 TEST(AgentCliTest, TheAgentReusesItsMemoryFromFrameToFrame) {
+#ifdef CCMD_OWN_ALLOCATOR
+  GTEST_SKIP() << "a sanitizer's allocator, not glibc's, serves this build";
+#endif
   testing::TempDir dir;
   auto faults = [&](int frames) {
     std::string out;

@@ -38,3 +38,13 @@ int RunCommand(const std::string& command, std::string* output = nullptr);
   if (var.empty()) {                                                                    \
     GTEST_SKIP() << "dataset " << name << " not found in ../shared/datasets; skipping"; \
   }
+
+// Sanitizer builds bring their own allocator (and shadow memory): glibc's settings, page-fault
+// counts and heap reuse do not apply there, in the test binary or the programs built with it.
+#if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
+#define CCMD_OWN_ALLOCATOR 1
+#elif defined(__has_feature)
+#if __has_feature(address_sanitizer) || __has_feature(thread_sanitizer)
+#define CCMD_OWN_ALLOCATOR 1
+#endif
+#endif

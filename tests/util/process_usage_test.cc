@@ -4,17 +4,10 @@
 
 #include <cstdlib>
 
+#include "tests/support/test_support.h"  // CCMD_OWN_ALLOCATOR
+
 #ifdef __GLIBC__
 #include <malloc.h>
-#endif
-
-// Sanitizers bring their own allocator: glibc's settings and counters do not apply there.
-#if defined(__SANITIZE_ADDRESS__) || defined(__SANITIZE_THREAD__)
-#define CCMD_OWN_ALLOCATOR 1
-#elif defined(__has_feature)
-#if __has_feature(address_sanitizer) || __has_feature(thread_sanitizer)
-#define CCMD_OWN_ALLOCATOR 1
-#endif
 #endif
 
 namespace ccmd {
