@@ -689,6 +689,27 @@ void Tracker::CreateKeyframe() {
   mapping_->Insert(keyframe);
 }
 
+namespace {
+
+// How far a frame at `at` is on the way from `start` to `end`, by where it is rather than by
+// when: tracking drifts as the view changes, not as time passes, so a camera that stood still
+// took no share of the drift while it did. Its distances to both ends, in position and in
+// angle, give the share (the mean of the two when the camera both moved and turned); where it
+// did neither (under 1 mm and 0.1 degrees either way), the frame count decides.
+double ShareOfTheWay(const Pose& start, const Pose& at, const Pose& end, double by_count) {
+  constexpr double kStillMetres = 1e-3, kStillRadians = 0.1 * M_PI / 180;
+  const Pose from_start = start.inverse() * at, to_end = at.inverse() * end;
+  const double done_m = from_start.translation().norm(), left_m = to_end.translation().norm();
+  const double done_rad = RotationAngle(from_start), left_rad = RotationAngle(to_end);
+  const bool moved = done_m + left_m > kStillMetres, turned = done_rad + left_rad > kStillRadians;
+  if (moved && turned) return 0.5 * (done_m / (done_m + left_m) + done_rad / (done_rad + left_rad));
+  if (moved) return done_m / (done_m + left_m);
+  if (turned) return done_rad / (done_rad + left_rad);
+  return by_count;
+}
+
+}  // namespace
+
 Trajectory FrameTrajectoryOf(const std::vector<Tracker::FrameRecord>& records,
                              const std::vector<Tracker::KeyframeRecord>& keyframes,
                              const std::function<std::optional<Pose>(KeyframeId)>& keyframe_pose) {
@@ -710,10 +731,12 @@ Trajectory FrameTrajectoryOf(const std::vector<Tracker::FrameRecord>& records,
     if (!T_world_ref || !T_world_kf) continue;
     const Pose tracked = *T_world_ref * kf.tracked.T_ref_cam();
     const Pose move = tracked.inverse() * *T_world_kf;  // in the tracked keyframe's frame
+    const std::optional<Pose>& start = poses[before.record];
     for (std::size_t i = before.record + 1; i < kf.record; ++i) {
       if (!poses[i]) continue;
-      const double alpha =
+      const double by_count =
           static_cast<double>(i - before.record) / static_cast<double>(kf.record - before.record);
+      const double alpha = start ? ShareOfTheWay(*start, *poses[i], tracked, by_count) : by_count;
       *poses[i] =
           tracked * InterpolatePose(Pose::Identity(), move, alpha) * tracked.inverse() * *poses[i];
     }

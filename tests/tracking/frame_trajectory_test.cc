@@ -82,5 +82,43 @@ TEST(FrameTrajectoryTest, AKeyframeAfterALossMovesNoFrameBeforeIt) {
   EXPECT_NEAR(t[4].T_world_cam.translation().x(), 0.5, 1e-6);
 }
 
+// Keyframe A at frame 0; the camera moves 0.1 m a frame along x (or turns 0.1 rad a frame about
+// z), stands still for three frames, goes on, and tracking puts keyframe B at 0.4 m (0.4 rad) at
+// frame 7. A frame takes the share of B's move of where it is on the way, not of its count.
+Records StopAndGo(bool turn) {
+  Records r;
+  r.frames.clear();
+  r.keyframes.clear();
+  const KeyframeId a(0), b(1);
+  const double along[] = {0, 0.1, 0.2, 0.2, 0.2, 0.2, 0.3};
+  for (int i = 0; i < 7; ++i) r.frames.emplace_back(i, a, turn ? At(0, along[i]) : At(along[i]));
+  r.frames.emplace_back(7, b, Pose::Identity());
+  r.keyframes.push_back({a, false, 0, Tracker::FrameRecord(0, a, Pose::Identity())});
+  r.keyframes.push_back({b, true, 7, Tracker::FrameRecord(7, a, turn ? At(0, 0.4) : At(0.4))});
+  return r;
+}
+
+TEST(FrameTrajectoryTest, FramesOfACameraStandingStillTakeOneShareOfTheMove) {
+  // B moved from 0.4 to 0.5 m: the frames at 0.2 m, half-way, take half of that, all four of
+  // them; by count they would take 2/7 to 5/7 and drift apart while the camera stood still.
+  const Trajectory t = FramesOf(StopAndGo(false), {{0, Pose::Identity()}, {1, At(0.5)}});
+  ASSERT_EQ(t.size(), 8u);
+  const double expected[8] = {0.0, 0.125, 0.25, 0.25, 0.25, 0.25, 0.375, 0.5};
+  for (int i = 0; i < 8; ++i)
+    EXPECT_NEAR(t[i].T_world_cam.translation().x(), expected[i], 1e-6) << "frame " << i;
+}
+
+TEST(FrameTrajectoryTest, FramesOfACameraTurningInPlaceShareTheMoveByTheAngleTurned) {
+  // Turning on the spot, the way is the angle: B, tracked at 0.4 rad, is at 0.4 rad and 0.1 m
+  // along x; the frames half-way round (0.2 rad) take half of the 0.1 m.
+  const Trajectory t = FramesOf(StopAndGo(true), {{0, Pose::Identity()}, {1, At(0.1, 0.4)}});
+  ASSERT_EQ(t.size(), 8u);
+  for (int i = 2; i < 6; ++i) {
+    EXPECT_NEAR(t[i].T_world_cam.translation().x(), 0.05, 1e-6) << "frame " << i;
+    EXPECT_NEAR(RotationAngle(t[i].T_world_cam), 0.2, 1e-6) << "frame " << i;
+  }
+  EXPECT_NEAR(t[6].T_world_cam.translation().x(), 0.075, 1e-6);
+}
+
 }  // namespace
 }  // namespace ccmd
