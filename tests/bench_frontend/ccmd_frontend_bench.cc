@@ -214,6 +214,7 @@ void RunReference(const ReferenceRun& run, double our_rmse, std::vector<RgbdFram
     return;
   }
   frames->clear();
+  // The same frames in the same order as the front-end's (--first, --step, --reverse).
   const std::vector<RgbdFrame> raw_frames = ReadFrames(**raw_source, run.order);
   double raw_ms = 0;
   // The frames as recorded are the depth camera's (its intrinsics for both images).
