@@ -6,6 +6,7 @@
 #include <limits>
 #include <map>
 #include <opencv2/imgproc.hpp>
+#include <optional>
 #include <sstream>
 
 #include "libccmd/codec/depth_downsample.h"
@@ -14,6 +15,7 @@
 #include "libccmd/eval/plot.h"
 #include "libccmd/eval/reconstruction_error.h"
 #include "libccmd/eval/trajectory_error.h"
+#include "libccmd/geometry/pose.h"
 #include "libccmd/system/link_report.h"
 #include "libccmd/system/replay_markdown.h"
 #include "libccmd/system/replay_plots.h"
@@ -26,6 +28,8 @@ namespace ccmd {
 
 Status ReferenceOptions::Validate() const {
   if (stride < 1) return InvalidArgument("reference stride must be at least 1");
+  if (!(max_move_m > 0) || !(max_turn_deg > 0))
+    return InvalidArgument("reference frame spacing (move, turn) must be positive");
   if (first < 0) return InvalidArgument("reference first frame must be >= 0");
   if (downsample < 1 || downsample > 16)
     return InvalidArgument("reference downsample must be 1..16");
@@ -38,6 +42,8 @@ void ReferenceOptions::Describe(OptionsWriter* out) const {
   out->Add("reference_ply", reference_ply);
   out->Add("first", first);
   out->Add("stride", stride);
+  out->Add("max_move_m", max_move_m);
+  out->Add("max_turn_deg", max_turn_deg);
   out->Add("downsample", downsample);
   out->Add("voxel_m", voxel_m);
   out->Add("registration", registration ? "Depth block" : "none");
@@ -55,6 +61,22 @@ Status ReadReferenceCamera(const std::string& camera_file, ReferenceOptions* opt
   options->depth_at_own_time = lag != 0;
   return Status::Ok();
 }
+
+namespace {
+
+// Whether a frame sees enough that the last reference frame did not: the reference is to cover
+// what the recording saw however fast the camera went (a recording at a low frame rate, or
+// every n-th frame of one, has views far apart), so frames are taken by the way the camera
+// went, and at least every stride-th frame.
+bool ViewChanged(const std::optional<Pose>& last_taken, const Pose& T_world_cam,
+                 std::size_t frames_since, const ReferenceOptions& options) {
+  if (!last_taken || frames_since >= static_cast<std::size_t>(options.stride)) return true;
+  const Pose move = last_taken->inverse() * T_world_cam;
+  return move.translation().norm() >= options.max_move_m ||
+         RotationAngle(move) >= options.max_turn_deg * M_PI / 180.0;
+}
+
+}  // namespace
 
 StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset,
                                           const ReferenceOptions& options, std::string* source) {
@@ -75,8 +97,12 @@ StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset,
   CCMD_ASSIGN_OR_RETURN(auto dense, DenseMap::Create(dense_options));
   const int factor = std::max(1, options.downsample);
   int added = 0;
-  for (std::size_t i = options.first; i < dataset.size(); i += options.stride) {
+  std::optional<Pose> last_taken;
+  std::size_t since_taken = 0;
+  for (std::size_t i = options.first; i < dataset.size(); ++i) {
     if (!dataset.frame(i).T_world_cam_gt) continue;
+    if (!ViewChanged(last_taken, *dataset.frame(i).T_world_cam_gt, ++since_taken, options))
+      continue;
     auto loaded = dataset.LoadFrame(i);
     if (!loaded.ok()) {  // as the agents did, the reference does without a damaged frame
       CCMD_LOG(WARNING) << "reference cloud: frame " << i
@@ -112,6 +138,8 @@ StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset,
     kf.camera = dataset.camera().Resized(depth.cols, depth.rows);
     CCMD_RETURN_IF_ERROR(dense->AddKeyframe(kf));
     ++added;
+    last_taken = dataset.frame(i).T_world_cam_gt;
+    since_taken = 0;
   }
   if (added == 0) return NotFound("no frames with ground truth to build a reference cloud from");
   // With normals the map's error is measured to the reference's local plane: the voxel
@@ -120,8 +148,11 @@ StatusOr<PointCloud> LoadOrBuildReference(const TumSequence& dataset,
   std::string how;
   cloud = AsReferenceSurface(std::move(cloud), &how);
   if (source) {
-    *source = "back-projected from " + std::to_string(added) + " ground-truth frames (every " +
-              std::to_string(options.stride) + "th, 1/" + std::to_string(factor) + " resolution, " +
+    *source = "back-projected from " + std::to_string(added) + " ground-truth frames (one per " +
+              report::Fmt("%g", options.max_move_m * 100) + " cm or " +
+              report::Fmt("%g", options.max_turn_deg) +
+              " degrees of the camera's way, at least every " + std::to_string(options.stride) +
+              "th, 1/" + std::to_string(factor) + " resolution, " +
               std::to_string(static_cast<int>(options.voxel_m * 1000)) + " mm voxels, " + how + ")";
   }
   return cloud;

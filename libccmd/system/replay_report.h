@@ -45,8 +45,12 @@ struct ReplayRunInfo {
 struct ReferenceOptions {
   std::string reference_ply;  // "" = surface.ply in the dataset, else built from ground truth
   int first = 0;              // ground-truth build: from this frame
-  int stride = 10;            // every stride-th frame
-  int downsample = 2;         // and at 1/downsample resolution
+  // Frames are taken where the view has changed: a frame joins when the camera has moved
+  // max_move_m or turned max_turn_deg since the last frame taken, or stride frames have passed.
+  int stride = 10;
+  double max_move_m = 0.05;
+  double max_turn_deg = 5.0;
+  int downsample = 2;  // each at 1/downsample resolution
   double voxel_m = 0.01;
   // Set when the camera config registers depth to colour (a Depth block): the reference's
   // depth goes through the same registration as the agents' frames.

@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <cstdio>
+#include <limits>
 #include <optional>
 
 #include "libccmd/eval/reconstruction_error.h"
@@ -50,6 +51,8 @@ TEST(ReplayReportTest, ReferenceCloudsFromOtherFramesAgreeToTheirPlanes) {
   auto dataset = TumSequence::Open(folder, *camera);
   ASSERT_TRUE(dataset.ok()) << dataset.status().ToString();
   ReferenceOptions options;
+  // Every 10th frame alone, so that the two take no frame in common.
+  options.max_move_m = options.max_turn_deg = std::numeric_limits<double>::infinity();
   auto first = LoadOrBuildReference(*dataset, options, nullptr);
   options.first = 5;
   auto second = LoadOrBuildReference(*dataset, options, nullptr);
@@ -178,6 +181,46 @@ TEST(ReplayReportTest, ReferenceCloudPlacesLateDepthAtItsOwnTime) {
   }
   ASSERT_GT(clouds[1].size(), clouds[0].size() / 3);
   EXPECT_LT(MedianOf(NearestDistances(clouds[1], clouds[0])), 0.004);
+}
+
+// A reference covers what the recording saw however far apart its frames are: one taken
+// every 10th frame of a camera going round the room in 12 frames (every 10th frame of a
+// recording, say) would see two of its views and leave the map's points elsewhere measured to
+// far-off samples. Frames are taken by the camera's way, so nearly all of what every frame
+// sees is in it; on a slow camera they are as few as before.
+TEST(ReplayReportTest, ReferenceTakesFramesByTheCamerasWay) {
+  testing::TempDir dir;
+  SyntheticSequenceOptions o;
+  o.frames = 12;
+  o.width = 160;
+  o.height = 120;
+  o.noise = false;
+  o.path.loop_period_s = 0.4;  // 30 degrees a frame at 30 Hz
+  ASSERT_TRUE(WriteSyntheticSequence(dir.File("fast"), o).ok());
+  ASSERT_EQ(std::remove(dir.File("fast/surface.ply").c_str()), 0);
+  auto fast = TumSequence::Open(dir.File("fast"), std::nullopt);
+  ASSERT_TRUE(fast.ok()) << fast.status().ToString();
+  ReferenceOptions options;
+  std::string source;
+  auto reference = LoadOrBuildReference(*fast, options, &source);
+  ASSERT_TRUE(reference.ok()) << reference.status().ToString();
+  EXPECT_NE(source.find("from 12 ground-truth frames"), std::string::npos) << source;
+  options.stride = 1;
+  auto every_frame = LoadOrBuildReference(*fast, options, nullptr);
+  ASSERT_TRUE(every_frame.ok()) << every_frame.status().ToString();
+  auto coverage = ComputeReconstructionError(*every_frame, *reference);
+  ASSERT_TRUE(coverage.ok());
+  EXPECT_GT(coverage->completeness, 0.99);
+
+  o.frames = 30;
+  o.path.loop_period_s = 400;  // 1 mm and under a degree a frame
+  ASSERT_TRUE(WriteSyntheticSequence(dir.File("slow"), o).ok());
+  ASSERT_EQ(std::remove(dir.File("slow/surface.ply").c_str()), 0);
+  auto slow = TumSequence::Open(dir.File("slow"), std::nullopt);
+  ASSERT_TRUE(slow.ok()) << slow.status().ToString();
+  options.stride = 10;
+  ASSERT_TRUE(LoadOrBuildReference(*slow, options, &source).ok());
+  EXPECT_NE(source.find("from 3 ground-truth frames"), std::string::npos) << source;
 }
 
 // The files a server leaves when two agents did not fuse (a short excerpt of a slow camera, as
