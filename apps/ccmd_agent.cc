@@ -51,6 +51,7 @@ ccmd::Json StatsJson(const ccmd::FrontendStats& s, double wall_seconds,
   j["depth_noise_ratio"] = s.depth_noise_ratio;
   j["depth_fit_sigmas"] = s.mapping.depth_fit_sigmas;
   j["restarts"] = s.restarts;
+  j["motion_model_misses"] = s.motion_model_misses;
   j["keyframes"] = s.keyframes;
   j["map_keyframes"] = s.map_keyframes;
   j["map_points"] = s.map_points;

@@ -176,6 +176,7 @@ FrontendStats Frontend::stats() {
   s.mapping = mapper_->stats();
   const auto lock = map_.Lock();
   s.restarts = tracker_->restarts();
+  s.motion_model_misses = tracker_->motion_model_misses();
   s.keyframes = static_cast<int>(map_.keyframes_created());
   s.map_keyframes = static_cast<int>(map_.keyframes().size());
   s.map_points = map_.num_points();

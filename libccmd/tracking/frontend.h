@@ -22,11 +22,12 @@ namespace ccmd {
 struct FrontendStats {
   int frames = 0;
   int tracked_frames = 0;
-  int lost_frames = 0;        // frames after initialisation that could not be tracked
-  int depth_only_frames = 0;  // tracked frames placed by their depth alone
-  int restarts = 0;           // map segments started after tracking was lost
-  int keyframes = 0;          // keyframes created
-  int map_keyframes = 0;      // keyframes in the bounded map now
+  int lost_frames = 0;          // frames after initialisation that could not be tracked
+  int depth_only_frames = 0;    // tracked frames placed by their depth alone
+  int restarts = 0;             // map segments started after tracking was lost
+  int motion_model_misses = 0;  // frames the motion model's prediction did not find (Tracker)
+  int keyframes = 0;            // keyframes created
+  int map_keyframes = 0;        // keyframes in the bounded map now
   std::size_t map_points = 0;
   double extract_ms_total = 0;
   double track_ms_total = 0;

@@ -292,12 +292,21 @@ int DiscardOutliers(TrackingFrame* frame) {
 
 }  // namespace
 
+Pose Tracker::PredictedMotion() const {
+  // Constant velocity in time: a frame that comes after dropped ones has moved further.
+  const double interval = current_->timestamp - last_->timestamp;
+  if (!(velocity_interval_ > 0) || !(interval > 0)) return *velocity_;
+  return MotionOver(*velocity_, velocity_interval_, std::min(interval, 4 * velocity_interval_))
+      .inverse();
+}
+
 bool Tracker::TrackWithMotionModel() {
-  current_->SetPose(*velocity_ * last_->T_cam_world);
+  current_->SetPose(PredictedMotion() * last_->T_cam_world);
   std::fill(current_->points.begin(), current_->points.end(), nullptr);
   constexpr float kRadius = 15.0f;
   int matches = SearchFromLastFrame(current_.get(), *last_, kRadius, *orb_, camera_);
   if (matches < 20) {
+    ++motion_model_misses_;
     std::fill(current_->points.begin(), current_->points.end(), nullptr);
     matches = SearchFromLastFrame(current_.get(), *last_, 2 * kRadius, *orb_, camera_);
   }

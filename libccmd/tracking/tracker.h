@@ -66,6 +66,9 @@ class Tracker {
   TrackingState state() const { return state_; }
   int frames_since_relocalisation() const { return frames_since_relocalisation_; }
   int restarts() const { return restarts_; }
+  // Frames whose predicted pose found too few of the last frame's points within the search
+  // radius (a motion the constant-velocity model did not foresee).
+  int motion_model_misses() const { return motion_model_misses_; }
 
   // Per-frame record for the trajectory (with options.record_trajectory): pose relative to the
   // reference keyframe, so the final trajectory follows the keyframes' optimised poses. Stored
@@ -116,6 +119,8 @@ class Tracker {
   // young to relocalise against: the next frame with enough features starts a new segment.
   bool RestartDue() const;
   bool YoungSegment() const;  // fewer than kYoungSegmentKeyframes keyframes
+  // The motion model's T_current_last for the current frame.
+  Pose PredictedMotion() const;
   bool TrackWithMotionModel();
   bool TrackReferenceKeyframe();
   bool Relocalize();
@@ -171,6 +176,7 @@ class Tracker {
   double lost_since_ = 0;        // timestamp of the first frame not tracked
   KeyframeId segment_start_{0};  // first keyframe of the current segment
   int restarts_ = 0;
+  int motion_model_misses_ = 0;
   std::unique_ptr<TrackingFrame> current_, last_;
   std::optional<Pose> velocity_;  // T_current_last
   double velocity_interval_ = 0;  // seconds between the two frames velocity_ was measured on
