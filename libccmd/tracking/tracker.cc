@@ -296,8 +296,7 @@ Pose Tracker::PredictedMotion() const {
   // Constant velocity in time: a frame that comes after dropped ones has moved further.
   const double interval = current_->timestamp - last_->timestamp;
   if (!(velocity_interval_ > 0) || !(interval > 0)) return *velocity_;
-  return MotionOver(*velocity_, velocity_interval_, std::min(interval, 4 * velocity_interval_))
-      .inverse();
+  return MotionOver(*velocity_, velocity_interval_, interval).inverse();
 }
 
 bool Tracker::TrackWithMotionModel() {
@@ -565,7 +564,7 @@ bool Tracker::BridgeWithDepth() {
     return false;
   if (bridged_since_ && current_->timestamp - *bridged_since_ > options_.depth_bridge_seconds)
     return false;
-  const Pose predicted = velocity_ ? *velocity_ * last_->T_cam_world : last_->T_cam_world;
+  const Pose predicted = velocity_ ? PredictedMotion() * last_->T_cam_world : last_->T_cam_world;
   DepthModel model = DepthModel::FromDepth(current_->DepthAtColourTime(camera_), camera_, 4,
                                            options_.min_depth, options_.max_depth);
   // Without features to back it, the alignment alone must hold: the surfaces it matched must

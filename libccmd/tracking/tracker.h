@@ -67,7 +67,7 @@ class Tracker {
   int frames_since_relocalisation() const { return frames_since_relocalisation_; }
   int restarts() const { return restarts_; }
   // Frames whose predicted pose found too few of the last frame's points within the search
-  // radius (a motion the constant-velocity model did not foresee).
+  // window (a motion the constant-velocity model did not foresee).
   int motion_model_misses() const { return motion_model_misses_; }
 
   // Per-frame record for the trajectory (with options.record_trajectory): pose relative to the
