@@ -323,8 +323,65 @@ bool Tracker::TrackReferenceKeyframe() {
   const int matches = SearchByDescriptor(current_.get(), *reference_);
   if (matches < 15) return false;
   current_->SetPose(last_ && last_->has_pose ? last_->T_cam_world : reference_->T_cam_world());
-  OptimizeCurrentPose();
-  return DiscardOutliers(current_.get()) >= 10;
+  int inliers = OptimizeCurrentPose();
+  {
+    // The camera may have moved further than the optimisation finds its way from the last pose
+    // (after a gap in the frames, where a turn can be taken for a shift, and the matches that
+    // disagree are dropped as outliers): the matches alone give another start.
+    const std::vector<MapPointPtr> points = current_->points;
+    const std::vector<bool> outlier = current_->outlier;
+    const Pose from_last = current_->T_cam_world;
+    const int before = inliers;
+    if (PoseFromMatchesAlone()) inliers = OptimizeCurrentPose();
+    if (inliers <= before) {
+      current_->points = points;
+      current_->outlier = outlier;
+      current_->SetPose(from_last);
+      inliers = before;
+    }
+  }
+  const int in_map = DiscardOutliers(current_.get());
+  CCMD_LOG(DEBUG) << "frame " << current_->index << " reference keyframe: " << matches
+                  << " matches, " << inliers << " inliers, " << in_map << " in map";
+  return in_map >= 10;
+}
+
+bool Tracker::PoseFromMatchesAlone() {
+  std::vector<cv::Point3f> object;
+  std::vector<cv::Point2f> image;
+  std::vector<int> index;
+  for (int i = 0; i < current_->size(); ++i) {
+    if (!current_->points[i]) continue;
+    const Eigen::Vector3d& p = current_->points[i]->position();
+    object.emplace_back(static_cast<float>(p.x()), static_cast<float>(p.y()),
+                        static_cast<float>(p.z()));
+    image.push_back(current_->features.keypoints[i].pt);
+    index.push_back(i);
+  }
+  if (object.size() < 15) return false;
+  const cv::Mat K =
+      (cv::Mat_<double>(3, 3) << camera_.fx, 0, camera_.cx, 0, camera_.fy, camera_.cy, 0, 0, 1);
+  cv::Mat rvec, tvec;
+  std::vector<int> inliers;
+  const bool solved = cv::solvePnPRansac(object, image, K, cv::noArray(), rvec, tvec, false, 200,
+                                         4.0f, 0.99, inliers, cv::SOLVEPNP_EPNP);
+  if (!solved || inliers.size() < 15) return false;
+  cv::Mat R;
+  cv::Rodrigues(rvec, R);
+  Eigen::Matrix3d Re;
+  cv::cv2eigen(R, Re);
+  Pose T = Pose::Identity();
+  T.linear() = Re;
+  T.translation() = Eigen::Vector3d(tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2));
+  std::vector<bool> keep(current_->size(), false);
+  for (int k : inliers) keep[index[k]] = true;
+  for (int i = 0; i < current_->size(); ++i) {
+    if (keep[i]) continue;
+    current_->points[i] = nullptr;
+    current_->outlier[i] = false;
+  }
+  current_->SetPose(T);
+  return true;
 }
 
 bool Tracker::Relocalize() {
@@ -335,40 +392,10 @@ bool Tracker::Relocalize() {
   for (auto it = map_->keyframes().rbegin();
        it != map_->keyframes().rend() && it->first >= segment_start_; ++it)
     candidates.push_back(it->second);
-  const cv::Mat K =
-      (cv::Mat_<double>(3, 3) << camera_.fx, 0, camera_.cx, 0, camera_.fy, camera_.cy, 0, 0, 1);
   for (const KeyframePtr& kf : candidates) {
     current_->ClearMatches();
     if (SearchByDescriptor(current_.get(), *kf) < 15) continue;
-    std::vector<cv::Point3f> object;
-    std::vector<cv::Point2f> image;
-    std::vector<int> index;
-    for (int i = 0; i < current_->size(); ++i) {
-      if (!current_->points[i]) continue;
-      const Eigen::Vector3d& p = current_->points[i]->position();
-      object.emplace_back(static_cast<float>(p.x()), static_cast<float>(p.y()),
-                          static_cast<float>(p.z()));
-      image.push_back(current_->features.keypoints[i].pt);
-      index.push_back(i);
-    }
-    cv::Mat rvec, tvec;
-    std::vector<int> inliers;
-    const bool solved = cv::solvePnPRansac(object, image, K, cv::noArray(), rvec, tvec, false, 200,
-                                           4.0f, 0.99, inliers, cv::SOLVEPNP_EPNP);
-    if (!solved || inliers.size() < 15) continue;
-    cv::Mat R;
-    cv::Rodrigues(rvec, R);
-    Eigen::Matrix3d Re;
-    cv::cv2eigen(R, Re);
-    Pose T = Pose::Identity();
-    T.linear() = Re;
-    T.translation() = Eigen::Vector3d(tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2));
-    std::vector<bool> keep(current_->size(), false);
-    for (int k : inliers) keep[index[k]] = true;
-    for (int i = 0; i < current_->size(); ++i) {
-      if (!keep[i]) current_->points[i] = nullptr;
-    }
-    current_->SetPose(T);
+    if (!PoseFromMatchesAlone()) continue;
     int good = OptimizeCurrentPose();
     if (good < 10) continue;
     DiscardOutliers(current_.get());

@@ -123,6 +123,9 @@ class Tracker {
   Pose PredictedMotion() const;
   bool TrackWithMotionModel();
   bool TrackReferenceKeyframe();
+  // The current frame's pose from its matches alone (EPnP in RANSAC, no prior pose); keeps the
+  // matches it agrees with. False when fewer than 15 agree.
+  bool PoseFromMatchesAlone();
   bool Relocalize();
   bool TrackLocalMap();
   void UpdateLocalMap();
