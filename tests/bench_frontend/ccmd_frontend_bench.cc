@@ -379,6 +379,7 @@ int main(int argc, char** argv) {
   result["tracked_frames"] = stats.tracked_frames;
   result["lost_frames"] = stats.lost_frames;
   result["depth_only_frames"] = stats.depth_only_frames;
+  result["motion_model_misses"] = stats.motion_model_misses;
   result["keyframes"] = stats.keyframes;
   result["fps"] = fps;
   result["sensor_fps"] = camera.fps;
