@@ -323,22 +323,20 @@ bool Tracker::TrackReferenceKeyframe() {
   const int matches = SearchByDescriptor(current_.get(), *reference_);
   if (matches < 15) return false;
   current_->SetPose(last_ && last_->has_pose ? last_->T_cam_world : reference_->T_cam_world());
-  int inliers = OptimizeCurrentPose();
-  {
-    // The camera may have moved further than the optimisation finds its way from the last pose
-    // (after a gap in the frames, where a turn can be taken for a shift, and the matches that
-    // disagree are dropped as outliers): the matches alone give another start.
-    const std::vector<MapPointPtr> points = current_->points;
-    const std::vector<bool> outlier = current_->outlier;
-    const Pose from_last = current_->T_cam_world;
-    const int before = inliers;
-    if (PoseFromMatchesAlone()) inliers = OptimizeCurrentPose();
-    if (inliers <= before) {
-      current_->points = points;
-      current_->outlier = outlier;
-      current_->SetPose(from_last);
-      inliers = before;
-    }
+  const int from_last = OptimizeCurrentPose();
+  // The camera may have moved further than the optimisation finds its way from the last pose
+  // (after a gap in the frames, where a turn can be taken for a shift, and the matches that
+  // disagree are dropped as outliers): the matches alone give another start, kept when more of
+  // them agree with where it leads.
+  const std::vector<MapPointPtr> points = current_->points;
+  const std::vector<bool> outlier = current_->outlier;
+  const Pose T_from_last = current_->T_cam_world;
+  int inliers = PoseFromMatchesAlone() ? OptimizeCurrentPose() : 0;
+  if (inliers <= from_last) {
+    current_->points = points;
+    current_->outlier = outlier;
+    current_->SetPose(T_from_last);
+    inliers = from_last;
   }
   const int in_map = DiscardOutliers(current_.get());
   CCMD_LOG(DEBUG) << "frame " << current_->index << " reference keyframe: " << matches

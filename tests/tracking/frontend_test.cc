@@ -272,14 +272,6 @@ TEST(FrontendTest, RollingShutterKeypointsAreMovedToTheFramesTime) {
   EXPECT_LT(moved, 1.5 * global) << "global shutter " << global << " m";
 }
 
-// Two thirds of a second without features (frames 12-31), on exact depth: the room's depth
-// places each of those frames against the newest keyframe's, or the frame before's where the
-// view has left the keyframe, and when the colour comes back the local map is found again from
-// there. Nothing is lost, the trajectory stays within millimetres of the truth, and its
-// rotations stay rotations: each bridged pose predicts the next, and a product's rounding fed
-// back so grew frame after frame (1e-4 off orthonormal after these 20 frames; on ICL-NUIM a 1 %
-// shear after a second, when the alignments stopped converging). Without the bridge the same
-// frames are lost, and the camera is found again by relocalisation.
 // A camera that drops frames (a USB link, an agent behind the sensor) delivers them at uneven
 // intervals. Two frames kept of every six, alternately 1/30 s and 5/30 s apart: a velocity per
 // frame predicts every frame 4/30 s of motion off, and the search around that prediction misses
@@ -310,6 +302,14 @@ TEST(FrontendTest, TheMotionModelPredictsByTheTimeSinceTheLastFrame) {
   EXPECT_LE(stats.motion_model_misses, 2);
 }
 
+// Two thirds of a second without features (frames 12-31), on exact depth: the room's depth
+// places each of those frames against the newest keyframe's, or the frame before's where the
+// view has left the keyframe, and when the colour comes back the local map is found again from
+// there. Nothing is lost, the trajectory stays within millimetres of the truth, and its
+// rotations stay rotations: each bridged pose predicts the next, and a product's rounding fed
+// back so grew frame after frame (1e-4 off orthonormal after these 20 frames; on ICL-NUIM a 1 %
+// shear after a second, when the alignments stopped converging). Without the bridge the same
+// frames are lost, and the camera is found again by relocalisation.
 TEST(FrontendTest, DepthCarriesTrackingThroughFramesWithoutFeatures) {
   constexpr int kFrames = 90, kFirst = 12, kBlank = 20;
   TrackingOptions with = Synchronous();
