@@ -445,7 +445,9 @@ void PrintSummary(const ccmd::FrontendStats& stats, double seconds, double cores
   }
   if (stats.restarts > 0) {
     std::printf(
-        "tracking restarted %d time(s) in a new map segment after it could not relocalise\n",
+        "tracking restarted %d time(s) in a new map segment after it could not relocalise; "
+        "each segment starts from the last tracked pose, so the trajectory jumps where one "
+        "starts (a server places the segments against each other where their views meet)\n",
         stats.restarts);
   }
   if (m.local_ba_reduced + m.local_ba_skipped_budget > 0) {
