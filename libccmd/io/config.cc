@@ -61,6 +61,14 @@ StatusOr<ConfigFile> ConfigFile::Open(const std::string& path) {
                    " keys, list items and brackets; a config has at most " +
                    std::to_string(kMaxConfigTokens));
   }
+  // OpenCV's base64 reader (the "!!binary" tag) can loop for ever on bytes that are not base64
+  // (OpenCV 4.6: a line of 80 0xFF bytes). A camera config writes its numbers and matrices as
+  // text, so the tag is refused before parsing.
+  if (text.find("!!binary") != std::string::npos) {
+    return Corrupt("config file " + path +
+                   " has a base64 (!!binary) value; write numbers and matrices as text "
+                   "(\"Camera.fx: 525.0\", \"data: [1.0, 0.0, ...]\")");
+  }
   ConfigFile config;
   config.path_ = path;
   config.text_ = text;

@@ -4,6 +4,7 @@
 
 #include <cmath>
 #include <filesystem>
+#include <opencv2/core.hpp>
 
 #include <sys/stat.h>
 
@@ -76,6 +77,34 @@ TEST(ConfigTest, DeepNestingIsAClearError) {
     ASSERT_FALSE(c.ok()) << level;
     EXPECT_EQ(c.status().code(), StatusCode::kCorrupt) << c.status().ToString();
     EXPECT_NE(c.status().message().find("keys, list items and brackets"), std::string::npos)
+        << c.status().ToString();
+  }
+}
+
+// Found by fuzzing: OpenCV's base64 reader ("!!binary") loops for ever on a line of bytes that
+// are not base64, and neither a timeout's SIGTERM nor anything else stops the program. The tag
+// is refused before parsing, a valid base64 matrix as well as the bytes that hang.
+TEST(ConfigTest, Base64ValuesAreRefusedBeforeParsing) {
+  testing::TempDir dir;
+  // A matrix as OpenCV writes it in base64 (its writer takes no dots in keys: renamed after).
+  cv::FileStorage written(
+      "w.yaml", cv::FileStorage::WRITE | cv::FileStorage::MEMORY | cv::FileStorage::BASE64);
+  written << "R" << cv::Mat::eye(3, 3, CV_64F);
+  std::string valid = written.releaseAndGetString();
+  const std::size_t key = valid.find("\nR:");
+  ASSERT_NE(key, std::string::npos) << valid;
+  ASSERT_NE(valid.find("!!binary"), std::string::npos) << valid;
+  valid.replace(key, 3,
+                "\nCamera.fx: 500\nCamera.fy: 500\nCamera.cx: 320\nCamera.cy: 240\n"
+                "Camera.width: 640\nCamera.height: 480\nDepth.R_color_depth:");
+  const std::string hangs = "%YAML:1.0\nCamera.fx: 500\nRgbdSelection.thresholdRatio:!!binary " +
+                            std::string(80, '\xff') + "\n";
+  for (const std::string& text : {valid, hangs}) {
+    ASSERT_TRUE(WriteFileAtomic(dir.File("b.yaml"), text).ok());
+    auto c = LoadCameraConfig(dir.File("b.yaml"));
+    ASSERT_FALSE(c.ok()) << text;
+    EXPECT_EQ(c.status().code(), StatusCode::kCorrupt) << c.status().ToString();
+    EXPECT_NE(c.status().message().find("base64 (!!binary)"), std::string::npos)
         << c.status().ToString();
   }
 }
