@@ -82,8 +82,8 @@ TEST(ConfigTest, DeepNestingIsAClearError) {
 }
 
 // Found by fuzzing: OpenCV's base64 reader ("!!binary") loops for ever on a line of bytes that
-// are not base64, and neither a timeout's SIGTERM nor anything else stops the program. The tag
-// is refused before parsing, a valid base64 matrix as well as the bytes that hang.
+// are not base64 (the agent, which takes SIGTERM as "finish cleanly", then runs until killed). The
+// tag is refused before parsing, a valid base64 matrix as well as the bytes that hang.
 TEST(ConfigTest, Base64ValuesAreRefusedBeforeParsing) {
   testing::TempDir dir;
   // A matrix as OpenCV writes it in base64 (its writer takes no dots in keys: renamed after).
