@@ -56,6 +56,8 @@ std::vector<std::vector<std::uint8_t>> FuzzRegressions() {
       // Local BA iteration counts whose sum overflows int in TrackingOptions::Validate.
       "%YAML:1.0\nTracking.localBAIterations: 2147483647\n"
       "Tracking.localBARobustIterations: 2147483647\n",
+      // A base64 value over a line of bytes that are not base64: OpenCV's reader looped for ever.
+      "%YAML:1.0\nRgbdSelection.thresholdRatio:!!binary " + std::string(80, '\xff') + "\n",
   };
   std::vector<std::vector<std::uint8_t>> inputs;
   for (const std::string& t : texts) inputs.emplace_back(t.begin(), t.end());
