@@ -17,7 +17,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 SECONDS_EACH=${1:-60}
 BUILD_DIR=${CCMD_FUZZ_BUILD_DIR:-build-fuzz}
-TARGETS=${CCMD_FUZZ_TARGETS:-frame keyframe depth lz77 session auth config trajectory ply}
+TARGETS=${CCMD_FUZZ_TARGETS:-frame keyframe depth rgbd lz77 session auth config trajectory ply}
 JOBS=$(( $(nproc) < 2 ? $(nproc) : 2 ))
 
 if ! command -v clang++ >/dev/null; then
