@@ -3,10 +3,10 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
-#include <opencv2/calib3d.hpp>
-#include <opencv2/core/eigen.hpp>
+#include <opencv2/core.hpp>
 #include <unordered_set>
 
+#include "libccmd/geometry/pnp.h"
 #include "libccmd/optim/pose_optimizer.h"
 
 namespace ccmd {
@@ -140,30 +140,15 @@ CCMD_POPCNT_CLONES std::vector<int> MatchKeypoints(const ServerKeyframe& query,
   return point_of;
 }
 
-// PnP RANSAC of the matches: the query camera's pose in the candidate's map, if enough agree.
-std::optional<Pose> SolvePnpRansac(const std::vector<cv::Point3f>& object,
-                                   const std::vector<cv::Point2f>& image,
-                                   const PinholeCamera& camera,
-                                   const LoopVerificationOptions& options) {
-  const cv::Mat K =
-      (cv::Mat_<double>(3, 3) << camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1);
-  cv::Mat rvec, tvec;
-  std::vector<int> ransac_inliers;
-  cv::setRNGSeed(0x100b);  // deterministic RANSAC
-  const bool solved = cv::solvePnPRansac(object, image, K, cv::noArray(), rvec, tvec, false, 300,
-                                         static_cast<float>(options.ransac_reprojection_px), 0.999,
-                                         ransac_inliers, cv::SOLVEPNP_EPNP);
-  if (!solved || static_cast<int>(ransac_inliers.size()) < options.min_ransac_inliers)
-    return std::nullopt;
-  cv::Mat R;
-  cv::Rodrigues(rvec, R);
-  Eigen::Matrix3d Re;
-  cv::cv2eigen(R, Re);
-  Pose T_cam_map = Pose::Identity();
-  T_cam_map.linear() = Re;
-  T_cam_map.translation() =
-      Eigen::Vector3d(tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2));
-  return T_cam_map;
+// The RANSAC's settings for a loop: more draws and a higher confidence than tracking's, and
+// the options' threshold and count.
+PnpRansacOptions LoopPnp(const LoopVerificationOptions& options) {
+  PnpRansacOptions pnp;
+  pnp.iterations = 300;
+  pnp.reprojection_px = static_cast<float>(options.ransac_reprojection_px);
+  pnp.confidence = 0.999;
+  pnp.min_inliers = options.min_ransac_inliers;
+  return pnp;
 }
 
 }  // namespace
@@ -187,7 +172,9 @@ std::optional<LoopMatch> VerifyLoop(ServerKeyframe* query, const PinholeCamera& 
     keypoint_index.push_back(static_cast<int>(i));
   }
   if (static_cast<int>(object.size()) < options.min_matches) return std::nullopt;
-  const std::optional<Pose> T_cam_map = SolvePnpRansac(object, image, camera, options);
+  // The query camera's pose in the candidate's map, if enough matches agree.
+  cv::setRNGSeed(0x100b);  // deterministic RANSAC
+  const std::optional<Pose> T_cam_map = SolvePnpRansac(object, image, camera, LoopPnp(options));
   if (!T_cam_map) return std::nullopt;
 
   // Refine with every match (outliers are re-classified) and the measured depths, twice. First

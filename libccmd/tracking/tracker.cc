@@ -2,11 +2,10 @@
 
 #include <algorithm>
 #include <cmath>
-#include <opencv2/calib3d.hpp>
-#include <opencv2/core/eigen.hpp>
 #include <unordered_map>
 #include <unordered_set>
 
+#include "libccmd/geometry/pnp.h"
 #include "libccmd/optim/bundle_adjuster.h"
 #include "libccmd/tracking/depth_alignment.h"
 #include "libccmd/tracking/matching.h"
@@ -357,20 +356,9 @@ bool Tracker::PoseFromMatchesAlone() {
     index.push_back(i);
   }
   if (object.size() < 15) return false;
-  const cv::Mat K =
-      (cv::Mat_<double>(3, 3) << camera_.fx, 0, camera_.cx, 0, camera_.fy, camera_.cy, 0, 0, 1);
-  cv::Mat rvec, tvec;
   std::vector<int> inliers;
-  const bool solved = cv::solvePnPRansac(object, image, K, cv::noArray(), rvec, tvec, false, 200,
-                                         4.0f, 0.99, inliers, cv::SOLVEPNP_EPNP);
-  if (!solved || inliers.size() < 15) return false;
-  cv::Mat R;
-  cv::Rodrigues(rvec, R);
-  Eigen::Matrix3d Re;
-  cv::cv2eigen(R, Re);
-  Pose T = Pose::Identity();
-  T.linear() = Re;
-  T.translation() = Eigen::Vector3d(tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2));
+  const std::optional<Pose> T = SolvePnpRansac(object, image, camera_, {}, &inliers);
+  if (!T) return false;
   std::vector<bool> keep(current_->size(), false);
   for (int k : inliers) keep[index[k]] = true;
   for (int i = 0; i < current_->size(); ++i) {
@@ -378,7 +366,7 @@ bool Tracker::PoseFromMatchesAlone() {
     current_->points[i] = nullptr;
     current_->outlier[i] = false;
   }
-  current_->SetPose(T);
+  current_->SetPose(*T);
   return true;
 }
 
