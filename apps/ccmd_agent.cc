@@ -2,6 +2,8 @@
 // camera) and sends compact keyframes to a ccmd_server, or runs offline and writes its
 // trajectory.
 
+#include <unistd.h>
+
 #include <CLI/CLI.hpp>
 #include <atomic>
 #include <chrono>
@@ -33,8 +35,19 @@ namespace {
 // Exit status when messages were refused or never acknowledged (1: any other error).
 constexpr int kExitMessagesLost = 3;
 
-std::atomic<bool> g_stop{false};
-void OnSignal(int) { g_stop = true; }
+// A SIGINT/SIGTERM while frames are read asks for a clean stop: the frames read so far are
+// finished, sent and acknowledged, and the results written. Once the agent is stopping (a
+// signal came, or the source ended), one ends it at once with status 128 + the signal, for
+// when that stop waits on a server that is gone.
+std::atomic<bool> g_stopping{false};
+void OnSignal(int sig) {
+  if (!g_stopping.exchange(true)) return;
+  static const char kMessage[] =
+      "\nccmd_agent: stop signal while stopping: exiting now; what the server has not "
+      "acknowledged and the trajectory are not kept\n";
+  (void)!::write(STDERR_FILENO, kMessage, sizeof(kMessage) - 1);
+  ::_exit(128 + sig);
+}
 
 int Fail(const std::string& what) {
   std::fprintf(stderr, "ccmd_agent: %s\n", what.c_str());
@@ -359,7 +372,7 @@ ccmd::Status RunFrames(const AgentArgs& a, ccmd::RgbdSource* source, ccmd::TumRe
   int frames = 0;
   double last_progress = -1e9;
   ccmd::RgbdFrame frame;
-  while (!g_stop) {
+  while (!g_stopping) {
     const ccmd::Status status = source->Read(&frame);
     if (status.code() == ccmd::StatusCode::kEndOfStream) break;
     if (status.code() == ccmd::StatusCode::kUnavailable) continue;  // camera away: retrying
@@ -389,6 +402,13 @@ ccmd::Status RunFrames(const AgentArgs& a, ccmd::RgbdSource* source, ccmd::TumRe
     }
     if (a.max_frames > 0 && frames >= a.max_frames) break;
   }
+  if (g_stopping) {
+    std::printf(
+        "stopping after %d frames: finishing the map%s and writing the results (a second "
+        "Ctrl-C exits at once)\n",
+        frames, link ? ", waiting for the server's acknowledgements," : "");
+    std::fflush(stdout);
+  }
   return ccmd::Status::Ok();
 }
 
@@ -397,6 +417,11 @@ ccmd::Status RunFrames(const AgentArgs& a, ccmd::RgbdSource* source, ccmd::TumRe
 // or kExitMessagesLost when not everything the agent produced is stored at the server.
 int FinishLink(const AgentArgs& a, ccmd::AgentLink* link, const ccmd::LinkSink& sink,
                ccmd::Json* link_json) {
+  if (const std::uint64_t waiting = link->stats().unacked; waiting > 0) {
+    std::printf("waiting for the server to acknowledge %llu messages (Ctrl-C exits at once)\n",
+                static_cast<unsigned long long>(waiting));
+    std::fflush(stdout);
+  }
   const ccmd::Status flushed = FlushWhileProgressing(link, a.flush_timeout);
   const ccmd::AgentLinkStats ls = link->stats();
   ccmd::Json& j = *link_json;
@@ -483,7 +508,9 @@ int main(int argc, char** argv) {
       "ccmd_server,\n"
       "or runs --offline and writes its trajectory (TUM format).\n"
       "Exit status: 0 when the server acknowledged every message, 3 when messages were refused\n"
-      "or never acknowledged (the counts are printed and in --stats), 1 on any other error."};
+      "or never acknowledged (the counts are printed and in --stats), 1 on any other error.\n"
+      "Ctrl-C (SIGINT, SIGTERM) stops cleanly: what was read is mapped, sent and written. Once\n"
+      "the agent is stopping, Ctrl-C exits at once (status 128 + signal), keeping nothing unsent."};
   AgentArgs a;
   AddOptions(&app, &a);
   CLI11_PARSE(app, argc, argv);
@@ -554,6 +581,7 @@ int main(int argc, char** argv) {
   // What was tracked before an error is still sent, summarised and written; the exit status
   // then says the run did not end as it should.
   if (!ran.ok()) Fail(ran.ToString() + " (stopped there; finishing with the frames read before)");
+  g_stopping = true;  // from here on a stop signal ends the agent at once
   (*frontend)->Finish();
   ccmd::Json link_json;
   const int exit_code = link ? FinishLink(a, link.get(), *sink, &link_json) : 0;

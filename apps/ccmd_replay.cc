@@ -39,7 +39,16 @@ using namespace ccmd;
 // Set by SIGINT/SIGTERM/SIGHUP during a --link run: the run stops its processes and removes
 // its namespaces instead of leaving them behind.
 std::atomic<bool> g_interrupted{false};
-void OnSignal(int) { g_interrupted = true; }
+// Whether the terminal sent it (Ctrl-C, a closed terminal): it went to the whole foreground
+// process group, the agents and the server included.
+std::atomic<bool> g_interrupt_reached_children{false};
+void OnSignal(int, siginfo_t* info, void*) {
+  g_interrupt_reached_children = info->si_code == SI_KERNEL;
+  g_interrupted = true;
+}
+
+// How long agents asked to stop at the time-out may take before they are ended.
+constexpr double kStopGraceSeconds = 60;
 
 int Fail(const std::string& what) {
   std::fprintf(stderr, "ccmd_replay: %s\n", what.c_str());
@@ -248,6 +257,7 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out,
     t->last_cpu = cpu;
     t->last_time = now;
   };
+  bool timed_out = false, forced = false;
   while (true) {
     int running = 0;
     for (Tracked& a : agent_processes) {
@@ -311,14 +321,30 @@ StatusOr<Json> RunOnce(const Setup& setup, const std::string& out,
     if (g_interrupted) {
       std::fprintf(stderr,
                    "\nccmd_replay: interrupted; stopping the processes and removing the link\n");
-      for (Tracked& a : agent_processes) a.process.Signal(SIGINT).IgnoreError();
-      server.process.Signal(SIGINT).IgnoreError();
+      // A Ctrl-C at the terminal reached them already; a second signal would end them at once.
+      if (!g_interrupt_reached_children) {
+        for (Tracked& a : agent_processes) a.process.Signal(SIGINT).IgnoreError();
+        server.process.Signal(SIGINT).IgnoreError();
+      }
       return Cancelled("interrupted");
     }
-    if (wall.ElapsedSeconds() > setup.timeout_s) {
-      std::fprintf(stderr, "\nccmd_replay: time-out after %.0f s, stopping\n", setup.timeout_s);
-      for (Tracked& a : agent_processes) a.process.Signal(SIGINT).IgnoreError();
+    // At the time-out the agents are asked to stop cleanly; those still running a grace
+    // period later get the second signal, which ends an agent at once.
+    const double over = wall.ElapsedSeconds() - setup.timeout_s;
+    if (over > 0 && !timed_out) {
+      timed_out = true;
       ++failed;
+      std::fprintf(stderr, "\nccmd_replay: time-out after %.0f s, stopping the agents\n",
+                   setup.timeout_s);
+      for (Tracked& a : agent_processes) a.process.Signal(SIGINT).IgnoreError();
+    } else if (over > kStopGraceSeconds && !forced) {
+      forced = true;
+      std::fprintf(stderr,
+                   "\nccmd_replay: agents still running %.0f s after the time-out, ending them\n",
+                   kStopGraceSeconds);
+      for (Tracked& a : agent_processes) {
+        if (a.ended < 0) a.process.Signal(SIGINT).IgnoreError();
+      }
     }
     // A refresh period for the display and the CPU samples, not synchronisation: the loop
     // ends on the children's exit status.
@@ -469,7 +495,8 @@ void AddOptions(CLI::App* app, ReplayArgs* a) {
   app->add_option("--bin-dir", a->bin_dir,
                   "Folder of ccmd_server and ccmd_agent (default: next to this program)");
   app->add_option("--timeout", a->timeout_s,
-                  "Stop a run (each run of --ablation) after this many seconds")
+                  "Ask the agents of a run (each run of --ablation) to stop after this many "
+                  "seconds; those still running a minute later are ended")
       ->capture_default_str();
   CLI::Option* view_flag =
       app->add_flag("--view", a->view.enabled,
@@ -655,9 +682,11 @@ int main(int argc, char** argv) {
   if (const Status s = CheckArgs(a, &link, &budgets); !s.ok()) return Fail(s.message());
   if (link) {
     // Stop cleanly on a signal: processes stopped, namespaces removed.
-    std::signal(SIGINT, OnSignal);
-    std::signal(SIGTERM, OnSignal);
-    std::signal(SIGHUP, OnSignal);
+    struct sigaction action {};
+    action.sa_sigaction = OnSignal;
+    action.sa_flags = SA_SIGINFO;
+    sigemptyset(&action.sa_mask);
+    for (const int sig : {SIGINT, SIGTERM, SIGHUP}) sigaction(sig, &action, nullptr);
   }
   std::string command;
   for (int i = 0; i < argc; ++i) command += (i ? " " : "") + std::string(argv[i]);

@@ -9,7 +9,8 @@
 // before it is "map view: http://HOST:PORT/..." (the live map view, docs/view.md).
 // SIGINT/SIGTERM stop it cleanly: agents get a bye, everything received is journaled and
 // delivered, the back-end finishes, the map, trajectories and statistics are written, exit
-// code 0.
+// code 0. A second signal while that runs exits at once (128 + signal); the journal keeps
+// everything acknowledged, and --resume takes the run up from it.
 
 #include <signal.h>
 
@@ -19,6 +20,7 @@
 #include <cstdio>
 #include <map>
 #include <mutex>
+#include <thread>
 
 #include "libccmd/features/bow_vocabulary.h"
 #include "libccmd/util/file_util.h"
@@ -245,6 +247,26 @@ void ServeUntilStopped(ccmd::ServerRuntime* server, const sigset_t& signals, con
   }
 }
 
+// From the first stop signal on, another one ends the server at once: the results are then
+// not written, but every acknowledged message is in the journal in `journal_dir`. One already
+// pending (two signals at once) counts too.
+void ExitOnSecondSignal(const sigset_t& signals, const std::string& journal_dir) {
+  const auto exit_now = [journal_dir](int sig) {
+    std::fprintf(stderr,
+                 "ccmd_server: stop signal while stopping: exiting before the results are "
+                 "written; everything acknowledged is journaled: ccmd_server --resume %s takes the "
+                 "run up again\n",
+                 journal_dir.c_str());
+    std::_Exit(128 + sig);
+  };
+  const timespec now{};
+  if (const int sig = sigtimedwait(&signals, nullptr, &now); sig > 0) exit_now(sig);
+  std::thread([signals, exit_now] {
+    int sig = 0;
+    if (sigwait(&signals, &sig) == 0) exit_now(sig);
+  }).detach();
+}
+
 int Refuse(const ccmd::Status& status) {
   std::fprintf(stderr, "ccmd_server: %s\n", status.ToString().c_str());
   return 2;
@@ -255,7 +277,9 @@ int Refuse(const ccmd::Status& status) {
 int main(int argc, char** argv) {
   CLI::App app{
       "CCMD server: accepts agents over TCP, journals and acknowledges their messages and\n"
-      "hands them to the back-end. Without a key it listens on loopback only."};
+      "hands them to the back-end. Without a key it listens on loopback only.\n"
+      "Ctrl-C (SIGINT, SIGTERM) stops it and writes the results; a second Ctrl-C exits at once\n"
+      "(status 128 + signal); --resume takes the run up again from the journal."};
   ServerArgs args;
   AddOptions(&app, &args);
   CLI11_PARSE(app, argc, argv);
@@ -292,6 +316,11 @@ int main(int argc, char** argv) {
   std::fflush(stdout);
 
   ServeUntilStopped(server->get(), signals, args);
+  std::printf(
+      "ccmd_server: stopping: finishing the maps and writing the results (a second Ctrl-C exits "
+      "at once)\n");
+  std::fflush(stdout);
+  ExitOnSecondSignal(signals, runtime.net.journal_dir);
   int exit_code = 0;
   if (ccmd::Status s = (*server)->Stop(); !s.ok()) {
     std::fprintf(stderr, "ccmd_server: writing results: %s\n", s.ToString().c_str());
