@@ -85,7 +85,7 @@ TrackResult Tracker::Track(const RgbdFrame& input) {
       ok = Relocalize();
     }
     current_->reference = reference_;
-    if (ok) ok = TrackLocalMap();
+    if (ok) ok = TrackLocalMap(/*depth_may_confirm=*/!bridged_since_);
     bool by_depth = false;
     if (!ok && state_ == TrackingState::kOk) ok = by_depth = BridgeWithDepth();
     if (ok) {
@@ -459,7 +459,7 @@ void Tracker::UpdateLocalMap() {
   }
 }
 
-bool Tracker::TrackLocalMap() {
+bool Tracker::TrackLocalMap(bool depth_may_confirm) {
   UpdateLocalMap();
   // Points already matched are not searched again; they count as seen.
   std::unordered_set<const MapPoint*> matched;
@@ -500,7 +500,10 @@ bool Tracker::TrackLocalMap() {
   const bool recently_relocalised =
       frames_since_relocalisation_ < options_.max_frames_between_keyframes;
   if (recently_relocalised && matches_inliers_ < 50) return false;
-  return matches_inliers_ >= 30;
+  if (matches_inliers_ >= 30) return true;
+  // Plain walls leave few features, but each has a depth, and the frame's depth image can
+  // vouch for the pose they give: lost here, the agent would start a new map segment.
+  return depth_may_confirm && matches_inliers_ >= kMinInliersWithDepth && DepthConfirmsPose();
 }
 
 bool Tracker::MoveKeypointsWithMotion(TrackingFrame* frame, const TrackingFrame& before,
@@ -539,109 +542,6 @@ bool Tracker::MoveFirstKeyframeWithOwnMotion() {
     p->set_position(T_world_cam * camera_.BackProject(pt.x, pt.y, z));
     p->UpdateNormalAndDepth(*orb_);
   }
-  return true;
-}
-
-std::optional<PosePrior> Tracker::FrameDepthPrior() const {
-  if (options_.frame_depth_weight <= 0 || current_->depth_mm.empty()) return std::nullopt;
-  const Keyframe* target = nullptr;
-  for (const KeyframePtr& kf : local_keyframes_) {
-    if (!kf->bad() && kf->depth_model && (!target || kf->id() > target->id())) target = kf.get();
-  }
-  if (!target) return std::nullopt;
-  // Coarser than the keyframes' models (8x8 pixel blocks, every other one used: 1200 cells
-  // for VGA) and fewer iterations: the features' pose is close, and this runs every frame.
-  const DepthModel model = DepthModel::FromDepth(current_->DepthAtColourTime(camera_), camera_, 8,
-                                                 options_.min_depth, options_.max_depth);
-  DepthAlignmentOptions alignment;
-  alignment.iterations = 6;
-  const Pose T_kf_cam = target->T_cam_world() * current_->T_cam_world.inverse();
-  const auto aligned =
-      AlignDepth(model, *target->depth_model, T_kf_cam, options_.depth_noise, alignment);
-  if (!aligned || !StaysNearStart(*aligned, T_kf_cam)) return std::nullopt;
-  PosePrior prior;
-  prior.T_b_world = target->T_cam_world();
-  prior.T_b_a = aligned->T_target_source;
-  prior.sqrt_information = SqrtInformation(options_.frame_depth_weight * aligned->information);
-  return prior;
-}
-
-void Tracker::EndBridge() {
-  bridged_since_.reset();
-  bridge_model_.reset();
-}
-
-bool Tracker::BridgeWithDepth() {
-  if (options_.depth_bridge_seconds <= 0 || current_->depth_mm.empty() || !last_ ||
-      !last_->has_pose)
-    return false;
-  if (bridged_since_ && current_->timestamp - *bridged_since_ > options_.depth_bridge_seconds)
-    return false;
-  const Pose predicted = velocity_ ? PredictedMotion() * last_->T_cam_world : last_->T_cam_world;
-  DepthModel model = DepthModel::FromDepth(current_->DepthAtColourTime(camera_), camera_, 4,
-                                           options_.min_depth, options_.max_depth);
-  // Without features to back it, the alignment alone must hold: the surfaces it matched must
-  // fix every direction of the pose, and fit as well as the sensor measures.
-  auto place = [&](const DepthModel& target, const Pose& T_target_world) -> std::optional<Pose> {
-    const Pose start = T_target_world * predicted.inverse();
-    const auto aligned = AlignDepth(model, target, start, options_.depth_noise);
-    if (!aligned || !StaysNearStart(*aligned, start)) return std::nullopt;
-    const double conditioning = Conditioning(*aligned);
-    const double fit_sigmas = aligned->rms / options_.depth_noise.Sigma(aligned->mean_range);
-    // Residuals beyond twice the sensor's noise, or beyond what alignments between keyframes
-    // whose poses the features confirmed reach (on rendered depth the cells' planes, not the
-    // noise, set the residuals: up to 2.9 sigma of configs/icl_nuim.yaml): surfaces matched
-    // wrongly.
-    const double allowed_sigmas = std::max(2.0, mapping_->DepthFitSigmas());
-    CCMD_LOG(DEBUG) << "frame " << current_->index << " depth alone: conditioning " << conditioning
-                    << ", " << aligned->inliers << " cells, rms " << aligned->rms * 1e3 << " mm ("
-                    << fit_sigmas << " sigma, " << allowed_sigmas << " allowed)";
-    if (conditioning < kMinConditioningAlone || fit_sigmas > allowed_sigmas) return std::nullopt;
-    // Re-projected onto SO(3): each bridged pose starts the next frame's prediction, and a
-    // product's rounding, fed back so frame after frame, would grow into a shear.
-    return Orthonormalized(aligned->T_target_source.inverse() * T_target_world);
-  };
-  // The newest keyframe of this segment whose depth model local mapping has made holds the
-  // pose without drift; where the view has left it, the frame before.
-  std::optional<Pose> T_cam_world;
-  for (auto it = map_->keyframes().rbegin();
-       it != map_->keyframes().rend() && it->first >= segment_start_; ++it) {
-    if (it->second->bad() || !it->second->depth_model) continue;
-    T_cam_world = place(*it->second->depth_model, it->second->T_cam_world());
-    break;
-  }
-  if (!T_cam_world && !last_->depth_mm.empty()) {
-    if (!bridge_model_) {
-      bridge_model_ = std::make_shared<const DepthModel>(DepthModel::FromDepth(
-          last_->DepthAtColourTime(camera_), camera_, 4, options_.min_depth, options_.max_depth));
-    }
-    T_cam_world = place(*bridge_model_, last_->T_cam_world);
-  }
-  if (!T_cam_world) return false;
-  // From there the local map's points may be found again (the view regained texture).
-  current_->SetPose(*T_cam_world);
-  current_->ClearMatches();
-  if (TrackLocalMap()) return true;
-  current_->SetPose(*T_cam_world);
-  current_->ClearMatches();
-  matches_inliers_ = 0;
-  if (!bridged_since_) {
-    CCMD_LOG(INFO) << "too few features at frame " << current_->index
-                   << ": placed by its depth alone until they come back";
-    bridged_since_ = current_->timestamp;
-  }
-  bridge_model_ = std::make_shared<const DepthModel>(std::move(model));
-  return true;
-}
-
-bool Tracker::RestartAtBridgedFrame() {
-  if (!bridged_since_ || current_->timestamp - *bridged_since_ < options_.relocalisation_seconds ||
-      !Initialize(current_.get(), current_->T_cam_world.inverse(), /*restart=*/true,
-                  /*tracked=*/true))
-    return false;
-  CCMD_LOG(WARNING) << "frame " << current_->index << " has features again but the map is not "
-                    << "in view: a new map segment starts there, at the pose its depth gave";
-  ++restarts_;
   return true;
 }
 

@@ -6,6 +6,7 @@
 // relocalisation with PnP RANSAC), refines the pose against the local map, and decides
 // whether the frame becomes a keyframe, which it hands to the local mapper.
 
+#include <cmath>
 #include <functional>
 #include <memory>
 #include <optional>
@@ -127,7 +128,9 @@ class Tracker {
   // matches it agrees with. False when fewer than 15 agree.
   bool PoseFromMatchesAlone();
   bool Relocalize();
-  bool TrackLocalMap();
+  // `depth_may_confirm`: a frame with fewer than 30 inliers may be tracked if its depth
+  // confirms their pose (DepthConfirmsPose); not where the depth gave the pose to start from.
+  bool TrackLocalMap(bool depth_may_confirm);
   void UpdateLocalMap();
   // `prior`: a measured pose weighed in beside the matches (FrameDepthPrior).
   int OptimizeCurrentPose(const PosePrior* prior = nullptr);
@@ -153,6 +156,18 @@ class Tracker {
   // model, from the frame's present pose; nullopt when off, without depth, or when the
   // alignment fails or lands far from the features' pose.
   std::optional<PosePrior> FrameDepthPrior() const;
+  // Whether the current frame's depth, aligned with the newest local keyframe's from the pose
+  // the features gave, fits as the sensor measures and moves that pose by less than
+  // kMaxDepthCorrection_*: the condition on which a frame with fewer inliers than ORB-SLAM's 30
+  // (but kMinInliersWithDepth or more) is tracked rather than lost.
+  bool DepthConfirmsPose() const;
+  static constexpr int kMinInliersWithDepth = 15;
+  static constexpr double kMaxDepthCorrection_m = 0.02;
+  static constexpr double kMaxDepthCorrection_rad = 0.5 * M_PI / 180;
+  const Keyframe* NewestLocalKeyframeWithDepth() const;
+  // How far (in the sensor's sigmas) a depth alignment may fit worse than the sensor measures
+  // before its surfaces count as matched wrongly.
+  double AllowedDepthFitSigmas() const;
   // Features lost (a blank wall, motion blur): the frame's depth aligned with the newest
   // keyframe's that has a depth model, from the constant-velocity prediction, places it when the
   // view's geometry fixes every direction of the pose; the local map's points are then searched
