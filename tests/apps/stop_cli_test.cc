@@ -32,6 +32,17 @@ bool ReadUntil(Subprocess* process, const std::string& text) {
   }
 }
 
+// A server on a free loopback port, once it serves; its stderr in dir/server.err.
+StatusOr<Subprocess> StartServer(const testing::TempDir& dir) {
+  CCMD_ASSIGN_OR_RETURN(
+      Subprocess server,
+      Subprocess::Start({ProgramPath("ccmd_server"), "--listen", "127.0.0.1:0", "--journal",
+                         dir.File("journal"), "--out", dir.File("out"), "--no-fsync", "--no-dense"},
+                        "", dir.File("server.err"), /*pipe_stdout=*/true));
+  if (!ReadUntil(&server, "listening on")) return Unavailable("ccmd_server did not start");
+  return server;
+}
+
 // With its server gone, an agent at the end of its source waits for acknowledgements (up to
 // --flush-timeout without progress). Ctrl-C there ends it at once, and says what is lost.
 TEST(StopCliTest, CtrlCWhileTheAgentWaitsForTheServerEndsItAtOnce) {
@@ -55,12 +66,8 @@ TEST(StopCliTest, CtrlCWhileTheAgentWaitsForTheServerEndsItAtOnce) {
 // pending when it wakes, whatever the machine's load.)
 TEST(StopCliTest, ASecondStopSignalEndsTheServerAndPointsAtItsJournal) {
   testing::TempDir dir;
-  auto server =
-      Subprocess::Start({ProgramPath("ccmd_server"), "--listen", "127.0.0.1:0", "--journal",
-                         dir.File("journal"), "--out", dir.File("out"), "--no-fsync", "--no-dense"},
-                        "", dir.File("server.err"), /*pipe_stdout=*/true);
+  auto server = StartServer(dir);
   ASSERT_TRUE(server.ok()) << server.status().ToString();
-  ASSERT_TRUE(ReadUntil(&*server, "listening on"));
   ASSERT_EQ(kill(server->pid(), SIGSTOP), 0);
   ASSERT_TRUE(server->Signal(SIGINT).ok());
   ASSERT_TRUE(server->Signal(SIGTERM).ok());
@@ -75,12 +82,8 @@ TEST(StopCliTest, ASecondStopSignalEndsTheServerAndPointsAtItsJournal) {
 // One signal stops the server cleanly: results written, exit status 0.
 TEST(StopCliTest, OneStopSignalStopsTheServerCleanly) {
   testing::TempDir dir;
-  auto server =
-      Subprocess::Start({ProgramPath("ccmd_server"), "--listen", "127.0.0.1:0", "--journal",
-                         dir.File("journal"), "--out", dir.File("out"), "--no-fsync", "--no-dense"},
-                        "", dir.File("server.err"), /*pipe_stdout=*/true);
+  auto server = StartServer(dir);
   ASSERT_TRUE(server.ok()) << server.status().ToString();
-  ASSERT_TRUE(ReadUntil(&*server, "listening on"));
   ASSERT_TRUE(server->Signal(SIGTERM).ok());
   EXPECT_EQ(server->Wait().exit_code, 0);
   EXPECT_TRUE(FileExists(dir.File("out/trajectory_fused.txt")));
