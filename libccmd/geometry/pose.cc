@@ -66,6 +66,32 @@ Eigen::Vector3d AngleAxisFromRotation(const Eigen::Matrix3d& R) {
   return aa.axis() * aa.angle();
 }
 
+namespace {
+
+// V(omega) of the SE(3) exponential: t = V(omega) * rho for the twist (omega, rho).
+Eigen::Matrix3d ExpJacobian(const Eigen::Vector3d& omega) {
+  const double theta = omega.norm();
+  Eigen::Matrix3d K;
+  K << 0, -omega.z(), omega.y(), omega.z(), 0, -omega.x(), -omega.y(), omega.x(), 0;
+  double a = 0.5, b = 1.0 / 6;  // series at small angles
+  if (theta > 1e-6) {
+    a = (1 - std::cos(theta)) / (theta * theta);
+    b = (theta - std::sin(theta)) / (theta * theta * theta);
+  }
+  return Eigen::Matrix3d::Identity() + a * K + b * K * K;
+}
+
+}  // namespace
+
+Pose MotionPower(const Pose& motion, double fraction) {
+  const Eigen::Vector3d omega = AngleAxisFromRotation(motion.linear());
+  const Eigen::Vector3d rho = ExpJacobian(omega).inverse() * motion.translation();
+  Pose result = Pose::Identity();
+  result.linear() = RotationFromAngleAxis(fraction * omega);
+  result.translation() = ExpJacobian(fraction * omega) * (fraction * rho);
+  return result;
+}
+
 Pose LookAt(const Eigen::Vector3d& eye, const Eigen::Vector3d& target, const Eigen::Vector3d& up) {
   const Eigen::Vector3d z = (target - eye).normalized();
   Eigen::Vector3d x = z.cross(up);

@@ -38,6 +38,12 @@ double TranslationDistance(const Pose& a, const Pose& b);
 Eigen::Matrix3d RotationFromAngleAxis(const Eigen::Vector3d& omega);
 Eigen::Vector3d AngleAxisFromRotation(const Eigen::Matrix3d& R);
 
+// `motion` taken `fraction` times as a screw motion (exp(fraction * log(motion)) on SE(3)): the
+// same axis, that fraction of its turn and of its advance along the axis, so
+// MotionPower(T, 2) = T * T. A motion's translation scaled apart from its rotation would point
+// off by half the turn.
+Pose MotionPower(const Pose& motion, double fraction);
+
 // Camera looking from `eye` towards `target`, with image "up" as close to `up` as
 // possible (camera y points down, so y = -up projected). Returns T_world_cam.
 Pose LookAt(const Eigen::Vector3d& eye, const Eigen::Vector3d& target, const Eigen::Vector3d& up);
